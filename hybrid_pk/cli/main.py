@@ -1,0 +1,53 @@
+"""Entry point of ``hybrid-pk``: one sub-command module per command, one error policy.
+
+Every sub-command module exposes ``register(subparsers)`` which adds its parser and
+sets ``func`` to a callable ``(args) -> int``. Errors of the ``HybridPKError``
+hierarchy (and OS errors such as a missing file) become one line on stderr and exit
+code 2; a traceback is shown only with ``--debug``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from hybrid_pk.errors import HybridPKError
+
+# Sub-command modules, in the order `--help` lists them.
+_COMMANDS = ("hybrid_pk.cli.import_cmd",)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="hybrid-pk",
+        description="Accurate, differentiable kinematics for serial robot arms: "
+        "diagnose, calibrate, learn residuals, solve IK.",
+    )
+    parser.add_argument("--debug", action="store_true", help="show full tracebacks on error")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    import importlib
+
+    for name in _COMMANDS:
+        importlib.import_module(name).register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (HybridPKError, OSError, ValueError) as exc:
+        if args.debug:
+            raise
+        msg = " ".join(str(exc).split())  # one line, whatever the exception carried
+        print(f"hybrid-pk {args.command}: error: {msg}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"hybrid-pk {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,58 @@
+"""One small exception hierarchy for everything raised at the public boundary.
+
+Messages say what was expected, what was found, and where (file, row, column,
+joint name). The CLI prints ``str(error)`` as a single line and exits non-zero.
+"""
+
+from __future__ import annotations
+
+
+class HybridPKError(Exception):
+    """Base class of every error hybrid_pk raises on purpose."""
+
+
+class RobotModelError(HybridPKError):
+    """A URDF or robot name that cannot be turned into a serial chain."""
+
+
+class InvalidFrame(RobotModelError):
+    """A link name that is not in the model; lists the valid names."""
+
+    def __init__(self, name: str, valid: list[str], what: str = "link") -> None:
+        super().__init__(f"unknown {what} {name!r}; valid {what}s: {', '.join(valid)}")
+        self.name = name
+        self.valid = valid
+
+
+class DataError(HybridPKError):
+    """Bad measured data. ``file``, ``row`` (1-based data row) and ``column`` locate it."""
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        file: str | None = None,
+        row: int | None = None,
+        column: str | None = None,
+    ) -> None:
+        self.file = file
+        self.row = row
+        self.column = column
+        self.reason = message
+        where = []
+        if file is not None:
+            where.append(str(file))
+        if row is not None:
+            where.append(f"row {row}")
+        if column is not None:
+            where.append(f"column {column!r}")
+        prefix = ", ".join(where)
+        super().__init__(f"{prefix}: {message}" if prefix else message)
+
+
+class ModelFileError(HybridPKError):
+    """A model file that cannot be loaded, or was made for another robot."""
+
+
+class ShapeError(HybridPKError, ValueError):
+    """A tensor argument with the wrong shape or dtype (says expected and found)."""

@@ -1,0 +1,192 @@
+"""Batched SO(3)/SE(3) helpers on plain tensors.
+
+Shapes: any leading batch shape ``*B``; rotation vectors ``(*B, 3)`` [rad], rotation
+matrices ``(*B, 3, 3)``, homogeneous transforms ``(*B, 4, 4)`` [m], quaternions
+``(*B, 4)`` ordered ``(w, x, y, z)``. Every function is differentiable and finite at
+the identity and at rotations of pi (the two places naive formulas divide by zero).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "matrix_to_quat",
+    "matrix_to_rpy",
+    "quat_to_matrix",
+    "rotation_angle",
+    "rpy_to_matrix",
+    "skew",
+    "so3_exp",
+    "so3_log",
+    "transform",
+    "transform_inverse",
+]
+
+# Below this angle [rad] Taylor series replace the closed forms.
+_SMALL = 1e-4
+
+
+def skew(v: Tensor) -> Tensor:
+    """Cross-product matrix: ``skew(a) @ b == a x b``. ``(*B, 3) -> (*B, 3, 3)``."""
+    x, y, z = v.unbind(-1)
+    o = torch.zeros_like(x)
+    return torch.stack(
+        [torch.stack([o, -z, y], -1), torch.stack([z, o, -x], -1), torch.stack([-y, x, o], -1)],
+        dim=-2,
+    )
+
+
+def _vee_antisym(R: Tensor) -> Tensor:
+    """``vee(R - R^T)`` = ``2 sin(theta) * axis``."""
+    return torch.stack(
+        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1
+    )
+
+
+def so3_exp(w: Tensor) -> Tensor:
+    """Rodrigues: rotation vector ``(*B, 3)`` [rad] -> rotation matrix ``(*B, 3, 3)``."""
+    theta2 = (w * w).sum(-1, keepdim=True).unsqueeze(-1)  # (*B, 1, 1)
+    small = theta2 < _SMALL**2
+    theta2_safe = torch.where(small, torch.ones_like(theta2), theta2)
+    theta = theta2_safe.sqrt()
+    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
+    # (1 - cos t) / t^2 written as 2 sin^2(t/2) / t^2: no cancellation for small t in float32.
+    b = torch.where(small, 0.5 - theta2 / 24, 2 * torch.sin(theta / 2) ** 2 / theta2_safe)
+    K = skew(w)
+    eye = torch.eye(3, dtype=w.dtype, device=w.device).expand_as(K)
+    return eye + a * K + b * (K @ K)
+
+
+def rotation_angle(R: Tensor) -> Tensor:
+    """Angle [rad] in ``[0, pi]`` of rotation matrices ``(*B, 3, 3) -> (*B,)``.
+
+    Uses ``atan2(|sin|, cos)``, accurate at every angle (``acos`` of the trace loses
+    half the digits near 0 and pi).
+    """
+    s = _vee_antisym(R).norm(dim=-1) / 2
+    c = (R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2
+    return torch.atan2(s, c)
+
+
+def so3_log(R: Tensor) -> Tensor:
+    """Rotation matrix ``(*B, 3, 3)`` -> rotation vector ``(*B, 3)`` [rad], angle in [0, pi]."""
+    vee = _vee_antisym(R)  # 2 sin(theta) axis
+    s = vee.norm(dim=-1, keepdim=True) / 2
+    c = ((R.diagonal(dim1=-2, dim2=-1).sum(-1, keepdim=True)) - 1) / 2
+    theta = torch.atan2(s, c)
+
+    # Regular branch: w = theta / (2 sin theta) * vee, with the Taylor form near 0.
+    s_safe = torch.where(s < _SMALL, torch.ones_like(s), s)
+    scale = torch.where(s < _SMALL, 0.5 + theta * theta / 12, theta / (2 * s_safe))
+    w_regular = scale * vee
+
+    # Near pi sin(theta) -> 0 and vee carries no axis: take it from the symmetric part,
+    # (R + R^T)/2 - c I = (1 - c) a a^T, using its largest diagonal entry.
+    eye = torch.eye(3, dtype=R.dtype, device=R.device)
+    M = (R + R.transpose(-1, -2)) / 2 - c.unsqueeze(-1) * eye
+    k = M.diagonal(dim1=-2, dim2=-1).argmax(-1, keepdim=True)  # (*B, 1)
+    col = torch.take_along_dim(M, k.unsqueeze(-1).expand(*k.shape[:-1], 3, 1), dim=-1)[..., 0]
+    axis = col / col.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(R.dtype).tiny)
+    sign = torch.where((axis * vee).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(R.dtype)
+    w_pi = sign * axis * theta
+
+    near_pi = c < -0.9  # theta > ~154 deg: regular branch loses accuracy there
+    return torch.where(near_pi, w_pi, w_regular)
+
+
+def rpy_to_matrix(rpy: Tensor) -> Tensor:
+    """URDF fixed-axis roll-pitch-yaw ``(*B, 3)`` [rad] -> ``Rz(yaw) Ry(pitch) Rx(roll)``."""
+    r, p, y = rpy.unbind(-1)
+    cr, sr, cp, sp, cy, sy = r.cos(), r.sin(), p.cos(), p.sin(), y.cos(), y.sin()
+    return torch.stack(
+        [
+            torch.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),
+            torch.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1),
+            torch.stack([-sp, cp * sr, cp * cr], -1),
+        ],
+        dim=-2,
+    )
+
+
+def matrix_to_rpy(R: Tensor) -> Tensor:
+    """Inverse of :func:`rpy_to_matrix` (pitch in [-pi/2, pi/2]); ``(*B, 3, 3) -> (*B, 3)``.
+
+    At gimbal lock (pitch = +-pi/2) only roll -/+ yaw is defined; the result then still
+    reproduces ``R`` exactly.
+    """
+    yaw = torch.atan2(R[..., 1, 0], R[..., 0, 0])
+    cy, sy = yaw.cos(), yaw.sin()
+    # Undo the yaw: N = Rz(-yaw) R = Ry(pitch) Rx(roll). Its rows have unit norm whatever
+    # the pitch, so roll stays well conditioned near gimbal lock (R[2, 1], R[2, 2] -> 0).
+    n00 = cy * R[..., 0, 0] + sy * R[..., 1, 0]  # = cos(pitch) >= 0
+    n11 = cy * R[..., 1, 1] - sy * R[..., 0, 1]  # = cos(roll)
+    n12 = cy * R[..., 1, 2] - sy * R[..., 0, 2]  # = -sin(roll)
+    pitch = torch.atan2(-R[..., 2, 0], n00)
+    roll = torch.atan2(-n12, n11)
+    return torch.stack([roll, pitch, yaw], -1)
+
+
+def quat_to_matrix(q: Tensor) -> Tensor:
+    """Unit quaternion ``(*B, 4)`` as ``(w, x, y, z)`` -> rotation matrix ``(*B, 3, 3)``.
+
+    The quaternion is normalised first, so ``q`` and ``-q`` give the same matrix.
+    """
+    q = q / q.norm(dim=-1, keepdim=True)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        [
+            torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        dim=-2,
+    )
+
+
+def matrix_to_quat(R: Tensor) -> Tensor:
+    """Rotation matrix ``(*B, 3, 3)`` -> unit quaternion ``(w, x, y, z)`` with ``w >= 0``."""
+    R00, R01, R02 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
+    R10, R11, R12 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
+    R20, R21, R22 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
+    # 4 * (w, x, y, z) * q_k for k = w, x, y, z: four candidate (unnormalised) quaternions;
+    # use per element the one with the largest |q_k|, the best conditioned.
+    tw, tx, ty, tz = (
+        1 + R00 + R11 + R22,
+        1 + R00 - R11 - R22,
+        1 - R00 + R11 - R22,
+        1 - R00 - R11 + R22,
+    )
+    dx, dy, dz = R21 - R12, R02 - R20, R10 - R01
+    sxy, sxz, syz = R01 + R10, R02 + R20, R12 + R21
+    cands = torch.stack(
+        [
+            torch.stack([tw, dx, dy, dz], -1),
+            torch.stack([dx, tx, sxy, sxz], -1),
+            torch.stack([dy, sxy, ty, syz], -1),
+            torch.stack([dz, sxz, syz, tz], -1),
+        ],
+        dim=-2,
+    )  # (*B, 4 candidates, 4)
+    diag = torch.stack([tw, tx, ty, tz], -1)
+    best = diag.argmax(-1, keepdim=True)
+    q = torch.take_along_dim(cands, best.unsqueeze(-1).expand(*best.shape[:-1], 1, 4), dim=-2)
+    q = q[..., 0, :]
+    q = q / q.norm(dim=-1, keepdim=True)
+    return torch.where(q[..., :1] < 0, -q, q)
+
+
+def transform(R: Tensor, p: Tensor) -> Tensor:
+    """Homogeneous transform from rotation ``(*B, 3, 3)`` and translation ``(*B, 3)`` [m]."""
+    batch = torch.broadcast_shapes(R.shape[:-2], p.shape[:-1])
+    top = torch.cat([R.expand(*batch, 3, 3), p.expand(*batch, 3).unsqueeze(-1)], -1)
+    bottom = torch.zeros(*batch, 1, 4, dtype=top.dtype, device=top.device)
+    bottom[..., 0, 3] = 1
+    return torch.cat([top, bottom], -2)
+
+
+def transform_inverse(T: Tensor) -> Tensor:
+    """Inverse of rigid transforms ``(*B, 4, 4)`` without a general matrix inverse."""
+    Rt = T[..., :3, :3].transpose(-1, -2)
+    return transform(Rt, -(Rt @ T[..., :3, 3:])[..., 0])

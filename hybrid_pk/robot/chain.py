@@ -1,0 +1,106 @@
+"""Batched, differentiable product of a serial chain.
+
+Why not pytorch-kinematics' ``forward_kinematics``: its analytic backward returns no
+gradient for the chain's origins when ``q`` requires grad, and calibration needs
+both at once. Here every step is plain autograd, so gradients reach ``q`` and every
+kinematic parameter together.
+
+Each joint's local transform is linear in two scalar functions of ``q``::
+
+    origin · [Rot(a, q) 0; 0 1] = M0 + sin(q) · M1 + (1 - cos(q)) · M2      (revolute)
+    origin · [I  q·a;  0 1]     = M0 + q · M1                                (prismatic)
+
+with ``M1 = origin · [K 0; 0 0]``, ``M2 = origin · [K² 0; 0 0]`` (Rodrigues, ``K``
+the cross matrix of the unit axis ``a``). The constant matrices are computed once
+per call for all joints, then the ``dof`` local transforms multiply in a balanced
+tree (``log2(dof)`` batched matmuls).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from hybrid_pk.geometry import skew, transform
+
+__all__ = ["ChainTerms", "KinematicParams", "chain_terms", "local_transforms", "product"]
+
+
+class KinematicParams(NamedTuple):
+    """Kinematic parameters of a chain with ``dof`` joints (values, not modules).
+
+    Attributes:
+        origin_xyz: ``(dof + 1, 3)`` [m] translation of each origin (see ChainSpec).
+        origin_rot: ``(dof + 1, 3, 3)`` rotation of each origin.
+        axis: ``(dof, 3)`` joint axes in their joint frames (normalised on use).
+    """
+
+    origin_xyz: Tensor
+    origin_rot: Tensor
+    axis: Tensor
+
+
+class ChainTerms(NamedTuple):
+    """Per-joint constant matrices ``M0, M1, M2``: ``(dof, 4, 4)`` each, and the tip."""
+
+    M0: Tensor
+    M1: Tensor
+    M2: Tensor
+    tip: Tensor  # (4, 4) last segment -> end link
+
+
+def chain_terms(params: KinematicParams, revolute: Tensor, fold_tip: bool = False) -> ChainTerms:
+    """Precompute the joint matrices of :func:`local_transforms`.
+
+    Args:
+        params: kinematic parameters.
+        revolute: ``(dof,)`` bool, True for revolute/continuous joints.
+        fold_tip: right-multiply the last joint's matrices by the tip transform, so
+            the product of the local transforms is the end-link pose directly.
+    """
+    origins = transform(params.origin_rot, params.origin_xyz)  # (dof+1, 4, 4)
+    a = params.axis / params.axis.norm(dim=-1, keepdim=True)
+    K = skew(a)
+    dof = a.shape[0]
+    G1 = a.new_zeros(dof, 4, 4)
+    G2 = a.new_zeros(dof, 4, 4)
+    rev = revolute.view(dof, 1, 1)
+    G1[:, :3, :3] = torch.where(rev, K, 0.0)
+    G1[:, :3, 3] = torch.where(revolute.view(dof, 1), 0.0, a)
+    G2[:, :3, :3] = torch.where(rev, K @ K, 0.0)
+    O = origins[:dof]
+    M0, M1, M2, tip = O, O @ G1, O @ G2, origins[dof]
+    if fold_tip:
+        last = torch.stack([M0[-1], M1[-1], M2[-1]]) @ tip
+        M0 = torch.cat([M0[:-1], last[0:1]])
+        M1 = torch.cat([M1[:-1], last[1:2]])
+        M2 = torch.cat([M2[:-1], last[2:3]])
+        tip = torch.eye(4, dtype=tip.dtype, device=tip.device)
+    return ChainTerms(M0, M1, M2, tip)
+
+
+def local_transforms(q: Tensor, terms: ChainTerms, revolute: Tensor) -> Tensor:
+    """Local transform of every joint: ``q (*B, dof) -> (*B, dof, 4, 4)``."""
+    if bool(revolute.all()):  # the common case: skip the per-element selects
+        f1, f2 = torch.sin(q), 1 - torch.cos(q)
+    else:
+        f1 = torch.where(revolute, torch.sin(q), q)
+        f2 = torch.where(revolute, 1 - torch.cos(q), 0.0)
+    out = torch.addcmul(terms.M0, f1[..., None, None], terms.M1)
+    return out.addcmul_(f2[..., None, None], terms.M2)  # fused, no temporaries
+
+
+def product(local: Tensor) -> Tensor:
+    """Ordered product ``local[..., 0, :, :] @ local[..., 1, :, :] @ …``: ``(*B, n, 4, 4)``.
+
+    Pairs neighbours level by level, so ``n`` factors cost about ``log2 n`` batched
+    matmul calls instead of ``n - 1`` (what matters at small batch sizes).
+    """
+    n = local.shape[-3]
+    if n == 1:
+        return local[..., 0, :, :]
+    if n % 2:
+        return product(local[..., : n - 1, :, :]) @ local[..., n - 1, :, :]
+    return product(local[..., 0::2, :, :] @ local[..., 1::2, :, :])

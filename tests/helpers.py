@@ -1,0 +1,138 @@
+"""Shared test helpers: pose/quaternion comparisons, gradient checks, batch shapes.
+
+Comparisons are computed here from first principles (not with ``hybrid_pk.geometry``),
+so a bug in the library cannot hide itself in the check.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+import torch
+from torch import Tensor
+
+# Leading batch shapes every batched function is tested with (jaxlie style).
+BATCH_SHAPES: list[tuple[int, ...]] = [(), (1,), (3, 2)]
+
+
+def _f64(x: Tensor | np.ndarray) -> Tensor:
+    return torch.as_tensor(x).detach().to("cpu", torch.float64)
+
+
+def _worst(err: Tensor) -> str:
+    """Where and how large the largest entry of ``err (*B,)`` is."""
+    if err.ndim == 0:
+        return f"{err.item():.3e}"
+    flat = int(err.argmax())
+    index = tuple(int(i) for i in np.unravel_index(flat, tuple(err.shape)))
+    return f"{err.reshape(-1)[flat].item():.3e} at batch index {index}"
+
+
+def rotation_distance(R_a: Tensor | np.ndarray, R_b: Tensor | np.ndarray) -> Tensor:
+    """Angle [rad] of ``R_a^T R_b`` for rotations ``(*B, 3, 3)``, float64, shape ``(*B,)``.
+
+    Uses ``||R_a - R_b||_F = 2 sqrt(2) sin(theta / 2)``: accurate for small angles,
+    which is where tolerances live.
+    """
+    frob = torch.linalg.matrix_norm(_f64(R_a) - _f64(R_b))
+    return 2 * torch.asin((frob / (2 * math.sqrt(2))).clamp(max=1.0))
+
+
+def assert_transforms_close(
+    T_a: Tensor | np.ndarray,
+    T_b: Tensor | np.ndarray,
+    atol_pos: float,
+    atol_rot: float,
+) -> None:
+    """Assert two batches of rigid transforms ``(*B, 4, 4)`` are the same poses.
+
+    Args:
+        T_a: transforms; translations in the unit of ``atol_pos``.
+        T_b: transforms with the same shape.
+        atol_pos: largest allowed translation distance (unit of the translations).
+        atol_rot: largest allowed rotation angle between the two [rad].
+    """
+    A, B = _f64(T_a), _f64(T_b)
+    assert A.shape == B.shape, f"shapes differ: {tuple(A.shape)} vs {tuple(B.shape)}"
+    assert A.shape[-2:] == (4, 4), f"expected (*B, 4, 4) transforms, got {tuple(A.shape)}"
+    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)
+    for name, T in (("T_a", A), ("T_b", B)):
+        off = (T[..., 3, :] - bottom).abs().amax(-1)
+        assert bool((off == 0).all()), f"{name}: bottom row is not [0, 0, 0, 1]: {_worst(off)}"
+    dpos = torch.linalg.vector_norm(A[..., :3, 3] - B[..., :3, 3], dim=-1)
+    assert bool((dpos <= atol_pos).all()), (
+        f"translations differ by {_worst(dpos)} > atol_pos={atol_pos:.1e}"
+    )
+    drot = rotation_distance(A[..., :3, :3], B[..., :3, :3])
+    assert bool((drot <= atol_rot).all()), (
+        f"rotations differ by {_worst(drot)} rad > atol_rot={atol_rot:.1e}"
+    )
+
+
+def assert_quats_close(q_a: Tensor | np.ndarray, q_b: Tensor | np.ndarray, atol: float) -> None:
+    """Assert unit quaternions ``(*B, 4)`` are the same rotations.
+
+    ``q`` and ``-q`` are the same rotation (double cover), so the distance is
+    ``min(||q_a - q_b||, ||q_a + q_b||)``. Component order does not matter as long as it
+    is the same for both.
+    """
+    a, b = _f64(q_a), _f64(q_b)
+    assert a.shape == b.shape, f"shapes differ: {tuple(a.shape)} vs {tuple(b.shape)}"
+    assert a.shape[-1] == 4, f"expected (*B, 4) quaternions, got {tuple(a.shape)}"
+    dist = torch.minimum(
+        torch.linalg.vector_norm(a - b, dim=-1), torch.linalg.vector_norm(a + b, dim=-1)
+    )
+    assert bool((dist <= atol).all()), f"quaternions differ by {_worst(dist)} > atol={atol:.1e}"
+
+
+def check_gradients(
+    fn: Callable[..., Tensor | tuple[Tensor, ...]],
+    *inputs: object,
+    eps: float = 1e-6,
+    atol: float = 1e-6,
+    rtol: float = 1e-4,
+    gradgrad: bool = False,
+    require_all_used: bool = True,
+) -> None:
+    """Check autograd of ``fn`` against finite differences, in float64.
+
+    Floating-point tensor inputs are cloned to float64 leaves that require grad (so
+    ``fn``'s own tensors, e.g. module parameters, must be float64 too); other inputs
+    are passed as they are. Raises on the first mismatch (``raise_exception=True``).
+
+    Args:
+        fn: function of ``inputs`` returning a tensor or a tuple of tensors.
+        *inputs: arguments of ``fn``.
+        eps: finite-difference step.
+        atol: absolute tolerance of the Jacobian comparison.
+        rtol: relative tolerance of the Jacobian comparison.
+        gradgrad: also check second derivatives with ``gradgradcheck``.
+        require_all_used: also fail when an input gets no gradient at all (unused or
+            detached inside ``fn``), which plain ``gradcheck`` accepts when the finite
+            differences are zero too. Turn off for inputs that legitimately have zero
+            gradient at the test point.
+    """
+    args = tuple(
+        x.detach().to(torch.float64).clone().requires_grad_(True)
+        if isinstance(x, Tensor) and x.is_floating_point()
+        else x
+        for x in inputs
+    )
+    differentiable = [i for i, x in enumerate(args) if isinstance(x, Tensor) and x.requires_grad]
+    assert differentiable, "check_gradients: no floating-point tensor among the inputs"
+    torch.autograd.gradcheck(fn, args, eps=eps, atol=atol, rtol=rtol, raise_exception=True)
+    if gradgrad:
+        torch.autograd.gradgradcheck(fn, args, eps=eps, atol=atol, rtol=rtol, raise_exception=True)
+    if require_all_used:
+        out = fn(*args)
+        outs = out if isinstance(out, tuple) else (out,)
+        gen = torch.Generator().manual_seed(0)
+        # A random weighting of the outputs, so that gradients cannot cancel by symmetry.
+        total = sum((o * torch.rand(o.shape, generator=gen, dtype=o.dtype)).sum() for o in outs)
+        grads = torch.autograd.grad(total, [args[i] for i in differentiable], allow_unused=True)
+        for i, g in zip(differentiable, grads, strict=True):
+            where = f"check_gradients: input {i} (shape {tuple(args[i].shape)})"
+            assert g is not None, f"{where} is not used by fn or is detached inside it"
+            assert bool((g != 0).any()), f"{where} gets an all-zero gradient"
