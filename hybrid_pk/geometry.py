@@ -113,8 +113,8 @@ def rpy_to_matrix(rpy: Tensor) -> Tensor:
 def matrix_to_rpy(R: Tensor) -> Tensor:
     """Inverse of :func:`rpy_to_matrix` (pitch in [-pi/2, pi/2]); ``(*B, 3, 3) -> (*B, 3)``.
 
-    At gimbal lock (pitch = +-pi/2) only roll -/+ yaw is defined; the result then still
-    reproduces ``R`` exactly.
+    At gimbal lock (pitch = +-pi/2) only roll -/+ yaw is defined; the angles returned
+    there still reproduce ``R`` (their gradient there is not meaningful).
     """
     yaw = torch.atan2(R[..., 1, 0], R[..., 0, 0])
     cy, sy = yaw.cos(), yaw.sin()

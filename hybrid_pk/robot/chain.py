@@ -32,9 +32,11 @@ class KinematicParams(NamedTuple):
     """Kinematic parameters of a chain with ``dof`` joints (values, not modules).
 
     Attributes:
-        origin_xyz: ``(dof + 1, 3)`` [m] translation of each origin (see ChainSpec).
-        origin_rot: ``(dof + 1, 3, 3)`` rotation of each origin.
-        axis: ``(dof, 3)`` joint axes in their joint frames (normalised on use).
+        origin_xyz: ``(*P, dof + 1, 3)`` [m] translation of each origin (see ChainSpec).
+        origin_rot: ``(*P, dof + 1, 3, 3)`` rotation of each origin.
+        axis: ``(*P, dof, 3)`` joint axes in their joint frames (normalised on use).
+
+    ``*P`` is usually empty; a leading batch shape gives per-sample parameters.
     """
 
     origin_xyz: Tensor
@@ -43,7 +45,11 @@ class KinematicParams(NamedTuple):
 
 
 class ChainTerms(NamedTuple):
-    """Per-joint constant matrices ``M0, M1, M2``: ``(dof, 4, 4)`` each, and the tip."""
+    """Per-joint constant matrices ``M0, M1, M2``: ``(*P, dof, 4, 4)`` each, and the tip.
+
+    ``*P`` is empty for shared parameters and a batch shape broadcastable with ``q``'s
+    for per-sample parameters.
+    """
 
     M0: Tensor
     M1: Tensor
@@ -55,29 +61,32 @@ def chain_terms(params: KinematicParams, revolute: Tensor, fold_tip: bool = Fals
     """Precompute the joint matrices of :func:`local_transforms`.
 
     Args:
-        params: kinematic parameters.
+        params: kinematic parameters; each may carry leading batch dimensions
+            (per-sample parameters, e.g. thermally scaled links).
         revolute: ``(dof,)`` bool, True for revolute/continuous joints.
         fold_tip: right-multiply the last joint's matrices by the tip transform, so
             the product of the local transforms is the end-link pose directly.
     """
-    origins = transform(params.origin_rot, params.origin_xyz)  # (dof+1, 4, 4)
-    a = params.axis / params.axis.norm(dim=-1, keepdim=True)
+    origins = transform(params.origin_rot, params.origin_xyz)  # (*P, dof+1, 4, 4)
+    a = params.axis / params.axis.norm(dim=-1, keepdim=True)  # (*P, dof, 3)
     K = skew(a)
-    dof = a.shape[0]
-    G1 = a.new_zeros(dof, 4, 4)
-    G2 = a.new_zeros(dof, 4, 4)
+    dof = revolute.shape[0]
     rev = revolute.view(dof, 1, 1)
-    G1[:, :3, :3] = torch.where(rev, K, 0.0)
-    G1[:, :3, 3] = torch.where(revolute.view(dof, 1), 0.0, a)
-    G2[:, :3, :3] = torch.where(rev, K @ K, 0.0)
-    O = origins[:dof]
-    M0, M1, M2, tip = O, O @ G1, O @ G2, origins[dof]
+    zero3 = a.new_zeros(()).expand(*a.shape[:-1], 3, 1)
+    top1 = torch.cat([torch.where(rev, K, 0.0), torch.where(rev, zero3, a[..., None])], -1)
+    top2 = torch.cat([torch.where(rev, K @ K, 0.0), zero3], -1)
+    pad = a.new_zeros(()).expand(*a.shape[:-1], 1, 4)
+    G1 = torch.cat([top1, pad], -2)  # (*P, dof, 4, 4)
+    G2 = torch.cat([top2, pad], -2)
+    O = origins[..., :dof, :, :]
+    M0, M1, M2, tip = O, O @ G1, O @ G2, origins[..., dof, :, :]
     if fold_tip:
-        last = torch.stack([M0[-1], M1[-1], M2[-1]]) @ tip
-        M0 = torch.cat([M0[:-1], last[0:1]])
-        M1 = torch.cat([M1[:-1], last[1:2]])
-        M2 = torch.cat([M2[:-1], last[2:3]])
-        tip = torch.eye(4, dtype=tip.dtype, device=tip.device)
+        last = torch.stack([M0[..., -1, :, :], M1[..., -1, :, :], M2[..., -1, :, :]], -3)
+        last = last @ tip[..., None, :, :]
+        M0 = torch.cat([M0[..., :-1, :, :], last[..., 0:1, :, :]], -3)
+        M1 = torch.cat([M1[..., :-1, :, :], last[..., 1:2, :, :]], -3)
+        M2 = torch.cat([M2[..., :-1, :, :], last[..., 2:3, :, :]], -3)
+        tip = torch.eye(4, dtype=tip.dtype, device=tip.device).expand_as(tip)
     return ChainTerms(M0, M1, M2, tip)
 
 

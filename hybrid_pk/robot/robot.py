@@ -199,6 +199,9 @@ class Robot(nn.Module):
         for i in range(1, self.dof):
             frames.append(frames[-1] @ local[..., i, :, :])
         frames.append(frames[-1] @ terms.tip)
+        if terms.tip.dim() > 2:  # per-sample parameters: frames may broadcast wider than q
+            shape = torch.broadcast_shapes(*(f.shape for f in frames))
+            frames = [f.expand(shape) for f in frames]
         return torch.stack(frames, -3)
 
     def _axes_world(self, frames: Tensor, params: KinematicParams | None) -> Tensor:
