@@ -1,0 +1,21 @@
+"""Physical error effects and the extended model that applies them."""
+
+from hybrid_pk.effects import geometric as _geometric  # noqa: F401  (registers effects)
+from hybrid_pk.effects import joint as _joint  # noqa: F401  (registers effects)
+from hybrid_pk.effects.base import EFFECTS as EFFECTS
+from hybrid_pk.effects.base import Conditions as Conditions
+from hybrid_pk.effects.base import Effect as Effect
+from hybrid_pk.effects.base import approach_direction as approach_direction
+from hybrid_pk.effects.base import make_effect as make_effect
+from hybrid_pk.effects.model import ExtendedModel as ExtendedModel
+from hybrid_pk.effects.model import RigidFrame as RigidFrame
+
+__all__ = [
+    "EFFECTS",
+    "Conditions",
+    "Effect",
+    "ExtendedModel",
+    "RigidFrame",
+    "approach_direction",
+    "make_effect",
+]

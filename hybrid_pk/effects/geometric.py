@@ -1,0 +1,115 @@
+"""Geometric effects: perturbations of the kinematic parameters.
+
+Origin ``k`` (see :class:`~hybrid_pk.robot.ChainSpec`) is the fixed transform in front
+of joint ``k + 1``, so the effect named by joint ``j`` (index ``i``) perturbs origin
+``i``: the link that carries joint ``j``. Origin 0 (in front of the first joint) and
+the tip are indistinguishable from the base and tool frames, which every fit
+estimates, so the first joint has no geometric candidates.
+
+- ``link_length``:       origin translation + dp                  value dp (3,) [m]
+- ``axis_misalignment``: origin rotation · exp(w)                 value w (3,) [rad]
+- ``thermal_expansion``: every origin translation * (1 + alpha (T - T_ref))   [1/K]
+"""
+
+from __future__ import annotations
+
+import torch
+
+from hybrid_pk.effects.base import Conditions, Effect, register
+from hybrid_pk.errors import HybridPKError
+from hybrid_pk.geometry import so3_exp
+from hybrid_pk.robot import KinematicParams
+
+__all__ = ["REFERENCE_TEMPERATURE", "AxisMisalignment", "LinkLength", "ThermalExpansion"]
+
+REFERENCE_TEMPERATURE = 20.0  # [°C] ISO 1 reference temperature of dimensional metrology
+
+
+def _onehot_rows(n: int, index: int, like: torch.Tensor) -> torch.Tensor:
+    e = torch.zeros(n, 1, dtype=like.dtype, device=like.device)
+    e[index] = 1
+    return e
+
+
+@register
+class LinkLength(Effect):
+    kind, unit, stage, scale, shape = "link_length", "m", "geometry", 1e-3, (3,)
+
+    def apply_params(self, params: KinematicParams, cond: Conditions) -> KinematicParams:
+        xyz = params.origin_xyz
+        e = _onehot_rows(xyz.shape[-2], self.joint_index, xyz)
+        return params._replace(origin_xyz=xyz + e * self.value.to(xyz.dtype))
+
+
+@register
+class AxisMisalignment(Effect):
+    """Small rotation ``w`` of the origin in front of the joint, perpendicular to the
+    joint's axis (a rotation about the axis itself is exactly a ``joint_offset``).
+
+    Stored as two components on a basis ``e1, e2`` perpendicular to the axis (joint
+    frame coordinates); reported as the rotation vector ``w = u e1 + v e2`` [rad].
+    """
+
+    kind, unit, stage, scale, shape = "axis_misalignment", "rad", "geometry", 1e-3, (2,)
+
+    def __init__(self, robot, joint: str | None = None, value=None) -> None:
+        super().__init__(robot, joint, None)
+        a = torch.as_tensor(robot.spec.axes[self.joint_index], dtype=robot.dtype)
+        helper = torch.eye(3, dtype=robot.dtype)[int(a.abs().argmin())]
+        e1 = torch.linalg.cross(a, helper)
+        e1 = e1 / e1.norm()
+        self.register_buffer("basis", torch.stack([e1, torch.linalg.cross(a, e1)]))  # (2, 3)
+        if value is not None:
+            v = torch.as_tensor(value, dtype=robot.dtype).reshape(-1)
+            if v.numel() == 3:
+                axial = float(v @ a)
+                if abs(axial) > 1e-12 + 1e-9 * float(v.norm()):
+                    raise HybridPKError(
+                        f"axis_misalignment:{joint} = {v.tolist()} has a component "
+                        f"{axial:.3g} rad about the joint's own axis {a.tolist()}: that is a "
+                        "joint_offset; give only the perpendicular part"
+                    )
+                v = self.basis @ v
+            elif v.numel() != 2:
+                raise HybridPKError(
+                    f"axis_misalignment:{joint} takes a rotation vector of 3 values [rad], "
+                    f"got {v.numel()}"
+                )
+            with torch.no_grad():
+                self.value.copy_(v)
+
+    def rotation_vector(self) -> torch.Tensor:
+        """``(3,)`` the misalignment as a rotation vector in the joint frame [rad]."""
+        return self.value @ self.basis.to(self.value.dtype)
+
+    def report_value(self) -> list[float]:
+        return [float(x) for x in self.rotation_vector().detach().to(torch.float64)]
+
+    def magnitude(self) -> float:
+        return float(self.value.detach().norm())
+
+    def apply_params(self, params: KinematicParams, cond: Conditions) -> KinematicParams:
+        R = params.origin_rot
+        dR = so3_exp(self.rotation_vector().to(R.dtype))
+        e = _onehot_rows(R.shape[-3], self.joint_index, R)[..., None]
+        eye = torch.eye(3, dtype=R.dtype, device=R.device)
+        return params._replace(origin_rot=R @ (eye + e * (dR - eye)))
+
+
+@register
+class ThermalExpansion(Effect):
+    kind, unit, stage, scale, needs = "thermal_expansion", "1/K", "geometry", 1e-5, "temperature"
+    per_joint = False
+
+    def apply_params(self, params: KinematicParams, cond: Conditions) -> KinematicParams:
+        if cond.temperature is None:
+            raise HybridPKError("thermal_expansion needs a temperature column")
+        dT = (cond.temperature - REFERENCE_TEMPERATURE).to(params.origin_xyz.dtype)
+        factor = 1 + self.value * dT[..., None, None]  # (*B, 1, 1)
+        n = params.origin_xyz.shape[-2]
+        batch = dT.shape
+        return KinematicParams(
+            params.origin_xyz * factor,
+            params.origin_rot.expand(*batch, n, 3, 3),
+            params.axis.expand(*batch, *params.axis.shape[-2:]),
+        )

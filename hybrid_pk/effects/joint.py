@@ -1,0 +1,79 @@
+"""Joint-space effects: commanded joint value -> true joint value.
+
+Conventions (contract section 4), per joint ``i``:
+
+- ``joint_offset``:       theta_true = theta + delta                               [rad]
+- ``gear_ratio``:         theta_true = theta * (1 + s)                             [1]
+- ``joint_eccentricity``: theta_true = theta + a sin(theta) + b cos(theta)         [rad]
+- ``backlash``:           theta_true = theta + (b / 2) * approach direction        [rad]
+- ``joint_compliance``:   theta_true = theta + c * tau_gravity(theta_true, payload) [rad/Nm]
+
+``tau_gravity`` is the torque gravity exerts on the joint, i.e. minus the holding
+torque ``Robot.gravity_torques`` returns (pinocchio's ``g(q)``): with ``c > 0`` the
+arm sags under its weight, as a real spring-loaded gearbox does.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from hybrid_pk.effects.base import Conditions, Effect, register
+from hybrid_pk.errors import HybridPKError
+
+__all__ = ["Backlash", "GearRatio", "JointCompliance", "JointEccentricity", "JointOffset"]
+
+
+def _add_to_joint(q: Tensor, index: int, delta: Tensor) -> Tensor:
+    onehot = torch.zeros(q.shape[-1], dtype=q.dtype, device=q.device)
+    onehot[index] = 1
+    return q + delta[..., None] * onehot
+
+
+@register
+class JointOffset(Effect):
+    kind, unit, stage, scale = "joint_offset", "rad", "joint", 1e-3
+
+    def apply_q(self, q: Tensor, cond: Conditions) -> Tensor:
+        return _add_to_joint(q, self.joint_index, self.value.to(q.dtype).expand(q.shape[:-1]))
+
+
+@register
+class GearRatio(Effect):
+    kind, unit, stage, scale = "gear_ratio", "1", "joint", 1e-4
+
+    def apply_q(self, q: Tensor, cond: Conditions) -> Tensor:
+        return _add_to_joint(q, self.joint_index, q[..., self.joint_index] * self.value)
+
+
+@register
+class JointEccentricity(Effect):
+    """Value ``(a, b)`` [rad]; the contract's scalar value is the amplitude sqrt(a² + b²)."""
+
+    kind, unit, stage, scale, shape = "joint_eccentricity", "rad", "joint", 1e-3, (2,)
+
+    def apply_q(self, q: Tensor, cond: Conditions) -> Tensor:
+        th = q[..., self.joint_index]
+        a, b = self.value.to(q.dtype).unbind(-1)
+        return _add_to_joint(q, self.joint_index, a * torch.sin(th) + b * torch.cos(th))
+
+
+@register
+class Backlash(Effect):
+    """Value ``b`` = full play [rad]; needs the approach direction of every sample."""
+
+    kind, unit, stage, scale, needs = "backlash", "rad", "joint", 1e-3, "direction"
+
+    def apply_q(self, q: Tensor, cond: Conditions) -> Tensor:
+        if cond.direction is None:
+            raise HybridPKError("backlash needs the approach direction (rows in acquisition order)")
+        d = cond.direction[..., self.joint_index].to(q.dtype)
+        return _add_to_joint(q, self.joint_index, 0.5 * self.value * d)
+
+
+@register
+class JointCompliance(Effect):
+    """Value ``c`` [rad/Nm]. Solved jointly with the other compliant joints by the model
+    as a fixed point (torques depend on the deflected configuration)."""
+
+    kind, unit, stage, scale = "joint_compliance", "rad/Nm", "compliance", 1e-6
