@@ -164,7 +164,7 @@ def _clone_model(model: ExtendedModel, extra: list[Effect] = ()) -> ExtendedMode
     """Same robot, frames and effect values, plus ``extra`` effects."""
     robot = model.robot
     effects = [make_effect(robot, e.label, e.value.detach().clone()) for e in model.effects]
-    out = ExtendedModel(robot, effects + list(extra))
+    out = ExtendedModel(robot, effects + list(extra), frame_sets=model.base.sets)
     out.base.reset_to(model.base.matrix().detach())
     out.tool.reset_to(model.tool.matrix().detach())
     return out
@@ -225,6 +225,7 @@ def diagnose(
     candidates: list[str] | None = None,
     alpha: float = 1e-3,
     max_causes: int = 8,
+    frames_per_file: bool = False,
     progress: Callable[[str], None] | None = None,
 ) -> Diagnosis:
     """Name the physical causes of the nominal model's errors on ``data``.
@@ -237,18 +238,19 @@ def diagnose(
         candidates: effect labels to consider (default :func:`candidate_labels`).
         alpha: family-wise false-positive rate of the F-tests per step.
         max_causes: stop after this many causes.
+        frames_per_file: give each input file its own base and tool frames.
         progress: called with a short text at each stage.
     """
     say = progress or (lambda _msg: None)
     robot.requires_grad_(False)
-    cond_all = conditions_from_data(data)
+    cond_all = conditions_from_data(data, frames_per_file)
     fit_rows, hold_rows = _split(data.n, holdout, seed)
     train, test = data.subset(fit_rows), data.subset(hold_rows)
     cond_fit, cond_hold = cond_all.subset(fit_rows), cond_all.subset(hold_rows)
     position_only = data.quat is None
 
     say("fitting base and tool frames to the nominal model")
-    model = ExtendedModel(robot)
+    model = ExtendedModel(robot, frame_sets=len(data.sources) if frames_per_file else 1)
     initialise_frames(model, train, cond_fit)
     res = fit(model, train, cond=cond_fit)
     nominal_model = _clone_model(model)

@@ -99,12 +99,14 @@ class FitResult:
         raise KeyError(label)
 
 
-def conditions_from_data(data: MeasuredData) -> Conditions:
-    """Operating conditions of every row: payload, temperature, approach direction."""
+def conditions_from_data(data: MeasuredData, frames_per_file: bool = False) -> Conditions:
+    """Operating conditions of every row: payload, temperature, approach direction, and
+    (with ``frames_per_file``) the file's own base/tool frame set."""
     return Conditions(
         payload=data.payload,
         temperature=data.temperature,
         direction=approach_direction(data.q, data.file_index),
+        group=data.file_index if frames_per_file else None,
     )
 
 
@@ -119,7 +121,7 @@ def _blocks(model: ExtendedModel, free: Sequence[str] | None, position_only: boo
     for name, (label, unit) in frames.items():
         if position_only and name == "tool.rotvec":
             continue  # the tool's orientation is unobservable from points
-        blocks.append(ParamBlock(name, label, 3, model.base.scale, unit))
+        blocks.append(ParamBlock(name, label, 3 * model.base.sets, model.base.scale, unit))
     for i, e in enumerate(model.effects):
         blocks.append(ParamBlock(f"effects.{i}.value", e.label, e.value.numel(), e.scale, e.unit))
     if free is not None:
@@ -129,13 +131,31 @@ def _blocks(model: ExtendedModel, free: Sequence[str] | None, position_only: boo
 
 
 @torch.no_grad()
-def initialise_frames(model: ExtendedModel, data: MeasuredData, cond: Conditions) -> None:
-    """Set base and tool frames to the closed-form registration of ``data``."""
+def initialise_frames(
+    model: ExtendedModel,
+    data: MeasuredData,
+    cond: Conditions,
+    which: str = "frames",
+) -> None:
+    """Set base and/or tool frames to the closed-form registration of ``data``.
+
+    Args:
+        which: ``"frames"`` (both), ``"base"`` or ``"tool"``.
+    """
     T_end = model.end_pose(data.q, cond)
     R_meas = None if data.quat is None else quat_to_matrix(data.quat)
-    base, tool = register_frames(T_end, data.position, R_meas)
-    model.base.reset_to(base)
-    model.tool.reset_to(tool)
+    groups = [None] if model.base.sets == 1 or cond.group is None else range(model.base.sets)
+    for g in groups:
+        rows = slice(None) if g is None else cond.group == g
+        if g is not None and not bool(rows.any()):
+            continue
+        base, tool = register_frames(
+            T_end[rows], data.position[rows], None if R_meas is None else R_meas[rows]
+        )
+        if which in ("frames", "base"):
+            model.base.reset_to(base, g)
+        if which in ("frames", "tool"):
+            model.tool.reset_to(tool, g)
 
 
 class Problem:

@@ -34,17 +34,20 @@ class Conditions:
         payload: ``(*B,)`` [kg] mass at the flange.
         temperature: ``(*B,)`` [°C].
         direction: ``(*B, dof)`` approach direction of each joint: +1, -1, or 0 (unknown).
+        group: ``(*B,)`` long, which base/tool frame set a row uses (its file, when each
+            file has its own frames); None = set 0.
     """
 
     payload: Tensor | None = None
     temperature: Tensor | None = None
     direction: Tensor | None = None
+    group: Tensor | None = None
 
     def subset(self, index: Tensor) -> Conditions:
         return Conditions(*(None if x is None else x[index] for x in self._fields()))
 
     def _fields(self) -> tuple[Tensor | None, ...]:
-        return (self.payload, self.temperature, self.direction)
+        return (self.payload, self.temperature, self.direction, self.group)
 
 
 def approach_direction(q: Tensor, file_index: Tensor | None = None) -> Tensor:

@@ -28,31 +28,47 @@ COMPLIANCE_ITERATIONS = 4
 
 
 class RigidFrame(nn.Module):
-    """A rigid transform ``T = [R0 exp(rotvec) | p0 + dp]`` around an initial guess.
+    """``G`` rigid transforms ``T_g = [R0_g exp(rotvec_g) | p0_g + dp_g]`` around guesses.
 
-    Parameters: ``dp (3,)`` [m], ``rotvec (3,)`` [rad], both zero at the initial guess,
+    One set (``G = 1``) is shared by all rows; several sets serve campaigns whose files
+    were measured with a re-mounted tool or a moved tracker (one set per file).
+
+    Parameters: ``dp (G, 3)`` [m], ``rotvec (G, 3)`` [rad], zero at the initial guess,
     so identification starts at the guess and the parameters stay small.
     """
 
     scale = 1e-3  # conditioning scale of both parameters (mm, mrad)
 
-    def __init__(self, initial: Tensor | None = None, dtype: torch.dtype = torch.float64) -> None:
+    def __init__(
+        self, initial: Tensor | None = None, dtype: torch.dtype = torch.float64, sets: int = 1
+    ) -> None:
         super().__init__()
-        T0 = torch.eye(4, dtype=dtype) if initial is None else initial.to(dtype).clone()
+        if initial is None:
+            T0 = torch.eye(4, dtype=dtype).expand(sets, 4, 4).clone()
+        else:
+            T0 = initial.to(dtype).expand(sets, 4, 4).clone()
         self.register_buffer("T0", T0)
-        self.dp = nn.Parameter(torch.zeros(3, dtype=dtype))
-        self.rotvec = nn.Parameter(torch.zeros(3, dtype=dtype))
+        self.dp = nn.Parameter(torch.zeros(sets, 3, dtype=dtype))
+        self.rotvec = nn.Parameter(torch.zeros(sets, 3, dtype=dtype))
 
-    def matrix(self) -> Tensor:
-        """``(4, 4)`` current transform."""
-        return transform(self.T0[:3, :3] @ so3_exp(self.rotvec), self.T0[:3, 3] + self.dp)
+    @property
+    def sets(self) -> int:
+        return self.T0.shape[0]
+
+    def matrix(self, group: Tensor | None = None) -> Tensor:
+        """``(G, 4, 4)`` current transforms, or ``(*B, 4, 4)`` picked by ``group (*B,)``."""
+        T = transform(self.T0[:, :3, :3] @ so3_exp(self.rotvec), self.T0[:, :3, 3] + self.dp)
+        if group is None:
+            return T
+        return T[group]
 
     @torch.no_grad()
-    def reset_to(self, T: Tensor) -> None:
-        """Make ``T`` the new initial guess and zero the parameters."""
-        self.T0.copy_(T.to(self.T0.dtype))
-        self.dp.zero_()
-        self.rotvec.zero_()
+    def reset_to(self, T: Tensor, index: int | None = None) -> None:
+        """Make ``T`` the new initial guess (of set ``index``, or of all) and zero it."""
+        sl = slice(None) if index is None else slice(index, index + 1)
+        self.T0[sl] = T.to(self.T0.dtype)
+        self.dp[sl] = 0
+        self.rotvec[sl] = 0
 
 
 class ExtendedModel(nn.Module):
@@ -61,8 +77,10 @@ class ExtendedModel(nn.Module):
     Args:
         robot: nominal robot (its own parameters are not changed by fits).
         effects: error effects, each acting on its joint or on the geometry.
-        base: initial ``T_meas_root`` (4, 4); identity when omitted.
-        tool: initial ``T_end_point`` (4, 4); identity when omitted.
+        base: initial ``T_meas_root`` (4, 4) or (G, 4, 4); identity when omitted.
+        tool: initial ``T_end_point`` (4, 4) or (G, 4, 4); identity when omitted.
+        frame_sets: number ``G`` of independent base/tool frame sets; rows pick theirs
+            with ``Conditions.group`` (e.g. one set per measurement file).
     """
 
     def __init__(
@@ -71,11 +89,12 @@ class ExtendedModel(nn.Module):
         effects: list[Effect] | tuple[Effect, ...] = (),
         base: Tensor | None = None,
         tool: Tensor | None = None,
+        frame_sets: int = 1,
     ) -> None:
         super().__init__()
         self.robot = robot
-        self.base = RigidFrame(base, robot.dtype)
-        self.tool = RigidFrame(tool, robot.dtype)
+        self.base = RigidFrame(base, robot.dtype, frame_sets)
+        self.tool = RigidFrame(tool, robot.dtype, frame_sets)
         self.effects = nn.ModuleList(effects)
 
     # ------------------------------------------------------------------ effects
@@ -132,4 +151,9 @@ class ExtendedModel(nn.Module):
     def forward(self, q: Tensor, cond: Conditions | None = None) -> Tensor:
         """``(*B, 4, 4)`` pose of the measured point/frame in the measurement frame."""
         T = self.end_pose(q, cond)
-        return self.base.matrix().to(T.dtype) @ T @ self.tool.matrix().to(T.dtype)
+        group = None if cond is None else cond.group
+        if group is None or self.base.sets == 1:
+            base, tool = self.base.matrix()[0], self.tool.matrix()[0]
+        else:
+            base, tool = self.base.matrix(group), self.tool.matrix(group)
+        return base.to(T.dtype) @ T @ tool.to(T.dtype)

@@ -1,0 +1,288 @@
+"""Virtual measurement campaigns: a robot with hidden errors, measured by a tracker.
+
+One campaign (Ojer et al. 2024, section 4.1, generalised):
+
+1. commanded joints ``q (N, dof)`` from a trajectory (``trajectories.py``);
+2. conditions per row: payload [kg] (always), a smooth warm-up temperature drift [°C]
+   (unless switched off), the approach direction of every joint from the acquisition
+   order (backlash);
+3. unknown frames drawn from the seed: a laser tracker 2-4 m from the robot at any
+   yaw with a small tilt (``T_meas_root``) and a tool 50-200 mm from the flange with
+   any rotation (``T_end_point``); identity when the frames are known;
+4. true poses ``T_meas_root · fk(q_true, params_true) · T_end_point`` from
+   :class:`~hybrid_pk.effects.ExtendedModel` with the injected effects;
+5. Gaussian measurement noise: per position coordinate ``noise_mm`` [mm]; orientation
+   ``R · exp(w)`` with ``w`` per axis ``noise_deg`` [deg].
+
+Every random draw comes from ``seed`` through independent streams (trajectory, frames,
+payload, noise), so the same seed gives the same campaign and no global RNG is used.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+from tqdm import tqdm
+
+from hybrid_pk.data.table import MeasuredData
+from hybrid_pk.effects import Conditions, Effect, ExtendedModel, approach_direction
+from hybrid_pk.errors import HybridPKError
+from hybrid_pk.geometry import (
+    matrix_to_quat,
+    quat_to_matrix,
+    so3_exp,
+    transform,
+    transform_inverse,
+)
+from hybrid_pk.metrics import error_stats, pose_error
+from hybrid_pk.robot import Robot
+from hybrid_pk.simulate.spec import effect_entry, is_hidden_spec, parse_effects
+from hybrid_pk.simulate.trajectories import TRAJECTORIES, iso_cube, make_trajectory
+
+__all__ = ["SIMULATED_SOURCE", "random_frames", "simulate_campaign", "warm_up"]
+
+SIMULATED_SOURCE = "<simulated>"  # MeasuredData.sources of a campaign not yet written
+TRACKER_DISTANCE_M = (2.0, 4.0)  # horizontal distance of the tracker from the robot [m]
+TRACKER_HEIGHT_M = (-0.5, 1.0)  # height of the tracker above the robot root [m]
+TRACKER_TILT_DEG = 2.0  # largest roll/pitch of the tracker frame [deg]
+TOOL_LENGTH_M = (0.05, 0.2)  # distance of the measured point from the flange [m]
+TOOL_CONE_DEG = 60.0  # largest angle of the tool offset from the flange z axis [deg]
+PAYLOAD_BLOCKS = 8  # a payload range is measured in this many blocks of rows
+_CHUNK = 4096  # rows per model evaluation (progress bar steps)
+_STREAMS = ("trajectory", "frames", "payload", "noise")
+
+
+def _streams(seed: int) -> dict[str, torch.Generator]:
+    """Independent torch generators per purpose, spawned from ``seed``."""
+    children = np.random.SeedSequence(int(seed)).spawn(len(_STREAMS))
+    return {
+        name: torch.Generator().manual_seed(int(child.generate_state(1, np.uint64)[0] >> 1))
+        for name, child in zip(_STREAMS, children, strict=True)
+    }
+
+
+def _uniform(gen: torch.Generator, lo: float, hi: float, dtype: torch.dtype) -> float:
+    return lo + (hi - lo) * float(torch.rand((), generator=gen, dtype=dtype))
+
+
+def random_frames(
+    generator: torch.Generator, dtype: torch.dtype = torch.float64
+) -> tuple[Tensor, Tensor]:
+    """A tracker somewhere in the room and a tool on the flange.
+
+    The tracker stands ``TRACKER_DISTANCE_M`` from the robot root (any azimuth), at
+    ``TRACKER_HEIGHT_M``, with any yaw and up to ``TRACKER_TILT_DEG`` roll and pitch.
+    The measured point lies ``TOOL_LENGTH_M`` from the flange, within
+    ``TOOL_CONE_DEG`` of its z axis; the tool frame has a uniformly random rotation.
+
+    Returns:
+        ``(T_meas_root, T_end_point)``, each ``(4, 4)`` [m].
+    """
+    g = generator
+    dist = _uniform(g, *TRACKER_DISTANCE_M, dtype)
+    azimuth = _uniform(g, 0.0, 2 * math.pi, dtype)
+    height = _uniform(g, *TRACKER_HEIGHT_M, dtype)
+    p_root_meas = torch.tensor(
+        [dist * math.cos(azimuth), dist * math.sin(azimuth), height], dtype=dtype
+    )
+    tilt = math.radians(TRACKER_TILT_DEG)
+    roll, pitch = (_uniform(g, -tilt, tilt, dtype) for _ in range(2))
+    yaw = _uniform(g, -math.pi, math.pi, dtype)
+    R_root_meas = (
+        so3_exp(torch.tensor([0.0, 0.0, yaw], dtype=dtype))
+        @ so3_exp(torch.tensor([0.0, pitch, 0.0], dtype=dtype))
+        @ so3_exp(torch.tensor([roll, 0.0, 0.0], dtype=dtype))
+    )
+    T_meas_root = transform_inverse(transform(R_root_meas, p_root_meas))
+
+    length = _uniform(g, *TOOL_LENGTH_M, dtype)
+    cos_cone = _uniform(g, math.cos(math.radians(TOOL_CONE_DEG)), 1.0, dtype)
+    phi = _uniform(g, 0.0, 2 * math.pi, dtype)
+    sin_cone = math.sqrt(1 - cos_cone**2)
+    offset = length * torch.tensor(
+        [sin_cone * math.cos(phi), sin_cone * math.sin(phi), cos_cone], dtype=dtype
+    )
+    quat = torch.randn(4, generator=g, dtype=dtype)  # uniform on SO(3) once normalised
+    T_end_point = transform(quat_to_matrix(quat), offset)
+    return T_meas_root, T_end_point
+
+
+def warm_up(n: int, lo: float, hi: float, dtype: torch.dtype = torch.float64) -> Tensor:
+    """``(n,)`` [°C]: a warm-up from ``lo`` to ``hi`` over the campaign (exponential, 1/3)."""
+    s = torch.linspace(0.0, 1.0, n, dtype=dtype) if n > 1 else torch.zeros(1, dtype=dtype)
+    return lo + (hi - lo) * (1 - torch.exp(-3 * s)) / (1 - math.exp(-3))
+
+
+def _payloads(n: int, payload: float, payload_range, gen, dtype) -> Tensor:
+    """``(n,)`` [kg]: constant, or blocks of rows at levels spread over the range."""
+    if payload_range is None:
+        return torch.full((n,), float(payload), dtype=dtype)
+    lo, hi = payload_range
+    blocks = min(PAYLOAD_BLOCKS, n)
+    levels = torch.linspace(lo, hi, blocks, dtype=dtype)[torch.randperm(blocks, generator=gen)]
+    block_of_row = torch.arange(n) * blocks // n
+    return levels[block_of_row]
+
+
+def _check_args(
+    n, seed, noise_mm, noise_deg, trajectory, payload, payload_range, temperature_range
+):
+    if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 1:
+        raise HybridPKError(f"n must be a positive number of rows, got {n!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
+        raise HybridPKError(f"seed must be an integer >= 0, got {seed!r}")
+    for name, v in (("noise_mm", noise_mm), ("noise_deg", noise_deg), ("payload", payload)):
+        if not (math.isfinite(v) and v >= 0):
+            raise HybridPKError(f"{name} must be a finite number >= 0, got {v}")
+    if trajectory not in TRAJECTORIES:
+        raise HybridPKError(
+            f"unknown trajectory {trajectory!r}; choose one of {', '.join(TRAJECTORIES)}"
+        )
+    if payload_range is not None:
+        lo, hi = payload_range
+        if not (0 <= lo <= hi and math.isfinite(hi)):
+            raise HybridPKError(f"payload range must be 0 <= LO <= HI [kg], got {lo}, {hi}")
+        if payload:
+            raise HybridPKError("give a payload or a payload range, not both")
+    if temperature_range is not None:
+        lo, hi = temperature_range
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+            raise HybridPKError(f"temperature range must be LO <= HI [°C], got {lo}, {hi}")
+
+
+def simulate_campaign(
+    robot: Robot,
+    n: int,
+    effects: str | Sequence[Effect],
+    *,
+    noise_mm: float,
+    noise_deg: float = 0.0,
+    trajectory: str = "random",
+    payload: float = 0.0,
+    payload_range: tuple[float, float] | None = None,
+    temperature_range: tuple[float, float] | None = (20.0, 28.0),
+    position_only: bool = False,
+    known_frames: bool = False,
+    seed: int = 0,
+    progress: bool = False,
+) -> tuple[MeasuredData, dict]:
+    """Simulate a measurement campaign of ``robot`` with hidden error effects.
+
+    Args:
+        robot: the nominal robot; the campaign measures it with ``effects`` added.
+        n: number of rows N.
+        effects: effects to inject, or an ``--effects`` text (:func:`parse_effects`).
+        noise_mm: std of the Gaussian noise of each position coordinate [mm].
+        noise_deg: std of the noise rotation vector, per axis [deg].
+        trajectory: one of ``random``, ``continuous``, ``iso-cube``, ``zigzag``.
+        payload: mass at the flange [kg], the same for every row.
+        payload_range: ``(lo, hi)`` [kg]: the rows come in blocks at payloads spread
+            over the range (instead of ``payload``).
+        temperature_range: ``(start, end)`` [°C] of a warm-up drift over the campaign;
+            None writes no temperature column.
+        position_only: write no orientation (``qw..qz``).
+        known_frames: measure in the robot root frame at the flange (identity frames).
+        seed: every random draw comes from it.
+        progress: show a progress bar on stderr when it takes more than 2 s.
+
+    Returns:
+        ``(data, truth)``: the measured table (float64, one file index, source
+        ``"<simulated>"``) and the truth dict written as ``FILE.truth.json``.
+
+    Raises:
+        HybridPKError: bad arguments, an effect that needs a missing condition, or a
+            Cartesian trajectory the robot cannot reach.
+    """
+    _check_args(n, seed, noise_mm, noise_deg, trajectory, payload, payload_range, temperature_range)
+    n = int(n)
+    streams = _streams(seed)
+    spec = effects if isinstance(effects, str) else None
+    mean_payload = payload if payload_range is None else sum(payload_range) / 2
+    if spec is not None:
+        effects = parse_effects(robot, spec, seed=seed, payload=mean_payload)
+    effects = list(effects)
+    for e in effects:
+        if e.needs == "temperature" and temperature_range is None:
+            raise HybridPKError(f"{e.label} needs a temperature; give a temperature range")
+
+    dt = robot.dtype
+    with torch.no_grad():
+        traj = make_trajectory(robot, trajectory, n, streams["trajectory"])
+        q = traj.q.to(dt)
+        base, tool = random_frames(streams["frames"], dt)
+        if known_frames:
+            base = tool = torch.eye(4, dtype=dt)
+        cond = Conditions(
+            payload=_payloads(n, payload, payload_range, streams["payload"], dt),
+            temperature=None if temperature_range is None else warm_up(n, *temperature_range, dt),
+            direction=approach_direction(q),
+        )
+        true_model = ExtendedModel(robot, effects, base=base, tool=tool)
+        nominal_model = ExtendedModel(robot, [], base=base, tool=tool)
+        T_true = torch.empty(n, 4, 4, dtype=dt)
+        T_nominal = torch.empty(n, 4, 4, dtype=dt)
+        with tqdm(
+            total=n, desc="simulate", unit="row", delay=2.0, file=sys.stderr, disable=not progress
+        ) as bar:
+            for start in range(0, n, _CHUNK):
+                rows = slice(start, min(start + _CHUNK, n))
+                T_true[rows] = true_model(q[rows], cond.subset(rows))
+                T_nominal[rows] = nominal_model(q[rows])
+                bar.update(rows.stop - rows.start)
+
+        noise = streams["noise"]
+        position = T_true[:, :3, 3] + 1e-3 * noise_mm * torch.randn(n, 3, generator=noise, dtype=dt)
+        w = math.radians(noise_deg) * torch.randn(n, 3, generator=noise, dtype=dt)
+        quat = None if position_only else matrix_to_quat(T_true[:, :3, :3] @ so3_exp(w))
+
+    err = pose_error(T_true, T_nominal)
+    data = MeasuredData(
+        q=q,
+        position=position,
+        quat=quat,
+        joint_names=tuple(robot.joint_names),
+        file_index=torch.zeros(n, dtype=torch.long),
+        rows=torch.arange(1, n + 1),
+        sources=(SIMULATED_SOURCE,),
+        t=traj.t,
+        temperature=cond.temperature,
+        payload=cond.payload,
+    )
+    truth = {
+        "robot": robot.name,
+        "n": n,
+        "seed": int(seed),
+        "trajectory": trajectory,
+        "noise_mm": float(noise_mm),
+        "noise_deg": float(noise_deg),
+        "payload": float(mean_payload),
+        "payload_range": None if payload_range is None else [float(v) for v in payload_range],
+        "temperature_range": (
+            None if temperature_range is None else [float(v) for v in temperature_range]
+        ),
+        "position_only": bool(position_only),
+        "known_frames": bool(known_frames),
+        "effects_spec": spec,
+        "effects_hidden": bool(spec is not None and is_hidden_spec(spec)),
+        "effects": [effect_entry(e) for e in effects],
+        "base_frame": base.to(torch.float64).tolist(),
+        "tool_frame": tool.to(torch.float64).tolist(),
+        "dataset_error": {
+            "position_mm": error_stats(err.position_mm).to_dict(),
+            "orientation_deg": error_stats(err.orientation_deg).to_dict(),
+        },
+    }
+    if trajectory in ("iso-cube", "zigzag"):
+        cube = iso_cube(robot)
+        truth["iso_cube"] = {
+            "centre": cube.centre.tolist(),
+            "side": float(cube.side),
+            "rotation": cube.rotation.tolist(),
+            "points": cube.points.tolist(),  # P1..P5 of the end link, root frame [m]
+        }
+    return data, truth
