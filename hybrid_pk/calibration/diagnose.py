@@ -39,7 +39,6 @@ from hybrid_pk.calibration.fit import (
     initialise_frames,
     model_errors,
 )
-from hybrid_pk.calibration.lm import jacobian
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import EFFECTS, Conditions, Effect, ExtendedModel, make_effect
 from hybrid_pk.metrics import error_stats
@@ -273,7 +272,7 @@ def diagnose(
         blocks = _blocks(trial, None, position_only)
         sig_r = res.sigma_rot_rad or 1.0
         problem = Problem(trial, train, cond_fit, blocks, res.sigma_pos_mm, sig_r)
-        r, J = jacobian(problem.residual, torch.zeros_like(problem.x0))
+        r, J = problem.jacobian(torch.zeros_like(problem.x0))
         n_cur = sum(b.size for b in blocks[: len(blocks) - len(pool)])
         J_cur, J_pool = J[:, :n_cur], J[:, n_cur:]
         Q, _ = torch.linalg.qr(J_cur)
@@ -327,7 +326,8 @@ def diagnose(
             break
         say(f"testing {label}")
         new = _clone_model(model, [make_effect(robot, label)])
-        new_res = fit(new, train, cond=cond_fit)
+        sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
+        new_res = fit(new, train, cond=cond_fit, initial_sigma=sigmas)
         # F-test and BIC of the refit, both models' residuals under the same weights.
         ssr_old = _weighted_ssr(model, train, cond_fit, res)
         ssr_new = _weighted_ssr(new, train, cond_fit, res)
@@ -376,7 +376,14 @@ def diagnose(
     causes = []
     for e in model.effects:
         reduced = _without(model, e.label)
-        fit(reduced, train, cond=cond_fit)
+        fit(
+            reduced,
+            train,
+            cond=cond_fit,
+            sigma_pos_mm=res.sigma_pos_mm,
+            sigma_rot_rad=res.sigma_rot_rad,
+            covariance=False,
+        )
         pos_r, ori_r = model_errors(reduced, test, cond_hold)
         sl = res.block_slice(e.label)
         value, std, components = _report_value(e, res.std[sl])

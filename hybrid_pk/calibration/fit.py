@@ -22,7 +22,7 @@ from hybrid_pk.calibration.lm import jacobian, levenberg_marquardt
 from hybrid_pk.calibration.registration import register_frames
 from hybrid_pk.data.table import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, approach_direction
-from hybrid_pk.geometry import quat_to_matrix
+from hybrid_pk.geometry import quat_to_matrix, so3_exp, transform
 from hybrid_pk.metrics import pose_error, position_error_mm
 
 __all__ = [
@@ -158,6 +158,25 @@ def initialise_frames(
             model.tool.reset_to(tool, g)
 
 
+class _EndPose(torch.nn.Module):
+    """``model.end_pose`` as a module forward, for ``functional_call``."""
+
+    def __init__(self, model: ExtendedModel) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, q: Tensor, cond: Conditions) -> Tensor:
+        return self.model.end_pose(q, cond)
+
+
+def _frame_matrix(frame, values: dict, prefix: str, group: Tensor | None) -> Tensor:
+    """A RigidFrame's matrices with parameters taken from ``values`` where present."""
+    dp = values.get(f"{prefix}.dp", frame.dp)
+    rotvec = values.get(f"{prefix}.rotvec", frame.rotvec)
+    T = transform(frame.T0[:, :3, :3] @ so3_exp(rotvec), frame.T0[:, :3, 3] + dp)
+    return T[0] if group is None else T[group]
+
+
 class Problem:
     """The weighted least-squares problem of fitting ``blocks`` of ``model`` to ``data``.
 
@@ -199,6 +218,10 @@ class Problem:
 
     def residual(self, theta: Tensor) -> Tensor:
         T = torch.func.functional_call(self.model, self.unpack(theta), (self.data.q, self.cond))
+        return self.residual_of_pose(T)
+
+    def residual_of_pose(self, T: Tensor) -> Tensor:
+        """Noise-normalised residuals of predicted poses ``T (N, 4, 4)``."""
         res = [((self.data.position - T[:, :3, 3]) * (1000.0 / self.sigma_pos_mm)).reshape(-1)]
         if self.R_meas is not None:
             E = self.R_meas @ T[:, :3, :3].transpose(-1, -2)
@@ -207,6 +230,54 @@ class Problem:
             )
             res.append((0.5 / self.sigma_rot_rad) * vee.reshape(-1))
         return torch.cat(res)
+
+    def jacobian(self, theta: Tensor) -> tuple[Tensor, Tensor]:
+        """Residual ``(m,)`` and Jacobian ``(m, n)`` at ``theta``.
+
+        Frame parameters only compose with the end pose, ``T = B · E · X``, so their
+        columns come from a cheap forward-mode pass over that product with ``E`` held
+        fixed; only effect parameters are pushed through the whole model.
+        """
+        values = self.unpack(theta)
+        frame_cols, effect_cols, start = [], [], 0
+        for b in self.blocks:
+            cols = list(range(start, start + b.size))
+            (frame_cols if b.name.startswith(("base.", "tool.")) else effect_cols).extend(cols)
+            start += b.size
+        model, q, cond = self.model, self.data.q, self.cond
+        group = cond.group if model.base.sets > 1 else None
+        frame_values = {k: v for k, v in values.items() if k.startswith(("base.", "tool."))}
+        effect_values = {k: v for k, v in values.items() if k not in frame_values}
+        end = _EndPose(model)
+        with torch.no_grad():
+            E = torch.func.functional_call(
+                end, {f"model.{k}": v for k, v in effect_values.items()}, (q, cond)
+            )
+
+        def compose(theta_f: Tensor) -> Tensor:
+            full = theta.index_copy(0, torch.tensor(frame_cols), theta_f)
+            vals = self.unpack(full)
+            B = _frame_matrix(model.base, vals, "base", group)
+            X = _frame_matrix(model.tool, vals, "tool", group)
+            return self.residual_of_pose(B @ E @ X)
+
+        def through_model(theta_e: Tensor) -> Tensor:
+            full = theta.index_copy(0, torch.tensor(effect_cols), theta_e)
+            return self.residual(full)
+
+        J = torch.zeros(0)
+        r = None
+        parts = {}
+        if frame_cols:
+            r, parts["f"] = jacobian(compose, theta[frame_cols])
+        if effect_cols:
+            r, parts["e"] = jacobian(through_model, theta[effect_cols])
+        J = torch.zeros(r.numel(), theta.numel(), dtype=theta.dtype)
+        if frame_cols:
+            J[:, frame_cols] = parts["f"]
+        if effect_cols:
+            J[:, effect_cols] = parts["e"]
+        return r, J
 
     @torch.no_grad()
     def write(self, theta: Tensor) -> None:
@@ -224,6 +295,8 @@ def fit(
     sigma_pos_mm: float | None = None,
     sigma_rot_rad: float | None = None,
     max_iter: int = 50,
+    initial_sigma: tuple[float, float | None] | None = None,
+    covariance: bool = True,
 ) -> FitResult:
     """Least-squares fit of the model's frames and effect values to measured data.
 
@@ -235,18 +308,23 @@ def fit(
         cond: operating conditions (default :func:`conditions_from_data`).
         sigma_pos_mm, sigma_rot_rad: noise levels; estimated from the data if omitted.
         max_iter: LM iterations per pass.
+        initial_sigma: ``(sigma_pos_mm, sigma_rot_rad)`` to start the noise
+            re-estimation from (e.g. a previous fit's), which saves passes.
+        covariance: compute standard deviations, correlations and singular values
+            (one more Jacobian); without it those fields are empty.
     """
     cond = cond or conditions_from_data(data)
     position_only = data.quat is None
     blocks = _blocks(model, free, position_only)
-    sig_p = sigma_pos_mm or DEFAULT_SIGMA_POS_MM
-    sig_r = sigma_rot_rad or DEFAULT_SIGMA_ROT_RAD
+    start_p, start_r = initial_sigma or (None, None)
+    sig_p = sigma_pos_mm or start_p or DEFAULT_SIGMA_POS_MM
+    sig_r = sigma_rot_rad or start_r or DEFAULT_SIGMA_ROT_RAD
     iterations, converged = 0, False
     fixed_noise = sigma_pos_mm is not None and (sigma_rot_rad is not None or position_only)
     for _ in range(3):  # fit, re-estimate the noise, refit (at most twice)
         problem = Problem(model, data, cond, blocks, sig_p, sig_r)
         result = levenberg_marquardt(
-            problem.residual, torch.zeros_like(problem.x0), max_iter=max_iter
+            problem.residual, torch.zeros_like(problem.x0), max_iter=max_iter, jac=problem.jacobian
         )
         problem.write(result.x)
         iterations += result.iterations
@@ -267,7 +345,26 @@ def fit(
             break
     # Residuals and Jacobian at the solution with the final weights.
     problem = Problem(model, data, cond, blocks, sig_p, sig_r)
-    r, J = jacobian(problem.residual, torch.zeros_like(problem.x0))
+    pos, ori = model_errors(model, data, cond)
+    if not covariance:
+        empty = torch.zeros(0, dtype=problem.x0.dtype)
+        return FitResult(
+            blocks=blocks,
+            x=problem.x0,
+            std=torch.full_like(problem.x0, float("nan")),
+            corr=empty,
+            singular_values=empty,
+            condition=float("nan"),
+            sigma_pos_mm=sig_p,
+            sigma_rot_rad=None if position_only else sig_r,
+            position_mm=pos,
+            orientation_deg=ori,
+            n_obs=3 * data.n * (1 if position_only else 2),
+            n_params=problem.x0.numel(),
+            iterations=iterations,
+            converged=converged,
+        )
+    r, J = problem.jacobian(torch.zeros_like(problem.x0))
     n_obs, n_par = r.numel(), problem.x0.numel()
     s2 = float(r @ r) / max(n_obs - n_par, 1)
     cov_scaled = torch.linalg.pinv(J.T @ J) * s2
@@ -275,7 +372,6 @@ def fit(
     d = cov_scaled.diagonal().clamp_min(1e-300).sqrt()
     corr = cov_scaled / (d[:, None] * d[None, :])
     sv = torch.linalg.svdvals(J / J.norm(dim=0).clamp_min(1e-300))
-    pos, ori = model_errors(model, data, cond)
     return FitResult(
         blocks=blocks,
         x=problem.x0,

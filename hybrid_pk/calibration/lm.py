@@ -66,6 +66,7 @@ def levenberg_marquardt(
     ftol: float = 1e-10,
     xtol: float = 1e-10,
     lam0: float = 1e-3,
+    jac: Callable[[Tensor], tuple[Tensor, Tensor]] | None = None,
 ) -> LMResult:
     """Minimise ``sum(fun(x)**2)`` from ``x0``.
 
@@ -76,9 +77,11 @@ def levenberg_marquardt(
         ftol: stop when an accepted step lowers the cost by less than this fraction.
         xtol: stop when the step is below this fraction of ``|x| + xtol``.
         lam0: initial damping.
+        jac: ``x -> (residual, Jacobian)``; default forward-mode autodiff of ``fun``.
     """
+    jac = jac or (lambda x: jacobian(fun, x))
     x = x0.detach().clone()
-    r, J = jacobian(fun, x)
+    r, J = jac(x)
     cost = float(r @ r)
     lam, it, converged = lam0, 0, False
     eye = torch.eye(x.numel(), dtype=x.dtype, device=x.device)
@@ -105,7 +108,7 @@ def levenberg_marquardt(
         small_step = float(step.norm()) < xtol * (float(x.norm()) + xtol)
         x = x_new
         lam = max(lam / 10.0, 1e-12)
-        r, J = jacobian(fun, x)
+        r, J = jac(x)
         cost = float(r @ r)
         if rel_drop < ftol or small_step:
             converged = True

@@ -57,6 +57,7 @@ class Robot(nn.Module):
         revolute = [t in ("revolute", "continuous") for t in spec.joint_types]
         self.register_buffer("revolute", torch.tensor(revolute, dtype=torch.bool))
         self._cache: dict[tuple, ChainTerms] = {}
+        self._params_memo: dict[bool, tuple] = {}
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -140,8 +141,21 @@ class Robot(nn.Module):
         def build(p: KinematicParams) -> ChainTerms:
             return chain_terms(KinematicParams(*(t.to(dtype) for t in p)), self.revolute, fold_tip)
 
-        if params is not None:
+        reverse_graph = torch.is_grad_enabled() and any(t.requires_grad for t in params or ())
+        if params is not None and reverse_graph:
             return build(params)
+        if params is not None:
+            # One-slot memo keyed on the params object: callers that pass the same
+            # parameters to several calls (fk plus gravity torques of a compliance
+            # fixed point) build the chain constants once. The entry holds the params
+            # object, so its id cannot be reused while it is cached. Not used when a
+            # reverse-mode graph is built (a second backward would find it freed).
+            memo = self._params_memo.get(fold_tip)
+            if memo is not None and memo[0] is params and memo[1] == dtype:
+                return memo[2]
+            terms = build(params)
+            self._params_memo[fold_tip] = (params, dtype, terms)
+            return terms
         own = (self.origin_xyz, self.origin_rotvec, self.axis)
         if torch.is_grad_enabled() and any(p.requires_grad for p in own):
             return build(self.kinematic_params())  # a cached graph can't be reused by backward

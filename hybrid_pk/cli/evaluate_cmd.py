@@ -1,0 +1,140 @@
+"""``hybrid-pk evaluate MODEL DATA... --json OUT.json``: errors of a model (contract 5)."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+
+from hybrid_pk.calibration.fit import conditions_from_data
+from hybrid_pk.cli.common import (
+    add_data_arguments,
+    data_errors,
+    fit_frames,
+    frame_parameter_count,
+    progress,
+    read_data,
+    stats_line,
+    with_frame_sets,
+    write_json,
+)
+from hybrid_pk.errors import HybridPKError
+from hybrid_pk.metrics import evaluate_json
+from hybrid_pk.model_file import NOMINAL_PREFIX, load_model, model_robot, predict_poses
+
+_DESCRIPTION = """\
+Errors of MODEL on DATA: position error = distance of measured and predicted point
+[mm], orientation error = angle of R_measured R_model^T [deg] (null for position-only
+data); mean, rms, p95 and max. MODEL is a model file or nominal:ROBOT (the URDF as it
+is, identity base and tool frames). The model's own base/tool frames are used unless
+--fit-frames fits them (only them) to DATA first; nominal:ROBOT needs --fit-frames
+unless DATA is the flange measured in the robot base frame.
+JSON: {"n", "position_mm": {mean, rms, p95, max}, "orientation_deg": {...} | null}.
+"""
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add the ``evaluate`` command."""
+    p = subparsers.add_parser(
+        "evaluate",
+        help="position [mm] / orientation [deg] errors of a model on measured data",
+        description=_DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("model", metavar="MODEL", help="model file, or nominal:ROBOT")
+    add_data_arguments(p)
+    p.add_argument(
+        "--json",
+        metavar="OUT.json",
+        help="write the errors: n, position_mm and orientation_deg (mean, rms, p95, max "
+        "in mm and deg)",
+    )
+    p.add_argument(
+        "--fit-frames",
+        action="store_true",
+        help="first fit only the base and tool frames [m, rad] to DATA (effects and networks kept)",
+    )
+    p.add_argument(
+        "--robot", metavar="ROBOT", help="refuse a MODEL made for another robot than ROBOT"
+    )
+    p.add_argument(
+        "--end-link", metavar="NAME", help="end link of nominal:ROBOT (default: the URDF's leaf)"
+    )
+    p.set_defaults(func=_run)
+
+
+def _frame_sets(args: argparse.Namespace, model_sets: int) -> int:
+    files = len(args.data)
+    if args.fit_frames:
+        return files if args.frames_per_file else 1
+    if model_sets > 1 and model_sets != files:
+        raise HybridPKError(
+            f"{args.model} has {model_sets} base/tool frame sets (one per calibration file) "
+            f"but {files} DATA file(s) were given; give one file per set, in the same order, "
+            "or --fit-frames"
+        )
+    if args.frames_per_file and model_sets == 1 and files > 1:
+        raise HybridPKError(
+            f"{args.model} has one base/tool frame set; --frames-per-file needs --fit-frames"
+        )
+    return model_sets
+
+
+def _run(args: argparse.Namespace) -> int:
+    loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
+    robot = model_robot(loaded)
+    robot.requires_grad_(False)
+    sets = _frame_sets(args, loaded.model.base.sets)
+    nominal = args.model.startswith(NOMINAL_PREFIX)
+
+    with progress("evaluate", total=3 if args.fit_frames else 2) as step:
+        step("reading data")
+        n_params = frame_parameter_count(sets, False) if args.fit_frames else None
+        data = read_data(args.data, robot, n_params=n_params, skip_bad_rows=args.skip_bad_rows)
+        cond = conditions_from_data(data, sets > 1)
+        if args.fit_frames:
+            step("fitting base and tool frames")
+            model = with_frame_sets(loaded.model, sets)
+            fit_frames(model, data, cond)
+            loaded = dataclasses.replace(loaded, model=model, frames_fitted=True)
+        step("predicting")
+        T = predict_poses(loaded, data, cond)
+        position, orientation = data_errors(T, data)
+        result = evaluate_json(data.n, position, orientation)
+        if args.json:
+            write_json(args.json, result)
+
+    kind = "nominal URDF" if nominal else f"{len(loaded.model.effects)} effect(s)"
+    if loaded.has_networks:
+        kind += " + residual networks"
+    if args.fit_frames:
+        frames = "frames fitted to DATA"
+    elif loaded.frames_fitted:
+        frames = "frames of the model"
+    else:
+        frames = "identity frames"
+    print(
+        f"evaluated {args.model} ({robot.name}, {kind}, {frames}) on {data.n} rows from "
+        f"{len(data.sources)} file(s)"
+    )
+    if not args.fit_frames and not loaded.frames_fitted:
+        print(
+            "warning: base and tool frames are identity: the errors are only meaningful if "
+            "DATA is the flange measured in the robot base frame; otherwise add --fit-frames"
+        )
+    if (
+        orientation is not None
+        and not args.fit_frames
+        and loaded.metadata.get("orientation_fitted") is False
+    ):
+        print(
+            "warning: the model was calibrated on position-only data, so its tool "
+            "orientation is unknown and part of the orientation errors; add --fit-frames"
+        )
+    print(stats_line("position error [mm]", position))
+    if orientation is not None:
+        print(stats_line("orientation error [deg]", orientation))
+    else:
+        print("orientation error [deg]: none (position-only data)")
+    if args.json:
+        print(f"wrote {args.json}")
+    return 0

@@ -1,0 +1,462 @@
+"""The MODEL file: one self-contained file that ``calibrate`` writes and ``evaluate``,
+``train`` and ``ik`` read.
+
+Format (version 1): :func:`torch.save` of a plain dict, read back with
+``torch.load(..., weights_only=True)`` (no pickled code is ever executed)::
+
+    {"format": "hybrid_pk.model", "version": 1,
+     "robot":   {"name", "urdf" (the URDF *text*), "urdf_path" (where it was read),
+                 "end_link", "joint_names", "dtype",
+                 "params": {"origin_xyz", "origin_rotvec", "axis"} (tensors)},
+     "effects": [{"effect", "joint" (or None), "unit", "value" (internal tensor)}],
+     "frames":  {"sets": G, "fitted": bool,
+                 "base": {"T" (G, 4, 4), "T0", "dp", "rotvec"}, "tool": {...}},
+     "networks": opaque state of residual networks, or None,
+     "metadata": {..., "created": {"time", "hybrid_pk", "torch"}}}
+
+``base.T`` / ``tool.T`` are the frames as matrices (``T_meas_root``, ``T_end_point``);
+``T0, dp, rotvec`` are the exact parameter state, so a loaded model reproduces the
+saved one's ``forward`` bit for bit.
+
+``nominal:ROBOT`` in place of a file gives the URDF as it is, with identity frames.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import importlib
+import os
+import tempfile
+from collections import OrderedDict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from hybrid_pk.data.measured import MeasuredData
+from hybrid_pk.effects import Conditions, ExtendedModel, make_effect
+from hybrid_pk.errors import ModelFileError, RobotModelError
+from hybrid_pk.robot import Robot, load_chain_spec, resolve_urdf
+
+__all__ = [
+    "FORMAT_TAG",
+    "FORMAT_VERSION",
+    "NOMINAL_PREFIX",
+    "LoadedModel",
+    "load_model",
+    "model_robot",
+    "predict_poses",
+    "save_model",
+]
+
+FORMAT_TAG = "hybrid_pk.model"
+FORMAT_VERSION = 1
+NOMINAL_PREFIX = "nominal:"
+_ROBOT_PARAMS = ("origin_xyz", "origin_rotvec", "axis")
+_FRAME_STATE = ("T0", "dp", "rotvec")
+_DTYPES = {"float64": torch.float64, "float32": torch.float32}
+
+
+@dataclass(frozen=True)
+class LoadedModel:
+    """What :func:`load_model` returns.
+
+    Attributes:
+        model: the extended model (robot, effects, base and tool frames).
+        networks: opaque state of the residual networks, exactly as saved; None if none.
+        metadata: free-form information saved with the model (incl. ``"created"``).
+        robot_name: the URDF's robot name.
+        frames_fitted: False when the base/tool frames were never fitted (identity).
+        source: the file path, or ``"nominal:ROBOT"``.
+    """
+
+    model: ExtendedModel
+    networks: dict | None
+    metadata: dict = field(default_factory=dict)
+    robot_name: str = ""
+    frames_fitted: bool = True
+    source: str = ""
+
+    @property
+    def has_networks(self) -> bool:
+        return bool(self.networks)
+
+
+def model_robot(loaded: LoadedModel) -> Robot:
+    """The robot of a loaded model (URDF rebuilt from the file's own copy)."""
+    return loaded.model.robot
+
+
+# ----------------------------------------------------------------------------- saving
+
+
+def _check_plain(value: Any, where: str) -> None:
+    """Refuse what ``torch.load(weights_only=True)`` could not read back (exact types:
+    a ``str`` or ``float`` subclass such as ``numpy.float64`` pickles as its class)."""
+    if value is None or type(value) in (str, bool, int, float) or isinstance(value, Tensor):
+        return
+    if type(value) in (dict, OrderedDict):
+        for k, v in value.items():
+            if type(k) not in (str, int):
+                raise ModelFileError(f"{where}: keys must be str or int, found {type(k).__name__}")
+            _check_plain(v, f"{where}[{k!r}]")
+        return
+    if type(value) in (list, tuple):
+        for i, v in enumerate(value):
+            _check_plain(v, f"{where}[{i}]")
+        return
+    raise ModelFileError(
+        f"{where}: cannot store a {type(value).__name__} in a model file; use tensors, "
+        "Python numbers, strings, lists and dicts (e.g. a module's state_dict())"
+    )
+
+
+def _frame_state(frame) -> dict[str, Tensor]:
+    state = {name: getattr(frame, name).detach().cpu().clone() for name in _FRAME_STATE}
+    state["T"] = frame.matrix().detach().cpu().clone()
+    return state
+
+
+def save_model(
+    path: str | os.PathLike,
+    model: ExtendedModel,
+    *,
+    networks: dict | None = None,
+    metadata: dict | None = None,
+    frames_fitted: bool = True,
+) -> Path:
+    """Write ``model`` (and residual-network state) to one self-contained file.
+
+    Args:
+        path: output file (any suffix; ``.pt`` is customary). Written atomically.
+        model: robot + effects + base/tool frames.
+        networks: state of residual networks (tensors, numbers, strings, lists, dicts),
+            stored and returned by :func:`load_model` as is.
+        metadata: free-form JSON-like information (fit summary, data files, ...).
+        frames_fitted: whether the base/tool frames were estimated (False: identity).
+
+    Raises:
+        ModelFileError: if the robot's URDF cannot be read or an entry is not storable.
+    """
+    path = Path(path)
+    robot = model.robot
+    spec = robot.spec
+    try:
+        urdf_text = Path(spec.urdf_path).read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ModelFileError(
+            f"cannot save the model: its URDF {spec.urdf_path} is not readable ({exc})"
+        ) from exc
+    meta = dict(metadata or {})
+    meta["created"] = {
+        "time": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "hybrid_pk": _version(),
+        "torch": str(torch.__version__),
+    }
+    if networks is not None:
+        _check_plain(networks, "networks")
+    _check_plain(meta, "metadata")
+    payload = {
+        "format": FORMAT_TAG,
+        "version": FORMAT_VERSION,
+        "robot": {
+            "name": spec.name,
+            "urdf": urdf_text,
+            "urdf_path": str(spec.urdf_path),
+            "end_link": spec.end_link,
+            "joint_names": list(spec.joint_names),
+            "dtype": str(robot.dtype).removeprefix("torch."),
+            "params": {n: getattr(robot, n).detach().cpu().clone() for n in _ROBOT_PARAMS},
+        },
+        "effects": [
+            {
+                "effect": e.kind,
+                "joint": e.joint,
+                "unit": e.unit,
+                "value": e.value.detach().cpu().clone(),
+            }
+            for e in model.effects
+        ],
+        "frames": {
+            "sets": model.base.sets,
+            "fitted": bool(frames_fitted),
+            "base": _frame_state(model.base),
+            "tool": _frame_state(model.tool),
+        },
+        "networks": networks,
+        "metadata": meta,
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    os.close(fd)
+    try:
+        torch.save(payload, tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def _version() -> str:
+    from hybrid_pk import __version__
+
+    return __version__
+
+
+# ----------------------------------------------------------------------------- loading
+
+
+def _robot_identity(robot_check: str | Sequence[str], end_link: str | None):
+    """``(name, joint_names)`` a check asks for; either may be None (not checked)."""
+    if not isinstance(robot_check, str):
+        return None, tuple(robot_check)
+    try:
+        path = resolve_urdf(robot_check)
+    except RobotModelError:
+        return robot_check, None  # a bare robot name: compare names only
+    for end in (end_link, None):  # the model's end link may not exist there: joints differ
+        try:
+            spec = load_chain_spec(path, end)
+        except RobotModelError:
+            continue
+        return spec.name, spec.joint_names
+    return robot_check, None  # an unusable URDF: it cannot be the model's robot by name
+
+
+def _check_robot(
+    source: str,
+    name: str,
+    joints: Sequence[str],
+    end_link: str | None,
+    robot_check: str | Sequence[str] | None,
+) -> None:
+    if robot_check is None:
+        return
+    want_name, want_joints = _robot_identity(robot_check, end_link)
+    bad_name = want_name is not None and want_name != name
+    bad_joints = want_joints is not None and tuple(want_joints) != tuple(joints)
+    if not (bad_name or bad_joints):
+        return
+    if isinstance(robot_check, str):
+        wanted = repr(want_name if want_name is not None else robot_check)
+        if bad_joints and not bad_name:
+            wanted += f" (joints {', '.join(want_joints)})"
+    else:
+        wanted = f"joints {', '.join(robot_check)}"
+    what = "model" if source.startswith(NOMINAL_PREFIX) else "model file"
+    raise ModelFileError(
+        f"{what} {source} was made for robot {name!r} (joints {', '.join(joints)}), not {wanted}"
+    )
+
+
+def _urdf_file(text: str, original: str, name: str) -> Path:
+    """A file holding ``text``: the original path if unchanged, else a private copy."""
+    try:
+        if Path(original).read_text(encoding="utf-8") == text:
+            return Path(original)
+    except (OSError, ValueError):
+        pass
+    digest = hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
+    cache = _cache_dir()
+    out = cache / f"{Path(name).name or 'robot'}-{digest}.urdf"
+    if not out.is_file() or out.read_text(encoding="utf-8") != text:
+        fd, tmp = tempfile.mkstemp(dir=cache, suffix=".urdf")
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, out)
+    return out
+
+
+def _cache_dir() -> Path:
+    """Per-user directory for URDF copies (the robot's FK needs a file to read)."""
+    home = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    cache = Path(home) / "hybrid_pk" / "urdf"
+    try:
+        cache.mkdir(parents=True, exist_ok=True)
+        return cache
+    except OSError:
+        return Path(tempfile.mkdtemp(prefix="hybrid_pk_urdf_"))  # read-only home
+
+
+def _load_nominal(spec: str, robot_check, end_link: str | None) -> LoadedModel:
+    name = spec[len(NOMINAL_PREFIX) :]
+    if not name:
+        raise ModelFileError("nominal: needs a robot, e.g. nominal:rx160 or nominal:my.urdf")
+    robot = Robot.from_urdf(name, end_link=end_link)
+    _check_robot(spec, robot.name, robot.joint_names, robot.end_link, robot_check)
+    return LoadedModel(
+        model=ExtendedModel(robot),
+        networks=None,
+        metadata={},
+        robot_name=robot.name,
+        frames_fitted=False,
+        source=spec,
+    )
+
+
+def _read_payload(path: Path) -> dict:
+    if path.is_dir():
+        raise ModelFileError(f"model file {path} is a directory")
+    if not path.is_file():
+        hint = ""
+        if not path.suffix and not path.parent.parts:
+            hint = f" (for the URDF as it is, write nominal:{path})"
+        raise ModelFileError(f"model file not found: {path}{hint}")
+    if path.suffix.lower() == ".urdf":
+        raise ModelFileError(
+            f"{path} is a URDF, not a hybrid_pk model file; write nominal:{path} to use the "
+            "URDF as it is"
+        )
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises UnpicklingError, RuntimeError, EOFError, ...
+        reason = " ".join(str(exc).split())[:160]
+        if "weights only load failed" in reason.lower():
+            reason = "it holds Python objects besides tensors and plain data"
+        raise ModelFileError(
+            f"{path} is not a hybrid_pk model file (cannot be read as one: {reason})"
+        ) from exc
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT_TAG:
+        raise ModelFileError(
+            f"{path} is not a hybrid_pk model file (no {FORMAT_TAG!r} format tag); "
+            "model files are written by 'hybrid-pk calibrate' or 'hybrid-pk train'"
+        )
+    version = payload.get("version")
+    if not isinstance(version, int) or version < 1:
+        raise ModelFileError(f"{path}: corrupt hybrid_pk model file (format version {version!r})")
+    if version > FORMAT_VERSION:
+        raise ModelFileError(
+            f"{path} has model-file format version {version}, this hybrid_pk "
+            f"({_version()}) reads up to version {FORMAT_VERSION}: upgrade hybrid_pk"
+        )
+    return payload
+
+
+def _restore_frame(frame, state: dict) -> None:
+    with torch.no_grad():
+        if all(k in state for k in _FRAME_STATE):
+            for k in _FRAME_STATE:
+                getattr(frame, k).copy_(state[k])
+        else:
+            frame.reset_to(state["T"])
+
+
+def _build(path: Path, payload: dict, robot_check, end_link: str | None) -> LoadedModel:
+    info = payload["robot"]
+    name, joints, end = info["name"], tuple(info["joint_names"]), info["end_link"]
+    _check_robot(str(path), name, joints, end, robot_check)
+    if end_link is not None and end_link != end:
+        raise ModelFileError(f"model file {path} ends at link {end!r}, not {end_link!r}")
+    dtype = _DTYPES.get(info.get("dtype", "float64"))
+    if dtype is None:
+        raise ModelFileError(f"{path}: unsupported dtype {info.get('dtype')!r}")
+    urdf = _urdf_file(info["urdf"], info.get("urdf_path", ""), name)
+    try:
+        robot = Robot.from_urdf(urdf, end_link=end, dtype=dtype)
+    except RobotModelError as exc:
+        raise ModelFileError(f"{path}: its stored URDF cannot be used: {exc}") from exc
+    if tuple(robot.joint_names) != joints:
+        raise ModelFileError(
+            f"{path}: corrupt model file (stored joints {list(joints)}, URDF gives "
+            f"{robot.joint_names})"
+        )
+    with torch.no_grad():
+        for n in _ROBOT_PARAMS:
+            if n in info.get("params", {}):
+                getattr(robot, n).copy_(info["params"][n])
+    effects = []
+    for entry in payload["effects"]:
+        label = entry["effect"] if entry["joint"] is None else f"{entry['effect']}:{entry['joint']}"
+        effects.append(make_effect(robot, label, entry["value"]))
+    frames = payload["frames"]
+    model = ExtendedModel(robot, effects, frame_sets=int(frames["sets"]))
+    _restore_frame(model.base, frames["base"])
+    _restore_frame(model.tool, frames["tool"])
+    return LoadedModel(
+        model=model,
+        networks=payload.get("networks"),
+        metadata=dict(payload.get("metadata") or {}),
+        robot_name=name,
+        frames_fitted=bool(frames.get("fitted", True)),
+        source=str(path),
+    )
+
+
+def load_model(
+    path_or_spec: str | os.PathLike,
+    *,
+    robot_check: str | Sequence[str] | None = None,
+    end_link: str | None = None,
+) -> LoadedModel:
+    """Read a model file, or build ``nominal:ROBOT`` (URDF as it is, identity frames).
+
+    Args:
+        path_or_spec: model file path, or ``"nominal:ROBOT"`` (shipped name or URDF path).
+        robot_check: robot name / URDF path, or joint-name list, the model must be for.
+        end_link: end link of a ``nominal:`` robot (default the URDF's leaf); for a file,
+            it must match the stored one.
+
+    Raises:
+        ModelFileError: missing file, not a model file, newer format version, a corrupt
+            file, or a model made for another robot than ``robot_check``.
+    """
+    spec = os.fspath(path_or_spec)
+    if spec.startswith(NOMINAL_PREFIX):
+        return _load_nominal(spec, robot_check, end_link)
+    path = Path(spec)
+    payload = _read_payload(path)
+    try:
+        return _build(path, payload, robot_check, end_link)
+    except (KeyError, TypeError, IndexError, RuntimeError) as exc:
+        raise ModelFileError(
+            f"{path}: corrupt hybrid_pk model file ({type(exc).__name__}: {exc})"
+        ) from exc
+
+
+# ----------------------------------------------------------------------------- prediction
+
+
+def _hybrid_loader() -> Callable[[LoadedModel], Callable] | None:
+    """``hybrid_pk.hybrid.load_hybrid`` if this installation has it, else None."""
+    try:
+        module = importlib.import_module("hybrid_pk.hybrid")
+    except ModuleNotFoundError as exc:
+        if exc.name in ("hybrid_pk.hybrid", "hybrid_pk"):
+            return None
+        raise
+    return getattr(module, "load_hybrid", None)
+
+
+def predict_poses(loaded: LoadedModel, data: MeasuredData, cond: Conditions) -> Tensor:
+    """``(N, 4, 4)`` predicted pose of the measured point/frame in the measurement frame.
+
+    A model without networks is its :class:`ExtendedModel`. A model with networks is
+    evaluated by ``hybrid_pk.hybrid.load_hybrid(loaded)``, which must return a callable
+    ``(q (N, dof), cond) -> (N, 4, 4)`` (the extended model plus the residual networks).
+
+    Args:
+        loaded: from :func:`load_model`.
+        data: rows to predict (``data.q`` [rad or m]).
+        cond: their operating conditions (``conditions_from_data``).
+
+    Raises:
+        ModelFileError: the model carries networks but this installation cannot run them.
+    """
+    if loaded.has_networks:
+        load_hybrid = _hybrid_loader()
+        if load_hybrid is None:
+            names = ", ".join(map(str, loaded.networks))
+            raise ModelFileError(
+                f"{loaded.source} carries residual networks ({names}) but this installation "
+                "has no hybrid_pk.hybrid.load_hybrid to evaluate them"
+            )
+        predictor = load_hybrid(loaded)
+        with torch.no_grad():
+            return predictor(data.q, cond)
+    with torch.no_grad():
+        return loaded.model(data.q, cond)
