@@ -177,6 +177,28 @@ def _frame_matrix(frame, values: dict, prefix: str, group: Tensor | None) -> Ten
     return T[0] if group is None else T[group]
 
 
+class _GeometricPose(torch.nn.Module):
+    """End pose with geometric effects only, at given true joint values."""
+
+    def __init__(self, model: ExtendedModel) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, q_true: Tensor, cond: Conditions) -> Tensor:
+        return self.model.robot.fk(q_true, params=self.model.kinematic_params(cond))
+
+
+class _KinematicJoints(torch.nn.Module):
+    """``model.kinematic_joint_values`` as a module forward, for ``functional_call``."""
+
+    def __init__(self, model: ExtendedModel) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, q: Tensor, cond: Conditions) -> Tensor:
+        return self.model.kinematic_joint_values(q, cond)
+
+
 class Problem:
     """The weighted least-squares problem of fitting ``blocks`` of ``model`` to ``data``.
 
@@ -232,52 +254,157 @@ class Problem:
         return torch.cat(res)
 
     def jacobian(self, theta: Tensor) -> tuple[Tensor, Tensor]:
-        """Residual ``(m,)`` and Jacobian ``(m, n)`` at ``theta``.
+        """Residual ``(m,)`` and Jacobian ``(m, n)`` at ``theta``, by structure.
 
-        Frame parameters only compose with the end pose, ``T = B · E · X``, so their
-        columns come from a cheap forward-mode pass over that product with ``E`` held
-        fixed; only effect parameters are pushed through the whole model.
+        - Frames compose with the end pose, ``T = B · E · X``: forward mode over that
+          product with ``E`` fixed.
+        - Joint-space effects (and compliance) act through the true joint values
+          ``q*``, the fixed point of ``q = q_kin(theta) - C g(q)``. By the implicit
+          function theorem ``dq*/dtheta = (I + C dg/dq)^-1 (dq_kin/dtheta - dC/dtheta g)``,
+          and the pose follows through the geometric Jacobian at ``q*``.
+        - Geometric effects: forward mode through FK at fixed ``q*`` (their coupling
+          through the gravity torques is second order, ~1e-3 relative, and dropped).
         """
-        values = self.unpack(theta)
-        frame_cols, effect_cols, start = [], [], 0
-        for b in self.blocks:
-            cols = list(range(start, start + b.size))
-            (frame_cols if b.name.startswith(("base.", "tool.")) else effect_cols).extend(cols)
-            start += b.size
-        model, q, cond = self.model, self.data.q, self.cond
+        model, cond = self.model, self.cond
+        saved = {k: v.detach().clone() for k, v in self.params.items()}
+        self.write(theta)
+        try:
+            return self._jacobian_at_current(model, cond)
+        finally:
+            with torch.no_grad():
+                for k, v in saved.items():
+                    self.params[k].copy_(v)
+
+    def _jacobian_at_current(self, model: ExtendedModel, cond: Conditions):
+        q = self.data.q
         group = cond.group if model.base.sets > 1 else None
-        frame_values = {k: v for k, v in values.items() if k.startswith(("base.", "tool."))}
-        effect_values = {k: v for k, v in values.items() if k not in frame_values}
-        end = _EndPose(model)
+        robot = model.robot
         with torch.no_grad():
-            E = torch.func.functional_call(
-                end, {f"model.{k}": v for k, v in effect_values.items()}, (q, cond)
+            params = model.kinematic_params(cond)
+            q_star = model.joint_values(q, cond, params)
+            E = robot.fk(q_star, params=params)
+            B = _frame_matrix(model.base, {}, "base", group)
+            X = _frame_matrix(model.tool, {}, "tool", group)
+            T = B @ E @ X
+            r = self.residual_of_pose(T)
+        n = self.x0.numel()
+        J = torch.zeros(r.numel(), n, dtype=r.dtype)
+        cols: dict[str, list[int]] = {"frame": [], "joint": [], "geometry": []}
+        kinds: dict[str, list] = {"joint": [], "geometry": []}
+        start = 0
+        effects = {f"effects.{i}.value": e for i, e in enumerate(model.effects)}
+        for blk in self.blocks:
+            idx = list(range(start, start + blk.size))
+            start += blk.size
+            if blk.name.startswith(("base.", "tool.")):
+                cols["frame"].extend(idx)
+                continue
+            stage = "geometry" if effects[blk.name].stage == "geometry" else "joint"
+            cols[stage].extend(idx)
+            kinds[stage].append((blk, effects[blk.name]))
+
+        if cols["frame"]:
+            frame_blocks = [b for b in self.blocks if b.name.startswith(("base.", "tool."))]
+
+            def compose(theta_f: Tensor) -> Tensor:
+                vals = self._sub_params(frame_blocks, theta_f)
+                Bf = _frame_matrix(model.base, vals, "base", group)
+                Xf = _frame_matrix(model.tool, vals, "tool", group)
+                return self.residual_of_pose(Bf @ E @ Xf)
+
+            _, J[:, cols["frame"]] = jacobian(
+                compose, torch.zeros(len(cols["frame"]), dtype=r.dtype)
             )
 
-        def compose(theta_f: Tensor) -> Tensor:
-            full = theta.index_copy(0, torch.tensor(frame_cols), theta_f)
-            vals = self.unpack(full)
-            B = _frame_matrix(model.base, vals, "base", group)
-            X = _frame_matrix(model.tool, vals, "tool", group)
-            return self.residual_of_pose(B @ E @ X)
+        if cols["joint"]:
+            dq = self._joint_derivatives(model, cond, q, q_star, params, kinds["joint"])
+            J[:, cols["joint"]] = self._pose_columns(robot, q_star, params, E, B, X, T, dq)
 
-        def through_model(theta_e: Tensor) -> Tensor:
-            full = theta.index_copy(0, torch.tensor(effect_cols), theta_e)
-            return self.residual(full)
+        if cols["geometry"]:
+            geo_blocks = [b for b, _ in kinds["geometry"]]
+            wrapper = _GeometricPose(model)
 
-        J = torch.zeros(0)
-        r = None
-        parts = {}
-        if frame_cols:
-            r, parts["f"] = jacobian(compose, theta[frame_cols])
-        if effect_cols:
-            r, parts["e"] = jacobian(through_model, theta[effect_cols])
-        J = torch.zeros(r.numel(), theta.numel(), dtype=theta.dtype)
-        if frame_cols:
-            J[:, frame_cols] = parts["f"]
-        if effect_cols:
-            J[:, effect_cols] = parts["e"]
+            def through_fk(theta_g: Tensor) -> Tensor:
+                vals = self._sub_params(geo_blocks, theta_g, prefix="model.")
+                pose = torch.func.functional_call(wrapper, vals, (q_star, cond))
+                return self.residual_of_pose(B @ pose @ X)
+
+            _, J[:, cols["geometry"]] = jacobian(
+                through_fk, torch.zeros(len(cols["geometry"]), dtype=r.dtype)
+            )
         return r, J
+
+    def _sub_params(self, blocks, theta_sub: Tensor, prefix: str = "") -> dict[str, Tensor]:
+        """Parameter values of ``blocks`` at scaled offsets ``theta_sub`` from current."""
+        vals, s0 = {}, 0
+        for b in blocks:
+            x = self.params[b.name].detach().reshape(-1)
+            chunk = x + theta_sub[s0 : s0 + b.size] * b.scale
+            vals[prefix + b.name] = chunk.reshape(self.params[b.name].shape)
+            s0 += b.size
+        return vals
+
+    def _joint_derivatives(self, model, cond, q, q_star, params, blocks) -> Tensor:
+        """``dq*/dtheta (N, dof, k)`` for joint-space and compliance parameters."""
+        robot = model.robot
+        n, dof = q.shape
+        payload = 0.0 if cond.payload is None else cond.payload
+        with torch.no_grad():
+            g = robot.gravity_torques(q_star, payload=payload, params=params)  # (N, dof)
+        kin = [(b, e) for b, e in blocks if e.stage == "joint"]
+        dq_kin = None
+        if kin:
+            wrapper = _KinematicJoints(model)
+            kin_blocks = [b for b, _ in kin]
+
+            def q_kin(theta_k: Tensor) -> Tensor:
+                vals = self._sub_params(kin_blocks, theta_k, prefix="model.")
+                return torch.func.functional_call(wrapper, vals, (q, cond)).reshape(-1)
+
+            size = sum(b.size for b in kin_blocks)
+            _, Jk = jacobian(q_kin, torch.zeros(size, dtype=q.dtype))
+            dq_kin = Jk.reshape(n, dof, size)
+        columns, k_col = [], 0
+        for b, e in blocks:  # assemble in block order
+            if e.stage == "compliance":
+                col = torch.zeros(n, dof, 1, dtype=q.dtype)
+                col[:, e.joint_index, 0] = -g[:, e.joint_index] * b.scale  # d(-c g)/dc
+                columns.append(col)
+            else:
+                columns.append(dq_kin[..., k_col : k_col + b.size])
+                k_col += b.size
+        dq = torch.cat(columns, -1)
+        c = model._compliance()
+        if c is not None and bool((c != 0).any()):
+            # q* = q_kin - C g(q*)  =>  (I + C dg/dq) dq* = dq_kin - dC g
+            def grav(d: Tensor) -> Tensor:
+                return robot.gravity_torques(q_star + d, payload=payload, params=params).reshape(-1)
+
+            _, Jg = jacobian(grav, torch.zeros(dof, dtype=q.dtype))
+            G = Jg.reshape(n, dof, dof)
+            M = torch.eye(dof, dtype=q.dtype) + c.detach().to(q.dtype)[:, None] * G
+            dq = torch.linalg.solve(M, dq)
+        return dq
+
+    def _pose_columns(self, robot, q_star, params, E, B, X, T, dq) -> Tensor:
+        """Residual columns ``(m, k)`` from joint-value derivatives ``dq (N, dof, k)``."""
+        with torch.no_grad():
+            Jg = robot.jacobian(q_star, params=params)  # (N, 6, dof): end link, root frame
+            v_end, w = Jg[:, :3, :], Jg[:, 3:, :]
+            lever = ((E @ X)[:, :3, 3] - E[:, :3, 3])[:, :, None]  # end origin -> point
+            v_point = v_end + torch.linalg.cross(w, lever.expand_as(w), dim=1)
+            R_B = B[..., :3, :3]
+            k = dq.shape[-1]
+            cols = [((-1000.0 / self.sigma_pos_mm) * (R_B @ v_point @ dq)).reshape(-1, k)]
+            if self.R_meas is not None:
+                # rotating the model by w: d vee(E - E^T) = -vee(E [w] + [w] E^T)
+                #                                         = -(tr(E) I - E^T) w
+                Er = self.R_meas @ T[:, :3, :3].transpose(-1, -2)
+                tr = Er.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None]
+                A = tr * torch.eye(3, dtype=Er.dtype) - Er.transpose(-1, -2)
+                w_meas = R_B @ w @ dq
+                cols.append(((-0.5 / self.sigma_rot_rad) * (A @ w_meas)).reshape(-1, k))
+            return torch.cat(cols, 0)
 
     @torch.no_grad()
     def write(self, theta: Tensor) -> None:

@@ -124,12 +124,18 @@ class ExtendedModel(nn.Module):
                 params = e.apply_params(params, cond)
         return params
 
-    def joint_values(self, q: Tensor, cond: Conditions | None = None, params=None) -> Tensor:
-        """True joint values ``(*B, dof)`` for commanded ``q``."""
+    def kinematic_joint_values(self, q: Tensor, cond: Conditions | None = None) -> Tensor:
+        """Joint values after the joint-space effects, before compliance: ``q_kin``."""
         cond = cond or Conditions()
         for e in self.effects:
             if e.stage == "joint":
                 q = e.apply_q(q, cond)
+        return q
+
+    def joint_values(self, q: Tensor, cond: Conditions | None = None, params=None) -> Tensor:
+        """True joint values ``(*B, dof)`` for commanded ``q``."""
+        cond = cond or Conditions()
+        q = self.kinematic_joint_values(q, cond)
         c = self._compliance()
         if c is not None:
             payload = 0.0 if cond.payload is None else cond.payload
