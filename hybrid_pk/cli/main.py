@@ -15,7 +15,13 @@ from collections.abc import Sequence
 from hybrid_pk.errors import HybridPKError
 
 # Sub-command modules, in the order `--help` lists them.
-_COMMANDS = ("hybrid_pk.cli.simulate_cmd", "hybrid_pk.cli.import_cmd")
+_COMMANDS = (
+    "hybrid_pk.cli.simulate_cmd",
+    "hybrid_pk.cli.diagnose_cmd",
+    "hybrid_pk.cli.calibrate_cmd",
+    "hybrid_pk.cli.evaluate_cmd",
+    "hybrid_pk.cli.import_cmd",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

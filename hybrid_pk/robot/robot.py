@@ -59,6 +59,12 @@ class Robot(nn.Module):
         self._cache: dict[tuple, ChainTerms] = {}
         self._params_memo: dict[bool, tuple] = {}
 
+    def __getstate__(self) -> dict:
+        # Caches may hold tensors of a finished functorch transform: never pickle them.
+        state = self.__dict__.copy()
+        state["_cache"], state["_params_memo"] = {}, {}
+        return state
+
     # ------------------------------------------------------------------ construction
     @classmethod
     def from_urdf(

@@ -1,0 +1,331 @@
+"""The human report of a diagnosis: ``report.md`` and the PNG plots it links.
+
+Sections: error table nominal -> extended with histograms (hold-out rows); the named
+causes with one plot each that shows the cause's law in the measured residuals (see
+:mod:`hybrid_pk.report.evidence`); ambiguities; what is left unexplained, plotted
+against every joint; identifiability; the selection log.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from hybrid_pk.calibration.fit import conditions_from_data, model_errors
+from hybrid_pk.data.measured import MeasuredData
+from hybrid_pk.errors import HybridPKError
+from hybrid_pk.report.evidence import Evidence, cause_evidence, cause_label
+from hybrid_pk.report.markdown import fmt, image, markdown_table, stats_table, value_with_std
+from hybrid_pk.report.plots import error_histograms, evidence_plot, residual_scan
+from hybrid_pk.robot import Robot
+
+__all__ = ["LARGE_CONDITION_NUMBER", "plot_cause_evidence", "write_diagnosis_report"]
+
+# Condition numbers above this make the report warn: some parameters trade off.
+LARGE_CONDITION_NUMBER = 1e4
+# Mean of the norm of a 3D isotropic Gaussian, in units of its per-axis sigma: sqrt(8/pi).
+_NORM_MEAN_3D = math.sqrt(8.0 / math.pi)
+
+
+def plot_cause_evidence(diagnosis, data: MeasuredData, cause, path: str | Path) -> Evidence:
+    """Draw the evidence plot of one cause to ``path`` and return what it shows.
+
+    With a single cause, the plot also says how much of the law the nominal model's
+    own residual shows (its frames absorb part of it); with several causes that number
+    would mix in the others' errors, so it is left out.
+    """
+    nominal = diagnosis.nominal_model if len(diagnosis.causes) == 1 else None
+    evidence = cause_evidence(cause, data, diagnosis.model, nominal)
+    evidence_plot(evidence, path)
+    return evidence
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9]+", "_", text).strip("_").lower()
+
+
+def _holdout_errors(diagnosis, data: MeasuredData):
+    """Per-row errors of the nominal and the extended model on the hold-out rows."""
+    cond = conditions_from_data(data, diagnosis.model.base.sets > 1)  # order-aware: all rows
+    rows = diagnosis.holdout_rows
+    test, cond_test = data.subset(rows), cond.subset(rows)
+    return (
+        model_errors(diagnosis.nominal_model, test, cond_test),
+        model_errors(diagnosis.model, test, cond_test),
+    )
+
+
+def _cause_rows(diagnosis) -> list[list[object]]:
+    rows = []
+    for c in diagnosis.causes:
+        value = value_with_std(c.value, c.std, c.unit)
+        if c.components is not None:
+            value += f" (components {fmt(c.components)})"
+        rows.append([c.effect, c.joint or "-", value, c.position_gain_mm, c.orientation_gain_deg])
+    return rows
+
+
+def _evidence_section(diagnosis, data, out: Path) -> list[str]:
+    lines = ["## Evidence for each cause", ""]
+    if not diagnosis.causes:
+        return [*lines, "No cause: the nominal model's errors are measurement noise.", ""]
+    lines += [
+        "Each plot starts from the measured positions. The points are the residual of "
+        "the diagnosed model *without* the cause (URDF + base and tool frames + the "
+        "other causes), reduced to the quantity the cause's law predicts; the red line "
+        "is the law with the diagnosed value, the black dots the binned median of the "
+        "points. A real cause makes the medians follow the line; a spurious one leaves "
+        "a flat cloud around zero. (The nominal model's own residual is not used: its "
+        "frames, fitted without any cause, absorb part of some effects and flatten "
+        "their law.)",
+        "",
+    ]
+    for i, cause in enumerate(diagnosis.causes, start=1):
+        label = cause_label(cause)
+        lines += [f"### {i}. {label}", ""]
+        path = out / f"evidence_{i:02d}_{_slug(label)}.png"
+        try:
+            ev = plot_cause_evidence(diagnosis, data, cause, path)
+        except HybridPKError as exc:
+            lines += [f"No evidence plot: {exc}.", ""]
+            continue
+        lines += [
+            f"Law: {ev.law}. Diagnosed value {value_with_std(cause.value, cause.std, cause.unit)};"
+            f" the same law fitted to the plotted points alone gives {fmt(ev.points_value)} "
+            f"{ev.unit} ({ev.x.size} points).",
+            "",
+        ]
+        if ev.nominal_points_value is not None and ev.value != 0:
+            share = 100.0 * ev.nominal_points_value / ev.value
+            lines += [
+                f"In the nominal model's residual the law shows {fmt(ev.nominal_points_value)} "
+                f"{ev.unit} ({share:.0f} % of the diagnosed value): the frames fitted "
+                "without the cause absorb the rest.",
+                "",
+            ]
+        lines += [image(path, f"evidence for {label}", out), "", f"Test: {cause.evidence}.", ""]
+    return lines
+
+
+def _what_is_left(diagnosis, data, robot: Robot, out: Path, ext) -> list[str]:
+    rows = diagnosis.holdout_rows
+    test = data.subset(rows)
+    variables = {
+        f"{name} [deg]" if robot.joint_types[j] != "prismatic" else f"{name} [mm]": (
+            np.degrees(test.q[:, j].numpy())
+            if robot.joint_types[j] != "prismatic"
+            else 1e3 * test.q[:, j].numpy()
+        )
+        for j, name in enumerate(robot.joint_names)
+    }
+    for column, label in (("temperature", "temperature [°C]"), ("payload", "payload [kg]")):
+        values = getattr(test, column)
+        if values is not None and float(values.max() - values.min()) > 0:
+            variables[label] = values.numpy()
+    errors = {"position error [mm]": ext[0]}
+    if ext[1] is not None:
+        errors["orientation error [deg]"] = ext[1]
+    noise = diagnosis.identifiability.get("noise_estimate", {})
+    reference = {}
+    if noise.get("position_mm"):
+        reference["position error [mm]"] = _NORM_MEAN_3D * noise["position_mm"]
+    if noise.get("orientation_rad"):
+        reference["orientation error [deg]"] = math.degrees(
+            _NORM_MEAN_3D * noise["orientation_rad"]
+        )
+    un = diagnosis.unexplained
+    verdict = "structured" if un.get("structured") else "no structure found"
+    path = residual_scan(
+        variables,
+        errors,
+        out / "residual_left.png",
+        reference,
+        title=f"extended model, hold-out rows: {verdict}",
+    )
+    corr = un.get("neighbour_correlation")
+    text = (
+        "**Structured: yes.** Neighbouring configurations share their residuals, so a "
+        "smooth error is left that no named cause explains (an unmodelled effect, or "
+        "one for the residual networks)."
+        if un.get("structured")
+        else "**Structured: no.** The residuals of neighbouring configurations are not "
+        "correlated: what is left looks like measurement noise."
+    )
+    lines = [
+        "## What is left",
+        "",
+        f"RMS of the extended model on the hold-out rows: {fmt(un.get('position_mm_rms'))} mm,"
+        f" {fmt(un.get('orientation_deg_rms'))} deg. {text}"
+        + (f" (neighbour correlation {fmt(corr, 3)})" if corr is not None else ""),
+        "",
+        "Hold-out errors against each joint (black: binned median; dashed red: the mean "
+        "error measurement noise alone would give). Flat medians on the dashed line mean "
+        "nothing structured remains.",
+        "",
+        image(path, "hold-out errors of the extended model against each joint", out),
+        "",
+    ]
+    return lines
+
+
+def _identifiability(diagnosis) -> list[str]:
+    ident = diagnosis.identifiability
+    cond = ident.get("condition_number")
+    noise = ident.get("noise_estimate", {})
+    rows = [
+        ["fitted parameters", ident.get("n_parameters")],
+        ["condition number (unit-norm columns)", cond],
+        ["observability index", ident.get("observability_index")],
+        ["noise estimate, position [mm per axis]", noise.get("position_mm")],
+        [
+            "noise estimate, orientation [deg per axis]",
+            None
+            if noise.get("orientation_rad") is None
+            else math.degrees(noise["orientation_rad"]),
+        ],
+    ]
+    lines = ["## Identifiability", ""]
+    warnings = []
+    if cond is not None and cond > LARGE_CONDITION_NUMBER:
+        warnings.append(
+            f"condition number {fmt(cond)} > {LARGE_CONDITION_NUMBER:g}: some fitted "
+            "parameters trade off against each other in this data"
+        )
+    if diagnosis.ambiguous:
+        warnings.append(
+            f"{len(diagnosis.ambiguous)} ambiguous group(s): this data cannot tell "
+            "their members apart (see below)"
+        )
+    lines += [f"> **Warning:** {w}." for w in warnings]
+    if warnings:
+        lines.append("")
+    lines += [markdown_table(rows, ["quantity", "value"], ["l", "r"])]
+    lines += ["### Ambiguous groups", ""]
+    if diagnosis.ambiguous:
+        amb = [[", ".join(a["effects"]), a["why"]] for a in diagnosis.ambiguous]
+        lines.append(markdown_table(amb, ["effects", "why"], ["l", "l"]))
+    else:
+        lines += ["None.", ""]
+    unobservable = ident.get("unobservable_candidates") or []
+    lines += [
+        "### Unobservable candidates",
+        "",
+        (
+            "No signature at all in this data: " + ", ".join(unobservable) + "."
+            if unobservable
+            else "None."
+        ),
+        "",
+    ]
+    return lines
+
+
+def _selection_log(diagnosis) -> list[str]:
+    if not diagnosis.steps:
+        return []
+    rows = [
+        [
+            s.get("candidate"),
+            s.get("score_F"),
+            s.get("score_p"),
+            s.get("threshold"),
+            s.get("fit_F"),
+            s.get("delta_bic"),
+            s.get("accepted"),
+            s.get("why", ""),
+        ]
+        for s in diagnosis.steps
+    ]
+    headers = ["candidate", "score F", "score p", "threshold", "refit F", "ΔBIC", "accepted", "why"]
+    return [
+        "## Selection log",
+        "",
+        "Forward selection: at each step the best-scoring candidate is refitted and kept "
+        "only if its F-test passes the Bonferroni threshold, BIC drops and the hold-out "
+        "error drops.",
+        "",
+        markdown_table(rows, headers, ["l", "r", "r", "r", "r", "r", "l", "l"]),
+    ]
+
+
+def write_diagnosis_report(
+    diagnosis, data: MeasuredData, robot: Robot, out_dir: str | Path
+) -> Path:
+    """Write ``out_dir/report.md`` and its PNG plots for a diagnosis.
+
+    Args:
+        diagnosis: result of :func:`hybrid_pk.calibration.diagnose.diagnose`.
+        data: the rows it was computed on (same order).
+        robot: the nominal robot.
+        out_dir: folder to write to (created); image links are relative to it.
+
+    Returns:
+        Path of ``report.md``.
+
+    Raises:
+        HybridPKError: if ``data`` is not the data of the diagnosis.
+    """
+    if data.n != diagnosis.n_samples:
+        raise HybridPKError(
+            f"the diagnosis was computed on {diagnosis.n_samples} rows, the data has {data.n}"
+        )
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    with torch.no_grad():
+        nom, ext = _holdout_errors(diagnosis, data)
+    hist = error_histograms(
+        nom,
+        ext,
+        ("nominal", "extended"),
+        out / "error_histograms.png",
+        title=f"hold-out errors ({diagnosis.n_holdout} rows)",
+    )
+    sources = ", ".join(f"`{s}`" for s in data.sources)
+    lines = [
+        f"# Diagnosis of {diagnosis.robot}",
+        "",
+        f"{diagnosis.n_samples} measured rows from {sources}; {diagnosis.n_holdout} hold-out "
+        f"rows (kept out of every fit) compare the models. Position-only data: "
+        f"{'yes' if data.quat is None else 'no'}.",
+        "",
+        "- **nominal**: the URDF with only the base and tool frames fitted.",
+        "- **extended**: the URDF with frames and every cause below.",
+        "",
+        "## Errors on the hold-out rows",
+        "",
+        stats_table({"nominal": diagnosis.nominal, "extended": diagnosis.extended}),
+        image(hist, "hold-out error histograms, nominal vs extended", out),
+        "",
+        "## Causes",
+        "",
+    ]
+    if diagnosis.causes:
+        lines += [
+            "Ordered by gain: how much the hold-out mean error grows when the cause is "
+            "left out and the rest refitted.",
+            "",
+            markdown_table(
+                _cause_rows(diagnosis),
+                ["effect", "joint", "value ± std", "position gain [mm]", "orientation gain [deg]"],
+                ["l", "l", "l", "r", "r"],
+            ),
+        ]
+    else:
+        lines += ["None: no effect beyond measurement noise is statistically supported.", ""]
+    if diagnosis.ambiguous:
+        lines += [
+            f"Ambiguities: {len(diagnosis.ambiguous)} group(s), see "
+            "[Identifiability](#identifiability).",
+            "",
+        ]
+    lines += _evidence_section(diagnosis, data, out)
+    lines += _what_is_left(diagnosis, data, robot, out, ext)
+    lines += _identifiability(diagnosis)
+    lines += _selection_log(diagnosis)
+    path = out / "report.md"
+    path.write_text("\n".join(lines).rstrip() + "\n", encoding="utf-8")
+    return path
