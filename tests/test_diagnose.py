@@ -271,3 +271,20 @@ def test_identification_within_reported_3_sigma_in_repeated_trials():
     assert np.all(np.abs(z) < 3), f"z-scores beyond 3 sigma: {np.round(z, 2)}"
     # The reported sigma is honest, not inflated: the spread of z is about 1.
     assert 0.4 < z.std() < 1.8, f"z spread {z.std():.2f}: sigma mis-estimated ({np.round(z, 2)})"
+
+
+def test_candidate_made_redundant_by_a_chosen_effect_scores_sanely():
+    """Regression: after joint_offset:joint_3 is chosen on the RX160, the misalignment of
+    joint_4 about y (a rotation of a zero-length origin about the parallel joint-3 axis)
+    is the same motion. Its rank-deficient signature once scored F = 1e304 and hid the
+    real second effect (a joint-1 gear ratio)."""
+    robot = _robot("rx160")
+    effects = [
+        make_effect(robot, "joint_offset:joint_3", 9e-4),
+        make_effect(robot, "gear_ratio:joint_1", 2.3e-4),
+    ]
+    data, _ = simulate_campaign(robot, 1000, effects, noise_mm=0.02, noise_deg=0.002, seed=3)
+    diag = diagnose(robot, data, seed=3)
+    named = {f"{c.effect}:{c.joint}" for c in diag.causes}
+    assert named == {"joint_offset:joint_3", "gear_ratio:joint_1"}, diag.steps
+    assert all(s["score_F"] < 1e12 for s in diag.steps), diag.steps

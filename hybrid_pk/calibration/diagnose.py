@@ -51,6 +51,11 @@ __all__ = ["Cause", "Diagnosis", "candidate_labels", "diagnose"]
 EQUIVALENCE_FRACTION = 1e-8
 # Signatures more alike than this (|cosine| of the projected columns) are ambiguous.
 AMBIGUITY_COSINE = 0.98
+# Singular values of a candidate's projected signature below this fraction of its own
+# norm are directions the current model already explains.
+RANK_TOLERANCE = 1e-4
+# A candidate whose refit fails is set aside; the search stops after this many in a row.
+MAX_REJECTED_IN_A_ROW = 2
 # Estimates correlated beyond this are reported as an ambiguous group.
 AMBIGUITY_CORRELATION = 0.95
 # Temperature must vary by at least this much [K] for thermal expansion to be tested.
@@ -266,6 +271,7 @@ def diagnose(
     steps: list[dict] = []
     unobservable: list[str] = []
     first_step = True
+    rejected_in_a_row = 0
     while pool and len(model.effects) < max_causes:
         say(f"scoring {len(pool)} candidate effects (step {len(steps) + 1})")
         trial = _clone_model(model, [make_effect(robot, c) for c in pool])
@@ -301,10 +307,17 @@ def diagnose(
                         }
                     )
                 continue
-            sol = torch.linalg.lstsq(Jp, r[:, None]).solution
-            fitted = (Jp @ sol)[:, 0]  # the correction this candidate would make
-            drop = float(fitted @ fitted)
-            k = b.size
+            # Rank-revealing projection: directions of the candidate that the model
+            # already explains (e.g. a misalignment about a neighbouring parallel axis
+            # after that joint's offset was chosen) carry no information.
+            U, S, _ = torch.linalg.svd(Jp, full_matrices=False)
+            keep = S > RANK_TOLERANCE * float(Jc.norm())
+            k = int(keep.sum())
+            if k == 0:
+                continue
+            Ur = U[:, keep]
+            fitted = Ur @ (Ur.T @ r)  # the correction this candidate would make
+            drop = min(float(fitted @ fitted), ssr)
             F = (drop / k) / max((ssr - drop) / max(m - n_cur - k, 1), 1e-300)
             p = float(stats.f.sf(F, k, max(m - n_cur - k, 1)))
             # Rank significant candidates by BIC gain: among equally certain ones
@@ -352,7 +365,12 @@ def diagnose(
         steps.append(step)
         if not ok:
             step["why"] = "refit not significant, BIC not lower, or hold-out not better"
-            break
+            rejected_in_a_row += 1
+            pool = [c for c in pool if c != label]
+            if rejected_in_a_row >= MAX_REJECTED_IN_A_ROW:
+                break
+            continue
+        rejected_in_a_row = 0
         # Near-duplicates among the remaining candidates make this choice ambiguous.
         fitted = projected[label][1]
         for other, (Jo, _) in projected.items():
