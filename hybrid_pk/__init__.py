@@ -4,27 +4,61 @@ Data flow: robot model -> measured data -> error effects -> diagnosis/calibratio
 -> residual networks -> IK -> reports.
 """
 
+from hybrid_pk.calibration.diagnose import Diagnosis as Diagnosis
+from hybrid_pk.calibration.diagnose import diagnose as diagnose
+from hybrid_pk.calibration.fit import FitResult as FitResult
+from hybrid_pk.calibration.fit import fit as fit
+from hybrid_pk.calibration.urdf_export import export_urdf as export_urdf
+from hybrid_pk.data import MeasuredData as MeasuredData
+from hybrid_pk.data import read_table as read_table
+from hybrid_pk.data import read_table_for as read_table_for
+from hybrid_pk.data import write_table as write_table
+from hybrid_pk.effects import Conditions as Conditions
+from hybrid_pk.effects import ExtendedModel as ExtendedModel
+from hybrid_pk.effects import make_effect as make_effect
 from hybrid_pk.errors import DataError as DataError
 from hybrid_pk.errors import HybridPKError as HybridPKError
 from hybrid_pk.errors import InvalidFrame as InvalidFrame
 from hybrid_pk.errors import ModelFileError as ModelFileError
 from hybrid_pk.errors import RobotModelError as RobotModelError
 from hybrid_pk.errors import ShapeError as ShapeError
+from hybrid_pk.metrics import error_stats as error_stats
+from hybrid_pk.metrics import pose_error as pose_error
+from hybrid_pk.model_file import load_model as load_model
+from hybrid_pk.model_file import save_model as save_model
 from hybrid_pk.robot import KinematicParams as KinematicParams
 from hybrid_pk.robot import Robot as Robot
 from hybrid_pk.robot import shipped_robots as shipped_robots
+from hybrid_pk.simulate import simulate_campaign as simulate_campaign
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "Conditions",
     "DataError",
+    "Diagnosis",
+    "ExtendedModel",
+    "FitResult",
     "HybridPKError",
     "InvalidFrame",
     "KinematicParams",
+    "MeasuredData",
     "ModelFileError",
     "Robot",
     "RobotModelError",
     "ShapeError",
     "__version__",
+    "diagnose",
+    "error_stats",
+    "export_urdf",
+    "fit",
+    "load_model",
+    "make_effect",
+    "pose_error",
+    "read_table",
+    "read_table_for",
+    "save_model",
     "shipped_robots",
+    "simulate_campaign",
+    "write_table",
 ]

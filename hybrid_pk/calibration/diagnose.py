@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from scipy import stats
 from torch import Tensor
 
 from hybrid_pk.calibration.fit import (
@@ -220,6 +219,13 @@ def _structured(residual: Tensor, q: Tensor, lower: Tensor, upper: Tensor) -> tu
     return corr > max(threshold, 0.1), corr
 
 
+def _f_sf(F: float, d1: int, d2: int) -> float:
+    """Survival function of the F distribution (scipy imported on first use: slow)."""
+    from scipy import stats
+
+    return float(stats.f.sf(F, d1, d2))
+
+
 def diagnose(
     robot: Robot,
     data: MeasuredData,
@@ -319,7 +325,7 @@ def diagnose(
             fitted = Ur @ (Ur.T @ r)  # the correction this candidate would make
             drop = min(float(fitted @ fitted), ssr)
             F = (drop / k) / max((ssr - drop) / max(m - n_cur - k, 1), 1e-300)
-            p = float(stats.f.sf(F, k, max(m - n_cur - k, 1)))
+            p = _f_sf(F, k, max(m - n_cur - k, 1))
             # Rank significant candidates by BIC gain: among equally certain ones
             # (p-values underflow to 0) the one with fewer parameters wins ties.
             scores.append((-(drop - k * math.log(m)), p, label, k, F))
@@ -346,7 +352,7 @@ def diagnose(
         ssr_new = _weighted_ssr(new, train, cond_fit, res)
         dof_new = max(m - new_res.n_params, 1)
         F_fit = ((ssr_old - ssr_new) / k) / max(ssr_new / dof_new, 1e-300)
-        p_fit = float(stats.f.sf(F_fit, k, dof_new)) if F_fit > 0 else 1.0
+        p_fit = _f_sf(F_fit, k, dof_new) if F_fit > 0 else 1.0
         d_bic = m * math.log(max(ssr_new, 1e-300) / max(ssr_old, 1e-300)) + k * math.log(m)
         # Same weights on both sides (the refit's noise estimate is smaller).
         current_hold = _hold_score(model, test, cond_hold, res)
