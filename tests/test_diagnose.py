@@ -288,3 +288,39 @@ def test_candidate_made_redundant_by_a_chosen_effect_scores_sanely():
     named = {f"{c.effect}:{c.joint}" for c in diag.causes}
     assert named == {"joint_offset:joint_3", "gear_ratio:joint_1"}, diag.steps
     assert all(s["score_F"] < 1e12 for s in diag.steps), diag.steps
+
+
+@pytest.mark.parametrize(
+    ("effect", "value", "flagged"),
+    [
+        ("thermal_expansion", 1.2e-5, False),  # steel
+        ("thermal_expansion", -2.5e-4, True),  # negative and 20x steel
+        ("joint_compliance", 2e-6, False),
+        ("joint_compliance", -2e-6, True),
+    ],
+)
+def test_implausible_values_are_flagged(effect, value, flagged):
+    from hybrid_pk.calibration.diagnose import Cause, plausibility_warnings
+
+    robot = _robot("rx160")
+    data, _ = simulate_campaign(robot, 200, [], noise_mm=0.01, seed=0)
+    joint = None if effect == "thermal_expansion" else "joint_2"
+    cause = Cause(effect, joint, value, "-", 0.0, 0.1, 0.0, "")
+    assert bool(plausibility_warnings([cause], data)) == flagged
+
+
+def test_temperature_that_differs_between_files_is_flagged():
+    from hybrid_pk.calibration.diagnose import Cause, plausibility_warnings
+    from hybrid_pk.data.measured import MeasuredData
+
+    robot = _robot("rx160")
+    a, _ = simulate_campaign(robot, 100, [], noise_mm=0.01, seed=0, temperature_range=(20, 20.2))
+    b, _ = simulate_campaign(robot, 100, [], noise_mm=0.01, seed=1, temperature_range=(22, 22.2))
+    b = MeasuredData(**{**b.__dict__, "sources": ("b.csv",)})
+    a = MeasuredData(**{**a.__dict__, "sources": ("a.csv",)})
+    data = MeasuredData.concat([a, b])
+    why = plausibility_warnings(
+        [Cause("thermal_expansion", None, 1.2e-5, "1/K", 0, 0, 0, "")], data
+    )
+    assert why
+    assert "between files" in why[0]["why"]

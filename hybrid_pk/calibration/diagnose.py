@@ -111,6 +111,7 @@ class Diagnosis:
     fit_rows: Tensor
     holdout_rows: Tensor
     steps: list[dict] = field(default_factory=list)
+    warnings: list[dict] = field(default_factory=list)
 
     def to_json(self) -> dict:
         return {
@@ -124,6 +125,7 @@ class Diagnosis:
             "unexplained": self.unexplained,
             "identifiability": self.identifiability,
             "selection": self.steps,
+            "warnings": self.warnings,
         }
 
 
@@ -407,6 +409,7 @@ def diagnose(
             sigma_pos_mm=res.sigma_pos_mm,
             sigma_rot_rad=res.sigma_rot_rad,
             covariance=False,
+            max_iter=15,  # warm start from the full model: a few steps re-balance the rest
         )
         pos_r, ori_r = model_errors(reduced, test, cond_hold)
         sl = res.block_slice(e.label)
@@ -475,7 +478,9 @@ def diagnose(
         "structured": structured,
         "neighbour_correlation": nn_corr,
     }
+    warnings = plausibility_warnings(causes, data)
     return Diagnosis(
+        warnings=warnings,
         robot=robot.name,
         n_samples=data.n,
         n_holdout=test.n,
@@ -491,6 +496,55 @@ def diagnose(
         holdout_rows=hold_rows,
         steps=steps,
     )
+
+
+# Largest credible linear expansion coefficient [1/K]: structural metals are 1e-5..2.5e-5,
+# polymers reach ~1e-4.
+MAX_CREDIBLE_EXPANSION = 5e-5
+
+
+def plausibility_warnings(causes: list[Cause], data: MeasuredData) -> list[dict]:
+    """Statistically supported is not physically credible: flag values that are not.
+
+    A negative compliance or backlash, or an expansion coefficient no structure has,
+    usually means the effect stands in for something else (e.g. a temperature that
+    differs mostly between files, so that it tells the files apart).
+    """
+    out = []
+    for c in causes:
+        label = c.effect if c.joint is None else f"{c.effect}:{c.joint}"
+        if c.effect in ("joint_compliance", "backlash") and float(c.value) < 0:
+            out.append(
+                {
+                    "cause": label,
+                    "why": f"negative {c.effect} ({c.value:.3g} {c.unit}) is not physical: "
+                    "it likely absorbs another, unmodelled error",
+                }
+            )
+        if c.effect != "thermal_expansion":
+            continue
+        alpha = float(c.value)
+        reasons = []
+        if alpha < 0 or abs(alpha) > MAX_CREDIBLE_EXPANSION:
+            reasons.append(
+                f"alpha = {alpha:.3g} 1/K is outside any structural material "
+                f"(0 .. {MAX_CREDIBLE_EXPANSION:.0e})"
+            )
+        if data.temperature is not None and len(data.sources) > 1:
+            t, f = data.temperature, data.file_index
+            files = range(len(data.sources))
+            means = torch.stack([t[f == i].mean() for i in files])
+            within = float(torch.stack([t[f == i].std() for i in files]).nan_to_num().max())
+            between = float(means.max() - means.min())
+            if between > 2 * within:
+                reasons.append(
+                    f"temperature differs {between:.2f} K between files but at most "
+                    f"{within:.2f} K (std) within one: the effect may stand for a "
+                    "difference between the files"
+                )
+        if reasons:
+            out.append({"cause": label, "why": "; ".join(reasons)})
+    return out
 
 
 def _explained_fraction(v: Tensor, B: Tensor) -> float:

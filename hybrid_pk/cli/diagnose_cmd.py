@@ -109,7 +109,10 @@ class _Progress:
     moving during long fits. Otherwise (logs, pipes): one line per stage.
     """
 
-    def __init__(self, stream: TextIO = sys.stderr) -> None:
+    def __init__(self, stream: TextIO | None = None) -> None:
+        # Looked up per call, not at import: a default of sys.stderr would pin whatever
+        # stream was installed when the module was first imported.
+        stream = sys.stderr if stream is None else stream
         self.stream = stream
         self.start = time.monotonic()
         self.bar = None
@@ -207,6 +210,8 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
     if diagnosis.ambiguous:
         lines.append(f"ambiguous ({len(diagnosis.ambiguous)}):")
         lines += [f"  {' ~ '.join(a['effects'])}" for a in diagnosis.ambiguous]
+    for w in diagnosis.warnings:
+        lines.append(f"warning: {w['cause']}: {w['why']}")
     un = diagnosis.unexplained
     rest = f"unexplained: RMS {_num(un.get('position_mm_rms'))} mm"
     if un.get("orientation_deg_rms") is not None:

@@ -20,6 +20,7 @@ _COMMANDS = (
     "hybrid_pk.cli.diagnose_cmd",
     "hybrid_pk.cli.calibrate_cmd",
     "hybrid_pk.cli.evaluate_cmd",
+    "hybrid_pk.cli.ik_cmd",
     "hybrid_pk.cli.import_cmd",
     "hybrid_pk.cli.demo_cmd",
 )

@@ -1,0 +1,34 @@
+"""Inverse kinematics: every distinct solution of a pose, on nominal and hybrid models.
+
+- :func:`solve_ik`: batched projected Levenberg–Marquardt over targets × quasi-random
+  seeds, verified and deduplicated (contract section 6) into an :class:`IKResult`.
+- :func:`solve_ik_two_stage` / :func:`refine_ik`: the paper's IK for expensive
+  (hybrid) models: branches on the cheap model, refinement in a box on the accurate one.
+- :func:`wang_baseline`: the comparison method of the paper's Tables IV and V.
+"""
+
+from hybrid_pk.ik.dedup import distinct_mask as distinct_mask
+from hybrid_pk.ik.dedup import same_solution as same_solution
+from hybrid_pk.ik.hybrid import refine_ik as refine_ik
+from hybrid_pk.ik.hybrid import solve_ik_two_stage as solve_ik_two_stage
+from hybrid_pk.ik.hybrid import wang_baseline as wang_baseline
+from hybrid_pk.ik.model import IKModel as IKModel
+from hybrid_pk.ik.model import as_ik_model as as_ik_model
+from hybrid_pk.ik.result import IKResult as IKResult
+from hybrid_pk.ik.seeds import quasi_random_seeds as quasi_random_seeds
+from hybrid_pk.ik.solver import IKOptions as IKOptions
+from hybrid_pk.ik.solver import solve_ik as solve_ik
+
+__all__ = [
+    "IKModel",
+    "IKOptions",
+    "IKResult",
+    "as_ik_model",
+    "distinct_mask",
+    "quasi_random_seeds",
+    "refine_ik",
+    "same_solution",
+    "solve_ik",
+    "solve_ik_two_stage",
+    "wang_baseline",
+]

@@ -1,0 +1,236 @@
+"""What the IK solver needs of a forward model, and adapters that provide it.
+
+The solver sees a model as an :class:`IKModel`: a pose function, a pose-and-Jacobian
+function, and the joint limits. :func:`as_ik_model` builds one from
+
+- a :class:`~hybrid_pk.robot.Robot` (analytic Jacobian),
+- an :class:`~hybrid_pk.effects.ExtendedModel` (analytic Jacobian when it has no error
+  effects, i.e. robot + base/tool frames; autograd otherwise),
+- any differentiable callable ``q (M, dof) -> T (M, 4, 4)`` (e.g. a hybrid model with
+  residual networks), with an optional analytic Jacobian.
+
+Shapes: ``M`` joint configurations being solved at once; ``rows (M,)`` says which
+target each configuration belongs to (it picks that target's operating conditions).
+Jacobians are geometric, ``(M, 6, dof)`` with rows ``[v; omega]``: the velocity of the
+pose's origin [m/rad] and the angular velocity [rad/rad], both in the frame the poses
+are expressed in. The solver's inner loop calls :meth:`IKModel.evaluate`, the same in
+batch-last layout (see ``hybrid_pk.ik.soa``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from hybrid_pk.effects import Conditions, ExtendedModel
+from hybrid_pk.errors import HybridPKError, ShapeError
+from hybrid_pk.ik.kernel import ChainKernel
+from hybrid_pk.robot import Robot
+
+__all__ = ["IKModel", "as_ik_model", "autograd_pose_jacobian"]
+
+PoseFn = Callable[[Tensor, Tensor], Tensor]
+PoseJacobianFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
+BatchLastFn = Callable[[Tensor], tuple[Tensor, Tensor, Tensor]]
+
+
+@dataclass(frozen=True)
+class IKModel:
+    """A forward model as the solver uses it.
+
+    Attributes:
+        pose: ``(q (M, dof), rows (M,)) -> T (M, 4, 4)`` [m].
+        pose_and_jacobian: ``(q, rows) -> (T (M, 4, 4), J (M, 6, dof))``.
+        lower: ``(dof,)`` lower joint limits [rad or m] (``-inf`` for continuous joints).
+        upper: ``(dof,)`` upper joint limits.
+        revolute: ``(dof,)`` bool, True for revolute and continuous joints.
+        joint_names: the ``dof`` joint names, in the order of ``q``'s columns.
+        analytic: True when the Jacobian is analytic (no autograd).
+        batch_last: optional fast path of :meth:`evaluate`, ``qt (dof, M) -> (R, p, J)``
+            (the chain kernel; models without per-target conditions only).
+    """
+
+    pose: PoseFn
+    pose_and_jacobian: PoseJacobianFn
+    lower: Tensor
+    upper: Tensor
+    revolute: Tensor
+    joint_names: tuple[str, ...]
+    analytic: bool
+    batch_last: BatchLastFn | None = None
+
+    @property
+    def dof(self) -> int:
+        return len(self.joint_names)
+
+    def evaluate(self, qt: Tensor, rows: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Batch-last pose and Jacobian at ``qt (dof, M)``: ``R (3, 3, M)``, ``p (3, M)``
+        [m], ``J (6, dof, M)``."""
+        if self.batch_last is not None:
+            return self.batch_last(qt)
+        T, J = self.pose_and_jacobian(qt.T, rows)
+        T, J = T.to(torch.float64), J.to(torch.float64)
+        return T[:, :3, :3].permute(1, 2, 0), T[:, :3, 3].T, J.permute(1, 2, 0)
+
+
+def _vee_antisym(R: Tensor) -> Tensor:
+    return torch.stack(
+        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1
+    )
+
+
+def autograd_pose_jacobian(pose: PoseFn, q: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
+    """Pose and geometric Jacobian of any differentiable pose function, by autograd.
+
+    Rows of the Jacobian: the position derivative, and ``omega`` from
+    ``[omega]x = dR/dq R^T`` (taken as the derivative of the antisymmetric part of
+    ``R(q) R(q0)^T`` at ``q0``). One forward pass and six reverse passes.
+
+    Args:
+        pose: ``(q (M, dof), rows (M,)) -> (M, 4, 4)``, differentiable in ``q``.
+        q: ``(M, dof)`` joint values [rad or m].
+        rows: ``(M,)`` target index of each configuration.
+
+    Returns:
+        ``T (M, 4, 4)`` (detached) and ``J (M, 6, dof)``.
+    """
+    with torch.enable_grad():
+        qv = q.detach().requires_grad_(True)
+        T = pose(qv, rows)
+        R = T[:, :3, :3]
+        omega = _vee_antisym(R @ R.detach().transpose(-1, -2)) / 2
+        y = torch.cat([T[:, :3, 3], omega], -1)  # (M, 6)
+        cols = []
+        for k in range(6):
+            (g,) = torch.autograd.grad(y[:, k].sum(), qv, retain_graph=k < 5, allow_unused=True)
+            cols.append(torch.zeros_like(qv) if g is None else g)
+    return T.detach(), torch.stack(cols, 1)
+
+
+def _subset(cond: Conditions | None, rows: Tensor) -> Conditions | None:
+    return None if cond is None else cond.subset(rows)
+
+
+def _check_cond(cond: Conditions | None, n_targets: int | None) -> None:
+    if cond is None or n_targets is None:
+        return
+    names = ("payload", "temperature", "direction", "group")
+    for name, value in zip(names, cond._fields(), strict=True):
+        if value is not None and value.shape[:1] != (n_targets,):
+            raise ShapeError(
+                f"cond.{name}: expected one entry per target ({n_targets}), found shape "
+                f"{tuple(value.shape)}"
+            )
+
+
+def as_ik_model(
+    model: Robot | ExtendedModel | Callable | IKModel,
+    *,
+    cond: Conditions | None = None,
+    robot: Robot | None = None,
+    jacobian: Callable | None = None,
+    n_targets: int | None = None,
+) -> IKModel:
+    """Wrap a forward model for the solver.
+
+    Args:
+        model: a ``Robot`` (pose of its end link in its root frame), an
+            ``ExtendedModel`` (pose of the measured point in the measurement frame), a
+            callable ``fn(q) -> (M, 4, 4)`` or, when ``cond`` is given,
+            ``fn(q, cond) -> (M, 4, 4)`` (differentiable in ``q`` unless ``jacobian`` is
+            given), or an ``IKModel`` (returned as is).
+        cond: operating conditions per target (``payload``, ``temperature``, ...), each
+            ``(n_targets, ...)``; passed to an ``ExtendedModel`` or callable, row-matched.
+        robot: the robot whose joint limits and types a callable uses (required for
+            a callable).
+        jacobian: optional analytic ``fn(q[, cond]) -> (M, 6, dof)`` geometric Jacobian
+            of a callable, rows ``[v; omega]`` in the pose's frame.
+        n_targets: number of targets, to check ``cond`` against.
+
+    Models whose parameters require gradients are evaluated with those graphs (slower):
+    call ``requires_grad_(False)`` on a model that is only used for IK.
+
+    Raises:
+        HybridPKError: a callable without ``robot``; ShapeError: ``cond`` of the wrong size.
+    """
+    if isinstance(model, IKModel):
+        return model
+    _check_cond(cond, n_targets)
+    batch_last = None
+    if isinstance(model, Robot):
+        robot = model
+
+        def pose(q: Tensor, rows: Tensor) -> Tensor:
+            return model.fk(q)
+
+        kernel = ChainKernel(model)
+
+        def pose_jac(q: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
+            return kernel(q)
+
+        analytic, batch_last = True, kernel.soa
+    elif isinstance(model, ExtendedModel):
+        robot = model.robot
+        frames_only = len(model.effects) == 0 and model.base.sets == 1
+        if frames_only:
+            with torch.no_grad():
+                base, tool = model.base.matrix()[0].detach(), model.tool.matrix()[0].detach()
+
+            def pose(q: Tensor, rows: Tensor) -> Tensor:
+                return base.to(q.dtype) @ model.robot.fk(q) @ tool.to(q.dtype)
+
+            kernel = ChainKernel(model.robot, base, tool)
+            batch_last = kernel.soa
+
+            def pose_jac(q: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
+                return kernel(q)
+
+        else:
+
+            def pose(q: Tensor, rows: Tensor) -> Tensor:
+                return model(q, _subset(cond, rows))
+
+            def pose_jac(q: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
+                return autograd_pose_jacobian(pose, q, rows)
+
+        analytic = frames_only
+    elif callable(model):
+        if robot is None:
+            raise HybridPKError(
+                "IK on a callable model needs robot= (for joint names, limits and types)"
+            )
+        fn = model
+
+        def pose(q: Tensor, rows: Tensor) -> Tensor:
+            return fn(q) if cond is None else fn(q, _subset(cond, rows))
+
+        if jacobian is None:
+
+            def pose_jac(q: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
+                return autograd_pose_jacobian(pose, q, rows)
+
+        else:
+
+            def pose_jac(q: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
+                J = jacobian(q) if cond is None else jacobian(q, _subset(cond, rows))
+                return pose(q, rows), J
+
+        analytic = jacobian is not None
+    else:
+        raise HybridPKError(
+            f"IK needs a Robot, an ExtendedModel or a callable q -> T, got {type(model).__name__}"
+        )
+    lower, upper = robot.joint_limits
+    return IKModel(
+        pose=pose,
+        pose_and_jacobian=pose_jac,
+        lower=lower.detach().to(torch.float64),
+        upper=upper.detach().to(torch.float64),
+        revolute=robot.revolute.clone(),
+        joint_names=tuple(robot.joint_names),
+        analytic=analytic,
+        batch_last=batch_last,
+    )

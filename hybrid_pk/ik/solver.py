@@ -1,0 +1,353 @@
+"""`solve_ik`: every distinct IK solution of a batch of targets on one model.
+
+Targets × seeds are solved as one batch by :func:`~hybrid_pk.ik.lm.levenberg_marquardt`
+(float64, joint limits by projection, per-problem damping and early exit). Every
+candidate is then checked by a fresh forward evaluation of the model against the
+tolerances and the joint limits, and the survivors are reduced to distinct solutions
+(contract section 6). A target none of whose seeds passes is a failure: the solver
+never returns a solution it has not verified.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from hybrid_pk.effects import Conditions
+from hybrid_pk.errors import ShapeError
+from hybrid_pk.geometry import transform
+from hybrid_pk.ik.dedup import PRISMATIC_TOL, REVOLUTE_TOL, distinct_mask
+from hybrid_pk.ik.lm import LMSettings, levenberg_marquardt
+from hybrid_pk.ik.model import IKModel, as_ik_model
+from hybrid_pk.ik.result import IKResult
+from hybrid_pk.ik.seeds import quasi_random_seeds, seed_box
+from hybrid_pk.metrics import pose_error, position_error_mm
+
+__all__ = ["IKOptions", "solve_ik"]
+
+F64 = torch.float64
+
+
+@dataclass(frozen=True)
+class IKOptions:
+    """Settings of :func:`solve_ik` (and of the hybrid two-stage solver).
+
+    Attributes:
+        tol_mm: [mm] largest position error of a returned solution.
+        tol_deg: [deg] largest orientation error of a returned solution.
+        max_iterations: iteration budget of each (target, seed) problem.
+        rotation_weight: [m/rad] weight of rotation against position residuals.
+        seed_method: ``"sobol"``, ``"halton"`` or ``"uniform"``.
+        seed: scrambling seed of the quasi-random seeds (same seed, same result).
+        revolute_tol: [rad] two solutions are the same when all revolute joints agree
+            within this modulo 2 pi (contract: 1e-3) ...
+        prismatic_tol: [m] ... and all prismatic joints within this (contract: 1e-6).
+        batch_size: (target, seed) problems solved in one batch (memory bound).
+        polish_mm: [mm] position error from which on a problem gets its final
+            Gauss-Newton polishing step and leaves; default a tenth of ``tol_mm``.
+        polish_deg: [deg] the same for the orientation; default a tenth of ``tol_deg``.
+    """
+
+    tol_mm: float = 1e-3
+    tol_deg: float = 1e-3
+    max_iterations: int = 60
+    rotation_weight: float = 0.5
+    seed_method: str = "sobol"
+    seed: int = 0
+    revolute_tol: float = REVOLUTE_TOL
+    prismatic_tol: float = PRISMATIC_TOL
+    batch_size: int = 16384
+    polish_mm: float | None = None
+    polish_deg: float | None = None
+
+    def lm_settings(self, position_only: bool) -> LMSettings:
+        """Iteration settings of :func:`~hybrid_pk.ik.lm.levenberg_marquardt`."""
+        polish_mm = 0.1 * self.tol_mm if self.polish_mm is None else self.polish_mm
+        polish_deg = 0.1 * self.tol_deg if self.polish_deg is None else self.polish_deg
+        return LMSettings(
+            max_iterations=self.max_iterations,
+            rotation_weight=self.rotation_weight,
+            position_only=position_only,
+            accept_position=polish_mm * 1e-3,
+            accept_rotation=math.radians(polish_deg),
+            keep_position=max(polish_mm, self.tol_mm) * 1e-3,
+            keep_rotation=math.radians(max(polish_deg, self.tol_deg)),
+        )
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def prepare_targets(targets: Tensor) -> tuple[Tensor, tuple[int, ...], bool]:
+    """``(*B, 4, 4)`` poses or ``(*B, 3)`` points [m] -> ``(N, 4, 4)`` float64, ``B``,
+    position-only flag."""
+    targets = torch.as_tensor(targets)
+    if not targets.is_floating_point():
+        raise ShapeError(f"IK targets must be floating point, found dtype {targets.dtype}")
+    if targets.ndim >= 2 and targets.shape[-2:] == (4, 4):
+        batch, position_only = tuple(targets.shape[:-2]), False
+        T = targets.reshape(-1, 4, 4).to(F64)
+    elif targets.ndim >= 1 and targets.shape[-1] == 3:
+        batch, position_only = tuple(targets.shape[:-1]), True
+        p = targets.reshape(-1, 3).to(F64)
+        T = transform(torch.eye(3, dtype=F64).expand(p.shape[0], 3, 3), p)
+    else:
+        raise ShapeError(
+            f"IK targets must be poses (*B, 4, 4) or points (*B, 3) [m], found "
+            f"{tuple(targets.shape)}"
+        )
+    bad = ~torch.isfinite(T).all(-1).all(-1)
+    if bool(bad.any()):
+        raise ShapeError(f"IK target {int(bad.nonzero()[0])} (flat index) is not finite")
+    return T, batch, position_only
+
+
+def check_solutions(
+    ikm: IKModel,
+    q: Tensor,
+    rows: Tensor,
+    T_target: Tensor,
+    position_only: bool,
+    options: IKOptions,
+    candidate: Tensor | None = None,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Verify candidate solutions by a fresh forward evaluation.
+
+    Args:
+        q: ``(P, dof)``; rows: ``(P,)`` target index; T_target: ``(P, 4, 4)``.
+        candidate: ``(P,)`` bool, which to evaluate at all (others fail).
+
+    Returns:
+        ``ok (P,)`` bool, position error ``(P,)`` [mm], orientation error ``(P,)``
+        [deg] (NaN where not evaluated, orientation NaN when position-only).
+    """
+    P = q.shape[0]
+    ok = torch.isfinite(q).all(-1) & (q >= ikm.lower).all(-1) & (q <= ikm.upper).all(-1)
+    if candidate is not None:
+        ok &= candidate
+    pos = q.new_full((P,), math.nan)
+    ori = q.new_full((P,), math.nan)
+    sel = ok.nonzero()[:, 0]
+    if sel.numel():
+        with torch.no_grad():
+            T = ikm.pose(q[sel], rows[sel]).to(F64)
+        if position_only:
+            pos[sel] = position_error_mm(T_target[sel, :3, 3], T[:, :3, 3])
+            good = pos[sel] <= options.tol_mm
+        else:
+            err = pose_error(T_target[sel], T)
+            pos[sel], ori[sel] = err.position_mm, err.orientation_deg
+            good = (err.position_mm <= options.tol_mm) & (err.orientation_deg <= options.tol_deg)
+        ok[sel] = good & torch.isfinite(pos[sel])
+    return ok, pos, ori
+
+
+def lexicographic_order(q: Tensor, valid: Tensor) -> Tensor:
+    """``(N, K)`` slot order per target: valid first, then by joint values."""
+    order = torch.arange(q.shape[1], device=q.device).expand(q.shape[0], -1)
+    for j in reversed(range(q.shape[-1])):
+        key = torch.take_along_dim(q[..., j], order, 1)
+        order = torch.take_along_dim(order, torch.argsort(key, dim=1, stable=True), 1)
+    key = torch.take_along_dim((~valid).to(torch.int8), order, 1)
+    return torch.take_along_dim(order, torch.argsort(key, dim=1, stable=True), 1)
+
+
+def pack(
+    q: Tensor, pos: Tensor, ori: Tensor, keep: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Sort each target's kept slots first and cut to the largest count.
+
+    Args:
+        q: ``(N, K, dof)``; pos, ori, keep: ``(N, K)``.
+
+    Returns:
+        ``q (N, K', dof)``, ``pos``, ``ori``, ``valid`` with NaN in unused slots.
+    """
+    order = lexicographic_order(q, keep)
+    k = int(keep.sum(-1).max()) if keep.numel() else 0
+    order = order[:, :k]
+    valid = torch.take_along_dim(keep, order, 1)
+    q = torch.take_along_dim(q, order[..., None], 1)
+    pos = torch.take_along_dim(pos, order, 1)
+    ori = torch.take_along_dim(ori, order, 1)
+    nan = torch.tensor(math.nan, dtype=q.dtype, device=q.device)
+    return (
+        torch.where(valid[..., None], q, nan),
+        torch.where(valid, pos, nan),
+        torch.where(valid, ori, nan),
+        valid,
+    )
+
+
+def concat_padded(parts: list[tuple[Tensor, ...]], dof: int) -> tuple[Tensor, ...]:
+    """Concatenate packed ``(q, pos, ori, valid)`` chunks along targets, NaN-padded."""
+    if not parts:  # no targets at all
+        empty = torch.zeros(0, 0, dtype=F64)
+        return empty.reshape(0, 0, dof), empty, empty, empty.bool()
+    k = max((p[0].shape[1] for p in parts), default=0)
+    out_q, out_p, out_o, out_v = [], [], [], []
+    for q, pos, ori, valid in parts:
+        pad = k - q.shape[1]
+        n = q.shape[0]
+        out_q.append(torch.cat([q, q.new_full((n, pad, dof), math.nan)], 1))
+        out_p.append(torch.cat([pos, pos.new_full((n, pad), math.nan)], 1))
+        out_o.append(torch.cat([ori, ori.new_full((n, pad), math.nan)], 1))
+        out_v.append(torch.cat([valid, valid.new_zeros(n, pad)], 1))
+    return torch.cat(out_q), torch.cat(out_p), torch.cat(out_o), torch.cat(out_v)
+
+
+def make_result(
+    parts: list[tuple[Tensor, ...]],
+    batch: tuple[int, ...],
+    ikm: IKModel,
+    options: IKOptions,
+    position_only: bool,
+    info: dict,
+) -> IKResult:
+    q, pos, ori, valid = concat_padded(parts, ikm.dof)
+    k = q.shape[1]
+    return IKResult(
+        q=q.reshape(*batch, k, ikm.dof),
+        position_error_mm=pos.reshape(*batch, k),
+        orientation_error_deg=ori.reshape(*batch, k),
+        valid=valid.reshape(*batch, k),
+        joint_names=ikm.joint_names,
+        tol_mm=options.tol_mm,
+        tol_deg=options.tol_deg,
+        position_only=position_only,
+        info=info,
+    )
+
+
+def _start_configs(
+    ikm: IKModel, n_targets: int, seeds: int | Tensor, extra: Tensor | None, options: IKOptions
+) -> Tensor:
+    """``(N, S, dof)`` start configurations: quasi-random seeds then the user's."""
+    dof = ikm.dof
+    if isinstance(seeds, int) and seeds == 0 and extra is not None:
+        base = torch.zeros(0, dof, dtype=F64)  # the caller's start configurations only
+    elif isinstance(seeds, int):
+        base = quasi_random_seeds(
+            ikm.lower, ikm.upper, ikm.revolute, seeds, method=options.seed_method, seed=options.seed
+        )
+    else:
+        base = torch.as_tensor(seeds, dtype=F64)
+        if base.ndim != 2 or base.shape[-1] != dof:
+            raise ShapeError(f"seeds must be an int or a (S, {dof}) tensor, found {base.shape}")
+    start = base.expand(n_targets, *base.shape)
+    if extra is not None:
+        extra = torch.as_tensor(extra, dtype=F64)
+        if extra.ndim == 0 or extra.shape[-1] != dof:
+            raise ShapeError(
+                f"extra_seeds must be (dof,), (S, dof) or (*B, S, dof) with dof={dof}, "
+                f"found {tuple(extra.shape)}"
+            )
+        if extra.ndim <= 2:
+            extra = extra.reshape(1, -1, dof).expand(n_targets, -1, dof)
+        elif math.prod(extra.shape[:-2]) != n_targets:
+            raise ShapeError(
+                f"extra_seeds {tuple(extra.shape)}: expected one (S, {dof}) block per target "
+                f"({n_targets} targets)"
+            )
+        else:
+            extra = extra.reshape(n_targets, -1, dof)
+        lo, hi = seed_box(ikm.lower, ikm.upper, ikm.revolute)
+        given = torch.isfinite(extra).all(-1, keepdim=True)
+        extra = torch.where(given, extra, (lo + hi) / 2)  # NaN row: the middle of the box
+        start = torch.cat([start, extra], 1)
+    return torch.minimum(torch.maximum(start, ikm.lower), ikm.upper)
+
+
+# ----------------------------------------------------------------------------- solver
+
+
+def solve_ik(
+    model,
+    targets: Tensor,
+    *,
+    seeds: int | Tensor = 64,
+    extra_seeds: Tensor | None = None,
+    cond: Conditions | None = None,
+    robot=None,
+    jacobian: Callable | None = None,
+    options: IKOptions | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> IKResult:
+    """All distinct joint solutions of each target pose, within the joint limits.
+
+    Args:
+        model: ``Robot``, ``ExtendedModel``, callable ``q -> T`` (with ``robot=``) or
+            :class:`~hybrid_pk.ik.model.IKModel`; see :func:`~hybrid_pk.ik.as_ik_model`.
+        targets: ``(*B, 4, 4)`` target poses, or ``(*B, 3)`` target points
+            (position-only IK) [m], in the model's output frame.
+        seeds: number of quasi-random seeds per target (0: only ``extra_seeds``), or
+            an ``(S, dof)`` tensor of start configurations for every target.
+        extra_seeds: more start configurations: ``(dof,)`` or ``(S2, dof)`` for all
+            targets, or ``(*B, S2, dof)`` per target (e.g. the current joints); a row
+            with NaN starts from the middle of the joint box.
+        cond: operating conditions, each field ``(N, ...)`` with ``N`` the number of
+            targets in flat (row-major) order (payload, temperature, ...).
+        robot: limits and joint types of a callable model.
+        jacobian: analytic Jacobian of a callable model (else autograd).
+        options: tolerances and iteration settings (:class:`IKOptions`).
+        progress: called with the number of targets finished after each batch.
+
+    Returns:
+        :class:`IKResult` of batch shape ``*B``; every returned solution is within the
+        joint limits and within ``tol_mm`` / ``tol_deg`` of its target (checked by a
+        forward evaluation). Targets without one are failures (``result.failed``).
+    """
+    options = options or IKOptions()
+    T_all, batch, position_only = prepare_targets(targets)
+    n = T_all.shape[0]
+    ikm = as_ik_model(model, cond=cond, robot=robot, jacobian=jacobian, n_targets=n)
+    start = _start_configs(ikm, n, seeds, extra_seeds, options)
+    s_per = start.shape[1]
+    settings = options.lm_settings(position_only)
+    per_batch = max(1, options.batch_size // s_per)
+    parts, iterations, evaluations = [], 0, 0
+    t0 = time.perf_counter()
+    for lo in range(0, n, per_batch):
+        hi = min(n, lo + per_batch)
+        rows = torch.arange(lo, hi).repeat_interleave(s_per)
+        q0 = start[lo:hi].reshape(-1, ikm.dof)
+        with torch.no_grad():
+            out = levenberg_marquardt(
+                ikm.evaluate,
+                q0,
+                rows,
+                T_all[rows],
+                ikm.lower,
+                ikm.upper,
+                settings,
+                ikm.revolute,
+            )
+        ok, pos, ori = check_solutions(ikm, out.q, rows, T_all[rows], position_only, options)
+        shape = (hi - lo, s_per)
+        score = pos / options.tol_mm + (0 if position_only else ori.nan_to_num() / options.tol_deg)
+        keep = distinct_mask(
+            out.q.reshape(*shape, -1),
+            ok.reshape(shape),
+            score.reshape(shape),
+            ikm.revolute,
+            options.revolute_tol,
+            options.prismatic_tol,
+        )
+        parts.append(pack(out.q.reshape(*shape, -1), pos.reshape(shape), ori.reshape(shape), keep))
+        iterations += int(out.iterations.sum())
+        evaluations += out.evaluations
+        if progress is not None:
+            progress(hi - lo)
+    info = {
+        "seeds": s_per,
+        "problems": n * s_per,
+        "mean_iterations": iterations / max(1, n * s_per),
+        "evaluations": evaluations,
+        "seconds": time.perf_counter() - t0,
+    }
+    return make_result(parts, batch, ikm, options, position_only, info)

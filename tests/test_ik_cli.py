@@ -1,0 +1,216 @@
+"""``hybrid-pk ik`` end to end on tiny target tables: contract section 6 output, failures
+counted, position-only targets, a calibrated model (two stages), and errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import torch
+
+from hybrid_pk import Robot
+from hybrid_pk.cli.main import main
+from hybrid_pk.effects import Conditions, ExtendedModel, make_effect
+from hybrid_pk.geometry import matrix_to_quat, so3_exp, transform
+from hybrid_pk.metrics import pose_error
+from hybrid_pk.model_file import save_model
+
+F64 = torch.float64
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def _vec(*v: float) -> torch.Tensor:
+    return torch.tensor(v, dtype=F64)
+
+
+def _run(capsys, *argv) -> tuple[int, str, str]:
+    rc = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def _write_targets(path: Path, T: torch.Tensor, orientation: bool = True, **extra) -> Path:
+    cols = {"x": T[:, 0, 3], "y": T[:, 1, 3], "z": T[:, 2, 3]}
+    if orientation:
+        quat = matrix_to_quat(T[:, :3, :3])
+        cols.update({c: quat[:, k] for k, c in enumerate(("qw", "qx", "qy", "qz"))})
+    cols.update(extra)
+    pd.DataFrame({k: torch.as_tensor(v).numpy() for k, v in cols.items()}).to_csv(path, index=False)
+    return path
+
+
+def _targets(robot: Robot, n: int, seed: int) -> torch.Tensor:
+    q = robot.sample_q(n, torch.Generator().manual_seed(seed))
+    with torch.no_grad():
+        return robot.fk(q)
+
+
+def _check_rows(frame: pd.DataFrame, robot: Robot, fk, T: torch.Tensor, tol=1e-3) -> None:
+    """Every row: joints within limits, reported errors true (recomputed with ``fk``)."""
+    q = torch.tensor(frame[robot.joint_names].to_numpy(), dtype=F64)
+    lo, hi = robot.joint_limits
+    assert bool(((q >= lo) & (q <= hi)).all())
+    with torch.no_grad():
+        err = pose_error(T[torch.tensor(frame["target"].to_numpy())], fk(q))
+    assert float(err.position_mm.max()) <= tol
+    assert float(err.orientation_deg.max()) <= tol
+    assert torch.allclose(
+        torch.tensor(frame["position_error_mm"].to_numpy()), err.position_mm, atol=1e-9
+    )
+
+
+def test_ik_nominal_table_with_an_unreachable_target(tmp_path, capsys):
+    robot = Robot.from_urdf("rx160")
+    T = _targets(robot, 3, seed=0)
+    far = T[:1].clone()
+    far[:, :3, 3] = torch.tensor([5.0, 5.0, 5.0], dtype=F64)
+    T = torch.cat([T[:2], far, T[2:]])  # target 2 is out of reach
+    targets = _write_targets(tmp_path / "targets.csv", T)
+    out = tmp_path / "solutions.csv"
+    rc, stdout, err = _run(capsys, "ik", "nominal:rx160", targets, "--out", out, "--seeds", 32)
+    assert rc == 0, err
+    frame = pd.read_csv(out)
+    assert list(frame.columns) == [
+        "target",
+        "solution",
+        *robot.joint_names,
+        "position_error_mm",
+        "orientation_error_deg",
+    ]
+    assert sorted(set(frame["target"])) == [0, 1, 3]  # no row for the failed target
+    for _, group in frame.groupby("target"):
+        assert list(group["solution"]) == list(range(len(group)))
+    _check_rows(frame, robot, robot.fk, T)
+    assert "1 of 4 target(s) failed" in stdout
+    assert f"wrote {out}" in stdout
+
+
+def test_ik_position_only_parquet(tmp_path, capsys):
+    robot = Robot.from_urdf("ur10")
+    T = _targets(robot, 2, seed=1)
+    targets = _write_targets(tmp_path / "points.csv", T, orientation=False)
+    out = tmp_path / "solutions.parquet"
+    rc, stdout, err = _run(capsys, "ik", "nominal:ur10", targets, "--out", out, "--seeds", 8)
+    assert rc == 0, err
+    frame = pd.read_parquet(out)
+    assert frame["orientation_error_deg"].isna().all()
+    q = torch.tensor(frame[robot.joint_names].to_numpy(), dtype=F64)
+    with torch.no_grad():
+        p = robot.fk(q)[:, :3, 3]
+    d = (p - T[torch.tensor(frame["target"].to_numpy()), :3, 3]).norm(dim=-1)
+    assert float(d.max()) <= 1e-6  # 1e-3 mm
+    assert "position only" in stdout
+    assert "0 of 2 target(s) failed" in stdout
+
+
+def test_ik_on_a_calibrated_model_refines_on_its_effects(tmp_path, capsys):
+    robot = Robot.from_urdf("rx160")
+    base = transform(
+        so3_exp(torch.tensor([0.0, 0.05, 1.2], dtype=F64)), torch.tensor([2.0, 1.0, 0.0])
+    )
+    tool = transform(
+        so3_exp(torch.tensor([0.2, 0.0, 0.0], dtype=F64)), torch.tensor([0.0, 0.0, 0.1])
+    )
+    effects = [
+        make_effect(robot, "joint_offset:joint_3", 3e-3),
+        make_effect(robot, "joint_compliance:joint_2", 3e-6),
+    ]
+    model = ExtendedModel(robot, effects, base=base, tool=tool)
+    model.requires_grad_(False)
+    path = save_model(tmp_path / "model.pt", model)
+    q = robot.sample_q(4, torch.Generator().manual_seed(2))
+    payload = torch.tensor([0.0, 5.0, 10.0, 2.0], dtype=F64)
+    with torch.no_grad():
+        T = model(q, Conditions(payload=payload))
+    targets = _write_targets(tmp_path / "targets.csv", T, payload=payload)
+    out = tmp_path / "solutions.csv"
+    rc, stdout, err = _run(
+        capsys, "ik", path, targets, "--out", out, "--seeds", 32, "--robot", "rx160"
+    )
+    assert rc == 0, err
+    assert "two stages" in stdout
+    frame = pd.read_csv(out)
+    assert sorted(set(frame["target"])) == [0, 1, 2, 3]
+    rows = torch.tensor(frame["target"].to_numpy())
+
+    def fk(qq):
+        return model(qq, Conditions(payload=payload[rows]))
+
+    _check_rows(frame, robot, fk, T)
+    # The nominal kinematics with the same frames would miss by the effects' size.
+    nominal = ExtendedModel(robot, [], base=base, tool=tool)
+    with torch.no_grad():
+        qq = torch.tensor(frame[robot.joint_names].to_numpy(), dtype=F64)
+        miss = pose_error(T[rows], nominal(qq)).position_mm
+    assert float(miss.min()) > 0.1
+
+
+def test_ik_on_a_model_with_residual_networks(tmp_path, capsys):
+    hybrid = pytest.importorskip("hybrid_pk.hybrid")
+    from hybrid_pk.model_file import load_model
+
+    robot = Robot.from_urdf("ur10")
+    torch.manual_seed(0)  # random (not zero) initial weights: a ~0.3 mm residual
+    net = hybrid.HybridFK.build(
+        ExtendedModel(robot), hybrid.InputBox(*robot.joint_limits), "mlp:16x2", "mlp:16x2"
+    )
+    path = tmp_path / "hybrid.pt"
+    hybrid.save_hybrid(path, net)
+    model = hybrid.load_hybrid(load_model(path))
+    q = robot.sample_q(3, torch.Generator().manual_seed(4))
+    with torch.no_grad():
+        T = model(q, None)
+        assert float((T[:, :3, 3] - robot.fk(q)[:, :3, 3]).norm(dim=-1).min()) > 1e-5
+    targets = _write_targets(tmp_path / "targets.csv", T)
+    out = tmp_path / "solutions.csv"
+    rc, stdout, err = _run(capsys, "ik", path, targets, "--out", out, "--seeds", 16)
+    assert rc == 0, err
+    assert "two stages" in stdout
+    frame = pd.read_csv(out)
+    assert sorted(set(frame["target"])) == [0, 1, 2]
+    _check_rows(frame, robot, lambda qq: model(qq, None), T)
+
+
+def test_ik_help_states_units(capsys):
+    with pytest.raises(SystemExit):
+        main(["ik", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for unit in ("[mm]", "[deg]", "[rad", "[m]"):
+        assert unit in text
+    assert "position_error_mm" in text
+    assert "1e-3 rad" in text
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--seeds", "0"], "--seeds must be at least 1"),
+        (["--tol-mm", "0"], "must be positive"),
+        (["--robot", "ur10"], "not 'ur10'"),
+    ],
+)
+def test_ik_errors_are_one_line(tmp_path, capsys, argv, message):
+    robot = Robot.from_urdf("rx160")
+    targets = _write_targets(tmp_path / "t.csv", _targets(robot, 1, seed=3))
+    rc, _, err = _run(capsys, "ik", "nominal:rx160", targets, "--out", tmp_path / "o.csv", *argv)
+    assert rc == 2
+    lines = [ln for ln in err.replace("\r", "\n").splitlines() if "error:" in ln]
+    assert len(lines) == 1, err
+    assert message in lines[0]
+
+
+def test_ik_bad_target_table_names_row_and_column(tmp_path, capsys):
+    path = tmp_path / "bad.csv"
+    path.write_text("x,y,z\n0.5,0.1,1.0\n0.5,nan,1.0\n")
+    rc, _, err = _run(capsys, "ik", "nominal:rx160", path, "--out", tmp_path / "o.csv")
+    assert rc == 2
+    assert "row 2" in err
+    assert "'y'" in err
