@@ -55,12 +55,16 @@ def _joints_for(robot: hpk.Robot, kind: str, payload: float) -> list[str]:
 
 
 def _link_direction(robot: hpk.Robot, index: int) -> torch.Tensor | None:
-    """Unit direction of origin ``index``'s translation, perpendicular to the next joint's
-    axis (a shift along that axis is indistinguishable from shifting a neighbour)."""
+    """Unit direction of origin ``index``'s translation with the components along the two
+    joint axes it connects removed: a shift along either axis commutes with that joint's
+    rotation and equals shifting the neighbouring origin (structurally ambiguous)."""
     t = torch.tensor(robot.spec.origins[index, :3, 3])
-    axis = torch.tensor(robot.spec.origins[index, :3, :3] @ robot.spec.axes[index])
-    perp = t - (t @ axis) * axis
-    return None if perp.norm() < 0.05 else perp / perp.norm()
+    own = torch.tensor(robot.spec.origins[index, :3, :3] @ robot.spec.axes[index])
+    previous = torch.tensor(robot.spec.axes[index - 1])  # in the same (segment) frame
+    for axis in (previous, own):
+        axis = axis / axis.norm()
+        t = t - (t @ axis) * axis
+    return None if t.norm() < 0.05 else t / t.norm()
 
 
 def _draw(robot: hpk.Robot, kind: str, rng: np.random.Generator, payload: float):
