@@ -1,4 +1,9 @@
-"""``hybrid-pk import FORMAT SRC... --out DST``: convert other formats to the pose table."""
+"""``hybrid-pk import FORMAT SRC... --out DST``: convert other formats to the pose table.
+
+Formats: ``ipa`` (the published UR10 laser-tracker files), ``columns`` (any export, by
+a column map: :mod:`hybrid_pk.data.mapping`) and ``streams`` (a robot joint stream and
+a tracker stream with an unknown time offset: :mod:`hybrid_pk.data.streams`).
+"""
 
 from __future__ import annotations
 
@@ -63,6 +68,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         f"joint angles (default: {MEASUREMENT_CONVENTION}, verified on the published data)",
     )
     ipa.set_defaults(func=_run_ipa)
+    _register_columns(formats)
+    _register_streams(formats)
 
 
 def _destinations(sources: list[Path], out: Path, table_format: str) -> list[Path]:
@@ -90,3 +97,293 @@ def _run_ipa(args: argparse.Namespace) -> int:
     ):
         print(convert_ipa(src, dst, convention=args.convention).summary())
     return 0
+
+
+# ----------------------------------------------------------------------------- columns
+
+_COLUMNS_HELP = """\
+Convert any tracker/robot export to the measured pose table with a column map: which
+source column holds which table column, in which unit, and how the file is written.
+
+MAP is a .json/.yaml file or inline TARGET=SOURCE items separated by commas:
+
+  hybrid-pk import columns export.csv --sep ';' --decimal , --skip-lines 2 \\
+      --euler XYZ --map "x=X[mm],y=Y[mm],z=Z[mm],e1=Rx[deg],e2=Ry[deg],e3=Rz[deg],\\
+      shoulder_pan_joint=J1[deg],shoulder_lift_joint=J2[deg],elbow_joint=J3[deg],\\
+      wrist_1_joint=J4[deg],wrist_2_joint=J5[deg],wrist_3_joint=J6[deg],\\
+      t=Time[ms],temperature=Temp[C]" --out table.csv
+
+TARGETS  joint names (renames), x y z, e1 e2 e3 (Euler angles of --euler SEQ, in
+         sequence order; upper case intrinsic, lower case extrinsic: XYZ means
+         Rx(e1) Ry(e2) Rz(e3)), or qw qx qy qz (quaternion from any columns, in any
+         order), t, temperature, payload
+SOURCE   COLUMN | COLUMN[unit] | COLUMN*FACTOR | COLUMN/FACTOR   (e.g. X_mm*0.001)
+         A header with its unit, "X [mm]", may be written X [mm].
+UNITS    length m mm cm um in; angle rad deg mrad urad; time s ms us ns min h;
+         temperature C K F; mass kg g lb.  Without a unit the table unit (m, rad,
+         s, C, kg) or the --length-unit/--angle-unit default is used.
+
+A JSON map holds the same items under "columns" plus the file options:
+  {"separator": ";", "decimal": ",", "skip_lines": 2, "units": {"length": "mm"},
+   "euler": "XYZ", "columns": {"x": "X", ...},
+   "quaternion": {"columns": ["Q1", "Q2", "Q3", "Q4"], "order": "xyzw"},
+   "time_format": "datetime", "keep": ["Std X"]}
+Options given on the command line replace those of a map file.
+"""
+
+
+def _register_columns(formats: argparse._SubParsersAction) -> None:
+    cols = formats.add_parser(
+        "columns",
+        help="any export, by a column map (units, separators, Euler conventions)",
+        description=_COLUMNS_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    cols.add_argument("sources", nargs="+", metavar="SRC", help="export file(s) to convert")
+    cols.add_argument(
+        "--map", required=True, metavar="MAP", help="column map: .json/.yaml file or inline"
+    )
+    cols.add_argument(
+        "--out", required=True, metavar="DST", help="output table, or directory for several SRC"
+    )
+    cols.add_argument(
+        "--format",
+        choices=("csv", "parquet"),
+        default="csv",
+        dest="table_format",
+        help="table type written into a DST directory (default: csv)",
+    )
+    _add_map_options(cols)
+    cols.add_argument(
+        "--skip-bad-rows",
+        action="store_true",
+        help="leave out rows with unreadable cells (each reported) instead of stopping",
+    )
+    cols.add_argument(
+        "--robot",
+        metavar="ROBOT",
+        help="also validate the written table for this robot (joint limits, degrees)",
+    )
+    cols.set_defaults(func=_run_columns)
+
+
+def _add_map_options(parser: argparse.ArgumentParser, prefix: str = "") -> None:
+    """File-format options of a column map; ``prefix`` names them per stream."""
+    dest = prefix.replace("-", "_")
+    parser.add_argument(
+        f"--{prefix}sep",
+        dest=f"{dest}separator",
+        metavar="SEP",
+        help="field separator: ',' ';' tab whitespace ... (default: the map's, else ',')",
+    )
+    parser.add_argument(
+        f"--{prefix}decimal", dest=f"{dest}decimal", metavar="CHAR", help="decimal mark"
+    )
+    parser.add_argument(
+        f"--{prefix}skip-lines",
+        dest=f"{dest}skip_lines",
+        type=int,
+        metavar="N",
+        help="lines before the header row",
+    )
+    parser.add_argument(
+        f"--{prefix}euler",
+        dest=f"{dest}euler",
+        metavar="SEQ",
+        help="scipy Euler sequence of e1 e2 e3 (XYZ intrinsic, xyz extrinsic, ZYX, ...)",
+    )
+    parser.add_argument(
+        f"--{prefix}length-unit", dest=f"{dest}length", metavar="UNIT", help="default length unit"
+    )
+    parser.add_argument(
+        f"--{prefix}angle-unit", dest=f"{dest}angle", metavar="UNIT", help="default angle unit"
+    )
+    parser.add_argument(
+        f"--{prefix}time-format",
+        dest=f"{dest}time_format",
+        choices=("number", "datetime"),
+        help="t as numbers (default) or date-time text (seconds since the first row)",
+    )
+
+
+def _map_overrides(args: argparse.Namespace, prefix: str = "") -> dict:
+    get = lambda name: getattr(args, prefix + name, None)  # noqa: E731
+    units = {k: get(k) for k in ("length", "angle") if get(k) is not None}
+    out = {k: get(k) for k in ("separator", "decimal", "skip_lines", "euler", "time_format")}
+    if units:
+        out["units"] = units
+    return out
+
+
+def _column_map(spec: str, args: argparse.Namespace, prefix: str = ""):
+    from hybrid_pk.data.mapping import load_column_map
+
+    overrides = _map_overrides(args, prefix)
+    if "units" in overrides and Path(spec).suffix.lower() in (".json", ".yaml", ".yml"):
+        # merge with the file's defaults instead of replacing them
+        base = load_column_map(spec)
+        overrides["units"] = {**base.defaults, **overrides["units"]}
+    return load_column_map(spec, **overrides)
+
+
+def _run_columns(args: argparse.Namespace) -> int:
+    from hybrid_pk.data.mapping import convert_columns
+
+    cmap = _column_map(args.map, args)
+    sources = [Path(s) for s in args.sources]
+    for src in sources:
+        if not src.is_file():
+            raise DataError("no such file", file=str(src))
+    dests = _destinations(sources, Path(args.out), args.table_format)
+    for src, dst in zip(sources, dests, strict=True):
+        print(convert_columns(src, dst, cmap, skip_bad_rows=args.skip_bad_rows).summary())
+    if args.robot:
+        from hybrid_pk.cli.common import load_robot, read_data
+
+        robot = load_robot(args.robot)
+        data = read_data(dests, robot)
+        print(f"validated for {robot.name}: {data.n} rows, joints {', '.join(data.joint_names)}")
+    return 0
+
+
+# ----------------------------------------------------------------------------- streams
+
+_STREAMS_HELP = """\
+Build the measured pose table of a dynamic campaign (Ojer et al. 2024, section 4.3):
+a joint stream from the robot controller (about 110 Hz) and a pose stream from the
+laser tracker (about 3 kHz), recorded on two clocks:
+
+    tracker time = robot time + offset
+
+The offset is estimated (speed-profile cross-correlation, then the offset that
+minimises the closed-form frame registration residual) unless --offset is given.
+The tracker poses are then interpolated at the robot times (positions linearly,
+orientations by SLERP); robot rows outside the tracker stream or in a tracker gap
+(beam break) are left out and reported. The table keeps t (robot clock, s).
+
+ROBOT_STREAM: t [s] and one column per joint (names as in the URDF) [rad];
+TRACKER_STREAM: t [s], x y z [m], optional qw qx qy qz. Other layouts: give a column
+map per stream (--robot-map, --tracker-map; see 'hybrid-pk import columns -h').
+"""
+
+
+def _register_streams(formats: argparse._SubParsersAction) -> None:
+    st = formats.add_parser(
+        "streams",
+        help="dynamic campaign: robot joint stream + tracker stream with a time offset",
+        description=_STREAMS_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    st.add_argument("robot_stream", metavar="ROBOT_STREAM", help="joint stream file")
+    st.add_argument("tracker_stream", metavar="TRACKER_STREAM", help="tracker stream file")
+    st.add_argument("--robot", required=True, metavar="ROBOT", help="URDF path or shipped name")
+    st.add_argument("--out", required=True, metavar="DST", help="output table (.csv/.parquet)")
+    st.add_argument("--robot-map", metavar="MAP", help="column map of the robot stream")
+    st.add_argument("--tracker-map", metavar="MAP", help="column map of the tracker stream")
+    st.add_argument(
+        "--offset", type=float, metavar="S", help="known offset [s]; skips the estimation"
+    )
+    st.add_argument(
+        "--max-offset",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="largest |offset| searched [s] (default: 1)",
+    )
+    st.add_argument(
+        "--every",
+        type=int,
+        default=1,
+        metavar="K",
+        help="keep every K-th robot row of the table (default: 1, all)",
+    )
+    _add_map_options(st, "robot-")
+    _add_map_options(st, "tracker-")
+    st.set_defaults(func=_run_streams)
+
+
+def _stream_map(spec: str | None, args, prefix: str, default_columns: list[str]):
+    from hybrid_pk.data.mapping import parse_inline_map
+
+    if spec is not None:
+        return _column_map(spec, args, prefix)
+    inline = ",".join(f"{c}={c}" for c in default_columns)
+    overrides = {k: v for k, v in _map_overrides(args, prefix).items() if v is not None}
+    return parse_inline_map(inline, **overrides)
+
+
+def _run_streams(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from hybrid_pk.cli.common import load_robot, progress
+    from hybrid_pk.data.mapping import read_mapped
+    from hybrid_pk.data.streams import estimate_time_offset, synchronise
+    from hybrid_pk.data.table import write_table
+
+    if args.every < 1:
+        raise DataError(f"--every must be >= 1, got {args.every}")
+    robot = load_robot(args.robot)
+    names = list(robot.joint_names)
+    rmap = _stream_map(args.robot_map, args, "robot_", ["t", *names])
+    rs = read_mapped(args.robot_stream, rmap)
+    tracker_cols = ["t", "x", "y", "z"]
+    if args.tracker_map is None:
+        from hybrid_pk.data.mapping import source_columns
+
+        probe = _stream_map(None, args, "tracker_", ["t"])
+        if "qw" in source_columns(args.tracker_stream, probe):
+            tracker_cols += ["qw", "qx", "qy", "qz"]
+    tmap = _stream_map(args.tracker_map, args, "tracker_", tracker_cols)
+    ts = read_mapped(args.tracker_stream, tmap)
+    for label, table, path, needed in (
+        ("robot", rs, args.robot_stream, ["t", *names]),
+        ("tracker", ts, args.tracker_stream, ["t", "x", "y", "z"]),
+    ):
+        missing = [c for c in needed if c not in table.frame]
+        if missing:
+            raise DataError(f"the {label} stream map gives no {', '.join(missing)}", file=str(path))
+    q = rs.frame[names].to_numpy()
+    t_r = rs.frame["t"].to_numpy()
+    t_m = ts.frame["t"].to_numpy()
+    pos = ts.frame[["x", "y", "z"]].to_numpy()
+    quat = ts.frame[["qw", "qx", "qy", "qz"]].to_numpy() if "qw" in ts.frame else None
+    print(f"robot stream: {len(t_r)} samples, {_rate(t_r):.1f} Hz, {t_r[-1] - t_r[0]:.1f} s")
+    print(f"tracker stream: {len(t_m)} samples, {_rate(t_m):.1f} Hz, {t_m[-1] - t_m[0]:.1f} s")
+    if args.offset is None:
+        with progress("estimate offset") as step:
+            step("cross-correlation and registration")
+            est = estimate_time_offset(
+                t_r, q, t_m, pos, robot, quat=quat, max_offset=args.max_offset
+            )
+        print(est.summary())
+        offset = est.offset
+    else:
+        offset = args.offset
+    temperature = rs.frame["temperature"].to_numpy() if "temperature" in rs.frame else None
+    tracker_temperature = ts.frame["temperature"].to_numpy() if "temperature" in ts.frame else None
+    sync = synchronise(
+        t_r,
+        q,
+        t_m,
+        pos,
+        offset,
+        joint_names=names,
+        quat=quat,
+        temperature=temperature,
+        tracker_temperature=tracker_temperature,
+        source=str(args.robot_stream),
+        robot_rows=rs.rows,
+    )
+    data = sync.data
+    if args.every > 1:
+        data = data.subset(np.arange(0, data.n, args.every))
+    write_table(args.out, data)
+    print(sync.summary())
+    print(f"wrote {data.n} rows to {args.out}")
+    return 0
+
+
+def _rate(t) -> float:
+    import numpy as np
+
+    return 1.0 / float(np.median(np.diff(t)))
