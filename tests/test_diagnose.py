@@ -168,12 +168,6 @@ def test_hidden_effect_position_only_data():
     assert diag.extended["orientation_deg"] is None
 
 
-@pytest.mark.xfail(
-    strict=False,
-    reason="known gap: forward selection has no backward elimination, so an early "
-    "look-alike (eccentricity before a gear ratio on the same joint, seed 783116) "
-    "can stay as an extra cause",
-)
 def test_two_hidden_effects_at_once():
     rng = _rng("two")
     robot = _robot(str(rng.choice(ROBOTS)))

@@ -396,6 +396,10 @@ def diagnose(
                 )
         model, res = new, new_res
         pool = [c for c in pool if c != label]
+        # Backward elimination: a cause chosen early may have stood in for one chosen
+        # later (an eccentricity sin(q) looks like a gear ratio q over a small range).
+        model, res, removed = _eliminate(model, res, train, cond_fit, alpha, label, steps, say)
+        pool = [c for c in pool if c not in removed]
 
     say("measuring each cause's gain")
     pos1, ori1 = model_errors(model, test, cond_hold)
@@ -414,7 +418,7 @@ def diagnose(
         pos_r, ori_r = model_errors(reduced, test, cond_hold)
         sl = res.block_slice(e.label)
         value, std, components = _report_value(e, res.std[sl])
-        step = next(s for s in steps if s["candidate"] == e.label)
+        step = next(s for s in steps if s["candidate"] == e.label and s.get("accepted"))
         gain_p = float(pos_r.mean() - pos1.mean())
         gain_o = None if ori1 is None else float(ori_r.mean() - ori1.mean())
         evidence = (
@@ -545,6 +549,69 @@ def plausibility_warnings(causes: list[Cause], data: MeasuredData) -> list[dict]
         if reasons:
             out.append({"cause": label, "why": "; ".join(reasons)})
     return out
+
+
+def _eliminate(
+    model: ExtendedModel,
+    res: FitResult,
+    train: MeasuredData,
+    cond: Conditions,
+    alpha: float,
+    newest: str,
+    steps: list[dict],
+    say: Callable[[str], None],
+) -> tuple[ExtendedModel, FitResult, set[str]]:
+    """Drop earlier causes that are no longer significant given the others.
+
+    Each cause but ``newest`` is tested by the F-test of removing it (the reduced model
+    refitted, both residuals under the full fit's weights) at the Bonferroni level
+    ``alpha / #causes``; the least significant failing one is removed, the model
+    refitted, and the test repeated. Removals are logged in ``steps``.
+    """
+    removed: set[str] = set()
+    while len(model.effects) > 1:
+        ssr_full = _weighted_ssr(model, train, cond, res)
+        dof = max(res.n_obs - res.n_params, 1)
+        threshold = alpha / len(model.effects)
+        worst = None
+        for e in model.effects:
+            if e.label == newest:
+                continue
+            reduced = _without(model, e.label)
+            fit(
+                reduced,
+                train,
+                cond=cond,
+                sigma_pos_mm=res.sigma_pos_mm,
+                sigma_rot_rad=res.sigma_rot_rad,
+                covariance=False,
+                max_iter=15,  # warm start from the full model
+            )
+            k = e.value.numel()
+            ssr_red = _weighted_ssr(reduced, train, cond, res)
+            F = ((ssr_red - ssr_full) / k) / max(ssr_full / dof, 1e-300)
+            p = _f_sf(F, k, dof) if F > 0 else 1.0
+            if p >= threshold and (worst is None or p > worst[1]):
+                worst = (e.label, p, F)
+        if worst is None:
+            break
+        label, p, F = worst
+        say(f"removing {label}: no longer significant")
+        steps.append(
+            {
+                "candidate": label,
+                "removed": True,
+                "removal_F": F,
+                "removal_p": p,
+                "threshold": threshold,
+                "accepted": False,
+                "why": "backward elimination: no longer significant once later causes were added",
+            }
+        )
+        model = _without(model, label)
+        res = fit(model, train, cond=cond, initial_sigma=(res.sigma_pos_mm, res.sigma_rot_rad))
+        removed.add(label)
+    return model, res, removed
 
 
 def _explained_fraction(v: Tensor, B: Tensor) -> float:

@@ -19,6 +19,7 @@ _COMMANDS = (
     "hybrid_pk.cli.simulate_cmd",
     "hybrid_pk.cli.diagnose_cmd",
     "hybrid_pk.cli.calibrate_cmd",
+    "hybrid_pk.cli.train_cmd",
     "hybrid_pk.cli.evaluate_cmd",
     "hybrid_pk.cli.ik_cmd",
     "hybrid_pk.cli.import_cmd",

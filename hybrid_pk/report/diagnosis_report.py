@@ -235,7 +235,7 @@ def _selection_log(diagnosis) -> list[str]:
             s.get("threshold"),
             s.get("fit_F"),
             s.get("delta_bic"),
-            s.get("accepted"),
+            "removed" if s.get("removed") else s.get("accepted"),
             s.get("why", ""),
         ]
         for s in diagnosis.steps
@@ -246,7 +246,8 @@ def _selection_log(diagnosis) -> list[str]:
         "",
         "Forward selection: at each step the best-scoring candidate is refitted and kept "
         "only if its F-test passes the Bonferroni threshold, BIC drops and the hold-out "
-        "error drops.",
+        "error drops. After each acceptance, earlier causes are re-tested by the F-test of "
+        "removing them and dropped when no longer significant (backward elimination).",
         "",
         markdown_table(rows, headers, ["l", "r", "r", "r", "r", "r", "l", "l"]),
     ]

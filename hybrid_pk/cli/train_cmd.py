@@ -1,0 +1,241 @@
+"""``hybrid-pk train DATA... --model MODEL --out MODEL2``: residual networks (Lightning)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import warnings
+
+from hybrid_pk.calibration.fit import conditions_from_data
+from hybrid_pk.cli.common import (
+    add_data_arguments,
+    fit_frames,
+    frame_parameter_count,
+    progress,
+    read_data,
+    with_frame_sets,
+)
+from hybrid_pk.cli.evaluate_cmd import _frame_sets
+from hybrid_pk.errors import HybridPKError
+from hybrid_pk.hybrid.nets import parse_arch
+from hybrid_pk.model_file import NOMINAL_PREFIX, load_model, model_robot
+
+_DESCRIPTION = """\
+Train the two residual networks of the hybrid model (Ojer et al. 2024) on top of MODEL
+(a calibrated model file, or nominal:ROBOT with --fit-frames for the paper's
+pure-network method) and write MODEL2: MODEL plus the networks, read by evaluate, ik
+and calibrate --refit.
+
+The position network corrects the flange position [m], the orientation network its
+rotation [rad, axis-angle]; inputs are the joints normalised over the training rows'
+range (--input-range data) or the joint limits (limits). Outside the joint box of the
+training rows the corrections fade out (to the base model) within 10 % of its size.
+
+Presets: fast (ours: 3 x 256 SiLU MLPs, Adam + one-cycle, batch 256, 150 epochs,
+MSE) and paper (D4w / Rw, Adagrad lr 0.005, batch 128, <= 300 epochs, early stopping,
+mean-distance / mean-angle losses, limits normalisation). --config reads the model /
+data / trainer sections of a LightningCLI YAML (train/configs/*.yaml) over the preset.
+Networks: D1, D4, D4w, D4W, Rw, Rd, B1-B4, mlp, mlp:WIDTHxDEPTH, or none.
+
+--logdir DIR writes TensorBoard logs (losses, mean/p95 position [mm] and orientation
+[deg] errors, error histograms, a Fig.-4-like figure) and checkpoints.
+--strategy ddp --devices N trains in N processes (DDP; CPU: gloo).
+"""
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add the ``train`` command."""
+    p = subparsers.add_parser(
+        "train",
+        help="train the residual networks of a hybrid model (Lightning, TensorBoard)",
+        description=_DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_data_arguments(p)
+    p.add_argument(
+        "--model", required=True, metavar="MODEL", help="base model file, or nominal:ROBOT"
+    )
+    p.add_argument("--out", required=True, metavar="MODEL2", help="output model file (.pt)")
+    p.add_argument("--position-net", metavar="ARCH", help="position network (default: preset)")
+    p.add_argument(
+        "--orientation-net", metavar="ARCH", help="orientation network (default: preset)"
+    )
+    p.add_argument("--preset", choices=("fast", "paper"), default="fast", help="default: fast")
+    p.add_argument("--config", metavar="YAML", help="LightningCLI config over the preset")
+    p.add_argument("--epochs", type=int, metavar="N", help="maximum epochs")
+    p.add_argument("--batch-size", type=int, metavar="N", help="training rows per step")
+    p.add_argument("--lr", type=float, metavar="LR", help="(peak) learning rate")
+    p.add_argument(
+        "--patience",
+        type=int,
+        metavar="N",
+        help="early stopping after N epochs without validation gain (0: off)",
+    )
+    p.add_argument(
+        "--val-fraction",
+        type=float,
+        metavar="F",
+        help="share of the rows held out for validation (default: preset)",
+    )
+    p.add_argument("--input-range", choices=("data", "limits"), help="input normalisation range")
+    p.add_argument("--logdir", metavar="DIR", help="TensorBoard logs and checkpoints")
+    p.add_argument("--seed", type=int, default=0, metavar="K", help="seed (default: 0)")
+    p.add_argument("--strategy", default="auto", help="Lightning strategy: auto or ddp")
+    p.add_argument("--devices", type=int, default=1, metavar="N", help="processes (default: 1)")
+    p.add_argument(
+        "--fit-frames",
+        action="store_true",
+        help="first fit only the base and tool frames of MODEL to DATA (nominal:ROBOT)",
+    )
+    p.add_argument("--robot", metavar="ROBOT", help="refuse a MODEL made for another robot")
+    p.add_argument("--end-link", metavar="NAME", help="end link of nominal:ROBOT")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=_run)
+
+
+def _overrides(args: argparse.Namespace) -> tuple[dict, dict, dict]:
+    """Module, datamodule and trainer overrides: the YAML first, then the flags."""
+    from hybrid_pk.training.presets import settings_from_config
+
+    model, data, trainer = ({}, {}, {})
+    if args.config:
+        cfg = settings_from_config(args.config)
+        model, data, trainer = cfg["model"], cfg["data"], cfg["trainer"]
+    for key, value in (
+        ("position_net", args.position_net),
+        ("orientation_net", args.orientation_net),
+        ("lr", args.lr),
+        ("input_range", args.input_range),
+    ):
+        if value is not None:
+            model[key] = value
+    for key in ("position_net", "orientation_net"):  # fail before any data is read
+        if model.get(key, "none") != "none":
+            parse_arch(model[key])
+    if args.batch_size is not None:
+        data["batch_size"] = args.batch_size
+    if args.val_fraction is not None:
+        data["val_fraction"] = args.val_fraction
+    if args.epochs is not None:
+        trainer["max_epochs"] = args.epochs
+    if args.patience is not None:
+        trainer["patience"] = args.patience or None
+    return model, data, trainer
+
+
+def _is_main_process() -> bool:
+    """False in the extra processes a DDP run starts (they re-run this command)."""
+    return all(int(os.environ.get(var, "0")) == 0 for var in ("LOCAL_RANK", "NODE_RANK"))
+
+
+def _quiet_lightning() -> None:
+    """Keep Lightning's start-up banners and library deprecation notes off the terminal."""
+    logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
+    warnings.filterwarnings("ignore", message=".*LeafSpec.*", category=DeprecationWarning)
+    warnings.filterwarnings("ignore", message=".*LeafSpec.*", category=FutureWarning)
+    warnings.filterwarnings("ignore", message=r".*distributed\.nn\.functional\.all_gather.*")
+
+
+def _run(args: argparse.Namespace) -> int:
+    try:
+        from hybrid_pk.hybrid import save_hybrid
+        from hybrid_pk.training import train_hybrid
+    except ImportError as exc:
+        raise HybridPKError(
+            f"training needs Lightning: pip install 'hybrid_pk[train]' ({exc})"
+        ) from exc
+    _quiet_lightning()  # after the import: Lightning sets its logger up when imported
+    model_over, data_over, trainer_over = _overrides(args)
+    loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
+    robot = model_robot(loaded)
+    robot.requires_grad_(False)
+    sets = _frame_sets(args, loaded.model.base.sets)
+    main = _is_main_process()
+
+    with progress("train: preparing", total=2 if args.fit_frames else 1) as step:
+        step("reading data")
+        n_params = frame_parameter_count(sets, False) if args.fit_frames else None
+        data = read_data(args.data, robot, n_params=n_params, skip_bad_rows=args.skip_bad_rows)
+        cond = conditions_from_data(data, sets > 1)
+        base = loaded.model
+        if args.fit_frames:
+            step("fitting base and tool frames")
+            base = with_frame_sets(base, sets)
+            fit_frames(base, data, cond)
+    if loaded.has_networks and main:
+        print(f"note: {args.model} already has residual networks; they are replaced")
+    result = train_hybrid(
+        data,
+        base,
+        cond,
+        preset_name=args.preset,
+        model=model_over,
+        datamodule=data_over,
+        max_epochs=trainer_over.get("max_epochs"),
+        patience=trainer_over.get("patience", "preset"),
+        seed=args.seed,
+        logdir=args.logdir,
+        progress=not args.no_progress,
+        strategy=args.strategy,
+        devices=args.devices,
+    )
+    if not result.is_global_zero:
+        return 0
+    frames_fitted = loaded.frames_fitted or args.fit_frames
+    metadata = {k: v for k, v in loaded.metadata.items() if k != "created"}
+    metadata["training"] = {
+        "command": "train",
+        "base_model": args.model,
+        "data": list(data.sources),
+        "n_rows": data.n,
+        "preset": args.preset,
+        "seed": args.seed,
+        "epochs": result.epochs,
+        "seconds": round(result.seconds, 3),
+        "validation_base": result.base,
+        "validation_hybrid": result.best,
+        "logdir": result.logdir,
+    }
+    save_hybrid(
+        args.out,
+        result.hybrid,
+        metadata=metadata,
+        training={"settings": result.settings, "best": result.best},
+        frames_fitted=frames_fitted,
+    )
+    _print_summary(args, robot, data, result)
+    if not frames_fitted:
+        print(
+            "warning: base and tool frames are identity (nominal model without --fit-frames): "
+            "the networks learned the frames too"
+        )
+    return 0
+
+
+def _print_summary(args, robot, data, result) -> None:
+    from hybrid_pk.hybrid.nets import count_parameters
+
+    hybrid = result.hybrid
+    nets = []
+    for name in ("position", "orientation"):
+        head = getattr(hybrid, name)
+        if head is not None:
+            nets.append(f"{name} {head.arch} ({count_parameters(head.net):,} parameters)")
+    base = "nominal URDF" if args.model.startswith(NOMINAL_PREFIX) else args.model
+    print(
+        f"trained {', '.join(nets)} on {data.n} rows of {robot.name} over {base}: "
+        f"{result.epochs} epochs in {result.seconds:.1f} s"
+    )
+    print("validation rows, mean error        base model ->   hybrid")
+    for key, label in (("position_mm", "position [mm]"), ("orientation_deg", "orientation [deg]")):
+        if key in result.best:
+            print(f"  {label:<30} {result.base[key]:>12.5g} -> {result.best[key]:>8.5g}")
+    lo, hi = hybrid.box.trust_lower, hybrid.box.trust_upper
+    box = ", ".join(
+        f"{n} [{a:.3f}, {b:.3f}]" for n, a, b in zip(robot.joint_names, lo, hi, strict=True)
+    )
+    print(f"networks trusted inside the training box (fading out beyond it): {box}")
+    if result.logdir:
+        print(f"TensorBoard logs: tensorboard --logdir {result.logdir}")
+    print(f"wrote {args.out}")

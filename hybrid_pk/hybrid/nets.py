@@ -1,0 +1,254 @@
+"""Residual-network architectures of Ojer et al. 2024 (appendix, section 4) and ours.
+
+Every network maps normalised joints ``u: (N, dof)`` to one correction ``(N, 3)``
+(position or rotation, in the units of the head's output scale). Names:
+
+- ``D1, D4, D4w, D4W``: dense, ReLU after every hidden layer, linear output
+  (appendix widths: 5000 / 3500-2500-1500-750 / 5000-3000-1000-500 /
+  6000-3000-1500-1000).
+- ``Rw, Rd``: ResNets of Chen et al. [22] grouped in *components* of one dense block
+  followed by two identity blocks of the same width (appendix: 700-500-200 and
+  500-200-100-70-30). See :class:`ChenResNet` for the blocks.
+- ``B1``-``B4``: the baselines of section 4 ([23], [22], [25], [24]). The paper gives
+  no sizes for them; what is assumed is written in :data:`ARCHITECTURES`.
+- ``mlp`` (ours): a small smooth MLP, ``mlp`` = 3 x 256 SiLU, or ``mlp:WxD`` for D
+  hidden layers of width W; smooth activations give the IK smooth Jacobians.
+
+Parameter counts are trainable parameters (weights, biases, BatchNorm scale and
+shift); BatchNorm running statistics are buffers and not counted (Keras' summary
+counts them as non-trainable parameters).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+from torch import Tensor, nn
+
+from hybrid_pk.errors import HybridPKError
+
+__all__ = [
+    "ARCHITECTURES",
+    "Architecture",
+    "ChenResNet",
+    "DenseBlock",
+    "DenseNet",
+    "IdentityBlock",
+    "build_net",
+    "count_parameters",
+    "parse_arch",
+]
+
+_ACTIVATIONS: dict[str, Callable[[], nn.Module]] = {
+    "relu": nn.ReLU,
+    "silu": nn.SiLU,
+    "tanh": nn.Tanh,
+    "sigmoid": nn.Sigmoid,
+    "gelu": nn.GELU,
+}
+
+
+def _activation(name: str) -> nn.Module:
+    if name not in _ACTIVATIONS:
+        raise HybridPKError(f"unknown activation {name!r}; one of {', '.join(_ACTIVATIONS)}")
+    return _ACTIVATIONS[name]()
+
+
+class DenseNet(nn.Module):
+    """Fully connected network: hidden layers with an activation, linear output.
+
+    Args:
+        in_features: inputs (the robot's ``dof``).
+        hidden: widths of the hidden layers, e.g. ``(5000, 3000, 1000, 500)``.
+        out_features: outputs (3).
+        activation: ``relu`` (paper), ``silu``, ``tanh``, ``sigmoid`` or ``gelu``.
+    """
+
+    def __init__(
+        self,
+        in_features: int,
+        hidden: Sequence[int],
+        out_features: int = 3,
+        activation: str = "relu",
+    ) -> None:
+        super().__init__()
+        layers: list[nn.Module] = []
+        width = in_features
+        for h in hidden:
+            layers += [nn.Linear(width, h), _activation(activation)]
+            width = h
+        layers.append(nn.Linear(width, out_features))
+        self.layers = nn.Sequential(*layers)
+
+    def forward(self, u: Tensor) -> Tensor:
+        """``(N, in_features) -> (N, out_features)``."""
+        return self.layers(u)
+
+
+def _dense_bn(n_in: int, n_out: int) -> list[nn.Module]:
+    return [nn.Linear(n_in, n_out), nn.BatchNorm1d(n_out)]
+
+
+class DenseBlock(nn.Module):
+    """Chen et al.'s block with a dense shortcut (it changes the width).
+
+    ``y = relu(main(x) + BN(Dense(x)))`` with ``main = Dense-BN-ReLU, Dense-BN-ReLU,
+    Dense-BN`` (the dense analogue of ResNet-50's convolutional block, following the
+    authors' published Keras code of [22]).
+    """
+
+    def __init__(self, n_in: int, units: int) -> None:
+        super().__init__()
+        self.main = nn.Sequential(
+            *_dense_bn(n_in, units), nn.ReLU(), *_dense_bn(units, units), nn.ReLU()
+        )
+        self.main.extend(_dense_bn(units, units))
+        self.shortcut = nn.Sequential(*_dense_bn(n_in, units))
+
+    def forward(self, x: Tensor) -> Tensor:
+        return nn.functional.relu(self.main(x) + self.shortcut(x))
+
+
+class IdentityBlock(nn.Module):
+    """Chen et al.'s block with an identity shortcut: ``y = relu(main(x) + x)``, ``main``
+    as in :class:`DenseBlock`."""
+
+    def __init__(self, units: int) -> None:
+        super().__init__()
+        self.main = nn.Sequential(
+            *_dense_bn(units, units), nn.ReLU(), *_dense_bn(units, units), nn.ReLU()
+        )
+        self.main.extend(_dense_bn(units, units))
+
+    def forward(self, x: Tensor) -> Tensor:
+        return nn.functional.relu(self.main(x) + x)
+
+
+class ChenResNet(nn.Module):
+    """ResNet for regression (Chen et al. 2020 [22]) in components.
+
+    Each component is one :class:`DenseBlock` followed by ``identity_blocks``
+    :class:`IdentityBlock` s of the same width (Ojer et al., appendix: two). As in the
+    authors' code, the last block is followed by BatchNorm and a linear output layer.
+
+    Assumptions (the appendix draws the blocks, Fig. 11, without every detail): each
+    block has three Dense-BatchNorm stages, ReLU between them and after the addition;
+    BatchNorm uses PyTorch's defaults (Keras' momentum 0.99 is PyTorch's 0.01 — we
+    keep 0.1 so that running statistics settle within the paper's short trainings).
+
+    Args:
+        in_features: inputs (``dof``).
+        widths: one width per component, e.g. ``(700, 500, 200)``.
+        out_features: outputs (3).
+        identity_blocks: identity blocks per component.
+    """
+
+    def __init__(
+        self,
+        in_features: int,
+        widths: Sequence[int],
+        out_features: int = 3,
+        identity_blocks: int = 2,
+    ) -> None:
+        super().__init__()
+        blocks: list[nn.Module] = []
+        width = in_features
+        for w in widths:
+            blocks.append(DenseBlock(width, w))
+            blocks += [IdentityBlock(w) for _ in range(identity_blocks)]
+            width = w
+        self.blocks = nn.Sequential(*blocks)
+        self.head = nn.Sequential(nn.BatchNorm1d(width), nn.Linear(width, out_features))
+
+    def forward(self, u: Tensor) -> Tensor:
+        """``(N, in_features) -> (N, out_features)``."""
+        return self.head(self.blocks(u))
+
+
+@dataclass(frozen=True)
+class Architecture:
+    """A named architecture: its family, its arguments, and where it comes from."""
+
+    family: str  # "dense" or "resnet"
+    args: dict
+    source: str
+
+
+ARCHITECTURES: dict[str, Architecture] = {
+    "D1": Architecture("dense", {"hidden": (5000,)}, "Ojer et al. appendix"),
+    "D4": Architecture("dense", {"hidden": (3500, 2500, 1500, 750)}, "Ojer et al. appendix"),
+    "D4w": Architecture("dense", {"hidden": (5000, 3000, 1000, 500)}, "Ojer et al. appendix"),
+    "D4W": Architecture("dense", {"hidden": (6000, 3000, 1500, 1000)}, "Ojer et al. appendix"),
+    "Rw": Architecture("resnet", {"widths": (700, 500, 200)}, "Ojer et al. appendix"),
+    "Rd": Architecture("resnet", {"widths": (500, 200, 100, 70, 30)}, "Ojer et al. appendix"),
+    # Baselines: the paper cites them without sizes. B2 is the published optimal model
+    # of [22] (width 16, depth 28 = three components); B1, B3, B4 are assumptions that
+    # follow the cited papers' descriptions (plain MLP; a small sigmoid network
+    # trained after an EKF calibration; a GA-sized sigmoid DNN).
+    "B1": Architecture(
+        "dense",
+        {"hidden": (100, 100, 100), "activation": "relu"},
+        "Theofanidis et al. [23]; assumed 3 x 100 ReLU",
+    ),
+    "B2": Architecture(
+        "resnet", {"widths": (16, 16, 16)}, "Chen et al. [22] optimal model (width 16, depth 28)"
+    ),
+    "B3": Architecture(
+        "dense",
+        {"hidden": (20,), "activation": "sigmoid"},
+        "Nguyen et al. [25]; assumed one hidden layer of 20 sigmoid units",
+    ),
+    "B4": Architecture(
+        "dense",
+        {"hidden": (40, 30, 20), "activation": "sigmoid"},
+        "Chen et al. [24] GA-DNN; assumed 40-30-20 sigmoid (a GA result)",
+    ),
+    "mlp": Architecture(
+        "dense", {"hidden": (256, 256, 256), "activation": "silu"}, "ours: smooth MLP"
+    ),
+}
+
+_MLP = re.compile(r"^mlp:(\d+)x(\d+)$")
+
+
+def parse_arch(name: str) -> Architecture:
+    """The :class:`Architecture` of a name (``D4w``, ``Rw``, ``mlp``, ``mlp:128x4``, ...).
+
+    Names are case-sensitive (``D4w`` and ``D4W`` are different networks).
+
+    Raises:
+        HybridPKError: for an unknown name (the message lists the known ones).
+    """
+    if name in ARCHITECTURES:
+        return ARCHITECTURES[name]
+    m = _MLP.match(name)
+    if m:
+        width, depth = int(m.group(1)), int(m.group(2))
+        if width < 1 or depth < 1:
+            raise HybridPKError(f"network {name!r}: width and depth must be >= 1")
+        return Architecture("dense", {"hidden": (width,) * depth, "activation": "silu"}, "ours")
+    raise HybridPKError(
+        f"unknown network architecture {name!r}; known: {', '.join(ARCHITECTURES)}, "
+        "or mlp:WIDTHxDEPTH (e.g. mlp:128x4)"
+    )
+
+
+def build_net(name: str, in_features: int, out_features: int = 3) -> nn.Module:
+    """A fresh network of architecture ``name`` (see :func:`parse_arch`).
+
+    Args:
+        name: architecture name.
+        in_features: inputs (the robot's ``dof``).
+        out_features: outputs (3: a position or a rotation correction).
+    """
+    arch = parse_arch(name)
+    if arch.family == "resnet":
+        return ChenResNet(in_features, out_features=out_features, **arch.args)
+    return DenseNet(in_features, out_features=out_features, **arch.args)
+
+
+def count_parameters(net: nn.Module) -> int:
+    """Number of trainable parameters."""
+    return sum(p.numel() for p in net.parameters() if p.requires_grad)

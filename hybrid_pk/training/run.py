@@ -1,0 +1,226 @@
+"""`train_hybrid`: one call from measured rows + a base model to a trained `HybridFK`.
+
+Used by ``hybrid-pk train`` and ``train/reproduce_paper.py``; LightningCLI users run
+the same module and datamodule through ``train/cli.py`` and a YAML config.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import lightning as L
+import torch
+from lightning.pytorch.callbacks import (
+    EarlyStopping,
+    LearningRateMonitor,
+    ModelCheckpoint,
+    TQDMProgressBar,
+)
+from lightning.pytorch.callbacks.progress.tqdm_progress import Tqdm
+from lightning.pytorch.loggers import TensorBoardLogger
+
+from hybrid_pk.data import MeasuredData
+from hybrid_pk.effects import Conditions, ExtendedModel
+from hybrid_pk.hybrid.model import HybridFK
+from hybrid_pk.hybrid.nets import parse_arch
+from hybrid_pk.training.datamodule import HybridDataModule
+from hybrid_pk.training.lightning_module import HybridLitModule
+from hybrid_pk.training.presets import preset
+
+__all__ = ["MONITOR", "ProgressBar", "TrainResult", "auto_threads", "make_trainer", "train_hybrid"]
+
+MONITOR = "val/score"
+# Networks no wider than this train on one thread: their layers are too small for a
+# parallel region to pay off, and on a busy machine each region waits for the other
+# thread to be scheduled (measured: 70 x slower steps with 2 threads at load 4 on 2
+# cores).
+SINGLE_THREAD_WIDTH = 512
+
+
+def auto_threads(archs: list[str]) -> int | None:
+    """1 for small networks, None (leave torch's setting) for wide ones."""
+    widths = []
+    for a in archs:
+        if a != "none":
+            args = parse_arch(a).args
+            widths += list(args.get("hidden", args.get("widths", ())))
+    return 1 if max(widths, default=0) <= SINGLE_THREAD_WIDTH else None
+
+
+class ProgressBar(TQDMProgressBar):
+    """Lightning's epoch bar on stderr (stdout keeps the command's summary), with the
+    validation errors in its postfix and no separate validation bar."""
+
+    def init_train_tqdm(self) -> Tqdm:
+        return Tqdm(
+            desc=self.train_description,
+            position=2 * self.process_position,
+            disable=self.is_disabled,
+            leave=True,
+            dynamic_ncols=True,
+            file=sys.stderr,
+            smoothing=0,
+            bar_format=self.BAR_FORMAT,
+        )
+
+    def init_validation_tqdm(self) -> Tqdm:
+        return Tqdm(disable=True)
+
+
+@dataclass
+class TrainResult:
+    """Outcome of :func:`train_hybrid`.
+
+    Attributes:
+        hybrid: the trained model (eval mode), each network at its best validation state.
+        best: best validation mean errors, ``position_mm`` / ``orientation_deg``.
+        base: the base model's validation mean errors, same keys.
+        epochs: epochs run.
+        seconds: wall time of the fit [s].
+        logdir: TensorBoard folder of this run, or None.
+        is_global_zero: False in the extra processes of a multi-process (DDP) run.
+        settings: the preset with the overrides applied.
+    """
+
+    hybrid: HybridFK
+    best: dict[str, float]
+    base: dict[str, float]
+    epochs: int
+    seconds: float
+    logdir: str | None
+    is_global_zero: bool
+    settings: dict = field(default_factory=dict)
+
+
+def make_trainer(
+    *,
+    max_epochs: int,
+    patience: int | None = None,
+    logdir: str | Path | None = None,
+    progress: bool = True,
+    strategy: str = "auto",
+    devices: int = 1,
+    num_nodes: int = 1,
+    batches_per_epoch: int | None = None,
+) -> L.Trainer:
+    """A CPU Lightning trainer with our callbacks and (with ``logdir``) TensorBoard.
+
+    Args:
+        max_epochs: at most this many epochs.
+        patience: early stopping on ``val/score`` after this many epochs without
+            improvement; None: off.
+        logdir: TensorBoard logs and checkpoints go to ``logdir/version_K``.
+        progress: show Lightning's progress bar.
+        strategy: Lightning strategy, e.g. ``"ddp"`` (one process per device).
+        devices: processes (CPU devices) per node.
+        num_nodes: machines.
+        batches_per_epoch: training steps per epoch, if known (logging interval).
+    """
+    callbacks: list = []
+    if patience is not None:
+        callbacks.append(EarlyStopping(monitor=MONITOR, mode="min", patience=int(patience)))
+    logger = False
+    if logdir is not None:
+        logger = TensorBoardLogger(str(logdir), name="", default_hp_metric=False)
+        callbacks.append(LearningRateMonitor(logging_interval="epoch"))
+        callbacks.append(ModelCheckpoint(monitor=MONITOR, mode="min", save_last=True))
+    if progress:
+        callbacks.append(ProgressBar(refresh_rate=20))
+    return L.Trainer(
+        accelerator="cpu",
+        devices=devices,
+        num_nodes=num_nodes,
+        strategy=strategy,
+        max_epochs=max_epochs,
+        deterministic=True,
+        logger=logger,
+        callbacks=callbacks,
+        enable_checkpointing=logdir is not None,
+        enable_progress_bar=progress,
+        enable_model_summary=False,
+        num_sanity_val_steps=0,
+        log_every_n_steps=max(1, min(10, batches_per_epoch or 10)),
+    )
+
+
+def train_hybrid(
+    data: MeasuredData,
+    base: ExtendedModel,
+    cond: Conditions | None = None,
+    *,
+    preset_name: str = "fast",
+    model: dict | None = None,
+    datamodule: dict | None = None,
+    max_epochs: int | None = None,
+    patience: int | str | None = "preset",
+    seed: int = 0,
+    logdir: str | Path | None = None,
+    progress: bool = True,
+    strategy: str = "auto",
+    devices: int = 1,
+    threads: int | None = None,
+) -> TrainResult:
+    """Train the residual networks of a :class:`HybridFK` on ``data`` over ``base``.
+
+    Args:
+        data: measured rows.
+        base: the base model (nominal + fitted frames, or a calibrated model); frozen.
+        cond: conditions of the rows (default from ``data``).
+        preset_name: ``fast`` (ours) or ``paper`` (:mod:`~hybrid_pk.training.presets`).
+        model: overrides of the module arguments (e.g. ``{"position_net": "D4w"}``).
+        datamodule: overrides of the datamodule arguments (``batch_size``, ...).
+        max_epochs: override of the preset's epochs.
+        patience: early-stopping patience override (None: off); ``"preset"`` keeps it.
+        seed: seeds the split, the initialisation and the shuffling (same seed, same
+            networks).
+        logdir: TensorBoard logs and checkpoints; None: no logging.
+        progress: Lightning's progress bar.
+        strategy: ``"auto"`` or ``"ddp"`` (with ``devices`` processes).
+        devices: number of processes.
+        threads: torch threads during the fit; None: one for networks up to
+            :data:`SINGLE_THREAD_WIDTH` wide, torch's setting for wider ones.
+    """
+    settings = preset(preset_name)
+    settings["model"].update(model or {})
+    settings["data"].update(datamodule or {})
+    if max_epochs is not None:
+        settings["trainer"]["max_epochs"] = int(max_epochs)
+    if patience != "preset":
+        settings["trainer"]["patience"] = patience
+    L.seed_everything(seed, workers=True, verbose=False)
+    dm = HybridDataModule.from_measured(data, base, cond, seed=seed, **settings["data"])
+    module = HybridLitModule(**settings["model"])
+    trainer = make_trainer(
+        logdir=logdir,
+        progress=progress,
+        strategy=strategy,
+        devices=devices,
+        batches_per_epoch=math.ceil(dm.train_targets.n / (dm.batch_size * devices)),
+        **settings["trainer"],
+    )
+    previous = torch.get_num_threads()
+    archs = [settings["model"]["position_net"], settings["model"]["orientation_net"]]
+    threads = threads or auto_threads(archs)
+    start = time.perf_counter()
+    try:
+        if threads:
+            torch.set_num_threads(threads)
+        trainer.fit(module, datamodule=dm)
+    finally:
+        torch.set_num_threads(previous)
+    seconds = time.perf_counter() - start
+    hybrid = module.hybrid.eval()
+    return TrainResult(
+        hybrid=hybrid,
+        best=module.best_metrics(),
+        base=module.base_metrics(),
+        epochs=trainer.current_epoch,
+        seconds=seconds,
+        logdir=None if trainer.logger is None else trainer.logger.log_dir,
+        is_global_zero=trainer.is_global_zero,
+        settings=settings,
+    )
