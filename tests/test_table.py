@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 from types import SimpleNamespace
 
 import numpy as np
@@ -101,7 +102,31 @@ def test_row_with_extra_field_names_the_row(tmp_path):
     lines = path.read_text().splitlines()
     lines[3] += ",0.5"  # data row 3
     path.write_text("\n".join(lines) + "\n")
-    _raises(path, 3, None, "14 fields where the header has 13")
+    _raises(path, 3, "field 14", re.escape("14 fields where the header has 13: field 14 ('0.5')"))
+
+
+@pytest.mark.parametrize("rows", [(1,), (1, 2, 3, 4)])
+def test_extra_field_in_first_row_is_an_error_not_dropped(tmp_path, rows):
+    # pandas (index_col=False) drops these with only a ParserWarning
+    path = _csv(tmp_path, _frame(4))
+    lines = path.read_text().splitlines()
+    for row in rows:
+        lines[row] += f",{row}.25"
+    path.write_text("\n".join(lines) + "\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # and no pandas warning either
+        _raises(
+            path, 1, "field 14", re.escape("14 fields where the header has 13: field 14 ('1.25')")
+        )
+
+
+def test_extra_field_row_is_counted_without_blank_lines(tmp_path):
+    path = _csv(tmp_path, _frame(4))
+    lines = path.read_text().splitlines()
+    lines[3] += ",7"  # data row 3
+    lines.insert(2, "")  # a blank line before it
+    path.write_text("\n".join(lines) + "\n")
+    _raises(path, 3, "field 14", "14 fields where the header has 13")
 
 
 def test_row_with_missing_field_is_an_empty_value(tmp_path):

@@ -20,7 +20,6 @@ import csv
 import difflib
 import math
 import os
-import re
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -128,19 +127,21 @@ def _load(path: Path) -> pd.DataFrame:
             _fail(file, "empty file: expected a header row and data rows")
         _check_duplicates(file, header)
         try:
-            frame = pd.read_csv(
-                path,
-                dtype=str,
-                keep_default_na=False,
-                na_filter=False,
-                index_col=False,
-                encoding="utf-8-sig",
-            )
-        except (pd.errors.ParserError, UnicodeDecodeError) as exc:
-            found = re.search(r"Expected (\d+) fields in line (\d+), saw (\d+)", str(exc))
-            if found:
-                want, line, saw = map(int, found.groups())
-                _fail(file, f"{saw} fields where the header has {want}", row=line - 1)
+            with warnings.catch_warnings():
+                # With index_col=False pandas drops the extra fields of a row longer than
+                # the header (when the first data row is) with only a ParserWarning.
+                warnings.simplefilter("error", pd.errors.ParserWarning)
+                frame = pd.read_csv(
+                    path,
+                    dtype=str,
+                    keep_default_na=False,
+                    na_filter=False,
+                    index_col=False,
+                    encoding="utf-8-sig",
+                )
+        except (pd.errors.ParserError, pd.errors.ParserWarning, UnicodeDecodeError) as exc:
+            if not isinstance(exc, UnicodeDecodeError):
+                _check_row_lengths(path, len(header))
             _fail(file, f"not a readable CSV table: {' '.join(str(exc).split())}")
         frame.columns = header
     elif suffix in _PARQUET_SUFFIXES:
@@ -159,6 +160,29 @@ def _load(path: Path) -> pd.DataFrame:
     if len(frame) == 0:
         _fail(file, "empty file: the header has no data rows below it")
     return frame
+
+
+def _check_row_lengths(path: Path, width: int) -> None:
+    """Fail at the first data row with more fields than the header's ``width``, naming
+    its first field without a column (rows are counted as pandas does: blank lines are
+    not data rows)."""
+    with path.open(newline="", encoding="utf-8-sig") as fh:
+        reader = csv.reader(fh)
+        next(reader, None)
+        row = 0
+        for fields in reader:
+            if not fields:
+                continue
+            row += 1
+            if len(fields) > width:
+                _fail(
+                    str(path),
+                    f"{len(fields)} fields where the header has {width}: "
+                    f"field {width + 1} ({fields[width]!r}) has no column name "
+                    "(check the separator and the header)",
+                    row=row,
+                    column=f"field {width + 1}",
+                )
 
 
 def _check_duplicates(file: str, header: list[str]) -> None:
