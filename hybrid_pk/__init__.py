@@ -22,6 +22,14 @@ from hybrid_pk.errors import InvalidFrame as InvalidFrame
 from hybrid_pk.errors import ModelFileError as ModelFileError
 from hybrid_pk.errors import RobotModelError as RobotModelError
 from hybrid_pk.errors import ShapeError as ShapeError
+from hybrid_pk.hybrid import HybridFK as HybridFK
+from hybrid_pk.hybrid import load_hybrid as load_hybrid
+from hybrid_pk.hybrid import save_hybrid as save_hybrid
+from hybrid_pk.ik import IKOptions as IKOptions
+from hybrid_pk.ik import IKResult as IKResult
+from hybrid_pk.ik import solve_ik as solve_ik
+from hybrid_pk.ik import solve_ik_two_stage as solve_ik_two_stage
+from hybrid_pk.ik import wang_baseline as wang_baseline
 from hybrid_pk.metrics import error_stats as error_stats
 from hybrid_pk.metrics import pose_error as pose_error
 from hybrid_pk.model_file import load_model as load_model
@@ -39,7 +47,10 @@ __all__ = [
     "Diagnosis",
     "ExtendedModel",
     "FitResult",
+    "HybridFK",
     "HybridPKError",
+    "IKOptions",
+    "IKResult",
     "InvalidFrame",
     "KinematicParams",
     "MeasuredData",
@@ -52,13 +63,18 @@ __all__ = [
     "error_stats",
     "export_urdf",
     "fit",
+    "load_hybrid",
     "load_model",
     "make_effect",
     "pose_error",
     "read_table",
     "read_table_for",
+    "save_hybrid",
     "save_model",
     "shipped_robots",
     "simulate_campaign",
+    "solve_ik",
+    "solve_ik_two_stage",
+    "wang_baseline",
     "write_table",
 ]

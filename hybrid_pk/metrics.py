@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import torch
@@ -19,6 +19,9 @@ from torch import Tensor
 
 from hybrid_pk.errors import ShapeError
 from hybrid_pk.geometry import rotation_angle, so3_log
+
+if TYPE_CHECKING:
+    from hybrid_pk.data.measured import MeasuredData
 
 __all__ = [
     "ErrorStats",
@@ -29,6 +32,7 @@ __all__ = [
     "pose_error",
     "pose_residual",
     "position_error_mm",
+    "row_errors",
 ]
 
 M_TO_MM = 1000.0
@@ -97,6 +101,16 @@ def pose_error(T_measured: Tensor, T_model: Tensor) -> PoseError:
     position = position_error_mm(T_measured[..., :3, 3], T_model[..., :3, 3])
     angle = rotation_angle(_relative_rotation(T_measured, T_model))
     return PoseError(position_mm=position, orientation_deg=torch.rad2deg(angle))
+
+
+def row_errors(T_model: Tensor, data: MeasuredData) -> tuple[Tensor, Tensor | None]:
+    """Per-row position [mm] and orientation [deg] errors of predicted poses
+    ``T_model (N, 4, 4)`` against measured rows (contract section 5); the orientation
+    is None for position-only data."""
+    if data.quat is None:
+        return position_error_mm(data.position, T_model[..., :3, 3]), None
+    err = pose_error(data.T_measured(), T_model)
+    return err.position_mm, err.orientation_deg
 
 
 def pose_residual(T_measured: Tensor, T_model: Tensor) -> Tensor:

@@ -301,3 +301,46 @@ def test_effects_auto_fits_the_diagnosed_causes(campaign, capsys, tmp_path, monk
     assert loaded.metadata["diagnosis"]["causes"] == [{"effect": "joint_offset"}]
     assert "1 cause(s)" in out
     assert not Path(f"{out_model}.urdf").exists()
+
+
+def test_constant_orientation_registers_and_warns_of_unidentifiable_frames(tmp_path, capsys):
+    """ISO 9283 cube poses keep the flange orientation: the hand-eye rotation is noise,
+    so registration falls back to points, and calibrate says the frames are unreliable."""
+    sim = tmp_path / "cube.csv"
+    rc, _, err = _run(
+        capsys, "simulate", "rx160", "--n", "200", "--trajectory", "iso-cube", "--noise-mm",
+        "0.02", "--effects", "none", "--seed", "2", "--out", str(sim),
+    )  # fmt: skip
+    assert rc == 0, err
+    model = tmp_path / "cube.pt"
+    rc, out, err = _run(
+        capsys, "calibrate", str(sim), "--robot", "rx160", "--effects", "none", "--out", str(model)
+    )
+    assert rc == 0, err
+    assert "warning: condition number" in out
+    js = tmp_path / "eval.json"
+    rc, _, err = _run(capsys, "evaluate", str(model), str(sim), "--json", str(js))
+    assert rc == 0, err
+    # the rows themselves are still fitted to the noise level (0.02 mm per axis)
+    assert json.loads(js.read_text())["position_mm"]["mean"] < 0.06
+
+
+def test_calibrate_takes_the_causes_of_a_diagnosis_file(campaign, tmp_path, capsys):
+    diag = tmp_path / "diag.json"
+    diag.write_text(json.dumps({"causes": [{"effect": "joint_offset", "joint": "joint_2"}]}))
+    model = tmp_path / "from_diag.pt"
+    rc, _, err = _run(
+        capsys, "calibrate", str(campaign["a"]), "--robot", "rx160", "--effects", str(diag),
+        "--out", str(model),
+    )  # fmt: skip
+    assert rc == 0, err
+    assert [e.label for e in load_model(model).model.effects] == ["joint_offset:joint_2"]
+    bad = tmp_path / "bad.json"
+    bad.write_text("[1, 2]")
+    rc, _, err = _run(
+        capsys, "calibrate", str(campaign["a"]), "--robot", "rx160", "--effects", str(bad),
+        "--out", str(model),
+    )  # fmt: skip
+    assert rc == 2
+    assert "no 'causes' list" in err
+    assert len(err.strip().splitlines()) == 1

@@ -356,3 +356,25 @@ def test_cli_help_states_units(capsys):
     text = " ".join(capsys.readouterr().out.split())
     for unit in ("[mm]", "[deg]", "[kg]", "[°C]"):
         assert unit in text
+
+
+def test_hardening_spring_is_ground_truth_only():
+    """Outside the vocabulary (no diagnosis offers it); softer near zero torque."""
+    from hybrid_pk.effects import EFFECTS, Conditions
+    from hybrid_pk.simulate.unmodelled import UNMODELLED_KINDS, HardeningCompliance
+
+    robot = hpk.Robot.from_urdf("rx160")
+    assert not set(UNMODELLED_KINDS) & set(EFFECTS)
+    effect = HardeningCompliance(robot, "joint_2", 2e-6, tau0=50.0)
+    q = robot.sample_q(64, torch.Generator().manual_seed(0))
+    payload = torch.full((64,), 10.0, dtype=torch.float64)
+    with torch.no_grad():
+        tau = robot.gravity_torques(q, payload=payload)[:, 1]
+        dq = effect.apply_q(q, Conditions(payload=payload)) - q
+    expected = -2e-6 * 50.0 * torch.tanh(tau / 50.0)
+    torch.testing.assert_close(dq[:, 1], expected, rtol=1e-12, atol=1e-15)
+    assert float(dq[:, [0, 2, 3, 4, 5]].abs().max()) == 0.0
+    # saturates at c tau0; near zero torque the slope is c
+    assert float(dq[:, 1].abs().max()) <= 2e-6 * 50.0
+    with pytest.raises(ValueError, match="tau0"):
+        HardeningCompliance(robot, "joint_2", 1e-6, tau0=0.0)

@@ -46,11 +46,12 @@ from hybrid_pk.calibration.diagnose import diagnose
 from hybrid_pk.calibration.fit import conditions_from_data, fit, initialise_frames
 from hybrid_pk.cli.common import fit_frames
 from hybrid_pk.data import MeasuredData
-from hybrid_pk.effects import Conditions, Effect, ExtendedModel, make_effect
+from hybrid_pk.effects import Effect, ExtendedModel, make_effect
 from hybrid_pk.hybrid import build_net, count_parameters
 from hybrid_pk.metrics import error_stats, pose_error
 from hybrid_pk.simulate import simulate_campaign
 from hybrid_pk.simulate.spec import paper_effects
+from hybrid_pk.simulate.unmodelled import HardeningCompliance
 from hybrid_pk.training import train_hybrid
 from hybrid_pk.training.run import auto_threads
 
@@ -109,29 +110,6 @@ QUICK = Plan(
 
 
 # ----------------------------------------------------------------------------- ground truth
-
-
-class HardeningCompliance(Effect):
-    """Extra deflection of a hardening joint spring: ``theta - c tau0 tanh(tau / tau0)``
-    with ``tau`` the holding torque at the commanded joints [Nm] (value ``c`` [rad/Nm]).
-
-    Ground truth only: not part of the vocabulary, so no calibration can fit it.
-    """
-
-    kind, unit, stage, scale = "hardening_compliance", "rad/Nm", "joint", 1e-6
-
-    def __init__(self, robot: Robot, joint: str, value: float, tau0: float) -> None:
-        super().__init__(robot, joint, value)
-        self.tau0 = float(tau0)
-        self._robot = (robot,)  # not a submodule: the robot belongs to the model
-
-    def apply_q(self, q: Tensor, cond: Conditions) -> Tensor:
-        payload = 0.0 if cond.payload is None else cond.payload
-        tau = self._robot[0].gravity_torques(q, payload=payload)[..., self.joint_index]
-        delta = self.value * self.tau0 * torch.tanh(tau / self.tau0)
-        onehot = torch.zeros(q.shape[-1], dtype=q.dtype)
-        onehot[self.joint_index] = 1
-        return q - delta[..., None] * onehot
 
 
 def ground_truth(robot: Robot) -> list[Effect]:

@@ -52,6 +52,10 @@ def _pairs(n: int, generator: torch.Generator, count: int = 2000) -> tuple[Tenso
     return i[keep], j[keep]
 
 
+# Below this largest relative flange rotation [rad] the hand-eye rotation is noise.
+MIN_ROTATION_SPREAD = 0.05
+
+
 def register_frames(
     T_end: Tensor,
     position: Tensor,
@@ -75,6 +79,12 @@ def register_frames(
         i, j = _pairs(n, gen)
         a = so3_log(quat_rot[i] @ quat_rot[j].transpose(-1, -2))
         b = so3_log(R_F[i] @ R_F[j].transpose(-1, -2))
+        if float(b.norm(dim=-1).max()) < MIN_ROTATION_SPREAD:
+            # The flange never turns (e.g. ISO 9283 cube poses): relative rotations are
+            # noise. Register the points instead; the tool rotation follows from R_B.
+            base, tool = register_frames(T_end, position, None, iterations)
+            R_X = _project_to_rotation((R_F.transpose(-1, -2) @ base[:3, :3].T @ quat_rot).sum(0))
+            return base, transform(R_X, tool[:3, 3])
         R_B, _ = kabsch(b, a, with_translation=False)
         R_X = _project_to_rotation((R_F.transpose(-1, -2) @ R_B.T @ quat_rot).sum(0))
         # p_meas - R_B p_F = p_B + (R_B R_F) p_X : linear in (p_B, p_X)

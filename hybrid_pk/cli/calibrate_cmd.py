@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 from pathlib import Path
 
 import torch
@@ -36,6 +37,10 @@ from hybrid_pk.geometry import matrix_to_rpy
 from hybrid_pk.metrics import error_stats
 from hybrid_pk.model_file import LoadedModel, load_model, model_robot, predict_poses, save_model
 
+# Above this condition number of the scaled identification Jacobian a fit is not
+# identifiable from the data (well-posed calibrations here stay below 1e5).
+MAX_CONDITION = 1e8
+
 _DESCRIPTION = """\
 Fit base/tool frames and physical error effects to measured poses; write one MODEL file
 (robot URDF, effects, frames; read by evaluate, train and ik) and a corrected URDF.
@@ -44,6 +49,7 @@ Fit base/tool frames and physical error effects to measured poses; write one MOD
   --robot ROBOT --effects LIST   fit the listed effects, e.g.
                                  joint_offset:joint_2,joint_compliance:joint_3
   --robot ROBOT --effects none   fit only the base and tool frames
+  --robot ROBOT --effects D.json fit the causes named in a diagnose --json file
   --model MODEL --refit WHICH    keep everything of MODEL (effects, networks) and re-fit
                                  only the tool frame, the base frame, or both (after a
                                  tool was re-mounted or the tracker moved)
@@ -75,10 +81,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--effects",
         default=None,
-        metavar="auto|none|LIST",
-        help="effects to fit: auto (diagnose them; default), none (frames only), or a "
+        metavar="auto|none|LIST|DIAGNOSIS.json",
+        help="effects to fit: auto (diagnose them; default), none (frames only), a "
         "comma-separated list of kind:joint labels, values fitted in each kind's unit "
-        "(rad, rad/Nm, 1, m, 1/K)",
+        "(rad, rad/Nm, 1, m, 1/K), or the causes of a diagnose --json file",
     )
     p.add_argument(
         "--model",
@@ -132,6 +138,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _effect_labels(text: str) -> list[str]:
+    if text.lower().endswith(".json"):
+        return _diagnosis_labels(text)
     labels = [s.strip() for s in text.split(",") if s.strip()]
     if not labels:
         raise HybridPKError("--effects: give auto, none, or a comma-separated list of effects")
@@ -141,6 +149,22 @@ def _effect_labels(text: str) -> list[str]:
             raise HybridPKError(f"--effects: {label} is listed twice")
         seen.add(label)
     return labels
+
+
+def _diagnosis_labels(path: str) -> list[str]:
+    """The causes of a ``diagnose --json`` file as effect labels."""
+    try:
+        doc = json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise HybridPKError(f"--effects: diagnosis file not found: {path}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise HybridPKError(f"--effects: {path} is not a diagnosis JSON file: {exc}") from None
+    causes = doc.get("causes") if isinstance(doc, dict) else None
+    if not isinstance(causes, list) or not all(
+        isinstance(c, dict) and isinstance(c.get("effect"), str) for c in causes
+    ):
+        raise HybridPKError(f"--effects: {path} has no 'causes' list of a diagnosis JSON file")
+    return [c["effect"] + (f":{c['joint']}" if c.get("joint") else "") for c in causes]
 
 
 def _effect_rows(model: ExtendedModel, res: FitResult) -> list[dict]:
@@ -231,6 +255,8 @@ def _run_new(args: argparse.Namespace) -> int:
     spec = (args.effects or "auto").strip()
     auto = spec == "auto"
     labels = [] if auto or spec == "none" else _effect_labels(spec)
+    if not labels and spec.lower().endswith(".json"):
+        spec = "none"  # the diagnosis named no cause: frames only
     for label in labels:  # unknown kinds / joints fail before any data is read
         make_effect(robot, label)
     sets = len(args.data) if args.frames_per_file else 1
@@ -330,6 +356,13 @@ def _print_new_summary(robot, data, args, diag, labels, effects, model, res0, re
     if res.orientation_deg is not None:
         o0, o1 = error_stats(res0.orientation_deg), error_stats(res.orientation_deg)
         print(f"orientation error rms {o0.rms:.4g} deg -> {o1.rms:.4g} deg")
+    if not res.condition < MAX_CONDITION:
+        print(
+            f"warning: condition number {res.condition:.3g}: these rows cannot separate some "
+            "parameters (poses whose flange orientation never changes, e.g. only ISO 9283 "
+            "cube poses, cannot separate base and tool translation); values and std are "
+            "unreliable: add poses spread over the workspace and orientations"
+        )
     print(f"wrote {args.out}" + (f" and {urdf}" if urdf else ""))
 
 

@@ -18,7 +18,7 @@ from hybrid_pk.calibration.fit import FitResult, fit, initialise_frames
 from hybrid_pk.data import DataWarning, MeasuredData, read_table_for
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.errors import HybridPKError
-from hybrid_pk.metrics import ErrorStats, error_stats, pose_error, position_error_mm
+from hybrid_pk.metrics import ErrorStats, error_stats, row_errors
 from hybrid_pk.robot import Robot
 
 __all__ = [
@@ -170,10 +170,7 @@ def fit_frames(
 def data_errors(T: torch.Tensor, data: MeasuredData) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Per-row position [mm] and orientation [deg] errors of predicted poses ``(N, 4, 4)``
     (contract section 5); orientation None for position-only data."""
-    if data.quat is None:
-        return position_error_mm(data.position, T[:, :3, 3]), None
-    err = pose_error(data.T_measured(), T)
-    return err.position_mm, err.orientation_deg
+    return row_errors(T, data)
 
 
 def stats_line(label: str, stats: ErrorStats | torch.Tensor, digits: int = 4) -> str:

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+from pathlib import Path
+
+import torch
 
 from hybrid_pk.calibration.fit import conditions_from_data
 from hybrid_pk.cli.common import (
@@ -17,9 +20,11 @@ from hybrid_pk.cli.common import (
     with_frame_sets,
     write_json,
 )
+from hybrid_pk.effects import ExtendedModel
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.metrics import evaluate_json
 from hybrid_pk.model_file import NOMINAL_PREFIX, load_model, model_robot, predict_poses
+from hybrid_pk.report.evaluation_report import write_evaluation_report
 
 _DESCRIPTION = """\
 Errors of MODEL on DATA: position error = distance of measured and predicted point
@@ -47,6 +52,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="OUT.json",
         help="write the errors: n, position_mm and orientation_deg (mean, rms, p95, max "
         "in mm and deg)",
+    )
+    p.add_argument(
+        "--report",
+        metavar="DIR",
+        help="write DIR/report.md with PNGs: the error table [mm, deg] of MODEL beside the "
+        "nominal URDF with frames fitted to DATA, error histograms (like the paper's Fig. "
+        "4), the error along each joint, and ISO 9283 AP/RP [mm, deg] of repeated poses",
     )
     p.add_argument(
         "--fit-frames",
@@ -86,7 +98,8 @@ def _run(args: argparse.Namespace) -> int:
     sets = _frame_sets(args, loaded.model.base.sets)
     nominal = args.model.startswith(NOMINAL_PREFIX)
 
-    with progress("evaluate", total=3 if args.fit_frames else 2) as step:
+    total = 2 + bool(args.fit_frames) + bool(args.report)
+    with progress("evaluate", total=total) as step:
         step("reading data")
         n_params = frame_parameter_count(sets, False) if args.fit_frames else None
         data = read_data(args.data, robot, n_params=n_params, skip_bad_rows=args.skip_bad_rows)
@@ -102,6 +115,9 @@ def _run(args: argparse.Namespace) -> int:
         result = evaluate_json(data.n, position, orientation)
         if args.json:
             write_json(args.json, result)
+        if args.report:
+            step("writing the report")
+            report = _report(args, loaded, robot, data, cond, sets, T)
 
     kind = "nominal URDF" if nominal else f"{len(loaded.model.effects)} effect(s)"
     if loaded.has_networks:
@@ -137,4 +153,24 @@ def _run(args: argparse.Namespace) -> int:
         print("orientation error [deg]: none (position-only data)")
     if args.json:
         print(f"wrote {args.json}")
+    if args.report:
+        print(f"wrote {report}")
     return 0
+
+
+def _report(args, loaded, robot, data, cond, sets: int, T) -> Path:
+    """The report of MODEL on DATA beside the nominal URDF with frames fitted to DATA."""
+    predictions = {}
+    if not args.model.startswith(NOMINAL_PREFIX) or not args.fit_frames:
+        baseline = ExtendedModel(robot, frame_sets=sets)
+        fit_frames(baseline, data, cond)
+        with torch.no_grad():
+            predictions["nominal + frames fitted to DATA"] = baseline(data.q, cond)
+    predictions[Path(args.model).name] = T
+    files = ", ".join(Path(s).name for s in data.sources)
+    intro = (
+        f"{args.model} ({robot.name}) on {data.n} rows of {files}. The baseline column is "
+        "the nominal URDF whose base and tool frames were fitted to these same rows: "
+        "what a user gets without calibration."
+    )
+    return write_evaluation_report(args.report, data, predictions, intro=intro)

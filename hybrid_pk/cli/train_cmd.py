@@ -143,7 +143,7 @@ def _run(args: argparse.Namespace) -> int:
         from hybrid_pk.training import train_hybrid
     except ImportError as exc:
         raise HybridPKError(
-            f"training needs Lightning: pip install 'hybrid_pk[train]' ({exc})"
+            f"training needs Lightning (a dependency of hybrid_pk): pip install lightning ({exc})"
         ) from exc
     _quiet_lightning()  # after the import: Lightning sets its logger up when imported
     model_over, data_over, trainer_over = _overrides(args)

@@ -1,6 +1,6 @@
 """Human reports: markdown pieces, figures, and the diagnosis report.
 
-Needs matplotlib (``pip install 'hybrid_pk[plot]'``).
+Uses matplotlib.
 """
 
 from hybrid_pk.report.diagnosis_report import plot_cause_evidence as plot_cause_evidence

@@ -19,7 +19,7 @@ try:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 except ImportError as exc:  # pragma: no cover - depends on the installation
-    raise HybridPKError("reports need matplotlib: pip install 'hybrid_pk[plot]'") from exc
+    raise HybridPKError("reports need matplotlib: pip install matplotlib") from exc
 
 __all__ = [
     "MAX_POINTS",

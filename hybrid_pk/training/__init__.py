@@ -1,4 +1,4 @@
-"""Lightning training of the residual networks (needs ``pip install 'hybrid_pk[train]'``).
+"""Lightning training of the residual networks.
 
 A thin layer: the networks, losses and the hybrid model are plain modules of
 :mod:`hybrid_pk.hybrid`; here they meet Lightning (module, datamodule, trainer,

@@ -1,0 +1,159 @@
+"""Evaluation report: errors of one or more models on the same measured rows.
+
+``report.md`` + PNGs: the error table (model columns, e.g. nominal -> extended ->
+hybrid; mean, RMS, p95, max; position mm, orientation deg), histograms of the errors
+before/after like Fig. 4 of Ojer et al. 2024 (first model against each later one),
+the error of each model along every joint, and ISO 9283 pose accuracy / repeatability
+where the data has repeated poses. Used by ``evaluate --report`` and ``demo``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from hybrid_pk.calibration.iso9283 import iso9283
+from hybrid_pk.data.measured import MeasuredData
+from hybrid_pk.errors import DataError
+from hybrid_pk.metrics import evaluate_json, row_errors
+from hybrid_pk.report.markdown import image, markdown_table, stats_table
+from hybrid_pk.report.plots import error_histograms, new_figure, save_figure
+
+__all__ = ["write_evaluation_report"]
+
+
+def _slug(text: str) -> str:
+    return "".join(c if c.isalnum() else "_" for c in text).strip("_").lower()
+
+
+def _along_joints(errors: Mapping[str, Tensor], data: MeasuredData, path: Path) -> Path:
+    """Binned mean position error of every model against every joint."""
+    q = data.q.detach().cpu().numpy()
+    dof = q.shape[1]
+    cols = min(dof, 3)
+    rows = -(-dof // cols)
+    fig = new_figure(4.0 * cols, 3.0 * rows)
+    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).ravel()
+    for j in range(dof):
+        ax = axes[j]
+        edges = np.linspace(q[:, j].min(), q[:, j].max(), 21)
+        which = np.clip(np.digitize(q[:, j], edges) - 1, 0, 19)
+        centres = 0.5 * (edges[1:] + edges[:-1])
+        for name, e in errors.items():
+            v = e.detach().cpu().numpy()
+            counts = np.bincount(which, minlength=20)
+            sums = np.bincount(which, weights=v, minlength=20)
+            means = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
+            ax.plot(centres, means, "o-", ms=3, label=name)
+        ax.set_xlabel(f"{data.joint_names[j]} [rad]")
+        ax.set_ylabel("mean position error [mm]")
+    for ax in axes[dof:]:
+        ax.set_visible(False)
+    axes[0].legend(fontsize="x-small")
+    return save_figure(fig, path)
+
+
+def _iso_section(data: MeasuredData, T: Tensor, name: str) -> tuple[list[str], dict | None]:
+    try:
+        result = iso9283(data, T)
+    except DataError:
+        return [
+            "## ISO 9283 pose accuracy and repeatability",
+            "",
+            "No repeated poses in these rows (ISO 9283 AP/RP need the same commanded "
+            "joints visited several times).",
+            "",
+        ], None
+    summary = result.summary()
+    rows = [
+        [k, v["mean"], v["max"]]
+        for k, v in summary.items()
+        if isinstance(v, dict) and set(v) == {"mean", "max"}
+    ]
+    lines = [
+        "## ISO 9283 pose accuracy and repeatability",
+        "",
+        f"{summary['n_poses']} repeated poses, {summary['cycles']['min']}-"
+        f"{summary['cycles']['max']} visits each (ISO 9283 asks for "
+        f"{summary['iso_cycles']}); accuracy AP against the poses {name} predicts. "
+        f"Pooled noise level {summary['sigma_pooled_mm']:.4f} mm per axis.",
+        "",
+        markdown_table(rows, ["figure", "mean over poses", "max over poses"], ["l", "r", "r"]),
+        "",
+    ]
+    return lines, summary
+
+
+def write_evaluation_report(
+    out: str | Path,
+    data: MeasuredData,
+    predictions: Mapping[str, Tensor],
+    *,
+    title: str = "Evaluation",
+    intro: str = "",
+) -> Path:
+    """Write ``out/report.md`` (+ PNGs, ``evaluation.json``) comparing models on ``data``.
+
+    Args:
+        out: folder (created).
+        data: measured rows.
+        predictions: model label -> predicted poses ``(N, 4, 4)`` of the rows, in the
+            order of the table (the first is the baseline of the histograms).
+        title: heading.
+        intro: paragraph under the heading.
+
+    Returns:
+        The path of ``report.md``.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    if not predictions:
+        raise ValueError("predictions is empty: give at least one model")
+    errors = {}
+    for name, T in predictions.items():
+        with torch.no_grad():
+            errors[name] = row_errors(T, data)
+    results = {name: evaluate_json(data.n, p, o) for name, (p, o) in errors.items()}
+    (out / "evaluation.json").write_text(json.dumps(results, indent=2) + "\n", encoding="utf-8")
+    names = list(predictions)
+    lines = [f"# {title}", ""]
+    if intro:
+        lines += [intro, ""]
+    lines += [
+        f"## Errors on {data.n} rows",
+        "",
+        "Position error: distance between measured and predicted point [mm]; "
+        "orientation error: angle of R_measured R_model^T [deg].",
+        "",
+        stats_table(results),
+        "",
+    ]
+    if len(names) > 1:
+        lines += ["## Error distributions (like Fig. 4 of Ojer et al. 2024)", ""]
+        for later in names[1:]:
+            png = out / f"histogram_{_slug(names[0])}_vs_{_slug(later)}.png"
+            error_histograms(errors[names[0]], errors[later], [names[0], later], png)
+            lines += [image(png, f"errors of {names[0]} and {later}", out), ""]
+    png = _along_joints({n: e[0] for n, e in errors.items()}, data, out / "error_along_joints.png")
+    lines += [
+        "## Error along each joint",
+        "",
+        "Mean position error in 20 bins of each joint: structure left in a curve is what "
+        "the model still misses there.",
+        "",
+        image(png, "mean position error against each joint", out),
+        "",
+    ]
+    iso_lines, iso = _iso_section(data, predictions[names[-1]], names[-1])
+    lines += iso_lines
+    if iso is not None:
+        results["iso9283"] = iso
+        (out / "evaluation.json").write_text(json.dumps(results, indent=2) + "\n", "utf-8")
+    path = out / "report.md"
+    path.write_text("\n".join(lines), encoding="utf-8")
+    return path

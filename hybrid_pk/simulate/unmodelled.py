@@ -1,0 +1,54 @@
+"""Ground-truth effects outside the vocabulary: what no calibration can fit exactly.
+
+They exist to test the residual networks (the part of a real robot that physics
+models miss) and are deliberately *not* registered in :data:`~hybrid_pk.effects.EFFECTS`,
+so ``diagnose``/``calibrate`` never offer them:
+
+- :class:`HardeningCompliance`: a joint spring that is softer near zero torque
+  (harmonic drives: stiffness K1 < K2 < K3), the nonlinear part of the paper's joint
+  stiffness. A joint-stage effect: ``theta_true = theta + delta(theta, conditions)``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from hybrid_pk.effects.base import Conditions, Effect
+from hybrid_pk.robot import Robot
+
+__all__ = ["UNMODELLED_KINDS", "HardeningCompliance"]
+
+
+def _on_joint(q: Tensor, index: int, delta: Tensor) -> Tensor:
+    onehot = torch.zeros(q.shape[-1], dtype=q.dtype, device=q.device)
+    onehot[index] = 1
+    return q + delta[..., None] * onehot
+
+
+class HardeningCompliance(Effect):
+    """Extra deflection of a hardening joint spring: ``theta - c tau0 tanh(tau / tau0)``
+    with ``tau`` the holding torque at the commanded joints [Nm] (value ``c`` [rad/Nm],
+    knee ``tau0`` [Nm]). Near zero torque the joint is ``c`` more compliant; far from
+    it the extra deflection saturates at ``c tau0``.
+    """
+
+    kind, unit, stage, scale = "hardening_compliance", "rad/Nm", "joint", 1e-6
+
+    def __init__(self, robot: Robot, joint: str, value: float, tau0: float) -> None:
+        super().__init__(robot, joint, value)
+        if not tau0 > 0:
+            raise ValueError(f"tau0 must be positive [Nm], got {tau0}")
+        self.tau0 = float(tau0)
+        self._robot = (robot,)  # not a submodule: the robot belongs to the model
+
+    def apply_q(self, q: Tensor, cond: Conditions) -> Tensor:
+        payload = 0.0 if cond.payload is None else cond.payload
+        tau = self._robot[0].gravity_torques(q, payload=payload)[..., self.joint_index]
+        return _on_joint(q, self.joint_index, -self.value * self.tau0 * torch.tanh(tau / self.tau0))
+
+    def extra_repr(self) -> str:
+        return f"{super().extra_repr()}, tau0={self.tau0:.4g} Nm"
+
+
+UNMODELLED_KINDS = (HardeningCompliance.kind,)
