@@ -195,15 +195,40 @@ def log(msg: str) -> None:
     print(msg, flush=True)
 
 
+def effect_labels(robot, train_rows, plan, seed, effects: str) -> list[str]:
+    """The effects to calibrate: diagnosed on the first rows, or the listed ones."""
+    if effects == "auto":
+        return diagnosed_effects(robot, train_rows.subset(slice(0, plan.n_diagnose)), seed)
+    return [lb.strip() for lb in effects.split(",") if lb.strip()]
+
+
+def merge(dirs: list[str], out: Path) -> int:
+    """Join the parts (A, B, C) of runs with the same seed and sizes into one report."""
+    parts = [json.loads((Path(d) / "results.json").read_text(encoding="utf-8")) for d in dirs]
+    results = dict(parts[0])
+    for part in parts[1:]:
+        for key in ("seed", "n_train", "n_test", "table_rows", "mode"):
+            if part[key] != results[key]:
+                raise SystemExit(f"cannot merge: {key} differs ({part[key]} vs {results[key]})")
+        for key in ("acceptance", "table_one", "figure_five"):
+            if part.get(key):
+                results[key] = part[key]
+    results["seconds"] = sum(p["seconds"] for p in parts)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps(results, indent=2) + "\n", encoding="utf-8")
+    (out / "reproduce_paper.md").write_text(markdown(results), encoding="utf-8")
+    if results.get("figure_five"):
+        figure(results, out / "figure5.png")
+    log(f"wrote {out / 'reproduce_paper.md'}")
+    return 0
+
+
 def acceptance(robot, train_rows, test_rows, plan, seed, out, effects) -> tuple[dict, list[str]]:
     res: dict = {}
     t0 = time.perf_counter()
     nominal = frames_only(robot, train_rows)
     res["nominal_frames"] = evaluate(nominal, test_rows)
-    if effects == "auto":
-        labels = diagnosed_effects(robot, train_rows.subset(slice(0, plan.n_diagnose)), seed)
-    else:
-        labels = [lb.strip() for lb in effects.split(",") if lb.strip()]
+    labels = effect_labels(robot, train_rows, plan, seed, effects)
     ext = calibrated(robot, train_rows, labels)
     res["calibrated"] = evaluate(ext, test_rows)
     res["calibrated"]["effects"] = {e.label: e.report_value() for e in ext.effects}
@@ -265,15 +290,27 @@ def _pm(r: dict) -> str:
 
 
 def markdown(results: dict) -> str:
-    a = results["acceptance"]
-    ours = a["ours"]
-    ok = ours["position_mm"]["mean"] <= TARGET_MM and ours["orientation_deg"]["mean"] <= TARGET_DEG
     lines = [
         "# Hybrid kinematics on a virtual RX160 with partly nonlinear joint stiffness",
         "",
         f"{results['setup']} Run: {results['mode']}, {results['seconds'] / 60:.1f} min, "
         f"{results['threads']} thread(s), seed {results['seed']}.",
         "",
+    ]
+    if results.get("acceptance"):
+        lines += _acceptance_lines(results)
+    if results.get("table_one"):
+        lines += _table_one_lines(results)
+    if results.get("figure_five"):
+        lines += _figure_five_lines(results)
+    return "\n".join(lines) + "\n"
+
+
+def _acceptance_lines(results: dict) -> list[str]:
+    a = results["acceptance"]
+    ours = a["ours"]
+    ok = ours["position_mm"]["mean"] <= TARGET_MM and ours["orientation_deg"]["mean"] <= TARGET_DEG
+    lines = [
         f"## A. Acceptance ({results['n_train']:,} training rows, "
         f"{results['n_test']:,} random test rows)",
         "",
@@ -301,6 +338,12 @@ def markdown(results: dict) -> str:
         f"Target {TARGET_MM} mm / {TARGET_DEG} deg mean: **{'met' if ok else 'not met'}**. "
         f"Calibrated effects: {a['calibrated']['effects']}.",
         "",
+    ]
+    return lines
+
+
+def _table_one_lines(results: dict) -> list[str]:
+    lines = [
         f"## B. Table I ({results['table_rows']:,} training rows, paper settings, "
         "equal compute per training)",
         "",
@@ -317,8 +360,11 @@ def markdown(results: dict) -> str:
             f"{row['ours']['epochs']} ({row['budget_epochs']}) | {_pm(row['paper'])} | "
             f"{_pm(row['ours'])} | {ref[0]} \\| {ref[1]} |"
         )
-    lines += [
-        "",
+    return [*lines, ""]
+
+
+def _figure_five_lines(results: dict) -> list[str]:
+    lines = [
         f"## C. Fig. 5: error vs training rows (fast preset, {results['fig5_arch']})",
         "",
         "| training rows | paper: nominal + net | ours: physics + net |",
@@ -326,7 +372,7 @@ def markdown(results: dict) -> str:
     ]
     for n, entry in results["figure_five"].items():
         lines.append(f"| {int(n):,} | {_pm(entry['paper'])} | {_pm(entry['ours'])} |")
-    return "\n".join(lines) + "\n"
+    return [*lines, ""]
 
 
 def figure(results: dict, path: Path) -> None:
@@ -412,10 +458,22 @@ def main(argv: list[str] | None = None) -> int:
         help="torch threads for networks of 1M+ parameters (default: 2; smaller ones use 1)",
     )
     parser.add_argument(
-        "--skip", nargs="*", default=(), choices=("table", "fig5"), help="leave out B or C"
+        "--skip",
+        nargs="*",
+        default=(),
+        choices=("acceptance", "table", "fig5"),
+        help="leave out A, B or C (parts can run in parallel processes; --merge joins them)",
+    )
+    parser.add_argument(
+        "--merge",
+        nargs="+",
+        metavar="DIR",
+        help="only join the results.json of earlier runs (same seed) into --out",
     )
     args = parser.parse_args(argv)
     plan = QUICK if args.quick else Plan()
+    if args.merge:
+        return merge(args.merge, Path(args.out))
     if args.estimate:
         seconds = estimate(plan, args.threads)
         log(f"estimated run time: {seconds / 60:.0f} min on {args.threads} thread(s)")
@@ -450,10 +508,13 @@ def main(argv: list[str] | None = None) -> int:
             f"(twice as compliant near zero torque, knee at {TAU0_SHARE} x RMS torque)."
         ),
     }
-    log("A. acceptance")
-    results["acceptance"], labels = acceptance(
-        robot, train_rows, test_rows, plan, args.seed, out, args.effects
-    )
+    if "acceptance" in args.skip:
+        labels = effect_labels(robot, train_rows, plan, args.seed, args.effects)
+    else:
+        log("A. acceptance")
+        results["acceptance"], labels = acceptance(
+            robot, train_rows, test_rows, plan, args.seed, out, args.effects
+        )
     # B and C fit the effects named in A to their own (fewer) rows, frames included.
     results["table_one"] = {}
     if "table" not in args.skip:

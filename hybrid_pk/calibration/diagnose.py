@@ -181,6 +181,23 @@ def _without(model: ExtendedModel, label: str) -> ExtendedModel:
     return out
 
 
+def _refit_without(
+    model: ExtendedModel, label: str, data: MeasuredData, cond: Conditions, res: FitResult
+) -> ExtendedModel:
+    """``model`` without effect ``label``, refitted under ``res``'s noise weights."""
+    reduced = _without(model, label)
+    fit(
+        reduced,
+        data,
+        cond=cond,
+        sigma_pos_mm=res.sigma_pos_mm,
+        sigma_rot_rad=res.sigma_rot_rad,
+        covariance=False,
+        max_iter=15,  # warm start from the full model: a few steps re-balance the rest
+    )
+    return reduced
+
+
 def _projector_residual(Jc: Tensor, Q: Tensor) -> Tensor:
     return Jc - Q @ (Q.T @ Jc)
 
@@ -405,16 +422,7 @@ def diagnose(
     pos1, ori1 = model_errors(model, test, cond_hold)
     causes = []
     for e in model.effects:
-        reduced = _without(model, e.label)
-        fit(
-            reduced,
-            train,
-            cond=cond_fit,
-            sigma_pos_mm=res.sigma_pos_mm,
-            sigma_rot_rad=res.sigma_rot_rad,
-            covariance=False,
-            max_iter=15,  # warm start from the full model: a few steps re-balance the rest
-        )
+        reduced = _refit_without(model, e.label, train, cond_fit, res)
         pos_r, ori_r = model_errors(reduced, test, cond_hold)
         sl = res.block_slice(e.label)
         value, std, components = _report_value(e, res.std[sl])
@@ -577,16 +585,7 @@ def _eliminate(
         for e in model.effects:
             if e.label == newest:
                 continue
-            reduced = _without(model, e.label)
-            fit(
-                reduced,
-                train,
-                cond=cond,
-                sigma_pos_mm=res.sigma_pos_mm,
-                sigma_rot_rad=res.sigma_rot_rad,
-                covariance=False,
-                max_iter=15,  # warm start from the full model
-            )
+            reduced = _refit_without(model, e.label, train, cond, res)
             k = e.value.numel()
             ssr_red = _weighted_ssr(reduced, train, cond, res)
             F = ((ssr_red - ssr_full) / k) / max(ssr_full / dof, 1e-300)
