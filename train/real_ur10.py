@@ -20,8 +20,8 @@ equivalent shell command is printed before each). Steps:
 
 3. ``hybrid-pk diagnose`` on the fit rows of the region split (JSON + report).
 4. Per split: ``calibrate --effects none`` (nominal + frames) and ``calibrate --effects
-   LIST`` with LIST = the diagnosed causes (the diagnosis is not run a second time;
-   the joint split reuses the region split's list unless ``--diagnose-each-split``).
+   diagnosis.json`` (the diagnosed causes; the diagnosis is not run a second time;
+   the joint split fits the region split's causes unless ``--diagnose-each-split``).
 5. ``hybrid-pk train`` the residual networks on the extended model.
 6. ``hybrid-pk evaluate`` all three models on the held-out rows (``--frames-per-file``),
    and per-row errors of the held-out rows inside / outside the networks' training
@@ -160,14 +160,6 @@ def write_split(
     return fit_files, hold_files
 
 
-def effect_list(diagnosis: dict) -> str:
-    labels = [
-        c["effect"] if c.get("joint") is None else f"{c['effect']}:{c['joint']}"
-        for c in diagnosis["causes"]
-    ]
-    return ",".join(labels) if labels else "none"
-
-
 def stats(x: torch.Tensor | None) -> dict | None:
     if x is None or x.numel() == 0:
         return None
@@ -252,7 +244,8 @@ def evaluate_split(split_dir: Path, hold_files: list[Path], robot: Robot, log: d
         evaluations[key] = json.loads(target.read_text())
     extended_meta = load_model(models["extended"]).metadata
     return {
-        "effects": extended_meta.get("effects_requested", ""),
+        "effects": ",".join(e["effect"] for e in extended_meta.get("effects", [])) or "none",
+        "effects_requested": extended_meta.get("effects_requested", ""),
         "fitted_effects": extended_meta.get("effects"),
         "evaluate": evaluations,
         "by_box": subset_errors(models, hold_files, robot),
@@ -376,7 +369,8 @@ def main(argv=None) -> int:
     if args.evaluate_only:  # models of an earlier run in OUT: evaluate them again
         previous = json.loads((out / "results.json").read_text())
         results.update({k: previous[k] for k in ("rows", "thin", "diagnosis") if k in previous})
-        results["command"] = previous["command"] + "  (re-evaluated: " + results["command"] + ")"
+        results["reevaluated_by"] = results["command"]
+        results["command"] = previous["command"].split("  (re-evaluated")[0]
         for name, res in previous["splits"].items():
             hold = [out / name / "holdout" / f"{SERIES[k][1]}.parquet" for k in SERIES]
             results["splits"][name] = {**evaluate_split(out / name, hold, robot, log)}
@@ -416,7 +410,7 @@ def main(argv=None) -> int:
         diagnose += ["--seed", str(args.seed), "--json", target, "--report", out / name / "report"]
         run(diagnose, log)
         diag = json.loads(target.read_text())
-        effects[name] = effect_list(diag)
+        effects[name] = str(target)  # calibrate --effects DIAGNOSIS.json: its causes
         if name == "region" or "diagnosis" not in results:
             results["diagnosis"] = diag
         results.setdefault("diagnoses", {})[name] = diag
