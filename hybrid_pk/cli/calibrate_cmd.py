@@ -357,13 +357,36 @@ def _print_new_summary(robot, data, args, diag, labels, effects, model, res0, re
         o0, o1 = error_stats(res0.orientation_deg), error_stats(res.orientation_deg)
         print(f"orientation error rms {o0.rms:.4g} deg -> {o1.rms:.4g} deg")
     if not res.condition < MAX_CONDITION:
+        pairs = _inseparable_pairs(res)
+        which = (
+            "these trade off exactly: " + "; ".join(pairs)
+            if pairs
+            else "some parameter combination is not determined"
+        )
         print(
-            f"warning: condition number {res.condition:.3g}: these rows cannot separate some "
-            "parameters (poses whose flange orientation never changes, e.g. only ISO 9283 "
-            "cube poses, cannot separate base and tool translation); values and std are "
-            "unreliable: add poses spread over the workspace and orientations"
+            f"warning: condition number {res.condition:.3g}: the rows cannot separate some "
+            f"parameters ({which}); their individual values and std are unreliable, their "
+            "sum is fine for prediction. Poses whose flange orientation never changes (only "
+            "ISO 9283 cube poses) cannot separate base and tool translation; components of "
+            "link lengths along parallel joint axes never separate"
         )
     print(f"wrote {args.out}" + (f" and {urdf}" if urdf else ""))
+
+
+def _inseparable_pairs(res: FitResult, limit: int = 3) -> list[str]:
+    """Up to ``limit`` parameter pairs whose estimates are correlated at |r| > 0.999."""
+    names, groups = [], []
+    for b in res.blocks:
+        for i in range(b.size):
+            names.append(f"{b.label}[{i}]" if b.size > 1 else b.label)
+            groups.append(b.label.split(".")[0])
+    corr = res.corr.abs().nan_to_num(0.0)
+    pairs = []
+    for i in range(corr.shape[0]):
+        for j in range(i + 1, corr.shape[0]):
+            if float(corr[i, j]) > 0.999 and groups[i] != groups[j]:
+                pairs.append(f"{names[i]} ~ {names[j]} (r = {float(res.corr[i, j]):+.4f})")
+    return pairs[:limit]
 
 
 def _run_refit(args: argparse.Namespace) -> int:
