@@ -58,6 +58,7 @@ cells are left out and listed instead.
 
 from __future__ import annotations
 
+import csv
 import difflib
 import json
 import math
@@ -448,6 +449,27 @@ class MappedTable:
     resolved: Mapping[str, str] = field(default_factory=dict)
 
 
+def _first_long_row(path: Path, cmap: ColumnMap) -> tuple[int | None, int, int]:
+    """``(data row, fields, header fields)`` of the first data row longer than the
+    header (1-based, blank lines not counted); row None if a multi-character separator
+    hides it."""
+    if len(cmap.separator) != 1:
+        return None, 0, 0
+    with path.open(newline="", encoding=cmap.encoding) as fh:
+        reader = csv.reader(fh, delimiter=cmap.separator)
+        for _ in range(cmap.skip_lines):
+            next(reader, None)
+        width = len(cmap.names) if cmap.names else len(next(reader, []))
+        row = 0
+        for fields in reader:
+            if not fields:
+                continue
+            row += 1
+            if len(fields) > width:
+                return row, len(fields), width
+    return None, 0, width
+
+
 def _read_cells(path: Path, cmap: ColumnMap) -> pd.DataFrame:
     file = str(path)
     if not path.is_file():
@@ -473,10 +495,14 @@ def _read_cells(path: Path, cmap: ColumnMap) -> pd.DataFrame:
                 engine="python" if len(cmap.separator) > 1 else "c",
             )
     except pd.errors.ParserWarning:
+        row, saw, want = _first_long_row(path, cmap)
         raise DataError(
-            f"a data row has more fields than the header; check the separator "
-            f"({cmap.separator!r}), the decimal mark and skip_lines ({cmap.skip_lines})",
+            f"{saw} fields where the header has {want}: a data row has more fields than the "
+            f"header; check the separator ({cmap.separator!r}), the decimal mark and "
+            f"skip_lines ({cmap.skip_lines})",
             file=file,
+            row=row,
+            column=None if row is None else f"field {want + 1}",
         ) from None
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
         found = re.search(r"Expected (\d+) fields in line (\d+), saw (\d+)", str(exc))
