@@ -249,3 +249,15 @@ def test_networks_for_other_joints_are_refused(rx160, tmp_path):
         HybridFK.from_state(hybrid.base, state)
     with pytest.raises(ModelFileError, match="not hybrid_pk residual networks"):
         HybridFK.from_state(hybrid.base, {"w": torch.ones(1)})
+
+
+def test_zero_fade_is_the_base_model_right_outside_the_box(rx160):
+    hybrid = _hybrid(rx160)
+    hybrid.box.fade = 0.0
+    box = hybrid.box
+    q = ((box.trust_lower + box.trust_upper) / 2).repeat(2, 1)
+    q[0, 1] = box.trust_upper[1]  # on the edge: full correction
+    q[1, 1] = box.trust_upper[1] + 1e-6  # just outside: none
+    assert hybrid.trust(q).tolist() == [1.0, 0.0]
+    with torch.no_grad():
+        assert torch.equal(hybrid(q[1:]), hybrid.base(q[1:]))
