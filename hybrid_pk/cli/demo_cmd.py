@@ -287,6 +287,9 @@ def _found_table(truth: dict, diag) -> list[list[object]]:
 
 def _report(out, truth, diag, results, ik, diag_report, evaluation_report, trained, seconds):
     hist = sorted((out / "evaluation").glob("histogram_*.png"))
+    evidence = sorted((out / "diagnosis").glob("evidence_*.png"))
+    notes = [f"- ambiguous: {' / '.join(a['effects'])}: {a['why']}" for a in diag.ambiguous]
+    notes += [f"- warning, {w['cause']}: {w['why']}" for w in diag.warnings]
     joints = list(diag.model.robot.joint_names)
     ik_rows = [
         [int(r["target"]), int(r["solution"]), *(fmt(r[j], 4) for j in joints),
@@ -313,8 +316,16 @@ def _report(out, truth, diag, results, ik, diag_report, evaluation_report, train
         "",
         markdown_table(_found_table(truth, diag), ["effect", "injected", "found", "named"]),
         "",
-        "Each named cause, the plot that proves it (its residual against its signature), "
-        "identifiability and warnings: [diagnosis report]"
+        "Each plot below shows the residual a cause leaves when it is taken out of the "
+        "model, against that cause's signature (e.g. the error against the gravity torque "
+        "of the joint for a compliance): the evidence, in the data, for the named cause.",
+        "",
+        *[image(p, p.stem.replace("_", " "), out) + "\n" for p in evidence],
+        "Identifiability and warnings:",
+        "",
+        *(notes or ["- none: every named cause is separable from the frames and the others"]),
+        "",
+        "The full diagnosis (statistics, selection log, what is left): [diagnosis report]"
         f"({diag_report.relative_to(out).as_posix()})",
         "",
         "## Residual networks",
