@@ -35,7 +35,7 @@ import json
 import math
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import torch
@@ -210,7 +210,7 @@ def merge(dirs: list[str], out: Path) -> int:
         for key in ("seed", "n_train", "n_test", "table_rows", "mode"):
             if part[key] != results[key]:
                 raise SystemExit(f"cannot merge: {key} differs ({part[key]} vs {results[key]})")
-        for key in ("acceptance", "table_one", "figure_five"):
+        for key in ("acceptance", "nominal_mlp", "table_one", "figure_five", "plan", "fig5_arch"):
             if part.get(key):
                 results[key] = part[key]
     results["seconds"] = sum(p["seconds"] for p in parts)
@@ -321,13 +321,18 @@ def _acceptance_lines(results: dict) -> list[str]:
         f"| dataset error (nominal, true frames) | {results['dataset_error'][0]:.4f} | "
         f"{results['dataset_error'][1]:.4f} | |",
     ]
-    for key, label in (
+    rows = [
         ("nominal_frames", "nominal model + fitted frames"),
         ("calibrated", "calibrated extended model (physics)"),
         ("paper", "paper: nominal + frames + D4w / Rw"),
+        ("nominal_mlp", "nominal + frames + our MLPs, our training"),
         ("ours", "ours: calibrated + MLPs"),
-    ):
+    ]
+    a = {**a, "nominal_mlp": results.get("nominal_mlp")}
+    for key, label in rows:
         r = a[key]
+        if r is None:
+            continue
         train = f"{r['epochs']} epochs, {r['seconds']:.0f} s" if "epochs" in r else ""
         lines.append(
             f"| {label} | {r['position_mm']['mean']:.4f} ({r['position_mm']['p95']:.4f}) | "
@@ -345,7 +350,13 @@ def _acceptance_lines(results: dict) -> list[str]:
 def _table_one_lines(results: dict) -> list[str]:
     lines = [
         f"## B. Table I ({results['table_rows']:,} training rows, paper settings, "
-        "equal compute per training)",
+        "equal compute per training"
+        + (
+            f": {results['plan']['table_flops']:.0e} FLOPs, at most "
+            f"{results['plan']['table_max_epochs']} epochs)"
+            if "plan" in results
+            else ")"
+        ),
         "",
         "Mean test errors, position [mm] | orientation [deg].",
         "",
@@ -465,6 +476,22 @@ def main(argv: list[str] | None = None) -> int:
         help="leave out A, B or C (parts can run in parallel processes; --merge joins them)",
     )
     parser.add_argument(
+        "--nominal-mlp",
+        action="store_true",
+        help="also train our networks and schedule (A) on the nominal model + frames: "
+        "the physics' share at equal training",
+    )
+    parser.add_argument(
+        "--table-flops", type=float, help="compute budget per Table I training (default 1e12)"
+    )
+    parser.add_argument(
+        "--table-max-epochs", type=int, help="epoch cap of Table I trainings (default 300)"
+    )
+    parser.add_argument(
+        "--fig5-sizes", type=int, nargs="+", help="training rows of Fig. 5 (default 1k-20k)"
+    )
+    parser.add_argument("--fig5-epochs", type=int, help="epochs per Fig. 5 training (default 60)")
+    parser.add_argument(
         "--merge",
         nargs="+",
         metavar="DIR",
@@ -472,6 +499,13 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     plan = QUICK if args.quick else Plan()
+    overrides = {
+        "table_flops": args.table_flops,
+        "table_max_epochs": args.table_max_epochs,
+        "fig5_sizes": None if args.fig5_sizes is None else tuple(args.fig5_sizes),
+        "fig5_epochs": args.fig5_epochs,
+    }
+    plan = replace(plan, **{k: v for k, v in overrides.items() if v is not None})
     if args.merge:
         return merge(args.merge, Path(args.out))
     if args.estimate:
@@ -501,6 +535,7 @@ def main(argv: list[str] | None = None) -> int:
         "n_test": plan.n_test,
         "table_rows": plan.table_rows,
         "fig5_arch": plan.fig5_arch,
+        "plan": asdict(plan),
         "dataset_error": (dataset["position_mm"]["mean"], dataset["orientation_deg"]["mean"]),
         "setup": (
             f"RX160, {PAYLOAD:g} kg payload, noise-free, unknown tracker and tool frames; joint "
@@ -515,6 +550,18 @@ def main(argv: list[str] | None = None) -> int:
         results["acceptance"], labels = acceptance(
             robot, train_rows, test_rows, plan, args.seed, out, args.effects
         )
+    if args.nominal_mlp:
+        log("A'. our networks on the nominal model + frames")
+        archs = (plan.ours_arch, plan.ours_arch)
+        nominal = frames_only(robot, train_rows)
+        hybrid, sec, ep = train(nominal, train_rows, archs, "fast", plan.ours_epochs, args.seed)
+        results["nominal_mlp"] = {
+            **evaluate(hybrid, test_rows),
+            "seconds": sec,
+            "epochs": ep,
+            "archs": archs,
+        }
+        log(f"  nominal + MLPs: {_short(results['nominal_mlp'])} ({ep} epochs, {sec:.0f} s)")
     # B and C fit the effects named in A to their own (fewer) rows, frames included.
     results["table_one"] = {}
     if "table" not in args.skip:
