@@ -1,9 +1,17 @@
 """Reproduce the paper's virtual experiment (Ojer et al. 2024, 4.1: Table I, Fig. 5)
 and run the acceptance experiment of the hybrid model, sized for 2 CPU cores.
 
-    nice -n 10 python train/reproduce_paper.py --out reproduce      # full run
+    nice -n 10 python train/reproduce_paper.py --out reproduce --nominal-mlp   # full run
     python train/reproduce_paper.py --quick --out /tmp/reproduce    # smoke test, minutes
     python train/reproduce_paper.py --estimate                      # time of the full run
+
+The parts can run as parallel processes and be joined (same seed):
+
+    python train/reproduce_paper.py --out a --skip table fig5
+    python train/reproduce_paper.py --out a2 --skip acceptance table fig5 --nominal-mlp \
+        --effects LIST
+    python train/reproduce_paper.py --out bc --skip acceptance --effects LIST
+    python train/reproduce_paper.py --merge a a2 bc --out reproduce
 
 Ground truth: a noise-free virtual RX160 with a 20 kg payload whose joint stiffness is
 *partly nonlinear*: the paper's linear torsional springs (``joint_compliance`` on
@@ -20,11 +28,12 @@ A. Acceptance: 20,000 training rows (10 % of them held out for validation), 10,0
    ``--effects LIST`` names them instead — and fitted on all) + two MLPs (fast
    preset). *Paper*: nominal model + fitted frames + D4w (position) / Rw
    (orientation) with the paper's settings, epochs capped by a compute budget (the
-   paper trained 400,000 rows for up to 300 epochs on a GPU).
+   paper trained 400,000 rows for up to 300 epochs on a GPU). With ``--nominal-mlp``
+   also our networks and schedule on the nominal model + frames (equal training).
 B. Table I: every architecture (B1-B4, D1, D4, D4w, D4W, Rw, Rd) on 2,000 training
    rows with the paper's settings, once on the nominal model + frames (paper) and
    once on the calibrated model (ours); each training gets the same compute budget
-   (floating-point operations), at most 300 epochs, early stopping.
+   (floating-point operations, default 2e11), at most 100 epochs, early stopping.
 C. Fig. 5: error vs number of training rows, paper vs ours, with the fast preset.
 """
 
@@ -86,11 +95,11 @@ class Plan:
     ours_epochs: int = 200
     paper_flops: float = 1.0e13  # acceptance, paper method (D4w + Rw)
     table_rows: int = 2_000
-    table_flops: float = 1.0e12  # per Table I training
-    table_max_epochs: int = 300
+    table_flops: float = 2.0e11  # per Table I training
+    table_max_epochs: int = 100
     fig5_sizes: tuple[int, ...] = (1_000, 2_000, 5_000, 10_000, 20_000)
     fig5_arch: str = "mlp:128x3"
-    fig5_epochs: int = 60
+    fig5_epochs: int = 30
 
 
 QUICK = Plan(
@@ -286,7 +295,7 @@ def _short(r: dict) -> str:
 
 
 def _pm(r: dict) -> str:
-    return f"{r['position_mm']['mean']:.4f} | {r['orientation_deg']['mean']:.4f}"
+    return f"{r['position_mm']['mean']:.4f} / {r['orientation_deg']['mean']:.4f}"
 
 
 def markdown(results: dict) -> str:
@@ -358,7 +367,7 @@ def _table_one_lines(results: dict) -> list[str]:
             else ")"
         ),
         "",
-        "Mean test errors, position [mm] | orientation [deg].",
+        "Mean test errors, position [mm] / orientation [deg].",
         "",
         "| net | parameters | epochs (budget) | paper: nominal + net | ours: physics + net "
         "| paper's Table I (400k rows) |",
@@ -369,7 +378,7 @@ def _table_one_lines(results: dict) -> list[str]:
         lines.append(
             f"| {arch} | {row['parameters']:,} | {row['paper']['epochs']} / "
             f"{row['ours']['epochs']} ({row['budget_epochs']}) | {_pm(row['paper'])} | "
-            f"{_pm(row['ours'])} | {ref[0]} \\| {ref[1]} |"
+            f"{_pm(row['ours'])} | {ref[0]} / {ref[1]} |"
         )
     return [*lines, ""]
 
@@ -482,15 +491,15 @@ def main(argv: list[str] | None = None) -> int:
         "the physics' share at equal training",
     )
     parser.add_argument(
-        "--table-flops", type=float, help="compute budget per Table I training (default 1e12)"
+        "--table-flops", type=float, help="compute budget per Table I training (default 2e11)"
     )
     parser.add_argument(
-        "--table-max-epochs", type=int, help="epoch cap of Table I trainings (default 300)"
+        "--table-max-epochs", type=int, help="epoch cap of Table I trainings (default 100)"
     )
     parser.add_argument(
         "--fig5-sizes", type=int, nargs="+", help="training rows of Fig. 5 (default 1k-20k)"
     )
-    parser.add_argument("--fig5-epochs", type=int, help="epochs per Fig. 5 training (default 60)")
+    parser.add_argument("--fig5-epochs", type=int, help="epochs per Fig. 5 training (default 30)")
     parser.add_argument(
         "--merge",
         nargs="+",
