@@ -30,9 +30,9 @@ and calibrate --refit.
 The position network corrects the flange position [m], the orientation network its
 rotation [rad, axis-angle]; inputs are the joints normalised over the training rows'
 range (--input-range data) or the joint limits (limits). Outside the joint box of the
-training rows the corrections fade out (to the base model) within --fade x its size
-(default 0.1; 0: the base model right outside the box, the safest choice where the
-worst case matters more than the mean).
+training rows the model is the base model (--fade 0, the default), or the corrections
+fade out within --fade x the box size (e.g. 0.1: they may help just outside the
+data, or hurt: measure it on held-out rows outside the box).
 
 Presets: fast (ours: 3 x 256 SiLU MLPs, Adam + one-cycle, batch 256, 150 epochs,
 MSE) and paper (D4w / Rw, Adagrad lr 0.005, batch 128, <= 300 epochs, early stopping,
@@ -86,7 +86,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         type=float,
         metavar="F",
         help="fade-out width outside the training joint box, fraction of its size per "
-        "joint (default 0.1; 0: no correction outside the box)",
+        "joint (default 0: no correction outside the box)",
     )
     p.add_argument("--logdir", metavar="DIR", help="TensorBoard logs and checkpoints")
     p.add_argument("--seed", type=int, default=0, metavar="K", help="seed (default: 0)")
