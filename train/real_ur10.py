@@ -178,9 +178,10 @@ def subset_errors(models: dict[str, Path], hold_files: list[Path], robot: Robot)
     cond = conditions_from_data(data, True)
     q = data.q.double()
     inside = ((q >= lo) & (q <= hi)).all(-1)
-    beyond = (torch.relu(lo - q) + torch.relu(q - hi)) / (hi - lo)  # in box sizes
     width = float(box["fade"])
-    faded = (beyond / width).square().sum(-1) >= 1  # networks off entirely (w = 0)
+    # distance outside the box in fade widths, as HybridFK's trust computes it
+    beyond = (torch.relu(lo - q) + torch.relu(q - hi)) / (width * (hi - lo)).clamp_min(1e-9)
+    faded = beyond.square().sum(-1) >= 1  # networks off entirely (w = 0)
     groups = {
         "all": torch.ones_like(inside),
         "inside_box": inside,
