@@ -58,7 +58,6 @@ cells are left out and listed instead.
 
 from __future__ import annotations
 
-import csv
 import difflib
 import json
 import math
@@ -75,7 +74,13 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from hybrid_pk.data.measured import SkippedRow
-from hybrid_pk.data.table import _cell_problem, _check_duplicates, _to_float, write_frame
+from hybrid_pk.data.table import (
+    _cell_problem,
+    _check_duplicates,
+    _first_long_row,
+    _to_float,
+    write_frame,
+)
 from hybrid_pk.errors import DataError
 
 __all__ = [
@@ -449,27 +454,6 @@ class MappedTable:
     resolved: Mapping[str, str] = field(default_factory=dict)
 
 
-def _first_long_row(path: Path, cmap: ColumnMap) -> tuple[int | None, int, int]:
-    """``(data row, fields, header fields)`` of the first data row longer than the
-    header (1-based, blank lines not counted); row None if a multi-character separator
-    hides it."""
-    if len(cmap.separator) != 1:
-        return None, 0, 0
-    with path.open(newline="", encoding=cmap.encoding) as fh:
-        reader = csv.reader(fh, delimiter=cmap.separator)
-        for _ in range(cmap.skip_lines):
-            next(reader, None)
-        width = len(cmap.names) if cmap.names else len(next(reader, []))
-        row = 0
-        for fields in reader:
-            if not fields:
-                continue
-            row += 1
-            if len(fields) > width:
-                return row, len(fields), width
-    return None, 0, width
-
-
 def _read_cells(path: Path, cmap: ColumnMap) -> pd.DataFrame:
     file = str(path)
     if not path.is_file():
@@ -495,14 +479,30 @@ def _read_cells(path: Path, cmap: ColumnMap) -> pd.DataFrame:
                 engine="python" if len(cmap.separator) > 1 else "c",
             )
     except pd.errors.ParserWarning:
-        row, saw, want = _first_long_row(path, cmap)
+        hint = (
+            f"check the separator ({cmap.separator!r}), the decimal mark and skip_lines "
+            f"({cmap.skip_lines})"
+        )
+        found = None  # the csv module reads single-character separators only
+        if len(cmap.separator) == 1:
+            found = _first_long_row(
+                path,
+                len(cmap.names) if cmap.names else None,
+                delimiter=cmap.separator,
+                encoding=cmap.encoding,
+                skip_lines=cmap.skip_lines,
+            )
+        if found is None:
+            raise DataError(
+                f"a data row has more fields than the header; {hint}", file=file
+            ) from None
+        row, fields, width = found
         raise DataError(
-            f"{saw} fields where the header has {want}: a data row has more fields than the "
-            f"header; check the separator ({cmap.separator!r}), the decimal mark and "
-            f"skip_lines ({cmap.skip_lines})",
+            f"{len(fields)} fields where the header has {width}: a data row has more "
+            f"fields than the header; {hint}",
             file=file,
             row=row,
-            column=None if row is None else f"field {want + 1}",
+            column=f"field {width + 1}",
         ) from None
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
         found = re.search(r"Expected (\d+) fields in line (\d+), saw (\d+)", str(exc))

@@ -162,27 +162,48 @@ def _load(path: Path) -> pd.DataFrame:
     return frame
 
 
-def _check_row_lengths(path: Path, width: int) -> None:
-    """Fail at the first data row with more fields than the header's ``width``, naming
-    its first field without a column (rows are counted as pandas does: blank lines are
-    not data rows)."""
-    with path.open(newline="", encoding="utf-8-sig") as fh:
-        reader = csv.reader(fh)
-        next(reader, None)
+def _first_long_row(
+    path: Path,
+    width: int | None = None,
+    *,
+    delimiter: str = ",",
+    encoding: str = "utf-8-sig",
+    skip_lines: int = 0,
+) -> tuple[int, list[str], int] | None:
+    """``(data row, its fields, header width)`` of the first data row with more fields
+    than the header, or None. Rows are 1-based and counted as pandas does (blank lines
+    are not data rows); ``width`` None reads it from the header line after
+    ``skip_lines``."""
+    with path.open(newline="", encoding=encoding) as fh:
+        reader = csv.reader(fh, delimiter=delimiter)
+        for _ in range(skip_lines):
+            next(reader, None)
+        header = next(reader, [])
+        width = len(header) if width is None else width
         row = 0
         for fields in reader:
             if not fields:
                 continue
             row += 1
             if len(fields) > width:
-                _fail(
-                    str(path),
-                    f"{len(fields)} fields where the header has {width}: "
-                    f"field {width + 1} ({fields[width]!r}) has no column name "
-                    "(check the separator and the header)",
-                    row=row,
-                    column=f"field {width + 1}",
-                )
+                return row, fields, width
+    return None
+
+
+def _check_row_lengths(path: Path, width: int) -> None:
+    """Fail at the first data row with more fields than the header's ``width``, naming
+    its first field without a column."""
+    found = _first_long_row(path, width)
+    if found is not None:
+        row, fields, _ = found
+        _fail(
+            str(path),
+            f"{len(fields)} fields where the header has {width}: "
+            f"field {width + 1} ({fields[width]!r}) has no column name "
+            "(check the separator and the header)",
+            row=row,
+            column=f"field {width + 1}",
+        )
 
 
 def _check_duplicates(file: str, header: list[str]) -> None:
