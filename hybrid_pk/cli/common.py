@@ -89,20 +89,27 @@ def read_data(
         n_params: parameters that will be fitted (fewer rows is an error); None: 1.
         skip_bad_rows: leave out (and report) bad rows instead of failing.
     """
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", DataWarning)
-        data = read_table_for(
+    with data_notes():
+        return read_table_for(
             [str(p) for p in paths],
             robot,
             n_params=n_params or 1,
             on_bad_row="skip" if skip_bad_rows else "error",
         )
+
+
+@contextmanager
+def data_notes() -> Iterator[None]:
+    """Print the data warnings raised inside the block as ``note:`` lines (after it);
+    other warnings go on as warnings."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", DataWarning)
+        yield
     for w in caught:
         if issubclass(w.category, DataWarning):
             print(f"note: {w.message}")
         else:  # not ours to swallow
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    return data
 
 
 def frame_parameter_count(sets: int, position_only: bool) -> int:

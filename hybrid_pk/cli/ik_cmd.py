@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import argparse
 import sys
-import warnings
 
 import torch
 from tqdm import tqdm
 
-from hybrid_pk.data import DataWarning, read_table_for
+from hybrid_pk.cli.common import data_notes
+from hybrid_pk.data import read_table_for
 from hybrid_pk.data.table import write_frame
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.errors import HybridPKError, ModelFileError
@@ -126,15 +126,8 @@ def _frame_set(args: argparse.Namespace, sets: int) -> int:
 
 
 def _read_targets(path: str, robot):
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", DataWarning)
-        data = read_table_for([path], robot, n_params=1, require_joints=False)
-    for w in caught:
-        if issubclass(w.category, DataWarning):
-            print(f"note: {w.message}")
-        else:  # not ours to swallow
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    return data
+    with data_notes():
+        return read_table_for([path], robot, n_params=1, require_joints=False)
 
 
 def _expensive(loaded, model: ExtendedModel):
