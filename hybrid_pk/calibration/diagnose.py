@@ -452,24 +452,18 @@ def diagnose(
     causes.sort(key=lambda c: c.position_gain_mm, reverse=True)
 
     # Strongly correlated estimates (frames included) are ambiguous groups too.
-    labels = [b.label for b in res.blocks for _ in range(b.size)]
-    corr = res.corr.abs()
     seen = set()
-    for i in range(corr.shape[0]):
-        for j in range(i + 1, corr.shape[0]):
-            a, b = labels[i].split(".")[0], labels[j].split(".")[0]
-            if a == b or (a, b) in seen or float(corr[i, j]) < AMBIGUITY_CORRELATION:
-                continue
-            if a.endswith("_frame") and b.endswith("_frame"):
-                continue
-            seen.add((a, b))
-            ambiguous.append(
-                {
-                    "effects": [a, b],
-                    "why": f"estimates correlated at {float(corr[i, j]):.3f}: the data "
-                    "barely separates them, their values trade off",
-                }
-            )
+    for a, _, b, _, r in res.correlated_pairs(AMBIGUITY_CORRELATION):
+        if (a, b) in seen or (a.endswith("_frame") and b.endswith("_frame")):
+            continue
+        seen.add((a, b))
+        ambiguous.append(
+            {
+                "effects": [a, b],
+                "why": f"estimates correlated at {abs(r):.3f}: the data "
+                "barely separates them, their values trade off",
+            }
+        )
 
     residual_hold = _residual_vectors(model, test, cond_hold)
     structured, nn_corr = _structured(residual_hold, test.q, *robot.joint_limits)

@@ -90,6 +90,25 @@ class FitResult:
         rot = (torch.deg2rad(self.orientation_deg) ** 2).sum() / self.sigma_rot_rad**2
         return float(pos + rot)
 
+    def correlated_pairs(self, threshold: float) -> list[tuple[str, str, str, str, float]]:
+        """Parameter pairs of different effects/frames whose estimates are correlated
+        at ``|r| >= threshold`` or undetermined (NaN): ``(group_a, name_a, group_b,
+        name_b, r)`` in parameter order, where a group is a block label up to its first
+        ``.`` (``base_frame``) and a name adds the component (``link_length:joint_3[2]``)."""
+        names, groups = [], []
+        for b in self.blocks:
+            for k in range(b.size):
+                names.append(f"{b.label}[{k}]" if b.size > 1 else b.label)
+                groups.append(b.label.split(".")[0])
+        corr = self.corr
+        pairs = []
+        for i in range(corr.shape[0]):
+            for j in range(i + 1, corr.shape[0]):
+                r = float(corr[i, j])
+                if groups[i] != groups[j] and not abs(r) < threshold:
+                    pairs.append((groups[i], names[i], groups[j], names[j], r))
+        return pairs
+
     def block_slice(self, label: str) -> slice:
         start = 0
         for b in self.blocks:

@@ -374,19 +374,9 @@ def _print_new_summary(robot, data, args, diag, labels, effects, model, res0, re
 
 
 def _inseparable_pairs(res: FitResult, limit: int = 3) -> list[str]:
-    """Up to ``limit`` parameter pairs whose estimates are correlated at |r| > 0.999."""
-    names, groups = [], []
-    for b in res.blocks:
-        for i in range(b.size):
-            names.append(f"{b.label}[{i}]" if b.size > 1 else b.label)
-            groups.append(b.label.split(".")[0])
-    corr = res.corr.abs().nan_to_num(0.0)
-    pairs = []
-    for i in range(corr.shape[0]):
-        for j in range(i + 1, corr.shape[0]):
-            if float(corr[i, j]) > 0.999 and groups[i] != groups[j]:
-                pairs.append(f"{names[i]} ~ {names[j]} (r = {float(res.corr[i, j]):+.4f})")
-    return pairs[:limit]
+    """Up to ``limit`` parameter pairs whose estimates are correlated at |r| >= 0.999."""
+    pairs = res.correlated_pairs(0.999)
+    return [f"{a} ~ {b} (r = {r:+.4f})" for _, a, _, b, r in pairs[:limit]]
 
 
 def _run_refit(args: argparse.Namespace) -> int:
