@@ -173,7 +173,7 @@ def run(args) -> int:
                 "extended (physics)": model(test.q, test_cond),
                 "hybrid (physics + networks)": hybrid(test.q, test_cond),
             }
-        evaluation_report = write_evaluation_report(
+        evaluation_report, results = write_evaluation_report(
             out / "evaluation",
             test,
             predictions,
@@ -181,7 +181,6 @@ def run(args) -> int:
             intro=f"{test.n} rows of the campaign that no diagnosis, calibration or "
             "training step saw.",
         )
-        results = json.loads((out / "evaluation" / "evaluation.json").read_text())
         (out / "evaluation.json").write_text(json.dumps(results, indent=2))
 
         step("inverse kinematics on the hybrid model: every solution")

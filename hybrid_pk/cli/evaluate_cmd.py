@@ -173,4 +173,4 @@ def _report(args, loaded, robot, data, cond, sets: int, T) -> Path:
         "the nominal URDF whose base and tool frames were fitted to these same rows: "
         "what a user gets without calibration."
     )
-    return write_evaluation_report(args.report, data, predictions, intro=intro)
+    return write_evaluation_report(args.report, data, predictions, intro=intro)[0]

@@ -96,7 +96,7 @@ def write_evaluation_report(
     *,
     title: str = "Evaluation",
     intro: str = "",
-) -> Path:
+) -> tuple[Path, dict[str, dict]]:
     """Write ``out/report.md`` (+ PNGs, ``evaluation.json``) comparing models on ``data``.
 
     Args:
@@ -108,7 +108,8 @@ def write_evaluation_report(
         intro: paragraph under the heading.
 
     Returns:
-        The path of ``report.md``.
+        ``(path of report.md, {model label: contract-5 errors})``; ``evaluation.json``
+        holds the same errors plus ``iso9283`` when the rows have repeated poses.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -119,7 +120,6 @@ def write_evaluation_report(
         with torch.no_grad():
             errors[name] = row_errors(T, data)
     results = {name: evaluate_json(data.n, p, o) for name, (p, o) in errors.items()}
-    (out / "evaluation.json").write_text(json.dumps(results, indent=2) + "\n", encoding="utf-8")
     names = list(predictions)
     lines = [f"# {title}", ""]
     if intro:
@@ -151,9 +151,8 @@ def write_evaluation_report(
     ]
     iso_lines, iso = _iso_section(data, predictions[names[-1]], names[-1])
     lines += iso_lines
-    if iso is not None:
-        results["iso9283"] = iso
-        (out / "evaluation.json").write_text(json.dumps(results, indent=2) + "\n", "utf-8")
+    saved = results if iso is None else {**results, "iso9283": iso}
+    (out / "evaluation.json").write_text(json.dumps(saved, indent=2) + "\n", encoding="utf-8")
     path = out / "report.md"
     path.write_text("\n".join(lines), encoding="utf-8")
-    return path
+    return path, results
