@@ -49,10 +49,9 @@ import torch
 from hybrid_pk import Robot
 from hybrid_pk.calibration.fit import conditions_from_data
 from hybrid_pk.calibration.splits import Split, joint_box_split, region_split
-from hybrid_pk.cli.common import data_errors
 from hybrid_pk.cli.main import main as hybrid_pk
 from hybrid_pk.data import MeasuredData, read_table_for, write_table
-from hybrid_pk.metrics import error_stats
+from hybrid_pk.metrics import error_stats, row_errors
 from hybrid_pk.model_file import load_model, predict_poses
 
 REPO = Path(__file__).resolve().parents[1]
@@ -206,7 +205,7 @@ def subset_errors(models: dict[str, Path], hold_files: list[Path], robot: Robot)
     for key, path in models.items():
         loaded = hybrid if key == "hybrid" else load_model(path)
         T = predict_poses(loaded, data, cond)
-        pos, ori = data_errors(T, data)
+        pos, ori = row_errors(T, data)
         out["models"][key] = {
             g: {
                 "n": int(m.sum()),

@@ -21,7 +21,6 @@ from hybrid_pk.calibration.urdf_export import export_urdf
 from hybrid_pk.cli.common import (
     FRAME_LABELS,
     add_data_arguments,
-    data_errors,
     fit_frames,
     frame_parameter_count,
     load_robot,
@@ -34,7 +33,7 @@ from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import Conditions, Effect, ExtendedModel, make_effect
 from hybrid_pk.errors import HybridPKError, ModelFileError
 from hybrid_pk.geometry import matrix_to_rpy
-from hybrid_pk.metrics import error_stats
+from hybrid_pk.metrics import error_stats, row_errors
 from hybrid_pk.model_file import LoadedModel, load_model, model_robot, predict_poses, save_model
 
 # Above this condition number of the scaled identification Jacobian a fit is not
@@ -455,4 +454,4 @@ def _errors(loaded: LoadedModel, data: MeasuredData, cond: Conditions):
         with torch.no_grad():
             T = loaded.model(data.q, cond)
         note = f"note: errors of the extended model only: {exc}"
-    return (*data_errors(T, data), note)
+    return (*row_errors(T, data), note)

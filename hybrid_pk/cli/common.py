@@ -18,13 +18,12 @@ from hybrid_pk.calibration.fit import FitResult, fit, initialise_frames
 from hybrid_pk.data import DataWarning, MeasuredData, read_table_for
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.errors import HybridPKError
-from hybrid_pk.metrics import ErrorStats, error_stats, row_errors
+from hybrid_pk.metrics import ErrorStats, error_stats
 from hybrid_pk.robot import Robot
 
 __all__ = [
     "FRAME_LABELS",
     "add_data_arguments",
-    "data_errors",
     "fit_frames",
     "frame_parameter_count",
     "load_robot",
@@ -172,12 +171,6 @@ def fit_frames(
     """
     initialise_frames(model, data, cond, which=which)
     return fit(model, data, free=list(FRAME_LABELS[which]), cond=cond)
-
-
-def data_errors(T: torch.Tensor, data: MeasuredData) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """Per-row position [mm] and orientation [deg] errors of predicted poses ``(N, 4, 4)``
-    (contract section 5); orientation None for position-only data."""
-    return row_errors(T, data)
 
 
 def stats_line(label: str, stats: ErrorStats | torch.Tensor, digits: int = 4) -> str:

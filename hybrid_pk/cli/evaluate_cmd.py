@@ -11,7 +11,6 @@ import torch
 from hybrid_pk.calibration.fit import conditions_from_data
 from hybrid_pk.cli.common import (
     add_data_arguments,
-    data_errors,
     fit_frames,
     frame_parameter_count,
     progress,
@@ -22,7 +21,7 @@ from hybrid_pk.cli.common import (
 )
 from hybrid_pk.effects import ExtendedModel
 from hybrid_pk.errors import HybridPKError
-from hybrid_pk.metrics import evaluate_json
+from hybrid_pk.metrics import evaluate_json, row_errors
 from hybrid_pk.model_file import NOMINAL_PREFIX, load_model, model_robot, predict_poses
 from hybrid_pk.report.evaluation_report import write_evaluation_report
 
@@ -111,7 +110,7 @@ def _run(args: argparse.Namespace) -> int:
             loaded = dataclasses.replace(loaded, model=model, frames_fitted=True)
         step("predicting")
         T = predict_poses(loaded, data, cond)
-        position, orientation = data_errors(T, data)
+        position, orientation = row_errors(T, data)
         result = evaluate_json(data.n, position, orientation)
         if args.json:
             write_json(args.json, result)
