@@ -60,7 +60,7 @@ from hybrid_pk.hybrid import build_net, count_parameters
 from hybrid_pk.metrics import error_stats, pose_error
 from hybrid_pk.simulate import simulate_campaign
 from hybrid_pk.simulate.spec import paper_effects
-from hybrid_pk.simulate.unmodelled import HardeningCompliance
+from hybrid_pk.simulate.unmodelled import HardeningCompliance, rms_gravity_torques
 from hybrid_pk.training import train_hybrid
 from hybrid_pk.training.run import auto_threads
 
@@ -123,9 +123,7 @@ QUICK = Plan(
 
 def ground_truth(robot: Robot) -> list[Effect]:
     """Linear springs of the paper's generator (scaled) + hardening on the same joints."""
-    q = robot.sample_q(4096, torch.Generator().manual_seed(0))
-    with torch.no_grad():
-        rms = robot.gravity_torques(q, payload=PAYLOAD).pow(2).mean(0).sqrt()
+    rms = rms_gravity_torques(robot, PAYLOAD, torch.Generator().manual_seed(0))
     effects: list[Effect] = []
     for e in paper_effects(robot):
         c = LINEAR_SHARE * float(e.value.detach())

@@ -36,7 +36,7 @@ from hybrid_pk.report.markdown import fmt, image, markdown_table, stats_table
 from hybrid_pk.robot import Robot
 from hybrid_pk.simulate import simulate_campaign
 from hybrid_pk.simulate.spec import effect_entry, parse_effects
-from hybrid_pk.simulate.unmodelled import HardeningCompliance
+from hybrid_pk.simulate.unmodelled import HardeningCompliance, rms_gravity_torques
 
 DEFAULT_ROBOT = "rx160"
 UNMODELLED_DEFLECTION = 2e-4  # [rad] of the hardening spring's saturated extra deflection
@@ -90,10 +90,7 @@ def _hidden_effects(robot: Robot, args) -> tuple[list[Effect], list[Effect]]:
     if args.unmodelled:
         gen = torch.Generator().manual_seed(args.seed + 1)
         index = 1 + int(torch.randint(2, (1,), generator=gen))  # joint 2 or 3
-        q = robot.sample_q(4096, gen)
-        with torch.no_grad():
-            tau = robot.gravity_torques(q, payload=args.payload)[:, index]
-        tau0 = UNMODELLED_KNEE * float(tau.pow(2).mean().sqrt())
+        tau0 = UNMODELLED_KNEE * float(rms_gravity_torques(robot, args.payload, gen)[index])
         unmodelled.append(
             HardeningCompliance(robot, robot.joint_names[index], UNMODELLED_DEFLECTION / tau0, tau0)
         )

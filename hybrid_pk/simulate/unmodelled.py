@@ -17,7 +17,17 @@ from torch import Tensor
 from hybrid_pk.effects.base import Conditions, Effect
 from hybrid_pk.robot import Robot
 
-__all__ = ["UNMODELLED_KINDS", "HardeningCompliance"]
+__all__ = ["UNMODELLED_KINDS", "HardeningCompliance", "rms_gravity_torques"]
+
+
+def rms_gravity_torques(
+    robot: Robot, payload: float, generator: torch.Generator, n: int = 4096
+) -> Tensor:
+    """``(dof,)`` RMS holding torque of every joint [Nm] over ``n`` configurations drawn
+    uniformly in the limits: the scale for a spring's knee torque."""
+    q = robot.sample_q(n, generator)
+    with torch.no_grad():
+        return robot.gravity_torques(q, payload=payload).pow(2).mean(0).sqrt()
 
 
 def _on_joint(q: Tensor, index: int, delta: Tensor) -> Tensor:
