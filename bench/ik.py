@@ -32,12 +32,12 @@ import torch
 
 import hybrid_pk as hpk
 from hybrid_pk.effects import ExtendedModel, make_effect
+from hybrid_pk.evaluation.metrics import pose_error
 from hybrid_pk.geometry import so3_exp, transform
 from hybrid_pk.ik import IKOptions, solve_ik, solve_ik_two_stage, wang_baseline
-from hybrid_pk.ik.analytic import branch_coverage, eaik_branches
 from hybrid_pk.ik.dedup import distinct_mask
 from hybrid_pk.ik.seeds import quasi_random_seeds
-from hybrid_pk.metrics import pose_error
+from tests.oracles.eaik_oracle import branch_coverage, eaik_branches
 
 
 def _verified(robot: hpk.Robot, T: torch.Tensor, q: torch.Tensor, ok: torch.Tensor, args):

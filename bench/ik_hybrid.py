@@ -30,10 +30,10 @@ import time
 import torch
 
 import hybrid_pk as hpk
-from hybrid_pk.calibration.fit import conditions_from_data, fit, initialise_frames
-from hybrid_pk.effects import ExtendedModel
+from hybrid_pk.calibration.fit import fit, initialise_frames
+from hybrid_pk.effects import ExtendedModel, conditions_from_data
+from hybrid_pk.evaluation.metrics import pose_error
 from hybrid_pk.ik import IKOptions, solve_ik, solve_ik_two_stage, wang_baseline
-from hybrid_pk.metrics import pose_error
 from hybrid_pk.simulate import simulate_campaign
 from hybrid_pk.training import train_hybrid
 

@@ -4,11 +4,10 @@ Data flow: robot model -> measured data -> error effects -> diagnosis/calibratio
 -> residual networks -> IK -> reports.
 """
 
-from hybrid_pk.calibration.diagnose import Diagnosis as Diagnosis
-from hybrid_pk.calibration.diagnose import diagnose as diagnose
+from hybrid_pk.calibration.diagnosis.search import Diagnosis as Diagnosis
+from hybrid_pk.calibration.diagnosis.search import diagnose as diagnose
 from hybrid_pk.calibration.fit import FitResult as FitResult
 from hybrid_pk.calibration.fit import fit as fit
-from hybrid_pk.calibration.urdf_export import export_urdf as export_urdf
 from hybrid_pk.data import MeasuredData as MeasuredData
 from hybrid_pk.data import read_table as read_table
 from hybrid_pk.data import read_table_for as read_table_for
@@ -22,6 +21,8 @@ from hybrid_pk.errors import InvalidFrame as InvalidFrame
 from hybrid_pk.errors import ModelFileError as ModelFileError
 from hybrid_pk.errors import RobotModelError as RobotModelError
 from hybrid_pk.errors import ShapeError as ShapeError
+from hybrid_pk.evaluation.metrics import error_stats as error_stats
+from hybrid_pk.evaluation.metrics import pose_error as pose_error
 from hybrid_pk.hybrid import HybridFK as HybridFK
 from hybrid_pk.hybrid import load_hybrid as load_hybrid
 from hybrid_pk.hybrid import save_hybrid as save_hybrid
@@ -30,10 +31,9 @@ from hybrid_pk.ik import IKResult as IKResult
 from hybrid_pk.ik import solve_ik as solve_ik
 from hybrid_pk.ik import solve_ik_two_stage as solve_ik_two_stage
 from hybrid_pk.ik import wang_baseline as wang_baseline
-from hybrid_pk.metrics import error_stats as error_stats
-from hybrid_pk.metrics import pose_error as pose_error
-from hybrid_pk.model_file import load_model as load_model
-from hybrid_pk.model_file import save_model as save_model
+from hybrid_pk.io.model_file import load_model as load_model
+from hybrid_pk.io.model_file import save_model as save_model
+from hybrid_pk.io.urdf_export import export_urdf as export_urdf
 from hybrid_pk.robot import KinematicParams as KinematicParams
 from hybrid_pk.robot import Robot as Robot
 from hybrid_pk.robot import shipped_robots as shipped_robots

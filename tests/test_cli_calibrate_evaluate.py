@@ -24,7 +24,7 @@ from hybrid_pk.cli.main import main
 from hybrid_pk.data import MeasuredData, write_table
 from hybrid_pk.effects import ExtendedModel, make_effect
 from hybrid_pk.geometry import so3_exp, transform
-from hybrid_pk.model_file import load_model
+from hybrid_pk.io.model_file import load_model
 
 F64 = torch.float64
 N_ROWS = 200

@@ -16,7 +16,7 @@ import pytest
 import torch
 
 import hybrid_pk as hpk
-from hybrid_pk.calibration.diagnose import diagnose
+from hybrid_pk.calibration.diagnosis.search import diagnose
 from hybrid_pk.effects import EFFECTS, ExtendedModel, make_effect
 from hybrid_pk.simulate import simulate_campaign
 
@@ -254,7 +254,8 @@ def test_diagnosis_on_data_generated_with_pinocchio():
 
 def test_identification_within_reported_3_sigma_in_repeated_trials():
     """Repeated seeded campaigns: every injected value within its reported 3 sigma."""
-    from hybrid_pk.calibration.fit import conditions_from_data, fit, initialise_frames
+    from hybrid_pk.calibration.fit import fit, initialise_frames
+    from hybrid_pk.effects import conditions_from_data
 
     robot = _robot("rx160")
     labels = {"joint_offset:joint_3": 6e-4, "joint_compliance:joint_2": 1.8e-6}
@@ -304,7 +305,7 @@ def test_candidate_made_redundant_by_a_chosen_effect_scores_sanely():
     ],
 )
 def test_implausible_values_are_flagged(effect, value, flagged):
-    from hybrid_pk.calibration.diagnose import Cause, plausibility_warnings
+    from hybrid_pk.calibration.diagnosis.search import Cause, plausibility_warnings
 
     robot = _robot("rx160")
     data, _ = simulate_campaign(robot, 200, [], noise_mm=0.01, seed=0)
@@ -314,7 +315,7 @@ def test_implausible_values_are_flagged(effect, value, flagged):
 
 
 def test_temperature_that_differs_between_files_is_flagged():
-    from hybrid_pk.calibration.diagnose import Cause, plausibility_warnings
+    from hybrid_pk.calibration.diagnosis.search import Cause, plausibility_warnings
     from hybrid_pk.data.measured import MeasuredData
 
     robot = _robot("rx160")

@@ -8,6 +8,7 @@ import torch
 from hybrid_pk import ModelFileError, Robot
 from hybrid_pk.effects import Conditions, ExtendedModel, make_effect
 from hybrid_pk.errors import HybridPKError
+from hybrid_pk.evaluation.metrics import pose_error
 from hybrid_pk.geometry import so3_exp, transform
 from hybrid_pk.hybrid import (
     ARCHITECTURES,
@@ -21,8 +22,7 @@ from hybrid_pk.hybrid import (
 )
 from hybrid_pk.hybrid.losses import orientation_errors_deg, position_errors_mm
 from hybrid_pk.hybrid.nets import parse_arch
-from hybrid_pk.metrics import pose_error
-from hybrid_pk.model_file import load_model, predict_poses
+from hybrid_pk.io.model_file import load_model, predict_poses
 from hybrid_pk.simulate import simulate_campaign
 from tests.helpers import BATCH_SHAPES, assert_transforms_close, check_gradients
 

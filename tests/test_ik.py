@@ -14,6 +14,7 @@ import torch
 import hybrid_pk as hpk
 from hybrid_pk.effects import ExtendedModel, make_effect
 from hybrid_pk.errors import HybridPKError, ShapeError
+from hybrid_pk.evaluation.metrics import pose_error
 from hybrid_pk.geometry import so3_exp, transform
 from hybrid_pk.ik import (
     IKOptions,
@@ -25,9 +26,8 @@ from hybrid_pk.ik import (
     solve_ik_two_stage,
     wang_baseline,
 )
-from hybrid_pk.ik.kernel import ChainKernel
-from hybrid_pk.ik.model import autograd_pose_jacobian
-from hybrid_pk.metrics import pose_error
+from hybrid_pk.ik.forward_model import autograd_pose_jacobian
+from hybrid_pk.robot.kernel import ChainKernel
 from tests.helpers import BATCH_SHAPES
 
 F64 = torch.float64
@@ -113,7 +113,7 @@ def test_kernel_with_frames_matches_autograd_jacobian(robots):
 @pytest.mark.parametrize("name", ROBOTS)
 def test_all_analytic_branches_found_within_limits_and_tolerance(robots, name):
     pytest.importorskip("eaik")
-    from hybrid_pk.ik.analytic import branch_coverage, eaik_branches
+    from tests.oracles.eaik_oracle import branch_coverage, eaik_branches
 
     robot = robots[name]
     T = _targets(robot, N_TARGETS, seed=11)

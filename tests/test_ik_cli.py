@@ -12,9 +12,9 @@ import torch
 from hybrid_pk import Robot
 from hybrid_pk.cli.main import main
 from hybrid_pk.effects import Conditions, ExtendedModel, make_effect
+from hybrid_pk.evaluation.metrics import pose_error
 from hybrid_pk.geometry import matrix_to_quat, so3_exp, transform
-from hybrid_pk.metrics import pose_error
-from hybrid_pk.model_file import save_model
+from hybrid_pk.io.model_file import save_model
 
 F64 = torch.float64
 
@@ -155,7 +155,7 @@ def test_ik_on_a_calibrated_model_refines_on_its_effects(tmp_path, capsys):
 
 def test_ik_on_a_model_with_residual_networks(tmp_path, capsys):
     hybrid = pytest.importorskip("hybrid_pk.hybrid")
-    from hybrid_pk.model_file import load_model
+    from hybrid_pk.io.model_file import load_model
 
     robot = Robot.from_urdf("ur10")
     torch.manual_seed(0)  # random (not zero) initial weights: a ~0.3 mm residual

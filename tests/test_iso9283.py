@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from hybrid_pk.calibration.iso9283 import expected_rp_mm, group_repeated_poses, iso9283
 from hybrid_pk.data import read_table_for
 from hybrid_pk.data.ipa import convert_ipa
 from hybrid_pk.effects import ExtendedModel
 from hybrid_pk.errors import DataError
+from hybrid_pk.evaluation.iso9283 import expected_rp_mm, group_repeated_poses, iso9283
 from hybrid_pk.geometry import so3_exp
 from hybrid_pk.robot import Robot
 from hybrid_pk.simulate import simulate_campaign

@@ -1,4 +1,4 @@
-"""Tests of hybrid_pk.metrics: eq. 1/eq. 2 metrics, residuals, summaries, evaluate JSON."""
+"""Tests of hybrid_pk.evaluation.metrics: eq. 1/eq. 2 metrics, residuals, evaluate JSON."""
 
 from __future__ import annotations
 
@@ -11,8 +11,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from hybrid_pk.geometry import so3_exp, transform, transform_inverse
-from hybrid_pk.metrics import (
+from hybrid_pk.evaluation.metrics import (
     ErrorStats,
     PoseError,
     error_stats,
@@ -22,6 +21,7 @@ from hybrid_pk.metrics import (
     pose_residual,
     position_error_mm,
 )
+from hybrid_pk.geometry import so3_exp, transform, transform_inverse
 from tests.helpers import BATCH_SHAPES, check_gradients
 
 DTYPES = [torch.float32, torch.float64]

@@ -8,13 +8,13 @@ from pathlib import Path
 import pytest
 import torch
 
-import hybrid_pk.model_file as mf
+import hybrid_pk.io.model_file as mf
 from hybrid_pk import ModelFileError, Robot
-from hybrid_pk.calibration.urdf_export import corrected_urdf, export_urdf
 from hybrid_pk.effects import EFFECTS, Conditions, ExtendedModel, make_effect
 from hybrid_pk.effects.geometric import REFERENCE_TEMPERATURE
 from hybrid_pk.geometry import so3_exp, transform
-from hybrid_pk.model_file import load_model, model_robot, predict_poses, save_model
+from hybrid_pk.io.model_file import load_model, model_robot, predict_poses, save_model
+from hybrid_pk.io.urdf_export import corrected_urdf, export_urdf
 from tests.helpers import assert_transforms_close
 
 HERE = Path(__file__).resolve().parent

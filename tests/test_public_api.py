@@ -12,7 +12,7 @@ PACKAGES = [
     "hybrid_pk.effects",
     "hybrid_pk.data",
     "hybrid_pk.geometry",
-    "hybrid_pk.metrics",
+    "hybrid_pk.evaluation.metrics",
     "hybrid_pk.simulate",
     "hybrid_pk.report",
 ]

@@ -13,7 +13,7 @@ import torch
 from matplotlib.image import imread
 
 from hybrid_pk import HybridPKError, Robot
-from hybrid_pk.calibration.diagnose import diagnose
+from hybrid_pk.calibration.diagnosis.search import diagnose
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, make_effect
 from hybrid_pk.geometry import matrix_to_quat, so3_exp, transform

@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from train import reproduce_paper
+from experiments import reproduce_paper
 
 pytestmark = pytest.mark.slow
 

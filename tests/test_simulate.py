@@ -13,10 +13,10 @@ import hybrid_pk.simulate as sim
 from hybrid_pk.cli.main import main
 from hybrid_pk.data import read_table_for
 from hybrid_pk.effects import make_effect
+from hybrid_pk.evaluation.metrics import pose_error
 from hybrid_pk.geometry import quat_to_matrix, so3_log
-from hybrid_pk.metrics import pose_error
 from hybrid_pk.simulate import parse_effects, random_effects, simulate_campaign
-from hybrid_pk.simulate.spec import effects_from_file
+from hybrid_pk.simulate.effect_specs import effects_from_file
 from hybrid_pk.simulate.trajectories import ISO_CYCLE, make_trajectory
 from tests.helpers import assert_quats_close, assert_transforms_close
 
@@ -77,7 +77,7 @@ def test_truth_effects_reproduce_the_data(robots):
     spec = "joint_offset:joint_2=1e-3; link_length:joint_3=0,0,5e-4; backlash:joint_4=4e-4"
     data, truth = simulate_campaign(robot, 60, spec, noise_mm=0.0, seed=5)
     entries = json.loads(json.dumps(truth))["effects"]
-    effects = sim.spec.effects_from_entries(robot, entries, "truth")
+    effects = sim.effect_specs.effects_from_entries(robot, entries, "truth")
     base = torch.tensor(truth["base_frame"], dtype=torch.float64)
     tool = torch.tensor(truth["tool_frame"], dtype=torch.float64)
     model = hpk.effects.ExtendedModel(robot, effects, base=base, tool=tool)

@@ -11,23 +11,23 @@ import numpy as np
 import pytest
 import torch
 
-from hybrid_pk.calibration.fit import conditions_from_data, fit
-from hybrid_pk.calibration.referencing import (
+from hybrid_pk.calibration.fit import fit
+from hybrid_pk.data import MeasuredData, read_table_for
+from hybrid_pk.data.ipa import convert_ipa
+from hybrid_pk.effects import ExtendedModel, conditions_from_data
+from hybrid_pk.errors import DataError
+from hybrid_pk.evaluation.splits import joint_box_split, random_split, region_split
+from hybrid_pk.geometry import matrix_to_quat, so3_exp
+from hybrid_pk.robot import Robot
+from hybrid_pk.simulate import random_frames, simulate_campaign
+from tests.helpers import rotation_distance
+from tests.oracles.circle_referencing import (
     JointSweep,
     find_single_joint_sweeps,
     fit_circle,
     reference_from_sweeps,
     registration_guess,
 )
-from hybrid_pk.calibration.splits import joint_box_split, random_split, region_split
-from hybrid_pk.data import MeasuredData, read_table_for
-from hybrid_pk.data.ipa import convert_ipa
-from hybrid_pk.effects import ExtendedModel
-from hybrid_pk.errors import DataError
-from hybrid_pk.geometry import matrix_to_quat, so3_exp
-from hybrid_pk.robot import Robot
-from hybrid_pk.simulate import random_frames, simulate_campaign
-from tests.helpers import rotation_distance
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 IPA = SHARED / "data" / "ipa-ur10"

@@ -18,18 +18,17 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from hybrid_pk.calibration.lm import jacobian, levenberg_marquardt
-from hybrid_pk.calibration.registration import register_frames
+from hybrid_pk.calibration.least_squares import jacobian, levenberg_marquardt
 from hybrid_pk.data.table import MeasuredData
-from hybrid_pk.effects import Conditions, ExtendedModel, approach_direction
+from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data
+from hybrid_pk.evaluation.metrics import pose_error, position_error_mm
 from hybrid_pk.geometry import quat_to_matrix, so3_exp, transform
-from hybrid_pk.metrics import pose_error, position_error_mm
+from hybrid_pk.geometry.registration import register_frames
 
 __all__ = [
     "FitResult",
     "ParamBlock",
     "Problem",
-    "conditions_from_data",
     "fit",
     "initialise_frames",
     "model_errors",
@@ -116,17 +115,6 @@ class FitResult:
                 return slice(start, start + b.size)
             start += b.size
         raise KeyError(label)
-
-
-def conditions_from_data(data: MeasuredData, frames_per_file: bool = False) -> Conditions:
-    """Operating conditions of every row: payload, temperature, approach direction, and
-    (with ``frames_per_file``) the file's own base/tool frame set."""
-    return Conditions(
-        payload=data.payload,
-        temperature=data.temperature,
-        direction=approach_direction(data.q, data.file_index),
-        group=data.file_index if frames_per_file else None,
-    )
 
 
 def _blocks(model: ExtendedModel, free: Sequence[str] | None, position_only: bool):

@@ -15,9 +15,8 @@ from pathlib import Path
 
 import torch
 
-from hybrid_pk.calibration.diagnose import _report_value, diagnose
-from hybrid_pk.calibration.fit import FitResult, conditions_from_data, fit, initialise_frames
-from hybrid_pk.calibration.urdf_export import export_urdf
+from hybrid_pk.calibration.diagnosis.search import _report_value, diagnose
+from hybrid_pk.calibration.fit import FitResult, fit, initialise_frames
 from hybrid_pk.cli.common import (
     FRAME_LABELS,
     add_data_arguments,
@@ -30,11 +29,12 @@ from hybrid_pk.cli.common import (
     with_frame_sets,
 )
 from hybrid_pk.data import MeasuredData
-from hybrid_pk.effects import Conditions, Effect, ExtendedModel, make_effect
+from hybrid_pk.effects import Conditions, Effect, ExtendedModel, conditions_from_data, make_effect
 from hybrid_pk.errors import HybridPKError, ModelFileError
+from hybrid_pk.evaluation.metrics import error_stats, row_errors
 from hybrid_pk.geometry import matrix_to_rpy
-from hybrid_pk.metrics import error_stats, row_errors
-from hybrid_pk.model_file import LoadedModel, load_model, model_robot, predict_poses, save_model
+from hybrid_pk.io.model_file import LoadedModel, load_model, model_robot, predict_poses, save_model
+from hybrid_pk.io.urdf_export import export_urdf
 
 # Above this condition number of the scaled identification Jacobian a fit is not
 # identifiable from the data (well-posed calibrations here stay below 1e5).

@@ -18,7 +18,7 @@ from hybrid_pk.calibration.fit import FitResult, fit, initialise_frames
 from hybrid_pk.data import DataWarning, MeasuredData, read_table_for
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.errors import HybridPKError
-from hybrid_pk.metrics import ErrorStats, error_stats
+from hybrid_pk.evaluation.metrics import ErrorStats, error_stats
 from hybrid_pk.robot import Robot
 
 __all__ = [

@@ -21,21 +21,21 @@ from pathlib import Path
 
 import torch
 
-from hybrid_pk.calibration.diagnose import diagnose
-from hybrid_pk.calibration.fit import conditions_from_data, fit, initialise_frames
+from hybrid_pk.calibration.diagnosis.search import diagnose
+from hybrid_pk.calibration.fit import fit, initialise_frames
 from hybrid_pk.cli.common import progress
 from hybrid_pk.data import MeasuredData, write_table
 from hybrid_pk.data.table import write_frame
-from hybrid_pk.effects import Conditions, Effect, ExtendedModel, make_effect
+from hybrid_pk.effects import Conditions, Effect, ExtendedModel, conditions_from_data, make_effect
 from hybrid_pk.hybrid import save_hybrid
 from hybrid_pk.ik import solve_ik_two_stage
-from hybrid_pk.model_file import save_model
+from hybrid_pk.io.model_file import save_model
 from hybrid_pk.report.diagnosis_report import write_diagnosis_report
 from hybrid_pk.report.evaluation_report import write_evaluation_report
 from hybrid_pk.report.markdown import fmt, image, markdown_table, stats_table
 from hybrid_pk.robot import Robot
 from hybrid_pk.simulate import simulate_campaign
-from hybrid_pk.simulate.spec import effect_entry, parse_effects
+from hybrid_pk.simulate.effect_specs import effect_entry, parse_effects
 from hybrid_pk.simulate.unmodelled import HardeningCompliance, rms_gravity_torques
 
 DEFAULT_ROBOT = "rx160"

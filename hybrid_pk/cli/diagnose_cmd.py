@@ -237,7 +237,7 @@ def _read(paths: list[str], robot):
 
 
 def _run(args: argparse.Namespace) -> int:
-    from hybrid_pk.calibration.diagnose import diagnose
+    from hybrid_pk.calibration.diagnosis.search import diagnose
     from hybrid_pk.effects import make_effect
     from hybrid_pk.robot import Robot
 

@@ -8,7 +8,6 @@ from pathlib import Path
 
 import torch
 
-from hybrid_pk.calibration.fit import conditions_from_data
 from hybrid_pk.cli.common import (
     add_data_arguments,
     fit_frames,
@@ -19,10 +18,10 @@ from hybrid_pk.cli.common import (
     with_frame_sets,
     write_json,
 )
-from hybrid_pk.effects import ExtendedModel
+from hybrid_pk.effects import ExtendedModel, conditions_from_data
 from hybrid_pk.errors import HybridPKError
-from hybrid_pk.metrics import evaluate_json, row_errors
-from hybrid_pk.model_file import NOMINAL_PREFIX, load_model, model_robot, predict_poses
+from hybrid_pk.evaluation.metrics import evaluate_json, row_errors
+from hybrid_pk.io.model_file import NOMINAL_PREFIX, load_model, model_robot, predict_poses
 from hybrid_pk.report.evaluation_report import write_evaluation_report
 
 _DESCRIPTION = """\

@@ -14,8 +14,8 @@ from hybrid_pk.data.table import write_frame
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.errors import HybridPKError, ModelFileError
 from hybrid_pk.ik import IKOptions, solve_ik, solve_ik_two_stage
-from hybrid_pk.ik.hybrid import DEFAULT_BOX
-from hybrid_pk.model_file import _hybrid_loader, load_model, model_robot
+from hybrid_pk.ik.two_stage import DEFAULT_BOX
+from hybrid_pk.io.model_file import _hybrid_loader, load_model, model_robot
 
 _DESCRIPTION = """\
 All distinct joint solutions of each target pose, within the URDF joint limits.

@@ -7,7 +7,6 @@ import logging
 import os
 import warnings
 
-from hybrid_pk.calibration.fit import conditions_from_data
 from hybrid_pk.cli.common import (
     add_data_arguments,
     fit_frames,
@@ -17,9 +16,10 @@ from hybrid_pk.cli.common import (
     with_frame_sets,
 )
 from hybrid_pk.cli.evaluate_cmd import _frame_sets
+from hybrid_pk.effects import conditions_from_data
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.hybrid.nets import parse_arch
-from hybrid_pk.model_file import NOMINAL_PREFIX, load_model, model_robot
+from hybrid_pk.io.model_file import NOMINAL_PREFIX, load_model, model_robot
 
 _DESCRIPTION = """\
 Train the two residual networks of the hybrid model (Ojer et al. 2024) on top of MODEL

@@ -18,7 +18,7 @@ so the tracker sample of robot row ``k`` is the one at ``t_k + offset``.
    - refine: a bounded 1-D search (Brent) of the offset that minimises the RMS
      position residual of the frame registration on the tracker data interpolated at
      ``t_k + offset``: closed-form guess
-     (:func:`~hybrid_pk.calibration.registration.register_frames`), then Gauss-Newton
+     (:func:`~hybrid_pk.geometry.registration.register_frames`), then Gauss-Newton
      on base frame and tool point, so the residual is the least-squares value. A wrong
      offset turns the motion into a position error of ``speed x offset error``, which
      no pair of frames can absorb. The coarse stage is repeated once with the tool
@@ -45,9 +45,9 @@ import torch
 from scipy.optimize import minimize_scalar
 from scipy.spatial.transform import Rotation
 
-from hybrid_pk.calibration.registration import register_frames
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.errors import DataError
+from hybrid_pk.geometry.registration import register_frames
 
 __all__ = [
     "OffsetEstimate",

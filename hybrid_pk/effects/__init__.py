@@ -3,12 +3,13 @@
 from hybrid_pk.effects import geometric as _geometric  # noqa: F401  (registers effects)
 from hybrid_pk.effects import joint as _joint  # noqa: F401  (registers effects)
 from hybrid_pk.effects.base import EFFECTS as EFFECTS
-from hybrid_pk.effects.base import Conditions as Conditions
 from hybrid_pk.effects.base import Effect as Effect
-from hybrid_pk.effects.base import approach_direction as approach_direction
 from hybrid_pk.effects.base import make_effect as make_effect
-from hybrid_pk.effects.model import ExtendedModel as ExtendedModel
-from hybrid_pk.effects.model import RigidFrame as RigidFrame
+from hybrid_pk.effects.conditions import Conditions as Conditions
+from hybrid_pk.effects.conditions import approach_direction as approach_direction
+from hybrid_pk.effects.conditions import conditions_from_data as conditions_from_data
+from hybrid_pk.effects.extended import ExtendedModel as ExtendedModel
+from hybrid_pk.effects.extended import RigidFrame as RigidFrame
 
 __all__ = [
     "EFFECTS",
@@ -17,5 +18,6 @@ __all__ = [
     "ExtendedModel",
     "RigidFrame",
     "approach_direction",
+    "conditions_from_data",
     "make_effect",
 ]

@@ -14,65 +14,16 @@ The same modules serve simulation (set ``value``) and identification (fit it).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import ClassVar
 
 import torch
 from torch import Tensor, nn
 
+from hybrid_pk.effects.conditions import Conditions
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.robot import KinematicParams, Robot
 
-__all__ = ["EFFECTS", "Conditions", "Effect", "approach_direction", "make_effect"]
-
-
-@dataclass(frozen=True)
-class Conditions:
-    """Operating conditions of each sample besides ``q`` (all optional).
-
-    Attributes:
-        payload: ``(*B,)`` [kg] mass at the flange.
-        temperature: ``(*B,)`` [°C].
-        direction: ``(*B, dof)`` approach direction of each joint: +1, -1, or 0 (unknown).
-        group: ``(*B,)`` long, which base/tool frame set a row uses (its file, when each
-            file has its own frames); None = set 0.
-    """
-
-    payload: Tensor | None = None
-    temperature: Tensor | None = None
-    direction: Tensor | None = None
-    group: Tensor | None = None
-
-    def subset(self, index: Tensor) -> Conditions:
-        return Conditions(*(None if x is None else x[index] for x in self._fields()))
-
-    def _fields(self) -> tuple[Tensor | None, ...]:
-        return (self.payload, self.temperature, self.direction, self.group)
-
-
-def approach_direction(q: Tensor, file_index: Tensor | None = None) -> Tensor:
-    """Direction each joint moved to reach each row, in acquisition order.
-
-    ``sign(q[i] - q[i-1])``; a joint that did not move keeps its previous direction
-    (it stays on the same side of its play); the first row of a file is 0 (unknown).
-
-    Args:
-        q: ``(N, dof)`` joint values in acquisition order.
-        file_index: ``(N,)`` file of each row; rows of different files are not chained.
-    """
-    n = q.shape[0]
-    first = torch.zeros(n, dtype=torch.bool, device=q.device)
-    first[0] = True
-    if file_index is not None:
-        first[1:] = file_index[1:] != file_index[:-1]
-    step = torch.zeros_like(q)
-    step[1:] = torch.sign(q[1:] - q[:-1])
-    step[first] = 0
-    # Forward fill: each row takes the step of the last row (same file) where it moved.
-    keep = (step != 0) | first[:, None]
-    rows = torch.arange(n, device=q.device)[:, None].expand_as(q)
-    last = torch.where(keep, rows, 0).cummax(dim=0).values
-    return step.gather(0, last)
+__all__ = ["EFFECTS", "Effect", "make_effect"]
 
 
 class Effect(nn.Module):

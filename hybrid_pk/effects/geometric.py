@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import torch
 
-from hybrid_pk.effects.base import Conditions, Effect, register
+from hybrid_pk.effects.base import Effect, register
+from hybrid_pk.effects.conditions import Conditions
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import so3_exp
 from hybrid_pk.robot import KinematicParams

@@ -18,7 +18,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from hybrid_pk.effects.base import Conditions, Effect, register
+from hybrid_pk.effects.base import Effect, register
+from hybrid_pk.effects.conditions import Conditions
 from hybrid_pk.errors import HybridPKError
 
 __all__ = ["Backlash", "GearRatio", "JointCompliance", "JointEccentricity", "JointOffset"]

@@ -2,7 +2,7 @@
 
 - :mod:`~hybrid_pk.hybrid.nets`: the paper's architectures (D1, D4, D4w, D4W, Rw, Rd),
   the baselines B1-B4 and our small MLP;
-- :mod:`~hybrid_pk.hybrid.model`: :class:`HybridFK`, base model + two networks;
+- :mod:`~hybrid_pk.hybrid.hybrid_fk`: :class:`HybridFK`, base model + two networks;
 - :mod:`~hybrid_pk.hybrid.losses`: training targets and the paper's losses.
 
 Training (Lightning) lives in :mod:`hybrid_pk.training`; nothing here imports it.
@@ -12,15 +12,15 @@ from __future__ import annotations
 
 import os
 
+from hybrid_pk.hybrid.hybrid_fk import HybridFK as HybridFK
+from hybrid_pk.hybrid.hybrid_fk import InputBox as InputBox
+from hybrid_pk.hybrid.hybrid_fk import ResidualHead as ResidualHead
 from hybrid_pk.hybrid.losses import ResidualTargets as ResidualTargets
 from hybrid_pk.hybrid.losses import residual_targets as residual_targets
-from hybrid_pk.hybrid.model import HybridFK as HybridFK
-from hybrid_pk.hybrid.model import InputBox as InputBox
-from hybrid_pk.hybrid.model import ResidualHead as ResidualHead
 from hybrid_pk.hybrid.nets import ARCHITECTURES as ARCHITECTURES
 from hybrid_pk.hybrid.nets import build_net as build_net
 from hybrid_pk.hybrid.nets import count_parameters as count_parameters
-from hybrid_pk.model_file import LoadedModel, save_model
+from hybrid_pk.io.model_file import LoadedModel, save_model
 
 __all__ = [
     "ARCHITECTURES",

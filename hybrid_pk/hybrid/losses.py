@@ -2,7 +2,7 @@
 
 The base model is evaluated once per measured row; what the networks must still
 explain is kept in the axes of the corrections (joint 1's frame, see
-:mod:`hybrid_pk.hybrid.model`) as :class:`ResidualTargets`, so a training step costs
+:mod:`hybrid_pk.hybrid.hybrid_fk`) as :class:`ResidualTargets`, so a training step costs
 two small network passes and a few 3 x 3 products, in float64.
 
 Losses (paper): the position network minimises the distance between measured and
@@ -22,7 +22,7 @@ from torch import Tensor
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.geometry import quat_to_matrix, rotation_angle, so3_exp, so3_log, transform_inverse
-from hybrid_pk.hybrid.model import correction_axes, frame_matrices
+from hybrid_pk.hybrid.hybrid_fk import correction_axes, frame_matrices
 
 __all__ = [
     "LOSSES",

@@ -9,15 +9,15 @@
 
 from hybrid_pk.ik.dedup import distinct_mask as distinct_mask
 from hybrid_pk.ik.dedup import same_solution as same_solution
-from hybrid_pk.ik.hybrid import refine_ik as refine_ik
-from hybrid_pk.ik.hybrid import solve_ik_two_stage as solve_ik_two_stage
-from hybrid_pk.ik.hybrid import wang_baseline as wang_baseline
-from hybrid_pk.ik.model import IKModel as IKModel
-from hybrid_pk.ik.model import as_ik_model as as_ik_model
+from hybrid_pk.ik.forward_model import IKModel as IKModel
+from hybrid_pk.ik.forward_model import as_ik_model as as_ik_model
 from hybrid_pk.ik.result import IKResult as IKResult
 from hybrid_pk.ik.seeds import quasi_random_seeds as quasi_random_seeds
 from hybrid_pk.ik.solver import IKOptions as IKOptions
 from hybrid_pk.ik.solver import solve_ik as solve_ik
+from hybrid_pk.ik.two_stage import refine_ik as refine_ik
+from hybrid_pk.ik.two_stage import solve_ik_two_stage as solve_ik_two_stage
+from hybrid_pk.ik.two_stage import wang_baseline as wang_baseline
 
 __all__ = [
     "IKModel",

@@ -1,6 +1,6 @@
 """`solve_ik`: every distinct IK solution of a batch of targets on one model.
 
-Targets × seeds are solved as one batch by :func:`~hybrid_pk.ik.lm.levenberg_marquardt`
+Targets × seeds are solved as one batch by :func:`~hybrid_pk.ik.batched_lm.levenberg_marquardt`
 (float64, joint limits by projection, per-problem damping and early exit). Every
 candidate is then checked by a fresh forward evaluation of the model against the
 tolerances and the joint limits, and the survivors are reduced to distinct solutions
@@ -20,13 +20,13 @@ from torch import Tensor
 
 from hybrid_pk.effects import Conditions
 from hybrid_pk.errors import ShapeError
+from hybrid_pk.evaluation.metrics import pose_error, position_error_mm
 from hybrid_pk.geometry import transform
+from hybrid_pk.ik.batched_lm import LMSettings, levenberg_marquardt
 from hybrid_pk.ik.dedup import PRISMATIC_TOL, REVOLUTE_TOL, distinct_mask
-from hybrid_pk.ik.lm import LMSettings, levenberg_marquardt
-from hybrid_pk.ik.model import IKModel, as_ik_model
+from hybrid_pk.ik.forward_model import IKModel, as_ik_model
 from hybrid_pk.ik.result import IKResult
 from hybrid_pk.ik.seeds import quasi_random_seeds, seed_box
-from hybrid_pk.metrics import pose_error, position_error_mm
 
 __all__ = ["IKOptions", "solve_ik"]
 
@@ -66,7 +66,7 @@ class IKOptions:
     polish_deg: float | None = None
 
     def lm_settings(self, position_only: bool) -> LMSettings:
-        """Iteration settings of :func:`~hybrid_pk.ik.lm.levenberg_marquardt`."""
+        """Iteration settings of :func:`~hybrid_pk.ik.batched_lm.levenberg_marquardt`."""
         polish_mm = 0.1 * self.tol_mm if self.polish_mm is None else self.polish_mm
         polish_deg = 0.1 * self.tol_deg if self.polish_deg is None else self.polish_deg
         return LMSettings(
@@ -282,7 +282,7 @@ def solve_ik(
 
     Args:
         model: ``Robot``, ``ExtendedModel``, callable ``q -> T`` (with ``robot=``) or
-            :class:`~hybrid_pk.ik.model.IKModel`; see :func:`~hybrid_pk.ik.as_ik_model`.
+            :class:`~hybrid_pk.ik.forward_model.IKModel`; see :func:`~hybrid_pk.ik.as_ik_model`.
         targets: ``(*B, 4, 4)`` target poses, or ``(*B, 3)`` target points
             (position-only IK) [m], in the model's output frame.
         seeds: number of quasi-random seeds per target (0: only ``extra_seeds``), or

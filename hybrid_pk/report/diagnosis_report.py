@@ -15,8 +15,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hybrid_pk.calibration.fit import conditions_from_data, model_errors
+from hybrid_pk.calibration.fit import model_errors
 from hybrid_pk.data.measured import MeasuredData
+from hybrid_pk.effects import conditions_from_data
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.report.evidence import Evidence, cause_evidence, cause_label
 from hybrid_pk.report.markdown import fmt, image, markdown_table, stats_table, value_with_std
@@ -259,7 +260,7 @@ def write_diagnosis_report(
     """Write ``out_dir/report.md`` and its PNG plots for a diagnosis.
 
     Args:
-        diagnosis: result of :func:`hybrid_pk.calibration.diagnose.diagnose`.
+        diagnosis: result of :func:`hybrid_pk.calibration.diagnosis.search.diagnose`.
         data: the rows it was computed on (same order).
         robot: the nominal robot.
         out_dir: folder to write to (created); image links are relative to it.

@@ -42,9 +42,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from hybrid_pk.calibration.fit import conditions_from_data
 from hybrid_pk.data.measured import MeasuredData
-from hybrid_pk.effects import Conditions, ExtendedModel, make_effect
+from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data, make_effect
 from hybrid_pk.effects.geometric import REFERENCE_TEMPERATURE
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.report.plots import binned_median
@@ -198,7 +197,7 @@ def cause_evidence(
     """The evidence of one diagnosed cause (see the module doc for the computation).
 
     Args:
-        cause: a :class:`~hybrid_pk.calibration.diagnose.Cause`.
+        cause: a :class:`~hybrid_pk.calibration.diagnosis.search.Cause`.
         data: all measured rows.
         model: the fitted extended model that holds the cause's effect.
         nominal_model: URDF + frames fitted without any cause; when given,

@@ -21,7 +21,7 @@ from hybrid_pk.robot.chain import (
     local_transforms,
     product,
 )
-from hybrid_pk.robot.spec import ChainSpec, load_chain_spec
+from hybrid_pk.robot.chain_spec import ChainSpec, load_chain_spec
 
 __all__ = ["STANDARD_GRAVITY", "Robot"]
 

@@ -2,11 +2,11 @@
 
 from hybrid_pk.simulate.campaign import random_frames as random_frames
 from hybrid_pk.simulate.campaign import simulate_campaign as simulate_campaign
-from hybrid_pk.simulate.spec import effect_entry as effect_entry
-from hybrid_pk.simulate.spec import is_hidden_spec as is_hidden_spec
-from hybrid_pk.simulate.spec import paper_effects as paper_effects
-from hybrid_pk.simulate.spec import parse_effects as parse_effects
-from hybrid_pk.simulate.spec import random_effects as random_effects
+from hybrid_pk.simulate.effect_specs import effect_entry as effect_entry
+from hybrid_pk.simulate.effect_specs import is_hidden_spec as is_hidden_spec
+from hybrid_pk.simulate.effect_specs import paper_effects as paper_effects
+from hybrid_pk.simulate.effect_specs import parse_effects as parse_effects
+from hybrid_pk.simulate.effect_specs import random_effects as random_effects
 from hybrid_pk.simulate.trajectories import TRAJECTORIES as TRAJECTORIES
 from hybrid_pk.simulate.trajectories import IsoCube as IsoCube
 from hybrid_pk.simulate.trajectories import Trajectory as Trajectory

@@ -32,6 +32,7 @@ from tqdm import tqdm
 from hybrid_pk.data.table import MeasuredData
 from hybrid_pk.effects import Conditions, Effect, ExtendedModel, approach_direction
 from hybrid_pk.errors import HybridPKError
+from hybrid_pk.evaluation.metrics import error_stats, pose_error
 from hybrid_pk.geometry import (
     matrix_to_quat,
     quat_to_matrix,
@@ -39,9 +40,8 @@ from hybrid_pk.geometry import (
     transform,
     transform_inverse,
 )
-from hybrid_pk.metrics import error_stats, pose_error
 from hybrid_pk.robot import Robot
-from hybrid_pk.simulate.spec import effect_entry, is_hidden_spec, parse_effects
+from hybrid_pk.simulate.effect_specs import effect_entry, is_hidden_spec, parse_effects
 from hybrid_pk.simulate.trajectories import TRAJECTORIES, iso_cube, make_trajectory
 
 __all__ = ["SIMULATED_SOURCE", "random_frames", "simulate_campaign", "warm_up"]

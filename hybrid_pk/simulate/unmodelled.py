@@ -14,7 +14,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from hybrid_pk.effects.base import Conditions, Effect
+from hybrid_pk.effects.base import Effect
+from hybrid_pk.effects.conditions import Conditions
 from hybrid_pk.robot import Robot
 
 __all__ = ["UNMODELLED_KINDS", "HardeningCompliance", "rms_gravity_torques"]

@@ -13,12 +13,11 @@ import torch
 from torch import Tensor
 from torch.utils.data import DataLoader, Dataset
 
-from hybrid_pk.calibration.fit import conditions_from_data
 from hybrid_pk.data import MeasuredData, read_table_for
-from hybrid_pk.effects import Conditions, ExtendedModel
+from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.hybrid.losses import ResidualTargets, residual_targets
-from hybrid_pk.model_file import load_model
+from hybrid_pk.io.model_file import load_model
 
 __all__ = ["HybridDataModule", "TargetDataset"]
 

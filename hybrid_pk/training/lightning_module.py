@@ -25,15 +25,15 @@ import lightning as L
 import torch
 from torch import Tensor
 
+from hybrid_pk.evaluation.metrics import error_stats
+from hybrid_pk.hybrid.hybrid_fk import DEFAULT_FADE, HybridFK, InputBox
 from hybrid_pk.hybrid.losses import (
     LOSSES,
     orientation_errors_deg,
     position_errors_mm,
     reduce_errors,
 )
-from hybrid_pk.hybrid.model import DEFAULT_FADE, HybridFK, InputBox
 from hybrid_pk.hybrid.nets import parse_arch
-from hybrid_pk.metrics import error_stats
 from hybrid_pk.training.figures import log_error_figure
 
 __all__ = ["OPTIMIZERS", "SCHEDULERS", "HybridLitModule"]

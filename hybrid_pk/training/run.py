@@ -1,6 +1,6 @@
 """`train_hybrid`: one call from measured rows + a base model to a trained `HybridFK`.
 
-Used by ``hybrid-pk train`` and ``train/reproduce_paper.py``; LightningCLI users run
+Used by ``hybrid-pk train`` and ``experiments/reproduce_paper.py``; LightningCLI users run
 the same module and datamodule through ``train/cli.py`` and a YAML config.
 """
 
@@ -25,7 +25,7 @@ from lightning.pytorch.loggers import TensorBoardLogger
 
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
-from hybrid_pk.hybrid.model import HybridFK
+from hybrid_pk.hybrid.hybrid_fk import HybridFK
 from hybrid_pk.hybrid.nets import parse_arch
 from hybrid_pk.training.datamodule import HybridDataModule
 from hybrid_pk.training.lightning_module import HybridLitModule

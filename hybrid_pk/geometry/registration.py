@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.errors import HybridPKError
-from hybrid_pk.geometry import so3_log, transform
+from hybrid_pk.geometry.rotations import so3_log, transform
 
 __all__ = ["kabsch", "register_frames"]
 

@@ -17,8 +17,8 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.geometry import skew, transform
-from hybrid_pk.ik.soa import compose, rotate
-from hybrid_pk.robot import Robot
+from hybrid_pk.geometry.batch_last import compose, rotate
+from hybrid_pk.robot.robot import Robot
 
 __all__ = ["ChainKernel"]
 

@@ -19,7 +19,7 @@ all in one batch:
   when it stalls (too little decrease of the cost over a window, or damping
   exhausted). The batch is compacted, so finished problems cost nothing.
 
-Everything runs batch-last (``hybrid_pk.ik.soa``): ``q (dof, A)``, ``J (6, dof, A)``
+Everything runs batch-last (``hybrid_pk.geometry.batch_last``): ``q (dof, A)``, ``J (6, dof, A)``
 for the ``A`` problems still active.
 """
 
@@ -34,7 +34,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.geometry import so3_log
-from hybrid_pk.ik.soa import compose, solve_spd
+from hybrid_pk.geometry.batch_last import compose, solve_spd
 
 __all__ = ["LMOutput", "LMSettings", "levenberg_marquardt"]
 

@@ -33,14 +33,20 @@ from hybrid_pk.calibration.fit import (
     FitResult,
     Problem,
     _blocks,
-    conditions_from_data,
     fit,
     initialise_frames,
     model_errors,
 )
 from hybrid_pk.data.measured import MeasuredData
-from hybrid_pk.effects import EFFECTS, Conditions, Effect, ExtendedModel, make_effect
-from hybrid_pk.metrics import error_stats
+from hybrid_pk.effects import (
+    EFFECTS,
+    Conditions,
+    Effect,
+    ExtendedModel,
+    conditions_from_data,
+    make_effect,
+)
+from hybrid_pk.evaluation.metrics import error_stats
 from hybrid_pk.robot import Robot
 
 __all__ = ["Cause", "Diagnosis", "candidate_labels", "diagnose"]

@@ -1,5 +1,5 @@
 """The real-data walkthrough, end to end: the IPA UR10 laser-tracker campaign with a
-workspace region held out (issue 6; ``train/walkthrough_ur10.md`` explains each step).
+workspace region held out (issue 6; ``experiments/walkthrough_ur10.md`` explains each step).
 
 Every model is made by the public command line (``hybrid-pk import / diagnose /
 calibrate / train / evaluate``, called in-process through ``hybrid_pk.cli.main``; the
@@ -29,8 +29,8 @@ equivalent shell command is printed before each). Steps:
 
 Writes ``OUT/results.json`` and ``OUT/results.md``. Run from the repository root::
 
-    nice -n 10 python train/real_ur10.py --out /tmp/ur10_real            # full data
-    python train/real_ur10.py --out /tmp/ur10_thin --thin 20 --epochs 3  # a quick look
+    nice -n 10 python experiments/real_ur10.py --out /tmp/ur10_real            # full data
+    python experiments/real_ur10.py --out /tmp/ur10_thin --thin 20 --epochs 3  # a quick look
 """
 
 from __future__ import annotations
@@ -47,12 +47,12 @@ import numpy as np
 import torch
 
 from hybrid_pk import Robot
-from hybrid_pk.calibration.fit import conditions_from_data
-from hybrid_pk.calibration.splits import Split, joint_box_split, region_split
 from hybrid_pk.cli.main import main as hybrid_pk
 from hybrid_pk.data import MeasuredData, read_table_for, write_table
-from hybrid_pk.metrics import error_stats, row_errors
-from hybrid_pk.model_file import load_model, predict_poses
+from hybrid_pk.effects import conditions_from_data
+from hybrid_pk.evaluation.metrics import error_stats, row_errors
+from hybrid_pk.evaluation.splits import Split, joint_box_split, region_split
+from hybrid_pk.io.model_file import load_model, predict_poses
 
 REPO = Path(__file__).resolve().parents[1]
 SERIES = {

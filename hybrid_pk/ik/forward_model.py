@@ -14,7 +14,7 @@ target each configuration belongs to (it picks that target's operating condition
 Jacobians are geometric, ``(M, 6, dof)`` with rows ``[v; omega]``: the velocity of the
 pose's origin [m/rad] and the angular velocity [rad/rad], both in the frame the poses
 are expressed in. The solver's inner loop calls :meth:`IKModel.evaluate`, the same in
-batch-last layout (see ``hybrid_pk.ik.soa``).
+batch-last layout (see ``hybrid_pk.geometry.batch_last``).
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ from torch import Tensor
 
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.errors import HybridPKError, ShapeError
-from hybrid_pk.ik.kernel import ChainKernel
 from hybrid_pk.robot import Robot
+from hybrid_pk.robot.kernel import ChainKernel
 
 __all__ = ["IKModel", "as_ik_model", "autograd_pose_jacobian"]
 

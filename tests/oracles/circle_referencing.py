@@ -24,7 +24,7 @@ such sweeps out of a table.
 **Closed-form registration** (:func:`registration_guess`): from any table with
 poses spread over the workspace, solve ``T_meas_i ≈ B F_i X`` in closed form (hand-eye
 rotation by Kabsch for full poses; alternating Kabsch for positions only, see
-:mod:`hybrid_pk.calibration.registration`). Use it for every table without sweeps,
+:mod:`hybrid_pk.geometry.registration`). Use it for every table without sweeps,
 per file when the tracker moved between files. Both give a start within a few mm and
 a fraction of a degree of the optimum on real data, which is all LM needs: an
 identity start, by contrast, can converge to the tool rotation flipped by 180°.
@@ -40,10 +40,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from hybrid_pk.calibration.registration import kabsch, register_frames
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.errors import DataError
 from hybrid_pk.geometry import quat_to_matrix, transform
+from hybrid_pk.geometry.registration import kabsch, register_frames
 
 __all__ = [
     "Circle",

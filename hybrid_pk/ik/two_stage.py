@@ -27,9 +27,9 @@ from torch import Tensor
 
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.errors import HybridPKError, ShapeError
+from hybrid_pk.ik.batched_lm import levenberg_marquardt
 from hybrid_pk.ik.dedup import distinct_mask
-from hybrid_pk.ik.lm import levenberg_marquardt
-from hybrid_pk.ik.model import IKModel, as_ik_model
+from hybrid_pk.ik.forward_model import IKModel, as_ik_model
 from hybrid_pk.ik.result import IKResult
 from hybrid_pk.ik.solver import (
     IKOptions,

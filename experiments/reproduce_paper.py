@@ -1,17 +1,17 @@
 """Reproduce the paper's virtual experiment (Ojer et al. 2024, 4.1: Table I, Fig. 5)
 and run the acceptance experiment of the hybrid model, sized for 2 CPU cores.
 
-    nice -n 10 python train/reproduce_paper.py --out reproduce --nominal-mlp   # full run
-    python train/reproduce_paper.py --quick --out /tmp/reproduce    # smoke test, minutes
-    python train/reproduce_paper.py --estimate                      # time of the full run
+    nice -n 10 python experiments/reproduce_paper.py --out reproduce --nominal-mlp   # full run
+    python experiments/reproduce_paper.py --quick --out /tmp/reproduce    # smoke test, minutes
+    python experiments/reproduce_paper.py --estimate                      # time of the full run
 
 The parts can run as parallel processes and be joined (same seed):
 
-    python train/reproduce_paper.py --out a --skip table fig5
-    python train/reproduce_paper.py --out a2 --skip acceptance table fig5 --nominal-mlp \
+    python experiments/reproduce_paper.py --out a --skip table fig5
+    python experiments/reproduce_paper.py --out a2 --skip acceptance table fig5 --nominal-mlp \
         --effects LIST
-    python train/reproduce_paper.py --out bc --skip acceptance --effects LIST
-    python train/reproduce_paper.py --merge a a2 bc --out reproduce
+    python experiments/reproduce_paper.py --out bc --skip acceptance --effects LIST
+    python experiments/reproduce_paper.py --merge a a2 bc --out reproduce
 
 Ground truth: a noise-free virtual RX160 with a 20 kg payload whose joint stiffness is
 *partly nonlinear*: the paper's linear torsional springs (``joint_compliance`` on
@@ -51,15 +51,15 @@ import torch
 from torch import Tensor
 
 from hybrid_pk import Robot
-from hybrid_pk.calibration.diagnose import diagnose
-from hybrid_pk.calibration.fit import conditions_from_data, fit, initialise_frames
+from hybrid_pk.calibration.diagnosis.search import diagnose
+from hybrid_pk.calibration.fit import fit, initialise_frames
 from hybrid_pk.cli.common import fit_frames
 from hybrid_pk.data import MeasuredData
-from hybrid_pk.effects import Effect, ExtendedModel, make_effect
+from hybrid_pk.effects import Effect, ExtendedModel, conditions_from_data, make_effect
+from hybrid_pk.evaluation.metrics import error_stats, pose_error
 from hybrid_pk.hybrid import build_net, count_parameters
-from hybrid_pk.metrics import error_stats, pose_error
 from hybrid_pk.simulate import simulate_campaign
-from hybrid_pk.simulate.spec import paper_effects
+from hybrid_pk.simulate.effect_specs import paper_effects
 from hybrid_pk.simulate.unmodelled import HardeningCompliance, rms_gravity_torques
 from hybrid_pk.training import train_hybrid
 from hybrid_pk.training.run import auto_threads

@@ -16,7 +16,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from hybrid_pk.effects.base import Conditions, Effect
+from hybrid_pk.effects.base import Effect
+from hybrid_pk.effects.conditions import Conditions
 from hybrid_pk.geometry import so3_exp, transform
 from hybrid_pk.robot import Robot
 

@@ -1,0 +1,28 @@
+"""Geometry on plain tensors: SO(3)/SE(3) maps, frame registration, batch-last algebra.
+
+The lowest layer of the package: it imports nothing else of hybrid_pk but errors.
+"""
+
+from hybrid_pk.geometry.rotations import matrix_to_quat as matrix_to_quat
+from hybrid_pk.geometry.rotations import matrix_to_rpy as matrix_to_rpy
+from hybrid_pk.geometry.rotations import quat_to_matrix as quat_to_matrix
+from hybrid_pk.geometry.rotations import rotation_angle as rotation_angle
+from hybrid_pk.geometry.rotations import rpy_to_matrix as rpy_to_matrix
+from hybrid_pk.geometry.rotations import skew as skew
+from hybrid_pk.geometry.rotations import so3_exp as so3_exp
+from hybrid_pk.geometry.rotations import so3_log as so3_log
+from hybrid_pk.geometry.rotations import transform as transform
+from hybrid_pk.geometry.rotations import transform_inverse as transform_inverse
+
+__all__ = [
+    "matrix_to_quat",
+    "matrix_to_rpy",
+    "quat_to_matrix",
+    "rotation_angle",
+    "rpy_to_matrix",
+    "skew",
+    "so3_exp",
+    "so3_log",
+    "transform",
+    "transform_inverse",
+]
