@@ -52,7 +52,8 @@ from hybrid_pk.data import MeasuredData, read_table_for, write_table
 from hybrid_pk.effects import conditions_from_data
 from hybrid_pk.evaluation.metrics import error_stats, row_errors
 from hybrid_pk.evaluation.splits import Split, joint_box_split, region_split
-from hybrid_pk.io.model_file import load_model, predict_poses
+from hybrid_pk.io.hybrid_file import predict_poses
+from hybrid_pk.io.model_file import load_model
 
 REPO = Path(__file__).resolve().parents[1]
 SERIES = {

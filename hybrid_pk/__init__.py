@@ -24,13 +24,13 @@ from hybrid_pk.errors import ShapeError as ShapeError
 from hybrid_pk.evaluation.metrics import error_stats as error_stats
 from hybrid_pk.evaluation.metrics import pose_error as pose_error
 from hybrid_pk.hybrid import HybridFK as HybridFK
-from hybrid_pk.hybrid import load_hybrid as load_hybrid
-from hybrid_pk.hybrid import save_hybrid as save_hybrid
 from hybrid_pk.ik import IKOptions as IKOptions
 from hybrid_pk.ik import IKResult as IKResult
 from hybrid_pk.ik import solve_ik as solve_ik
 from hybrid_pk.ik import solve_ik_two_stage as solve_ik_two_stage
 from hybrid_pk.ik import wang_baseline as wang_baseline
+from hybrid_pk.io.hybrid_file import load_hybrid as load_hybrid
+from hybrid_pk.io.hybrid_file import save_hybrid as save_hybrid
 from hybrid_pk.io.model_file import load_model as load_model
 from hybrid_pk.io.model_file import save_model as save_model
 from hybrid_pk.io.urdf_export import export_urdf as export_urdf

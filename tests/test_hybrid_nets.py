@@ -16,13 +16,12 @@ from hybrid_pk.hybrid import (
     InputBox,
     build_net,
     count_parameters,
-    load_hybrid,
     residual_targets,
-    save_hybrid,
 )
 from hybrid_pk.hybrid.losses import orientation_errors_deg, position_errors_mm
 from hybrid_pk.hybrid.nets import parse_arch
-from hybrid_pk.io.model_file import load_model, predict_poses
+from hybrid_pk.io.hybrid_file import load_hybrid, predict_poses, save_hybrid
+from hybrid_pk.io.model_file import load_model
 from hybrid_pk.simulate import simulate_campaign
 from tests.helpers import BATCH_SHAPES, assert_transforms_close, check_gradients
 

@@ -14,6 +14,8 @@ from hybrid_pk.cli.main import main
 from hybrid_pk.effects import Conditions, ExtendedModel, make_effect
 from hybrid_pk.evaluation.metrics import pose_error
 from hybrid_pk.geometry import matrix_to_quat, so3_exp, transform
+from hybrid_pk.hybrid import HybridFK, InputBox
+from hybrid_pk.io.hybrid_file import load_hybrid, save_hybrid
 from hybrid_pk.io.model_file import save_model
 
 F64 = torch.float64
@@ -154,17 +156,14 @@ def test_ik_on_a_calibrated_model_refines_on_its_effects(tmp_path, capsys):
 
 
 def test_ik_on_a_model_with_residual_networks(tmp_path, capsys):
-    hybrid = pytest.importorskip("hybrid_pk.hybrid")
-    from hybrid_pk.io.model_file import load_model
-
     robot = Robot.from_urdf("ur10")
     torch.manual_seed(0)  # random (not zero) initial weights: a ~0.3 mm residual
-    net = hybrid.HybridFK.build(
-        ExtendedModel(robot), hybrid.InputBox(*robot.joint_limits), "mlp:16x2", "mlp:16x2"
+    net = HybridFK.build(
+        ExtendedModel(robot), InputBox(*robot.joint_limits), "mlp:16x2", "mlp:16x2"
     )
     path = tmp_path / "hybrid.pt"
-    hybrid.save_hybrid(path, net)
-    model = hybrid.load_hybrid(load_model(path))
+    save_hybrid(path, net)
+    model = load_hybrid(path)
     q = robot.sample_q(3, torch.Generator().manual_seed(4))
     with torch.no_grad():
         T = model(q, None)

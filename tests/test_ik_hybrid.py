@@ -19,8 +19,8 @@ from hybrid_pk import Robot
 from hybrid_pk.calibration.fit import fit, initialise_frames
 from hybrid_pk.effects import ExtendedModel, conditions_from_data
 from hybrid_pk.evaluation.metrics import pose_error
-from hybrid_pk.hybrid import load_hybrid, save_hybrid
 from hybrid_pk.ik import solve_ik, solve_ik_two_stage, wang_baseline
+from hybrid_pk.io.hybrid_file import load_hybrid, save_hybrid
 from hybrid_pk.io.model_file import load_model
 from hybrid_pk.simulate import simulate_campaign
 from hybrid_pk.training import train_hybrid

@@ -13,7 +13,7 @@ from hybrid_pk import ModelFileError, Robot
 from hybrid_pk.effects import EFFECTS, Conditions, ExtendedModel, make_effect
 from hybrid_pk.effects.geometric import REFERENCE_TEMPERATURE
 from hybrid_pk.geometry import so3_exp, transform
-from hybrid_pk.io.model_file import load_model, model_robot, predict_poses, save_model
+from hybrid_pk.io.model_file import load_model, model_robot, save_model
 from hybrid_pk.io.urdf_export import corrected_urdf, export_urdf
 from tests.helpers import assert_transforms_close
 
@@ -196,32 +196,6 @@ def test_save_refuses_what_cannot_be_loaded_safely(rx160, tmp_path):
     with pytest.raises(ModelFileError, match=r"networks\['net'\]: cannot store a object"):
         save_model(tmp_path / "m.pt", ExtendedModel(rx160), networks={"net": object()})
     assert not (tmp_path / "m.pt").exists()
-
-
-# ----------------------------------------------------------------------------- prediction hook
-
-
-def test_predict_poses_with_networks_goes_through_the_hybrid_hook(rx160, tmp_path, monkeypatch):
-    path = save_model(tmp_path / "m.pt", ExtendedModel(rx160), networks={"w": torch.ones(1)})
-    loaded = load_model(path)
-    q = rx160.sample_q(3, torch.Generator().manual_seed(4))
-
-    class _Data:  # predict_poses reads only .q
-        pass
-
-    data = _Data()
-    data.q = q
-    monkeypatch.setattr(mf, "_hybrid_loader", lambda: None)
-    with pytest.raises(ModelFileError, match="carries residual networks"):
-        predict_poses(loaded, data, Conditions())
-
-    def load_hybrid(arg):
-        assert arg is loaded
-        return lambda q, cond: loaded.model(q, cond) + 1.0
-
-    monkeypatch.setattr(mf, "_hybrid_loader", lambda: load_hybrid)
-    with torch.no_grad():
-        assert torch.equal(predict_poses(loaded, data, Conditions()), loaded.model(q) + 1.0)
 
 
 # ----------------------------------------------------------------------------- URDF export

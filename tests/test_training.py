@@ -19,8 +19,8 @@ from hybrid_pk.cli.main import main
 from hybrid_pk.data import write_table
 from hybrid_pk.effects import ExtendedModel, conditions_from_data
 from hybrid_pk.evaluation.metrics import pose_error
-from hybrid_pk.hybrid import load_hybrid
-from hybrid_pk.io.model_file import load_model, predict_poses, save_model
+from hybrid_pk.io.hybrid_file import load_hybrid, predict_poses
+from hybrid_pk.io.model_file import load_model, save_model
 from hybrid_pk.simulate import simulate_campaign
 from hybrid_pk.training import PRESETS, train_hybrid
 from hybrid_pk.training.figures import FIGURE_TAG

@@ -33,7 +33,8 @@ from hybrid_pk.effects import Conditions, Effect, ExtendedModel, conditions_from
 from hybrid_pk.errors import HybridPKError, ModelFileError
 from hybrid_pk.evaluation.metrics import error_stats, row_errors
 from hybrid_pk.geometry import matrix_to_rpy
-from hybrid_pk.io.model_file import LoadedModel, load_model, model_robot, predict_poses, save_model
+from hybrid_pk.io.hybrid_file import predict_poses
+from hybrid_pk.io.model_file import LoadedModel, load_model, model_robot, save_model
 from hybrid_pk.io.urdf_export import export_urdf
 
 # Above this condition number of the scaled identification Jacobian a fit is not

@@ -27,8 +27,8 @@ from hybrid_pk.cli.common import progress
 from hybrid_pk.data import MeasuredData, write_table
 from hybrid_pk.data.table import write_frame
 from hybrid_pk.effects import Conditions, Effect, ExtendedModel, conditions_from_data, make_effect
-from hybrid_pk.hybrid import save_hybrid
 from hybrid_pk.ik import solve_ik_two_stage
+from hybrid_pk.io.hybrid_file import save_hybrid
 from hybrid_pk.io.model_file import save_model
 from hybrid_pk.report.diagnosis_report import write_diagnosis_report
 from hybrid_pk.report.evaluation_report import write_evaluation_report

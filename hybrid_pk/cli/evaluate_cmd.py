@@ -21,7 +21,8 @@ from hybrid_pk.cli.common import (
 from hybrid_pk.effects import ExtendedModel, conditions_from_data
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import evaluate_json, row_errors
-from hybrid_pk.io.model_file import NOMINAL_PREFIX, load_model, model_robot, predict_poses
+from hybrid_pk.io.hybrid_file import predict_poses
+from hybrid_pk.io.model_file import NOMINAL_PREFIX, load_model, model_robot
 from hybrid_pk.report.evaluation_report import write_evaluation_report
 
 _DESCRIPTION = """\

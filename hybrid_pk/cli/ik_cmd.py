@@ -12,10 +12,11 @@ from hybrid_pk.cli.common import data_notes
 from hybrid_pk.data import read_table_for
 from hybrid_pk.data.table import write_frame
 from hybrid_pk.effects import Conditions, ExtendedModel
-from hybrid_pk.errors import HybridPKError, ModelFileError
+from hybrid_pk.errors import HybridPKError
 from hybrid_pk.ik import IKOptions, solve_ik, solve_ik_two_stage
 from hybrid_pk.ik.two_stage import DEFAULT_BOX
-from hybrid_pk.io.model_file import _hybrid_loader, load_model, model_robot
+from hybrid_pk.io.hybrid_file import load_hybrid
+from hybrid_pk.io.model_file import load_model, model_robot
 
 _DESCRIPTION = """\
 All distinct joint solutions of each target pose, within the URDF joint limits.
@@ -133,12 +134,6 @@ def _read_targets(path: str, robot):
 def _expensive(loaded, model: ExtendedModel):
     """The accurate model when it is more than the kinematics plus frames, else None."""
     if loaded.has_networks:
-        load_hybrid = _hybrid_loader()
-        if load_hybrid is None:
-            raise ModelFileError(
-                f"{loaded.source} carries residual networks but this installation has no "
-                "hybrid_pk.hybrid.load_hybrid to evaluate them"
-            )
         return load_hybrid(loaded)
     return model if len(model.effects) else None
 

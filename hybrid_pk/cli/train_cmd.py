@@ -151,7 +151,7 @@ def _quiet_lightning() -> None:
 
 def _run(args: argparse.Namespace) -> int:
     try:
-        from hybrid_pk.hybrid import save_hybrid
+        from hybrid_pk.io.hybrid_file import save_hybrid
         from hybrid_pk.training import train_hybrid
     except ImportError as exc:
         raise HybridPKError(

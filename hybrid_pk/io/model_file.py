@@ -25,11 +25,10 @@ from __future__ import annotations
 
 import datetime as _dt
 import hashlib
-import importlib
 import os
 import tempfile
 from collections import OrderedDict
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,8 +36,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from hybrid_pk.data.measured import MeasuredData
-from hybrid_pk.effects import Conditions, ExtendedModel, make_effect
+from hybrid_pk.effects import ExtendedModel, make_effect
 from hybrid_pk.errors import ModelFileError, RobotModelError
 from hybrid_pk.robot import Robot, load_chain_spec, resolve_urdf
 
@@ -49,7 +47,6 @@ __all__ = [
     "LoadedModel",
     "load_model",
     "model_robot",
-    "predict_poses",
     "save_model",
 ]
 
@@ -416,47 +413,3 @@ def load_model(
         raise ModelFileError(
             f"{path}: corrupt hybrid_pk model file ({type(exc).__name__}: {exc})"
         ) from exc
-
-
-# ----------------------------------------------------------------------------- prediction
-
-
-def _hybrid_loader() -> Callable[[LoadedModel], Callable] | None:
-    """``hybrid_pk.hybrid.load_hybrid`` if this installation has it, else None."""
-    try:
-        module = importlib.import_module("hybrid_pk.hybrid")
-    except ModuleNotFoundError as exc:
-        if exc.name in ("hybrid_pk.hybrid", "hybrid_pk"):
-            return None
-        raise
-    return getattr(module, "load_hybrid", None)
-
-
-def predict_poses(loaded: LoadedModel, data: MeasuredData, cond: Conditions) -> Tensor:
-    """``(N, 4, 4)`` predicted pose of the measured point/frame in the measurement frame.
-
-    A model without networks is its :class:`ExtendedModel`. A model with networks is
-    evaluated by ``hybrid_pk.hybrid.load_hybrid(loaded)``, which must return a callable
-    ``(q (N, dof), cond) -> (N, 4, 4)`` (the extended model plus the residual networks).
-
-    Args:
-        loaded: from :func:`load_model`.
-        data: rows to predict (``data.q`` [rad or m]).
-        cond: their operating conditions (``conditions_from_data``).
-
-    Raises:
-        ModelFileError: the model carries networks but this installation cannot run them.
-    """
-    if loaded.has_networks:
-        load_hybrid = _hybrid_loader()
-        if load_hybrid is None:
-            names = ", ".join(map(str, loaded.networks))
-            raise ModelFileError(
-                f"{loaded.source} carries residual networks ({names}) but this installation "
-                "has no hybrid_pk.hybrid.load_hybrid to evaluate them"
-            )
-        predictor = load_hybrid(loaded)
-        with torch.no_grad():
-            return predictor(data.q, cond)
-    with torch.no_grad():
-        return loaded.model(data.q, cond)

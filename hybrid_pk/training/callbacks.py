@@ -6,7 +6,7 @@ from pathlib import Path
 
 import lightning as L
 
-from hybrid_pk.hybrid import save_hybrid
+from hybrid_pk.io.hybrid_file import save_hybrid
 
 __all__ = ["WriteModelFile"]
 
