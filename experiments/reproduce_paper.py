@@ -395,7 +395,7 @@ def _figure_five_lines(results: dict) -> list[str]:
 
 def figure(results: dict, path: Path) -> None:
     try:
-        from hybrid_pk.report.plots import new_figure, save_figure
+        from hybrid_pk.evaluation.plots import new_figure, save_figure
     except Exception as exc:  # matplotlib is optional
         log(f"no figure: {exc}")
         return

@@ -19,9 +19,10 @@ from hybrid_pk.calibration.fit import model_errors
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import conditions_from_data
 from hybrid_pk.errors import HybridPKError
+from hybrid_pk.evaluation.plots import error_histograms
 from hybrid_pk.report.evidence import Evidence, cause_evidence, cause_label
 from hybrid_pk.report.markdown import fmt, image, markdown_table, stats_table, value_with_std
-from hybrid_pk.report.plots import error_histograms, evidence_plot, residual_scan
+from hybrid_pk.report.plots import evidence_plot, residual_scan
 from hybrid_pk.robot import Robot
 
 __all__ = ["LARGE_CONDITION_NUMBER", "plot_cause_evidence", "write_diagnosis_report"]

@@ -21,8 +21,8 @@ from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.errors import DataError
 from hybrid_pk.evaluation.iso9283 import iso9283
 from hybrid_pk.evaluation.metrics import evaluate_json, row_errors
+from hybrid_pk.evaluation.plots import error_histograms, new_figure, save_figure
 from hybrid_pk.report.markdown import image, markdown_table, stats_table
-from hybrid_pk.report.plots import error_histograms, new_figure, save_figure
 
 __all__ = ["write_evaluation_report"]
 

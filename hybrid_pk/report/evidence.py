@@ -46,7 +46,7 @@ from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data, make_effect
 from hybrid_pk.effects.geometric import REFERENCE_TEMPERATURE
 from hybrid_pk.errors import HybridPKError
-from hybrid_pk.report.plots import binned_median
+from hybrid_pk.evaluation.plots import binned_median
 
 __all__ = [
     "Evidence",

@@ -35,7 +35,7 @@ def log_error_figure(module, rows: ResidualTargets) -> Path | None:
     try:
         from matplotlib.image import imread
 
-        from hybrid_pk.report.plots import error_histograms
+        from hybrid_pk.evaluation.plots import error_histograms
     except Exception as exc:  # matplotlib missing: the figure is optional
         warnings.warn(f"no error-distribution figure: {exc}", stacklevel=2)
         return None
