@@ -12,7 +12,7 @@ the normal equations are well conditioned.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -26,7 +26,7 @@ from hybrid_pk.evaluation.metrics import pose_error, position_error_mm
 from hybrid_pk.geometry import quat_to_matrix
 from hybrid_pk.geometry.registration import register_frames
 
-__all__ = ["FitResult", "fit", "initialise_frames", "model_errors"]
+__all__ = ["FitResult", "fit", "initialise_frames", "model_errors", "predicted_poses"]
 
 # First-pass noise levels, replaced by the estimates of the re-weighted pass.
 DEFAULT_SIGMA_POS_MM = 0.05
@@ -46,6 +46,9 @@ class FitResult:
         sigma_pos_mm, sigma_rot_rad: per-coordinate noise estimated from residuals.
         position_mm, orientation_deg: per-sample errors after the fit.
         n_obs, n_params: residual and parameter counts.
+        iterations, converged: LM iterations over all passes; the last pass converged.
+        normal_matrix: ``(n, n)`` ``J^T J`` of the final weighted residuals in scaled
+            parameters (``x / scale``): the information of linearised updates.
     """
 
     blocks: tuple[ParamBlock, ...]
@@ -62,6 +65,7 @@ class FitResult:
     n_params: int
     iterations: int
     converged: bool
+    normal_matrix: Tensor | None = None
 
     @property
     def ssr_weighted(self) -> float:
@@ -112,7 +116,7 @@ def initialise_frames(
     Args:
         which: ``"frames"`` (both), ``"base"`` or ``"tool"``.
     """
-    T_end = model.end_pose(data.q, cond)
+    T_end = predicted_poses(model, data.q, cond, end_link=True)
     R_meas = None if data.quat is None else quat_to_matrix(data.quat)
     groups = [None] if model.base.sets == 1 or cond.group is None else range(model.base.sets)
     for g in groups:
@@ -139,6 +143,9 @@ def fit(
     max_iter: int = 50,
     initial_sigma: tuple[float, float | None] | None = None,
     covariance: bool = True,
+    row_weights: Tensor | None = None,
+    extra: Callable[[Tensor], tuple[Tensor, Tensor]] | None = None,
+    progress: Callable[[str], None] | None = None,
 ) -> FitResult:
     """Least-squares fit of the model's frames and effect values to measured data.
 
@@ -154,10 +161,28 @@ def fit(
             re-estimation from (e.g. a previous fit's), which saves passes.
         covariance: compute standard deviations, correlations and singular values
             (one more Jacobian); without it those fields are empty.
+        row_weights: ``(N,)`` weight of each row's residuals (see :class:`Problem`).
+        extra: extra residual rows (priors, constraints; see :class:`Problem`).
+        progress: called with a short text at every LM iteration, and at most every
+            few seconds while a large Jacobian is built.
     """
     cond = cond or conditions_from_data(data)
     position_only = data.quat is None
     blocks = param_blocks(model, free, position_only)
+
+    def problem_at(sig_p: float, sig_r: float) -> Problem:
+        return Problem(
+            model,
+            data,
+            cond,
+            blocks,
+            sig_p,
+            sig_r,
+            row_weights=row_weights,
+            extra=extra,
+            progress=progress,
+        )
+
     start_p, start_r = initial_sigma or (None, None)
     sigmas = (
         sigma_pos_mm or start_p or DEFAULT_SIGMA_POS_MM,
@@ -165,10 +190,10 @@ def fit(
     )
     fixed = (sigma_pos_mm, sigma_rot_rad)
     sig_p, sig_r, iterations, converged = _solve_reweighted(
-        model, data, cond, blocks, sigmas, fixed, max_iter
+        problem_at, data, sigmas, fixed, max_iter, progress
     )
     # Residuals and Jacobian at the solution with the final weights.
-    problem = Problem(model, data, cond, blocks, sig_p, sig_r)
+    problem = problem_at(sig_p, sig_r)
     pos, ori = model_errors(model, data, cond)
     common = {
         "blocks": blocks,
@@ -195,18 +220,18 @@ def fit(
 
 
 def _solve_reweighted(
-    model: ExtendedModel,
+    problem_at: Callable[[float, float], Problem],
     data: MeasuredData,
-    cond: Conditions,
-    blocks: tuple[ParamBlock, ...],
     sigmas: tuple[float, float],
     fixed: tuple[float | None, float | None],
     max_iter: int,
+    progress: Callable[[str], None] | None,
 ) -> tuple[float, float, int, bool]:
     """LM fit, noise re-estimated from the residuals and refitted (at most 3 passes).
 
-    ``sigmas`` are the starting noise levels, ``fixed`` those given by the caller (not
-    re-estimated). Returns the final noise levels, LM iterations and convergence.
+    ``problem_at(sigma_pos_mm, sigma_rot_rad)`` is the problem under those noise
+    levels; ``sigmas`` are the starting levels, ``fixed`` those given by the caller
+    (not re-estimated). Returns the final noise levels, LM iterations and convergence.
     """
     sig_p, sig_r = sigmas
     sigma_pos_mm, sigma_rot_rad = fixed
@@ -214,9 +239,13 @@ def _solve_reweighted(
     iterations, converged = 0, False
     fixed_noise = sigma_pos_mm is not None and (sigma_rot_rad is not None or position_only)
     for _ in range(3):  # fit, re-estimate the noise, refit (at most twice)
-        problem = Problem(model, data, cond, blocks, sig_p, sig_r)
+        problem = problem_at(sig_p, sig_r)
         result = levenberg_marquardt(
-            problem.residual, torch.zeros_like(problem.x0), max_iter=max_iter, jac=problem.jacobian
+            problem.residual,
+            torch.zeros_like(problem.x0),
+            max_iter=max_iter,
+            normal=problem.normal_equations,
+            progress=progress,
         )
         problem.write(result.x)
         iterations += result.iterations
@@ -230,7 +259,8 @@ def _solve_reweighted(
         )
         new_r = sig_r
         if not position_only and sigma_rot_rad is None:
-            new_r = max(sig_r * float((r[n_pos:] ** 2).mean() * dof_factor) ** 0.5, 1e-9)
+            rot = r[n_pos : 2 * n_pos]
+            new_r = max(sig_r * float((rot**2).mean() * dof_factor) ** 0.5, 1e-9)
         change = max(abs(new_p / sig_p - 1), abs(new_r / sig_r - 1))
         sig_p, sig_r = new_p, new_r
         if change < 0.05:
@@ -239,11 +269,15 @@ def _solve_reweighted(
 
 
 def _covariance(problem: Problem) -> dict:
-    """Standard deviations, correlations and singular values at the problem's point."""
-    r, J = problem.jacobian(torch.zeros_like(problem.x0))
-    n_obs, n_par = r.numel(), problem.x0.numel()
-    s2 = float(r @ r) / max(n_obs - n_par, 1)
-    cov_scaled = torch.linalg.pinv(J.T @ J) * s2
+    """Standard deviations, correlations and singular values at the problem's point,
+    and the normal matrix ``J^T J`` (scaled parameters) they come from."""
+    R = problem.r_factor(torch.zeros_like(problem.x0))
+    n_par = problem.x0.numel()
+    J, z = R[:, :n_par], R[:, n_par]
+    n_obs = problem.n_residuals
+    s2 = float(z @ z) / max(n_obs - n_par, 1)
+    normal = J.T @ J
+    cov_scaled = torch.linalg.pinv(normal) * s2
     std = cov_scaled.diagonal().clamp_min(0).sqrt() * problem.scale
     d = cov_scaled.diagonal().clamp_min(1e-300).sqrt()
     corr = cov_scaled / (d[:, None] * d[None, :])
@@ -254,6 +288,7 @@ def _covariance(problem: Problem) -> dict:
         "singular_values": sv,
         "condition": float(sv[0] / sv[-1].clamp_min(1e-300)),
         "n_obs": n_obs,
+        "normal_matrix": normal,
     }
 
 
@@ -262,7 +297,25 @@ def model_errors(
     model: ExtendedModel, data: MeasuredData, cond: Conditions | None = None
 ) -> tuple[Tensor, Tensor | None]:
     """Per-row position [mm] and orientation [deg] errors (None without orientation)."""
-    T = model(data.q, cond or conditions_from_data(data))
+    T = predicted_poses(model, data.q, cond or conditions_from_data(data))
     if data.quat is None:
         return position_error_mm(data.position, T[:, :3, 3]), None
     return pose_error(data.T_measured(), T)
+
+
+# Rows per model evaluation in predicted_poses (bounds the gravity and FK temporaries).
+POSE_CHUNK_ROWS = 32768
+
+
+@torch.no_grad()
+def predicted_poses(
+    model: ExtendedModel, q: Tensor, cond: Conditions, end_link: bool = False
+) -> Tensor:
+    """``(N, 4, 4)`` predicted measured poses (or flange poses in the robot root frame,
+    ``end_link``) of joint values ``q (N, dof)``, evaluated in chunks of rows."""
+    parts = []
+    for start in range(0, q.shape[0], POSE_CHUNK_ROWS):
+        rows = slice(start, min(start + POSE_CHUNK_ROWS, q.shape[0]))
+        sub = cond.subset(rows)
+        parts.append(model.end_pose(q[rows], sub) if end_link else model(q[rows], sub))
+    return torch.cat(parts) if parts else model(q, cond)

@@ -79,7 +79,7 @@ def diagnose(
     say("fitting base and tool frames to the nominal model")
     model = ExtendedModel(robot, frame_sets=len(data.sources) if frames_per_file else 1)
     initialise_frames(model, split.train, split.cond_fit)
-    res = fit(model, split.train, cond=split.cond_fit)
+    res = fit(model, split.train, cond=split.cond_fit, progress=_prefixed(say, "frames"))
     nominal_model = with_effects(model)
     nominal = stats_json(*model_errors(model, split.test, split.cond_hold))
 
@@ -95,7 +95,7 @@ def diagnose(
 
     say("measuring each cause's gain")
     errors = model_errors(model, split.test, split.cond_hold)
-    causes = measure_causes(model, res, split, steps, alpha, errors)
+    causes = measure_causes(model, res, split, steps, alpha, errors, progress=say)
     ambiguous += correlated_groups(res)
     return Diagnosis(
         warnings=plausibility_warnings(causes, data),
@@ -137,7 +137,9 @@ def _select(
     rejected_in_a_row = 0
     while pool and len(model.effects) < max_causes:
         say(f"scoring {len(pool)} candidate effects (step {len(steps) + 1})")
-        scores = score_candidates(model, res, pool, split, alpha, name_equivalents=first_step)
+        scores = score_candidates(
+            model, res, pool, split, alpha, name_equivalents=first_step, progress=say
+        )
         unobservable += scores.unobservable
         ambiguous += scores.equivalent
         first_step = False
@@ -158,7 +160,9 @@ def _select(
             )
             break
         say(f"testing {best.label}")
-        new, new_res, step = try_candidate(model, res, best, scores, split)
+        new, new_res, step = try_candidate(
+            model, res, best, scores, split, progress=_prefixed(say, f"testing {best.label}")
+        )
         steps.append(step)
         pool = [c for c in pool if c != best.label]
         if not step["accepted"]:
@@ -187,3 +191,8 @@ def _unexplained(model: ExtendedModel, split: Split, errors: tuple) -> dict:
         "structured": structured,
         "neighbour_correlation": nn_corr,
     }
+
+
+def _prefixed(say: Callable[[str], None], prefix: str) -> Callable[[str], None]:
+    """``say`` with ``prefix: `` in front of every message."""
+    return lambda text: say(f"{prefix}: {text}")
