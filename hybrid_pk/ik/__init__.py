@@ -4,9 +4,15 @@
   seeds, verified and deduplicated (contract section 6) into an :class:`IKResult`.
 - :func:`solve_ik_two_stage` / :func:`refine_ik`: the paper's IK for expensive
   (hybrid) models: branches on the cheap model, refinement in a box on the accurate one.
+- :func:`batched_levenberg_marquardt`: the solver core, many tiny box-constrained pose
+  problems in one batch-last batch (the calibration's ``levenberg_marquardt`` solves one
+  dense problem instead).
 - :func:`wang_baseline`: the comparison method of the paper's Tables IV and V.
 """
 
+from hybrid_pk.ik.batched_lm import LMOutput as LMOutput
+from hybrid_pk.ik.batched_lm import LMSettings as LMSettings
+from hybrid_pk.ik.batched_lm import batched_levenberg_marquardt as batched_levenberg_marquardt
 from hybrid_pk.ik.dedup import distinct_mask as distinct_mask
 from hybrid_pk.ik.dedup import same_solution as same_solution
 from hybrid_pk.ik.forward_model import IKModel as IKModel
@@ -23,7 +29,10 @@ __all__ = [
     "IKModel",
     "IKOptions",
     "IKResult",
+    "LMOutput",
+    "LMSettings",
     "as_ik_model",
+    "batched_levenberg_marquardt",
     "distinct_mask",
     "quasi_random_seeds",
     "refine_ik",
