@@ -4,11 +4,17 @@
   seeds, verified and deduplicated (contract section 6) into an :class:`IKResult`.
 - :func:`solve_ik_two_stage` / :func:`refine_ik`: the paper's IK for expensive
   (hybrid) models: branches on the cheap model, refinement in a box on the accurate one.
+- :func:`batched_levenberg_marquardt`: the solver core, many tiny box-constrained pose
+  problems in one batch-last batch (the calibration's ``levenberg_marquardt`` solves one
+  dense problem instead).
 - :func:`wang_baseline`: the comparison method of the paper's Tables IV and V.
 - :func:`resolve_conditions`: the backlash approach direction (and temperature,
   payload) an IK target is solved under, stated when not given.
 """
 
+from hybrid_pk.ik.batched_lm import LMOutput as LMOutput
+from hybrid_pk.ik.batched_lm import LMSettings as LMSettings
+from hybrid_pk.ik.batched_lm import batched_levenberg_marquardt as batched_levenberg_marquardt
 from hybrid_pk.ik.conditions import IKAssumption as IKAssumption
 from hybrid_pk.ik.conditions import parse_approach as parse_approach
 from hybrid_pk.ik.conditions import resolve_conditions as resolve_conditions
@@ -29,7 +35,10 @@ __all__ = [
     "IKModel",
     "IKOptions",
     "IKResult",
+    "LMOutput",
+    "LMSettings",
     "as_ik_model",
+    "batched_levenberg_marquardt",
     "distinct_mask",
     "parse_approach",
     "quasi_random_seeds",

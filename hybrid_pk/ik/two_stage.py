@@ -27,7 +27,7 @@ from torch import Tensor
 
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.errors import HybridPKError, ShapeError
-from hybrid_pk.ik.batched_lm import levenberg_marquardt
+from hybrid_pk.ik.batched_lm import batched_levenberg_marquardt
 from hybrid_pk.ik.conditions import Approach, resolve_conditions
 from hybrid_pk.ik.dedup import distinct_mask
 from hybrid_pk.ik.forward_model import IKModel, as_ik_model
@@ -42,7 +42,7 @@ from hybrid_pk.ik.solver import (
 )
 from hybrid_pk.robot import Robot
 
-__all__ = ["refine_ik", "solve_ik_two_stage", "wang_baseline"]
+__all__ = ["DEFAULT_BOX", "refine_ik", "solve_ik_two_stage", "wang_baseline"]
 
 F64 = torch.float64
 DEFAULT_BOX = 0.1  # [rad] (or m) half-width of the refinement box around a branch
@@ -128,7 +128,7 @@ def refine_ik(
     upper = torch.minimum(q0 + half, ikm.upper)
     t0 = time.perf_counter()
     with torch.no_grad():
-        out = levenberg_marquardt(
+        out = batched_levenberg_marquardt(
             ikm.evaluate,
             q0,
             rows,
@@ -329,7 +329,7 @@ def wang_baseline(
         R_fix = T_cheap[:, :3, :3] @ T_acc[:, :3, :3].transpose(-1, -2)
         T_c[:, :3, :3] = R_fix @ T_t[:, :3, :3]
     with torch.no_grad():
-        out = levenberg_marquardt(
+        out = batched_levenberg_marquardt(
             cheap_m.evaluate,
             q0,
             rows,
