@@ -40,13 +40,8 @@ from hybrid_pk.data.measured import (
 from hybrid_pk.errors import DataError
 
 __all__ = [
-    "OPTIONAL_COLUMNS",
-    "POSITION_COLUMNS",
-    "QUAT_COLUMNS",
     "DataWarning",
     "IgnoredColumnsWarning",
-    "MeasuredData",
-    "SkippedRow",
     "SkippedRowsWarning",
     "read_table",
     "read_table_for",
