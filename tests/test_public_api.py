@@ -1,6 +1,7 @@
 """Public names: every subpackage has a docstring and an ``__all__`` whose names exist
-(mink once exported names that did not exist), no package name hides a submodule, and
-the README's "How it works" tree lists every subpackage."""
+(mink once exported names that did not exist), no package name hides a submodule, the
+README's "How it works" tree lists every subpackage, and every "contract section N" a
+docstring cites is a section of docs/contract.md."""
 
 from __future__ import annotations
 
@@ -14,7 +15,9 @@ import pytest
 
 import hybrid_pk
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+REPO = Path(__file__).resolve().parents[1]
+README = REPO / "README.md"
+CONTRACT = REPO / "docs" / "contract.md"
 _WALK = list(pkgutil.walk_packages(hybrid_pk.__path__, "hybrid_pk."))
 PACKAGES = ["hybrid_pk", *sorted(m.name for m in _WALK if m.ispkg)]
 MODULES = sorted(m.name for m in _WALK)
@@ -78,3 +81,30 @@ def test_cli_lists_every_contract_command():
     sub = next(a for a in build_parser()._actions if a.dest == "command")
     for command in ("simulate", "diagnose", "calibrate", "evaluate", "import", "demo"):
         assert command in sub.choices, f"hybrid-pk {command} is missing"
+
+
+def _contract_sections() -> dict[int, str]:
+    text = CONTRACT.read_text(encoding="utf-8")
+    return {int(n): title for n, title in re.findall(r"^## (\d+)\. (.+)$", text, re.MULTILINE)}
+
+
+def test_cited_contract_sections_exist():
+    sections = _contract_sections()
+    assert sorted(sections) == list(range(1, len(sections) + 1)), "sections are numbered 1..N"
+    cite = re.compile(r"contract(?: sections?|-| )\s*(\d+)(?:\s*(?:and|,)\s*(\d+))?", re.I)
+    cited = {}
+    for path in sorted((REPO / "hybrid_pk").rglob("*.py")):
+        for m in cite.finditer(path.read_text(encoding="utf-8")):
+            for n in filter(None, m.groups()):
+                cited.setdefault(int(n), []).append(path.relative_to(REPO).as_posix())
+    assert len(cited) >= 4, f"the citation pattern finds almost nothing: {cited}"
+    missing = {n: where for n, where in cited.items() if n not in sections}
+    assert not missing, f"docstrings cite sections docs/contract.md does not have: {missing}"
+
+
+def test_contract_python_block_runs():
+    text = CONTRACT.read_text(encoding="utf-8")
+    blocks = re.findall(r"```python\n(.*?)```", text, re.DOTALL)
+    assert blocks, "docs/contract.md has no Python block"
+    for block in blocks:
+        exec(compile(block, str(CONTRACT), "exec"), {})
