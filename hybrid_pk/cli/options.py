@@ -13,6 +13,7 @@ Groups:
         :func:`add_fit_frames`
     outputs: :func:`add_out`, :func:`add_json`, :func:`add_report`
     runs: :func:`add_seed`, :func:`add_epochs`, :func:`add_noise`, :func:`add_progress`
+    solving for targets (ik, compensate): :func:`add_approach`
 """
 
 from __future__ import annotations
@@ -20,8 +21,10 @@ from __future__ import annotations
 import argparse
 
 __all__ = [
+    "APPROACH_HELP",
     "END_LINK_HELP",
     "ROBOT_HELP",
+    "add_approach",
     "add_data",
     "add_end_link",
     "add_epochs",
@@ -41,6 +44,12 @@ __all__ = [
 ROBOT_HELP = "shipped robot name (rx160, ur10) or URDF path"
 END_LINK_HELP = "end link of the chain, e.g. a tool link (default: the URDF's leaf link)"
 _ROBOT_CHECK_HELP = "refuse a MODEL made for another robot than ROBOT"
+APPROACH_HELP = (
+    "backlash: the side each joint approaches the target from, + (moving in the joint's "
+    "positive direction), - or mid, for every backlash joint or per joint as "
+    "joint_3=+,joint_4=- (default: the mid-play model, half-way between both; a note "
+    "says so)"
+)
 
 
 def fraction(text: str) -> float:
@@ -223,3 +232,12 @@ def add_noise(parser: argparse.ArgumentParser, *, mm: float, deg: float) -> None
 def add_progress(parser: argparse.ArgumentParser) -> None:
     """``--no-progress``: no progress bar on stderr (the summary is printed anyway)."""
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+
+
+# ----------------------------------------------------------------------------- targets
+
+
+def add_approach(parser: argparse.ArgumentParser) -> None:
+    """``--approach SPEC``: backlash approach direction of IK targets
+    (:func:`hybrid_pk.ik.parse_approach` reads it)."""
+    parser.add_argument("--approach", metavar="SPEC", help=APPROACH_HELP)
