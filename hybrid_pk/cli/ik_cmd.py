@@ -65,14 +65,13 @@ says so. Targets without payload / temperature columns are solved at 0 kg / 20 d
 """
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``ik`` command."""
-    p = subparsers.add_parser(
-        "ik",
-        help="all distinct joint solutions [rad] of target poses (errors in mm / deg)",
-        description=_DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+NAME = "ik"
+HELP = "all distinct joint solutions [rad] of target poses (errors in mm / deg)"
+DESCRIPTION = _DESCRIPTION
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``hybrid-pk ik``."""
     add_model(p)
     p.add_argument(
         "targets",
@@ -120,7 +119,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     add_seed(p, what="scrambling seed of the start configurations")
     add_approach(p)
-    p.set_defaults(func=_run)
 
 
 def _frame_set(args: argparse.Namespace, sets: int) -> int:
@@ -203,7 +201,7 @@ def _frame(results: IKResult | list[IKResult]):
     return pd.concat(frames, ignore_index=True)
 
 
-def _run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     if args.seeds < 1:
         raise HybridPKError(f"--seeds must be at least 1, got {args.seeds}")
     if args.tol_mm <= 0 or args.tol_deg <= 0:

@@ -6,6 +6,7 @@ its own flags. A new flag that more than one command takes belongs here; one tha
 only a single command takes stays in that command's module.
 
 Groups:
+    the command itself: :func:`command_parser`
     robot and model: :func:`add_robot`, :func:`add_end_link`, :func:`add_model`
     data: :func:`add_data` (DATA..., --frames-per-file, --skip-bad-rows)
     fits: :func:`add_fit_options` (every command that diagnoses or calibrates: the
@@ -38,6 +39,7 @@ __all__ = [
     "add_report",
     "add_robot",
     "add_seed",
+    "command_parser",
     "fraction",
 ]
 
@@ -50,6 +52,17 @@ APPROACH_HELP = (
     "joint_3=+,joint_4=- (default: the mid-play model, half-way between both; a note "
     "says so)"
 )
+
+
+def command_parser(subparsers, name: str, *, help: str, description: str):
+    """The parser of sub-command ``name``: ``help`` in the command list, ``description``
+    (units, formats) kept as written in ``NAME --help``."""
+    return subparsers.add_parser(
+        name,
+        help=help,
+        description=description,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
 
 
 def fraction(text: str) -> float:
