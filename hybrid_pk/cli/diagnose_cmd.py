@@ -178,7 +178,7 @@ def run(args: argparse.Namespace) -> int:
             progress.stage("writing the report")
             from hybrid_pk.report import write_diagnosis_report
 
-            report = write_diagnosis_report(result, data, robot, args.report)
+            report = write_diagnosis_report(result, data, robot, args.report, progress)
     finally:
         progress.close()
     seconds = progress.elapsed()

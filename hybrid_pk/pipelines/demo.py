@@ -241,8 +241,8 @@ def _diagnose(out: Path, robot: Robot, split: _Split, seed: int, say):
     """The diagnosis of the calibration rows, its JSON and its report with the plots."""
     diag = diagnose(robot, split.calib, seed=seed, progress=say)
     (out / "diagnosis.json").write_text(json.dumps(diag.to_json(), indent=2, default=str))
-    say("writing the diagnosis report (evidence plots)")
-    return diag, write_diagnosis_report(diag, split.calib, robot, out / "diagnosis")
+    say("writing the diagnosis report")
+    return diag, write_diagnosis_report(diag, split.calib, robot, out / "diagnosis", say)
 
 
 def _calibrate(out: Path, robot: Robot, diag: Diagnosis, split: _Split, say):
