@@ -53,14 +53,13 @@ Networks: D1, D4, D4w, D4W, Rw, Rd, B1-B4, mlp, mlp:WIDTHxDEPTH, or none.
 """
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``train`` command."""
-    p = subparsers.add_parser(
-        "train",
-        help="train the residual networks of a hybrid model (Lightning, TensorBoard)",
-        description=_DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+NAME = "train"
+HELP = "train the residual networks of a hybrid model (Lightning, TensorBoard)"
+DESCRIPTION = _DESCRIPTION
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``hybrid-pk train``."""
     add_data(p)
     add_model(p, flag=True, help="base model file, or nominal:ROBOT (with --fit-frames)")
     add_out(p, metavar="MODEL2", help="output model file (.pt)")
@@ -101,7 +100,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         p, help="first fit only the base and tool frames of MODEL to DATA (nominal:ROBOT)"
     )
     add_progress(p)
-    p.set_defaults(func=_run)
 
 
 def _overrides(args: argparse.Namespace) -> tuple[dict, dict, dict]:
@@ -177,7 +175,7 @@ def _metadata(args, loaded, data, result) -> dict:
     return metadata
 
 
-def _run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     try:
         from hybrid_pk.io.hybrid_file import save_hybrid
         from hybrid_pk.training import train_hybrid
