@@ -44,6 +44,7 @@ from hybrid_pk.effects import (
     Effect,
     ExtendedModel,
     conditions_from_data,
+    effect_joint_names,
     make_effect,
 )
 from hybrid_pk.evaluation.metrics import error_stats
@@ -141,7 +142,7 @@ def candidate_labels(robot: Robot, data: MeasuredData) -> list[str]:
     for kind, cls in EFFECTS.items():
         if not cls.per_joint:
             continue
-        for i, joint in enumerate(robot.joint_names):
+        for i, joint in enumerate(effect_joint_names(robot, cls)):
             if cls.stage == "geometry" and i == 0:
                 continue  # origin 0 is the base frame's business
             if kind in ("gear_ratio", "joint_eccentricity", "backlash", "joint_compliance") and (
