@@ -108,3 +108,32 @@ def test_contract_python_block_runs():
     assert blocks, "docs/contract.md has no Python block"
     for block in blocks:
         exec(compile(block, str(CONTRACT), "exec"), {})
+
+
+def _cli_flags(parser, command=()):
+    """``(command words, long option)`` of every sub-command, recursively."""
+    import argparse
+
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield (*command, name), None
+                yield from _cli_flags(sub, (*command, name))
+        for option in action.option_strings:
+            if option.startswith("--") and option != "--help":
+                yield command, option
+
+
+def test_contract_documents_every_command_and_flag():
+    """A new sub-command or flag needs its line in docs/contract.md (section 3 or 9)."""
+    from hybrid_pk.cli.main import build_parser
+
+    text = CONTRACT.read_text(encoding="utf-8")
+    missing = []
+    for command, option in _cli_flags(build_parser()):
+        if option is None:
+            if f"`{command[-1]}" not in text and f"{command[-1]} " not in text:
+                missing.append(" ".join(command))
+        elif option not in text and f"--{option[2:].split('-')[0]}-*" not in text:
+            missing.append(f"{' '.join(command)} {option}")
+    assert not missing, f"not in docs/contract.md: {missing}"
