@@ -4,10 +4,11 @@ Every sub-command module declares ``NAME``, ``HELP`` (one line for the command l
 ``DESCRIPTION`` (its ``--help`` text, units and formats, kept as written),
 ``add_arguments(parser)`` (its flags; the shared ones come from
 :mod:`hybrid_pk.cli.options`) and ``run(args) -> int``. A command with sub-commands of
-its own (``import FORMAT``) defines ``register(subparsers)`` instead. Errors of the
-``HybridPKError``
-hierarchy (and OS errors such as a missing file) become one line on stderr and exit
-code 2; a traceback is shown only with ``--debug``.
+its own (``import FORMAT``) defines ``register(subparsers)`` instead.
+
+Errors of the ``HybridPKError`` hierarchy (and OS errors such as a missing file) become
+one line on stderr and exit code 2; anything else (a bug) becomes one ``internal
+error`` line and exit code 1. A traceback is shown only with ``--debug``.
 """
 
 from __future__ import annotations
@@ -66,6 +67,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"hybrid-pk {args.command}: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # a bug, not bad input: still one line, the traceback on demand
+        if args.debug:
+            raise
+        msg = " ".join(f"{type(exc).__name__}: {exc}".split())
+        print(
+            f"hybrid-pk {args.command}: internal error: {msg} (rerun with --debug for the "
+            "traceback, and please report it)",
+            file=sys.stderr,
+        )
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover
