@@ -75,6 +75,11 @@ class FeatureSpec:
                 f"network frame {self.frame}: pick a link 1..{robot.dof - 1} of "
                 f"{robot.name!r} (the networks need at least one joint after it)"
             )
+        if robot.has_mimic:
+            raise HybridPKError(
+                f"network inputs {self.label}: {robot.name!r} has mimic joints, which the "
+                "physics inputs do not handle yet; use the joints inputs (--inputs joints)"
+            )
         if self.wrench not in WRENCHES:
             raise HybridPKError(f"wrench {self.wrench!r}: one of {', '.join(WRENCHES)}")
         return self

@@ -115,6 +115,7 @@ class HybridLitModule(L.LightningModule):
         self.save_hyperparameters()
         self.hybrid: HybridFK | None = None
         self._val: dict[str, list[Tensor]] = {}
+        self._train_sums: dict[str, float] = {}
         self._base_val: dict[str, Tensor] = {}
         self._best: dict[str, tuple[float, dict]] = {}
 
@@ -208,13 +209,22 @@ class HybridLitModule(L.LightningModule):
         errors = self._errors(batch)
         losses = {k: reduce_errors(v, self.hparams.loss) for k, v in errors.items()}
         loss = sum(losses.values())
+        # Epoch means are summed here and logged once per epoch: self.log costs more
+        # per call than a step of the small networks.
         n = batch["q"].shape[0]
-        log = {"on_step": False, "on_epoch": True, "batch_size": n, "sync_dist": True}
-        self.log("train/loss", loss, **log)
-        units = {"position": "mm", "orientation": "deg"}
+        sums = self._train_sums
+        sums["rows"] = sums.get("rows", 0) + n
+        sums["train/loss"] = sums.get("train/loss", 0.0) + float(loss) * n
         for k, v in errors.items():
-            self.log(f"train/{k}_{units[k]}", v.mean(), **log)
+            key = f"train/{_KEYS[k]}"
+            sums[key] = sums.get(key, 0.0) + float(v.sum())
         return loss
+
+    def on_train_epoch_end(self) -> None:
+        sums, self._train_sums = self._train_sums, {}
+        rows = sums.pop("rows", 0)
+        for key, total in sums.items():
+            self.log(key, total / max(rows, 1), on_step=False, on_epoch=True, sync_dist=True)
 
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
         for k, v in self._errors(batch).items():
