@@ -35,7 +35,8 @@ from pathlib import Path
 import torch
 
 import hybrid_pk as hpk
-from hybrid_pk.calibration import diagnose, fit, initialise_frames
+from hybrid_pk.calibration import diagnose
+from hybrid_pk.calibration.fit import fit, initialise_frames
 from hybrid_pk.effects import ExtendedModel, conditions_from_data, make_effect
 from hybrid_pk.simulate import simulate_campaign
 

@@ -20,7 +20,7 @@ from torch import Tensor
 
 from hybrid_pk.calibration.least_squares import levenberg_marquardt
 from hybrid_pk.calibration.problem import ParamBlock, Problem, param_blocks
-from hybrid_pk.data.table import MeasuredData
+from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data
 from hybrid_pk.evaluation.metrics import pose_error, position_error_mm
 from hybrid_pk.geometry import quat_to_matrix

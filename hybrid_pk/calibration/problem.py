@@ -25,7 +25,7 @@ from torch import Tensor
 
 from hybrid_pk.calibration.structured_jacobian import StructuredJacobian
 from hybrid_pk.calibration.twists import residual_columns
-from hybrid_pk.data.table import MeasuredData
+from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.geometry import quat_to_matrix
 
