@@ -180,17 +180,8 @@ def fit(
     blocks = param_blocks(model, free, position_only)
 
     def problem_at(sig_p: float, sig_r: float) -> Problem:
-        return Problem(
-            model,
-            data,
-            cond,
-            blocks,
-            sig_p,
-            sig_r,
-            row_weights=row_weights,
-            extra=extra,
-            progress=progress,
-        )
+        options = {"row_weights": row_weights, "extra": extra, "progress": progress}
+        return Problem(model, data, cond, blocks, sig_p, sig_r, **options)
 
     start_p, start_r = initial_sigma or (None, None)
     sigmas = (
@@ -215,17 +206,19 @@ def fit(
         "iterations": iterations,
         "converged": converged,
     }
-    if not covariance:
-        empty = torch.zeros(0, dtype=problem.x0.dtype)
-        return FitResult(
-            std=torch.full_like(problem.x0, float("nan")),
-            corr=empty,
-            singular_values=empty,
-            condition=float("nan"),
-            n_obs=3 * data.n * (1 if position_only else 2),
-            **common,
-        )
-    return FitResult(**common, **_covariance(problem))
+    return FitResult(**common, **(_covariance(problem) if covariance else _no_covariance(problem)))
+
+
+def _no_covariance(problem: Problem) -> dict:
+    """The covariance fields of a fit without covariance: empty or NaN."""
+    empty = torch.zeros(0, dtype=problem.x0.dtype)
+    return {
+        "std": torch.full_like(problem.x0, float("nan")),
+        "corr": empty,
+        "singular_values": empty,
+        "condition": float("nan"),
+        "n_obs": problem.n_residuals,
+    }
 
 
 def _solve_reweighted(

@@ -227,24 +227,35 @@ class StructuredJacobian:
         return dq
 
 
-# dg/dq kept for reuse: id(data q) -> (weakref to it, {(start, stop): (q_star, G)}).
-_GRAVITY_JACOBIANS: dict[int, tuple[weakref.ref, dict]] = {}
+# dg/dq kept for reuse: id(data q) -> (weakref to it, q_star (N, dof), G (N, dof, dof),
+# valid (N,) bool), whatever the chunking of the problem that asks.
+_GRAVITY_JACOBIANS: dict[int, tuple] = {}
 # Reuse dg/dq while the true joint values moved less than this [rad] (max over rows).
 GRAVITY_REUSE_RAD = 1e-4
 
 
 def _gravity_jacobian(robot, q_star: Tensor, payload, params, key) -> Tensor:
     """``dg/dq (n, dof, dof)`` at ``q_star``, reused from an earlier call where valid."""
-    entry = None
+    store = None
     if key is not None:
         data_q, start, stop = key
-        for k in [k for k, (ref, _) in _GRAVITY_JACOBIANS.items() if ref() is None]:
+        for k in [k for k, v in _GRAVITY_JACOBIANS.items() if v[0]() is None]:
             del _GRAVITY_JACOBIANS[k]  # data sets that no longer exist
-        ref, chunks = _GRAVITY_JACOBIANS.setdefault(id(data_q), (weakref.ref(data_q), {}))
-        entry = chunks.get((start, stop)) if ref() is data_q else None
-        if entry is not None and entry[0].shape == q_star.shape:
-            if float((entry[0] - q_star).abs().max()) <= GRAVITY_REUSE_RAD:
-                return entry[1]
+        store = _GRAVITY_JACOBIANS.get(id(data_q))
+        if store is None or store[0]() is not data_q or store[1].shape[-1] != q_star.shape[-1]:
+            n, dof = data_q.shape[0], q_star.shape[-1]
+            store = (
+                weakref.ref(data_q),
+                torch.zeros(n, dof, dtype=q_star.dtype),
+                torch.zeros(n, dof, dof, dtype=q_star.dtype),
+                torch.zeros(n, dtype=torch.bool),
+            )
+            _GRAVITY_JACOBIANS[id(data_q)] = store
+        _, q_kept, G_kept, valid = store
+        rows = slice(start, stop)
+        if bool(valid[rows].all()):
+            if float((q_kept[rows] - q_star).abs().max()) <= GRAVITY_REUSE_RAD:
+                return G_kept[rows]
 
     def grav(d: Tensor) -> Tensor:
         return robot.gravity_torques(q_star + d, payload=payload, params=params).reshape(-1)
@@ -252,6 +263,6 @@ def _gravity_jacobian(robot, q_star: Tensor, payload, params, key) -> Tensor:
     dof = q_star.shape[-1]
     _, Jg = jacobian(grav, torch.zeros(dof, dtype=q_star.dtype))
     G = Jg.reshape(-1, dof, dof)
-    if key is not None and ref() is data_q:
-        chunks[(start, stop)] = (q_star.clone(), G)
+    if store is not None:
+        q_kept[rows], G_kept[rows], valid[rows] = q_star, G, True
     return G
