@@ -107,7 +107,10 @@ class ThermalExpansion(Effect):
 
     def apply_params(self, params: KinematicParams, cond: Conditions) -> KinematicParams:
         if cond.temperature is None:
-            raise HybridPKError("thermal_expansion needs a temperature column")
+            raise HybridPKError(
+                "thermal_expansion needs the temperature of each row [°C]: a temperature "
+                "column in the data, or cond=Conditions(temperature=...)"
+            )
         dT = (cond.temperature - REFERENCE_TEMPERATURE).to(params.origin_xyz.dtype)
         factor = 1 + self.value * dT[..., None, None]  # (*B, 1, 1)
         n = params.origin_xyz.shape[-2]
