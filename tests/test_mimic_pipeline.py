@@ -5,8 +5,6 @@ robot's joints as the data's columns, and a hidden effect found on it."""
 from __future__ import annotations
 
 import json
-import os
-import time
 
 import numpy as np
 import pandas as pd
@@ -18,10 +16,11 @@ from hybrid_pk.calibration.diagnosis.search import diagnose
 from hybrid_pk.cli.main import main
 from hybrid_pk.effects import EFFECTS
 from hybrid_pk.simulate import simulate_campaign
+from tests.helpers import RUN_SEED, run_rng
 
 F64 = torch.float64
 JOINTS = ["column_prismatic_joint", *(f"dsr_joint{i}" for i in range(1, 7))]
-RUN_SEED = int(os.environ.get("HYBRID_PK_TEST_SEED", time.time_ns() % 1_000_003))
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
@@ -134,7 +133,7 @@ def _hidden(robot: hpk.Robot, rng: np.random.Generator) -> tuple[str, object]:
 
 def test_hidden_effect_on_the_mimic_robot(robot):
     """Kind, joint, sign and size drawn per run; 500 position-only rows, unknown frames."""
-    rng = np.random.default_rng([RUN_SEED, 11])
+    rng = run_rng("mimic hidden effect")
     label, unit = _hidden(robot, rng)
     scale = EFFECTS[label.split(":")[0]].scale * float(rng.uniform(0.5, 2.0))
     value = (np.asarray(unit) * scale).tolist()
