@@ -73,6 +73,7 @@ class Robot(nn.Module):
         A = torch.zeros(spec.chain_dof, spec.dof, **f)
         A[torch.arange(spec.chain_dof), self.source] = self.multiplier
         self.register_buffer("coupling_matrix", A)
+        self._has_mimic = spec.has_mimic  # read on every call: not recomputed
         self._cache: dict[tuple, ChainTerms] = {}
         self._params_memo: dict[bool, tuple] = {}
 
@@ -127,7 +128,7 @@ class Robot(nn.Module):
 
     @property
     def has_mimic(self) -> bool:
-        return self.spec.has_mimic
+        return self._has_mimic
 
     @property
     def joint_types(self) -> list[str]:
