@@ -173,16 +173,20 @@ def batch_last_terms(terms: ChainTerms, batch: tuple[int, ...] = ()) -> BatchLas
 
 
 def pose_jacobian_batch_last(
-    C: BatchLastTerms, qt: Tensor, revolute: Tensor
+    C: BatchLastTerms, qt: Tensor, revolute: Tensor, all_revolute: bool | None = None
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Pose and geometric Jacobian at chain joint values ``qt (n, M)`` [rad or m].
+
+    ``revolute (n,)`` marks the revolute joints; ``all_revolute`` is ``revolute.all()``
+    when the caller knows it (the IK loop calls this thousands of times).
 
     Returns:
         ``R (3, 3, M)``, ``p (3, M)`` [m] of the end link and ``J (6, n, M)``, rows
         ``[v; omega]``: velocity of the end-link origin and angular velocity, in the
         frame of the chain's root (or of whatever ``C``'s first origin starts from).
     """
-    all_revolute = bool(revolute.all())
+    if all_revolute is None:
+        all_revolute = bool(revolute.all())
     if all_revolute:
         f1, f2 = torch.sin(qt), 1 - torch.cos(qt)
     else:

@@ -46,6 +46,7 @@ class ChainKernel:
             C = batch_last_terms(t)
         self.dof = robot.dof
         self.revolute = robot.chain_revolute.clone()
+        self._all_revolute = bool(self.revolute.all())
         self._C = BatchLastTerms(*(x.contiguous() for x in C))
         self._mimic = None
         if robot.has_mimic:
@@ -62,9 +63,10 @@ class ChainKernel:
             ``R (3, 3, M)``, ``p (3, M)`` [m] of the pose and ``J (6, dof, M)``.
         """
         if self._mimic is None:
-            return pose_jacobian_batch_last(self._C, qt, self.revolute)
+            return pose_jacobian_batch_last(self._C, qt, self.revolute, self._all_revolute)
         src, mul, off = self._mimic
-        R, p, J = pose_jacobian_batch_last(self._C, torch.addcmul(off, qt[src], mul), self.revolute)
+        qt = torch.addcmul(off, qt[src], mul)  # (n_chain, M)
+        R, p, J = pose_jacobian_batch_last(self._C, qt, self.revolute, self._all_revolute)
         return R, p, J.new_zeros(6, self.dof, J.shape[-1]).index_add_(1, src, J * mul)
 
     def __call__(self, q: Tensor) -> tuple[Tensor, Tensor]:
