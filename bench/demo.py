@@ -110,7 +110,7 @@ def run_demo(seed: int, out: Path, extra: list[str], robot) -> dict:
         raise SystemExit(f"demo --seed {seed} failed (exit {proc.returncode}):\n{tail}")
     # Progress lines on stderr; the summary on stdout shows the user the run is done.
     progress = [(t, text) for t, text in lines if text.startswith("demo [")]
-    progress += [(t, f"(summary) {text}") for t, text in out_lines[:1]]
+    progress = sorted(progress + [(t, f"(summary) {text}") for t, text in out_lines[:1]])
     with open(out / "progress.log", "w", encoding="utf-8") as log:  # arrival time, line
         log.writelines(f"{t - start:8.2f}  {text}\n" for t, text in lines)
     stamps = [start, *(t for t, _ in progress), end]
