@@ -22,6 +22,7 @@ _COMMANDS = (
     "hybrid_pk.cli.train_cmd",
     "hybrid_pk.cli.evaluate_cmd",
     "hybrid_pk.cli.ik_cmd",
+    "hybrid_pk.cli.compensate_cmd",
     "hybrid_pk.cli.import_cmd",
     "hybrid_pk.cli.demo_cmd",
 )

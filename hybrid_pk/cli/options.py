@@ -13,6 +13,7 @@ Groups:
         :func:`add_fit_frames`
     outputs: :func:`add_out`, :func:`add_json`, :func:`add_report`
     runs: :func:`add_seed`, :func:`add_epochs`, :func:`add_noise`, :func:`add_progress`
+    solving on a model: :func:`add_approach`
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import argparse
 __all__ = [
     "END_LINK_HELP",
     "ROBOT_HELP",
+    "add_approach",
     "add_data",
     "add_end_link",
     "add_epochs",
@@ -223,3 +225,21 @@ def add_noise(parser: argparse.ArgumentParser, *, mm: float, deg: float) -> None
 def add_progress(parser: argparse.ArgumentParser) -> None:
     """``--no-progress``: no progress bar on stderr (the summary is printed anyway)."""
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+
+
+# ----------------------------------------------------------------------------- solving
+
+
+def add_approach(parser: argparse.ArgumentParser, *, default: str) -> None:
+    """``--approach``: how backlash joints approach each target (``ik``, ``compensate``).
+
+    Args:
+        default: what the command does without the flag.
+    """
+    parser.add_argument(
+        "--approach",
+        metavar="SIDE",
+        help="approach direction of the backlash joints of MODEL: + (positive), - "
+        "(negative), mid (mid-play), or per joint joint_3=+,joint_5=- "
+        f"(default: {default})",
+    )
