@@ -232,3 +232,27 @@ def test_cli_bad_programs_are_one_line_errors(tmp_path, capsys, rx160, content, 
     err = capsys.readouterr().err
     assert message in err
     assert err.count("\n") == 1
+
+
+def test_backlash_sides_are_those_of_the_corrected_program(rx160):
+    """The approach side of a backlash joint is the sign of the *corrected* move: rows are
+    re-solved until the sides agree; a joint that turns around by less than the play
+    cannot be compensated from the program order and is reported."""
+    real = _real(rx160)  # backlash 0.6 mrad on joint_5
+    j5 = rx160.joint_names.index("joint_5")
+    q0 = _program(rx160, 1, seed=7)[0]
+    steps = torch.zeros(5, rx160.dof, dtype=F64)
+    steps[:, 0] = 0.05  # joint 1 moves every row
+    steps[1, j5], steps[2, j5], steps[3, j5], steps[4, j5] = -0.05, 2e-5, 2e-5, -0.05
+    q_nom = q0 + steps.cumsum(0)
+    base, tool = _frames(real)
+    comp = compensate(real, rx160, base=base, tool=tool, q_nominal=q_nom, cond=_cond(q_nom))
+    # row 2 turns joint 5 around by 0.02 mrad (< play): no consistent side
+    assert comp.status[2] == "approach_conflict"
+    assert "turns around" in comp.note[2]
+    ok = comp.ok
+    side = approach_direction(torch.where(ok[:, None], comp.q, q_nom))
+    cond = Conditions(payload=torch.zeros(5, dtype=F64), direction=side)
+    with torch.no_grad():
+        err = pose_error(base @ rx160.fk(q_nom) @ tool, real(comp.q, cond)).position_mm
+    assert float(err[ok].max()) < 1e-3, err

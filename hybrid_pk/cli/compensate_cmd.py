@@ -105,6 +105,9 @@ def _read_program(path: str, robot):
     """``(q_nominal or None, targets or None, payload, temperature, kind)``."""
     if has_joint_columns(path, robot.joint_names):
         q, rest = read_joint_table(path, robot)
+        unused = [c for c in rest.columns if c not in ("payload", "temperature")]
+        if unused:
+            print(f"note: {path}: joint targets used; columns {', '.join(unused)} are not")
         extra = {
             c: torch.as_tensor(pd.to_numeric(rest[c], errors="raise").to_numpy(), dtype=F64)
             for c in ("payload", "temperature")

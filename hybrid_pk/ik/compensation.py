@@ -22,6 +22,10 @@ which keeps the solution on the nominal branch. A row is
   limit (solved again without the limits; the joint and how far are in ``note``);
 - ``unreachable``: no solution within the box (outside the real robot's workspace, or
   near a singular configuration, where a small correction needs a large joint move);
+- ``approach_conflict``: with backlash, the side a joint approaches from is that of the
+  *corrected* program's moves; the rows are solved again with those sides until they
+  agree, and a row whose corrected move keeps turning around within the play (a joint
+  that barely moves) is reported;
 - ``no_nominal_solution``: a pose row the nominal model itself cannot reach.
 
 Rows that are not ``ok`` keep their nominal joints and say why: nothing is bent into
@@ -56,7 +60,12 @@ __all__ = [
 
 F64 = torch.float64
 COMPENSATION_BOX = 0.1  # [rad] (or m) largest correction of a joint on the same branch
-STATUSES = ("ok", "joint_limit", "unreachable", "no_nominal_solution")
+STATUSES = ("ok", "joint_limit", "unreachable", "approach_conflict", "no_nominal_solution")
+_ORDER_PASSES = 4  # re-solves with the approach sides of the corrected program
+_CONFLICT = (
+    "a backlash joint's corrected move from the previous row turns around within the play; "
+    "approach the row explicitly (--approach, or an approach move in the program)"
+)
 
 
 @dataclass(frozen=True)
@@ -173,6 +182,49 @@ def _beyond_limits(ikm, q0, T, rows, box, options: IKOptions) -> tuple[Tensor, l
     return limited, notes
 
 
+class _Solver:
+    """Rows solved from their nominal joints within the box, on the model."""
+
+    def __init__(self, real, robot, T, start, has_nominal, box, options) -> None:
+        self.real, self.robot, self.T, self.start = real, robot, T, start
+        self.has_nominal, self.box, self.options = has_nominal, box, options
+
+    def __call__(self, cond: Conditions | None) -> tuple[Tensor, Tensor]:
+        """``q (N, dof)`` (the start where a row failed) and ``ok (N,)``."""
+        n = self.start.shape[0]
+        refined = refine_ik(
+            self.real, self.T, self.start[:, None, :], box=self.box, cond=cond,
+            robot=self.robot, options=self.options,
+        )  # fmt: skip
+        if refined.q.shape[1]:  # at most one solution per row: the box excludes others
+            ok, q = refined.valid[:, 0] & self.has_nominal, refined.q[:, 0].nan_to_num()
+        else:  # no row solved
+            ok, q = torch.zeros(n, dtype=torch.bool), self.start
+        return torch.where(ok[:, None], q, self.start), ok
+
+    def in_order(self, cond, joints: list[int]) -> tuple[Tensor, Tensor, Conditions, Tensor]:
+        """Solve; with approach sides from the program order (backlash ``joints``), again
+        with the sides of the corrected program until they agree. Returns ``q``, ``ok``,
+        the conditions used and the rows whose side still flips (``ok`` False there)."""
+        q, ok = self(cond)
+        conflict = torch.zeros_like(ok)
+        for _ in range(_ORDER_PASSES if joints else 0):
+            side = approach_direction(q)
+            conflict = (side[:, joints] != cond.direction[:, joints]).any(-1) & ok
+            if not bool(conflict.any()):
+                break
+            cond = replace(cond, direction=side)
+            q, ok = self(cond)
+        ok = ok & ~conflict
+        return torch.where(ok[:, None], q, self.start), ok, cond, conflict
+
+
+def _backlash_joints(real, robot: Robot) -> list[int]:
+    extended = real if isinstance(real, ExtendedModel) else getattr(real, "base", None)
+    effects = extended.effects if isinstance(extended, ExtendedModel) else ()
+    return [robot.joint_names.index(e.joint) for e in effects if e.needs == "direction"]
+
+
 def compensate(
     real,
     robot: Robot,
@@ -225,32 +277,29 @@ def compensate(
     if approach is None:
         cond, ordered = program_conditions(real, start, cond)
     cond, assumed = resolve_conditions([real], cond, n, approach)
-    assumed = ordered + list(assumed)
+    nominal_model = as_ik_model(real, cond=cond, robot=robot, n_targets=n)
+    solve = _Solver(real, robot, T, start, has_nominal, box, options)
+    q, ok, cond, conflict = solve.in_order(cond, _backlash_joints(real, robot) if ordered else [])
     ikm = as_ik_model(real, cond=cond, robot=robot, n_targets=n)
-    refined = refine_ik(
-        real, T, start[:, None, :], box=box, cond=cond, robot=robot, options=options
-    )
-    if refined.q.shape[1]:  # at most one solution per row: the box excludes others
-        ok, q_refined = refined.valid[:, 0] & has_nominal, refined.q[:, 0].nan_to_num()
-    else:  # no row solved
-        ok, q_refined = torch.zeros(n, dtype=torch.bool), start
-    q = torch.where(ok[:, None], q_refined, start)
     status = ["ok" if bool(v) else "unreachable" for v in ok]
     note = ["" if bool(v) else f"no solution within {box:g} of the nominal joints" for v in ok]
-    failed = (~ok & has_nominal).nonzero()[:, 0]
+    failed = (~ok & has_nominal & ~conflict).nonzero()[:, 0]
     if failed.numel():
         limited, why = _beyond_limits(ikm, start[failed], T[failed], failed, box, options)
         for k, i in enumerate(failed.tolist()):
             if bool(limited[k]):
                 status[i], note[i] = "joint_limit", why[k]
+    for i in conflict.nonzero()[:, 0].tolist():
+        status[i], note[i] = "approach_conflict", _CONFLICT
     for i in (~has_nominal).nonzero()[:, 0].tolist():
         status[i], note[i] = "no_nominal_solution", "the nominal model has no solution"
     res_mm, res_deg = _errors(ikm, q, T)
-    nom_mm, nom_deg = _errors(ikm, start, T)
+    nom_mm, nom_deg = _errors(nominal_model, start, T)
     nan = torch.tensor(math.nan, dtype=F64)
     q = torch.where(has_nominal[:, None], q, nan)
     res_mm, res_deg = (torch.where(has_nominal, x, nan) for x in (res_mm, res_deg))
     nom_mm, nom_deg = (torch.where(has_nominal, x, nan) for x in (nom_mm, nom_deg))
+    assumed = ordered + list(assumed)
     return Compensation(
         q, q_nom, res_mm, res_deg, nom_mm, nom_deg, tuple(status), tuple(note), tuple(assumed)
     )
