@@ -126,14 +126,9 @@ def test_kernel_follows_the_coupling(robot):
     assert J.shape == (50, 6, 7)
 
 
-def _pinocchio():
-    return pytest.importorskip("pinocchio")  # only the tests that use the oracle skip
-
-
-def test_matches_pinocchio_on_the_full_tree(robot, plain_urdf):
+def test_matches_pinocchio_on_the_full_tree(pin, robot, plain_urdf):
     """pinocchio sees every joint (cylinder included) as independent; the coupling maps
     its joint space onto ours: q_full = f(q), J = J_full A_full, tau = A_full^T g_full."""
-    pin = _pinocchio()
     model = pin.buildModelFromUrdf(str(plain_urdf))
     data = model.createData()
     fid = model.getFrameId("tool0")
@@ -166,10 +161,9 @@ def test_matches_pinocchio_on_the_full_tree(robot, plain_urdf):
     assert bool((worst <= 1e-12).all()), f"FK, Jacobian, relative gravity: {worst}"
 
 
-def test_matches_pinocchio_mimic_joints(tmp_path):
+def test_matches_pinocchio_mimic_joints(pin, tmp_path):
     """pinocchio's own mimic joints, on a variant it can load (its mimic support needs
     the leader on the chain): the top segment mimics the middle one, x1.0 + 5 mm."""
-    pin = _pinocchio()
     text = (hpk.shipped_robots()["column_arm"]).read_text(encoding="utf-8")
     text = text.replace(
         '    <mimic joint="column_prismatic_joint" multiplier="0.5" offset="0.0"/>\n', ""

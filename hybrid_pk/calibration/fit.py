@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.calibration.least_squares import jacobian, levenberg_marquardt
-from hybrid_pk.data.table import MeasuredData
+from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data
 from hybrid_pk.evaluation.metrics import pose_error, position_error_mm
 from hybrid_pk.geometry import quat_to_matrix, so3_exp, transform

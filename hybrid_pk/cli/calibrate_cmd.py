@@ -66,14 +66,13 @@ flange -> measured point. Errors are reported in mm (position) and deg (orientat
 """
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``calibrate`` command."""
-    p = subparsers.add_parser(
-        "calibrate",
-        help="fit frames + physical effects to measured poses; write a MODEL file",
-        description=_DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+NAME = "calibrate"
+HELP = "fit frames + physical effects to measured poses; write a MODEL file"
+DESCRIPTION = _DESCRIPTION
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``hybrid-pk calibrate``."""
     add_data(p)
     add_robot(
         p,
@@ -107,10 +106,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     add_urdf_options(p)
     add_seed(p, what="seed of the diagnosis hold-out split")
-    p.set_defaults(func=_run)
 
 
-def _run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     if args.model is not None or args.refit is not None:
         return run_refit(args)
     if args.robot is None:

@@ -37,9 +37,10 @@ PROGRAM (.csv or .parquet), one row per target, in program order:
   optional        payload [kg], temperature [degC] for models with such effects.
 
 Each row is solved from its nominal joints within --box of them and within the joint
-limits, so it stays on the same branch. A model with backlash takes the approach
-direction of every joint from the program order (first row: mid-play) unless
---approach states it.
+limits, so it stays on the same branch. A model with backlash takes the approach side
+of every joint from the order of the corrected program (first row: mid-play) unless
+--approach states it (then every row is solved for that side: the program must
+approach its targets so).
 
 CORRECTED has one row per PROGRAM row, in order: the joint columns, residual_mm and
 residual_deg (the model's predicted error at those joints), status, nominal_mm and
@@ -52,14 +53,13 @@ The robot base frame is the one the calibration identified (MODEL's base frame).
 """
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``compensate`` command."""
-    p = subparsers.add_parser(
-        "compensate",
-        help="correct a robot program's joint targets for the calibrated model",
-        description=_DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+NAME = "compensate"
+HELP = "correct a robot program's joint targets for the calibrated model"
+DESCRIPTION = _DESCRIPTION
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``hybrid-pk compensate``."""
     add_model(p, help="model file (calibrate or train output): the real robot")
     p.add_argument(
         "program", metavar="PROGRAM", help="joint targets or flange poses, .csv/.parquet"
@@ -84,9 +84,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--frame-set", type=int, default=None, metavar="K",
         help="base/tool frame set of a model calibrated with one set per file (0-based)",
     )  # fmt: skip
-    add_approach(p, default="the program order, first row mid-play")
+    add_approach(p)
     add_progress(p)
-    p.set_defaults(func=_run)
 
 
 def _frame_set(value: int | None, sets: int, model: str) -> int:
@@ -163,7 +162,7 @@ def _summary(comp: Compensation, args, robot, kind: str) -> list[str]:
     return lines
 
 
-def _run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     if args.box <= 0 or args.tol_mm <= 0 or args.tol_deg <= 0:
         raise HybridPKError("--box, --tol-mm and --tol-deg must be positive")
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)

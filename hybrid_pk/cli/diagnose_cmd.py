@@ -36,14 +36,13 @@ unit of its effect (rad, rad/Nm, 1, m, 1/K). --holdout is a fraction of the rows
 _LABEL_WIDTH = 26
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``diagnose`` command."""
-    p = subparsers.add_parser(
-        "diagnose",
-        help="name the physical causes of the nominal model's errors (JSON + report)",
-        description=_DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+NAME = "diagnose"
+HELP = "name the physical causes of the nominal model's errors (JSON + report)"
+DESCRIPTION = _DESCRIPTION
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``hybrid-pk diagnose``."""
     add_data(p)
     add_robot(p, required=True)
     add_end_link(p)
@@ -71,7 +70,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--max-causes", type=int, default=8, metavar="N", help="stop after N causes (default: 8)"
     )
-    p.set_defaults(func=_run)
 
 
 def _finite(obj):
@@ -144,7 +142,7 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
     return lines
 
 
-def _run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     from hybrid_pk.calibration.diagnosis.search import diagnose
     from hybrid_pk.effects import make_effect
 
@@ -180,7 +178,7 @@ def _run(args: argparse.Namespace) -> int:
             progress.stage("writing the report")
             from hybrid_pk.report import write_diagnosis_report
 
-            report = write_diagnosis_report(result, data, robot, args.report)
+            report = write_diagnosis_report(result, data, robot, args.report, progress)
     finally:
         progress.close()
     seconds = progress.elapsed()

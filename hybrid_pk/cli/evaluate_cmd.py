@@ -17,7 +17,13 @@ from hybrid_pk.cli.common import (
     with_frame_sets,
     write_json,
 )
-from hybrid_pk.cli.options import add_data, add_fit_frames, add_json, add_model, add_report
+from hybrid_pk.cli.options import (
+    add_data,
+    add_fit_frames,
+    add_json,
+    add_model,
+    add_report,
+)
 from hybrid_pk.cli.progress import progress
 from hybrid_pk.effects import ExtendedModel, conditions_from_data
 from hybrid_pk.evaluation.metrics import evaluate_json, row_errors
@@ -36,14 +42,13 @@ JSON: {"n", "position_mm": {mean, rms, p95, max}, "orientation_deg": {...} | nul
 """
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``evaluate`` command."""
-    p = subparsers.add_parser(
-        "evaluate",
-        help="position [mm] / orientation [deg] errors of a model on measured data",
-        description=_DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+NAME = "evaluate"
+HELP = "position [mm] / orientation [deg] errors of a model on measured data"
+DESCRIPTION = _DESCRIPTION
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``hybrid-pk evaluate``."""
     add_model(p)
     add_data(p)
     add_json(
@@ -61,10 +66,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         p,
         help="first fit only the base and tool frames [m, rad] to DATA (effects and networks kept)",
     )
-    p.set_defaults(func=_run)
 
 
-def _run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
     robot = model_robot(loaded)
     robot.requires_grad_(False)

@@ -6,6 +6,7 @@ its own flags. A new flag that more than one command takes belongs here; one tha
 only a single command takes stays in that command's module.
 
 Groups:
+    the command itself: :func:`command_parser`
     robot and model: :func:`add_robot`, :func:`add_end_link`, :func:`add_model`
     data: :func:`add_data` (DATA..., --frames-per-file, --skip-bad-rows)
     fits: :func:`add_fit_options` (every command that diagnoses or calibrates: the
@@ -13,7 +14,7 @@ Groups:
         :func:`add_fit_frames`
     outputs: :func:`add_out`, :func:`add_json`, :func:`add_report`
     runs: :func:`add_seed`, :func:`add_epochs`, :func:`add_noise`, :func:`add_progress`
-    solving on a model: :func:`add_approach`
+    solving for targets (ik, compensate): :func:`add_approach`
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from __future__ import annotations
 import argparse
 
 __all__ = [
+    "APPROACH_HELP",
     "END_LINK_HELP",
     "ROBOT_HELP",
     "add_approach",
@@ -37,12 +39,30 @@ __all__ = [
     "add_report",
     "add_robot",
     "add_seed",
+    "command_parser",
     "fraction",
 ]
 
 ROBOT_HELP = "shipped robot name (rx160, ur10) or URDF path"
 END_LINK_HELP = "end link of the chain, e.g. a tool link (default: the URDF's leaf link)"
 _ROBOT_CHECK_HELP = "refuse a MODEL made for another robot than ROBOT"
+APPROACH_HELP = (
+    "backlash: the side each joint approaches the target from, + (moving in the joint's "
+    "positive direction), - or mid, for every backlash joint or per joint as "
+    "joint_3=+,joint_4=- (default: the mid-play model, half-way between both; a note "
+    "says so)"
+)
+
+
+def command_parser(subparsers, name: str, *, help: str, description: str):
+    """The parser of sub-command ``name``: ``help`` in the command list, ``description``
+    (units, formats) kept as written in ``NAME --help``."""
+    return subparsers.add_parser(
+        name,
+        help=help,
+        description=description,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
 
 
 def fraction(text: str) -> float:
@@ -227,19 +247,10 @@ def add_progress(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
 
 
-# ----------------------------------------------------------------------------- solving
+# ----------------------------------------------------------------------------- targets
 
 
-def add_approach(parser: argparse.ArgumentParser, *, default: str) -> None:
-    """``--approach``: how backlash joints approach each target (``ik``, ``compensate``).
-
-    Args:
-        default: what the command does without the flag.
-    """
-    parser.add_argument(
-        "--approach",
-        metavar="SIDE",
-        help="approach direction of the backlash joints of MODEL: + (positive), - "
-        "(negative), mid (mid-play), or per joint joint_3=+,joint_5=- "
-        f"(default: {default})",
-    )
+def add_approach(parser: argparse.ArgumentParser) -> None:
+    """``--approach SPEC``: backlash approach direction of IK targets
+    (:func:`hybrid_pk.ik.parse_approach` reads it)."""
+    parser.add_argument("--approach", metavar="SPEC", help=APPROACH_HELP)

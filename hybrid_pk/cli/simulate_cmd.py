@@ -6,7 +6,13 @@ import argparse
 import json
 from pathlib import Path
 
-from hybrid_pk.cli.options import add_end_link, add_noise, add_out, add_robot, add_seed
+from hybrid_pk.cli.options import (
+    add_end_link,
+    add_noise,
+    add_out,
+    add_robot,
+    add_seed,
+)
 from hybrid_pk.data.joint_table import read_joint_table
 from hybrid_pk.data.table import write_table
 from hybrid_pk.errors import DataError, HybridPKError
@@ -39,14 +45,13 @@ nominal model with the true frames, as in the paper's Table I).
 """
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``simulate`` command."""
-    p = subparsers.add_parser(
-        "simulate",
-        help="virtual measurement campaign: pose table + truth JSON",
-        description=_DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+NAME = "simulate"
+HELP = "virtual measurement campaign: pose table + truth JSON"
+DESCRIPTION = _DESCRIPTION
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``hybrid-pk simulate``."""
     add_robot(p, positional=True)
     p.add_argument("--n", type=int, metavar="N", help="number of measurements")
     p.add_argument(
@@ -110,7 +115,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="FILE",
         help="output table (.csv, .parquet or .pq); the truth goes to FILE.truth.json",
     )
-    p.set_defaults(func=_run)
 
 
 def truth_path(out: str | Path) -> Path:
@@ -128,7 +132,7 @@ def _describe(entry: dict) -> str:
     return f"{label} = {text} {entry['unit']}"
 
 
-def _run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix.lower() not in _TABLE_SUFFIXES:
         raise DataError(

@@ -41,6 +41,14 @@ training rows the model is the base model (--fade 0, the default), or the correc
 fade out within --fade x the box size (e.g. 0.1: they may help just outside the
 data, or hurt: measure it on held-out rows outside the box).
 
+--inputs frameK[+gravity][+torque|+full] gives the networks inputs chosen by the
+physics instead: corrections in the frame of link K from the joints after K (so they
+turn with joints 1..K and need no data over their range), the gravity direction there,
+and the gravity torque (torque) or full static wrench (full) of each joint after K.
+Such networks apply where their inputs are covered by the training rows (--trust
+coverage, their default: distance to the training inputs, the base model beyond
+--coverage-ratio x the radius of the validation rows, a smooth blend between).
+
 Presets: fast (ours: 3 x 256 SiLU MLPs, Adam + one-cycle, batch 256, 150 epochs,
 MSE) and paper (D4w / Rw, Adagrad lr 0.005, batch 128, <= 300 epochs, early stopping,
 mean-distance / mean-angle losses, limits normalisation). --config reads the model /
@@ -53,14 +61,13 @@ Networks: D1, D4, D4w, D4W, Rw, Rd, B1-B4, mlp, mlp:WIDTHxDEPTH, or none.
 """
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``train`` command."""
-    p = subparsers.add_parser(
-        "train",
-        help="train the residual networks of a hybrid model (Lightning, TensorBoard)",
-        description=_DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+NAME = "train"
+HELP = "train the residual networks of a hybrid model (Lightning, TensorBoard)"
+DESCRIPTION = _DESCRIPTION
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``hybrid-pk train``."""
     add_data(p)
     add_model(p, flag=True, help="base model file, or nominal:ROBOT (with --fit-frames)")
     add_out(p, metavar="MODEL2", help="output model file (.pt)")
@@ -93,6 +100,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="fade-out width outside the training joint box, fraction of its size per "
         "joint (default 0: no correction outside the box)",
     )
+    p.add_argument(
+        "--inputs",
+        metavar="SPEC",
+        help="network inputs: joints (the paper's) or frameK[+gravity][+torque|+full] "
+        "(default: preset)",
+    )
+    p.add_argument(
+        "--trust",
+        choices=("auto", "box", "coverage", "none"),
+        help="where the networks apply: joint box, coverage of their inputs, everywhere "
+        "(default auto: box for joints, coverage for frameK inputs)",
+    )
+    p.add_argument(
+        "--coverage-ratio",
+        type=float,
+        metavar="R",
+        help="--trust coverage: networks off beyond R x the full-trust radius (default 2)",
+    )
     p.add_argument("--logdir", metavar="DIR", help="TensorBoard logs and checkpoints")
     add_seed(p, what="seed of the split, the initialisation and the shuffling")
     p.add_argument("--strategy", default="auto", help="Lightning strategy: auto or ddp")
@@ -101,7 +126,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         p, help="first fit only the base and tool frames of MODEL to DATA (nominal:ROBOT)"
     )
     add_progress(p)
-    p.set_defaults(func=_run)
 
 
 def _overrides(args: argparse.Namespace) -> tuple[dict, dict, dict]:
@@ -118,11 +142,22 @@ def _overrides(args: argparse.Namespace) -> tuple[dict, dict, dict]:
         ("lr", args.lr),
         ("input_range", args.input_range),
         ("fade", args.fade),
+        ("inputs", args.inputs),
+        ("trust", args.trust),
+        ("coverage_ratio", args.coverage_ratio),
     ):
         if value is not None:
             model[key] = value
     if args.fade is not None and not 0 <= args.fade <= 10:
         raise HybridPKError(f"--fade must be between 0 and 10, got {args.fade}")
+    if args.coverage_ratio is not None and not args.coverage_ratio > 1:
+        raise HybridPKError(f"--coverage-ratio must be > 1, got {args.coverage_ratio}")
+    if model.get("inputs", "joints") != "joints":
+        from hybrid_pk.hybrid.features import FeatureSpec
+
+        FeatureSpec.parse(model["inputs"])  # HybridPKError naming the parts
+        if model.get("trust") == "box":
+            raise HybridPKError("--trust box needs --inputs joints; use --trust coverage")
     for key in ("position_net", "orientation_net"):  # fail before any data is read
         if model.get(key, "none") != "none":
             parse_arch(model[key])
@@ -177,7 +212,7 @@ def _metadata(args, loaded, data, result) -> dict:
     return metadata
 
 
-def _run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     try:
         from hybrid_pk.io.hybrid_file import save_hybrid
         from hybrid_pk.training import train_hybrid
@@ -249,11 +284,21 @@ def _print_summary(args, robot, data, result) -> None:
     for key, label in (("position_mm", "position [mm]"), ("orientation_deg", "orientation [deg]")):
         if key in result.best:
             print(f"  {label:<30} {result.base[key]:>12.5g} -> {result.best[key]:>8.5g}")
-    lo, hi = hybrid.box.trust_lower, hybrid.box.trust_upper
-    box = ", ".join(
-        f"{n} [{a:.3f}, {b:.3f}]" for n, a, b in zip(robot.joint_names, lo, hi, strict=True)
-    )
-    print(f"networks trusted inside the training box (fading out beyond it): {box}")
+    if hybrid.coverage is not None:
+        cov = hybrid.coverage
+        print(
+            f"networks ({hybrid.input_label} inputs) trusted within distance "
+            f"{float(cov.radius_in):.3g} of the training inputs, off beyond "
+            f"{float(cov.radius_out):.3g} (the base model)"
+        )
+    elif hybrid.box is not None and bool(hybrid.box.trust_lower.isfinite().all()):
+        lo, hi = hybrid.box.trust_lower, hybrid.box.trust_upper
+        box = ", ".join(
+            f"{n} [{a:.3f}, {b:.3f}]" for n, a, b in zip(robot.joint_names, lo, hi, strict=True)
+        )
+        print(f"networks trusted inside the training box (fading out beyond it): {box}")
+    else:
+        print(f"networks ({hybrid.input_label} inputs) applied everywhere (--trust none)")
     if result.logdir:
         print(f"TensorBoard logs: tensorboard --logdir {result.logdir}")
     print(f"wrote {args.out}")

@@ -53,7 +53,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 
-from hybrid_pk.data.cells import check_header_names, to_float
+from hybrid_pk.data.cells import check_header_names, missing_columns_error, to_float
 from hybrid_pk.data.euler import (
     EULER_SEQUENCES,
     ConventionScore,
@@ -146,11 +146,7 @@ def read_ipa_csv(
     raw.columns = header
     missing = [c for c in columns if c not in header]
     if missing:
-        raise DataError(
-            f"missing column(s) {', '.join(map(repr, missing))} of the IPA UR10 format; "
-            f"found columns: {', '.join(header)}",
-            file=file,
-        )
+        raise missing_columns_error(file, missing, header, note=" of the IPA UR10 format")
     if len(raw) == 0:
         raise DataError("no data rows below the header", file=file)
     out = {}
