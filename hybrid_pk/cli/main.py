@@ -23,6 +23,7 @@ from hybrid_pk.errors import HybridPKError
 
 # Sub-command modules, in the order `--help` lists them.
 _COMMANDS = (
+    "hybrid_pk.cli.plan_cmd",
     "hybrid_pk.cli.simulate_cmd",
     "hybrid_pk.cli.diagnose_cmd",
     "hybrid_pk.cli.calibrate_cmd",
