@@ -10,8 +10,14 @@ from collections import Counter
 import pandas as pd
 import torch
 
-from hybrid_pk.cli.common import data_notes
-from hybrid_pk.cli.options import add_approach, add_model, add_out, add_progress
+from hybrid_pk.cli.common import data_notes, frame_set_index
+from hybrid_pk.cli.options import (
+    add_approach,
+    add_frame_set,
+    add_model,
+    add_out,
+    add_progress,
+)
 from hybrid_pk.cli.progress import progress
 from hybrid_pk.data import read_table_for
 from hybrid_pk.data.joint_table import has_joint_columns, read_joint_table, write_joint_table
@@ -80,24 +86,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--tol-deg", type=float, default=1e-3, metavar="DEG",
         help="largest predicted orientation error of an ok row [deg] (default 0.001)",
     )  # fmt: skip
-    p.add_argument(
-        "--frame-set", type=int, default=None, metavar="K",
-        help="base/tool frame set of a model calibrated with one set per file (0-based)",
-    )  # fmt: skip
+    add_frame_set(p)
     add_approach(p)
     add_progress(p)
-
-
-def _frame_set(value: int | None, sets: int, model: str) -> int:
-    if value is None and sets > 1:
-        raise HybridPKError(
-            f"{model} has {sets} base/tool frame sets (one per calibration file); choose "
-            f"one with --frame-set 0..{sets - 1}"
-        )
-    k = value or 0
-    if not 0 <= k < sets:
-        raise HybridPKError(f"--frame-set {k}: {model} has sets 0..{sets - 1}")
-    return k
 
 
 def _read_program(path: str, robot):
@@ -169,7 +160,7 @@ def run(args: argparse.Namespace) -> int:
     model = loaded.model
     model.requires_grad_(False)
     robot = model_robot(loaded)
-    k = _frame_set(args.frame_set, model.base.sets, args.model)
+    k = frame_set_index(args.frame_set, model.base.sets, args.model)
     q_nom, targets, payload, temperature, kind = _read_program(args.program, robot)
     n = (q_nom if q_nom is not None else targets).shape[0]
     group = torch.full((n,), k, dtype=torch.long) if model.base.sets > 1 else None
