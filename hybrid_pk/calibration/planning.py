@@ -36,11 +36,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-try:  # calibration/problem.py: the fit's problem and its parameter blocks
-    from hybrid_pk.calibration.problem import Problem, param_blocks
-except ImportError:  # until that split of calibration/fit.py is merged (then drop this)
-    from hybrid_pk.calibration.fit import Problem
-    from hybrid_pk.calibration.fit import _blocks as param_blocks
+from hybrid_pk.calibration.problem import Problem, param_blocks
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, approach_direction, make_effect
 from hybrid_pk.errors import HybridPKError
