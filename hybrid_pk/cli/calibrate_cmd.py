@@ -33,6 +33,7 @@ from hybrid_pk.cli.common import (
     read_data,
 )
 from hybrid_pk.cli.options import (
+    ROBOT_HELP,
     add_data,
     add_end_link,
     add_fit_options,
@@ -77,8 +78,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_data(p)
     add_robot(
         p,
-        help="shipped robot name (rx160, ur10) or URDF path; with --model: only "
-        "checked against the model's robot",
+        help=f"{ROBOT_HELP}; with --model: only checked against the model's robot",
     )
     add_end_link(p)
     p.add_argument(
