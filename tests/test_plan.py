@@ -195,3 +195,12 @@ def test_plan_cli_errors_are_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1
     assert "elbow" in err
+
+
+def test_plan_cli_warns_about_parameters_no_pose_separates(tmp_path, capsys):
+    argv = ["plan", "rx160", "--n", "8", "--effects", "joint_offset:joint_1", "--candidates"]
+    argv += ["40", "--seed", "0", "--out", str(tmp_path / "p.csv"), "--no-progress"]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "not identifiable" in out
+    assert "no poses separate base_frame.rotation[2], joint_offset:joint_1" in out

@@ -118,11 +118,12 @@ def read_joint_box(path: str) -> dict[str, tuple[float, float]]:
 
 def _row(name: str, unit: str, planned: float, random: float) -> str:
     shown, factor = _UNITS.get(unit, (unit, 1.0))
-    ratio = planned / random if math.isfinite(random) and random > 0 else math.nan
+    finite = math.isfinite(planned) and math.isfinite(random) and random > 0
+    ratio = f"{planned / random:.2f}" if finite else "-"
     cells = [
         f"{v * factor:.4g}" if math.isfinite(v) else "not identifiable" for v in (planned, random)
     ]
-    return f"  {name:<32} {shown:<8} {cells[0]:>16} {cells[1]:>16} {ratio:>9.2f}"
+    return f"  {name:<32} {shown:<8} {cells[0]:>16} {cells[1]:>16} {ratio:>9}"
 
 
 def _units(plan: Plan) -> list[str]:
@@ -152,6 +153,12 @@ def _summary(plan: Plan, args: argparse.Namespace, labels: list[str]) -> list[st
         lines.append(_row(name, unit, a, b))
     c1, c2 = plan.planned.condition, plan.random.condition
     lines.append(f"  {'condition number':<41} {c1:>16.4g} {c2:>16.4g} {c1 / c2:>9.2f}")
+    lost = [n for n, v in zip(plan.names, plan.planned.std.tolist(), strict=True) if math.isinf(v)]
+    if lost:
+        lines.append(
+            f"warning: no poses separate {', '.join(lost)} (they trade off exactly); plan "
+            "without the effect that duplicates a frame (diagnose lists such pairs as ambiguous)"
+        )
     return lines
 
 
