@@ -93,16 +93,24 @@ def run_demo(seed: int, out: Path, extra: list[str], robot) -> dict:
         cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, bufsize=1
     )
     lines: list[tuple[float, str]] = []
-    reader = threading.Thread(target=_read_progress, args=(proc.stderr, lines), daemon=True)
-    reader.start()
-    stdout = proc.stdout.read()
+    out_lines: list[tuple[float, str]] = []
+    readers = [
+        threading.Thread(target=_read_progress, args=(stream, into), daemon=True)
+        for stream, into in ((proc.stderr, lines), (proc.stdout, out_lines))
+    ]
+    for reader in readers:
+        reader.start()
     proc.wait()
-    reader.join()
+    for reader in readers:
+        reader.join()
     end = time.perf_counter()
+    stdout = "\n".join(text for _, text in out_lines)
     if proc.returncode != 0:
         tail = "\n".join(text for _, text in lines[-20:])
         raise SystemExit(f"demo --seed {seed} failed (exit {proc.returncode}):\n{tail}")
+    # Progress lines on stderr; the summary on stdout shows the user the run is done.
     progress = [(t, text) for t, text in lines if text.startswith("demo [")]
+    progress += [(t, f"(summary) {text}") for t, text in out_lines[:1]]
     with open(out / "progress.log", "w", encoding="utf-8") as log:  # arrival time, line
         log.writelines(f"{t - start:8.2f}  {text}\n" for t, text in lines)
     stamps = [start, *(t for t, _ in progress), end]
