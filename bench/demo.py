@@ -4,8 +4,9 @@ names its injected effects, and the longest stretch without a progress update.
     python bench/demo.py                         # seed 7, then seeds 1-10, full demos
     python bench/demo.py --seeds 1 2 3 --n 1200 --epochs 5   # a quick look
 
-Each demo runs as its own ``hybrid-pk demo`` process, one after the other (same
-machine, same load as far as the bench can make it). The progress stream (stderr, one
+Each demo runs as its own ``hybrid-pk demo`` process, one after the other; seed 7 runs
+first and again last, and the faster of the two is the reference (a load that drifts
+cannot flatter the ratios). The progress stream (stderr, one
 line per stage and inner step when not a terminal) is read as it comes: the longest
 stretch between two lines, measured by this script's clock, is the longest time the
 user saw nothing move. Acceptance (issue 18): every seed <= 3 x seed 7's time, every
@@ -110,7 +111,7 @@ def run_demo(seed: int, out: Path, extra: list[str], robot) -> dict:
         raise SystemExit(f"demo --seed {seed} failed (exit {proc.returncode}):\n{tail}")
     # Progress lines on stderr; the summary on stdout shows the user the run is done.
     progress = [(t, text) for t, text in lines if text.startswith("demo [")]
-    progress += [(t, f"(summary) {text}") for t, text in out_lines[:1]]
+    progress = sorted(progress + [(t, f"(summary) {text}") for t, text in out_lines[:1]])
     with open(out / "progress.log", "w", encoding="utf-8") as log:  # arrival time, line
         log.writelines(f"{t - start:8.2f}  {text}\n" for t, text in lines)
     stamps = [start, *(t for t, _ in progress), end]
@@ -154,6 +155,13 @@ def main(argv: list[str] | None = None) -> int:
             res = run_demo(seed, root / f"seed_{seed}", extra, robot)
             results[seed] = res
             _print_row(res, results[REFERENCE_SEED]["seconds"])
+        # Seed 7 again at the end: the machine's load drifts. The reference is the
+        # faster of its two runs, so a loaded first run cannot flatter the ratios.
+        again = run_demo(REFERENCE_SEED, root / f"seed_{REFERENCE_SEED}_again", extra, robot)
+        first = results[REFERENCE_SEED]["seconds"]
+        print(f"seed {REFERENCE_SEED} again: {again['seconds']:.1f} s (first run {first:.1f} s)")
+        if again["seconds"] < first:
+            results[REFERENCE_SEED] = again
     ok = _print_verdict(results)
     if args.json:
         Path(args.json).write_text(json.dumps(list(results.values()), indent=2))
@@ -177,6 +185,7 @@ def _print_row(res: dict, reference: float) -> None:
 
 def _print_verdict(results: dict) -> bool:
     reference = results[REFERENCE_SEED]["seconds"]
+    print(f"reference: seed {REFERENCE_SEED}, the faster of its two runs, {reference:.1f} s")
     worst_ratio = max(r["seconds"] / reference for r in results.values())
     worst_silence = max(r["silence"] for r in results.values())
     worst_startup = max(r["startup"] for r in results.values())
