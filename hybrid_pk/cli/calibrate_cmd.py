@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import argparse
 
-from hybrid_pk.calibration.diagnosis.search import diagnose
+from hybrid_pk.calibration.diagnosis import diagnose
 from hybrid_pk.calibration.fit import fit, initialise_frames
 from hybrid_pk.cli.calibrate_output import (
     add_urdf_options,
@@ -32,6 +32,7 @@ from hybrid_pk.cli.common import (
 )
 from hybrid_pk.cli.effect_lists import effect_labels
 from hybrid_pk.cli.options import (
+    ROBOT_HELP,
     add_data,
     add_end_link,
     add_fit_options,
@@ -76,8 +77,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_data(p)
     add_robot(
         p,
-        help="shipped robot name (rx160, ur10) or URDF path; with --model: only "
-        "checked against the model's robot",
+        help=f"{ROBOT_HELP}; with --model: only checked against the model's robot",
     )
     add_end_link(p)
     p.add_argument(

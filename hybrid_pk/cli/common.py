@@ -1,5 +1,5 @@
 """Helpers shared by the sub-commands: robot and data loading with clear errors, frame
-sets and (re-)fitting, Lightning's quiet start, summaries and JSON output. The shared
+sets and (re-)fitting, summaries and JSON output. The shared
 flags are in :mod:`hybrid_pk.cli.options`, the progress display in
 :mod:`hybrid_pk.cli.progress`."""
 
@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import os
 import warnings
 from collections.abc import Iterator, Sequence
@@ -31,7 +30,6 @@ __all__ = [
     "frame_set_index",
     "frame_sets_for",
     "load_robot",
-    "quiet_lightning",
     "read_data",
     "stats_line",
     "with_frame_sets",
@@ -164,18 +162,6 @@ def frame_sets_for(args: argparse.Namespace, model_sets: int) -> int:
             f"{args.model} has one base/tool frame set; --frames-per-file needs --fit-frames"
         )
     return model_sets
-
-
-def quiet_lightning() -> None:
-    """Keep Lightning's start-up chatter (accelerators found, tips, 'max_epochs reached')
-    and library deprecation notes off the terminal (imports Lightning first: it sets its
-    loggers up when imported)."""
-    import lightning.pytorch  # noqa: F401  (configures its loggers on import)
-
-    logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
-    warnings.filterwarnings("ignore", message=".*LeafSpec.*", category=DeprecationWarning)
-    warnings.filterwarnings("ignore", message=".*LeafSpec.*", category=FutureWarning)
-    warnings.filterwarnings("ignore", message=r".*distributed\.nn\.functional\.all_gather.*")
 
 
 def fit_frames(

@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import argparse
 
+from hybrid_pk.robot import shipped_robots
+
 __all__ = [
     "APPROACH_HELP",
     "END_LINK_HELP",
@@ -44,7 +46,7 @@ __all__ = [
     "fraction",
 ]
 
-ROBOT_HELP = "shipped robot name (rx160, ur10) or URDF path"
+ROBOT_HELP = f"shipped robot name ({', '.join(shipped_robots())}) or URDF path"
 END_LINK_HELP = "end link of the chain, e.g. a tool link (default: the URDF's leaf link)"
 _ROBOT_CHECK_HELP = "refuse a MODEL made for another robot than ROBOT"
 APPROACH_HELP = (

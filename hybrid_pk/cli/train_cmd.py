@@ -9,7 +9,6 @@ from hybrid_pk.cli.common import (
     fit_frames,
     frame_parameter_count,
     frame_sets_for,
-    quiet_lightning,
     read_data,
     with_frame_sets,
 )
@@ -215,7 +214,7 @@ def _metadata(args, loaded, data, result) -> dict:
 def run(args: argparse.Namespace) -> int:
     try:
         from hybrid_pk.io.hybrid_file import save_hybrid
-        from hybrid_pk.training import train_hybrid
+        from hybrid_pk.training import quiet_lightning, train_hybrid
     except ImportError as exc:
         raise HybridPKError(
             f"training needs Lightning (a dependency of hybrid_pk): pip install lightning ({exc})"

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-from hybrid_pk.calibration.diagnosis.search import Diagnosis, diagnose
+from hybrid_pk.calibration.diagnosis import Diagnosis, diagnose
 from hybrid_pk.calibration.fit import fit, initialise_frames
 from hybrid_pk.data import MeasuredData, write_table
 from hybrid_pk.data.table import write_frame
