@@ -7,7 +7,6 @@ import pandas as pd
 import pytest
 import torch
 
-import hybrid_pk as hpk
 from hybrid_pk.cli.main import main
 from hybrid_pk.data.joint_table import write_joint_table
 from hybrid_pk.effects import Conditions, ExtendedModel, approach_direction, make_effect
@@ -23,19 +22,7 @@ F64 = torch.float64
 N = 60
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-@pytest.fixture(scope="module")
-def rx160() -> hpk.Robot:
-    robot = hpk.Robot.from_urdf("rx160")
-    robot.requires_grad_(False)
-    return robot
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _real(robot, *extra: str) -> ExtendedModel:

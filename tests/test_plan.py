@@ -9,7 +9,6 @@ import math
 import pytest
 import torch
 
-import hybrid_pk as hpk
 from hybrid_pk.calibration.fit import fit, initialise_frames
 from hybrid_pk.calibration.planning import (
     design_quality,
@@ -28,19 +27,7 @@ F64 = torch.float64
 EFFECTS = ["joint_offset:joint_3", "joint_compliance:joint_2"]
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-@pytest.fixture(scope="module")
-def rx160() -> hpk.Robot:
-    robot = hpk.Robot.from_urdf("rx160")
-    robot.requires_grad_(False)
-    return robot
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
