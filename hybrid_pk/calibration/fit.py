@@ -26,7 +26,14 @@ from hybrid_pk.evaluation.metrics import pose_error, position_error_mm
 from hybrid_pk.geometry import quat_to_matrix
 from hybrid_pk.geometry.registration import register_frames
 
-__all__ = ["FitResult", "fit", "initialise_frames", "model_errors", "predicted_poses"]
+__all__ = [
+    "FitResult",
+    "fit",
+    "initialise_frames",
+    "model_errors",
+    "predicted_poses",
+    "reestimated_noise",
+]
 
 # First-pass noise levels, replaced by the estimates of the re-weighted pass.
 DEFAULT_SIGMA_POS_MM = 0.05
@@ -49,6 +56,7 @@ class FitResult:
         iterations, converged: LM iterations over all passes; the last pass converged.
         normal_matrix: ``(n, n)`` ``J^T J`` of the final weighted residuals in scaled
             parameters (``x / scale``): the information of linearised updates.
+        cost: their sum of squares at the solution (with the covariance only).
     """
 
     blocks: tuple[ParamBlock, ...]
@@ -66,6 +74,7 @@ class FitResult:
     iterations: int
     converged: bool
     normal_matrix: Tensor | None = None
+    cost: float | None = None
 
     @property
     def ssr_weighted(self) -> float:
@@ -252,20 +261,38 @@ def _solve_reweighted(
         converged = result.converged
         if fixed_noise:
             break
-        r, n_pos = result.residual, 3 * data.n
-        dof_factor = r.numel() / max(r.numel() - result.x.numel(), 1)
-        new_p = sigma_pos_mm or max(
-            sig_p * float((r[:n_pos] ** 2).mean() * dof_factor) ** 0.5, 1e-6
+        new_p, new_r = reestimated_noise(
+            result.residual, data.n, result.x.numel(), (sig_p, sig_r), fixed, position_only
         )
-        new_r = sig_r
-        if not position_only and sigma_rot_rad is None:
-            rot = r[n_pos : 2 * n_pos]
-            new_r = max(sig_r * float((rot**2).mean() * dof_factor) ** 0.5, 1e-9)
         change = max(abs(new_p / sig_p - 1), abs(new_r / sig_r - 1))
         sig_p, sig_r = new_p, new_r
         if change < 0.05:
             break
     return sig_p, sig_r, iterations, converged
+
+
+def reestimated_noise(
+    r: Tensor,
+    n_rows: int,
+    n_params: int,
+    sigmas: tuple[float, float],
+    fixed: tuple[float | None, float | None] = (None, None),
+    position_only: bool = False,
+) -> tuple[float, float]:
+    """Noise levels ``(sigma_pos_mm, sigma_rot_rad)`` that make the mean square of the
+    residuals ``r`` (computed under ``sigmas``) one per degree of freedom.
+
+    ``fixed`` levels (not None) are kept; so is the rotation level without orientation.
+    """
+    sig_p, sig_r = sigmas
+    n_pos = 3 * n_rows
+    dof_factor = r.numel() / max(r.numel() - n_params, 1)
+    new_p = fixed[0] or max(sig_p * float((r[:n_pos] ** 2).mean() * dof_factor) ** 0.5, 1e-6)
+    new_r = sig_r
+    if not position_only and fixed[1] is None:
+        rot = r[n_pos : 2 * n_pos]
+        new_r = max(sig_r * float((rot**2).mean() * dof_factor) ** 0.5, 1e-9)
+    return new_p, new_r
 
 
 def _covariance(problem: Problem) -> dict:
@@ -289,6 +316,7 @@ def _covariance(problem: Problem) -> dict:
         "condition": float(sv[0] / sv[-1].clamp_min(1e-300)),
         "n_obs": n_obs,
         "normal_matrix": normal,
+        "cost": float(z @ z),
     }
 
 

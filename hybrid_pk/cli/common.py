@@ -27,6 +27,7 @@ __all__ = [
     "data_notes",
     "fit_frames",
     "frame_parameter_count",
+    "frame_set_index",
     "frame_sets_for",
     "load_robot",
     "read_data",
@@ -91,6 +92,24 @@ def data_notes() -> Iterator[None]:
 def frame_parameter_count(sets: int, position_only: bool) -> int:
     """Number of base + tool frame parameters that a fit estimates."""
     return sets * (9 if position_only else 12)
+
+
+def frame_set_index(value: int | None, sets: int, model: str) -> int:
+    """The ``--frame-set`` of a MODEL with ``sets`` frame sets (0 for a single set).
+
+    Raises:
+        HybridPKError: several sets and none chosen, or one out of range.
+    """
+    if value is None:
+        if sets > 1:
+            raise HybridPKError(
+                f"{model} has {sets} base/tool frame sets (one per calibration file); "
+                f"choose one with --frame-set 0..{sets - 1}"
+            )
+        return 0
+    if not 0 <= value < sets:
+        raise HybridPKError(f"--frame-set {value}: {model} has sets 0..{sets - 1}")
+    return value
 
 
 def with_frame_sets(model: ExtendedModel, sets: int, keep: str | None = None) -> ExtendedModel:

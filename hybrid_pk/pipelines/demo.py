@@ -270,6 +270,7 @@ def _train(out: Path, model: ExtendedModel, split: _Split, epochs: int, seed: in
         split.calib,
         model,
         split.cond,
+        preset_name="joints",  # its random rows cover the workspace: MLPs on every joint
         max_epochs=epochs,
         seed=seed,
         datamodule={"batch_size": 128},  # more steps on a small campaign
