@@ -29,6 +29,7 @@ __all__ = [
     "frame_parameter_count",
     "frame_set_index",
     "frame_sets_for",
+    "load_frozen_model",
     "load_robot",
     "read_data",
     "stats_line",
@@ -92,6 +93,18 @@ def data_notes() -> Iterator[None]:
 def frame_parameter_count(sets: int, position_only: bool) -> int:
     """Number of base + tool frame parameters that a fit estimates."""
     return sets * (9 if position_only else 12)
+
+
+def load_frozen_model(args: argparse.Namespace):
+    """``args.model`` loaded for solving (ik, compensate): ``(loaded, model, robot, k)``
+    with parameters frozen and ``k`` the ``--frame-set`` to use (checked)."""
+    from hybrid_pk.io.model_file import load_model, model_robot
+
+    loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
+    model = loaded.model
+    model.requires_grad_(False)
+    robot = model_robot(loaded)
+    return loaded, model, robot, frame_set_index(args.frame_set, model.base.sets, args.model)
 
 
 def frame_set_index(value: int | None, sets: int, model: str) -> int:

@@ -10,7 +10,7 @@ from collections import Counter
 import pandas as pd
 import torch
 
-from hybrid_pk.cli.common import data_notes, frame_set_index
+from hybrid_pk.cli.common import data_notes, load_frozen_model
 from hybrid_pk.cli.options import (
     add_approach,
     add_frame_set,
@@ -27,7 +27,6 @@ from hybrid_pk.ik import IKOptions
 from hybrid_pk.ik.compensation import COMPENSATION_BOX, STATUSES, Compensation, compensate
 from hybrid_pk.ik.conditions import IKAssumption, parse_approach
 from hybrid_pk.io.hybrid_file import forward_model
-from hybrid_pk.io.model_file import load_model, model_robot
 
 F64 = torch.float64
 
@@ -156,11 +155,7 @@ def _summary(comp: Compensation, args, robot, kind: str) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     if args.box <= 0 or args.tol_mm <= 0 or args.tol_deg <= 0:
         raise HybridPKError("--box, --tol-mm and --tol-deg must be positive")
-    loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
-    model = loaded.model
-    model.requires_grad_(False)
-    robot = model_robot(loaded)
-    k = frame_set_index(args.frame_set, model.base.sets, args.model)
+    loaded, model, robot, k = load_frozen_model(args)
     q_nom, targets, payload, temperature, kind = _read_program(args.program, robot)
     n = (q_nom if q_nom is not None else targets).shape[0]
     group = torch.full((n,), k, dtype=torch.long) if model.base.sets > 1 else None

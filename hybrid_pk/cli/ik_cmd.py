@@ -10,7 +10,7 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
-from hybrid_pk.cli.common import data_notes, frame_set_index
+from hybrid_pk.cli.common import data_notes, load_frozen_model
 from hybrid_pk.cli.options import add_approach, add_frame_set, add_model, add_out, add_seed
 from hybrid_pk.data import read_table_for
 from hybrid_pk.data.table import write_frame
@@ -27,7 +27,6 @@ from hybrid_pk.ik import (
 )
 from hybrid_pk.ik.two_stage import DEFAULT_BOX
 from hybrid_pk.io.hybrid_file import load_hybrid
-from hybrid_pk.io.model_file import load_model, model_robot
 
 CHUNK = 128  # targets per two-stage solve (the progress bar moves after each)
 # The fixes of assumed conditions, as flags and columns.
@@ -187,11 +186,7 @@ def run(args: argparse.Namespace) -> int:
         raise HybridPKError(f"--seeds must be at least 1, got {args.seeds}")
     if args.tol_mm <= 0 or args.tol_deg <= 0:
         raise HybridPKError("--tol-mm and --tol-deg must be positive")
-    loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
-    model = loaded.model
-    model.requires_grad_(False)
-    robot = model_robot(loaded)
-    k = frame_set_index(args.frame_set, model.base.sets, args.model)
+    loaded, model, robot, k = load_frozen_model(args)
     data = _read_targets(args.targets, robot)
     targets = data.T_measured() if data.has_orientation else data.position
     extra = data.q[:, None, :] if data.q.shape[1] == robot.dof else None
