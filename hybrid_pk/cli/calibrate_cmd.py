@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-from hybrid_pk.calibration.diagnosis.search import _report_value, diagnose
+from hybrid_pk.calibration.diagnosis import diagnose, report_value
 from hybrid_pk.calibration.fit import FitResult, fit, initialise_frames
 from hybrid_pk.cli.common import (
     FRAME_LABELS,
@@ -171,7 +171,7 @@ def _effect_rows(model: ExtendedModel, res: FitResult) -> list[dict]:
     """Value, 1-sigma std and unit of every effect of a fit (reporting convention)."""
     rows = []
     for e in model.effects:
-        value, std, components = _report_value(e, res.std[res.block_slice(e.label)])
+        value, std, components = report_value(e, res.std[res.block_slice(e.label)])
         row = {"effect": e.label, "value": value, "std": std, "unit": e.unit}
         if components is not None:
             row["components"] = components
