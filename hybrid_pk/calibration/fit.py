@@ -18,19 +18,28 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from hybrid_pk.calibration.frames import (
+    FramePriors,
+    initialise_frames,
+    prior_centres,
+    prior_rows,
+)
+from hybrid_pk.calibration.identifiability import FrameReport, frame_report
 from hybrid_pk.calibration.least_squares import levenberg_marquardt
+from hybrid_pk.calibration.penalised import Penalised
 from hybrid_pk.calibration.problem import ParamBlock, Problem, param_blocks
+from hybrid_pk.calibration.robust import robust_noise, robust_weights, row_distances
 from hybrid_pk.data.table import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data
 from hybrid_pk.evaluation.metrics import pose_error, position_error_mm
-from hybrid_pk.geometry import quat_to_matrix
-from hybrid_pk.geometry.registration import register_frames
 
 __all__ = ["FitResult", "fit", "initialise_frames", "model_errors"]
 
 # First-pass noise levels, replaced by the estimates of the re-weighted pass.
 DEFAULT_SIGMA_POS_MM = 0.05
 DEFAULT_SIGMA_ROT_RAD = 1e-4
+# Most passes of a robust fit (each re-estimates the noise and re-weights the rows).
+ROBUST_PASSES = 8
 
 
 @dataclass(frozen=True)
@@ -46,6 +55,11 @@ class FitResult:
         sigma_pos_mm, sigma_rot_rad: per-coordinate noise estimated from residuals.
         position_mm, orientation_deg: per-sample errors after the fit.
         n_obs, n_params: residual and parameter counts.
+        robust: the robust loss of the fit, or None (least squares).
+        weights: ``(N,)`` robust weights of the rows (None for least squares).
+        frame_report: which frame components the data do not determine, and frame
+            plausibility warnings (only with ``covariance``).
+        priors: the known frames and frame prior the fit used.
     """
 
     blocks: tuple[ParamBlock, ...]
@@ -62,6 +76,10 @@ class FitResult:
     n_params: int
     iterations: int
     converged: bool
+    robust: str | None = None
+    weights: Tensor | None = None
+    frame_report: FrameReport | None = None
+    priors: FramePriors | None = None
 
     @property
     def ssr_weighted(self) -> float:
@@ -71,6 +89,11 @@ class FitResult:
             return float(pos)
         rot = (torch.deg2rad(self.orientation_deg) ** 2).sum() / self.sigma_rot_rad**2
         return float(pos + rot)
+
+    def settings(self) -> dict:
+        """``fit()`` keyword arguments that refit under this fit's frames prior and
+        robust loss, starting from its row weights (same rows)."""
+        return {"frames": self.priors, "robust": self.robust, "weights": self.weights}
 
     def correlated_pairs(self, threshold: float) -> list[tuple[str, str, str, str, float]]:
         """Parameter pairs of different effects/frames whose estimates are correlated
@@ -100,34 +123,6 @@ class FitResult:
         raise KeyError(label)
 
 
-@torch.no_grad()
-def initialise_frames(
-    model: ExtendedModel,
-    data: MeasuredData,
-    cond: Conditions,
-    which: str = "frames",
-) -> None:
-    """Set base and/or tool frames to the closed-form registration of ``data``.
-
-    Args:
-        which: ``"frames"`` (both), ``"base"`` or ``"tool"``.
-    """
-    T_end = model.end_pose(data.q, cond)
-    R_meas = None if data.quat is None else quat_to_matrix(data.quat)
-    groups = [None] if model.base.sets == 1 or cond.group is None else range(model.base.sets)
-    for g in groups:
-        rows = slice(None) if g is None else cond.group == g
-        if g is not None and not bool(rows.any()):
-            continue
-        base, tool = register_frames(
-            T_end[rows], data.position[rows], None if R_meas is None else R_meas[rows]
-        )
-        if which in ("frames", "base"):
-            model.base.reset_to(base, g)
-        if which in ("frames", "tool"):
-            model.tool.reset_to(tool, g)
-
-
 def fit(
     model: ExtendedModel,
     data: MeasuredData,
@@ -139,6 +134,9 @@ def fit(
     max_iter: int = 50,
     initial_sigma: tuple[float, float | None] | None = None,
     covariance: bool = True,
+    frames: FramePriors | None = None,
+    robust: str | None = None,
+    weights: Tensor | None = None,
 ) -> FitResult:
     """Least-squares fit of the model's frames and effect values to measured data.
 
@@ -153,20 +151,36 @@ def fit(
         initial_sigma: ``(sigma_pos_mm, sigma_rot_rad)`` to start the noise
             re-estimation from (e.g. a previous fit's), which saves passes.
         covariance: compute standard deviations, correlations and singular values
-            (one more Jacobian); without it those fields are empty.
+            (one more Jacobian) and the frames' identifiability report; without it
+            those fields are empty.
+        frames: known frames (fixed components are not fitted) and the prior that holds
+            the frame components the data do not determine (default: the tool pulled
+            towards the flange origin, see :mod:`hybrid_pk.calibration.frames`).
+        robust: ``"huber"`` or ``"cauchy"``: down-weight rows with gross errors
+            (iteratively re-weighted); None: plain least squares.
+        weights: ``(N,)`` robust row weights to start from (e.g. a previous fit's).
     """
     cond = cond or conditions_from_data(data)
     position_only = data.quat is None
-    blocks = param_blocks(model, free, position_only)
+    fixed_frames = set((frames or FramePriors()).fixed_labels())
+    blocks = tuple(
+        b for b in param_blocks(model, free, position_only) if b.label not in fixed_frames
+    )
     start_p, start_r = initial_sigma or (None, None)
     sigmas = (
         sigma_pos_mm or start_p or DEFAULT_SIGMA_POS_MM,
         sigma_rot_rad or start_r or DEFAULT_SIGMA_ROT_RAD,
     )
-    fixed = (sigma_pos_mm, sigma_rot_rad)
-    sig_p, sig_r, iterations, converged = _solve_reweighted(
-        model, data, cond, blocks, sigmas, fixed, max_iter
-    )
+    centres = prior_centres(model, blocks, frames)
+    start = {"base": model.base.matrix().detach().clone()}
+    with torch.no_grad():
+        start["rms_mm"] = float(model_errors(model, data, cond)[0].pow(2).mean().sqrt())
+    if robust is not None and weights is None:
+        weights = torch.ones(data.n, dtype=model.robot.dtype)
+    sig_p, sig_r, iterations, converged, weights = _solve_reweighted(
+        model, data, cond, blocks, sigmas, (sigma_pos_mm, sigma_rot_rad), max_iter,
+        centres, robust, weights,
+    )  # fmt: skip
     # Residuals and Jacobian at the solution with the final weights.
     problem = Problem(model, data, cond, blocks, sig_p, sig_r)
     pos, ori = model_errors(model, data, cond)
@@ -180,6 +194,9 @@ def fit(
         "n_params": problem.x0.numel(),
         "iterations": iterations,
         "converged": converged,
+        "robust": robust,
+        "weights": weights,
+        "priors": frames,
     }
     if not covariance:
         empty = torch.zeros(0, dtype=problem.x0.dtype)
@@ -191,7 +208,16 @@ def fit(
             n_obs=3 * data.n * (1 if position_only else 2),
             **common,
         )
-    return FitResult(**common, **_covariance(problem))
+    prior = prior_rows(model, blocks, centres)
+    out, J = _covariance(Penalised(problem, prior, weights))
+    with torch.no_grad():
+        R_flange = model.end_pose(data.q, cond)[:, :3, :3]
+    out["frame_report"] = frame_report(
+        model, J, blocks, n_rows=data.n, sigma_pos_mm=sig_p,
+        sigma_rot_rad=None if position_only else sig_r, prior=prior, R_flange=R_flange,
+        priors=frames, start=start, rms_mm=float(pos.pow(2).mean().sqrt()),
+    )  # fmt: skip
+    return FitResult(**common, **out)
 
 
 def _solve_reweighted(
@@ -202,59 +228,82 @@ def _solve_reweighted(
     sigmas: tuple[float, float],
     fixed: tuple[float | None, float | None],
     max_iter: int,
-) -> tuple[float, float, int, bool]:
-    """LM fit, noise re-estimated from the residuals and refitted (at most 3 passes).
+    centres: dict,
+    robust: str | None,
+    weights: Tensor | None,
+) -> tuple[float, float, int, bool, Tensor | None]:
+    """LM fit, noise re-estimated from the residuals and refitted (at most 3 passes;
+    robust fits also re-weight their rows each pass, at most ``ROBUST_PASSES``).
 
     ``sigmas`` are the starting noise levels, ``fixed`` those given by the caller (not
-    re-estimated). Returns the final noise levels, LM iterations and convergence.
+    re-estimated). Returns the final noise levels, LM iterations, convergence and the
+    row weights.
     """
     sig_p, sig_r = sigmas
     sigma_pos_mm, sigma_rot_rad = fixed
     position_only = data.quat is None
     iterations, converged = 0, False
     fixed_noise = sigma_pos_mm is not None and (sigma_rot_rad is not None or position_only)
-    for _ in range(3):  # fit, re-estimate the noise, refit (at most twice)
+    dim = 3 if position_only else 6
+    for _ in range(3 if robust is None else ROBUST_PASSES):
         problem = Problem(model, data, cond, blocks, sig_p, sig_r)
+        aug = Penalised(problem, prior_rows(model, blocks, centres), weights)
         result = levenberg_marquardt(
-            problem.residual, torch.zeros_like(problem.x0), max_iter=max_iter, jac=problem.jacobian
+            aug.residual, torch.zeros_like(problem.x0), max_iter=max_iter, jac=aug.jacobian
         )
         problem.write(result.x)
         iterations += result.iterations
         converged = result.converged
-        if fixed_noise:
+        if fixed_noise and robust is None:
             break
-        r, n_pos = result.residual, 3 * data.n
+        r, n_pos = aug.data_residual(result.residual), 3 * data.n
         dof_factor = r.numel() / max(r.numel() - result.x.numel(), 1)
-        new_p = sigma_pos_mm or max(
-            sig_p * float((r[:n_pos] ** 2).mean() * dof_factor) ** 0.5, 1e-6
-        )
+        if robust is None:
+            f_p = float((r[:n_pos] ** 2).mean() * dof_factor) ** 0.5
+            f_r = None if position_only else float((r[n_pos:] ** 2).mean() * dof_factor) ** 0.5
+        else:
+            f_p, f_r = robust_noise(r, data.n, dof_factor)
+        new_p = sigma_pos_mm or max(sig_p * f_p, 1e-6)
         new_r = sig_r
         if not position_only and sigma_rot_rad is None:
-            new_r = max(sig_r * float((r[n_pos:] ** 2).mean() * dof_factor) ** 0.5, 1e-9)
-        change = max(abs(new_p / sig_p - 1), abs(new_r / sig_r - 1))
+            new_r = max(sig_r * f_r, 1e-9)
+        change = 0.0 if fixed_noise else max(abs(new_p / sig_p - 1), abs(new_r / sig_r - 1))
+        if robust is not None:
+            scaled = r.reshape(-1, data.n, 3).clone()
+            scaled[0] *= sig_p / new_p
+            if not position_only:
+                scaled[1] *= sig_r / new_r
+            new_w = robust_weights(row_distances(scaled, data.n), dim, robust)
+            change = max(change, float((new_w - weights).abs().max()) / 0.5)
+            weights = new_w
         sig_p, sig_r = new_p, new_r
         if change < 0.05:
             break
-    return sig_p, sig_r, iterations, converged
+    return sig_p, sig_r, iterations, converged, weights
 
 
-def _covariance(problem: Problem) -> dict:
-    """Standard deviations, correlations and singular values at the problem's point."""
-    r, J = problem.jacobian(torch.zeros_like(problem.x0))
-    n_obs, n_par = r.numel(), problem.x0.numel()
-    s2 = float(r @ r) / max(n_obs - n_par, 1)
+def _covariance(problem: Penalised) -> tuple[dict, Tensor]:
+    """Standard deviations, correlations and singular values at the problem's point
+    (prior and weights included), and the data Jacobian (unweighted)."""
+    x0 = problem.problem.x0
+    zero = torch.zeros_like(x0)
+    r_data, J_data = problem.problem.jacobian(zero)
+    r, J = problem.augment(r_data, J_data, zero)
+    n_obs, n_par = problem.m, x0.numel()
+    s2 = float(r[: problem.m] @ r[: problem.m]) / max(n_obs - n_par, 1)
     cov_scaled = torch.linalg.pinv(J.T @ J) * s2
-    std = cov_scaled.diagonal().clamp_min(0).sqrt() * problem.scale
+    std = cov_scaled.diagonal().clamp_min(0).sqrt() * problem.problem.scale
     d = cov_scaled.diagonal().clamp_min(1e-300).sqrt()
     corr = cov_scaled / (d[:, None] * d[None, :])
     sv = torch.linalg.svdvals(J / J.norm(dim=0).clamp_min(1e-300))
-    return {
+    out = {
         "std": std,
         "corr": corr,
         "singular_values": sv,
         "condition": float(sv[0] / sv[-1].clamp_min(1e-300)),
         "n_obs": n_obs,
     }
+    return out, J_data
 
 
 @torch.no_grad()

@@ -16,7 +16,9 @@ from pathlib import Path
 import torch
 
 from hybrid_pk.calibration.diagnosis import diagnose, report_value
-from hybrid_pk.calibration.fit import FitResult, fit, initialise_frames
+from hybrid_pk.calibration.fit import FitResult, fit
+from hybrid_pk.calibration.frames import initialise_with_priors
+from hybrid_pk.calibration.robust import down_weighted, list_outliers
 from hybrid_pk.cli.common import (
     FRAME_LABELS,
     add_data_arguments,
@@ -27,6 +29,14 @@ from hybrid_pk.cli.common import (
     read_data,
     stats_line,
     with_frame_sets,
+)
+from hybrid_pk.cli.frame_options import (
+    add_frame_options,
+    add_robust,
+    frame_priors,
+    frame_report_lines,
+    robust_lines,
+    robust_loss,
 )
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import Conditions, Effect, ExtendedModel, conditions_from_data, make_effect
@@ -112,6 +122,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "MODEL.urdf next to MODEL; with --refit only when given)",
     )
     p.add_argument("--no-urdf", action="store_true", help="write no corrected URDF")
+    add_frame_options(p)
+    add_robust(p)
     p.add_argument(
         "--urdf-frames",
         action="store_true",
@@ -260,6 +272,7 @@ def _run_new(args: argparse.Namespace) -> int:
     for label in labels:  # unknown kinds / joints fail before any data is read
         make_effect(robot, label)
     sets = len(args.data) if args.frames_per_file else 1
+    priors, robust = frame_priors(args), robust_loss(args)
 
     diag = None
     with progress("calibrate", total=None if auto else 4) as step:
@@ -281,19 +294,21 @@ def _run_new(args: argparse.Namespace) -> int:
                 seed=args.seed,
                 frames_per_file=args.frames_per_file,
                 progress=step,
+                frames=priors,
+                robust=robust,
             )
             labels = [c.effect if c.joint is None else f"{c.effect}:{c.joint}" for c in diag.causes]
         step("fitting frames to the nominal robot")
         nominal = ExtendedModel(robot, frame_sets=sets)
-        res0 = fit_frames(nominal, data, cond)
+        res0 = fit_frames(nominal, data, cond, priors=priors, robust=robust)
         step("fitting frames and effects")
         model = ExtendedModel(
             robot,
             _start_effects(robot, labels, diag.model if diag else None),
             frame_sets=sets,
         )
-        initialise_frames(model, data, cond)
-        res = fit(model, data, cond=cond)
+        initialise_with_priors(model, data, cond, priors)
+        res = fit(model, data, cond=cond, frames=priors, robust=robust, weights=res0.weights)
         step("writing")
         effects = _effect_rows(model, res)
         metadata = {
@@ -311,6 +326,8 @@ def _run_new(args: argparse.Namespace) -> int:
                 "orientation_rad": res.sigma_rot_rad,
             },
             "condition_number": res.condition,
+            "frames": None if res.frame_report is None else res.frame_report.to_json(),
+            "robust": _robust_summary(data, res),
             "diagnosis": None if diag is None else diag.to_json(),
         }
         save_model(args.out, model, metadata=metadata)
@@ -319,6 +336,19 @@ def _run_new(args: argparse.Namespace) -> int:
 
     _print_new_summary(robot, data, args, diag, labels, effects, model, res0, res, urdf)
     return 0
+
+
+def _robust_summary(data: MeasuredData, res: FitResult) -> dict:
+    """Outliers of a fit (rows beyond k sigma) and, if robust, its down-weighted rows."""
+    out = {
+        "loss": res.robust,
+        "outliers": list_outliers(
+            data, res.position_mm, res.orientation_deg, res.sigma_pos_mm, res.sigma_rot_rad
+        ),
+    }
+    if res.weights is not None:
+        out["down_weighted"] = down_weighted(data, res.weights)
+    return out
 
 
 def _print_new_summary(robot, data, args, diag, labels, effects, model, res0, res, urdf) -> None:
@@ -346,6 +376,9 @@ def _print_new_summary(robot, data, args, diag, labels, effects, model, res0, re
     else:
         print("  no effects: frames only" + (" (the diagnosis named none)" if diag else ""))
     for line in _frame_lines(model):
+        print(line)
+    summary = _robust_summary(data, res)
+    for line in frame_report_lines(res) + robust_lines(summary["outliers"], summary):
         print(line)
     p0, p1 = error_stats(res0.position_mm), error_stats(res.position_mm)
     print(
@@ -405,7 +438,8 @@ def _run_refit(args: argparse.Namespace) -> int:
         keep = {"base": "tool", "tool": "base", "frames": None}[which]
         model = with_frame_sets(loaded.model, sets, keep=keep)
         step(f"re-fitting the {which} frame(s)")
-        res = fit_frames(model, data, cond, which)
+        priors = frame_priors(args, loaded.model if loaded.frames_fitted else None)
+        res = fit_frames(model, data, cond, which, priors=priors, robust=robust_loss(args))
         step("writing")
         history = list(loaded.metadata.get("refits", []))
         history.append(
@@ -415,6 +449,8 @@ def _run_refit(args: argparse.Namespace) -> int:
                 "n_rows": data.n,
                 "frames_per_file": bool(args.frames_per_file),
                 "fitted": _error_summary(res),
+                "frames": None if res.frame_report is None else res.frame_report.to_json(),
+                "robust": _robust_summary(data, res),
             }
         )
         metadata = {k: v for k, v in loaded.metadata.items() if k != "created"}
@@ -432,6 +468,9 @@ def _run_refit(args: argparse.Namespace) -> int:
         + f") on {data.n} rows from {len(data.sources)} file(s)"
     )
     for line in _frame_lines(model):
+        print(line)
+    summary = _robust_summary(data, res)
+    for line in frame_report_lines(res) + robust_lines(summary["outliers"], summary):
         print(line)
     after = _errors(dataclasses.replace(loaded, model=model, frames_fitted=True), data, cond)
     for i, (name, unit) in enumerate((("position", "mm"), ("orientation", "deg"))):

@@ -13,6 +13,13 @@ import warnings
 from pathlib import Path
 from typing import TextIO
 
+from hybrid_pk.cli.frame_options import (
+    add_frame_options,
+    add_robust,
+    diagnosis_notes,
+    frame_priors,
+    robust_loss,
+)
 from hybrid_pk.errors import HybridPKError
 
 _DESCRIPTION = """\
@@ -99,6 +106,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--max-causes", type=int, default=8, metavar="N", help="stop after N causes (default: 8)"
     )
+    add_frame_options(p)
+    add_robust(p)
     p.set_defaults(func=_run)
 
 
@@ -205,6 +214,8 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
             if c.orientation_gain_deg is not None:
                 gain += f", {c.orientation_gain_deg:.3g} deg"
             lines.append(f"  {c.effect}{where} = {_value(c.value, c.std, c.unit)}  ({gain})")
+    elif getattr(diagnosis, "structural", None) and diagnosis.structural["structurally_wrong"]:
+        lines.append("causes: withheld, the URDF looks structurally wrong (see structural)")
     else:
         lines.append("causes: none beyond measurement noise")
     if diagnosis.ambiguous:
@@ -222,7 +233,7 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
         else "; structured: no (looks like measurement noise)"
     )
     lines.append(rest)
-    return lines
+    return lines + diagnosis_notes(diagnosis)
 
 
 def _read(paths: list[str], robot):
@@ -268,6 +279,8 @@ def _run(args: argparse.Namespace) -> int:
             max_causes=args.max_causes,
             frames_per_file=args.frames_per_file,
             progress=progress,
+            frames=frame_priors(args),
+            robust=robust_loss(args),
         )
         if args.report:
             progress("writing the report")

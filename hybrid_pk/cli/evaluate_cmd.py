@@ -18,6 +18,13 @@ from hybrid_pk.cli.common import (
     with_frame_sets,
     write_json,
 )
+from hybrid_pk.cli.frame_options import (
+    add_frame_options,
+    add_robust,
+    frame_priors,
+    frame_report_lines,
+    robust_loss,
+)
 from hybrid_pk.effects import ExtendedModel, conditions_from_data
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import evaluate_json, row_errors
@@ -67,6 +74,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--robot", metavar="ROBOT", help="refuse a MODEL made for another robot than ROBOT"
     )
+    add_frame_options(p)
+    add_robust(p)
     p.add_argument(
         "--end-link", metavar="NAME", help="end link of nominal:ROBOT (default: the URDF's leaf)"
     )
@@ -103,10 +112,13 @@ def _run(args: argparse.Namespace) -> int:
         n_params = frame_parameter_count(sets, False) if args.fit_frames else None
         data = read_data(args.data, robot, n_params=n_params, skip_bad_rows=args.skip_bad_rows)
         cond = conditions_from_data(data, sets > 1)
+        frame_lines = []
         if args.fit_frames:
             step("fitting base and tool frames")
+            priors = frame_priors(args, loaded.model if loaded.frames_fitted else None)
             model = with_frame_sets(loaded.model, sets)
-            fit_frames(model, data, cond)
+            res = fit_frames(model, data, cond, priors=priors, robust=robust_loss(args))
+            frame_lines = frame_report_lines(res)
             loaded = dataclasses.replace(loaded, model=model, frames_fitted=True)
         step("predicting")
         T = predict_poses(loaded, data, cond)
@@ -145,6 +157,8 @@ def _run(args: argparse.Namespace) -> int:
             "warning: the model was calibrated on position-only data, so its tool "
             "orientation is unknown and part of the orientation errors; add --fit-frames"
         )
+    for line in frame_lines:
+        print(line)
     print(stats_line("position error [mm]", position))
     if orientation is not None:
         print(stats_line("orientation error [deg]", orientation))

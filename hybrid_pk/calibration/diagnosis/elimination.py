@@ -55,7 +55,8 @@ def eliminate(
             }
         )
         model = without_effect(model, label)
-        res = fit(model, train, cond=cond, initial_sigma=(res.sigma_pos_mm, res.sigma_rot_rad))
+        sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
+        res = fit(model, train, cond=cond, initial_sigma=sigmas, **res.settings())
         removed.add(label)
     return model, res, removed
 

@@ -25,6 +25,7 @@ from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.statistics import f_survival, holdout_score, weighted_ssr
 from hybrid_pk.calibration.diagnosis.variants import with_effects
 from hybrid_pk.calibration.fit import FitResult, fit
+from hybrid_pk.calibration.penalised import Penalised
 from hybrid_pk.calibration.problem import Problem, param_blocks
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import EFFECTS, ExtendedModel, make_effect
@@ -137,10 +138,14 @@ def score_candidates(
     """
     robot = model.robot
     trial = with_effects(model, [make_effect(robot, c) for c in pool])
-    blocks = param_blocks(trial, None, split.position_only)
+    fixed = set() if res.priors is None else set(res.priors.fixed_labels())
+    blocks = tuple(
+        b for b in param_blocks(trial, None, split.position_only) if b.label not in fixed
+    )
     sig_r = res.sigma_rot_rad or 1.0
     problem = Problem(trial, split.train, split.cond_fit, blocks, res.sigma_pos_mm, sig_r)
-    r, J = problem.jacobian(torch.zeros_like(problem.x0))
+    # robust fits: the rows weigh as in the fit (a gross row does not score a candidate)
+    r, J = Penalised(problem, None, res.weights).jacobian(torch.zeros_like(problem.x0))
     current_blocks = blocks[: len(blocks) - len(pool)]
     n_cur = sum(b.size for b in current_blocks)
     J_cur, J_pool = J[:, :n_cur], J[:, n_cur:]
@@ -214,7 +219,7 @@ def try_candidate(
     }
     new = with_effects(model, [make_effect(model.robot, label)])
     sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
-    new_res = fit(new, split.train, cond=split.cond_fit, initial_sigma=sigmas)
+    new_res = fit(new, split.train, cond=split.cond_fit, initial_sigma=sigmas, **res.settings())
     # F-test and BIC of the refit, both models' residuals under the same weights.
     ssr_old = weighted_ssr(model, split.train, split.cond_fit, res)
     ssr_new = weighted_ssr(new, split.train, split.cond_fit, res)

@@ -9,6 +9,7 @@ from torch import Tensor
 
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.calibration.problem import Problem
+from hybrid_pk.calibration.robust import robust_cost, row_distances
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
 
@@ -31,10 +32,14 @@ def f_survival(F: float, d1: int, d2: int) -> float:
 def weighted_ssr(
     model: ExtendedModel, data: MeasuredData, cond: Conditions, res: FitResult
 ) -> float:
-    """Sum of squared residuals of ``model`` on ``data`` under ``res``'s noise weights."""
+    """Sum of squared residuals of ``model`` on ``data`` under ``res``'s noise weights;
+    for a robust fit the robust cost of its loss, on the same scale (see
+    :func:`~hybrid_pk.calibration.robust.robust_cost`)."""
     problem = Problem(model, data, cond, (), res.sigma_pos_mm, res.sigma_rot_rad or 1.0)
     with torch.no_grad():
         r = problem.residual(torch.zeros(0, dtype=torch.float64))
+    if res.robust is not None:
+        return robust_cost(row_distances(r, data.n), 3 if data.quat is None else 6, res.robust)
     return float(r @ r)
 
 

@@ -41,5 +41,6 @@ def refit_without(
         sigma_rot_rad=res.sigma_rot_rad,
         covariance=False,
         max_iter=15,  # warm start from the full model: a few steps re-balance the rest
+        **res.settings(),
     )
     return reduced
