@@ -9,8 +9,10 @@ squares on whole rows (a broken beam spoils a row, not one coordinate):
 - ``huber``:  ``w = min(1, c / d)`` (bounded influence, convex);
 - ``cauchy``: ``w = 1 / (1 + d^2 / c^2)`` (redescending: a wild point has no pull);
 
-with ``c^2`` the 95 % quantile of chi-square(``dim``), and the noise levels estimated
-from the median row distance (which outliers do not move) instead of the mean.
+with ``c^2`` the 99 % quantile of chi-square(``dim``) (a clean row keeps at least half
+its weight 99 times in 100, so clean data fit as by least squares), and the noise
+levels estimated from the median row distance (which outliers do not move) instead of
+the mean. Every row a robust fit gives less than half its weight is reported.
 
 A row is an *outlier* when ``d_i^2`` lies beyond the chi-square quantile that has the
 tail probability of a ``k``-sigma deviation of one normal coordinate (``k = 4``: one
@@ -29,6 +31,8 @@ from hybrid_pk.data.table import MeasuredData
 from hybrid_pk.errors import HybridPKError
 
 __all__ = [
+    "CUT_WEIGHT",
+    "DOWN_WEIGHT",
     "OUTLIER_K",
     "ROBUST_LOSSES",
     "check_robust",
@@ -47,9 +51,11 @@ ROBUST_LOSSES = ("huber", "cauchy")
 # Rows beyond the tail probability of a k-sigma normal deviation are outliers.
 OUTLIER_K = 4.0
 # Quantile of chi-square(dim) whose square root is the tuning constant c.
-TUNING_QUANTILE = 0.95
-# A row with a weight below this is reported as down-weighted.
+TUNING_QUANTILE = 0.99
+# A row with a weight below this is reported as down-weighted ...
 DOWN_WEIGHT = 0.5
+# ... and below this as cut (a gross error: its pull on the fit is gone).
+CUT_WEIGHT = 0.1
 
 
 def check_robust(loss: str | None) -> str | None:

@@ -13,7 +13,7 @@ from hybrid_pk.calibration.frames import (
     FrameSpec,
     parse_frame_spec,
 )
-from hybrid_pk.calibration.robust import OUTLIER_K, ROBUST_LOSSES, check_robust
+from hybrid_pk.calibration.robust import CUT_WEIGHT, OUTLIER_K, ROBUST_LOSSES, check_robust
 from hybrid_pk.effects import ExtendedModel
 from hybrid_pk.errors import HybridPKError
 
@@ -122,10 +122,12 @@ def robust_lines(outliers: list[dict], robust: dict | None) -> list[str]:
     lines = []
     if robust is not None and robust.get("down_weighted"):
         rows = robust["down_weighted"]
-        lines.append(
-            f"robust fit ({robust['loss']}): {len(rows)} row(s) down-weighted to under half "
-            f"their weight (file:row (weight)): {_rows_text(rows, 'weight')}"
-        )
+        cut = [r for r in rows if r["weight"] < CUT_WEIGHT]
+        text = f"robust fit ({robust['loss']}): {len(rows)} row(s) down-weighted to under half "
+        text += f"their weight, {len(cut)} of them under {CUT_WEIGHT:g}"
+        if cut:
+            text += f" (file:row (weight)): {_rows_text(cut, 'weight')}"
+        lines.append(text + "; all listed in the JSON")
     if outliers:
         active = robust is not None and robust.get("loss")
         hint = "" if active else "; --robust cauchy down-weights them"
