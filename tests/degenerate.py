@@ -14,7 +14,7 @@ import math
 import torch
 from torch import Tensor
 
-from hybrid_pk.data.table import MeasuredData
+from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, approach_direction
 from hybrid_pk.geometry import so3_exp, so3_log
 from hybrid_pk.robot import Robot

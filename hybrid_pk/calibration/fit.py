@@ -29,7 +29,7 @@ from hybrid_pk.calibration.least_squares import levenberg_marquardt
 from hybrid_pk.calibration.penalised import Penalised
 from hybrid_pk.calibration.problem import ParamBlock, Problem, param_blocks
 from hybrid_pk.calibration.robust import robust_noise, robust_weights, row_distances
-from hybrid_pk.data.table import MeasuredData
+from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data
 from hybrid_pk.evaluation.metrics import pose_error, position_error_mm
 

@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import torch
 from torch import Tensor
 
-from hybrid_pk.data.table import MeasuredData
+from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import nearest_rotation, quat_to_matrix, rpy_to_matrix, so3_log, transform

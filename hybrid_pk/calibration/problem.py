@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.calibration.least_squares import jacobian
-from hybrid_pk.data.table import MeasuredData
+from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.geometry import quat_to_matrix, so3_exp, transform
 

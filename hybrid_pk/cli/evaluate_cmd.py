@@ -9,22 +9,25 @@ from pathlib import Path
 import torch
 
 from hybrid_pk.cli.common import (
-    add_data_arguments,
     fit_frames,
     frame_parameter_count,
-    progress,
+    frame_sets_for,
     read_data,
     stats_line,
     with_frame_sets,
     write_json,
 )
-from hybrid_pk.cli.frame_options import (
+from hybrid_pk.cli.fit_settings import fit_lines, frame_priors, robust_loss
+from hybrid_pk.cli.options import (
+    add_data,
+    add_fit_frames,
     add_frame_options,
+    add_json,
+    add_model,
+    add_report,
     add_robust,
-    frame_priors,
-    frame_report_lines,
-    robust_loss,
 )
+from hybrid_pk.cli.progress import progress
 from hybrid_pk.effects import ExtendedModel, conditions_from_data
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import evaluate_json, row_errors
@@ -43,93 +46,80 @@ JSON: {"n", "position_mm": {mean, rms, p95, max}, "orientation_deg": {...} | nul
 """
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``evaluate`` command."""
-    p = subparsers.add_parser(
-        "evaluate",
-        help="position [mm] / orientation [deg] errors of a model on measured data",
-        description=_DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    p.add_argument("model", metavar="MODEL", help="model file, or nominal:ROBOT")
-    add_data_arguments(p)
-    p.add_argument(
-        "--json",
-        metavar="OUT.json",
+NAME = "evaluate"
+HELP = "position [mm] / orientation [deg] errors of a model on measured data"
+DESCRIPTION = _DESCRIPTION
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``hybrid-pk evaluate``."""
+    add_model(p)
+    add_data(p)
+    add_json(
+        p,
         help="write the errors: n, position_mm and orientation_deg (mean, rms, p95, max "
         "in mm and deg)",
     )
-    p.add_argument(
-        "--report",
-        metavar="DIR",
+    add_report(
+        p,
         help="write DIR/report.md with PNGs: the error table [mm, deg] of MODEL beside the "
         "nominal URDF with frames fitted to DATA, error histograms (like the paper's Fig. "
         "4), the error along each joint, and ISO 9283 AP/RP [mm, deg] of repeated poses",
     )
-    p.add_argument(
-        "--fit-frames",
-        action="store_true",
+    add_fit_frames(
+        p,
         help="first fit only the base and tool frames [m, rad] to DATA (effects and networks kept)",
-    )
-    p.add_argument(
-        "--robot", metavar="ROBOT", help="refuse a MODEL made for another robot than ROBOT"
     )
     add_frame_options(p)
     add_robust(p)
-    p.add_argument(
-        "--end-link", metavar="NAME", help="end link of nominal:ROBOT (default: the URDF's leaf)"
-    )
-    p.set_defaults(func=_run)
 
 
-def _frame_sets(args: argparse.Namespace, model_sets: int) -> int:
-    files = len(args.data)
-    if args.fit_frames:
-        return files if args.frames_per_file else 1
-    if model_sets > 1 and model_sets != files:
-        raise HybridPKError(
-            f"{args.model} has {model_sets} base/tool frame sets (one per calibration file) "
-            f"but {files} DATA file(s) were given; give one file per set, in the same order, "
-            "or --fit-frames"
-        )
-    if args.frames_per_file and model_sets == 1 and files > 1:
-        raise HybridPKError(
-            f"{args.model} has one base/tool frame set; --frames-per-file needs --fit-frames"
-        )
-    return model_sets
-
-
-def _run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
     robot = model_robot(loaded)
     robot.requires_grad_(False)
-    sets = _frame_sets(args, loaded.model.base.sets)
-    nominal = args.model.startswith(NOMINAL_PREFIX)
+    sets = frame_sets_for(args, loaded.model.base.sets)
+    if not args.fit_frames and (args.tool or args.base or args.robust != "none"):
+        raise HybridPKError(
+            "--tool, --base and --robust set how frames are fitted: add --fit-frames"
+        )
 
     total = 2 + bool(args.fit_frames) + bool(args.report)
-    with progress("evaluate", total=total) as step:
-        step("reading data")
+    with progress("evaluate", total=total) as bar:
+        bar.stage("reading data")
         n_params = frame_parameter_count(sets, False) if args.fit_frames else None
         data = read_data(args.data, robot, n_params=n_params, skip_bad_rows=args.skip_bad_rows)
         cond = conditions_from_data(data, sets > 1)
-        frame_lines = []
+        notes = []
         if args.fit_frames:
-            step("fitting base and tool frames")
+            bar.stage("fitting base and tool frames")
             priors = frame_priors(args, loaded.model if loaded.frames_fitted else None)
             model = with_frame_sets(loaded.model, sets)
             res = fit_frames(model, data, cond, priors=priors, robust=robust_loss(args))
-            frame_lines = frame_report_lines(res)
+            notes = fit_lines(data, res)
             loaded = dataclasses.replace(loaded, model=model, frames_fitted=True)
-        step("predicting")
+        bar.stage("predicting")
         T = predict_poses(loaded, data, cond)
         position, orientation = row_errors(T, data)
         result = evaluate_json(data.n, position, orientation)
         if args.json:
             write_json(args.json, result)
         if args.report:
-            step("writing the report")
+            bar.stage("writing the report")
             report = _report(args, loaded, robot, data, cond, sets, T)
 
+    _print_summary(args, loaded, robot, data, position, orientation)
+    for line in notes:
+        print(line)
+    if args.json:
+        print(f"wrote {args.json}")
+    if args.report:
+        print(f"wrote {report}")
+    return 0
+
+
+def _print_summary(args, loaded, robot, data, position, orientation) -> None:
+    nominal = args.model.startswith(NOMINAL_PREFIX)
     kind = "nominal URDF" if nominal else f"{len(loaded.model.effects)} effect(s)"
     if loaded.has_networks:
         kind += " + residual networks"
@@ -157,18 +147,11 @@ def _run(args: argparse.Namespace) -> int:
             "warning: the model was calibrated on position-only data, so its tool "
             "orientation is unknown and part of the orientation errors; add --fit-frames"
         )
-    for line in frame_lines:
-        print(line)
     print(stats_line("position error [mm]", position))
     if orientation is not None:
         print(stats_line("orientation error [deg]", orientation))
     else:
         print("orientation error [deg]: none (position-only data)")
-    if args.json:
-        print(f"wrote {args.json}")
-    if args.report:
-        print(f"wrote {report}")
-    return 0
 
 
 def _report(args, loaded, robot, data, cond, sets: int, T) -> Path:

@@ -13,6 +13,13 @@ import torch
 from hybrid_pk.calibration.fit import fit
 from hybrid_pk.calibration.frames import MAX_TOOL_TRANSLATION_M, parse_frame_spec
 from hybrid_pk.cli.common import FRAME_LABELS
+from hybrid_pk.cli.options import (
+    add_end_link,
+    add_noise,
+    add_out,
+    add_robot,
+    add_seed,
+)
 from hybrid_pk.data.table import write_table
 from hybrid_pk.effects import ExtendedModel
 from hybrid_pk.errors import DataError
@@ -45,15 +52,14 @@ nominal model with the true frames, as in the paper's Table I).
 """
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``simulate`` command."""
-    p = subparsers.add_parser(
-        "simulate",
-        help="virtual measurement campaign: pose table + truth JSON",
-        description=_DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    p.add_argument("robot", metavar="ROBOT", help="URDF path or shipped robot (rx160, ur10)")
+NAME = "simulate"
+HELP = "virtual measurement campaign: pose table + truth JSON"
+DESCRIPTION = _DESCRIPTION
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``hybrid-pk simulate``."""
+    add_robot(p, positional=True)
     p.add_argument("--n", type=int, required=True, metavar="N", help="number of measurements")
     p.add_argument(
         "--effects",
@@ -62,20 +68,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="injected error effects, values in the units of each effect (see above; "
         "default: none)",
     )
-    p.add_argument(
-        "--noise-mm",
-        type=float,
-        default=0.0,
-        metavar="S",
-        help="std of the position noise per coordinate [mm] (default: 0)",
-    )
-    p.add_argument(
-        "--noise-deg",
-        type=float,
-        default=0.0,
-        metavar="S",
-        help="std of the orientation noise per rotation axis [deg] (default: 0)",
-    )
+    add_noise(p, mm=0.0, deg=0.0)
     p.add_argument(
         "--trajectory",
         choices=TRAJECTORIES,
@@ -128,15 +121,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="the true base frame (robot root in the tracker frame) [m, roll-pitch-yaw "
         "rad] instead of a drawn one; without angles its rotation is drawn",
     )
-    p.add_argument("--end-link", metavar="NAME", help="end link (default: the URDF's leaf)")
-    p.add_argument("--seed", type=int, default=0, metavar="K", help="random seed (default: 0)")
-    p.add_argument(
-        "--out",
-        required=True,
+    add_end_link(p)
+    add_seed(p, what="random seed")
+    add_out(
+        p,
         metavar="FILE",
         help="output table (.csv, .parquet or .pq); the truth goes to FILE.truth.json",
     )
-    p.set_defaults(func=_run)
 
 
 def truth_path(out: str | Path) -> Path:
@@ -193,7 +184,7 @@ def campaign_frame_lines(robot: Robot, data, truth: dict, tool_spec) -> list[str
     return lines
 
 
-def _run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix.lower() not in _TABLE_SUFFIXES:
         raise DataError(

@@ -3,19 +3,26 @@
 from __future__ import annotations
 
 import argparse
-import logging
 import os
-import warnings
 
 from hybrid_pk.cli.common import (
-    add_data_arguments,
     fit_frames,
     frame_parameter_count,
-    progress,
+    frame_sets_for,
+    quiet_lightning,
     read_data,
     with_frame_sets,
 )
-from hybrid_pk.cli.evaluate_cmd import _frame_sets
+from hybrid_pk.cli.options import (
+    add_data,
+    add_epochs,
+    add_fit_frames,
+    add_model,
+    add_out,
+    add_progress,
+    add_seed,
+)
+from hybrid_pk.cli.progress import progress
 from hybrid_pk.effects import conditions_from_data
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.hybrid.nets import parse_arch
@@ -34,6 +41,14 @@ training rows the model is the base model (--fade 0, the default), or the correc
 fade out within --fade x the box size (e.g. 0.1: they may help just outside the
 data, or hurt: measure it on held-out rows outside the box).
 
+--inputs frameK[+gravity][+torque|+full] gives the networks inputs chosen by the
+physics instead: corrections in the frame of link K from the joints after K (so they
+turn with joints 1..K and need no data over their range), the gravity direction there,
+and the gravity torque (torque) or full static wrench (full) of each joint after K.
+Such networks apply where their inputs are covered by the training rows (--trust
+coverage, their default: distance to the training inputs, the base model beyond
+--coverage-ratio x the radius of the validation rows, a smooth blend between).
+
 Presets: fast (ours: 3 x 256 SiLU MLPs, Adam + one-cycle, batch 256, 150 epochs,
 MSE) and paper (D4w / Rw, Adagrad lr 0.005, batch 128, <= 300 epochs, early stopping,
 mean-distance / mean-angle losses, limits normalisation). --config reads the model /
@@ -46,26 +61,23 @@ Networks: D1, D4, D4w, D4W, Rw, Rd, B1-B4, mlp, mlp:WIDTHxDEPTH, or none.
 """
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``train`` command."""
-    p = subparsers.add_parser(
-        "train",
-        help="train the residual networks of a hybrid model (Lightning, TensorBoard)",
-        description=_DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    add_data_arguments(p)
-    p.add_argument(
-        "--model", required=True, metavar="MODEL", help="base model file, or nominal:ROBOT"
-    )
-    p.add_argument("--out", required=True, metavar="MODEL2", help="output model file (.pt)")
+NAME = "train"
+HELP = "train the residual networks of a hybrid model (Lightning, TensorBoard)"
+DESCRIPTION = _DESCRIPTION
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``hybrid-pk train``."""
+    add_data(p)
+    add_model(p, flag=True, help="base model file, or nominal:ROBOT (with --fit-frames)")
+    add_out(p, metavar="MODEL2", help="output model file (.pt)")
     p.add_argument("--position-net", metavar="ARCH", help="position network (default: preset)")
     p.add_argument(
         "--orientation-net", metavar="ARCH", help="orientation network (default: preset)"
     )
     p.add_argument("--preset", choices=("fast", "paper"), default="fast", help="default: fast")
     p.add_argument("--config", metavar="YAML", help="LightningCLI config over the preset")
-    p.add_argument("--epochs", type=int, metavar="N", help="maximum epochs")
+    add_epochs(p)
     p.add_argument("--batch-size", type=int, metavar="N", help="training rows per step")
     p.add_argument("--lr", type=float, metavar="LR", help="(peak) learning rate")
     p.add_argument(
@@ -88,19 +100,32 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="fade-out width outside the training joint box, fraction of its size per "
         "joint (default 0: no correction outside the box)",
     )
+    p.add_argument(
+        "--inputs",
+        metavar="SPEC",
+        help="network inputs: joints (the paper's) or frameK[+gravity][+torque|+full] "
+        "(default: preset)",
+    )
+    p.add_argument(
+        "--trust",
+        choices=("auto", "box", "coverage", "none"),
+        help="where the networks apply: joint box, coverage of their inputs, everywhere "
+        "(default auto: box for joints, coverage for frameK inputs)",
+    )
+    p.add_argument(
+        "--coverage-ratio",
+        type=float,
+        metavar="R",
+        help="--trust coverage: networks off beyond R x the full-trust radius (default 2)",
+    )
     p.add_argument("--logdir", metavar="DIR", help="TensorBoard logs and checkpoints")
-    p.add_argument("--seed", type=int, default=0, metavar="K", help="seed (default: 0)")
+    add_seed(p, what="seed of the split, the initialisation and the shuffling")
     p.add_argument("--strategy", default="auto", help="Lightning strategy: auto or ddp")
     p.add_argument("--devices", type=int, default=1, metavar="N", help="processes (default: 1)")
-    p.add_argument(
-        "--fit-frames",
-        action="store_true",
-        help="first fit only the base and tool frames of MODEL to DATA (nominal:ROBOT)",
+    add_fit_frames(
+        p, help="first fit only the base and tool frames of MODEL to DATA (nominal:ROBOT)"
     )
-    p.add_argument("--robot", metavar="ROBOT", help="refuse a MODEL made for another robot")
-    p.add_argument("--end-link", metavar="NAME", help="end link of nominal:ROBOT")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(func=_run)
+    add_progress(p)
 
 
 def _overrides(args: argparse.Namespace) -> tuple[dict, dict, dict]:
@@ -117,11 +142,22 @@ def _overrides(args: argparse.Namespace) -> tuple[dict, dict, dict]:
         ("lr", args.lr),
         ("input_range", args.input_range),
         ("fade", args.fade),
+        ("inputs", args.inputs),
+        ("trust", args.trust),
+        ("coverage_ratio", args.coverage_ratio),
     ):
         if value is not None:
             model[key] = value
     if args.fade is not None and not 0 <= args.fade <= 10:
         raise HybridPKError(f"--fade must be between 0 and 10, got {args.fade}")
+    if args.coverage_ratio is not None and not args.coverage_ratio > 1:
+        raise HybridPKError(f"--coverage-ratio must be > 1, got {args.coverage_ratio}")
+    if model.get("inputs", "joints") != "joints":
+        from hybrid_pk.hybrid.features import FeatureSpec
+
+        FeatureSpec.parse(model["inputs"])  # HybridPKError naming the parts
+        if model.get("trust") == "box":
+            raise HybridPKError("--trust box needs --inputs joints; use --trust coverage")
     for key in ("position_net", "orientation_net"):  # fail before any data is read
         if model.get(key, "none") != "none":
             parse_arch(model[key])
@@ -141,15 +177,42 @@ def _is_main_process() -> bool:
     return all(int(os.environ.get(var, "0")) == 0 for var in ("LOCAL_RANK", "NODE_RANK"))
 
 
-def _quiet_lightning() -> None:
-    """Keep Lightning's start-up banners and library deprecation notes off the terminal."""
-    logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
-    warnings.filterwarnings("ignore", message=".*LeafSpec.*", category=DeprecationWarning)
-    warnings.filterwarnings("ignore", message=".*LeafSpec.*", category=FutureWarning)
-    warnings.filterwarnings("ignore", message=r".*distributed\.nn\.functional\.all_gather.*")
+def _prepare(args, loaded, robot, sets: int):
+    """DATA read for the model's robot, its conditions, and the base model (frames
+    fitted to DATA with --fit-frames)."""
+    with progress("train: preparing", total=2 if args.fit_frames else 1) as bar:
+        bar.stage("reading data")
+        n_params = frame_parameter_count(sets, False) if args.fit_frames else None
+        data = read_data(args.data, robot, n_params=n_params, skip_bad_rows=args.skip_bad_rows)
+        cond = conditions_from_data(data, sets > 1)
+        base = loaded.model
+        if args.fit_frames:
+            bar.stage("fitting base and tool frames")
+            base = with_frame_sets(base, sets)
+            fit_frames(base, data, cond)
+    return data, cond, base
 
 
-def _run(args: argparse.Namespace) -> int:
+def _metadata(args, loaded, data, result) -> dict:
+    """MODEL's metadata with this training's record."""
+    metadata = {k: v for k, v in loaded.metadata.items() if k != "created"}
+    metadata["training"] = {
+        "command": "train",
+        "base_model": args.model,
+        "data": list(data.sources),
+        "n_rows": data.n,
+        "preset": args.preset,
+        "seed": args.seed,
+        "epochs": result.epochs,
+        "seconds": round(result.seconds, 3),
+        "validation_base": result.base,
+        "validation_hybrid": result.best,
+        "logdir": result.logdir,
+    }
+    return metadata
+
+
+def run(args: argparse.Namespace) -> int:
     try:
         from hybrid_pk.io.hybrid_file import save_hybrid
         from hybrid_pk.training import train_hybrid
@@ -157,24 +220,15 @@ def _run(args: argparse.Namespace) -> int:
         raise HybridPKError(
             f"training needs Lightning (a dependency of hybrid_pk): pip install lightning ({exc})"
         ) from exc
-    _quiet_lightning()  # after the import: Lightning sets its logger up when imported
+    quiet_lightning()  # after the import: Lightning sets its logger up when imported
     model_over, data_over, trainer_over = _overrides(args)
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
     robot = model_robot(loaded)
     robot.requires_grad_(False)
-    sets = _frame_sets(args, loaded.model.base.sets)
+    sets = frame_sets_for(args, loaded.model.base.sets)
     main = _is_main_process()
 
-    with progress("train: preparing", total=2 if args.fit_frames else 1) as step:
-        step("reading data")
-        n_params = frame_parameter_count(sets, False) if args.fit_frames else None
-        data = read_data(args.data, robot, n_params=n_params, skip_bad_rows=args.skip_bad_rows)
-        cond = conditions_from_data(data, sets > 1)
-        base = loaded.model
-        if args.fit_frames:
-            step("fitting base and tool frames")
-            base = with_frame_sets(base, sets)
-            fit_frames(base, data, cond)
+    data, cond, base = _prepare(args, loaded, robot, sets)
     if loaded.has_networks and main:
         print(f"note: {args.model} already has residual networks; they are replaced")
     result = train_hybrid(
@@ -195,20 +249,7 @@ def _run(args: argparse.Namespace) -> int:
     if not result.is_global_zero:
         return 0
     frames_fitted = loaded.frames_fitted or args.fit_frames
-    metadata = {k: v for k, v in loaded.metadata.items() if k != "created"}
-    metadata["training"] = {
-        "command": "train",
-        "base_model": args.model,
-        "data": list(data.sources),
-        "n_rows": data.n,
-        "preset": args.preset,
-        "seed": args.seed,
-        "epochs": result.epochs,
-        "seconds": round(result.seconds, 3),
-        "validation_base": result.base,
-        "validation_hybrid": result.best,
-        "logdir": result.logdir,
-    }
+    metadata = _metadata(args, loaded, data, result)
     save_hybrid(
         args.out,
         result.hybrid,
@@ -243,11 +284,21 @@ def _print_summary(args, robot, data, result) -> None:
     for key, label in (("position_mm", "position [mm]"), ("orientation_deg", "orientation [deg]")):
         if key in result.best:
             print(f"  {label:<30} {result.base[key]:>12.5g} -> {result.best[key]:>8.5g}")
-    lo, hi = hybrid.box.trust_lower, hybrid.box.trust_upper
-    box = ", ".join(
-        f"{n} [{a:.3f}, {b:.3f}]" for n, a, b in zip(robot.joint_names, lo, hi, strict=True)
-    )
-    print(f"networks trusted inside the training box (fading out beyond it): {box}")
+    if hybrid.coverage is not None:
+        cov = hybrid.coverage
+        print(
+            f"networks ({hybrid.input_label} inputs) trusted within distance "
+            f"{float(cov.radius_in):.3g} of the training inputs, off beyond "
+            f"{float(cov.radius_out):.3g} (the base model)"
+        )
+    elif hybrid.box is not None and bool(hybrid.box.trust_lower.isfinite().all()):
+        lo, hi = hybrid.box.trust_lower, hybrid.box.trust_upper
+        box = ", ".join(
+            f"{n} [{a:.3f}, {b:.3f}]" for n, a, b in zip(robot.joint_names, lo, hi, strict=True)
+        )
+        print(f"networks trusted inside the training box (fading out beyond it): {box}")
+    else:
+        print(f"networks ({hybrid.input_label} inputs) applied everywhere (--trust none)")
     if result.logdir:
         print(f"TensorBoard logs: tensorboard --logdir {result.logdir}")
     print(f"wrote {args.out}")

@@ -25,6 +25,7 @@ import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
+import torch
 from torch import Tensor, nn
 
 from hybrid_pk.errors import HybridPKError
@@ -36,6 +37,7 @@ __all__ = [
     "DenseBlock",
     "DenseNet",
     "IdentityBlock",
+    "ResidualHead",
     "build_net",
     "count_parameters",
     "parse_arch",
@@ -252,3 +254,41 @@ def build_net(name: str, in_features: int, out_features: int = 3) -> nn.Module:
 def count_parameters(net: nn.Module) -> int:
     """Number of trainable parameters."""
     return sum(p.numel() for p in net.parameters() if p.requires_grad)
+
+
+class ResidualHead(nn.Module):
+    """A network and the scale of its output: ``(N, n_inputs) u -> (N, 3)`` in physical
+    units.
+
+    The network predicts in units of ``scale (3,)`` (the RMS of its training targets,
+    e.g. tens of µm), so its outputs are O(1) whatever the size of the residual.
+
+    Args:
+        arch: architecture name (:func:`~hybrid_pk.hybrid.nets.build_net`).
+        n_inputs: number of inputs (the robot's ``dof`` for the paper's inputs).
+        scale: ``(3,)`` output unit [m or rad].
+        zero_init: start with a zero output layer (the hybrid starts as the base model).
+    """
+
+    def __init__(self, arch: str, n_inputs: int, scale: Tensor, zero_init: bool = False) -> None:
+        super().__init__()
+        self.arch = arch
+        self.net = build_net(arch, n_inputs, 3)
+        self.register_buffer("scale", scale.detach().to(torch.float64).reshape(3).clone())
+        if zero_init:
+            last = [m for m in self.net.modules() if isinstance(m, nn.Linear)][-1]
+            nn.init.zeros_(last.weight)
+            nn.init.zeros_(last.bias)
+
+    @property
+    def net_dtype(self) -> torch.dtype:
+        return next(self.net.parameters()).dtype
+
+    def forward(self, u: Tensor) -> Tensor:
+        """``(*B, n_inputs)`` inputs -> ``(*B, 3)`` correction [m or rad], dtype of ``u``."""
+        batch = u.shape[:-1]
+        out = self.net(u.reshape(-1, u.shape[-1]).to(self.net_dtype))
+        return out.to(u.dtype).reshape(*batch, 3) * self.scale.to(u.dtype)
+
+    def extra_repr(self) -> str:
+        return f"arch={self.arch!r}"

@@ -8,11 +8,16 @@
   problems in one batch-last batch (the calibration's ``levenberg_marquardt`` solves one
   dense problem instead).
 - :func:`wang_baseline`: the comparison method of the paper's Tables IV and V.
+- :func:`resolve_conditions`: the backlash approach direction (and temperature,
+  payload) an IK target is solved under, stated when not given.
 """
 
 from hybrid_pk.ik.batched_lm import LMOutput as LMOutput
 from hybrid_pk.ik.batched_lm import LMSettings as LMSettings
 from hybrid_pk.ik.batched_lm import batched_levenberg_marquardt as batched_levenberg_marquardt
+from hybrid_pk.ik.conditions import IKAssumption as IKAssumption
+from hybrid_pk.ik.conditions import parse_approach as parse_approach
+from hybrid_pk.ik.conditions import resolve_conditions as resolve_conditions
 from hybrid_pk.ik.dedup import distinct_mask as distinct_mask
 from hybrid_pk.ik.dedup import same_solution as same_solution
 from hybrid_pk.ik.forward_model import IKModel as IKModel
@@ -26,6 +31,7 @@ from hybrid_pk.ik.two_stage import solve_ik_two_stage as solve_ik_two_stage
 from hybrid_pk.ik.two_stage import wang_baseline as wang_baseline
 
 __all__ = [
+    "IKAssumption",
     "IKModel",
     "IKOptions",
     "IKResult",
@@ -34,8 +40,10 @@ __all__ = [
     "as_ik_model",
     "batched_levenberg_marquardt",
     "distinct_mask",
+    "parse_approach",
     "quasi_random_seeds",
     "refine_ik",
+    "resolve_conditions",
     "same_solution",
     "solve_ik",
     "solve_ik_two_stage",

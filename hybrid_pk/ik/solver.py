@@ -23,6 +23,7 @@ from hybrid_pk.errors import ShapeError
 from hybrid_pk.evaluation.metrics import pose_error, position_error_mm
 from hybrid_pk.geometry import transform
 from hybrid_pk.ik.batched_lm import LMSettings, batched_levenberg_marquardt
+from hybrid_pk.ik.conditions import Approach, resolve_conditions
 from hybrid_pk.ik.dedup import PRISMATIC_TOL, REVOLUTE_TOL, distinct_mask
 from hybrid_pk.ik.forward_model import IKModel, as_ik_model
 from hybrid_pk.ik.result import IKResult
@@ -286,6 +287,7 @@ def solve_ik(
     jacobian: Callable | None = None,
     options: IKOptions | None = None,
     progress: Callable[[int], None] | None = None,
+    approach: Approach = None,
 ) -> IKResult:
     """All distinct joint solutions of each target pose, within the joint limits.
 
@@ -305,6 +307,9 @@ def solve_ik(
         jacobian: analytic Jacobian of a callable model (else autograd).
         options: tolerances and iteration settings (:class:`IKOptions`).
         progress: called with the number of targets finished after each batch.
+        approach: backlash approach direction (:mod:`~hybrid_pk.ik.conditions`; default
+            ``cond.direction``, else the mid-play model, said in an
+            :class:`~hybrid_pk.ik.conditions.IKAssumption` warning).
 
     Returns:
         :class:`IKResult` of batch shape ``*B``; every returned solution is within the
@@ -314,6 +319,7 @@ def solve_ik(
     options = options or IKOptions()
     T_all, batch, position_only = prepare_targets(targets)
     n = T_all.shape[0]
+    cond, assumed = resolve_conditions([model], cond, n, approach)
     ikm = as_ik_model(model, cond=cond, robot=robot, jacobian=jacobian, n_targets=n)
     start = _start_configs(ikm, n, seeds, extra_seeds, options)
     s_per = start.shape[1]
@@ -353,6 +359,7 @@ def solve_ik(
         if progress is not None:
             progress(hi - lo)
     info = {
+        "assumed": assumed,
         "seeds": s_per,
         "problems": n * s_per,
         "mean_iterations": iterations / max(1, n * s_per),

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -71,7 +72,7 @@ def _cause_rows(diagnosis) -> list[list[object]]:
     return rows
 
 
-def _evidence_section(diagnosis, data, out: Path) -> list[str]:
+def _evidence_section(diagnosis, data, out: Path, say=None) -> list[str]:
     lines = ["## Evidence for each cause", ""]
     if not diagnosis.causes:
         return [*lines, "No cause: the nominal model's errors are measurement noise.", ""]
@@ -88,6 +89,8 @@ def _evidence_section(diagnosis, data, out: Path) -> list[str]:
     ]
     for i, cause in enumerate(diagnosis.causes, start=1):
         label = cause_label(cause)
+        if say is not None:
+            say(f"evidence plot {i}/{len(diagnosis.causes)}: {label}")
         lines += [f"### {i}. {label}", ""]
         path = out / f"evidence_{i:02d}_{_slug(label)}.png"
         try:
@@ -256,7 +259,11 @@ def _selection_log(diagnosis) -> list[str]:
 
 
 def write_diagnosis_report(
-    diagnosis, data: MeasuredData, robot: Robot, out_dir: str | Path
+    diagnosis,
+    data: MeasuredData,
+    robot: Robot,
+    out_dir: str | Path,
+    progress: Callable[[str], None] | None = None,
 ) -> Path:
     """Write ``out_dir/report.md`` and its PNG plots for a diagnosis.
 
@@ -265,6 +272,7 @@ def write_diagnosis_report(
         data: the rows it was computed on (same order).
         robot: the nominal robot.
         out_dir: folder to write to (created); image links are relative to it.
+        progress: called with a short text before each plot.
 
     Returns:
         Path of ``report.md``.
@@ -325,7 +333,9 @@ def write_diagnosis_report(
             "[Identifiability](#identifiability).",
             "",
         ]
-    lines += _evidence_section(diagnosis, data, out)
+    lines += _evidence_section(diagnosis, data, out, progress)
+    if progress is not None:
+        progress("plots of what is left")
     lines += _what_is_left(diagnosis, data, robot, out, ext)
     lines += _identifiability(diagnosis)
     lines += _selection_log(diagnosis)

@@ -1,14 +1,11 @@
-"""Pose and geometric Jacobian of a serial chain, fast, for the IK inner loop.
+"""Pose and geometric Jacobian of a serial chain for the IK inner loop.
 
-Same mathematics as :meth:`Robot.fk` / :meth:`Robot.jacobian` (and checked against
-them in the tests), in a layout that suits thousands of tiny 3×3 products on a CPU:
-batch last. A rotation is a ``(3, 3, M)`` tensor, so one product is three fused
-multiply-adds over contiguous memory instead of a batched matmul of 3×3 blocks
-(several times faster in PyTorch on CPU at IK batch sizes).
-
-The chain's constants are a snapshot of the robot's parameters (and of optional base
-and tool frames folded into the first and last origin): build a new kernel after
-changing them. No gradients flow through it.
+A snapshot of the robot's chain constants (``Robot.chain_terms``, the same as
+:meth:`Robot.fk`'s), with optional base and tool frames folded into the first and last
+origin, kept contiguous in float64 in the batch-last layout of
+:func:`~hybrid_pk.robot.chain.pose_jacobian_batch_last`, the one implementation of pose
+plus Jacobian that :meth:`Robot.jacobian` uses too. Build a new kernel after changing
+the robot's parameters. No gradients flow through it.
 """
 
 from __future__ import annotations
@@ -16,8 +13,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from hybrid_pk.geometry import skew, transform
-from hybrid_pk.geometry.batch_last import compose, rotate
+from hybrid_pk.robot.chain import BatchLastTerms, batch_last_terms, pose_jacobian_batch_last
 from hybrid_pk.robot.robot import Robot
 
 __all__ = ["ChainKernel"]
@@ -32,37 +28,33 @@ class ChainKernel:
         tool: optional ``(4, 4)`` transform after the end link (``T_end_point``).
 
     ``T = base @ robot.fk(q) @ tool``; ``J`` rows ``[v; omega]``: velocity of ``T``'s
-    origin and angular velocity, both in ``base``'s (the output) frame.
+    origin and angular velocity, both in ``base``'s (the output) frame. ``q`` holds the
+    robot's joints; mimic joints follow them (``J = J_chain @ A``).
     """
 
     def __init__(self, robot: Robot, base: Tensor | None = None, tool: Tensor | None = None):
         f64 = torch.float64
         with torch.no_grad():
-            p = robot.kinematic_params()
-            O = transform(p.origin_rot.to(f64), p.origin_xyz.to(f64)).clone()  # (dof+1, 4, 4)
-            if base is not None:
-                O[0] = base.to(f64) @ O[0]
+            t = robot.chain_terms(f64)
+            M = torch.stack([t.M0, t.M1, t.M2])  # (3 terms, n, 4, 4)
+            tip = t.tip
+            if base is not None:  # the terms are linear: base @ (M0 + f1 M1 + f2 M2)
+                M = torch.cat([base.to(f64) @ M[:, :1], M[:, 1:]], 1)
             if tool is not None:
-                O[-1] = O[-1] @ tool.to(f64)
-            a = p.axis.to(f64)
-            a = a / a.norm(dim=-1, keepdim=True)
-        dof = robot.dof
-        self.dof = dof
-        self.revolute = robot.revolute.clone()
-        rev = self.revolute.to(f64)[:, None, None]
-        R0, t = O[:dof, :3, :3], O[:dof, :3, 3]
-        K = skew(a)
-        # Local rotation R0 (I + sin K + (1 - cos) K^2) for revolute joints; prismatic
-        # joints translate by q along R0 a.
-        self._R0 = R0.permute(1, 2, 0)[..., None].contiguous()  # (3, 3, dof, 1)
-        self._R1 = (rev * (R0 @ K)).permute(1, 2, 0)[..., None].contiguous()
-        self._R2 = (rev * (R0 @ K @ K)).permute(1, 2, 0)[..., None].contiguous()
-        self._t = t.T[..., None].contiguous()  # (3, dof, 1)
-        self._d = ((1 - rev[..., 0]) * (R0 @ a[..., None])[..., 0]).T[..., None].contiguous()
-        self._a = a.T[..., None].contiguous()  # (3, dof, 1) axis in the joint frame
-        self._R_tip = O[dof, :3, :3][..., None].contiguous()  # (3, 3, 1)
-        self._t_tip = O[dof, :3, 3][:, None].contiguous()  # (3, 1)
+                tip = tip @ tool.to(f64)
+            t = t._replace(M0=M[0], M1=M[1], M2=M[2], tip=tip)
+            C = batch_last_terms(t)
+        self.dof = robot.dof
+        self.revolute = robot.chain_revolute.clone()
         self._all_revolute = bool(self.revolute.all())
+        self._C = BatchLastTerms(*(x.contiguous() for x in C))
+        self._mimic = None
+        if robot.has_mimic:
+            self._mimic = (
+                robot.source.clone(),
+                robot.multiplier.to(f64)[:, None].clone(),
+                robot.offset.to(f64)[:, None].clone(),
+            )
 
     def soa(self, qt: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Batch-last evaluation at ``qt (dof, M)`` [rad or m].
@@ -70,34 +62,12 @@ class ChainKernel:
         Returns:
             ``R (3, 3, M)``, ``p (3, M)`` [m] of the pose and ``J (6, dof, M)``.
         """
-        s, c = torch.sin(qt), 1 - torch.cos(qt)
-        R_loc = torch.addcmul(self._R0, s, self._R1)
-        R_loc = torch.addcmul(R_loc, c, self._R2)  # (3, 3, dof, M)
-        t_loc = self._t if self._all_revolute else torch.addcmul(self._t, qt, self._d)
-        R = R_loc[:, :, 0]
-        p = t_loc[:, 0].expand(3, qt.shape[1])
-        origins, axes = [p], [rotate(R, self._a[:, 0])]
-        for i in range(1, self.dof):
-            p = p + rotate(R, t_loc[:, i])
-            R = compose(R, R_loc[:, :, i])
-            origins.append(p)
-            axes.append(rotate(R, self._a[:, i]))
-        p_end = p + rotate(R, self._t_tip)
-        R_end = compose(R, self._R_tip)
-        z = torch.stack(axes, 1)  # (3, dof, M)
-        w = p_end[:, None, :] - torch.stack(origins, 1)
-        v = torch.stack(  # z x w, written out (linalg.cross is slow on this layout)
-            [
-                z[1] * w[2] - z[2] * w[1],
-                z[2] * w[0] - z[0] * w[2],
-                z[0] * w[1] - z[1] * w[0],
-            ]
-        )
-        if not self._all_revolute:
-            rev = self.revolute[None, :, None]
-            v = torch.where(rev, v, z)
-            z = torch.where(rev, z, 0.0)
-        return R_end, p_end, torch.cat([v, z], 0)
+        if self._mimic is None:
+            return pose_jacobian_batch_last(self._C, qt, self.revolute, self._all_revolute)
+        src, mul, off = self._mimic
+        qt = torch.addcmul(off, qt[src], mul)  # (n_chain, M)
+        R, p, J = pose_jacobian_batch_last(self._C, qt, self.revolute, self._all_revolute)
+        return R, p, J.new_zeros(6, self.dof, J.shape[-1]).index_add_(1, src, J * mul)
 
     def __call__(self, q: Tensor) -> tuple[Tensor, Tensor]:
         """Pose ``(M, 4, 4)`` and Jacobian ``(M, 6, dof)`` at ``q (M, dof)`` [rad or m]."""

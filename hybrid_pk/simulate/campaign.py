@@ -29,7 +29,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from hybrid_pk.data.table import MeasuredData
+from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, Effect, ExtendedModel, approach_direction
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import error_stats, pose_error

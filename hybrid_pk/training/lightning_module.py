@@ -26,20 +26,24 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.evaluation.metrics import error_stats
-from hybrid_pk.hybrid.hybrid_fk import DEFAULT_FADE, HybridFK, InputBox
+from hybrid_pk.hybrid.coverage import DEFAULT_QUANTILE, DEFAULT_RATIO, Coverage
+from hybrid_pk.hybrid.features import FeatureSpec, PhysicsFeatures
+from hybrid_pk.hybrid.hybrid_fk import HybridFK
+from hybrid_pk.hybrid.inputs import DEFAULT_FADE, InputBox
 from hybrid_pk.hybrid.losses import (
     LOSSES,
-    orientation_errors_deg,
-    position_errors_mm,
+    corrected_orientation_errors_deg,
+    corrected_position_errors_mm,
     reduce_errors,
 )
 from hybrid_pk.hybrid.nets import parse_arch
 from hybrid_pk.training.figures import log_error_figure
 
-__all__ = ["OPTIMIZERS", "SCHEDULERS", "HybridLitModule"]
+__all__ = ["OPTIMIZERS", "SCHEDULERS", "TRUSTS", "HybridLitModule", "network_inputs"]
 
 OPTIMIZERS = ("adagrad", "adam", "adamw")
 SCHEDULERS = ("none", "cosine", "onecycle")
+TRUSTS = ("auto", "box", "coverage", "none")
 _KEYS = {"position": "position_mm", "orientation": "orientation_deg"}
 
 
@@ -59,6 +63,15 @@ class HybridLitModule(L.LightningModule):
         input_range: ``limits`` (normalise over the joint limits, paper 4.1) or ``data``
             (over the training rows' range, paper 4.2).
         fade: fade-out width outside the training box (fraction of its size).
+        inputs: ``joints`` (the paper's: every joint, min-max normalised) or physics
+            features ``frameK[+gravity][+torque|+full]``
+            (:class:`~hybrid_pk.hybrid.features.FeatureSpec`).
+        trust: where the networks apply: ``box`` (the training rows' joint box; joints
+            inputs only), ``coverage`` (distance to the training rows in input space,
+            :class:`~hybrid_pk.hybrid.coverage.Coverage`), ``none`` (everywhere), or
+            ``auto``: ``box`` for the joints inputs, ``coverage`` for physics features.
+        coverage_quantile: share of the validation rows inside the full-trust radius.
+        coverage_ratio: radius where the networks are off / full-trust radius.
         zero_init: zero output layers (training starts from the base model).
         histogram_every: log error histograms every this many validation epochs (0: off).
     """
@@ -74,6 +87,10 @@ class HybridLitModule(L.LightningModule):
         loss: str = "mse",
         input_range: str = "data",
         fade: float = DEFAULT_FADE,
+        inputs: str = "joints",
+        trust: str = "auto",
+        coverage_quantile: float = DEFAULT_QUANTILE,
+        coverage_ratio: float = DEFAULT_RATIO,
         zero_init: bool = True,
         histogram_every: int = 5,
     ) -> None:
@@ -83,15 +100,22 @@ class HybridLitModule(L.LightningModule):
             ("scheduler", scheduler, SCHEDULERS),
             ("loss", loss, LOSSES),
             ("input_range", input_range, ("limits", "data")),
+            ("trust", trust, TRUSTS),
         ):
             if value not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}, got {value!r}")
         for arch in (position_net, orientation_net):
             if arch != "none":
                 parse_arch(arch)  # fail before any data is read
+        if inputs != "joints":
+            FeatureSpec.parse(inputs)
+            if trust == "box":
+                raise ValueError(f"trust 'box' needs the joints inputs; with {inputs!r}: coverage")
+        self.trust_kind = trust if trust != "auto" else "box" if inputs == "joints" else "coverage"
         self.save_hyperparameters()
         self.hybrid: HybridFK | None = None
         self._val: dict[str, list[Tensor]] = {}
+        self._train_sums: dict[str, float] = {}
         self._base_val: dict[str, Tensor] = {}
         self._best: dict[str, tuple[float, dict]] = {}
 
@@ -101,27 +125,47 @@ class HybridLitModule(L.LightningModule):
             return
         dm = self.trainer.datamodule
         hp = self.hparams
-        train = dm.train_targets
-        limits = dm.base.robot.joint_limits if hp.input_range == "limits" else None
-        box = InputBox.from_data(train.q, limits, hp.fade)
+        train, val = dm.train_targets, dm.val_targets
+        inputs = network_inputs(hp, self.trust_kind, dm.base.robot, train.q)
         pos_scale, rot_scale = train.scales()
         ori = hp.orientation_net if train.rotation is not None else "none"
         self.hybrid = HybridFK.build(
             dm.base,
-            box,
+            inputs,
             None if hp.position_net == "none" else hp.position_net,
             None if ori == "none" else ori,
             pos_scale,
             rot_scale,
             zero_init=hp.zero_init,
         )
+        self._encode_once(dm)
         self.hybrid.base.requires_grad_(False)
         self.hybrid.train()  # a base model shared with an earlier (eval-mode) hybrid
-        val = dm.val_targets
         zero = torch.zeros_like(val.position)
-        self._base_val["position"] = position_errors_mm(val.position, val.lever, zero, zero)
+        self._base_val["position"] = corrected_position_errors_mm(
+            val.position, val.lever, zero, zero
+        )
         if val.rotation is not None:
-            self._base_val["orientation"] = orientation_errors_deg(val.rotation, zero)
+            self._base_val["orientation"] = corrected_orientation_errors_deg(val.rotation, zero)
+
+    @torch.no_grad()
+    def _encode_once(self, dm) -> None:
+        """Encode the rows' network inputs once, fit the coverage on them, and hand them
+        to the datamodule as batch columns (``u``, ``A``; ``w`` for validation)."""
+        hybrid, hp = self.hybrid, self.hparams
+        columns = {}
+        for part, rows in (("train", dm.train_targets), ("val", dm.val_targets)):
+            u, A = hybrid.encode(rows.q)
+            columns[part] = {"u": u} if A is None else {"u": u, "A": A}
+        if self.trust_kind == "coverage":
+            hybrid.coverage = Coverage.from_inputs(
+                columns["train"]["u"],
+                columns["val"]["u"],
+                quantile=hp.coverage_quantile,
+                ratio=hp.coverage_ratio,
+            )
+        columns["val"]["w"] = hybrid.weight(dm.val_targets.q, columns["val"]["u"])
+        dm.add_columns(columns["train"], columns["val"])
 
     def configure_optimizers(self):
         hp = self.hparams
@@ -150,24 +194,37 @@ class HybridLitModule(L.LightningModule):
 
     # ------------------------------------------------------------------ steps
     def _errors(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
-        """Per-row position [mm] and orientation [deg] errors of the hybrid model."""
-        dp, dw = self.hybrid.corrections(batch["q"])
-        out = {"position": position_errors_mm(batch["position"], batch["lever"], dp, dw)}
+        """Per-row position [mm] and orientation [deg] errors of the hybrid model
+        (training rows: the networks unweighted; validation rows: with their trust)."""
+        if "u" in batch:
+            dp, dw = self.hybrid.predict(batch["u"], batch.get("A"), batch.get("w"))
+        else:
+            dp, dw = self.hybrid.corrections(batch["q"])
+        out = {"position": corrected_position_errors_mm(batch["position"], batch["lever"], dp, dw)}
         if "rotation" in batch and self.hybrid.orientation is not None:
-            out["orientation"] = orientation_errors_deg(batch["rotation"], dw)
+            out["orientation"] = corrected_orientation_errors_deg(batch["rotation"], dw)
         return out
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         errors = self._errors(batch)
         losses = {k: reduce_errors(v, self.hparams.loss) for k, v in errors.items()}
         loss = sum(losses.values())
+        # Epoch means are summed here and logged once per epoch: self.log costs more
+        # per call than a step of the small networks.
         n = batch["q"].shape[0]
-        log = {"on_step": False, "on_epoch": True, "batch_size": n, "sync_dist": True}
-        self.log("train/loss", loss, **log)
-        units = {"position": "mm", "orientation": "deg"}
+        sums = self._train_sums
+        sums["rows"] = sums.get("rows", 0) + n
+        sums["train/loss"] = sums.get("train/loss", 0.0) + float(loss) * n
         for k, v in errors.items():
-            self.log(f"train/{k}_{units[k]}", v.mean(), **log)
+            key = f"train/{_KEYS[k]}"
+            sums[key] = sums.get(key, 0.0) + float(v.sum())
         return loss
+
+    def on_train_epoch_end(self) -> None:
+        sums, self._train_sums = self._train_sums, {}
+        rows = sums.pop("rows", 0)
+        for key, total in sums.items():
+            self.log(key, total / max(rows, 1), on_step=False, on_epoch=True, sync_dist=True)
 
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
         for k, v in self._errors(batch).items():
@@ -233,3 +290,18 @@ class HybridLitModule(L.LightningModule):
     def base_metrics(self) -> dict[str, float]:
         """Validation mean errors of the base model alone, same keys."""
         return {_KEYS[k]: float(v.mean()) for k, v in self._base_val.items()}
+
+
+def network_inputs(hp, trust: str, robot, q: Tensor) -> InputBox | PhysicsFeatures:
+    """The networks' inputs for module settings ``hp`` (``inputs``, ``input_range``,
+    ``fade``), the trust kind and training joints ``q (N, dof)``."""
+    if hp.inputs == "joints":
+        if trust == "none":  # an unbounded box: the networks apply everywhere
+            limits = robot.joint_limits if hp.input_range == "limits" else None
+            box = InputBox.from_data(q, limits, 1.0)
+            inf = torch.full_like(box.trust_lower, math.inf)
+            return InputBox(box.lower, box.upper, -inf, inf, 1.0)
+        limits = robot.joint_limits if hp.input_range == "limits" else None
+        return InputBox.from_data(q, limits, hp.fade)
+    spec = FeatureSpec.parse(hp.inputs)
+    return PhysicsFeatures(spec, robot).fit_standardisation(robot, q)

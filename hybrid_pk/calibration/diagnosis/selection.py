@@ -28,7 +28,7 @@ from hybrid_pk.calibration.fit import FitResult, fit
 from hybrid_pk.calibration.penalised import Penalised
 from hybrid_pk.calibration.problem import Problem, param_blocks
 from hybrid_pk.data.measured import MeasuredData
-from hybrid_pk.effects import EFFECTS, ExtendedModel, make_effect
+from hybrid_pk.effects import EFFECTS, ExtendedModel, effect_joint_names, make_effect
 from hybrid_pk.robot import Robot
 
 __all__ = [
@@ -55,7 +55,7 @@ def candidate_labels(robot: Robot, data: MeasuredData) -> list[str]:
     for kind, cls in EFFECTS.items():
         if not cls.per_joint:
             continue
-        for i, joint in enumerate(robot.joint_names):
+        for i, joint in enumerate(effect_joint_names(robot, cls)):
             if cls.stage == "geometry" and i == 0:
                 continue  # origin 0 is the base frame's business
             if kind in ("gear_ratio", "joint_eccentricity", "backlash", "joint_compliance") and (

@@ -1,5 +1,7 @@
-"""``--tool``, ``--base``, ``--max-tool-offset`` and ``--robust``: the options of every
-command that fits frames (calibrate, diagnose, evaluate --fit-frames), worded alike."""
+"""What ``--tool``, ``--base``, ``--max-tool-offset`` and ``--robust`` (declared in
+:mod:`hybrid_pk.cli.options`) mean for a fit, and the lines that report what a fit could
+not determine, found implausible or down-weighted (calibrate, diagnose, evaluate
+--fit-frames, simulate)."""
 
 from __future__ import annotations
 
@@ -13,66 +15,25 @@ from hybrid_pk.calibration.frames import (
     FrameSpec,
     parse_frame_spec,
 )
-from hybrid_pk.calibration.robust import CUT_WEIGHT, OUTLIER_K, ROBUST_LOSSES, check_robust
+from hybrid_pk.calibration.robust import (
+    CUT_WEIGHT,
+    OUTLIER_K,
+    check_robust,
+    down_weighted,
+    list_outliers,
+)
 from hybrid_pk.effects import ExtendedModel
 from hybrid_pk.errors import HybridPKError
 
 __all__ = [
-    "add_frame_options",
-    "add_robust",
     "diagnosis_notes",
+    "fit_lines",
     "frame_priors",
     "frame_report_lines",
     "robust_lines",
     "robust_loss",
+    "robust_summary",
 ]
-
-_FRAME_HELP = (
-    "{what} known from outside the data, X,Y,Z[,RX,RY,RZ] in metres and roll-pitch-yaw "
-    "radians ({frame}): fixed as given (only the translation with three values), or "
-    "after 'seed:' a start and prior that the data refine where they determine it"
-)
-
-
-def add_frame_options(parser: argparse.ArgumentParser) -> None:
-    """``--tool``, ``--base`` and ``--max-tool-offset``."""
-    parser.add_argument(
-        "--tool",
-        metavar="X,Y,Z[,RX,RY,RZ]",
-        help=_FRAME_HELP.format(
-            what="tool frame (the measured point on the flange, e.g. from the target's "
-            "mount drawing)",
-            frame="flange frame",
-        ),
-    )
-    parser.add_argument(
-        "--base",
-        metavar="X,Y,Z[,RX,RY,RZ]",
-        help=_FRAME_HELP.format(
-            what="base frame (the robot root in the measurement frame)",
-            frame="measurement frame",
-        ),
-    )
-    parser.add_argument(
-        "--max-tool-offset",
-        type=float,
-        default=MAX_TOOL_TRANSLATION_M,
-        metavar="M",
-        help="a fitted tool translation beyond M metres from the flange is reported as "
-        f"implausible (default: {MAX_TOOL_TRANSLATION_M:g})",
-    )
-
-
-def add_robust(parser: argparse.ArgumentParser) -> None:
-    """``--robust none|huber|cauchy``."""
-    parser.add_argument(
-        "--robust",
-        choices=("none", *ROBUST_LOSSES),
-        default="none",
-        help="down-weight rows with gross errors (a broken beam, a bad visit): huber "
-        "(bounded influence) or cauchy (a wild row has no pull); every down-weighted row "
-        "is reported (default: none, plain least squares)",
-    )
 
 
 def frame_priors(args: argparse.Namespace, previous: ExtendedModel | None = None) -> FramePriors:
@@ -152,3 +113,24 @@ def diagnosis_notes(diagnosis) -> list[str]:
     return lines + robust_lines(
         getattr(diagnosis, "outliers", []), getattr(diagnosis, "robust", None)
     )
+
+
+def robust_summary(data, res) -> dict:
+    """Outlier rows of a fit (beyond ``OUTLIER_K`` sigma) and, if it was robust, the rows
+    it down-weighted: the ``"robust"`` entry of a model file's metadata."""
+    out = {
+        "loss": res.robust,
+        "outliers": list_outliers(
+            data, res.position_mm, res.orientation_deg, res.sigma_pos_mm, res.sigma_rot_rad
+        ),
+    }
+    if res.weights is not None:
+        out["down_weighted"] = down_weighted(data, res.weights)
+    return out
+
+
+def fit_lines(data, res) -> list[str]:
+    """What a fit could not determine about its frames, implausible frames, and its
+    outliers and down-weighted rows, as ``warning:`` lines."""
+    summary = robust_summary(data, res)
+    return frame_report_lines(res) + robust_lines(summary["outliers"], summary)

@@ -1,0 +1,142 @@
+"""The ``networks`` entry of a model file: residual networks as tensors and plain data.
+
+Format (``format: hybrid_pk.residual_networks``)::
+
+    {"format": ..., "version": 1 or 2, "joint_names": [...],
+     "frame": "flange origin, joint-1 axes",
+     "input": {"lower", "upper", "trust_lower", "trust_upper": (dof,) tensors,
+               "fade": float}                     the paper's inputs (InputBox), or None
+     "features": {"kind": "physics", "frame": k, "gravity_input": bool,
+                  "wrench": str, "gravity": (3,), "shift", "scale": (F,)} or None,
+     "coverage": {"reference": (M, F), "radius_in", "radius_out": float,
+                  "neighbours": int} or None,
+     "position" / "orientation": {"arch": str, "scale": (3,) tensor,
+                                  "dtype": str, "state_dict": {...}} or None,
+     "training": {...}}
+
+Version 1 (hybrid_pk before issue 13) has only ``input``; it is still written for the
+paper's inputs without a coverage, so older installations read such files. Version 2
+adds ``features`` and ``coverage``.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Sequence
+
+import torch
+
+from hybrid_pk.errors import ModelFileError
+from hybrid_pk.hybrid.coverage import Coverage
+from hybrid_pk.hybrid.features import PhysicsFeatures
+from hybrid_pk.hybrid.inputs import InputBox
+from hybrid_pk.hybrid.nets import ResidualHead
+from hybrid_pk.robot import Robot
+
+__all__ = ["NETWORKS_FORMAT", "NETWORKS_VERSION", "networks_state", "parts_from_state"]
+
+NETWORKS_FORMAT = "hybrid_pk.residual_networks"
+NETWORKS_VERSION = 2
+
+
+def _head_state(h: ResidualHead | None) -> dict | None:
+    if h is None:
+        return None
+    sd = OrderedDict((k, v.detach().cpu().clone()) for k, v in h.net.state_dict().items())
+    return {
+        "arch": h.arch,
+        "scale": h.scale.detach().cpu().clone(),
+        "dtype": str(h.net_dtype).removeprefix("torch."),
+        "state_dict": sd,
+    }
+
+
+def networks_state(
+    joint_names: Sequence[str],
+    inputs: InputBox | PhysicsFeatures,
+    heads: dict[str, ResidualHead | None],
+    coverage: Coverage | None,
+    metadata: dict | None = None,
+) -> dict:
+    """The ``networks`` entry for these parts (see the module docstring).
+
+    Args:
+        joint_names: the robot's joints (checked on loading).
+        inputs: the networks' inputs.
+        heads: ``position`` and ``orientation`` heads (None: no such network).
+        coverage: trust region in input space, or None.
+        metadata: plain values stored as ``training``.
+    """
+    box = inputs if isinstance(inputs, InputBox) else None
+    state = {
+        "format": NETWORKS_FORMAT,
+        "version": 1 if box is not None and coverage is None else NETWORKS_VERSION,
+        "joint_names": list(joint_names),
+        "frame": "flange origin, joint-1 axes",
+        "input": None if box is None else box.state(),
+        "position": _head_state(heads.get("position")),
+        "orientation": _head_state(heads.get("orientation")),
+        "training": dict(metadata or {}),
+    }
+    if state["version"] > 1:
+        state["features"] = None if box is not None else inputs.state()
+        state["coverage"] = None if coverage is None else coverage.state()
+    return state
+
+
+def _check_header(robot: Robot, state: dict, source: str) -> int:
+    if not isinstance(state, dict) or state.get("format") != NETWORKS_FORMAT:
+        raise ModelFileError(f"{source}: its networks are not hybrid_pk residual networks")
+    version = int(state.get("version", 0))
+    if version > NETWORKS_VERSION:
+        raise ModelFileError(
+            f"{source}: residual networks of format version {version}; this "
+            f"hybrid_pk reads up to {NETWORKS_VERSION}: upgrade hybrid_pk"
+        )
+    joints = list(state["joint_names"])
+    if joints != list(robot.joint_names):
+        raise ModelFileError(
+            f"{source}: its residual networks were trained for joints {joints}, the "
+            f"model's robot {robot.name!r} has {robot.joint_names}"
+        )
+    return version
+
+
+def _head(entry: dict | None, n_inputs: int, name: str, source: str) -> ResidualHead | None:
+    if entry is None:
+        return None
+    h = ResidualHead(entry["arch"], n_inputs, entry["scale"])
+    h.net.to(getattr(torch, entry.get("dtype", "float32")))
+    try:
+        h.net.load_state_dict(entry["state_dict"])
+    except RuntimeError as exc:
+        raise ModelFileError(
+            f"{source}: the {name} network does not match its architecture "
+            f"{entry['arch']!r}: {' '.join(str(exc).split())[:200]}"
+        ) from exc
+    return h
+
+
+def parts_from_state(
+    robot: Robot, state: dict, source: str = "model file"
+) -> tuple[InputBox | PhysicsFeatures, dict[str, ResidualHead | None], Coverage | None]:
+    """Inputs, heads and coverage of a ``networks`` entry (format 1 or 2) for ``robot``.
+
+    Raises:
+        ModelFileError: not a networks entry, a newer version, networks made for other
+            joints, or a network that does not match its architecture.
+    """
+    version = _check_header(robot, state, source)
+    features = state.get("features") if version >= 2 else None
+    if features is not None:
+        if features.get("kind") != "physics":
+            raise ModelFileError(f"{source}: unknown network inputs {features.get('kind')!r}")
+        inputs: InputBox | PhysicsFeatures = PhysicsFeatures.from_state(features, robot)
+        n_inputs = inputs.n_features
+    else:
+        inputs = InputBox.from_state(state["input"])
+        n_inputs = robot.dof
+    cov = state.get("coverage") if version >= 2 else None
+    coverage = None if cov is None else Coverage.from_state(cov)
+    heads = {k: _head(state.get(k), n_inputs, k, source) for k in ("position", "orientation")}
+    return inputs, heads, coverage
