@@ -11,12 +11,8 @@ import pytest
 import torch
 
 from hybrid_pk.calibration.fit import fit, model_errors
-from hybrid_pk.calibration.frames import (
-    FramePriors,
-    FrameSpec,
-    initialise_with_priors,
-    parse_frame_spec,
-)
+from hybrid_pk.calibration.frames import FramePriors, FrameSpec, parse_frame_spec
+from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.cli.main import main
 from hybrid_pk.data import read_table_for, write_table
 from hybrid_pk.data.ipa import convert_ipa

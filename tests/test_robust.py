@@ -12,7 +12,7 @@ import torch
 
 from hybrid_pk.calibration.diagnosis import diagnose
 from hybrid_pk.calibration.fit import fit, model_errors
-from hybrid_pk.calibration.frames import initialise_with_priors
+from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.calibration.robust import (
     list_outliers,
     outlier_threshold,

@@ -12,28 +12,24 @@ the normal equations are well conditioned.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from hybrid_pk.calibration.frames import (
-    FramePriors,
-    initialise_frames,
-    prior_centres,
-    prior_rows,
-)
+from hybrid_pk.calibration.frames import FramePriors, prior_centres, prior_residual
 from hybrid_pk.calibration.identifiability import FrameReport, frame_report
 from hybrid_pk.calibration.least_squares import levenberg_marquardt
-from hybrid_pk.calibration.penalised import Penalised
 from hybrid_pk.calibration.problem import ParamBlock, Problem, param_blocks
 from hybrid_pk.calibration.robust import robust_noise, robust_weights, row_distances
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data
 from hybrid_pk.evaluation.metrics import pose_error, position_error_mm
+from hybrid_pk.geometry import quat_to_matrix
+from hybrid_pk.geometry.registration import register_frames
 
-__all__ = ["FitResult", "fit", "initialise_frames", "model_errors"]
+__all__ = ["FitResult", "fit", "initialise_frames", "model_errors", "predicted_poses"]
 
 # First-pass noise levels, replaced by the estimates of the re-weighted pass.
 DEFAULT_SIGMA_POS_MM = 0.05
@@ -55,6 +51,9 @@ class FitResult:
         sigma_pos_mm, sigma_rot_rad: per-coordinate noise estimated from residuals.
         position_mm, orientation_deg: per-sample errors after the fit.
         n_obs, n_params: residual and parameter counts.
+        iterations, converged: LM iterations over all passes; the last pass converged.
+        normal_matrix: ``(n, n)`` ``J^T J`` of the final weighted residuals in scaled
+            parameters (``x / scale``): the information of linearised updates.
         robust: the robust loss of the fit, or None (least squares).
         weights: ``(N,)`` robust weights of the rows (None for least squares).
         frame_report: which frame components the data do not determine, and frame
@@ -76,10 +75,16 @@ class FitResult:
     n_params: int
     iterations: int
     converged: bool
+    normal_matrix: Tensor | None = None
     robust: str | None = None
     weights: Tensor | None = None
     frame_report: FrameReport | None = None
     priors: FramePriors | None = None
+
+    def settings(self) -> dict:
+        """``fit()`` keyword arguments that refit under this fit's frame prior and
+        robust loss, starting from its row weights (same rows)."""
+        return {"frames": self.priors, "robust": self.robust, "weights": self.weights}
 
     @property
     def ssr_weighted(self) -> float:
@@ -89,11 +94,6 @@ class FitResult:
             return float(pos)
         rot = (torch.deg2rad(self.orientation_deg) ** 2).sum() / self.sigma_rot_rad**2
         return float(pos + rot)
-
-    def settings(self) -> dict:
-        """``fit()`` keyword arguments that refit under this fit's frames prior and
-        robust loss, starting from its row weights (same rows)."""
-        return {"frames": self.priors, "robust": self.robust, "weights": self.weights}
 
     def correlated_pairs(self, threshold: float) -> list[tuple[str, str, str, str, float]]:
         """Parameter pairs of different effects/frames whose estimates are correlated
@@ -123,6 +123,34 @@ class FitResult:
         raise KeyError(label)
 
 
+@torch.no_grad()
+def initialise_frames(
+    model: ExtendedModel,
+    data: MeasuredData,
+    cond: Conditions,
+    which: str = "frames",
+) -> None:
+    """Set base and/or tool frames to the closed-form registration of ``data``.
+
+    Args:
+        which: ``"frames"`` (both), ``"base"`` or ``"tool"``.
+    """
+    T_end = predicted_poses(model, data.q, cond, end_link=True)
+    R_meas = None if data.quat is None else quat_to_matrix(data.quat)
+    groups = [None] if model.base.sets == 1 or cond.group is None else range(model.base.sets)
+    for g in groups:
+        rows = slice(None) if g is None else cond.group == g
+        if g is not None and not bool(rows.any()):
+            continue
+        base, tool = register_frames(
+            T_end[rows], data.position[rows], None if R_meas is None else R_meas[rows]
+        )
+        if which in ("frames", "base"):
+            model.base.reset_to(base, g)
+        if which in ("frames", "tool"):
+            model.tool.reset_to(tool, g)
+
+
 def fit(
     model: ExtendedModel,
     data: MeasuredData,
@@ -134,6 +162,9 @@ def fit(
     max_iter: int = 50,
     initial_sigma: tuple[float, float | None] | None = None,
     covariance: bool = True,
+    row_weights: Tensor | None = None,
+    extra: Callable[[Tensor], tuple[Tensor, Tensor]] | None = None,
+    progress: Callable[[str], None] | None = None,
     frames: FramePriors | None = None,
     robust: str | None = None,
     weights: Tensor | None = None,
@@ -150,14 +181,18 @@ def fit(
         max_iter: LM iterations per pass.
         initial_sigma: ``(sigma_pos_mm, sigma_rot_rad)`` to start the noise
             re-estimation from (e.g. a previous fit's), which saves passes.
-        covariance: compute standard deviations, correlations and singular values
-            (one more Jacobian) and the frames' identifiability report; without it
-            those fields are empty.
-        frames: known frames (fixed components are not fitted) and the prior that holds
-            the frame components the data do not determine (default: the tool pulled
-            towards the flange origin, see :mod:`hybrid_pk.calibration.frames`).
-        robust: ``"huber"`` or ``"cauchy"``: down-weight rows with gross errors
-            (iteratively re-weighted); None: plain least squares.
+        covariance: compute standard deviations, correlations, singular values and the
+            frames' identifiability report (one more Jacobian); without it those
+            fields are empty.
+        row_weights: ``(N,)`` weight of each row's residuals (see :class:`Problem`).
+        extra: extra residual rows (priors, constraints; see :class:`Problem`).
+        progress: called with a short text at every LM iteration, and at most every
+            few seconds while a large Jacobian is built.
+        frames: known frames (their fixed components are not fitted) and the prior that
+            holds the frame components the data do not determine (default
+            :class:`FramePriors`: see :mod:`hybrid_pk.calibration.frames`).
+        robust: ``"huber"`` or ``"cauchy"``: rows with gross errors are down-weighted
+            (iteratively re-weighted, noise from the median); None: least squares.
         weights: ``(N,)`` robust row weights to start from (e.g. a previous fit's).
     """
     cond = cond or conditions_from_data(data)
@@ -166,23 +201,33 @@ def fit(
     blocks = tuple(
         b for b in param_blocks(model, free, position_only) if b.label not in fixed_frames
     )
+    prior = prior_residual(model, blocks, prior_centres(model, blocks, frames))
+    rows_extra = _joined(prior, extra)
+    start = {"base": model.base.matrix().detach().clone()}
+    start["rms_mm"] = float(model_errors(model, data, cond)[0].pow(2).mean().sqrt())
+    if robust is not None and weights is None:
+        weights = torch.ones(data.n, dtype=model.robot.dtype)
+
+    def problem_at(sig_p: float, sig_r: float, w: Tensor | None = None) -> Problem:
+        rw = row_weights
+        if w is not None:  # IRLS weights scale the squared residuals
+            rw = w.sqrt() if rw is None else rw * w.sqrt()
+        return Problem(
+            model, data, cond, blocks, sig_p, sig_r, row_weights=rw, extra=rows_extra,
+            progress=progress,
+        )  # fmt: skip
+
     start_p, start_r = initial_sigma or (None, None)
     sigmas = (
         sigma_pos_mm or start_p or DEFAULT_SIGMA_POS_MM,
         sigma_rot_rad or start_r or DEFAULT_SIGMA_ROT_RAD,
     )
-    centres = prior_centres(model, blocks, frames)
-    start = {"base": model.base.matrix().detach().clone()}
-    with torch.no_grad():
-        start["rms_mm"] = float(model_errors(model, data, cond)[0].pow(2).mean().sqrt())
-    if robust is not None and weights is None:
-        weights = torch.ones(data.n, dtype=model.robot.dtype)
+    fixed = (sigma_pos_mm, sigma_rot_rad)
     sig_p, sig_r, iterations, converged, weights = _solve_reweighted(
-        model, data, cond, blocks, sigmas, (sigma_pos_mm, sigma_rot_rad), max_iter,
-        centres, robust, weights,
-    )  # fmt: skip
+        problem_at, data, sigmas, fixed, max_iter, progress, robust, weights
+    )
     # Residuals and Jacobian at the solution with the final weights.
-    problem = Problem(model, data, cond, blocks, sig_p, sig_r)
+    problem = problem_at(sig_p, sig_r, weights)
     pos, ori = model_errors(model, data, cond)
     common = {
         "blocks": blocks,
@@ -208,55 +253,67 @@ def fit(
             n_obs=3 * data.n * (1 if position_only else 2),
             **common,
         )
-    prior = prior_rows(model, blocks, centres)
-    out, J = _covariance(Penalised(problem, prior, weights))
-    with torch.no_grad():
-        R_flange = model.end_pose(data.q, cond)[:, :3, :3]
-    out["frame_report"] = frame_report(
-        model, J, blocks, n_rows=data.n, sigma_pos_mm=sig_p,
-        sigma_rot_rad=None if position_only else sig_r, prior=prior, R_flange=R_flange,
-        priors=frames, start=start, rms_mm=float(pos.pow(2).mean().sqrt()),
+    report = frame_report(
+        model, data, cond, blocks, sigma_pos_mm=sig_p,
+        sigma_rot_rad=None if position_only else sig_r, prior=prior, priors=frames,
+        start=start, rms_mm=float(pos.pow(2).mean().sqrt()),
     )  # fmt: skip
-    return FitResult(**common, **out)
+    return FitResult(**common, **_covariance(problem), frame_report=report)
+
+
+def _joined(a, b):
+    """Extra residual rows ``a`` then ``b`` (either may be None)."""
+    if a is None or b is None:
+        return a or b
+
+    def both(theta: Tensor) -> tuple[Tensor, Tensor]:
+        (ra, Ja), (rb, Jb) = a(theta), b(theta)
+        return torch.cat([ra, rb]), torch.cat([Ja, Jb])
+
+    return both
 
 
 def _solve_reweighted(
-    model: ExtendedModel,
+    problem_at: Callable[..., Problem],
     data: MeasuredData,
-    cond: Conditions,
-    blocks: tuple[ParamBlock, ...],
     sigmas: tuple[float, float],
     fixed: tuple[float | None, float | None],
     max_iter: int,
-    centres: dict,
-    robust: str | None,
-    weights: Tensor | None,
+    progress: Callable[[str], None] | None,
+    robust: str | None = None,
+    weights: Tensor | None = None,
 ) -> tuple[float, float, int, bool, Tensor | None]:
     """LM fit, noise re-estimated from the residuals and refitted (at most 3 passes;
-    robust fits also re-weight their rows each pass, at most ``ROBUST_PASSES``).
+    robust fits re-weight their rows each pass too, at most ``ROBUST_PASSES``).
 
-    ``sigmas`` are the starting noise levels, ``fixed`` those given by the caller (not
-    re-estimated). Returns the final noise levels, LM iterations, convergence and the
-    row weights.
+    ``problem_at(sigma_pos_mm, sigma_rot_rad, weights)`` is the problem under those
+    noise levels and robust weights; ``sigmas`` are the starting levels, ``fixed``
+    those given by the caller (not re-estimated). Returns the final noise levels, LM
+    iterations, convergence and the robust weights.
     """
     sig_p, sig_r = sigmas
     sigma_pos_mm, sigma_rot_rad = fixed
     position_only = data.quat is None
     iterations, converged = 0, False
     fixed_noise = sigma_pos_mm is not None and (sigma_rot_rad is not None or position_only)
-    dim = 3 if position_only else 6
     for _ in range(3 if robust is None else ROBUST_PASSES):
-        problem = Problem(model, data, cond, blocks, sig_p, sig_r)
-        aug = Penalised(problem, prior_rows(model, blocks, centres), weights)
+        problem = problem_at(sig_p, sig_r, weights)
         result = levenberg_marquardt(
-            aug.residual, torch.zeros_like(problem.x0), max_iter=max_iter, jac=aug.jacobian
+            problem.residual,
+            torch.zeros_like(problem.x0),
+            max_iter=max_iter,
+            normal=problem.normal_equations,
+            progress=progress,
         )
         problem.write(result.x)
         iterations += result.iterations
         converged = result.converged
         if fixed_noise and robust is None:
             break
-        r, n_pos = aug.data_residual(result.residual), 3 * data.n
+        n_pos = 3 * data.n
+        r = result.residual[: n_pos * (1 if position_only else 2)]
+        if weights is not None:  # the rows' own residuals, without the robust weights
+            r = r / weights.sqrt().clamp_min(1e-150).repeat_interleave(3).repeat(r.numel() // n_pos)
         dof_factor = r.numel() / max(r.numel() - result.x.numel(), 1)
         if robust is None:
             f_p = float((r[:n_pos] ** 2).mean() * dof_factor) ** 0.5
@@ -269,11 +326,11 @@ def _solve_reweighted(
             new_r = max(sig_r * f_r, 1e-9)
         change = 0.0 if fixed_noise else max(abs(new_p / sig_p - 1), abs(new_r / sig_r - 1))
         if robust is not None:
-            scaled = r.reshape(-1, data.n, 3).clone()
-            scaled[0] *= sig_p / new_p
+            parts = r.reshape(-1, data.n, 3).clone()
+            parts[0] *= sig_p / new_p
             if not position_only:
-                scaled[1] *= sig_r / new_r
-            new_w = robust_weights(row_distances(scaled, data.n), dim, robust)
+                parts[1] *= sig_r / new_r
+            new_w = robust_weights(row_distances(parts, data.n), 3 if position_only else 6, robust)
             change = max(change, float((new_w - weights).abs().max()) / 0.5)
             weights = new_w
         sig_p, sig_r = new_p, new_r
@@ -282,28 +339,28 @@ def _solve_reweighted(
     return sig_p, sig_r, iterations, converged, weights
 
 
-def _covariance(problem: Penalised) -> tuple[dict, Tensor]:
-    """Standard deviations, correlations and singular values at the problem's point
-    (prior and weights included), and the data Jacobian (unweighted)."""
-    x0 = problem.problem.x0
-    zero = torch.zeros_like(x0)
-    r_data, J_data = problem.problem.jacobian(zero)
-    r, J = problem.augment(r_data, J_data, zero)
-    n_obs, n_par = problem.m, x0.numel()
-    s2 = float(r[: problem.m] @ r[: problem.m]) / max(n_obs - n_par, 1)
-    cov_scaled = torch.linalg.pinv(J.T @ J) * s2
-    std = cov_scaled.diagonal().clamp_min(0).sqrt() * problem.problem.scale
+def _covariance(problem: Problem) -> dict:
+    """Standard deviations, correlations and singular values at the problem's point,
+    and the normal matrix ``J^T J`` (scaled parameters) they come from."""
+    R = problem.r_factor(torch.zeros_like(problem.x0))
+    n_par = problem.x0.numel()
+    J, z = R[:, :n_par], R[:, n_par]
+    n_obs = problem.n_residuals
+    s2 = float(z @ z) / max(n_obs - n_par, 1)
+    normal = J.T @ J
+    cov_scaled = torch.linalg.pinv(normal) * s2
+    std = cov_scaled.diagonal().clamp_min(0).sqrt() * problem.scale
     d = cov_scaled.diagonal().clamp_min(1e-300).sqrt()
     corr = cov_scaled / (d[:, None] * d[None, :])
     sv = torch.linalg.svdvals(J / J.norm(dim=0).clamp_min(1e-300))
-    out = {
+    return {
         "std": std,
         "corr": corr,
         "singular_values": sv,
         "condition": float(sv[0] / sv[-1].clamp_min(1e-300)),
         "n_obs": n_obs,
+        "normal_matrix": normal,
     }
-    return out, J_data
 
 
 @torch.no_grad()
@@ -311,7 +368,25 @@ def model_errors(
     model: ExtendedModel, data: MeasuredData, cond: Conditions | None = None
 ) -> tuple[Tensor, Tensor | None]:
     """Per-row position [mm] and orientation [deg] errors (None without orientation)."""
-    T = model(data.q, cond or conditions_from_data(data))
+    T = predicted_poses(model, data.q, cond or conditions_from_data(data))
     if data.quat is None:
         return position_error_mm(data.position, T[:, :3, 3]), None
     return pose_error(data.T_measured(), T)
+
+
+# Rows per model evaluation in predicted_poses (bounds the gravity and FK temporaries).
+POSE_CHUNK_ROWS = 32768
+
+
+@torch.no_grad()
+def predicted_poses(
+    model: ExtendedModel, q: Tensor, cond: Conditions, end_link: bool = False
+) -> Tensor:
+    """``(N, 4, 4)`` predicted measured poses (or flange poses in the robot root frame,
+    ``end_link``) of joint values ``q (N, dof)``, evaluated in chunks of rows."""
+    parts = []
+    for start in range(0, q.shape[0], POSE_CHUNK_ROWS):
+        rows = slice(start, min(start + POSE_CHUNK_ROWS, q.shape[0]))
+        sub = cond.subset(rows)
+        parts.append(model.end_pose(q[rows], sub) if end_link else model(q[rows], sub))
+    return torch.cat(parts) if parts else model(q, cond)

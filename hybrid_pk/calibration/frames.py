@@ -35,14 +35,12 @@ from typing import TYPE_CHECKING, NamedTuple
 import torch
 from torch import Tensor
 
-from hybrid_pk.data.measured import MeasuredData
-from hybrid_pk.effects import Conditions, ExtendedModel
+from hybrid_pk.effects import ExtendedModel
 from hybrid_pk.errors import HybridPKError
-from hybrid_pk.geometry import nearest_rotation, quat_to_matrix, rpy_to_matrix, so3_log, transform
-from hybrid_pk.geometry.registration import kabsch, register_frames
+from hybrid_pk.geometry import rpy_to_matrix, so3_log, transform
 
 if TYPE_CHECKING:
-    from hybrid_pk.calibration.fit import ParamBlock
+    from hybrid_pk.calibration.problem import ParamBlock
 
 __all__ = [
     "BASE_TRANSLATION_STD_M",
@@ -51,14 +49,13 @@ __all__ = [
     "ROTATION_STD_RAD",
     "SEED_STD_M",
     "SEED_STD_RAD",
+    "Centre",
     "FramePriors",
     "FrameSpec",
     "PriorRows",
-    "initialise_frames",
-    "initialise_with_priors",
     "parse_frame_spec",
     "prior_centres",
-    "prior_rows",
+    "prior_residual",
 ]
 
 # Prior std of the tool translation around its centre (the flange origin unless known):
@@ -164,103 +161,6 @@ def parse_frame_spec(text: str, option: str = "--tool") -> FrameSpec:
     return FrameSpec(v[:3], rotation, fixed=fixed, source=option)
 
 
-@torch.no_grad()
-def initialise_frames(
-    model: ExtendedModel,
-    data: MeasuredData,
-    cond: Conditions,
-    which: str = "frames",
-) -> None:
-    """Set base and/or tool frames to the closed-form registration of ``data``.
-
-    Args:
-        which: ``"frames"`` (both), ``"base"`` or ``"tool"``.
-    """
-    T_end = model.end_pose(data.q, cond)
-    R_meas = None if data.quat is None else quat_to_matrix(data.quat)
-    groups = [None] if model.base.sets == 1 or cond.group is None else range(model.base.sets)
-    for g in groups:
-        rows = slice(None) if g is None else cond.group == g
-        if g is not None and not bool(rows.any()):
-            continue
-        base, tool = register_frames(
-            T_end[rows], data.position[rows], None if R_meas is None else R_meas[rows]
-        )
-        if which in ("frames", "base"):
-            model.base.reset_to(base, g)
-        if which in ("frames", "tool"):
-            model.tool.reset_to(tool, g)
-
-
-def _register_base_to_tool(model: ExtendedModel, data: MeasuredData, cond: Conditions) -> None:
-    """Closed-form base for the model's current tool: Kabsch of the predicted points."""
-    with torch.no_grad():
-        T_end = model.end_pose(data.q, cond)
-        groups = [None] if model.base.sets == 1 or cond.group is None else range(model.base.sets)
-        for g in groups:
-            rows = slice(None) if g is None else cond.group == g
-            if g is not None and not bool(rows.any()):
-                continue
-            X = model.tool.matrix()[0 if g is None else g].to(T_end.dtype)
-            points = (T_end[rows] @ X)[:, :3, 3]
-            R, p = kabsch(points, data.position[rows])
-            model.base.reset_to(transform(R, p), g)
-
-
-def _register_tool_to_base(model: ExtendedModel, data: MeasuredData, cond: Conditions) -> None:
-    """Closed-form tool for the model's current base: linear in its translation."""
-    with torch.no_grad():
-        T_end = model.end_pose(data.q, cond)
-        groups = [None] if model.tool.sets == 1 or cond.group is None else range(model.tool.sets)
-        for g in groups:
-            rows = slice(None) if g is None else cond.group == g
-            if g is not None and not bool(rows.any()):
-                continue
-            B = model.base.matrix()[0 if g is None else g].to(T_end.dtype)
-            R_F, p_F = T_end[rows, :3, :3], T_end[rows, :3, 3]
-            A = B[:3, :3] @ R_F  # (n, 3, 3): p_meas = p_B + R_B p_F + (R_B R_F) p_X
-            rhs = data.position[rows] - B[:3, 3] - p_F @ B[:3, :3].T
-            p_X = torch.linalg.lstsq(A.reshape(-1, 3), rhs.reshape(-1, 1)).solution[:, 0]
-            R_X = model.tool.matrix()[0 if g is None else g, :3, :3].to(T_end.dtype)
-            if data.quat is not None:
-                R_meas = quat_to_matrix(data.quat[rows])
-                M = (R_F.transpose(-1, -2) @ B[:3, :3].T @ R_meas).sum(0)
-                R_X = nearest_rotation(M)
-            model.tool.reset_to(transform(R_X, p_X), g)
-
-
-def initialise_with_priors(
-    model: ExtendedModel,
-    data: MeasuredData,
-    cond: Conditions,
-    priors: FramePriors | None,
-    which: str = "frames",
-) -> None:
-    """Registration of the ``which`` frames that respects known ones.
-
-    The closed-form registration of both frames, then a given tool (fixed or seed)
-    replaces the registered one and the base is registered again to it; a given base
-    likewise, with the tool registered to it.
-
-    Args:
-        which: ``"frames"``, ``"base"`` or ``"tool"``: the frames to be fitted.
-    """
-    initialise_frames(model, data, cond, which)
-    if priors is None:
-        return
-    with torch.no_grad():
-        if priors.base is not None:
-            for g in range(model.base.sets):
-                model.base.reset_to(priors.base.matrix(model.base.matrix()[g].detach()), g)
-        if priors.tool is not None:
-            for g in range(model.tool.sets):
-                model.tool.reset_to(priors.tool.matrix(model.tool.matrix()[g].detach()), g)
-    if priors.tool is not None and priors.base is None and which in ("frames", "base"):
-        _register_base_to_tool(model, data, cond)
-    elif priors.base is not None and priors.tool is None and which in ("frames", "tool"):
-        _register_tool_to_base(model, data, cond)
-
-
 class Centre(NamedTuple):
     """Prior of one frame block: ``value (G, 3)`` (translations [m]) or ``(G, 3, 3)``
     (rotations), and its std [m or rad]."""
@@ -298,51 +198,61 @@ def prior_centres(
     return out
 
 
-class PriorRows(NamedTuple):
-    """Prior residual rows ``A theta - b`` (in units of the prior std), linear in the
-    scaled parameter offsets ``theta`` of a problem.
-
-    Attributes:
-        A: ``(k, n)``.
-        b: ``(k,)``.
-    """
-
-    A: Tensor
-    b: Tensor
-
-    def residual(self, theta: Tensor) -> Tensor:
-        return self.A @ theta - self.b
-
-
-def prior_rows(
-    model: ExtendedModel, blocks: tuple[ParamBlock, ...], centres: dict[str, Centre]
-) -> PriorRows | None:
-    """The prior rows of the frame blocks among ``blocks``, at the model's current values.
+class PriorRows:
+    """The frame prior as extra residual rows of a fit (``Problem(extra=...)``):
+    ``theta -> (A theta - b, A)`` in units of the prior std, linear in the scaled
+    offsets ``theta`` from the model's *current* values (``b`` is read from the model
+    at each call, so one instance serves every pass of a fit).
 
     Translation ``p = p0 + dp + theta s`` gives ``(p - c) / std``; rotation
     ``R0 exp(w + theta s)`` gives ``(w + theta s - log(R0^T C)) / std`` (first order).
+
+    Attributes:
+        A: ``(k, n)`` constant rows (``scale / std`` on the prior's parameters).
     """
-    n = sum(b.size for b in blocks)
-    rows_A, rows_b, start = [], [], 0
-    for b in blocks:
-        idx = slice(start, start + b.size)
-        start += b.size
-        if b.name not in centres:
-            continue
-        which, kind = b.name.split(".")
-        frame = getattr(model, which)
-        centre = centres[b.name]
-        if kind == "dp":
-            now = (frame.T0[:, :3, 3] + frame.dp).detach()
-            gap = centre.value.to(now.dtype) - now  # (G, 3)
-        else:
-            now_w = frame.rotvec.detach()
-            target = so3_log(frame.T0[:, :3, :3].transpose(-1, -2) @ centre.value.to(now_w.dtype))
-            gap = target - now_w
-        A = torch.zeros(b.size, n, dtype=gap.dtype)
-        A[:, idx] = torch.eye(b.size, dtype=gap.dtype) * (b.scale / centre.std)
-        rows_A.append(A)
-        rows_b.append(gap.reshape(-1) / centre.std)
-    if not rows_A:
-        return None
-    return PriorRows(torch.cat(rows_A), torch.cat(rows_b))
+
+    def __init__(
+        self, model: ExtendedModel, blocks: tuple[ParamBlock, ...], centres: dict[str, Centre]
+    ) -> None:
+        self.model, self.centres = model, centres
+        n = sum(b.size for b in blocks)
+        dtype = model.robot.dtype
+        rows, self._parts, start = [], [], 0
+        for b in blocks:
+            idx = slice(start, start + b.size)
+            start += b.size
+            if b.name not in centres:
+                continue
+            A = torch.zeros(b.size, n, dtype=dtype)
+            A[:, idx] = torch.eye(b.size, dtype=dtype) * (b.scale / centres[b.name].std)
+            rows.append(A)
+            self._parts.append(b.name)
+        self.A = torch.cat(rows) if rows else torch.zeros(0, n, dtype=dtype)
+
+    def gap(self) -> Tensor:
+        """``b``: (centre - current value) / std of every prior row."""
+        out = []
+        for name in self._parts:
+            which, kind = name.split(".")
+            frame = getattr(self.model, which)
+            centre = self.centres[name]
+            if kind == "dp":
+                now = (frame.T0[:, :3, 3] + frame.dp).detach()
+                gap = centre.value.to(now.dtype) - now  # (G, 3)
+            else:
+                now = frame.rotvec.detach()
+                R0 = frame.T0[:, :3, :3]
+                gap = so3_log(R0.transpose(-1, -2) @ centre.value.to(now.dtype)) - now
+            out.append(gap.reshape(-1) / centre.std)
+        return torch.cat(out) if out else torch.zeros(0, dtype=self.A.dtype)
+
+    def __call__(self, theta: Tensor) -> tuple[Tensor, Tensor]:
+        return self.A @ theta - self.gap(), self.A
+
+
+def prior_residual(
+    model: ExtendedModel, blocks: tuple[ParamBlock, ...], centres: dict[str, Centre]
+) -> PriorRows | None:
+    """The prior rows of the frame blocks among ``blocks`` (None without any)."""
+    rows = PriorRows(model, blocks, centres)
+    return rows if rows.A.shape[0] else None

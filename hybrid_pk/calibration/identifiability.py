@@ -32,11 +32,13 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.calibration.frames import FramePriors, PriorRows
-from hybrid_pk.effects import ExtendedModel
+from hybrid_pk.calibration.problem import Problem
+from hybrid_pk.data.measured import MeasuredData
+from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.geometry import nearest_rotation, so3_log
 
 if TYPE_CHECKING:
-    from hybrid_pk.calibration.fit import ParamBlock
+    from hybrid_pk.calibration.problem import ParamBlock
 
 __all__ = [
     "BASE_MOVE_DEG",
@@ -51,6 +53,8 @@ __all__ = [
 # A frame direction whose rms point motion per row is below this fraction of its own
 # size is a trade-off valley (errors are amplified more than 1 / MIN_SENSITIVITY times).
 MIN_SENSITIVITY = 0.05
+# Rows of the frame Jacobian evaluated for the report (an even subset of larger data).
+MAX_ROWS = 2000
 # A base that moves farther than this from where the fit started ...
 BASE_MOVE_M = 0.1
 BASE_MOVE_DEG = 5.0
@@ -130,14 +134,6 @@ def _columns(blocks: tuple[ParamBlock, ...]) -> list[tuple[str, int, int, int]]:
                 out.append((b.name, k // 3, k % 3, start + k))
         start += b.size
     return out
-
-
-def _row_scale(m: int, n_pos: int, sigma_pos_mm: float, sigma_rot_rad: float | None) -> Tensor:
-    """Undo the noise weights: position rows to mm, rotation rows to mrad."""
-    s = torch.full((m,), float(sigma_pos_mm), dtype=torch.float64)
-    if m > n_pos:
-        s[n_pos:] = 1e3 * float(sigma_rot_rad or 1.0)
-    return s
 
 
 _FIXES = {
@@ -221,23 +217,42 @@ def _describe(
     return entry
 
 
+def _frame_information(
+    model: ExtendedModel, data: MeasuredData, cond: Conditions, blocks: tuple[ParamBlock, ...]
+) -> tuple[Tensor, Tensor, Tensor, int]:
+    """Information of the frame columns on at most ``MAX_ROWS`` rows (an even subset):
+    ``(H_pos, H_rot, R_flange, n)`` with ``H`` in mm² (or mrad²) per scaled unit² summed
+    over the ``n`` rows used, and their flange orientations ``(n, 3, 3)``."""
+    step = max(1, math.ceil(data.n / MAX_ROWS))
+    rows = torch.arange(0, data.n, step)
+    sub, cond_sub = data.subset(rows), cond.subset(rows)
+    frame_blocks = tuple(b for b in blocks if b.name in _PARTS)
+    problem = Problem(model, sub, cond_sub, frame_blocks, 1.0, 1e-3)  # mm and mrad
+    _, J = problem.jacobian(torch.zeros_like(problem.x0))
+    n_pos = 3 * sub.n
+    Jp, Jr = J[:n_pos], J[n_pos:]
+    with torch.no_grad():
+        R_flange = model.end_pose(sub.q, cond_sub)[:, :3, :3]
+    return Jp.T @ Jp, Jr.T @ Jr, R_flange, sub.n
+
+
 def _directions(
-    J: Tensor,
+    model: ExtendedModel,
+    data: MeasuredData,
+    cond: Conditions,
     blocks: tuple[ParamBlock, ...],
-    n_rows: int,
-    n_pos: int,
     sigma_pos_mm: float,
     sigma_rot_rad: float | None,
     prior: PriorRows | None,
-) -> list[dict]:
+) -> tuple[list[dict], Tensor | None]:
     cols = _columns(blocks)
     if not cols:
-        return []
+        return [], None
     idx = [c[3] for c in cols]
-    Jf = J[:, idx]
-    H = Jf.T @ Jf  # noise-normalised information, scaled units (mm, mrad)
-    Jp = Jf * _row_scale(J.shape[0], n_pos, sigma_pos_mm, sigma_rot_rad)[:, None]
-    lam, V = torch.linalg.eigh(Jp.T @ Jp / max(n_rows, 1))
+    H_pos, H_rot, R_flange, n_sub = _frame_information(model, data, cond, blocks)
+    lam, V = torch.linalg.eigh((H_pos + H_rot) / max(n_sub, 1))  # physical, per row
+    # noise-normalised information of all the rows (scaled units)
+    H = (data.n / n_sub) * (H_pos / sigma_pos_mm**2 + H_rot / (1e3 * (sigma_rot_rad or 1.0)) ** 2)
     P = torch.zeros_like(H) if prior is None else (prior.A[:, idx].T @ prior.A[:, idx])
     out = []
     for k in range(len(idx)):
@@ -267,39 +282,39 @@ def _directions(
                 "prior_std": prior_std,
             }
         )
-    return out
+    return out, R_flange
 
 
 def frame_report(
     model: ExtendedModel,
-    J: Tensor,
+    data: MeasuredData,
+    cond: Conditions,
     blocks: tuple[ParamBlock, ...],
     *,
-    n_rows: int,
     sigma_pos_mm: float,
     sigma_rot_rad: float | None,
     prior: PriorRows | None,
-    R_flange: Tensor | None,
     priors: FramePriors | None = None,
     start: dict | None = None,
     rms_mm: float | None = None,
 ) -> FrameReport:
     """Identifiability and plausibility of the fitted frames.
 
+    The frame columns of the Jacobian are evaluated on at most ``MAX_ROWS`` rows (the
+    directions are a property of the poses' spread; the information scales with the
+    row count).
+
     Args:
         model: the fitted model (frames hold the fitted values).
-        J: ``(m, n)`` noise-normalised Jacobian of the data residuals at the solution,
-            position rows first (``3 n_rows``), then rotation rows if any.
-        blocks: the fitted parameter blocks, in the order of ``J``'s columns.
-        n_rows: measured rows.
-        sigma_pos_mm, sigma_rot_rad: the noise weights of ``J``.
+        data, cond: the fitted rows and their conditions.
+        blocks: the fitted parameter blocks (frames first, in the fit's order).
+        sigma_pos_mm, sigma_rot_rad: the fit's noise levels.
         prior: the prior rows of the fit, or None.
-        R_flange: ``(N, 3, 3)`` flange orientations (root frame), for the words.
         priors: the fit's priors (plausibility limit of the tool).
         start: ``{"base": (G, 4, 4), "rms_mm": float}`` where the fit started.
         rms_mm: rms position error [mm] after the fit.
     """
-    raw = _directions(J, blocks, n_rows, 3 * n_rows, sigma_pos_mm, sigma_rot_rad, prior)
+    raw, R_flange = _directions(model, data, cond, blocks, sigma_pos_mm, sigma_rot_rad, prior)
     groups: dict[tuple, list[dict]] = {}
     for d in raw:
         groups.setdefault((d["block"], d["set"], d["status"]), []).append(d)

@@ -12,9 +12,9 @@ import argparse
 import json
 from pathlib import Path
 
-from hybrid_pk.calibration.diagnosis import diagnose
+from hybrid_pk.calibration.diagnosis.search import diagnose
 from hybrid_pk.calibration.fit import fit
-from hybrid_pk.calibration.frames import initialise_with_priors
+from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.cli.calibrate_output import (
     add_urdf_options,
     condition_warning,

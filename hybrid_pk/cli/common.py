@@ -17,7 +17,8 @@ from pathlib import Path
 import torch
 
 from hybrid_pk.calibration.fit import FitResult, fit
-from hybrid_pk.calibration.frames import FramePriors, initialise_with_priors
+from hybrid_pk.calibration.frames import FramePriors
+from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.data import DataWarning, MeasuredData, read_table_for
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.errors import HybridPKError

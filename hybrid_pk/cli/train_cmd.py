@@ -103,8 +103,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--inputs",
         metavar="SPEC",
-        help="network inputs: joints (the paper's) or frameK[+gravity][+torque|+full] "
-        "(default: preset)",
+        help="network inputs: joints (the paper's), frameK[+qI-J][+gravity][+torque|+full] "
+        "or local[+q1] (default: preset)",
     )
     p.add_argument(
         "--trust",
@@ -153,9 +153,9 @@ def _overrides(args: argparse.Namespace) -> tuple[dict, dict, dict]:
     if args.coverage_ratio is not None and not args.coverage_ratio > 1:
         raise HybridPKError(f"--coverage-ratio must be > 1, got {args.coverage_ratio}")
     if model.get("inputs", "joints") != "joints":
-        from hybrid_pk.hybrid.features import FeatureSpec
+        from hybrid_pk.hybrid.inputs import parse_inputs
 
-        FeatureSpec.parse(model["inputs"])  # HybridPKError naming the parts
+        parse_inputs(model["inputs"])  # HybridPKError naming the forms
         if model.get("trust") == "box":
             raise HybridPKError("--trust box needs --inputs joints; use --trust coverage")
     for key in ("position_net", "orientation_net"):  # fail before any data is read

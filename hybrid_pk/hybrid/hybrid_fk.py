@@ -39,18 +39,21 @@ from hybrid_pk.geometry import so3_exp, transform
 from hybrid_pk.hybrid.coverage import Coverage
 from hybrid_pk.hybrid.features import PhysicsFeatures
 from hybrid_pk.hybrid.inputs import DEFAULT_FADE, InputBox, joint_1_axes
+from hybrid_pk.hybrid.local import LOCAL_FEATURES, LocalFeatures, LocalHead
 from hybrid_pk.hybrid.nets import ResidualHead
 from hybrid_pk.hybrid.networks_state import networks_state, parts_from_state
 
 __all__ = [
     "DEFAULT_FADE",
+    "Head",
     "HybridFK",
     "NetworkInputs",
     "correction_axes",
     "frame_matrices",
 ]
 
-NetworkInputs = InputBox | PhysicsFeatures
+NetworkInputs = InputBox | PhysicsFeatures | LocalFeatures
+Head = ResidualHead | LocalHead
 
 
 def correction_axes(base: ExtendedModel, q: Tensor) -> Tensor:
@@ -66,10 +69,6 @@ def frame_matrices(model: ExtendedModel, cond: Conditions | None) -> tuple[Tenso
     if group is None or model.base.sets == 1:
         return model.base.matrix()[0], model.tool.matrix()[0]
     return model.base.matrix(group), model.tool.matrix(group)
-
-
-def _rotate(A: Tensor | None, v: Tensor) -> Tensor:
-    return v if A is None else (A.to(v.dtype) @ v[..., None])[..., 0]
 
 
 class HybridFK(nn.Module):
@@ -90,15 +89,15 @@ class HybridFK(nn.Module):
         self,
         base: ExtendedModel,
         inputs: NetworkInputs,
-        position: ResidualHead | None,
-        orientation: ResidualHead | None,
+        position: Head | None,
+        orientation: Head | None,
         coverage: Coverage | None = None,
     ) -> None:
         super().__init__()
         dof = base.robot.dof
         if isinstance(inputs, InputBox) and inputs.lower.numel() != dof:
             raise ValueError(f"input box has {inputs.lower.numel()} joints, robot {dof}")
-        if isinstance(inputs, PhysicsFeatures) and inputs.dof != dof:
+        if isinstance(inputs, PhysicsFeatures | LocalFeatures) and inputs.dof != dof:
             raise ValueError(f"network inputs made for {inputs.dof} joints, robot {dof}")
         self.base = base
         self.inputs = inputs
@@ -127,23 +126,32 @@ class HybridFK(nn.Module):
         default = torch.full((3,), 1e-3, dtype=torch.float64)
         n_inputs = cls.n_inputs_of(inputs)
 
-        def head(arch: str | None, scale: Tensor | None) -> ResidualHead | None:
+        def head(arch: str | None, scale: Tensor | None, twist: bool) -> Head | None:
             if arch is None:
                 return None
-            return ResidualHead(arch, n_inputs, default if scale is None else scale, zero_init)
+            scale = default if scale is None else scale
+            if isinstance(inputs, LocalFeatures):  # per-joint axes: one unit for all three
+                size = scale.detach().to(torch.float64).mean()
+                # a twist's rotation [rad] moves the flange ~1 m away by as many metres
+                return LocalHead(arch, inputs.dof, size.repeat(6 if twist else 3), zero_init)
+            return ResidualHead(arch, n_inputs, scale, zero_init)
 
         return cls(
             base,
             inputs,
-            head(position_net, position_scale),
-            head(orientation_net, orientation_scale),
+            head(position_net, position_scale, True),
+            head(orientation_net, orientation_scale, False),
             coverage,
         )
 
     @staticmethod
     def n_inputs_of(inputs: NetworkInputs) -> int:
-        """Number of network inputs of ``inputs``."""
-        return inputs.lower.numel() if isinstance(inputs, InputBox) else inputs.n_features
+        """Number of inputs of each network (per joint for local networks)."""
+        if isinstance(inputs, InputBox):
+            return inputs.lower.numel()
+        if isinstance(inputs, LocalFeatures):
+            return LOCAL_FEATURES
+        return inputs.n_features
 
     @property
     def box(self) -> InputBox | None:
@@ -161,22 +169,23 @@ class HybridFK(nn.Module):
         heads = {"position": self.position, "orientation": self.orientation}
         return nn.ModuleDict({k: v for k, v in heads.items() if v is not None})
 
-    def encode(self, q: Tensor) -> tuple[Tensor, Tensor | None]:
-        """Network inputs ``u (*B, n_inputs)`` at ``q (*B, dof)`` and the rotation
-        ``(*B, 3, 3)`` of their output axes in joint 1's frame (None: joint 1's axes)."""
+    def encode(self, q: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+        """Network inputs ``u`` at ``q (*B, dof)`` (``(*B, n_inputs)``, or ``(*B, dof, 8)``
+        for local networks) and the geometry that turns their outputs into joint 1's
+        axes (``{}``, ``{"A"}`` or ``{"R", "lever"}``; see the inputs' ``raw``)."""
         return self.inputs.encode(self.base.robot, q)
 
     def weight(self, q: Tensor, u: Tensor) -> Tensor:
-        """``(*B,)`` trust of the networks at ``q`` with inputs ``u``."""
+        """Trust of the networks at ``q`` with inputs ``u`` (see :meth:`trust`)."""
         if self.coverage is not None:
             return self.coverage.trust(u)
         if self.box is not None:
             return self.box.trust(q)
-        return torch.ones(u.shape[:-1], dtype=u.dtype, device=u.device)
+        return torch.ones(u.shape[:-1], dtype=u.dtype, device=u.device)  # (*B[, dof])
 
     def trust(self, q: Tensor) -> Tensor:
-        """``(*B,)`` weight in [0, 1] of the corrections at ``q`` (1: networks fully on,
-        0: the base model alone)."""
+        """Weight in [0, 1] of the corrections at ``q`` (1: networks fully on, 0: the
+        base model alone): ``(*B,)``, or ``(*B, dof)`` per joint for local networks."""
         return self.weight(q, self.encode(q)[0])
 
     def coverage_distance(self, q: Tensor) -> Tensor | None:
@@ -196,26 +205,26 @@ class HybridFK(nn.Module):
             ``dp (*B, 3)`` [m] and ``dw (*B, 3)`` [rad] in the axes of
             :meth:`correction_axes`, dtype of ``q``.
         """
-        u, A = self.encode(q)
-        return self.predict(u, A, self.weight(q, u))
+        u, geo = self.encode(q)
+        return self.predict(u, geo, self.weight(q, u))
 
     def predict(
-        self, u: Tensor, A: Tensor | None, w: Tensor | None = None
+        self, u: Tensor, geo: dict[str, Tensor], w: Tensor | None = None
     ) -> tuple[Tensor, Tensor]:
         """Corrections from inputs already encoded (:meth:`encode`; training batches).
 
         Args:
-            u: ``(*B, n_inputs)`` network inputs.
-            A: ``(*B, 3, 3)`` their output axes in joint 1's frame, or None.
-            w: ``(*B,)`` trust; None: the networks unweighted.
+            u: network inputs.
+            geo: their geometry (:meth:`encode`).
+            w: trust, ``(*B,)`` or ``(*B, dof)`` (local networks); None: unweighted.
 
         Returns:
             ``dp (*B, 3)`` [m] and ``dw (*B, 3)`` [rad] in joint 1's axes.
         """
-        w = 1.0 if w is None else w[..., None]
-        zero = torch.zeros(*u.shape[:-1], 3, dtype=u.dtype, device=u.device)
-        dp = zero if self.position is None else _rotate(A, w * self.position(u))
-        dw = zero if self.orientation is None else _rotate(A, w * self.orientation(u))
+        batch = u.shape[: -2 if isinstance(self.inputs, LocalFeatures) else -1]
+        zero = torch.zeros(*batch, 3, dtype=u.dtype, device=u.device)
+        dp = zero if self.position is None else self.position.correct(u, geo, w)
+        dw = zero if self.orientation is None else self.orientation.correct(u, geo, w)
         return dp, dw
 
     def end_pose(self, q: Tensor, cond: Conditions | None = None) -> Tensor:

@@ -290,5 +290,12 @@ class ResidualHead(nn.Module):
         out = self.net(u.reshape(-1, u.shape[-1]).to(self.net_dtype))
         return out.to(u.dtype).reshape(*batch, 3) * self.scale.to(u.dtype)
 
+    def correct(self, u: Tensor, geo: dict[str, Tensor], w: Tensor | None) -> Tensor:
+        """``(*B, 3)`` correction in joint 1's axes: the output weighted by ``w (*B,)``
+        (None: 1) and turned by ``geo["A"] (*B, 3, 3)`` when the inputs give one."""
+        out = self(u) if w is None else w[..., None] * self(u)
+        A = geo.get("A")
+        return out if A is None else (A.to(out.dtype) @ out[..., None])[..., 0]
+
     def extra_repr(self) -> str:
         return f"arch={self.arch!r}"

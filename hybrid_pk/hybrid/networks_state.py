@@ -7,9 +7,12 @@ Format (``format: hybrid_pk.residual_networks``)::
      "input": {"lower", "upper", "trust_lower", "trust_upper": (dof,) tensors,
                "fade": float}                     the paper's inputs (InputBox), or None
      "features": {"kind": "physics", "frame": k, "gravity_input": bool,
-                  "wrench": str, "gravity": (3,), "shift", "scale": (F,)} or None,
-     "coverage": {"reference": (M, F), "radius_in", "radius_out": float,
-                  "neighbours": int} or None,
+                  "wrench": str, "angles": [first, last] or None, "gravity": (3,),
+                  "shift", "scale": (F,)}
+               or {"kind": "local", "joint_1_angle": bool, "gravity": (3,),
+                   "shift", "scale": (dof, 8)} or None,
+     "coverage": {"reference": (M, F) or (dof, M, F), "radius_in", "radius_out":
+                  () or (dof,) tensors, "neighbours": int} or None,
      "position" / "orientation": {"arch": str, "scale": (3,) tensor,
                                   "dtype": str, "state_dict": {...}} or None,
      "training": {...}}
@@ -30,6 +33,7 @@ from hybrid_pk.errors import ModelFileError
 from hybrid_pk.hybrid.coverage import Coverage
 from hybrid_pk.hybrid.features import PhysicsFeatures
 from hybrid_pk.hybrid.inputs import InputBox
+from hybrid_pk.hybrid.local import LocalFeatures, LocalHead
 from hybrid_pk.hybrid.nets import ResidualHead
 from hybrid_pk.robot import Robot
 
@@ -39,10 +43,11 @@ NETWORKS_FORMAT = "hybrid_pk.residual_networks"
 NETWORKS_VERSION = 2
 
 
-def _head_state(h: ResidualHead | None) -> dict | None:
+def _head_state(h: ResidualHead | LocalHead | None) -> dict | None:
     if h is None:
         return None
-    sd = OrderedDict((k, v.detach().cpu().clone()) for k, v in h.net.state_dict().items())
+    net = h.nets if isinstance(h, LocalHead) else h.net
+    sd = OrderedDict((k, v.detach().cpu().clone()) for k, v in net.state_dict().items())
     return {
         "arch": h.arch,
         "scale": h.scale.detach().cpu().clone(),
@@ -53,8 +58,8 @@ def _head_state(h: ResidualHead | None) -> dict | None:
 
 def networks_state(
     joint_names: Sequence[str],
-    inputs: InputBox | PhysicsFeatures,
-    heads: dict[str, ResidualHead | None],
+    inputs: InputBox | PhysicsFeatures | LocalFeatures,
+    heads: dict[str, ResidualHead | LocalHead | None],
     coverage: Coverage | None,
     metadata: dict | None = None,
 ) -> dict:
@@ -102,13 +107,20 @@ def _check_header(robot: Robot, state: dict, source: str) -> int:
     return version
 
 
-def _head(entry: dict | None, n_inputs: int, name: str, source: str) -> ResidualHead | None:
+def _head(
+    entry: dict | None, inputs, n_inputs: int, name: str, source: str
+) -> ResidualHead | LocalHead | None:
     if entry is None:
         return None
-    h = ResidualHead(entry["arch"], n_inputs, entry["scale"])
-    h.net.to(getattr(torch, entry.get("dtype", "float32")))
+    if isinstance(inputs, LocalFeatures):
+        h = LocalHead(entry["arch"], inputs.dof, entry["scale"])
+        net = h.nets
+    else:
+        h = ResidualHead(entry["arch"], n_inputs, entry["scale"])
+        net = h.net
+    net.to(getattr(torch, entry.get("dtype", "float32")))
     try:
-        h.net.load_state_dict(entry["state_dict"])
+        net.load_state_dict(entry["state_dict"])
     except RuntimeError as exc:
         raise ModelFileError(
             f"{source}: the {name} network does not match its architecture "
@@ -119,7 +131,11 @@ def _head(entry: dict | None, n_inputs: int, name: str, source: str) -> Residual
 
 def parts_from_state(
     robot: Robot, state: dict, source: str = "model file"
-) -> tuple[InputBox | PhysicsFeatures, dict[str, ResidualHead | None], Coverage | None]:
+) -> tuple[
+    InputBox | PhysicsFeatures | LocalFeatures,
+    dict[str, ResidualHead | LocalHead | None],
+    Coverage | None,
+]:
     """Inputs, heads and coverage of a ``networks`` entry (format 1 or 2) for ``robot``.
 
     Raises:
@@ -128,15 +144,19 @@ def parts_from_state(
     """
     version = _check_header(robot, state, source)
     features = state.get("features") if version >= 2 else None
-    if features is not None:
-        if features.get("kind") != "physics":
-            raise ModelFileError(f"{source}: unknown network inputs {features.get('kind')!r}")
-        inputs: InputBox | PhysicsFeatures = PhysicsFeatures.from_state(features, robot)
+    inputs: InputBox | PhysicsFeatures | LocalFeatures
+    if features is None:
+        inputs, n_inputs = InputBox.from_state(state["input"]), robot.dof
+    elif features.get("kind") == "physics":
+        inputs = PhysicsFeatures.from_state(features, robot)
         n_inputs = inputs.n_features
+    elif features.get("kind") == "local":
+        inputs, n_inputs = LocalFeatures.from_state(features, robot), 0
     else:
-        inputs = InputBox.from_state(state["input"])
-        n_inputs = robot.dof
+        raise ModelFileError(f"{source}: unknown network inputs {features.get('kind')!r}")
     cov = state.get("coverage") if version >= 2 else None
     coverage = None if cov is None else Coverage.from_state(cov)
-    heads = {k: _head(state.get(k), n_inputs, k, source) for k in ("position", "orientation")}
+    heads = {
+        k: _head(state.get(k), inputs, n_inputs, k, source) for k in ("position", "orientation")
+    }
     return inputs, heads, coverage

@@ -27,9 +27,10 @@ from torch import Tensor
 
 from hybrid_pk.evaluation.metrics import error_stats
 from hybrid_pk.hybrid.coverage import DEFAULT_QUANTILE, DEFAULT_RATIO, Coverage
-from hybrid_pk.hybrid.features import FeatureSpec, PhysicsFeatures
+from hybrid_pk.hybrid.features import PhysicsFeatures
 from hybrid_pk.hybrid.hybrid_fk import HybridFK
-from hybrid_pk.hybrid.inputs import DEFAULT_FADE, InputBox
+from hybrid_pk.hybrid.inputs import DEFAULT_FADE, InputBox, parse_inputs
+from hybrid_pk.hybrid.local import LocalFeatures, LocalSpec
 from hybrid_pk.hybrid.losses import (
     LOSSES,
     corrected_orientation_errors_deg,
@@ -39,7 +40,13 @@ from hybrid_pk.hybrid.losses import (
 from hybrid_pk.hybrid.nets import parse_arch
 from hybrid_pk.training.figures import log_error_figure
 
-__all__ = ["OPTIMIZERS", "SCHEDULERS", "TRUSTS", "HybridLitModule", "network_inputs"]
+__all__ = [
+    "OPTIMIZERS",
+    "SCHEDULERS",
+    "TRUSTS",
+    "HybridLitModule",
+    "network_inputs",
+]
 
 OPTIMIZERS = ("adagrad", "adam", "adamw")
 SCHEDULERS = ("none", "cosine", "onecycle")
@@ -108,7 +115,7 @@ class HybridLitModule(L.LightningModule):
             if arch != "none":
                 parse_arch(arch)  # fail before any data is read
         if inputs != "joints":
-            FeatureSpec.parse(inputs)
+            parse_inputs(inputs)
             if trust == "box":
                 raise ValueError(f"trust 'box' needs the joints inputs; with {inputs!r}: coverage")
         self.trust_kind = trust if trust != "auto" else "box" if inputs == "joints" else "coverage"
@@ -155,8 +162,8 @@ class HybridLitModule(L.LightningModule):
         hybrid, hp = self.hybrid, self.hparams
         columns = {}
         for part, rows in (("train", dm.train_targets), ("val", dm.val_targets)):
-            u, A = hybrid.encode(rows.q)
-            columns[part] = {"u": u} if A is None else {"u": u, "A": A}
+            u, geo = hybrid.encode(rows.q)
+            columns[part] = {"u": u, **{f"geo_{k}": v for k, v in geo.items()}}
         if self.trust_kind == "coverage":
             hybrid.coverage = Coverage.from_inputs(
                 columns["train"]["u"],
@@ -197,7 +204,8 @@ class HybridLitModule(L.LightningModule):
         """Per-row position [mm] and orientation [deg] errors of the hybrid model
         (training rows: the networks unweighted; validation rows: with their trust)."""
         if "u" in batch:
-            dp, dw = self.hybrid.predict(batch["u"], batch.get("A"), batch.get("w"))
+            geo = {k[4:]: v for k, v in batch.items() if k.startswith("geo_")}
+            dp, dw = self.hybrid.predict(batch["u"], geo, batch.get("w"))
         else:
             dp, dw = self.hybrid.corrections(batch["q"])
         out = {"position": corrected_position_errors_mm(batch["position"], batch["lever"], dp, dw)}
@@ -292,7 +300,7 @@ class HybridLitModule(L.LightningModule):
         return {_KEYS[k]: float(v.mean()) for k, v in self._base_val.items()}
 
 
-def network_inputs(hp, trust: str, robot, q: Tensor) -> InputBox | PhysicsFeatures:
+def network_inputs(hp, trust: str, robot, q: Tensor) -> InputBox | PhysicsFeatures | LocalFeatures:
     """The networks' inputs for module settings ``hp`` (``inputs``, ``input_range``,
     ``fade``), the trust kind and training joints ``q (N, dof)``."""
     if hp.inputs == "joints":
@@ -303,5 +311,7 @@ def network_inputs(hp, trust: str, robot, q: Tensor) -> InputBox | PhysicsFeatur
             return InputBox(box.lower, box.upper, -inf, inf, 1.0)
         limits = robot.joint_limits if hp.input_range == "limits" else None
         return InputBox.from_data(q, limits, hp.fade)
-    spec = FeatureSpec.parse(hp.inputs)
+    spec = parse_inputs(hp.inputs)
+    if isinstance(spec, LocalSpec):
+        return LocalFeatures(spec, robot).fit_standardisation(robot, q)
     return PhysicsFeatures(spec, robot).fit_standardisation(robot, q)

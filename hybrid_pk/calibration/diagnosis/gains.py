@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from torch import Tensor
 
 from hybrid_pk.calibration.diagnosis.result import Cause, report_value
@@ -20,6 +22,7 @@ def measure_causes(
     steps: list[dict],
     alpha: float,
     errors: tuple[Tensor, Tensor | None],
+    progress: Callable[[str], None] | None = None,
 ) -> list[Cause]:
     """The causes of ``model``, largest hold-out position gain first.
 
@@ -30,7 +33,10 @@ def measure_causes(
     pos1, ori1 = errors
     causes = []
     for e in model.effects:
-        reduced = refit_without(model, e.label, split.train, split.cond_fit, res)
+        say = None
+        if progress is not None:
+            say = lambda text, lbl=e.label: progress(f"gain of {lbl}: {text}")  # noqa: E731
+        reduced = refit_without(model, e.label, split.train, split.cond_fit, res, say)
         pos_r, ori_r = model_errors(reduced, split.test, split.cond_hold)
         step = next(s for s in steps if s["candidate"] == e.label and s.get("accepted"))
         causes.append(_cause(e, res, step, alpha, (pos1, ori1), (pos_r, ori_r)))

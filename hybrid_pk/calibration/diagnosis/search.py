@@ -38,7 +38,8 @@ from hybrid_pk.calibration.diagnosis.statistics import neighbour_structure, resi
 from hybrid_pk.calibration.diagnosis.structural import implausibility, structural_check
 from hybrid_pk.calibration.diagnosis.variants import with_effects
 from hybrid_pk.calibration.fit import FitResult, fit, model_errors
-from hybrid_pk.calibration.frames import FramePriors, initialise_with_priors
+from hybrid_pk.calibration.frames import FramePriors
+from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.calibration.robust import OUTLIER_K, down_weighted, list_outliers
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import ExtendedModel, conditions_from_data, make_effect
@@ -88,7 +89,10 @@ def diagnose(
     say("fitting base and tool frames to the nominal model")
     model = ExtendedModel(robot, frame_sets=len(data.sources) if frames_per_file else 1)
     initialise_with_priors(model, split.train, split.cond_fit, frames)
-    res = fit(model, split.train, cond=split.cond_fit, frames=frames, robust=robust)
+    res = fit(
+        model, split.train, cond=split.cond_fit, progress=_prefixed(say, "frames"),
+        frames=frames, robust=robust,
+    )  # fmt: skip
     frame_json = None if res.frame_report is None else res.frame_report.to_json()
     nominal_model = with_effects(model)
     nominal = stats_json(*model_errors(model, split.test, split.cond_hold))
@@ -106,7 +110,7 @@ def diagnose(
 
     say("measuring each cause's gain")
     errors = model_errors(model, split.test, split.cond_hold)
-    causes = measure_causes(model, res, split, steps, alpha, errors)
+    causes = measure_causes(model, res, split, steps, alpha, errors, progress=say)
     sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
     causes, structural = structural_check(model, causes, flagged, split, nominal_model, sigmas, say)
     ambiguous += correlated_groups(res)
@@ -158,7 +162,9 @@ def _select(
     rejected_in_a_row = 0
     while pool and len(model.effects) < max_causes:
         say(f"scoring {len(pool)} candidate effects (step {len(steps) + 1})")
-        scores = score_candidates(model, res, pool, split, alpha, name_equivalents=first_step)
+        scores = score_candidates(
+            model, res, pool, split, alpha, name_equivalents=first_step, progress=say
+        )
         unobservable += scores.unobservable
         ambiguous += scores.equivalent
         first_step = False
@@ -179,7 +185,9 @@ def _select(
             )
             break
         say(f"testing {best.label}")
-        new, new_res, step = try_candidate(model, res, best, scores, split)
+        new, new_res, step = try_candidate(
+            model, res, best, scores, split, progress=_prefixed(say, f"testing {best.label}")
+        )
         steps.append(step)
         pool = [c for c in pool if c != best.label]
         implausible = implausibility(new.effect(best.label), new.robot, split.train)
@@ -230,3 +238,8 @@ def _unexplained(model: ExtendedModel, split: Split, errors: tuple) -> dict:
         "structured": structured,
         "neighbour_correlation": nn_corr,
     }
+
+
+def _prefixed(say: Callable[[str], None], prefix: str) -> Callable[[str], None]:
+    """``say`` with ``prefix: `` in front of every message."""
+    return lambda text: say(f"{prefix}: {text}")

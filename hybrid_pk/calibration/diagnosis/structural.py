@@ -35,7 +35,14 @@ from torch import Tensor
 from hybrid_pk.calibration.fit import fit, model_errors
 from hybrid_pk.calibration.problem import Problem, param_blocks
 from hybrid_pk.data.measured import MeasuredData
-from hybrid_pk.effects import Conditions, Effect, ExtendedModel, make_effect
+from hybrid_pk.effects import (
+    EFFECTS,
+    Conditions,
+    Effect,
+    ExtendedModel,
+    effect_joint_names,
+    make_effect,
+)
 from hybrid_pk.geometry import so3_exp, so3_log
 from hybrid_pk.robot import Robot
 
@@ -58,6 +65,8 @@ MAX_TRANSLATION_M = 0.05
 MAX_GEAR_RATIO = 0.01
 MAX_COMPLIANCE = 1e-4  # [rad/Nm]; industrial joints are 1e-7 .. 1e-5
 MAX_FRAME_SHARE = 0.98
+# Rows the frame share is computed on (an even subset of larger data).
+FRAME_SHARE_ROWS = 2000
 # The structural correction of a joint is fitted from these starting rotations too
 # (about the two axes perpendicular to the joint axis) when the plain start leaves
 # more than this fraction of the error.
@@ -85,13 +94,17 @@ def implausibility(effect: Effect, robot: Robot, data: MeasuredData | None = Non
     """
     kind, unit = effect.kind, effect.unit
     size = float(effect.value.detach().norm())
-    prismatic = effect.joint is not None and robot.joint_types[effect.joint_index] == "prismatic"
+    prismatic = (
+        effect.stage == "joint"
+        and effect.joint is not None
+        and robot.joint_types[effect.joint_index] == "prismatic"
+    )
     if kind == "joint_compliance":
         return _compliance_check(effect, robot, data)
     if kind == "gear_ratio":
         limit, what, shown = MAX_GEAR_RATIO, "gear ratio error", f"{100 * size:.3g} %"
         limit_text = f"{100 * MAX_GEAR_RATIO:g} %"
-    elif unit == "m" or (prismatic and effect.stage == "joint"):
+    elif unit == "m" or prismatic:
         limit, what, shown = MAX_TRANSLATION_M, "translation", f"{1e3 * size:.4g} mm"
         limit_text = f"{1e3 * MAX_TRANSLATION_M:g} mm"
     elif unit == "rad":
@@ -166,6 +179,9 @@ def frame_share(
         ``(share, d, d_phys)``: ``share`` in [0, 1], the displacement ``d (N, 3)`` [mm]
         and its part ``d_phys`` that no change of the base and tool frames makes.
     """
+    if data.n > FRAME_SHARE_ROWS:  # a ratio of the rows' spread: an even subset will do
+        rows = torch.arange(0, data.n, math.ceil(data.n / FRAME_SHARE_ROWS))
+        data, cond = data.subset(rows), cond.subset(rows)
     d = _displacement(model, label, data, cond)
     blocks = param_blocks(
         model, ["base_frame.translation", "base_frame.rotation", "tool_frame.translation"], True
@@ -185,14 +201,16 @@ def _origin_correction(model: ExtendedModel, joint: str) -> dict:
     """Rotation [deg] (and axis in the joint frame) and translation [mm] of the origin
     correction held by the joint's offset, misalignment and link-length effects."""
     robot = model.robot
-    j = robot.joint_names.index(joint)
-    axis = torch.as_tensor(robot.spec.axes[j], dtype=torch.float64)
-    w = model.effect(f"axis_misalignment:{joint}").rotation_vector().detach().double()
-    R = so3_exp(w)
-    prismatic = robot.joint_types[j] == "prismatic"
-    offset = float(model.effect(f"joint_offset:{joint}").value.detach())
-    if not prismatic:
-        R = R @ so3_exp(axis * offset)
+    misalignment = model.effect(f"axis_misalignment:{joint}")
+    axis = torch.as_tensor(robot.spec.axes[misalignment.joint_index], dtype=torch.float64)
+    R = so3_exp(misalignment.rotation_vector().detach().double())
+    offset, prismatic = 0.0, False
+    if f"joint_offset:{joint}" in [e.label for e in model.effects]:
+        j = robot.joint_names.index(joint)
+        prismatic = robot.joint_types[j] == "prismatic"
+        offset = float(model.effect(f"joint_offset:{joint}").value.detach())
+        if not prismatic:
+            R = R @ so3_exp(axis * offset)
     rotvec = so3_log(R)
     dp = model.effect(f"link_length:{joint}").value.detach().double()
     angle = math.degrees(float(rotvec.norm()))
@@ -206,11 +224,13 @@ def _fit_correction(nominal: ExtendedModel, joint: str, split, sigmas, start: Te
     on the fit rows from ``start`` (a misalignment on its basis, or zero). Returns the
     model and its mean hold-out position error [mm]."""
     robot = nominal.robot
-    labels = [f"joint_offset:{joint}", f"link_length:{joint}", f"axis_misalignment:{joint}"]
+    labels = [f"axis_misalignment:{joint}", f"link_length:{joint}"]
+    if joint in robot.joint_names:  # an independent joint (not a mimic) has an offset
+        labels.append(f"joint_offset:{joint}")
     effects = [make_effect(robot, lb) for lb in labels]
     if start is not None:
         with torch.no_grad():
-            effects[2].value.copy_(start)
+            effects[0].value.copy_(start)
     model = ExtendedModel(robot, effects, frame_sets=nominal.base.sets)
     model.base.reset_to(nominal.base.matrix().detach())
     model.tool.reset_to(nominal.tool.matrix().detach())
@@ -243,8 +263,9 @@ def locate_structural_error(
     say = say or (lambda _m: None)
     robot = nominal.robot
     before = float(model_errors(nominal, split.test, split.cond_hold)[0].mean())
-    joints = [j for j in robot.joint_names[1:] if j in hint]  # origin 0 is the base's
-    joints += [j for j in robot.joint_names[1:] if j not in joints]
+    chain = effect_joint_names(robot, EFFECTS["link_length"])[1:]  # origin 0: the base's
+    joints = [j for j in chain if j in hint]
+    joints += [j for j in chain if j not in joints]
     best = None
     for turns in ((None,), _TURNS):
         for joint in joints:
