@@ -136,8 +136,9 @@ def test_cli_diagnose_lists_outliers_and_what_was_down_weighted(rx160, tmp_path,
     write_table(table, dirty)
     out_json = tmp_path / "diag.json"
     candidates = "joint_offset:joint_3,joint_offset:joint_2"
-    rc = main(["diagnose", str(table), "--robot", "rx160", "--json", str(out_json),
-               "--robust", "cauchy", "--candidates", candidates])  # fmt: skip
+    report = tmp_path / "report"
+    argv = ["diagnose", str(table), "--robot", "rx160", "--json", str(out_json)]
+    rc = main([*argv, "--robust", "cauchy", "--candidates", candidates, "--report", str(report)])
     out = capsys.readouterr().out
     assert rc == 0
     doc = json.loads(out_json.read_text())
@@ -152,3 +153,6 @@ def test_cli_diagnose_lists_outliers_and_what_was_down_weighted(rx160, tmp_path,
     assert "down-weighted" in out
     assert "outlier row(s) beyond 4 sigma" in out
     assert [c["effect"] + ":" + c["joint"] for c in doc["causes"]] == ["joint_offset:joint_3"]
+    text = (report / "report.md").read_text()
+    assert "## Outliers and down-weighted rows" in text
+    assert f"| campaign.csv | {rows[0]} |" in text

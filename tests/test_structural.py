@@ -83,7 +83,9 @@ def test_an_arm_mounted_turned_by_90_degrees_gets_the_structural_message(tmp_pat
     table = tmp_path / "turned.csv"
     write_table(table, data)
     out_json = tmp_path / "diag.json"
-    rc = main(["diagnose", str(table), "--robot", "rx160", "--json", str(out_json)])
+    report = tmp_path / "report"
+    rc = main(["diagnose", str(table), "--robot", "rx160", "--json", str(out_json),
+               "--report", str(report)])  # fmt: skip
     out = capsys.readouterr().out
     assert rc == 0
     doc = json.loads(out_json.read_text())
@@ -95,6 +97,9 @@ def test_an_arm_mounted_turned_by_90_degrees_gets_the_structural_message(tmp_pat
     assert doc["nominal"]["position_mm"]["mean"] > 100.0
     assert "causes: withheld, the URDF looks structurally wrong" in out
     assert "structural: the URDF looks structurally wrong at joint_2" in out
+    text = (report / "report.md").read_text()
+    assert "## The URDF looks structurally wrong" in text
+    assert "Withheld: the URDF looks structurally wrong" in text
 
 
 @pytest.mark.slow
@@ -112,3 +117,26 @@ def test_a_large_joint_offset_is_reported_as_a_wrong_urdf_not_as_a_cause(rx160):
     assert location["joint"] == "joint_3"
     assert location["rotation_deg"] == pytest.approx(math.degrees(0.2), rel=0.02)
     assert abs(location["rotation_axis"][1]) > 0.99  # about joint 3's own axis (y)
+
+
+def test_the_evidence_plot_of_a_link_length_shows_its_physical_signature(rx160):
+    """A shift of joint 2's origin of (0.5, 0, 3) mm: its vertical 3 mm are a base
+    translation (the frame trade-off); the evidence shows the 0.5 mm that only the link
+    length makes, on a slope-1 line."""
+    from hybrid_pk.calibration.diagnosis import Cause
+    from hybrid_pk.report.evidence import cause_evidence
+
+    truth = [make_effect(rx160, "link_length:joint_2", [5e-4, 0.0, 3e-3])]
+    data, sim = simulate_campaign(rx160, 120, truth, noise_mm=0.005, seed=5, position_only=True)
+    model = ExtendedModel(
+        rx160,
+        [make_effect(rx160, "link_length:joint_2", [5e-4, 0.0, 3e-3])],
+        base=torch.tensor(sim["base_frame"], dtype=torch.float64),
+        tool=torch.tensor(sim["tool_frame"], dtype=torch.float64),
+    )
+    cause = Cause("link_length", "joint_2", [5e-4, 0.0, 3e-3], "m", [1e-5] * 3, 1.0, None, "")
+    ev = cause_evidence(cause, data, model)
+    assert float(abs(ev.x).max()) < 1.0  # [mm]: the 0.5 mm signature, not the 3 mm shift
+    assert float(abs(ev.x).max()) > 0.3
+    slope = float((ev.x * ev.y).sum() / (ev.x * ev.x).sum())
+    assert slope == pytest.approx(1.0, abs=0.05)

@@ -53,9 +53,11 @@ __all__ = [
     "MAX_GEAR_RATIO",
     "MAX_ROTATION_DEG",
     "MAX_TRANSLATION_M",
+    "displacement",
     "frame_share",
     "implausibility",
     "locate_structural_error",
+    "off_frames",
     "structural_check",
 ]
 
@@ -154,8 +156,9 @@ def _compliance_check(effect: Effect, robot: Robot, data: MeasuredData | None) -
 
 
 @torch.no_grad()
-def _displacement(model: ExtendedModel, label: str, data: MeasuredData, cond: Conditions):
-    """``(N, 3)`` [mm] what effect ``label`` moves the measured points by, frames fixed."""
+def displacement(model: ExtendedModel, label: str, data: MeasuredData, cond: Conditions):
+    """``(N, 3)`` [mm] what effect ``label`` moves the measured points by, frames fixed
+    (the measurement frame)."""
     reduced = ExtendedModel(
         model.robot,
         [
@@ -170,29 +173,41 @@ def _displacement(model: ExtendedModel, label: str, data: MeasuredData, cond: Co
     return 1e3 * (model(data.q, cond)[:, :3, 3] - reduced(data.q, cond)[:, :3, 3])
 
 
+def off_frames(
+    model: ExtendedModel, data: MeasuredData, cond: Conditions, *fields: Tensor
+) -> list[Tensor]:
+    """``fields`` (each ``(N, 3)``, displacements of the measured points in the
+    measurement frame) without the part a change of the base and tool frames makes
+    (least-squares projection off the frames' position columns at ``model``)."""
+    blocks = param_blocks(
+        model, ["base_frame.translation", "base_frame.rotation", "tool_frame.translation"], True
+    )
+    problem = Problem(model, data, cond, blocks, 1.0, 1.0)
+    _, J = problem.jacobian(torch.zeros_like(problem.x0))
+    Q, _ = torch.linalg.qr(J[: 3 * data.n])  # position rows, row-major like the fields
+    out = []
+    for f in fields:
+        flat = f.reshape(-1).to(Q.dtype)
+        out.append((flat - Q @ (Q.T @ flat)).reshape(-1, 3))
+    return out
+
+
 def frame_share(
     model: ExtendedModel, label: str, data: MeasuredData, cond: Conditions
 ) -> tuple[float, Tensor, Tensor]:
     """Fraction of the displacement effect ``label`` makes that a frame change makes too.
 
     Returns:
-        ``(share, d, d_phys)``: ``share`` in [0, 1], the displacement ``d (N, 3)`` [mm]
-        and its part ``d_phys`` that no change of the base and tool frames makes.
+        ``(share, d, d_phys)``: ``share`` in [0, 1], the displacement ``d (n, 3)`` [mm]
+        and its part ``d_phys`` that no change of the base and tool frames makes, on
+        the rows used (an even subset of at most ``FRAME_SHARE_ROWS``).
     """
     if data.n > FRAME_SHARE_ROWS:  # a ratio of the rows' spread: an even subset will do
         rows = torch.arange(0, data.n, math.ceil(data.n / FRAME_SHARE_ROWS))
         data, cond = data.subset(rows), cond.subset(rows)
-    d = _displacement(model, label, data, cond)
-    blocks = param_blocks(
-        model, ["base_frame.translation", "base_frame.rotation", "tool_frame.translation"], True
-    )
-    problem = Problem(model, data, cond, blocks, 1.0, 1.0)
-    _, J = problem.jacobian(torch.zeros_like(problem.x0))
-    Jp = J[: 3 * data.n]  # position rows, mm per scaled unit, row-major like d
-    flat = d.reshape(-1)
-    coef = torch.linalg.lstsq(Jp, flat[:, None]).solution[:, 0]
-    d_phys = (flat - Jp @ coef).reshape(-1, 3)
-    total = float((flat**2).sum())
+    d = displacement(model, label, data, cond)
+    (d_phys,) = off_frames(model, data, cond, d)
+    total = float((d**2).sum())
     share = 1.0 - float((d_phys**2).sum()) / max(total, 1e-300)
     return min(max(share, 0.0), 1.0), d, d_phys
 
