@@ -140,3 +140,16 @@ def test_the_evidence_plot_of_a_link_length_shows_its_physical_signature(rx160):
     assert float(abs(ev.x).max()) > 0.3
     slope = float((ev.x * ev.y).sum() / (ev.x * ev.x).sum())
     assert slope == pytest.approx(1.0, abs=0.05)
+
+
+def test_calibrate_does_not_let_a_large_value_pass_for_a_cause(rx160, tmp_path, capsys):
+    data, _ = simulate_campaign(rx160, 60, "joint_offset:joint_3=0.2", noise_mm=0.05,
+                                noise_deg=0.005, seed=4)  # fmt: skip
+    table = tmp_path / "offset.csv"
+    write_table(table, data)
+    rc = main(["calibrate", str(table), "--robot", "rx160", "--effects", "joint_offset:joint_3",
+               "--no-urdf", "--out", str(tmp_path / "m.pt")])  # fmt: skip
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "warning: joint_offset:joint_3: a rotation of 11.5° is beyond" in out
+    assert "the URDF is wrong there" in out

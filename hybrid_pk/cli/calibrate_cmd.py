@@ -36,6 +36,7 @@ from hybrid_pk.cli.common import (
 from hybrid_pk.cli.fit_settings import (
     fit_lines,
     frame_priors,
+    implausible_effect_lines,
     robust_loss,
     robust_summary,
 )
@@ -271,7 +272,7 @@ def _print_summary(robot, data, diag, effects, model, res0, res) -> None:
             )
     else:
         print("  no effects: frames only" + (" (the diagnosis named none)" if diag else ""))
-    for line in frame_lines(model) + fit_lines(data, res):
+    for line in frame_lines(model) + fit_lines(data, res) + implausible_effect_lines(model, data):
         print(line)
     p0, p1 = error_stats(res0.position_mm), error_stats(res.position_mm)
     print(

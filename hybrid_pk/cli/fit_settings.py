@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from hybrid_pk.calibration.diagnosis.structural import implausibility
 from hybrid_pk.calibration.frames import (
     DEFAULT_TOOL_STD_M,
     MAX_TOOL_TRANSLATION_M,
@@ -30,6 +31,7 @@ __all__ = [
     "fit_lines",
     "frame_priors",
     "frame_report_lines",
+    "implausible_effect_lines",
     "robust_lines",
     "robust_loss",
     "robust_summary",
@@ -134,3 +136,18 @@ def fit_lines(data, res) -> list[str]:
     outliers and down-weighted rows, as ``warning:`` lines."""
     summary = robust_summary(data, res)
     return frame_report_lines(res) + robust_lines(summary["outliers"], summary)
+
+
+def implausible_effect_lines(model, data) -> list[str]:
+    """A ``warning:`` for each fitted effect of ``model`` that is not a small correction
+    of the URDF (``calibrate --effects LIST`` fits what it is told; it does not let such
+    a value pass for a cause)."""
+    lines = []
+    for effect in model.effects:
+        why = implausibility(effect, model.robot, data)
+        if why is not None:
+            lines.append(
+                f"warning: {effect.label}: {why['why']}; this is no calibration error but a "
+                "sign that the URDF is wrong there (diagnose names where and by how much)"
+            )
+    return lines
