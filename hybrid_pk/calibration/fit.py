@@ -18,11 +18,16 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from hybrid_pk.calibration.frames import FramePriors, prior_centres, prior_residual
+from hybrid_pk.calibration.frames import FramePriors, PriorRows, prior_centres, prior_residual
 from hybrid_pk.calibration.identifiability import FrameReport, frame_report
 from hybrid_pk.calibration.least_squares import levenberg_marquardt
 from hybrid_pk.calibration.problem import ParamBlock, Problem, param_blocks
-from hybrid_pk.calibration.robust import robust_noise, robust_weights, row_distances
+from hybrid_pk.calibration.robust import (
+    robust_noise,
+    robust_weights,
+    row_distances,
+    row_weights_vector,
+)
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data
 from hybrid_pk.evaluation.metrics import pose_error, position_error_mm
@@ -188,23 +193,16 @@ def fit(
         extra: extra residual rows (priors, constraints; see :class:`Problem`).
         progress: called with a short text at every LM iteration, and at most every
             few seconds while a large Jacobian is built.
-        frames: known frames (their fixed components are not fitted) and the prior that
-            holds the frame components the data do not determine (default
-            :class:`FramePriors`: see :mod:`hybrid_pk.calibration.frames`).
+        frames: known frames (fixed components are not fitted) and the prior that holds
+            what the data do not determine (:mod:`hybrid_pk.calibration.frames`).
         robust: ``"huber"`` or ``"cauchy"``: rows with gross errors are down-weighted
             (iteratively re-weighted, noise from the median); None: least squares.
         weights: ``(N,)`` robust row weights to start from (e.g. a previous fit's).
     """
     cond = cond or conditions_from_data(data)
     position_only = data.quat is None
-    fixed_frames = set((frames or FramePriors()).fixed_labels())
-    blocks = tuple(
-        b for b in param_blocks(model, free, position_only) if b.label not in fixed_frames
-    )
-    prior = prior_residual(model, blocks, prior_centres(model, blocks, frames))
+    blocks, prior, start = _frame_setup(model, data, cond, free, frames)
     rows_extra = _joined(prior, extra)
-    start = {"base": model.base.matrix().detach().clone()}
-    start["rms_mm"] = float(model_errors(model, data, cond)[0].pow(2).mean().sqrt())
     if robust is not None and weights is None:
         weights = torch.ones(data.n, dtype=model.robot.dtype)
 
@@ -254,11 +252,29 @@ def fit(
             **common,
         )
     report = frame_report(
-        model, data, cond, blocks, sigma_pos_mm=sig_p,
-        sigma_rot_rad=None if position_only else sig_r, prior=prior, priors=frames,
-        start=start, rms_mm=float(pos.pow(2).mean().sqrt()),
+        model, data, cond, blocks, sigma_pos_mm=sig_p, sigma_rot_rad=common["sigma_rot_rad"],
+        prior=prior, priors=frames, start=start, rms_mm=float(pos.pow(2).mean().sqrt()),
     )  # fmt: skip
     return FitResult(**common, **_covariance(problem), frame_report=report)
+
+
+def _frame_setup(
+    model: ExtendedModel,
+    data: MeasuredData,
+    cond: Conditions,
+    free: Sequence[str] | None,
+    frames: FramePriors | None,
+) -> tuple[tuple[ParamBlock, ...], PriorRows | None, dict]:
+    """The blocks to fit (known frames' components left out), the frame prior's rows
+    (centred where the fit starts, or at the known values) and that start (base frames
+    and rms position error [mm]) for the plausibility of the result."""
+    fixed_frames = set((frames or FramePriors()).fixed_labels())
+    blocks = param_blocks(model, free, data.quat is None)
+    blocks = tuple(b for b in blocks if b.label not in fixed_frames)
+    prior = prior_residual(model, blocks, prior_centres(model, blocks, frames))
+    start = {"base": model.base.matrix().detach().clone()}
+    start["rms_mm"] = float(model_errors(model, data, cond)[0].pow(2).mean().sqrt())
+    return blocks, prior, start
 
 
 def _joined(a, b):
@@ -313,7 +329,7 @@ def _solve_reweighted(
         n_pos = 3 * data.n
         r = result.residual[: n_pos * (1 if position_only else 2)]
         if weights is not None:  # the rows' own residuals, without the robust weights
-            r = r / weights.sqrt().clamp_min(1e-150).repeat_interleave(3).repeat(r.numel() // n_pos)
+            r = r / row_weights_vector(weights.sqrt().clamp_min(1e-150), r.numel() // n_pos)
         dof_factor = r.numel() / max(r.numel() - result.x.numel(), 1)
         if robust is None:
             f_p = float((r[:n_pos] ** 2).mean() * dof_factor) ** 0.5
