@@ -75,7 +75,7 @@ def _physics_hybrid(robot: Robot, spec: str, coverage: bool = True, seed: int = 
     hybrid = HybridFK.build(_base(robot), features, "mlp:8x2", "mlp:8x2")
     if coverage:
         u, _ = features.encode(robot, q)
-        hybrid.coverage = Coverage.from_inputs(u[:150], u[150:])
+        hybrid.set_coverage(Coverage.from_inputs(u[:150], u[150:]))
     return hybrid.double().eval()
 
 
@@ -209,10 +209,8 @@ def test_a_joints_twist_is_the_first_order_motion_of_the_flange(robot):
     twist = 1e-6 * torch.randn(6, generator=gen, dtype=F64)
     head = LocalHead("mlp:4x1", robot.dof, torch.ones(6, dtype=F64)).double()
     with torch.no_grad():
-        for i, net in enumerate(head.nets):  # constant: the twist at joint j, zero elsewhere
-            last = [m for m in net.modules() if isinstance(m, torch.nn.Linear)][-1]
-            last.weight.zero_()
-            last.bias.copy_(twist if i == j else torch.zeros(6, dtype=F64))
+        head.nets.zero_output()  # constant: the twist at joint j, zero elsewhere
+        head.nets.biases[-1][j] = twist
         dp = head.correct(u, geo, None)
     frames = robot.link_frames(q)
     T_j, p_E = frames[:, j], frames[:, robot.dof, :3, 3]

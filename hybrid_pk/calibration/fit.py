@@ -22,19 +22,21 @@ from hybrid_pk.calibration.frames import FramePriors, PriorRows, prior_centres, 
 from hybrid_pk.calibration.identifiability import FrameReport, frame_report
 from hybrid_pk.calibration.least_squares import levenberg_marquardt
 from hybrid_pk.calibration.problem import ParamBlock, Problem, param_blocks
-from hybrid_pk.calibration.robust import (
-    robust_noise,
-    robust_weights,
-    row_distances,
-    row_weights_vector,
-)
+from hybrid_pk.calibration.robust import irls_update, row_weights_vector
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data
 from hybrid_pk.evaluation.metrics import pose_error, position_error_mm
 from hybrid_pk.geometry import quat_to_matrix
 from hybrid_pk.geometry.registration import register_frames
 
-__all__ = ["FitResult", "fit", "initialise_frames", "model_errors", "predicted_poses"]
+__all__ = [
+    "FitResult",
+    "fit",
+    "initialise_frames",
+    "model_errors",
+    "predicted_poses",
+    "reestimated_noise",
+]
 
 # First-pass noise levels, replaced by the estimates of the re-weighted pass.
 DEFAULT_SIGMA_POS_MM = 0.05
@@ -64,6 +66,7 @@ class FitResult:
         frame_report: which frame components the data do not determine, and frame
             plausibility warnings (only with ``covariance``).
         priors: the known frames and frame prior the fit used.
+        cost: their sum of squares at the solution (with the covariance only).
     """
 
     blocks: tuple[ParamBlock, ...]
@@ -81,6 +84,7 @@ class FitResult:
     iterations: int
     converged: bool
     normal_matrix: Tensor | None = None
+    cost: float | None = None
     robust: str | None = None
     weights: Tensor | None = None
     frame_report: FrameReport | None = None
@@ -255,7 +259,7 @@ def fit(
         model, data, cond, blocks, sigma_pos_mm=sig_p, sigma_rot_rad=common["sigma_rot_rad"],
         prior=prior, priors=frames, start=start, rms_mm=float(pos.pow(2).mean().sqrt()),
     )  # fmt: skip
-    return FitResult(**common, **_covariance(problem), frame_report=report)
+    return FitResult(**common, **_covariance(problem, prior), frame_report=report)
 
 
 def _frame_setup(
@@ -326,36 +330,49 @@ def _solve_reweighted(
         converged = result.converged
         if fixed_noise and robust is None:
             break
-        n_pos = 3 * data.n
-        r = result.residual[: n_pos * (1 if position_only else 2)]
+        r = result.residual[: 3 * data.n * (1 if position_only else 2)]
         if weights is not None:  # the rows' own residuals, without the robust weights
-            r = r / row_weights_vector(weights.sqrt().clamp_min(1e-150), r.numel() // n_pos)
-        dof_factor = r.numel() / max(r.numel() - result.x.numel(), 1)
+            r = r / row_weights_vector(weights.sqrt().clamp_min(1e-150), r.numel() // (3 * data.n))
         if robust is None:
-            f_p = float((r[:n_pos] ** 2).mean() * dof_factor) ** 0.5
-            f_r = None if position_only else float((r[n_pos:] ** 2).mean() * dof_factor) ** 0.5
+            new_p, new_r = reestimated_noise(
+                r, data.n, result.x.numel(), (sig_p, sig_r), fixed, position_only
+            )
+            change = max(abs(new_p / sig_p - 1), abs(new_r / sig_r - 1))
         else:
-            f_p, f_r = robust_noise(r, data.n, dof_factor)
-        new_p = sigma_pos_mm or max(sig_p * f_p, 1e-6)
-        new_r = sig_r
-        if not position_only and sigma_rot_rad is None:
-            new_r = max(sig_r * f_r, 1e-9)
-        change = 0.0 if fixed_noise else max(abs(new_p / sig_p - 1), abs(new_r / sig_r - 1))
-        if robust is not None:
-            parts = r.reshape(-1, data.n, 3).clone()
-            parts[0] *= sig_p / new_p
-            if not position_only:
-                parts[1] *= sig_r / new_r
-            new_w = robust_weights(row_distances(parts, data.n), 3 if position_only else 6, robust)
-            change = max(change, float((new_w - weights).abs().max()) / 0.5)
-            weights = new_w
+            new_p, new_r, weights, change = irls_update(
+                r, data.n, result.x.numel(), (sig_p, sig_r), fixed, robust, weights
+            )
         sig_p, sig_r = new_p, new_r
         if change < 0.05:
             break
     return sig_p, sig_r, iterations, converged, weights
 
 
-def _covariance(problem: Problem) -> dict:
+def reestimated_noise(
+    r: Tensor,
+    n_rows: int,
+    n_params: int,
+    sigmas: tuple[float, float],
+    fixed: tuple[float | None, float | None] = (None, None),
+    position_only: bool = False,
+) -> tuple[float, float]:
+    """Noise levels ``(sigma_pos_mm, sigma_rot_rad)`` that make the mean square of the
+    residuals ``r`` (computed under ``sigmas``) one per degree of freedom.
+
+    ``fixed`` levels (not None) are kept; so is the rotation level without orientation.
+    """
+    sig_p, sig_r = sigmas
+    n_pos = 3 * n_rows
+    dof_factor = r.numel() / max(r.numel() - n_params, 1)
+    new_p = fixed[0] or max(sig_p * float((r[:n_pos] ** 2).mean() * dof_factor) ** 0.5, 1e-6)
+    new_r = sig_r
+    if not position_only and fixed[1] is None:
+        rot = r[n_pos : 2 * n_pos]
+        new_r = max(sig_r * float((rot**2).mean() * dof_factor) ** 0.5, 1e-9)
+    return new_p, new_r
+
+
+def _covariance(problem: Problem, prior: PriorRows | None = None) -> dict:
     """Standard deviations, correlations and singular values at the problem's point,
     and the normal matrix ``J^T J`` (scaled parameters) they come from."""
     R = problem.r_factor(torch.zeros_like(problem.x0))
@@ -369,6 +386,10 @@ def _covariance(problem: Problem) -> dict:
     d = cov_scaled.diagonal().clamp_min(1e-300).sqrt()
     corr = cov_scaled / (d[:, None] * d[None, :])
     sv = torch.linalg.svdvals(J / J.norm(dim=0).clamp_min(1e-300))
+    cost = float(z @ z)
+    if prior is not None:  # the cost of the data alone (tests compare it with refits')
+        r_prior = prior(torch.zeros_like(problem.x0))[0]
+        cost -= float(r_prior @ r_prior)
     return {
         "std": std,
         "corr": corr,
@@ -376,6 +397,7 @@ def _covariance(problem: Problem) -> dict:
         "condition": float(sv[0] / sv[-1].clamp_min(1e-300)),
         "n_obs": n_obs,
         "normal_matrix": normal,
+        "cost": cost,
     }
 
 

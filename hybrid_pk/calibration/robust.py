@@ -38,6 +38,7 @@ __all__ = [
     "check_robust",
     "chi2_quantile",
     "down_weighted",
+    "irls_update",
     "list_outliers",
     "outlier_threshold",
     "robust_cost",
@@ -130,6 +131,49 @@ def robust_noise(r: Tensor, n_rows: int, dof_factor: float = 1.0) -> tuple[float
     med = chi2_quantile(0.5, 3)
     factors = [float((p.median() / med * dof_factor).clamp_min(1e-300).sqrt()) for p in parts]
     return factors[0], factors[1] if len(factors) > 1 else None
+
+
+def irls_update(
+    r: Tensor,
+    n_rows: int,
+    n_params: int,
+    sigmas: tuple[float, float],
+    fixed: tuple[float | None, float | None],
+    loss: str,
+    weights: Tensor,
+) -> tuple[float, float, Tensor, float]:
+    """One IRLS update after a pass of a robust fit.
+
+    Args:
+        r: ``(3 N)`` or ``(6 N)`` residuals of the rows (without their robust weights)
+            under the noise levels ``sigmas = (sigma_pos_mm, sigma_rot_rad)``.
+        n_rows, n_params: rows N and fitted parameters (degrees of freedom).
+        fixed: noise levels given by the caller (not re-estimated), or None.
+        loss: ``"huber"`` or ``"cauchy"``.
+        weights: ``(N,)`` the weights of the pass.
+
+    Returns:
+        ``(sigma_pos_mm, sigma_rot_rad, weights, change)``: noise levels from the median
+        row distance, the rows' new weights, and the largest relative change of a noise
+        level or (doubled) of a weight.
+    """
+    sig_p, sig_r = sigmas
+    position_only = r.numel() == 3 * n_rows
+    dof_factor = r.numel() / max(r.numel() - n_params, 1)
+    f_p, f_r = robust_noise(r, n_rows, dof_factor)
+    new_p = fixed[0] or max(sig_p * f_p, 1e-6)
+    new_r = sig_r if position_only or fixed[1] is not None else max(sig_r * f_r, 1e-9)
+    change = (
+        0.0
+        if fixed[0] and (fixed[1] or position_only)
+        else max(abs(new_p / sig_p - 1), abs(new_r / sig_r - 1))
+    )
+    parts = r.reshape(-1, n_rows, 3).clone()
+    parts[0] *= sig_p / new_p
+    if not position_only:
+        parts[1] *= sig_r / new_r
+    new_w = robust_weights(row_distances(parts, n_rows), 3 if position_only else 6, loss)
+    return new_p, new_r, new_w, max(change, float((new_w - weights).abs().max()) / 0.5)
 
 
 def list_outliers(

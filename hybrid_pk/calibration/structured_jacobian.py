@@ -152,8 +152,8 @@ class StructuredJacobian:
         eye = torch.eye(size, dtype=q_star.dtype)
         d_xyz, d_rot, d_axis = torch.func.vmap(along)(eye)
         frames = self.model.robot.link_frames(q_star, params=params)
-        maps = origin_twist_maps(frames, params.origin_xyz, (E @ X)[:, :3, 3])
-        tw = geometry_twists(maps, params.origin_rot, d_xyz, d_rot, B[..., :3, :3])
+        maps = origin_twist_maps(frames, params.origin_xyz, (E @ X)[:, :3, 3], B[..., :3, :3])
+        tw = geometry_twists(maps, params.origin_rot, d_xyz, d_rot)
         out = self._split(blocks, tw)
         turns_axis = d_axis.reshape(size, -1).abs().amax(1) > 0
         start = 0

@@ -110,9 +110,9 @@ def point_joint_twists(jac_end: Tensor, lever: Tensor, R_B: Tensor) -> Tensor:
     return torch.cat([R_B @ v_point, R_B @ w], 1)
 
 
-def origin_twist_maps(frames: Tensor, origin_xyz: Tensor, point: Tensor) -> Tensor:
-    """``(n, 6, 6 (dof + 1))``: twist of the point (root frame) per unit move of each
-    chain origin, ``[translation (3); rotation (3)]`` in the origin's parent frame.
+def origin_twist_maps(frames: Tensor, origin_xyz: Tensor, point: Tensor, R_B: Tensor) -> Tensor:
+    """``(n, 6, 6 (dof + 1))``: twist of the point (measurement frame) per unit move of
+    each chain origin, ``[translation (3); rotation (3)]`` in the origin's parent frame.
 
     Origin ``i`` sits in the frame of joint ``i`` (the root for ``i = 0``); moving it
     moves everything after it: ``v = R_P d + w x (p - o)``, ``w = R_P dw``.
@@ -122,23 +122,23 @@ def origin_twist_maps(frames: Tensor, origin_xyz: Tensor, point: Tensor) -> Tens
         origin_xyz: ``(*P, dof + 1, 3)`` current origin translations (``*P`` empty or
             ``(n,)`` for per-row parameters).
         point: ``(n, 3)`` measured point in the root frame [m].
+        R_B: ``(n, 3, 3)`` or ``(3, 3)`` root -> measurement frame rotation.
     """
     n, n_orig = frames.shape[0], origin_xyz.shape[-2]
     eye = torch.eye(3, dtype=frames.dtype, device=frames.device).expand(n, 1, 3, 3)
     R_P = torch.cat([eye, frames[:, : n_orig - 1, :3, :3]], 1)  # parent frame of origin i
     t_P = torch.cat([frames.new_zeros(n, 1, 3), frames[:, : n_orig - 1, :3, 3]], 1)
     o = t_P + (R_P @ origin_xyz.expand(n, n_orig, 3)[..., None])[..., 0]  # (n, n_orig, 3)
-    lever = point[:, None, :] - o
-    zero = torch.zeros_like(R_P)
-    top = torch.cat([R_P, -skew(lever) @ R_P], -1)  # (n, n_orig, 3, 6)
-    bottom = torch.cat([zero, R_P], -1)
+    R = R_B if R_B.dim() == 2 else R_B[:, None]
+    R_MP = R @ R_P  # parent frames in the measurement frame
+    lever = (R @ (point[:, None, :] - o)[..., None])[..., 0]
+    top = torch.cat([R_MP, -skew(lever) @ R_MP], -1)  # (n, n_orig, 3, 6)
+    bottom = torch.cat([torch.zeros_like(R_MP), R_MP], -1)
     M = torch.cat([top, bottom], -2)  # (n, n_orig, 6, 6)
     return M.permute(0, 2, 1, 3).reshape(n, 6, 6 * n_orig)
 
 
-def geometry_twists(
-    maps: Tensor, origin_rot: Tensor, d_xyz: Tensor, d_rot: Tensor, R_B: Tensor
-) -> Tensor:
+def geometry_twists(maps: Tensor, origin_rot: Tensor, d_xyz: Tensor, d_rot: Tensor) -> Tensor:
     """``(n, 6, k)`` twists of the point for ``k`` directions of the chain origins, in
     the measurement frame.
 
@@ -147,18 +147,13 @@ def geometry_twists(
         origin_rot: ``(*P, dof + 1, 3, 3)`` current origin rotations.
         d_xyz, d_rot: ``(k, *P, dof + 1, 3)``, ``(k, *P, dof + 1, 3, 3)`` derivatives
             of the origins along each direction.
-        R_B: ``(n, 3, 3)`` or ``(3, 3)`` root -> measurement frame rotation.
     """
     k = d_xyz.shape[0]
     w_local = vee(d_rot @ origin_rot.transpose(-1, -2))  # parent-frame angular rates
     D = torch.cat([d_xyz, w_local], -1)  # (k, *P, n_orig, 6)
     if D.dim() == 3:  # shared parameters: one matrix for every row
-        tw = maps @ D.reshape(k, -1).T
-    else:
-        tw = maps @ D.reshape(k, D.shape[1], -1).permute(1, 2, 0)
-    n = tw.shape[0]
-    R = R_B if R_B.dim() == 2 else R_B[:, None]
-    return (R @ tw.reshape(n, 2, 3, k)).reshape(n, 6, k)
+        return maps @ D.reshape(k, -1).T
+    return maps @ D.reshape(k, D.shape[1], -1).permute(1, 2, 0)
 
 
 def residual_columns(

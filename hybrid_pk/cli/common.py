@@ -1,5 +1,5 @@
 """Helpers shared by the sub-commands: robot and data loading with clear errors, frame
-sets and (re-)fitting, Lightning's quiet start, summaries and JSON output. The shared
+sets and (re-)fitting, summaries and JSON output. The shared
 flags are in :mod:`hybrid_pk.cli.options`, the progress display in
 :mod:`hybrid_pk.cli.progress`."""
 
@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import os
 import warnings
 from collections.abc import Iterator, Sequence
@@ -30,9 +29,9 @@ __all__ = [
     "data_notes",
     "fit_frames",
     "frame_parameter_count",
+    "frame_set_index",
     "frame_sets_for",
     "load_robot",
-    "quiet_lightning",
     "read_data",
     "stats_line",
     "with_frame_sets",
@@ -97,6 +96,24 @@ def frame_parameter_count(sets: int, position_only: bool) -> int:
     return sets * (9 if position_only else 12)
 
 
+def frame_set_index(value: int | None, sets: int, model: str) -> int:
+    """The ``--frame-set`` of a MODEL with ``sets`` frame sets (0 for a single set).
+
+    Raises:
+        HybridPKError: several sets and none chosen, or one out of range.
+    """
+    if value is None:
+        if sets > 1:
+            raise HybridPKError(
+                f"{model} has {sets} base/tool frame sets (one per calibration file); "
+                f"choose one with --frame-set 0..{sets - 1}"
+            )
+        return 0
+    if not 0 <= value < sets:
+        raise HybridPKError(f"--frame-set {value}: {model} has sets 0..{sets - 1}")
+    return value
+
+
 def with_frame_sets(model: ExtendedModel, sets: int, keep: str | None = None) -> ExtendedModel:
     """``model`` with ``sets`` base/tool frame sets (same robot and effect modules).
 
@@ -147,18 +164,6 @@ def frame_sets_for(args: argparse.Namespace, model_sets: int) -> int:
             f"{args.model} has one base/tool frame set; --frames-per-file needs --fit-frames"
         )
     return model_sets
-
-
-def quiet_lightning() -> None:
-    """Keep Lightning's start-up chatter (accelerators found, tips, 'max_epochs reached')
-    and library deprecation notes off the terminal (imports Lightning first: it sets its
-    loggers up when imported)."""
-    import lightning.pytorch  # noqa: F401  (configures its loggers on import)
-
-    logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
-    warnings.filterwarnings("ignore", message=".*LeafSpec.*", category=DeprecationWarning)
-    warnings.filterwarnings("ignore", message=".*LeafSpec.*", category=FutureWarning)
-    warnings.filterwarnings("ignore", message=r".*distributed\.nn\.functional\.all_gather.*")
 
 
 def fit_frames(

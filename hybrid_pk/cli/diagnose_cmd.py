@@ -146,7 +146,7 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hybrid_pk.calibration.diagnosis.search import diagnose
+    from hybrid_pk.calibration.diagnosis import diagnose
     from hybrid_pk.effects import make_effect
 
     for path in args.data:

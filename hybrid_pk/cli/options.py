@@ -14,7 +14,7 @@ Groups:
         :func:`add_fit_frames`
     outputs: :func:`add_out`, :func:`add_json`, :func:`add_report`
     runs: :func:`add_seed`, :func:`add_epochs`, :func:`add_noise`, :func:`add_progress`
-    solving for targets (ik, compensate): :func:`add_approach`
+    solving for targets (ik, compensate): :func:`add_approach`, :func:`add_frame_set`
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ import argparse
 
 from hybrid_pk.calibration.frames import MAX_TOOL_TRANSLATION_M
 from hybrid_pk.calibration.robust import ROBUST_LOSSES
+from hybrid_pk.robot import shipped_robots
 
 __all__ = [
     "APPROACH_HELP",
@@ -35,6 +36,7 @@ __all__ = [
     "add_fit_frames",
     "add_fit_options",
     "add_frame_options",
+    "add_frame_set",
     "add_json",
     "add_model",
     "add_noise",
@@ -48,7 +50,7 @@ __all__ = [
     "fraction",
 ]
 
-ROBOT_HELP = "shipped robot name (rx160, ur10) or URDF path"
+ROBOT_HELP = f"shipped robot name ({', '.join(shipped_robots())}) or URDF path"
 END_LINK_HELP = "end link of the chain, e.g. a tool link (default: the URDF's leaf link)"
 _ROBOT_CHECK_HELP = "refuse a MODEL made for another robot than ROBOT"
 APPROACH_HELP = (
@@ -311,3 +313,15 @@ def add_approach(parser: argparse.ArgumentParser) -> None:
     """``--approach SPEC``: backlash approach direction of IK targets
     (:func:`hybrid_pk.ik.parse_approach` reads it)."""
     parser.add_argument("--approach", metavar="SPEC", help=APPROACH_HELP)
+
+
+def add_frame_set(parser: argparse.ArgumentParser) -> None:
+    """``--frame-set K``: which base/tool frame set of MODEL (``ik``, ``compensate``);
+    :func:`hybrid_pk.cli.common.frame_set_index` checks it."""
+    parser.add_argument(
+        "--frame-set",
+        type=int,
+        default=None,
+        metavar="K",
+        help="base/tool frame set of a model calibrated with one set per file (0-based)",
+    )

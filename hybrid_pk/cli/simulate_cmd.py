@@ -20,9 +20,10 @@ from hybrid_pk.cli.options import (
     add_robot,
     add_seed,
 )
+from hybrid_pk.data.joint_table import read_joint_table
 from hybrid_pk.data.table import write_table
 from hybrid_pk.effects import ExtendedModel
-from hybrid_pk.errors import DataError
+from hybrid_pk.errors import DataError, HybridPKError
 from hybrid_pk.robot import Robot
 from hybrid_pk.simulate import TRAJECTORIES, is_hidden_spec, simulate_campaign
 
@@ -60,7 +61,13 @@ DESCRIPTION = _DESCRIPTION
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The flags of ``hybrid-pk simulate``."""
     add_robot(p, positional=True)
-    p.add_argument("--n", type=int, required=True, metavar="N", help="number of measurements")
+    p.add_argument("--n", type=int, metavar="N", help="number of measurements")
+    p.add_argument(
+        "--poses",
+        metavar="POSES",
+        help="measure at these joints instead of a --trajectory: a table with one column "
+        "per joint [rad, m], e.g. the output of `hybrid-pk plan` (--n: its row count)",
+    )
     p.add_argument(
         "--effects",
         default="none",
@@ -197,10 +204,16 @@ def run(args: argparse.Namespace) -> int:
         else parse_frame_spec(getattr(args, name), f"--{name}")
         for name in ("base", "tool")
     }
+    poses = None
+    if args.poses is not None:
+        poses, _ = read_joint_table(args.poses, robot)
+    elif args.n is None:
+        raise HybridPKError("give --n N (rows of a --trajectory) or --poses POSES")
     data, truth = simulate_campaign(
         robot,
         args.n,
         args.effects,
+        poses=poses,
         noise_mm=args.noise_mm,
         noise_deg=args.noise_deg,
         trajectory=args.trajectory,
@@ -217,6 +230,7 @@ def run(args: argparse.Namespace) -> int:
     write_table(out, data)
     truth_file.write_text(json.dumps(truth, indent=2) + "\n", encoding="utf-8")
 
+    where = f"poses of {args.poses}" if poses is not None else f"trajectory {args.trajectory}"
     load = (
         f"payload {args.payload:g} kg"
         if args.payload_range is None
@@ -224,7 +238,7 @@ def run(args: argparse.Namespace) -> int:
     )
     pos, rot = truth["dataset_error"]["position_mm"], truth["dataset_error"]["orientation_deg"]
     print(
-        f"simulated {data.n} rows of {robot.name}: trajectory {args.trajectory}, {load}, "
+        f"simulated {data.n} rows of {robot.name}: {where}, {load}, "
         f"noise {args.noise_mm:g} mm / {args.noise_deg:g} deg, seed {args.seed}"
     )
     print(f"wrote {out} and {truth_file}")

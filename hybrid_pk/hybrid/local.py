@@ -32,7 +32,7 @@ from torch import Tensor, nn
 
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.hybrid.features import STANDARD_GRAVITY_VECTOR, gravity_along, static_wrenches
-from hybrid_pk.hybrid.nets import build_net
+from hybrid_pk.hybrid.nets import GroupedDenseNet, parse_arch
 from hybrid_pk.robot import Robot
 
 __all__ = ["LOCAL_FEATURES", "LocalFeatures", "LocalHead", "LocalSpec"]
@@ -187,16 +187,18 @@ class LocalHead(nn.Module):
             raise ValueError(
                 f"scale must have 3 (orientation) or 6 (position) entries, got {scale.numel()}"
             )
+        spec = parse_arch(arch)
+        if spec.family != "dense":
+            raise HybridPKError(
+                f"local networks need a dense architecture (mlp, mlp:WxD, D1, B1, ...), "
+                f"not {arch!r}"
+            )
         self.arch = arch
-        self.nets = nn.ModuleList(
-            build_net(arch, LOCAL_FEATURES, scale.numel()) for _ in range(dof)
-        )
+        hidden, act = spec.args["hidden"], spec.args.get("activation", "relu")
+        self.nets = GroupedDenseNet(dof, LOCAL_FEATURES, hidden, scale.numel(), act)
         self.register_buffer("scale", scale.clone())
         if zero_init:
-            for net in self.nets:
-                last = [m for m in net.modules() if isinstance(m, nn.Linear)][-1]
-                nn.init.zeros_(last.weight)
-                nn.init.zeros_(last.bias)
+            self.nets.zero_output()
 
     @property
     def net_dtype(self) -> torch.dtype:
@@ -209,8 +211,7 @@ class LocalHead(nn.Module):
     def twists(self, u: Tensor) -> Tensor:
         """``(*B, dof, 8)`` inputs -> ``(*B, dof, n_out)`` twists in each joint's frame."""
         batch = u.shape[:-2]
-        flat = u.reshape(-1, *u.shape[-2:]).to(self.net_dtype)
-        out = torch.stack([net(flat[:, j]) for j, net in enumerate(self.nets)], 1)
+        out = self.nets(u.reshape(-1, *u.shape[-2:]).to(self.net_dtype))
         return out.to(u.dtype).reshape(*batch, *out.shape[1:]) * self.scale.to(u.dtype)
 
     def correct(self, u: Tensor, geo: dict[str, Tensor], w: Tensor | None) -> Tensor:

@@ -15,11 +15,13 @@ Format (``format: hybrid_pk.residual_networks``)::
                   () or (dof,) tensors, "neighbours": int} or None,
      "position" / "orientation": {"arch": str, "scale": (3,) tensor,
                                   "dtype": str, "state_dict": {...}} or None,
+     "stages": [{"role": "cascade" or "refine", "input", "features", "coverage",
+                 "position", "orientation"}, ...],     the stages after the first
      "training": {...}}
 
 Version 1 (hybrid_pk before issue 13) has only ``input``; it is still written for the
-paper's inputs without a coverage, so older installations read such files. Version 2
-adds ``features`` and ``coverage``.
+paper's inputs without a coverage in one stage, so older installations read such
+files. Version 2 adds ``features``, ``coverage`` and ``stages``.
 """
 
 from __future__ import annotations
@@ -35,9 +37,10 @@ from hybrid_pk.hybrid.features import PhysicsFeatures
 from hybrid_pk.hybrid.inputs import InputBox
 from hybrid_pk.hybrid.local import LocalFeatures, LocalHead
 from hybrid_pk.hybrid.nets import ResidualHead
+from hybrid_pk.hybrid.stage import ResidualStage
 from hybrid_pk.robot import Robot
 
-__all__ = ["NETWORKS_FORMAT", "NETWORKS_VERSION", "networks_state", "parts_from_state"]
+__all__ = ["NETWORKS_FORMAT", "NETWORKS_VERSION", "networks_state", "stages_from_state"]
 
 NETWORKS_FORMAT = "hybrid_pk.residual_networks"
 NETWORKS_VERSION = 2
@@ -56,36 +59,45 @@ def _head_state(h: ResidualHead | LocalHead | None) -> dict | None:
     }
 
 
+def _stage_state(stage: ResidualStage) -> dict:
+    box = stage.box
+    return {
+        "role": stage.role,
+        "input": None if box is None else box.state(),
+        "features": None if box is not None else stage.inputs.state(),
+        "coverage": None if stage.coverage is None else stage.coverage.state(),
+        "position": _head_state(stage.position),
+        "orientation": _head_state(stage.orientation),
+    }
+
+
 def networks_state(
-    joint_names: Sequence[str],
-    inputs: InputBox | PhysicsFeatures | LocalFeatures,
-    heads: dict[str, ResidualHead | LocalHead | None],
-    coverage: Coverage | None,
-    metadata: dict | None = None,
+    joint_names: Sequence[str], stages: Sequence[ResidualStage], metadata: dict | None = None
 ) -> dict:
-    """The ``networks`` entry for these parts (see the module docstring).
+    """The ``networks`` entry for these stages (see the module docstring).
 
     Args:
         joint_names: the robot's joints (checked on loading).
-        inputs: the networks' inputs.
-        heads: ``position`` and ``orientation`` heads (None: no such network).
-        coverage: trust region in input space, or None.
+        stages: the hybrid model's stages; the first one's entries are at the top level,
+            the others in ``stages``.
         metadata: plain values stored as ``training``.
     """
-    box = inputs if isinstance(inputs, InputBox) else None
+    first = _stage_state(stages[0])
+    plain = first["input"] is not None and first["coverage"] is None and len(stages) == 1
     state = {
         "format": NETWORKS_FORMAT,
-        "version": 1 if box is not None and coverage is None else NETWORKS_VERSION,
+        "version": 1 if plain else NETWORKS_VERSION,
         "joint_names": list(joint_names),
         "frame": "flange origin, joint-1 axes",
-        "input": None if box is None else box.state(),
-        "position": _head_state(heads.get("position")),
-        "orientation": _head_state(heads.get("orientation")),
+        "input": first["input"],
+        "position": first["position"],
+        "orientation": first["orientation"],
         "training": dict(metadata or {}),
     }
-    if state["version"] > 1:
-        state["features"] = None if box is not None else inputs.state()
-        state["coverage"] = None if coverage is None else coverage.state()
+    if not plain:
+        state["features"] = first["features"]
+        state["coverage"] = first["coverage"]
+        state["stages"] = [_stage_state(stage) for stage in stages[1:]]
     return state
 
 
@@ -129,24 +141,11 @@ def _head(
     return h
 
 
-def parts_from_state(
-    robot: Robot, state: dict, source: str = "model file"
-) -> tuple[
-    InputBox | PhysicsFeatures | LocalFeatures,
-    dict[str, ResidualHead | LocalHead | None],
-    Coverage | None,
-]:
-    """Inputs, heads and coverage of a ``networks`` entry (format 1 or 2) for ``robot``.
-
-    Raises:
-        ModelFileError: not a networks entry, a newer version, networks made for other
-            joints, or a network that does not match its architecture.
-    """
-    version = _check_header(robot, state, source)
-    features = state.get("features") if version >= 2 else None
+def _stage_from_state(robot: Robot, entry: dict, source: str) -> ResidualStage:
+    features = entry.get("features")
     inputs: InputBox | PhysicsFeatures | LocalFeatures
     if features is None:
-        inputs, n_inputs = InputBox.from_state(state["input"]), robot.dof
+        inputs, n_inputs = InputBox.from_state(entry["input"]), robot.dof
     elif features.get("kind") == "physics":
         inputs = PhysicsFeatures.from_state(features, robot)
         n_inputs = inputs.n_features
@@ -154,9 +153,29 @@ def parts_from_state(
         inputs, n_inputs = LocalFeatures.from_state(features, robot), 0
     else:
         raise ModelFileError(f"{source}: unknown network inputs {features.get('kind')!r}")
-    cov = state.get("coverage") if version >= 2 else None
-    coverage = None if cov is None else Coverage.from_state(cov)
+    cov = entry.get("coverage")
     heads = {
-        k: _head(state.get(k), inputs, n_inputs, k, source) for k in ("position", "orientation")
+        k: _head(entry.get(k), inputs, n_inputs, k, source) for k in ("position", "orientation")
     }
-    return inputs, heads, coverage
+    return ResidualStage(
+        inputs,
+        heads["position"],
+        heads["orientation"],
+        None if cov is None else Coverage.from_state(cov),
+        entry.get("role", "cascade"),
+    )
+
+
+def stages_from_state(robot: Robot, state: dict, source: str = "model file") -> list[ResidualStage]:
+    """The stages of a ``networks`` entry (format 1 or 2) for ``robot``.
+
+    Raises:
+        ModelFileError: not a networks entry, a newer version, networks made for other
+            joints, or a network that does not match its architecture.
+    """
+    version = _check_header(robot, state, source)
+    if version < 2:
+        first = {k: state.get(k) for k in ("input", "position", "orientation")}
+        return [_stage_from_state(robot, first, source)]
+    stages = [_stage_from_state(robot, state, source)]
+    return stages + [_stage_from_state(robot, e, source) for e in state.get("stages") or []]

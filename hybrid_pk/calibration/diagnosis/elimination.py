@@ -87,7 +87,7 @@ def _least_significant(
     F-test of the refitted reduced model.
     """
     train, cond = split.train, split.cond_fit
-    ssr_full = weighted_ssr(model, train, cond, res)
+    ssr_full = res.cost if res.cost is not None else weighted_ssr(model, train, cond, res)
     dof = max(res.n_obs - res.n_params, 1)
     worst = None
     for e in model.effects:

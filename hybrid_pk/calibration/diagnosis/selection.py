@@ -23,9 +23,14 @@ from hybrid_pk.calibration.diagnosis.ambiguity import (
     projector_residual,
 )
 from hybrid_pk.calibration.diagnosis.split import Split
-from hybrid_pk.calibration.diagnosis.statistics import f_survival, holdout_score, weighted_ssr
+from hybrid_pk.calibration.diagnosis.statistics import (
+    f_survival,
+    holdout_score,
+    weighted_residual,
+    weighted_ssr,
+)
 from hybrid_pk.calibration.diagnosis.variants import shift_parameters, with_effects
-from hybrid_pk.calibration.fit import FitResult, fit
+from hybrid_pk.calibration.fit import FitResult, fit, reestimated_noise
 from hybrid_pk.calibration.problem import Problem, param_blocks
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import EFFECTS, ExtendedModel, effect_joint_names, make_effect
@@ -145,9 +150,8 @@ def score_candidates(
     robot = model.robot
     trial = with_effects(model, [make_effect(robot, c) for c in pool])
     fixed = set() if res.priors is None else set(res.priors.fixed_labels())
-    blocks = tuple(
-        b for b in param_blocks(trial, None, split.position_only) if b.label not in fixed
-    )
+    blocks = param_blocks(trial, None, split.position_only)
+    blocks = tuple(b for b in blocks if b.label not in fixed)
     sig_r = res.sigma_rot_rad or 1.0
     # robust fits: the rows weigh as in the fit (a gross row does not score a candidate)
     weights = None if res.weights is None else res.weights.sqrt()
@@ -252,18 +256,28 @@ def try_candidate(
         "threshold": scores.threshold,
     }
     new = with_effects(model, [make_effect(model.robot, label)])
-    ssr_old = weighted_ssr(model, split.train, split.cond_fit, res)
+    # (a robust fit's cost is its IRLS sum; its F-test compares robust costs)
+    ssr_old = res.cost if res.cost is not None and res.robust is None else _ssr(model, split, res)
+    sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
     start = with_effects(new)
     shift_parameters(start, gauss_newton_start(scores, label), split.position_only)
-    if weighted_ssr(start, split.train, split.cond_fit, res) < ssr_old:
+    r_start = weighted_residual(start, split.train, split.cond_fit, res)
+    start_cost = float(r_start @ r_start) if res.robust is None else _ssr(start, split, res)
+    if start_cost < ssr_old:
+        # The start is (linearised) optimal under the current noise weights: its
+        # residuals give the noise levels the refit's second pass would start from.
         new = start
-    sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
+        n_params = scores.n_current + sum(b.size for b in scores.blocks if b.label == label)
+        noise = reestimated_noise(
+            r_start, split.train.n, n_params, sigmas, position_only=split.position_only
+        )
+        sigmas = (noise[0], None if split.position_only else noise[1])
     new_res = fit(
         new, split.train, cond=split.cond_fit, initial_sigma=sigmas, progress=progress,
         **res.settings(),
     )  # fmt: skip
     # F-test and BIC of the refit, both models' residuals under the same weights.
-    ssr_new = weighted_ssr(new, split.train, split.cond_fit, res)
+    ssr_new = _ssr(new, split, res)
     dof_new = max(m - new_res.n_params, 1)
     F_fit = ((ssr_old - ssr_new) / k) / max(ssr_new / dof_new, 1e-300)
     p_fit = f_survival(F_fit, k, dof_new) if F_fit > 0 else 1.0
@@ -284,3 +298,7 @@ def try_candidate(
     if not step["accepted"]:
         step["why"] = "refit not significant, BIC not lower, or hold-out not better"
     return new, new_res, step
+
+
+def _ssr(model: ExtendedModel, split: Split, res: FitResult) -> float:
+    return weighted_ssr(model, split.train, split.cond_fit, res)

@@ -19,6 +19,7 @@ __all__ = [
     "holdout_score",
     "neighbour_structure",
     "residual_vectors",
+    "weighted_residual",
     "weighted_ssr",
 ]
 
@@ -37,15 +38,22 @@ def f_critical(alpha: float, d1: int, d2: int) -> float:
     return float(stats.f.isf(alpha, d1, d2))
 
 
+def weighted_residual(
+    model: ExtendedModel, data: MeasuredData, cond: Conditions, res: FitResult
+) -> Tensor:
+    """Residuals of ``model`` on ``data`` under ``res``'s noise weights."""
+    problem = Problem(model, data, cond, (), res.sigma_pos_mm, res.sigma_rot_rad or 1.0)
+    with torch.no_grad():
+        return problem.residual(torch.zeros(0, dtype=torch.float64))
+
+
 def weighted_ssr(
     model: ExtendedModel, data: MeasuredData, cond: Conditions, res: FitResult
 ) -> float:
     """Sum of squared residuals of ``model`` on ``data`` under ``res``'s noise weights;
     for a robust fit the robust cost of its loss, on the same scale (see
     :func:`~hybrid_pk.calibration.robust.robust_cost`)."""
-    problem = Problem(model, data, cond, (), res.sigma_pos_mm, res.sigma_rot_rad or 1.0)
-    with torch.no_grad():
-        r = problem.residual(torch.zeros(0, dtype=torch.float64))
+    r = weighted_residual(model, data, cond, res)
     if res.robust is not None:
         return robust_cost(row_distances(r, data.n), 3 if data.quat is None else 6, res.robust)
     return float(r @ r)
