@@ -11,7 +11,8 @@ from __future__ import annotations
 import argparse
 
 from hybrid_pk.calibration.diagnosis import diagnose
-from hybrid_pk.calibration.fit import fit, initialise_frames
+from hybrid_pk.calibration.fit import fit
+from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.cli.calibrate_output import (
     add_urdf_options,
     condition_warning,
@@ -31,6 +32,13 @@ from hybrid_pk.cli.common import (
     read_data,
 )
 from hybrid_pk.cli.effect_lists import effect_labels
+from hybrid_pk.cli.fit_settings import (
+    fit_lines,
+    frame_priors,
+    implausible_effect_lines,
+    robust_loss,
+    robust_summary,
+)
 from hybrid_pk.cli.options import (
     ROBOT_HELP,
     add_data,
@@ -143,6 +151,7 @@ def _run_new(args: argparse.Namespace) -> int:
     spec, labels = _requested_labels(robot, (args.effects or "auto").strip())
     auto = spec == "auto"
     sets = len(args.data) if args.frames_per_file else 1
+    priors, robust = frame_priors(args), robust_loss(args)
 
     diag = None
     with progress("calibrate", total=5 if auto else 4) as bar:
@@ -164,16 +173,20 @@ def _run_new(args: argparse.Namespace) -> int:
                 seed=args.seed,
                 frames_per_file=args.frames_per_file,
                 progress=bar,
+                frames=priors,
+                robust=robust,
             )
             labels = [c.effect if c.joint is None else f"{c.effect}:{c.joint}" for c in diag.causes]
         bar.stage("fitting frames to the nominal robot")
-        res0 = fit_frames(ExtendedModel(robot, frame_sets=sets), data, cond)
+        res0 = fit_frames(
+            ExtendedModel(robot, frame_sets=sets), data, cond, priors=priors, robust=robust
+        )
         bar.stage("fitting frames and effects")
         model = ExtendedModel(
             robot, _start_effects(robot, labels, diag.model if diag else None), frame_sets=sets
         )
-        initialise_frames(model, data, cond)
-        res = fit(model, data, cond=cond)
+        initialise_with_priors(model, data, cond, priors)
+        res = fit(model, data, cond=cond, frames=priors, robust=robust, weights=res0.weights)
         bar.stage("writing")
         effects = effect_rows(model, res)
         metadata = {
@@ -191,6 +204,8 @@ def _run_new(args: argparse.Namespace) -> int:
                 "orientation_rad": res.sigma_rot_rad,
             },
             "condition_number": res.condition,
+            "frames": None if res.frame_report is None else res.frame_report.to_json(),
+            "robust": robust_summary(data, res),
             "diagnosis": None if diag is None else diag.to_json(),
         }
         save_model(args.out, model, metadata=metadata)
@@ -226,7 +241,7 @@ def _print_summary(robot, data, diag, effects, model, res0, res) -> None:
             )
     else:
         print("  no effects: frames only" + (" (the diagnosis named none)" if diag else ""))
-    for line in frame_lines(model):
+    for line in frame_lines(model) + fit_lines(data, res) + implausible_effect_lines(model, data):
         print(line)
     p0, p1 = error_stats(res0.position_mm), error_stats(res.position_mm)
     print(

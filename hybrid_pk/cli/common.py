@@ -15,7 +15,9 @@ from pathlib import Path
 
 import torch
 
-from hybrid_pk.calibration.fit import FitResult, fit, initialise_frames
+from hybrid_pk.calibration.fit import FitResult, fit
+from hybrid_pk.calibration.frames import FramePriors
+from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.data import DataWarning, MeasuredData, read_table_for
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.errors import HybridPKError
@@ -178,15 +180,22 @@ def frame_sets_for(args: argparse.Namespace, model_sets: int) -> int:
 
 
 def fit_frames(
-    model: ExtendedModel, data: MeasuredData, cond: Conditions, which: str = "frames"
+    model: ExtendedModel,
+    data: MeasuredData,
+    cond: Conditions,
+    which: str = "frames",
+    priors: FramePriors | None = None,
+    robust: str | None = None,
 ) -> FitResult:
     """Register then least-squares fit only the ``which`` frame(s); effects stay fixed.
 
     Args:
         which: ``"base"``, ``"tool"`` or ``"frames"`` (both).
+        priors: known frames (``--tool``, ``--base``) and the prior of the fit.
+        robust: robust loss (``--robust``), or None.
     """
-    initialise_frames(model, data, cond, which=which)
-    return fit(model, data, free=list(FRAME_LABELS[which]), cond=cond)
+    initialise_with_priors(model, data, cond, priors, which=which)
+    return fit(model, data, free=list(FRAME_LABELS[which]), cond=cond, frames=priors, robust=robust)
 
 
 def stats_line(label: str, stats: ErrorStats | torch.Tensor, digits: int = 4) -> str:

@@ -129,6 +129,23 @@ def _payloads(n: int, payload: float, payload_range, gen, dtype) -> Tensor:
     return levels[block_of_row]
 
 
+def _frame_arg(T: Tensor, drawn: Tensor, name: str) -> Tensor:
+    """A given frame: a ``(4, 4)`` transform, or a ``(3,)`` translation with the drawn
+    rotation."""
+    T = torch.as_tensor(T, dtype=drawn.dtype)
+    if T.shape == (3,):
+        T = transform(drawn[:3, :3], T)
+    if T.shape != (4, 4) or not bool(torch.isfinite(T).all()):
+        raise HybridPKError(
+            f"{name} must be a finite (4, 4) transform or (3,) translation [m], "
+            f"got shape {tuple(T.shape)}"
+        )
+    R = T[:3, :3]
+    if float((R.T @ R - torch.eye(3, dtype=R.dtype)).abs().max()) > 1e-6:
+        raise HybridPKError(f"{name}: the rotation part of the transform is not orthonormal")
+    return T
+
+
 def _check_args(
     n, seed, noise_mm, noise_deg, trajectory, payload, payload_range, temperature_range
 ):
@@ -182,6 +199,8 @@ def simulate_campaign(
     known_frames: bool = False,
     seed: int = 0,
     progress: bool = False,
+    base: Tensor | None = None,
+    tool: Tensor | None = None,
 ) -> tuple[MeasuredData, dict]:
     """Simulate a measurement campaign of ``robot`` with hidden error effects.
 
@@ -203,6 +222,8 @@ def simulate_campaign(
         known_frames: measure in the robot root frame at the flange (identity frames).
         seed: every random draw comes from it.
         progress: show a progress bar on stderr when it takes more than 2 s.
+        base, tool: true ``T_meas_root`` / ``T_end_point`` instead of the drawn ones:
+            ``(4, 4)``, or a ``(3,)`` translation [m] with the drawn rotation.
 
     Returns:
         ``(data, truth)``: the measured table (float64, one file index, source
@@ -234,9 +255,11 @@ def simulate_campaign(
         else:
             traj = Trajectory(poses)
         q = traj.q.to(dt)
-        base, tool = random_frames(streams["frames"], dt)
+        drawn_base, drawn_tool = random_frames(streams["frames"], dt)
         if known_frames:
-            base = tool = torch.eye(4, dtype=dt)
+            drawn_base = drawn_tool = torch.eye(4, dtype=dt)
+        base = drawn_base if base is None else _frame_arg(base, drawn_base, "base")
+        tool = drawn_tool if tool is None else _frame_arg(tool, drawn_tool, "tool")
         cond = Conditions(
             payload=_payloads(n, payload, payload_range, streams["payload"], dt),
             temperature=None if temperature_range is None else warm_up(n, *temperature_range, dt),
