@@ -280,7 +280,9 @@ def run_document(
     return done
 
 
-def run_block_as_written(doc: str | Path, line: int, folder: str | Path) -> str:
+def run_block_as_written(
+    doc: str | Path, line: int, folder: str | Path, timeout: float = 600.0
+) -> str:
     """Run the block of ``doc`` that opens at ``line`` exactly as written (no directive
     applied) in ``folder``, e.g. the README's Python example in a demo's output folder.
 
@@ -293,7 +295,7 @@ def run_block_as_written(doc: str | Path, line: int, folder: str | Path) -> str:
     with tempfile.TemporaryDirectory(prefix="docblocks_") as tmp:
         root = Path(tmp)
         _workspace(root)
-        plain = Block(block.doc, block.line, block.lang, block.code)
+        plain = Block(block.doc, block.line, block.lang, block.code, {"timeout": [str(timeout)]})
         return _run_block(plain, Path(folder).resolve(), _environment(root), root / "state.sh")
 
 
@@ -305,10 +307,12 @@ def main(argv: list[str] | None = None) -> int:
         "--block", type=int, metavar="LINE", help="run only the block opening at LINE, as written"
     )
     parser.add_argument("--in", dest="folder", metavar="DIR", help="with --block: run it in DIR")
+    parser.add_argument("--timeout", type=float, default=600.0, help="with --block: seconds")
     args = parser.parse_args(argv)
     if args.block is not None:
         try:
-            print(run_block_as_written(args.docs[0], args.block, args.folder or "."), end="")
+            out = run_block_as_written(args.docs[0], args.block, args.folder or ".", args.timeout)
+            print(out, end="")
         except BlockFailure as exc:
             print(f"FAILED {exc}", file=sys.stderr)
             return 1

@@ -22,6 +22,8 @@ from hybrid_pk.hybrid import (
     PhysicsFeatures,
     static_wrenches,
 )
+from hybrid_pk.hybrid.inputs import parse_inputs
+from hybrid_pk.hybrid.local import LocalFeatures, LocalHead, LocalSpec
 from hybrid_pk.io.hybrid_file import load_hybrid, save_hybrid
 from hybrid_pk.io.model_file import load_model
 from tests.helpers import check_gradients
@@ -30,6 +32,7 @@ F64 = torch.float64
 DATA = Path(__file__).parent / "data"
 RUN_SEED = int(os.environ.get("HYBRID_PK_TEST_SEED", time.time_ns() % 1_000_003))
 SPECS = ["frame1", "frame1+gravity", "frame1+gravity+torque", "frame1+full", "frame2+gravity+full"]
+SPECS += ["frame1+q2-4+torque", "local"]
 
 
 @pytest.fixture(scope="module", params=["ur10", "rx160"])
@@ -65,12 +68,14 @@ def _physics_hybrid(robot: Robot, spec: str, coverage: bool = True, seed: int = 
     middle third of the joint ranges."""
     gen = torch.Generator().manual_seed(seed)
     q = _training_rows(robot, 200, gen)
-    features = PhysicsFeatures(FeatureSpec.parse(spec), robot).fit_standardisation(robot, q)
+    parsed = parse_inputs(spec)
+    kind = LocalFeatures if isinstance(parsed, LocalSpec) else PhysicsFeatures
+    features = kind(parsed, robot).fit_standardisation(robot, q)
     torch.manual_seed(seed)
     hybrid = HybridFK.build(_base(robot), features, "mlp:8x2", "mlp:8x2")
     if coverage:
         u, _ = features.encode(robot, q)
-        hybrid.coverage = Coverage.from_inputs(u[:150], u[150:])
+        hybrid.set_coverage(Coverage.from_inputs(u[:150], u[150:]))
     return hybrid.double().eval()
 
 
@@ -113,6 +118,16 @@ def test_turning_joint_1_turns_the_correction_with_it(robot, spec):
     scale = root.abs().max()
     assert float(scale) > 1e-5  # the corrections are not zero
     torch.testing.assert_close(root_turned, expected, rtol=0, atol=1e-12 * float(scale))
+
+
+def test_local_networks_reading_q1_are_not_equivariant(robot):
+    """``local+q1`` lets joint 1's network read its angle: turning q1 changes the output."""
+    hybrid = _physics_hybrid(robot, "local+q1", coverage=False)
+    q = robot.sample_q(20, torch.Generator().manual_seed(1))
+    q_turned = q.clone()
+    q_turned[:, 0] += 0.5
+    with torch.no_grad():
+        assert not torch.allclose(hybrid.corrections(q)[0], hybrid.corrections(q_turned)[0])
 
 
 def test_the_papers_joint_inputs_are_not_equivariant(robot):
@@ -165,34 +180,82 @@ def test_static_wrench_about_each_axis_is_the_gravity_torque(robot):
     )
 
 
-def test_feature_spec_labels_parse_back_and_bad_ones_say_what_to_pass(robot):
-    for text in SPECS:
-        assert FeatureSpec.parse(text).label == text
-        n = PhysicsFeatures(FeatureSpec.parse(text), robot).n_features
-        assert PhysicsFeatures(FeatureSpec.parse(text), robot).raw(robot, robot.sample_q(2))[
-            0
-        ].shape == (2, n)
-    for bad in ("frame", "frame1+heat", "frame1+torque+full", "joints"):
-        with pytest.raises(HybridPKError, match=r"frameK|unknown or clashing"):
-            FeatureSpec.parse(bad)
+def test_input_labels_parse_back_and_bad_ones_say_what_to_pass(robot):
+    q = robot.sample_q(2)
+    for text in [*SPECS, "local+q1"]:
+        spec = parse_inputs(text)
+        assert spec.label == text
+        if isinstance(spec, FeatureSpec):
+            features = PhysicsFeatures(spec, robot)
+            assert features.raw(robot, q)[0].shape == (2, features.n_features)
+        else:
+            assert LocalFeatures(spec, robot).raw(robot, q)[0].shape == (2, robot.dof, 8)
+    for bad in ("frame", "frame1+heat", "frame1+torque+full", "joints", "local+q2"):
+        with pytest.raises(HybridPKError, match=r"frameK|unknown or clashing|local or local"):
+            parse_inputs(bad)
     with pytest.raises(HybridPKError, match=r"pick a link 1\.\.5"):
         PhysicsFeatures(FeatureSpec(frame=6), robot)
+    with pytest.raises(HybridPKError, match=r"angle joints must lie after the frame"):
+        PhysicsFeatures(FeatureSpec.parse("frame2+q2-4"), robot)
+
+
+def test_a_joints_twist_is_the_first_order_motion_of_the_flange(robot):
+    """Turn joint j's frame by a small twist: the flange moves as LocalHead carries it."""
+    gen = torch.Generator().manual_seed(RUN_SEED)
+    q = robot.sample_q(8, gen)
+    features = LocalFeatures(LocalSpec(), robot)
+    u, geo = features.encode(robot, q)
+    j = int(torch.randint(robot.dof, (1,), generator=gen))
+    twist = 1e-6 * torch.randn(6, generator=gen, dtype=F64)
+    head = LocalHead("mlp:4x1", robot.dof, torch.ones(6, dtype=F64)).double()
+    with torch.no_grad():
+        head.nets.zero_output()  # constant: the twist at joint j, zero elsewhere
+        head.nets.biases[-1][j] = twist
+        dp = head.correct(u, geo, None)
+    frames = robot.link_frames(q)
+    T_j, p_E = frames[:, j], frames[:, robot.dof, :3, 3]
+    R_j, p_j = T_j[:, :3, :3], T_j[:, :3, 3]
+    local = (R_j.transpose(-1, -2) @ (p_E - p_j)[..., None])[..., 0]
+    moved = p_j + (R_j @ (so3_exp(twist[:3]) @ local[..., None] + twist[3:, None]))[..., 0]
+    R1 = frames[:, 0, :3, :3]
+    expected = (R1.transpose(-1, -2) @ (moved - p_E)[..., None])[..., 0]  # joint 1's axes
+    torch.testing.assert_close(dp, expected, rtol=0, atol=1e-11)
+    assert float(dp.norm(dim=-1).min()) > 1e-7  # the motion is not zero
+
+
+def test_each_joint_of_local_networks_falls_back_on_its_own(robot):
+    """q1 outside the training rows' range: only joint 1's network (which reads q1) is
+    switched off; the other joints' networks, whose inputs were seen, keep correcting."""
+    gen = torch.Generator().manual_seed(8)
+    q = _training_rows(robot, 300, gen)
+    q = torch.cat([q[:, :1] / 4, q[:, 1:]], -1)  # q1 within a narrow band only
+    features = LocalFeatures(LocalSpec(joint_1_angle=True), robot).fit_standardisation(robot, q)
+    u, _ = features.encode(robot, q)
+    cov = Coverage.from_inputs(u[:200], u[200:])
+    probe = q[200:].clone()
+    probe[:, 0] = q[:, 0].mean() + torch.pi  # the far side of the circle
+    w = cov.trust(features.encode(robot, probe)[0])
+    assert w.shape == (100, robot.dof)
+    assert bool((w[:, 0] == 0).all())
+    assert float(w[:, 1:].mean()) > 0.9
 
 
 # ----------------------------------------------------------------------------- gradients
 
 
-@pytest.mark.parametrize("spec", ["frame1+gravity+full", "frame2+gravity+torque"])
+@pytest.mark.parametrize("spec", ["frame1+gravity+full", "frame2+gravity+torque", "local"])
 def test_gradients_reach_q_inside_in_the_blend_and_outside(robot, spec):
     hybrid = _physics_hybrid(robot, spec)
     cov = hybrid.coverage
     q = robot.sample_q(400, torch.Generator().manual_seed(4))
     with torch.no_grad():
-        d = hybrid.coverage_distance(q)
-    inside = int(d.argmin())
-    blend = int(((d - (cov.radius_in + cov.radius_out) / 2).abs()).argmin())
-    assert 0 < float(hybrid.trust(q[blend : blend + 1])) < 1
-    rows = q[[inside, blend]].clone()
+        t = (hybrid.coverage_distance(q) - cov.radius_in) / (cov.radius_out - cov.radius_in)
+    t = t.reshape(400, -1).max(-1).values  # local networks: the least covered joint
+    inside, blend, outside = int(t.argmin()), int((t - 0.5).abs().argmin()), int(t.argmax())
+    assert float(t[inside]) < 0 < float(t[blend]) < 1 < float(t[outside])
+    w = hybrid.trust(q[[blend]]).reshape(-1)
+    assert 0 < float(w.min()) < 1
+    rows = q[[inside, blend, outside]].clone()
     check_gradients(lambda x: hybrid(x), rows)
     check_gradients(lambda x: torch.cat(hybrid.corrections(x), -1), rows)
     qq = rows.clone().requires_grad_(True)
@@ -241,13 +304,13 @@ def test_coverage_radius_holds_the_requested_share_of_held_out_rows():
 # ----------------------------------------------------------------------------- model file
 
 
-@pytest.mark.parametrize("spec", ["frame1+gravity+full", "frame2+torque"])
+@pytest.mark.parametrize("spec", ["frame1+gravity+full", "frame2+q3-6+torque", "local+q1"])
 def test_physics_model_file_round_trip_is_bit_for_bit(robot, tmp_path, spec):
     hybrid = _physics_hybrid(robot, spec)
     path = save_hybrid(tmp_path / "hybrid.pt", hybrid, training={"inputs": spec})
     loaded = load_model(path)
     assert loaded.networks["version"] == 2
-    assert loaded.networks["features"]["frame"] == FeatureSpec.parse(spec).frame
+    assert loaded.networks["features"]["kind"] in ("physics", "local")
     restored = load_hybrid(path)
     assert restored.input_label == spec
     q = robot.sample_q(300, torch.Generator().manual_seed(7))

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 
-from hybrid_pk.cli.common import quiet_lightning
 from hybrid_pk.cli.options import add_epochs, add_noise, add_out, add_progress, add_robot, add_seed
 from hybrid_pk.cli.progress import progress
 from hybrid_pk.pipelines.demo import (
@@ -69,7 +68,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    quiet_lightning()
     with progress("demo", total=len(STAGES), delay=0.0, enabled=not args.no_progress) as bar:
         result = run_demo(
             args.out,

@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 
 from hybrid_pk.cli.common import load_robot, read_data
+from hybrid_pk.cli.fit_settings import diagnosis_notes, frame_priors, robust_loss
 from hybrid_pk.cli.options import (
     add_data,
     add_end_link,
@@ -122,6 +123,8 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
             if c.orientation_gain_deg is not None:
                 gain += f", {c.orientation_gain_deg:.3g} deg"
             lines.append(f"  {c.effect}{where} = {_value(c.value, c.std, c.unit)}  ({gain})")
+    elif getattr(diagnosis, "structural", None) and diagnosis.structural["structurally_wrong"]:
+        lines.append("causes: withheld, the URDF looks structurally wrong (see structural)")
     else:
         lines.append("causes: none beyond measurement noise")
     if diagnosis.ambiguous:
@@ -139,11 +142,11 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
         else "; structured: no (looks like measurement noise)"
     )
     lines.append(rest)
-    return lines
+    return lines + diagnosis_notes(diagnosis)
 
 
 def run(args: argparse.Namespace) -> int:
-    from hybrid_pk.calibration.diagnosis.search import diagnose
+    from hybrid_pk.calibration.diagnosis import diagnose
     from hybrid_pk.effects import make_effect
 
     for path in args.data:
@@ -172,6 +175,8 @@ def run(args: argparse.Namespace) -> int:
             alpha=args.alpha,
             max_causes=args.max_causes,
             frames_per_file=args.frames_per_file,
+            frames=frame_priors(args),
+            robust=robust_loss(args),
             progress=progress.stage,
         )
         if args.report:

@@ -10,8 +10,8 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
-from hybrid_pk.cli.common import data_notes
-from hybrid_pk.cli.options import add_approach, add_model, add_out, add_seed
+from hybrid_pk.cli.common import data_notes, load_frozen_model
+from hybrid_pk.cli.options import add_approach, add_frame_set, add_model, add_out, add_seed
 from hybrid_pk.data import read_table_for
 from hybrid_pk.data.table import write_frame
 from hybrid_pk.effects import Conditions, ExtendedModel
@@ -27,7 +27,6 @@ from hybrid_pk.ik import (
 )
 from hybrid_pk.ik.two_stage import DEFAULT_BOX
 from hybrid_pk.io.hybrid_file import load_hybrid
-from hybrid_pk.io.model_file import load_model, model_robot
 
 CHUNK = 128  # targets per two-stage solve (the progress bar moves after each)
 # The fixes of assumed conditions, as flags and columns.
@@ -110,28 +109,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="half-width of the refinement box around each branch on a model with "
         f"effects or networks [rad, m for prismatic joints] (default {DEFAULT_BOX})",
     )
-    p.add_argument(
-        "--frame-set",
-        type=int,
-        default=None,
-        metavar="K",
-        help="base/tool frame set of a model calibrated with one set per file (0-based)",
-    )
+    add_frame_set(p)
     add_seed(p, what="scrambling seed of the start configurations")
     add_approach(p)
-
-
-def _frame_set(args: argparse.Namespace, sets: int) -> int:
-    if args.frame_set is None:
-        if sets > 1:
-            raise HybridPKError(
-                f"{args.model} has {sets} base/tool frame sets (one per calibration file); "
-                f"choose one with --frame-set 0..{sets - 1}"
-            )
-        return 0
-    if not 0 <= args.frame_set < sets:
-        raise HybridPKError(f"--frame-set {args.frame_set}: {args.model} has sets 0..{sets - 1}")
-    return args.frame_set
 
 
 def _read_targets(path: str, robot):
@@ -206,11 +186,7 @@ def run(args: argparse.Namespace) -> int:
         raise HybridPKError(f"--seeds must be at least 1, got {args.seeds}")
     if args.tol_mm <= 0 or args.tol_deg <= 0:
         raise HybridPKError("--tol-mm and --tol-deg must be positive")
-    loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
-    model = loaded.model
-    model.requires_grad_(False)
-    robot = model_robot(loaded)
-    k = _frame_set(args, model.base.sets)
+    loaded, model, robot, k = load_frozen_model(args)
     data = _read_targets(args.targets, robot)
     targets = data.T_measured() if data.has_orientation else data.position
     extra = data.q[:, None, :] if data.q.shape[1] == robot.dof else None

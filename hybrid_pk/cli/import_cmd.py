@@ -154,37 +154,27 @@ def _register_columns(formats: argparse._SubParsersAction) -> None:
     cols.set_defaults(func=_run_columns)
 
 
+# File-format options of a column map: (flag, dest, metavar, help); type int for N.
+_MAP_OPTIONS = (
+    ("sep", "separator", "SEP", "field separator: ',' ';' tab whitespace ... (default: the "
+     "map's, else ',')"),
+    ("decimal", "decimal", "CHAR", "decimal mark"),
+    ("skip-lines", "skip_lines", "N", "lines before the header row"),
+    ("euler", "euler", "SEQ", "scipy Euler sequence of e1 e2 e3 (XYZ intrinsic, xyz "
+     "extrinsic, ZYX, ...)"),
+    ("length-unit", "length", "UNIT", "default length unit"),
+    ("angle-unit", "angle", "UNIT", "default angle unit"),
+)  # fmt: skip
+
+
 def _add_map_options(parser: argparse.ArgumentParser, prefix: str = "") -> None:
     """File-format options of a column map; ``prefix`` names them per stream."""
     dest = prefix.replace("-", "_")
-    parser.add_argument(
-        f"--{prefix}sep",
-        dest=f"{dest}separator",
-        metavar="SEP",
-        help="field separator: ',' ';' tab whitespace ... (default: the map's, else ',')",
-    )
-    parser.add_argument(
-        f"--{prefix}decimal", dest=f"{dest}decimal", metavar="CHAR", help="decimal mark"
-    )
-    parser.add_argument(
-        f"--{prefix}skip-lines",
-        dest=f"{dest}skip_lines",
-        type=int,
-        metavar="N",
-        help="lines before the header row",
-    )
-    parser.add_argument(
-        f"--{prefix}euler",
-        dest=f"{dest}euler",
-        metavar="SEQ",
-        help="scipy Euler sequence of e1 e2 e3 (XYZ intrinsic, xyz extrinsic, ZYX, ...)",
-    )
-    parser.add_argument(
-        f"--{prefix}length-unit", dest=f"{dest}length", metavar="UNIT", help="default length unit"
-    )
-    parser.add_argument(
-        f"--{prefix}angle-unit", dest=f"{dest}angle", metavar="UNIT", help="default angle unit"
-    )
+    for flag, name, metavar, text in _MAP_OPTIONS:
+        kind = int if metavar == "N" else str
+        parser.add_argument(
+            f"--{prefix}{flag}", dest=f"{dest}{name}", type=kind, metavar=metavar, help=text
+        )
     parser.add_argument(
         f"--{prefix}time-format",
         dest=f"{dest}time_format",

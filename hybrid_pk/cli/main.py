@@ -23,12 +23,14 @@ from hybrid_pk.errors import HybridPKError
 
 # Sub-command modules, in the order `--help` lists them.
 _COMMANDS = (
+    "hybrid_pk.cli.plan_cmd",
     "hybrid_pk.cli.simulate_cmd",
     "hybrid_pk.cli.diagnose_cmd",
     "hybrid_pk.cli.calibrate_cmd",
     "hybrid_pk.cli.train_cmd",
     "hybrid_pk.cli.evaluate_cmd",
     "hybrid_pk.cli.ik_cmd",
+    "hybrid_pk.cli.compensate_cmd",
     "hybrid_pk.cli.import_cmd",
     "hybrid_pk.cli.demo_cmd",
 )

@@ -3,7 +3,8 @@
 - :mod:`~hybrid_pk.data.measured`: :class:`MeasuredData`, the rows of one campaign.
 - :mod:`~hybrid_pk.data.table`: read and validate tables (CSV / Parquet), write them;
   cell and row checks in :mod:`~hybrid_pk.data.cells`, files in
-  :mod:`~hybrid_pk.data.files`.
+  :mod:`~hybrid_pk.data.files`; joint-only tables (planned poses, robot programs) in
+  :mod:`~hybrid_pk.data.joint_table`.
 - importers: :mod:`~hybrid_pk.data.mapping` (any export through a column map),
   :mod:`~hybrid_pk.data.ipa` (the published UR10 laser-tracker data),
   :mod:`~hybrid_pk.data.streams` (a robot joint stream and a tracker stream on two

@@ -84,14 +84,8 @@ __all__ = [
 
 MEASUREMENT_CONVENTION = "XYZ"
 GOAL_CONVENTION = "xyz"
-UR_JOINT_NAMES = (
-    "shoulder_pan_joint",
-    "shoulder_lift_joint",
-    "elbow_joint",
-    "wrist_1_joint",
-    "wrist_2_joint",
-    "wrist_3_joint",
-)
+_UR_WRISTS = tuple(f"wrist_{k}_joint" for k in (1, 2, 3))
+UR_JOINT_NAMES = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", *_UR_WRISTS)
 MEASUREMENT_ANGLES = ("measurement_rx", "measurement_ry", "measurement_rz")
 MEASUREMENT_POSITION = ("measurement_x", "measurement_y", "measurement_z")
 GOAL_ANGLES = ("Goal roll", "Goal pitch", "Goal yaw")

@@ -31,6 +31,7 @@ of the campaign (the paper's limitation 6), a payload column does not enter here
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 import torch
@@ -44,11 +45,13 @@ __all__ = [
     "WRENCHES",
     "FeatureSpec",
     "PhysicsFeatures",
+    "gravity_along",
     "static_wrenches",
 ]
 
 WRENCHES = ("none", "torque", "full")
 STANDARD_GRAVITY_VECTOR = (0.0, 0.0, -9.80665)  # [m/s^2] in the robot root frame
+_ANGLES = re.compile(r"q(\d+)-(\d+)")
 _PARALLEL = 1e-9  # |sin| of the angle below which gravity counts as along joint 1
 
 
@@ -62,11 +65,22 @@ class FeatureSpec:
         gravity: add the gravity direction in frame ``k`` (3 inputs).
         wrench: ``none``, ``torque`` (gravity torque of each joint after ``k``) or
             ``full`` (static force and moment at each joint after ``k``, 6 each).
+        angles: ``(first, last)`` (1-based, inclusive): read only these joints' angles,
+            e.g. ``(2, 4)`` for the arm's posture without the wrist, whose angles mostly
+            move the tool (the base model's geometry) and little load; None: every
+            joint after ``k``. The load terms always cover every joint after ``k``.
     """
 
     frame: int = 1
     gravity: bool = True
     wrench: str = "none"
+    angles: tuple[int, int] | None = None
+
+    def angle_joints(self, dof: int) -> range:
+        """0-based joints whose angles are inputs."""
+        if self.angles is None:
+            return range(self.frame, dof)
+        return range(self.angles[0] - 1, self.angles[1])
 
     def check(self, robot: Robot) -> FeatureSpec:
         """``self``, or a :class:`HybridPKError` saying what to pass for ``robot``."""
@@ -82,19 +96,28 @@ class FeatureSpec:
             )
         if self.wrench not in WRENCHES:
             raise HybridPKError(f"wrench {self.wrench!r}: one of {', '.join(WRENCHES)}")
+        if (
+            self.angles is not None
+            and not self.frame < self.angles[0] <= self.angles[1] <= robot.dof
+        ):
+            raise HybridPKError(
+                f"network inputs {self.label}: the angle joints must lie after the frame, "
+                f"within {self.frame + 1}..{robot.dof}"
+            )
         return self
 
     @property
     def label(self) -> str:
         """Short name, e.g. ``frame1+gravity+torque``."""
         parts = [f"frame{self.frame}"]
+        parts += [] if self.angles is None else [f"q{self.angles[0]}-{self.angles[1]}"]
         parts += ["gravity"] if self.gravity else []
         parts += [] if self.wrench == "none" else [self.wrench]
         return "+".join(parts)
 
     @classmethod
     def parse(cls, text: str) -> FeatureSpec:
-        """Inverse of :attr:`label` (``frame2+torque``, ``frame1+gravity+full``, ...).
+        """Inverse of :attr:`label` (``frame2+torque``, ``frame1+q2-4+gravity+full``, ...).
 
         Raises:
             HybridPKError: an unknown part.
@@ -102,18 +125,33 @@ class FeatureSpec:
         parts = [p.strip() for p in text.split("+") if p.strip()]
         if not parts or not parts[0].startswith("frame") or not parts[0][5:].isdigit():
             raise HybridPKError(
-                f"network inputs {text!r}: expected frameK[+gravity][+torque|+full], "
-                "e.g. frame1+gravity"
+                f"network inputs {text!r}: expected frameK[+qI-J][+gravity][+torque|+full], "
+                "e.g. frame1+q2-4+torque"
             )
-        rest = set(parts[1:])
+        angles = [p for p in parts[1:] if _ANGLES.fullmatch(p)]
+        rest = set(parts[1:]) - set(angles[:1])
         unknown = rest - {"gravity", "torque", "full"}
         if unknown or {"torque", "full"} <= rest:
             raise HybridPKError(
                 f"network inputs {text!r}: unknown or clashing part(s) "
-                f"{sorted(unknown) or ['torque', 'full']}; parts: gravity, torque or full"
+                f"{sorted(unknown) or ['torque', 'full']}; parts: qI-J, gravity, torque or full"
             )
         wrench = "full" if "full" in rest else "torque" if "torque" in rest else "none"
-        return cls(int(parts[0][5:]), "gravity" in rest, wrench)
+        span = None
+        if angles:
+            first, last = _ANGLES.fullmatch(angles[0]).groups()
+            span = (int(first), int(last))
+        return cls(int(parts[0][5:]), "gravity" in rest, wrench, span)
+
+
+def gravity_along(robot: Robot, gravity: Tensor) -> bool:
+    """Whether ``gravity (3,)`` [root frame] lies along joint 1's axis (floor or ceiling
+    mounting): then the arm's load does not change when joint 1 turns."""
+    frame_1 = robot.link_frames(torch.zeros(robot.dof, dtype=torch.float64))[0, :3, :3]
+    axis_1 = frame_1 @ robot.axis[0].detach().to(torch.float64)
+    axis_1 = axis_1 / axis_1.norm()
+    g = gravity.to(torch.float64)
+    return bool(torch.linalg.cross(axis_1, g / g.norm().clamp_min(1e-12)).norm() < _PARALLEL)
 
 
 def static_wrenches(
@@ -176,25 +214,21 @@ class PhysicsFeatures(nn.Module):
         n = self.n_features
         self.register_buffer("shift", torch.zeros(n, dtype=torch.float64))
         self.register_buffer("scale", torch.ones(n, dtype=torch.float64))
-        frame_1 = robot.link_frames(torch.zeros(robot.dof, dtype=torch.float64))[0, :3, :3]
-        axis_1 = frame_1 @ robot.axis[0].detach().to(torch.float64)
-        axis_1 = axis_1 / axis_1.norm()
-        sine = torch.linalg.cross(axis_1, g / g.norm().clamp_min(1e-12)).norm()
-        self.gravity_along_joint_1 = bool(sine < _PARALLEL)
+        self.gravity_along_joint_1 = gravity_along(robot, g)
 
     @property
     def n_features(self) -> int:
         k, spec = self.spec.frame, self.spec
         after = range(k, self.dof)
-        n = sum(2 if self.revolute[j] else 1 for j in after)
+        n = sum(2 if self.revolute[j] else 1 for j in spec.angle_joints(self.dof))
         n += 3 if spec.gravity else 0
         n += {"none": 0, "torque": 1, "full": 6}[spec.wrench] * len(after)
         return n
 
-    def raw(self, robot: Robot, q: Tensor) -> tuple[Tensor, Tensor | None]:
+    def raw(self, robot: Robot, q: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
         """Unstandardised inputs ``(*B, n_features)`` at ``q (*B, dof)``, and the
-        rotation ``(*B, 3, 3)`` of link ``k``'s axes in joint 1's frame (None for
-        ``k = 1``)."""
+        geometry of the outputs: ``{"A": (*B, 3, 3)}``, link ``k``'s axes in joint 1's
+        frame (``{}`` for ``k = 1``)."""
         k, spec = self.spec.frame, self.spec
         g = self.gravity.to(q.dtype)
         # Everything is computed at q1 = 0: bit-for-bit independent of q1. R1ᵀ Rk does
@@ -205,9 +239,9 @@ class PhysicsFeatures(nn.Module):
         if not self.gravity_along_joint_1:  # gravity as the q1 = 0 arm sees it
             R1, R01 = robot.link_frames(q)[..., 0, :3, :3], frames0[..., 0, :3, :3]
             g = (R01 @ R1.transpose(-1, -2) @ g[..., None])[..., 0]
-        axes = None if k == 1 else frames0[..., 0, :3, :3].transpose(-1, -2) @ R0k
+        geo = {} if k == 1 else {"A": frames0[..., 0, :3, :3].transpose(-1, -2) @ R0k}
         parts = []
-        for j in range(k, self.dof):
+        for j in spec.angle_joints(self.dof):
             x = q[..., j : j + 1]
             parts += [torch.sin(x), torch.cos(x)] if self.revolute[j] else [x]
         if spec.gravity:
@@ -221,7 +255,7 @@ class PhysicsFeatures(nn.Module):
                 parts.append((moment * axis).sum(-1))
             else:
                 parts += [force.flatten(-2), moment.flatten(-2)]
-        return torch.cat(parts, -1), axes
+        return torch.cat(parts, -1), geo
 
     def fit_standardisation(self, robot: Robot, q: Tensor) -> PhysicsFeatures:
         """Set ``shift`` / ``scale`` to the mean / spread of the inputs of rows ``q``."""
@@ -231,11 +265,10 @@ class PhysicsFeatures(nn.Module):
         self.scale.copy_(f.std(0).nan_to_num(0.0).clamp_min(1e-6 * f.abs().max().clamp_min(1)))
         return self
 
-    def encode(self, robot: Robot, q: Tensor) -> tuple[Tensor, Tensor | None]:
-        """Standardised inputs ``(*B, n_features)`` and the output axes of the networks
-        in joint 1's frame (:meth:`raw`)."""
-        f, axes = self.raw(robot, q)
-        return (f - self.shift.to(f.dtype)) / self.scale.to(f.dtype), axes
+    def encode(self, robot: Robot, q: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+        """Standardised inputs ``(*B, n_features)`` and the geometry of :meth:`raw`."""
+        f, geo = self.raw(robot, q)
+        return (f - self.shift.to(f.dtype)) / self.scale.to(f.dtype), geo
 
     def state(self) -> dict:
         """Plain data for a model file."""
@@ -244,6 +277,7 @@ class PhysicsFeatures(nn.Module):
             "frame": self.spec.frame,
             "gravity_input": self.spec.gravity,
             "wrench": self.spec.wrench,
+            "angles": None if self.spec.angles is None else list(self.spec.angles),
             "gravity": self.gravity.cpu().clone(),
             "shift": self.shift.cpu().clone(),
             "scale": self.scale.cpu().clone(),
@@ -252,7 +286,13 @@ class PhysicsFeatures(nn.Module):
     @classmethod
     def from_state(cls, state: dict, robot: Robot) -> PhysicsFeatures:
         """Inverse of :meth:`state`."""
-        spec = FeatureSpec(int(state["frame"]), bool(state["gravity_input"]), state["wrench"])
+        angles = state.get("angles")
+        spec = FeatureSpec(
+            int(state["frame"]),
+            bool(state["gravity_input"]),
+            state["wrench"],
+            None if angles is None else (int(angles[0]), int(angles[1])),
+        )
         out = cls(spec, robot, state["gravity"])
         out.shift.copy_(state["shift"])
         out.scale.copy_(state["scale"])

@@ -31,26 +31,31 @@ it (on the RX160 acceptance data: 1.4 x lower error after 30 epochs than in root
 
 from __future__ import annotations
 
-import torch
+from collections.abc import Sequence
+
 from torch import Tensor, nn
 
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.geometry import so3_exp, transform
 from hybrid_pk.hybrid.coverage import Coverage
-from hybrid_pk.hybrid.features import PhysicsFeatures
 from hybrid_pk.hybrid.inputs import DEFAULT_FADE, InputBox, joint_1_axes
-from hybrid_pk.hybrid.nets import ResidualHead
-from hybrid_pk.hybrid.networks_state import networks_state, parts_from_state
+from hybrid_pk.hybrid.networks_state import networks_state, stages_from_state
+from hybrid_pk.hybrid.stage import (
+    Head,
+    NetworkInputs,
+    ResidualStage,
+    check_stages,
+    combine_stages,
+)
 
 __all__ = [
     "DEFAULT_FADE",
+    "Head",
     "HybridFK",
     "NetworkInputs",
     "correction_axes",
     "frame_matrices",
 ]
-
-NetworkInputs = InputBox | PhysicsFeatures
 
 
 def correction_axes(base: ExtendedModel, q: Tensor) -> Tensor:
@@ -68,43 +73,46 @@ def frame_matrices(model: ExtendedModel, cond: Conditions | None) -> tuple[Tenso
     return model.base.matrix(group), model.tool.matrix(group)
 
 
-def _rotate(A: Tensor | None, v: Tensor) -> Tensor:
-    return v if A is None else (A.to(v.dtype) @ v[..., None])[..., 0]
-
-
 class HybridFK(nn.Module):
-    """Base model + position and orientation residual networks.
+    """Base model + residual networks in one or more stages.
+
+    The first stage is given by ``inputs``, ``position``, ``orientation`` and
+    ``coverage``; ``more`` stages follow it (:mod:`~hybrid_pk.hybrid.stage`: cascade
+    levels of fall-back and refinements). :attr:`inputs`, :attr:`position`,
+    :attr:`orientation`, :attr:`coverage` and :attr:`box` are the first stage's.
 
     Args:
         base: the nominal or calibrated model (frames + effects); not trained here.
-        inputs: the networks' inputs and output axes (:class:`InputBox` or
-            :class:`PhysicsFeatures`).
+        inputs: the first networks' inputs (:class:`InputBox`, :class:`PhysicsFeatures`
+            or :class:`~hybrid_pk.hybrid.local.LocalFeatures`).
         position: head predicting the flange position correction ``dp`` [m], or None.
         orientation: head predicting the flange rotation correction ``dw`` [rad], or
             None (position-only data).
         coverage: trust from the distance to the training inputs; None: the joint box
-            of an :class:`InputBox`, or full trust for :class:`PhysicsFeatures`.
+            of an :class:`InputBox`, or full trust for the physics inputs.
+        more: further stages, in order.
     """
 
     def __init__(
         self,
         base: ExtendedModel,
         inputs: NetworkInputs,
-        position: ResidualHead | None,
-        orientation: ResidualHead | None,
+        position: Head | None,
+        orientation: Head | None,
         coverage: Coverage | None = None,
+        more: Sequence[ResidualStage] = (),
     ) -> None:
         super().__init__()
-        dof = base.robot.dof
-        if isinstance(inputs, InputBox) and inputs.lower.numel() != dof:
-            raise ValueError(f"input box has {inputs.lower.numel()} joints, robot {dof}")
-        if isinstance(inputs, PhysicsFeatures) and inputs.dof != dof:
-            raise ValueError(f"network inputs made for {inputs.dof} joints, robot {dof}")
         self.base = base
-        self.inputs = inputs
-        self.position = position
-        self.orientation = orientation
-        self.coverage = coverage
+        first = ResidualStage(inputs, position, orientation, coverage)
+        self.stages = nn.ModuleList([first, *more])
+        dof = base.robot.dof
+        for stage in self.stages:
+            if isinstance(stage.inputs, InputBox) and stage.inputs.lower.numel() != dof:
+                raise ValueError(f"input box has {stage.inputs.lower.numel()} joints, robot {dof}")
+            if not isinstance(stage.inputs, InputBox) and stage.inputs.dof != dof:
+                raise ValueError(f"network inputs made for {stage.inputs.dof} joints, robot {dof}")
+        check_stages(list(self.stages))
 
     @classmethod
     def build(
@@ -118,69 +126,85 @@ class HybridFK(nn.Module):
         zero_init: bool = False,
         coverage: Coverage | None = None,
     ) -> HybridFK:
-        """Fresh networks of the named architectures (None: no such network).
-
-        Args:
-            position_scale, orientation_scale: ``(3,)`` output units [m], [rad]
-                (default 1 mm and 1 mrad).
-        """
-        default = torch.full((3,), 1e-3, dtype=torch.float64)
-        n_inputs = cls.n_inputs_of(inputs)
-
-        def head(arch: str | None, scale: Tensor | None) -> ResidualHead | None:
-            if arch is None:
-                return None
-            return ResidualHead(arch, n_inputs, default if scale is None else scale, zero_init)
-
-        return cls(
-            base,
-            inputs,
-            head(position_net, position_scale),
-            head(orientation_net, orientation_scale),
-            coverage,
+        """One stage of fresh networks of the named architectures (None: no such
+        network); see :meth:`ResidualStage.build`."""
+        stage = ResidualStage.build(
+            inputs, position_net, orientation_net, position_scale, orientation_scale, zero_init
         )
+        return cls(base, inputs, stage.position, stage.orientation, coverage)
 
-    @staticmethod
-    def n_inputs_of(inputs: NetworkInputs) -> int:
-        """Number of network inputs of ``inputs``."""
-        return inputs.lower.numel() if isinstance(inputs, InputBox) else inputs.n_features
+    # ------------------------------------------------------------------ the first stage
+    @property
+    def inputs(self) -> NetworkInputs:
+        return self.stages[0].inputs
+
+    @property
+    def position(self) -> Head | None:
+        return self.stages[0].position
+
+    @property
+    def orientation(self) -> Head | None:
+        return self.stages[0].orientation
+
+    @property
+    def coverage(self) -> Coverage | None:
+        return self.stages[0].coverage
+
+    def set_coverage(self, coverage: Coverage | None, stage: int = 0) -> None:
+        """Give stage ``stage`` a coverage (None: its default trust)."""
+        self.stages[stage].coverage = coverage
 
     @property
     def box(self) -> InputBox | None:
-        """The paper's input box (normalisation and joint-box trust), or None."""
-        return self.inputs if isinstance(self.inputs, InputBox) else None
+        """The first stage's input box (the paper's inputs), or None."""
+        return self.stages[0].box
 
     @property
     def input_label(self) -> str:
-        """``joints`` (the paper's inputs) or the physics features' label."""
-        return "joints" if self.box is not None else self.inputs.spec.label
+        """The stages' inputs: ``joints``, ``frame1+q2-4+torque/joints,local+q1``, ..."""
+        out = ""
+        for i, stage in enumerate(self.stages):
+            out += ("" if i == 0 else "/" if stage.role == "refine" else ",") + stage.label
+        return out
 
     # ------------------------------------------------------------------ prediction
     def networks(self) -> nn.ModuleDict:
-        """The trainable heads by name (``position``, ``orientation``)."""
-        heads = {"position": self.position, "orientation": self.orientation}
-        return nn.ModuleDict({k: v for k, v in heads.items() if v is not None})
+        """The trainable heads by name: ``position``, ``orientation`` for the first
+        stage, ``s1.position``, ... for the next."""
+        out = {}
+        for i, stage in enumerate(self.stages):
+            for name, head in stage.heads().items():
+                out[name if i == 0 else f"s{i}.{name}"] = head
+        return nn.ModuleDict({k.replace(".", "_"): v for k, v in out.items()})
 
-    def encode(self, q: Tensor) -> tuple[Tensor, Tensor | None]:
-        """Network inputs ``u (*B, n_inputs)`` at ``q (*B, dof)`` and the rotation
-        ``(*B, 3, 3)`` of their output axes in joint 1's frame (None: joint 1's axes)."""
-        return self.inputs.encode(self.base.robot, q)
+    def encode(self, q: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+        """The first stage's network inputs at ``q (*B, dof)`` and their output
+        geometry (``{}``, ``{"A"}`` or ``{"R", "lever"}``; see the inputs' ``raw``)."""
+        return self.stages[0].encode(self.base.robot, q)
+
+    def encode_all(self, q: Tensor) -> list[tuple[Tensor, dict[str, Tensor]]]:
+        """Every stage's inputs and geometry at ``q``."""
+        return [stage.encode(self.base.robot, q) for stage in self.stages]
+
+    def weights(self, q: Tensor, encoded: list[tuple[Tensor, dict]] | None = None) -> list:
+        """Effective weight of every stage's networks at ``q`` (own trust combined by the
+        stage rules): ``(*B,)``, or ``(*B, dof)`` for local networks."""
+        encoded = self.encode_all(q) if encoded is None else encoded
+        own = [stage.weight(q, u) for stage, (u, _) in zip(self.stages, encoded, strict=True)]
+        return combine_stages(list(self.stages), own)
 
     def weight(self, q: Tensor, u: Tensor) -> Tensor:
-        """``(*B,)`` trust of the networks at ``q`` with inputs ``u``."""
-        if self.coverage is not None:
-            return self.coverage.trust(u)
-        if self.box is not None:
-            return self.box.trust(q)
-        return torch.ones(u.shape[:-1], dtype=u.dtype, device=u.device)
+        """The first stage's own trust at ``q`` with its inputs ``u``."""
+        return self.stages[0].weight(q, u)
 
     def trust(self, q: Tensor) -> Tensor:
-        """``(*B,)`` weight in [0, 1] of the corrections at ``q`` (1: networks fully on,
-        0: the base model alone)."""
+        """Weight in [0, 1] of the first stage's corrections at ``q`` (1: networks fully
+        on, 0: the base model alone, or the next stage): ``(*B,)``, or ``(*B, dof)`` per
+        joint for local networks."""
         return self.weight(q, self.encode(q)[0])
 
     def coverage_distance(self, q: Tensor) -> Tensor | None:
-        """``(*B,)`` distance of ``q``'s inputs to the training inputs (None without a
+        """Distance of ``q``'s first-stage inputs to the training inputs (None without a
         :class:`Coverage`)."""
         return None if self.coverage is None else self.coverage.distance(self.encode(q)[0])
 
@@ -190,33 +214,31 @@ class HybridFK(nn.Module):
         return correction_axes(self.base, q)
 
     def corrections(self, q: Tensor) -> tuple[Tensor, Tensor]:
-        """Flange corrections at ``q (*B, dof)``, already weighted by :meth:`trust`.
+        """Flange corrections at ``q (*B, dof)``: every stage at its weight.
 
         Returns:
             ``dp (*B, 3)`` [m] and ``dw (*B, 3)`` [rad] in the axes of
             :meth:`correction_axes`, dtype of ``q``.
         """
-        u, A = self.encode(q)
-        return self.predict(u, A, self.weight(q, u))
+        encoded = self.encode_all(q)
+        return self.predict_all(encoded, self.weights(q, encoded))
+
+    def predict_all(
+        self, encoded: list[tuple[Tensor, dict]], weights: list[Tensor | None]
+    ) -> tuple[Tensor, Tensor]:
+        """Sum of the stages' corrections from encoded inputs and effective weights."""
+        dp = dw = None
+        for stage, (u, geo), w in zip(self.stages, encoded, weights, strict=True):
+            p, r = stage.predict(u, geo, w)
+            dp, dw = (p, r) if dp is None else (dp + p, dw + r)
+        return dp, dw
 
     def predict(
-        self, u: Tensor, A: Tensor | None, w: Tensor | None = None
+        self, u: Tensor, geo: dict[str, Tensor], w: Tensor | None = None
     ) -> tuple[Tensor, Tensor]:
-        """Corrections from inputs already encoded (:meth:`encode`; training batches).
-
-        Args:
-            u: ``(*B, n_inputs)`` network inputs.
-            A: ``(*B, 3, 3)`` their output axes in joint 1's frame, or None.
-            w: ``(*B,)`` trust; None: the networks unweighted.
-
-        Returns:
-            ``dp (*B, 3)`` [m] and ``dw (*B, 3)`` [rad] in joint 1's axes.
-        """
-        w = 1.0 if w is None else w[..., None]
-        zero = torch.zeros(*u.shape[:-1], 3, dtype=u.dtype, device=u.device)
-        dp = zero if self.position is None else _rotate(A, w * self.position(u))
-        dw = zero if self.orientation is None else _rotate(A, w * self.orientation(u))
-        return dp, dw
+        """The first stage's corrections from its encoded inputs (see
+        :meth:`ResidualStage.predict`)."""
+        return self.stages[0].predict(u, geo, w)
 
     def end_pose(self, q: Tensor, cond: Conditions | None = None) -> Tensor:
         """``(*B, 4, 4)`` corrected flange pose in the robot root frame."""
@@ -237,13 +259,7 @@ class HybridFK(nn.Module):
     def state(self, metadata: dict | None = None) -> dict:
         """The ``networks`` entry of a model file (tensors and plain data only; format:
         :func:`~hybrid_pk.hybrid.networks_state.networks_state`)."""
-        return networks_state(
-            self.base.robot.joint_names,
-            self.inputs,
-            {"position": self.position, "orientation": self.orientation},
-            self.coverage,
-            metadata,
-        )
+        return networks_state(self.base.robot.joint_names, list(self.stages), metadata)
 
     @classmethod
     def from_state(cls, base: ExtendedModel, state: dict, source: str = "model file") -> HybridFK:
@@ -254,5 +270,6 @@ class HybridFK(nn.Module):
             ModelFileError: not a networks entry, a newer version, or networks made for
                 other joints than ``base``'s robot.
         """
-        inputs, heads, coverage = parts_from_state(base.robot, state, source)
-        return cls(base, inputs, heads["position"], heads["orientation"], coverage).eval()
+        first, *more = stages_from_state(base.robot, state, source)
+        model = cls(base, first.inputs, first.position, first.orientation, first.coverage, more)
+        return model.eval()

@@ -16,9 +16,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from hybrid_pk.hybrid.features import FeatureSpec
+from hybrid_pk.hybrid.local import LocalSpec
 from hybrid_pk.robot import Robot
 
-__all__ = ["DEFAULT_FADE", "InputBox", "finite_limits", "joint_1_axes"]
+__all__ = ["DEFAULT_FADE", "InputBox", "finite_limits", "joint_1_axes", "parse_inputs"]
 
 DEFAULT_FADE = 0.0  # fade-out width outside the training box, fraction of its size
 
@@ -95,10 +97,10 @@ class InputBox(nn.Module):
         r2 = (outside * outside).sum(-1)
         return (1 - r2).clamp_min(0) ** 2
 
-    def encode(self, robot: Robot, q: Tensor) -> tuple[Tensor, None]:
+    def encode(self, robot: Robot, q: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
         """Network inputs ``(*B, dof)`` at ``q``; the corrections are in joint 1's axes
-        (None: no further rotation)."""
-        return self.normalise(q), None
+        (no geometry: ``{}``)."""
+        return self.normalise(q), {}
 
     def state(self) -> dict:
         """Plain data for a model file (the ``input`` entry of format 1)."""
@@ -123,3 +125,15 @@ class InputBox(nn.Module):
 
     def extra_repr(self) -> str:
         return f"dof={self.lower.numel()}, fade={self.fade}"
+
+
+def parse_inputs(text: str) -> FeatureSpec | LocalSpec:
+    """The spec of ``--inputs`` other than ``joints``: ``local[+q1]`` or
+    ``frameK[+qI-J][+gravity][+torque|+full]``.
+
+    Raises:
+        HybridPKError: the message lists the forms.
+    """
+    if text.strip().startswith("local"):
+        return LocalSpec.parse(text)
+    return FeatureSpec.parse(text)

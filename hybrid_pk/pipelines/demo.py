@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-from hybrid_pk.calibration.diagnosis.search import Diagnosis, diagnose
+from hybrid_pk.calibration.diagnosis import Diagnosis, diagnose
 from hybrid_pk.calibration.fit import fit, initialise_frames
 from hybrid_pk.data import MeasuredData, write_table
 from hybrid_pk.data.table import write_frame
@@ -270,6 +270,7 @@ def _train(out: Path, model: ExtendedModel, split: _Split, epochs: int, seed: in
         split.calib,
         model,
         split.cond,
+        preset_name="joints",  # its random rows cover the workspace: MLPs on every joint
         max_epochs=epochs,
         seed=seed,
         datamodule={"batch_size": 128},  # more steps on a small campaign

@@ -22,6 +22,7 @@ from hybrid_pk.effects import conditions_from_data
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.plots import error_histograms
 from hybrid_pk.report.evidence import Evidence, cause_evidence, cause_label
+from hybrid_pk.report.findings import frames_section, robust_section, structural_section
 from hybrid_pk.report.markdown import fmt, image, markdown_table, stats_table, value_with_std
 from hybrid_pk.report.plots import evidence_plot, residual_scan
 from hybrid_pk.robot import Robot
@@ -311,6 +312,7 @@ def write_diagnosis_report(
         stats_table({"nominal": diagnosis.nominal, "extended": diagnosis.extended}),
         image(hist, "hold-out error histograms, nominal vs extended", out),
         "",
+        *structural_section(diagnosis),
         "## Causes",
         "",
     ]
@@ -325,6 +327,8 @@ def write_diagnosis_report(
                 ["l", "l", "l", "r", "r"],
             ),
         ]
+    elif diagnosis.structural and diagnosis.structural["structurally_wrong"]:
+        lines += ["Withheld: the URDF looks structurally wrong (see above).", ""]
     else:
         lines += ["None: no effect beyond measurement noise is statistically supported.", ""]
     if diagnosis.ambiguous:
@@ -338,6 +342,7 @@ def write_diagnosis_report(
         progress("plots of what is left")
     lines += _what_is_left(diagnosis, data, robot, out, ext)
     lines += _identifiability(diagnosis)
+    lines += frames_section(diagnosis) + robust_section(diagnosis)
     lines += _selection_log(diagnosis)
     path = out / "report.md"
     path.write_text("\n".join(lines).rstrip() + "\n", encoding="utf-8")

@@ -66,7 +66,7 @@ def eliminate(
         )
         model = without_effect(model, label)
         sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
-        res = fit(model, train, cond=cond, initial_sigma=sigmas, progress=say)
+        res = fit(model, train, cond=cond, initial_sigma=sigmas, progress=say, **res.settings())
         removed.add(label)
     return model, res, removed
 

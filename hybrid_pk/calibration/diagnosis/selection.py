@@ -149,11 +149,16 @@ def score_candidates(
     """
     robot = model.robot
     trial = with_effects(model, [make_effect(robot, c) for c in pool])
+    fixed = set() if res.priors is None else set(res.priors.fixed_labels())
     blocks = param_blocks(trial, None, split.position_only)
+    blocks = tuple(b for b in blocks if b.label not in fixed)
     sig_r = res.sigma_rot_rad or 1.0
+    # robust fits: the rows weigh as in the fit (a gross row does not score a candidate)
+    weights = None if res.weights is None else res.weights.sqrt()
     problem = Problem(
-        trial, split.train, split.cond_fit, blocks, res.sigma_pos_mm, sig_r, progress=progress
-    )
+        trial, split.train, split.cond_fit, blocks, res.sigma_pos_mm, sig_r,
+        row_weights=weights, progress=progress,
+    )  # fmt: skip
     # [J r] = Q R: R's columns stand for J's and r's (same norms, inner products and
     # projections) with n + 1 rows instead of m.
     R = problem.r_factor(torch.zeros_like(problem.x0))
@@ -251,12 +256,14 @@ def try_candidate(
         "threshold": scores.threshold,
     }
     new = with_effects(model, [make_effect(model.robot, label)])
-    ssr_old = res.cost if res.cost is not None else _ssr(model, split, res)
+    # (a robust fit's cost is its IRLS sum; its F-test compares robust costs)
+    ssr_old = res.cost if res.cost is not None and res.robust is None else _ssr(model, split, res)
     sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
     start = with_effects(new)
     shift_parameters(start, gauss_newton_start(scores, label), split.position_only)
     r_start = weighted_residual(start, split.train, split.cond_fit, res)
-    if float(r_start @ r_start) < ssr_old:
+    start_cost = float(r_start @ r_start) if res.robust is None else _ssr(start, split, res)
+    if start_cost < ssr_old:
         # The start is (linearised) optimal under the current noise weights: its
         # residuals give the noise levels the refit's second pass would start from.
         new = start
@@ -265,7 +272,10 @@ def try_candidate(
             r_start, split.train.n, n_params, sigmas, position_only=split.position_only
         )
         sigmas = (noise[0], None if split.position_only else noise[1])
-    new_res = fit(new, split.train, cond=split.cond_fit, initial_sigma=sigmas, progress=progress)
+    new_res = fit(
+        new, split.train, cond=split.cond_fit, initial_sigma=sigmas, progress=progress,
+        **res.settings(),
+    )  # fmt: skip
     # F-test and BIC of the refit, both models' residuals under the same weights.
     ssr_new = _ssr(new, split, res)
     dof_new = max(m - new_res.n_params, 1)

@@ -9,6 +9,7 @@ from torch import Tensor
 
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.calibration.problem import Problem
+from hybrid_pk.calibration.robust import robust_cost, row_distances
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
 
@@ -49,8 +50,12 @@ def weighted_residual(
 def weighted_ssr(
     model: ExtendedModel, data: MeasuredData, cond: Conditions, res: FitResult
 ) -> float:
-    """Sum of squared residuals of ``model`` on ``data`` under ``res``'s noise weights."""
+    """Sum of squared residuals of ``model`` on ``data`` under ``res``'s noise weights;
+    for a robust fit the robust cost of its loss, on the same scale (see
+    :func:`~hybrid_pk.calibration.robust.robust_cost`)."""
     r = weighted_residual(model, data, cond, res)
+    if res.robust is not None:
+        return robust_cost(row_distances(r, data.n), 3 if data.quat is None else 6, res.robust)
     return float(r @ r)
 
 

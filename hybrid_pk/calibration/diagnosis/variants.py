@@ -109,5 +109,6 @@ def refit_without(
         covariance=False,
         max_iter=max_iter,
         progress=progress,
+        **res.settings(),
     )
     return reduced
