@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from hybrid_pk.calibration.gravity_coupling import levelled_gravity_columns
 from hybrid_pk.calibration.least_squares import jacobian, levenberg_marquardt
 from hybrid_pk.data.table import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data
@@ -148,21 +149,27 @@ def initialise_frames(
 
     Args:
         which: ``"frames"`` (both), ``"base"`` or ``"tool"``.
+
+    With gravity from a levelled tracker the loaded end pose depends on the base frame
+    itself, so the registration is repeated once from the first one's base.
     """
-    T_end = model.end_pose(data.q, cond)
     R_meas = None if data.quat is None else quat_to_matrix(data.quat)
     groups = [None] if model.base.sets == 1 or cond.group is None else range(model.base.sets)
-    for g in groups:
-        rows = slice(None) if g is None else cond.group == g
-        if g is not None and not bool(rows.any()):
-            continue
-        base, tool = register_frames(
-            T_end[rows], data.position[rows], None if R_meas is None else R_meas[rows]
-        )
-        if which in ("frames", "base"):
-            model.base.reset_to(base, g)
-        if which in ("frames", "tool"):
-            model.tool.reset_to(tool, g)
+    loaded = any(e.stage in ("compliance", "deflection") for e in model.effects)
+    passes = 2 if model.gravity.levelled and loaded and which != "tool" else 1
+    for _ in range(passes):
+        T_end = model.end_pose(data.q, cond)
+        for g in groups:
+            rows = slice(None) if g is None else cond.group == g
+            if g is not None and not bool(rows.any()):
+                continue
+            base, tool = register_frames(
+                T_end[rows], data.position[rows], None if R_meas is None else R_meas[rows]
+            )
+            if which in ("frames", "base"):
+                model.base.reset_to(base, g)
+            if which in ("frames", "tool"):
+                model.tool.reset_to(tool, g)
 
 
 class _EndPose(torch.nn.Module):
@@ -185,14 +192,41 @@ def _frame_matrix(frame, values: dict, prefix: str, group: Tensor | None) -> Ten
 
 
 class _GeometricPose(torch.nn.Module):
-    """End pose with geometric effects only, at given true joint values."""
+    """End pose with geometric and deflection effects at given true joint values, the
+    static wrenches of the deflection held fixed (see :func:`loaded_state`)."""
 
     def __init__(self, model: ExtendedModel) -> None:
         super().__init__()
         self.model = model
 
-    def forward(self, q_true: Tensor, cond: Conditions) -> Tensor:
-        return self.model.robot.fk(q_true, params=self.model.kinematic_params(cond))
+    def forward(self, q_true: Tensor, cond: Conditions, wrenches: Tensor | None) -> Tensor:
+        params = self.model.kinematic_params(cond)
+        params = self.model.deflected_params(q_true, params, cond, wrenches=wrenches)
+        return self.model.robot.fk(q_true, params=params)
+
+
+@torch.no_grad()
+def loaded_state(model: ExtendedModel, q: Tensor, cond: Conditions):
+    """Everything the structured Jacobian linearises about, at the current values:
+    ``(params, gravity, q_star, wrenches, params_deflected)``.
+
+    ``gravity`` is the root-frame vector (per row with a levelled tracker and several
+    base frames); ``wrenches`` the joint-frame static wrenches at ``q_star`` (None
+    without deflection effects); ``params_deflected`` the parameters the pose uses.
+    """
+    params = model.kinematic_params(cond)
+    gravity = model.gravity_root(cond)
+    q_star = model.joint_values(q, cond, params, gravity)
+    wrenches = None
+    if any(e.stage == "deflection" for e in model.effects):
+        wrenches = model.static_wrenches(q_star, params, cond, gravity)
+    return (
+        params,
+        gravity,
+        q_star,
+        wrenches,
+        model.deflected_params(q_star, params, cond, gravity, wrenches),
+    )
 
 
 class _KinematicJoints(torch.nn.Module):
@@ -271,6 +305,14 @@ class Problem:
           and the pose follows through the geometric Jacobian at ``q*``.
         - Geometric effects: forward mode through FK at fixed ``q*`` (their coupling
           through the gravity torques is second order, ~1e-3 relative, and dropped).
+        - Deflection effects: forward mode through the same pass, at fixed ``q*`` and
+          fixed static wrenches (exact: neither depends on a deflection value). The
+          wrenches' own dependence on the joint and geometric parameters (a deflection
+          of ~1e-3 rad changing by ~1e-3 relative per mrad) is dropped with the rest.
+        - Gravity from a levelled tracker (``Gravity.level_tracker``): turning the base
+          frame turns gravity in the root frame too, which changes sag and deflection
+          (~1e-3 of the base-rotation columns on a compliant robot): added by
+          :func:`~hybrid_pk.calibration.gravity_coupling.levelled_gravity_columns`.
         """
         model, cond = self.model, self.cond
         saved = {k: v.detach().clone() for k, v in self.params.items()}
@@ -287,9 +329,8 @@ class Problem:
         group = cond.group if model.base.sets > 1 else None
         robot = model.robot
         with torch.no_grad():
-            params = model.kinematic_params(cond)
-            q_star = model.joint_values(q, cond, params)
-            E = robot.fk(q_star, params=params)
+            params, gravity, q_star, wrenches, params_bent = loaded_state(model, q, cond)
+            E = robot.fk(q_star, params=params_bent)
             B = _frame_matrix(model.base, {}, "base", group)
             X = _frame_matrix(model.tool, {}, "tool", group)
             T = B @ E @ X
@@ -306,7 +347,7 @@ class Problem:
             if blk.name.startswith(("base.", "tool.")):
                 cols["frame"].extend(idx)
                 continue
-            stage = "geometry" if effects[blk.name].stage == "geometry" else "joint"
+            stage = "geometry" if effects[blk.name].stage in ("geometry", "deflection") else "joint"
             cols[stage].extend(idx)
             kinds[stage].append((blk, effects[blk.name]))
 
@@ -322,10 +363,11 @@ class Problem:
             _, J[:, cols["frame"]] = jacobian(
                 compose, torch.zeros(len(cols["frame"]), dtype=r.dtype)
             )
+            self._add_gravity_coupling(J, model, cond, q, B, X)
 
         if cols["joint"]:
-            dq = self._joint_derivatives(model, cond, q, q_star, params, kinds["joint"])
-            J[:, cols["joint"]] = self._pose_columns(robot, q_star, params, E, B, X, T, dq)
+            dq = self._joint_derivatives(model, cond, q, q_star, params, kinds["joint"], gravity)
+            J[:, cols["joint"]] = self._pose_columns(robot, q_star, params_bent, E, B, X, T, dq)
 
         if cols["geometry"]:
             geo_blocks = [b for b, _ in kinds["geometry"]]
@@ -333,13 +375,23 @@ class Problem:
 
             def through_fk(theta_g: Tensor) -> Tensor:
                 vals = self._sub_params(geo_blocks, theta_g, prefix="model.")
-                pose = torch.func.functional_call(wrapper, vals, (q_star, cond))
+                pose = torch.func.functional_call(wrapper, vals, (q_star, cond, wrenches))
                 return self.residual_of_pose(B @ pose @ X)
 
             _, J[:, cols["geometry"]] = jacobian(
                 through_fk, torch.zeros(len(cols["geometry"]), dtype=r.dtype)
             )
         return r, J
+
+    def _add_gravity_coupling(self, J, model, cond, q, B, X) -> None:
+        """Levelled-tracker gravity turns with the base frame (gravity_coupling.py)."""
+        start = 0
+        for b in self.blocks:
+            if b.name == "base.rotvec":
+                extra = levelled_gravity_columns(model, q, cond, B, X, self.residual_of_pose)
+                if extra is not None:
+                    J[:, start : start + b.size] += extra * b.scale  # theta units
+            start += b.size
 
     def _sub_params(self, blocks, theta_sub: Tensor, prefix: str = "") -> dict[str, Tensor]:
         """Parameter values of ``blocks`` at scaled offsets ``theta_sub`` from current."""
@@ -351,13 +403,13 @@ class Problem:
             s0 += b.size
         return vals
 
-    def _joint_derivatives(self, model, cond, q, q_star, params, blocks) -> Tensor:
+    def _joint_derivatives(self, model, cond, q, q_star, params, blocks, gravity) -> Tensor:
         """``dq*/dtheta (N, dof, k)`` for joint-space and compliance parameters."""
         robot = model.robot
         n, dof = q.shape
         payload = 0.0 if cond.payload is None else cond.payload
         with torch.no_grad():
-            g = robot.gravity_torques(q_star, payload=payload, params=params)  # (N, dof)
+            g = robot.gravity_torques(q_star, payload=payload, gravity=gravity, params=params)
         kin = [(b, e) for b, e in blocks if e.stage == "joint"]
         dq_kin = None
         if kin:
@@ -385,7 +437,10 @@ class Problem:
         if c is not None and bool((c != 0).any()):
             # q* = q_kin - C g(q*)  =>  (I + C dg/dq) dq* = dq_kin - dC g
             def grav(d: Tensor) -> Tensor:
-                return robot.gravity_torques(q_star + d, payload=payload, params=params).reshape(-1)
+                tau = robot.gravity_torques(
+                    q_star + d, payload=payload, gravity=gravity, params=params
+                )
+                return tau.reshape(-1)
 
             _, Jg = jacobian(grav, torch.zeros(dof, dtype=q.dtype))
             G = Jg.reshape(n, dof, dof)

@@ -20,16 +20,25 @@ from hybrid_pk.calibration.fit import FitResult, fit, initialise_frames
 from hybrid_pk.cli.common import (
     FRAME_LABELS,
     add_data_arguments,
+    add_gravity_argument,
     fit_frames,
     frame_parameter_count,
     load_robot,
+    mounting_lines,
     progress,
     read_data,
     stats_line,
     with_frame_sets,
 )
 from hybrid_pk.data import MeasuredData
-from hybrid_pk.effects import Conditions, Effect, ExtendedModel, conditions_from_data, make_effect
+from hybrid_pk.effects import (
+    Conditions,
+    Effect,
+    ExtendedModel,
+    conditions_from_data,
+    make_effect,
+    parse_gravity,
+)
 from hybrid_pk.errors import HybridPKError, ModelFileError
 from hybrid_pk.evaluation.metrics import error_stats, row_errors
 from hybrid_pk.geometry import matrix_to_rpy
@@ -96,6 +105,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         choices=tuple(FRAME_LABELS),
         help="with --model: re-fit only the tool frame, the base frame, or both [m, rad]",
     )
+    add_gravity_argument(p)
     p.add_argument("--out", required=True, metavar="MODEL", help="output model file (e.g. .pt)")
     p.add_argument(
         "--holdout",
@@ -252,6 +262,7 @@ def _start_effects(robot, labels: list[str], diag_model: ExtendedModel | None) -
 
 def _run_new(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot, args.end_link)
+    gravity = parse_gravity(args.gravity)
     spec = (args.effects or "auto").strip()
     auto = spec == "auto"
     labels = [] if auto or spec == "none" else _effect_labels(spec)
@@ -281,16 +292,18 @@ def _run_new(args: argparse.Namespace) -> int:
                 seed=args.seed,
                 frames_per_file=args.frames_per_file,
                 progress=step,
+                gravity=gravity,
             )
             labels = [c.effect if c.joint is None else f"{c.effect}:{c.joint}" for c in diag.causes]
         step("fitting frames to the nominal robot")
-        nominal = ExtendedModel(robot, frame_sets=sets)
+        nominal = ExtendedModel(robot, frame_sets=sets, gravity=gravity)
         res0 = fit_frames(nominal, data, cond)
         step("fitting frames and effects")
         model = ExtendedModel(
             robot,
             _start_effects(robot, labels, diag.model if diag else None),
             frame_sets=sets,
+            gravity=gravity,
         )
         initialise_frames(model, data, cond)
         res = fit(model, data, cond=cond)
@@ -303,6 +316,7 @@ def _run_new(args: argparse.Namespace) -> int:
             "frames_per_file": bool(args.frames_per_file),
             "orientation_fitted": data.quat is not None,
             "effects_requested": spec,
+            "gravity": gravity.describe(),
             "effects": effects,
             "nominal": _error_summary(res0),
             "calibrated": _error_summary(res),
@@ -345,7 +359,7 @@ def _print_new_summary(robot, data, args, diag, labels, effects, model, res0, re
             )
     else:
         print("  no effects: frames only" + (" (the diagnosis named none)" if diag else ""))
-    for line in _frame_lines(model):
+    for line in _frame_lines(model) + mounting_lines(model):
         print(line)
     p0, p1 = error_stats(res0.position_mm), error_stats(res.position_mm)
     print(
@@ -385,6 +399,10 @@ def _run_refit(args: argparse.Namespace) -> int:
     if args.effects is not None:
         raise HybridPKError(
             "--effects cannot be combined with --refit: the model keeps its effects"
+        )
+    if args.gravity is not None:
+        raise HybridPKError(
+            "--gravity cannot be combined with --refit: the model keeps its mounting"
         )
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
     robot = model_robot(loaded)

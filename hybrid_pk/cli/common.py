@@ -4,6 +4,7 @@ progress on stderr, frame (re-)fitting, summaries and JSON output."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import sys
 import warnings
@@ -24,9 +25,11 @@ from hybrid_pk.robot import Robot
 __all__ = [
     "FRAME_LABELS",
     "add_data_arguments",
+    "add_gravity_argument",
     "fit_frames",
     "frame_parameter_count",
     "load_robot",
+    "mounting_lines",
     "progress",
     "read_data",
     "stats_line",
@@ -64,6 +67,42 @@ def add_data_arguments(parser) -> None:
         help="leave out rows with NaN/inf, text, out-of-limit joints or non-unit "
         "quaternions (each reported by file and row) instead of stopping at the first",
     )
+
+
+def add_gravity_argument(parser) -> None:
+    """``--gravity X,Y,Z|level-tracker``, worded alike in calibrate and diagnose."""
+    parser.add_argument(
+        "--gravity",
+        metavar="X,Y,Z|level-tracker",
+        help="how the robot is mounted, for compliance and deflection: gravity in the "
+        "robot's root frame [m/s^2] (ceiling: 0,0,9.81), or level-tracker: the "
+        "measurement frame is levelled (laser tracker, total station), so gravity is -z "
+        "there and its direction in the robot frame follows from the fitted base frame "
+        "(default: upright, 0,0,-9.81)",
+    )
+
+
+def mounting_lines(model: ExtendedModel) -> list[str]:
+    """One line per base frame set on the gravity the model's statics use (none when
+    the robot is the default upright one)."""
+    if model.gravity.is_default:
+        return []
+    lines = []
+    with torch.no_grad():
+        T = model.base.matrix()
+        for g in range(model.base.sets):
+            vec = model.gravity.vector
+            if model.gravity.levelled:
+                vec = (T[g, :3, :3].T @ torch.tensor(vec, dtype=T.dtype)).tolist()
+            norm = max(sum(v * v for v in vec) ** 0.5, 1e-12)
+            tilt = math.degrees(math.acos(max(-1.0, min(1.0, -vec[2] / norm))))
+            tag = f" [{g}]" if model.base.sets > 1 else ""
+            text = ", ".join(f"{v:.4g}" for v in vec)
+            lines.append(
+                f"  gravity{tag} ({text}) m/s^2 in the robot root frame: root z axis "
+                f"{tilt:.1f} deg from upright ({model.gravity.describe()})"
+            )
+    return lines
 
 
 def load_robot(name: str, end_link: str | None = None) -> Robot:
@@ -158,7 +197,9 @@ def with_frame_sets(model: ExtendedModel, sets: int, keep: str | None = None) ->
                 f"files with --frames-per-file, or --refit frames"
             )
         kept[keep] = frame.matrix().detach()
-    return ExtendedModel(model.robot, list(model.effects), frame_sets=sets, **kept)
+    return ExtendedModel(
+        model.robot, list(model.effects), frame_sets=sets, gravity=model.gravity, **kept
+    )
 
 
 def fit_frames(

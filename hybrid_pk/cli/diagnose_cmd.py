@@ -99,6 +99,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--max-causes", type=int, default=8, metavar="N", help="stop after N causes (default: 8)"
     )
+    from hybrid_pk.cli.common import add_gravity_argument
+
+    add_gravity_argument(p)
     p.set_defaults(func=_run)
 
 
@@ -212,6 +215,9 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
         lines += [f"  {' ~ '.join(a['effects'])}" for a in diagnosis.ambiguous]
     for w in diagnosis.warnings:
         lines.append(f"warning: {w['cause']}: {w['why']}")
+    from hybrid_pk.cli.common import mounting_lines
+
+    lines += mounting_lines(diagnosis.model)
     un = diagnosis.unexplained
     rest = f"unexplained: RMS {_num(un.get('position_mm_rms'))} mm"
     if un.get("orientation_deg_rms") is not None:
@@ -238,7 +244,7 @@ def _read(paths: list[str], robot):
 
 def _run(args: argparse.Namespace) -> int:
     from hybrid_pk.calibration.diagnosis.search import diagnose
-    from hybrid_pk.effects import make_effect
+    from hybrid_pk.effects import make_effect, parse_gravity
     from hybrid_pk.robot import Robot
 
     for path in args.data:
@@ -254,6 +260,7 @@ def _run(args: argparse.Namespace) -> int:
         raise HybridPKError(f"--max-causes must be at least 1, got {args.max_causes}")
     if not 0.0 < args.alpha < 1.0:
         raise HybridPKError(f"--alpha must lie in (0, 1), got {args.alpha:g}")
+    gravity = parse_gravity(args.gravity)
     data = _read(args.data, robot)
 
     progress = _Progress()
@@ -268,6 +275,7 @@ def _run(args: argparse.Namespace) -> int:
             max_causes=args.max_causes,
             frames_per_file=args.frames_per_file,
             progress=progress,
+            gravity=gravity,
         )
         if args.report:
             progress("writing the report")

@@ -5,9 +5,11 @@ from hybrid_pk.robot.chain_spec import ChainSpec as ChainSpec
 from hybrid_pk.robot.chain_spec import load_chain_spec as load_chain_spec
 from hybrid_pk.robot.chain_spec import resolve_urdf as resolve_urdf
 from hybrid_pk.robot.chain_spec import shipped_robots as shipped_robots
+from hybrid_pk.robot.robot import STANDARD_GRAVITY as STANDARD_GRAVITY
 from hybrid_pk.robot.robot import Robot as Robot
 
 __all__ = [
+    "STANDARD_GRAVITY",
     "ChainSpec",
     "KinematicParams",
     "Robot",

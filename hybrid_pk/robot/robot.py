@@ -245,6 +245,30 @@ class Robot(nn.Module):
         return torch.cat([v, w], -1).transpose(-1, -2)
 
     # ------------------------------------------------------------------ statics
+    def _subtree_loads(self, frames: Tensor, payload: float | Tensor) -> tuple[Tensor, Tensor]:
+        """Mass ``(*B, dof)`` [kg] and first moment about each joint frame origin
+        ``(*B, dof, 3)`` [kg m] of everything joint ``i`` carries (segments ``k >= i``
+        and the payload at the end-link origin), root frame."""
+        dtype = frames.dtype
+        R, p = frames[..., :, :3, :3], frames[..., :, :3, 3]
+        m = self.segment_mass[1:].to(dtype)  # segments moving with joints 1..dof
+        c = (R[..., : self.dof, :, :] @ self.segment_com[1:].to(dtype)[..., None])[..., 0]
+        moment = m[:, None] * (c + p[..., : self.dof, :])  # (*B, dof, 3) m_k * c_k
+        payload = torch.as_tensor(payload, dtype=dtype, device=frames.device)
+        # Suffix sums: mass and first moment carried by joint i (all segments k >= i).
+        mass_out = m.flip(-1).cumsum(-1).flip(-1) + payload[..., None]
+        moment_out = moment.flip(-2).cumsum(-2).flip(-2)
+        moment_out = moment_out + payload[..., None, None] * p[..., self.dof : self.dof + 1, :]
+        arm = moment_out - mass_out[..., None] * p[..., : self.dof, :]  # sum_k m_k (c_k - o_i)
+        return mass_out, arm
+
+    def _gravity(self, gravity, frames: Tensor) -> Tensor:
+        """Gravity as ``(*G, 1, 3)``, broadcastable against per-joint vectors."""
+        g = torch.as_tensor(gravity, dtype=frames.dtype, device=frames.device)
+        if g.shape[-1:] != (3,):
+            raise ShapeError(f"gravity must have shape (*B, 3) [m/s^2], found {tuple(g.shape)}")
+        return g[..., None, :]
+
     def gravity_torques(
         self,
         q: Tensor,
@@ -260,30 +284,62 @@ class Robot(nn.Module):
         Args:
             q: ``(*B, dof)`` joint values [rad or m].
             payload: mass [kg] at the end-link origin; float or ``(*B,)`` tensor.
-            gravity: gravity acceleration in the root frame [m/s^2].
+            gravity: gravity acceleration in the root frame [m/s^2], ``(3,)`` or per
+                sample ``(*B, 3)`` (a robot on a ceiling, a wall or a tilted base).
             params: kinematic parameters to use instead of the robot's own.
 
         Returns:
             ``(*B, dof)`` torques [Nm] (forces [N] for prismatic joints).
         """
         frames = self.link_frames(q, params)
-        dtype = frames.dtype
-        g = torch.as_tensor(gravity, dtype=dtype, device=frames.device)
-        R, p = frames[..., :, :3, :3], frames[..., :, :3, 3]
-        m = self.segment_mass[1:].to(dtype)  # segments moving with joints 1..dof
-        c = (R[..., : self.dof, :, :] @ self.segment_com[1:].to(dtype)[..., None])[..., 0]
-        moment = m[:, None] * (c + p[..., : self.dof, :])  # (*B, dof, 3) m_k * c_k
-        payload = torch.as_tensor(payload, dtype=dtype, device=frames.device)
-        # Suffix sums: mass and first moment carried by joint i (all segments k >= i).
-        mass_out = m.flip(-1).cumsum(-1).flip(-1) + payload[..., None]
-        moment_out = moment.flip(-2).cumsum(-2).flip(-2)
-        moment_out = moment_out + payload[..., None, None] * p[..., self.dof : self.dof + 1, :]
+        g = self._gravity(gravity, frames)
+        mass_out, arm = self._subtree_loads(frames, payload)
         z = self._axes_world(frames, params)
-        o = p[..., : self.dof, :]
-        arm = moment_out - mass_out[..., None] * o  # sum_k m_k (c_k - o_i)
         tau_rev = (z * torch.linalg.cross(g.expand_as(arm), arm)).sum(-1)
         tau_pri = -mass_out * (z * g).sum(-1)
         return torch.where(self.revolute, tau_rev, tau_pri)
+
+    def static_wrenches(
+        self,
+        q: Tensor,
+        payload: float | Tensor = 0.0,
+        gravity: Tensor | tuple[float, float, float] = (0.0, 0.0, -STANDARD_GRAVITY),
+        params: KinematicParams | None = None,
+        frame: str = "root",
+    ) -> Tensor:
+        """The full static wrench each joint transmits to hold what it carries.
+
+        :meth:`gravity_torques` is its component along each joint's axis; the other
+        five components load the bearings and bend the links (what
+        ``tilt_compliance`` and ``column_bending`` read). Same sign as pinocchio's
+        ``data.f`` after ``rnea`` at zero velocity and acceleration: the wrench the
+        parent side exerts on the subtree of joint ``i`` (segments ``k >= i`` and the
+        payload).
+
+        Args:
+            q: ``(*B, dof)`` joint values [rad or m].
+            payload: mass [kg] at the end-link origin; float or ``(*B,)`` tensor.
+            gravity: ``(3,)`` or ``(*B, 3)`` gravity in the root frame [m/s^2].
+            params: kinematic parameters to use instead of the robot's own.
+            frame: ``"root"``, or ``"joint"``: each wrench in its own joint's frame
+                (pinocchio's ``data.f`` convention).
+
+        Returns:
+            ``(*B, dof, 6)``: force [N] then moment [Nm] about the origin of joint
+            ``i``'s frame (on its axis, :meth:`link_frames` index ``i``), both in the
+            root frame (or that joint frame).
+        """
+        if frame not in ("root", "joint"):
+            raise ValueError(f"frame must be 'root' or 'joint', got {frame!r}")
+        frames = self.link_frames(q, params)
+        g = self._gravity(gravity, frames)
+        mass_out, arm = self._subtree_loads(frames, payload)
+        force = (-mass_out[..., None] * g).expand_as(arm)
+        moment = torch.linalg.cross(g.expand_as(arm), arm)  # -(arm x m g) summed
+        if frame == "joint":
+            Rt = frames[..., : self.dof, :3, :3].transpose(-1, -2)
+            force, moment = (Rt @ force[..., None])[..., 0], (Rt @ moment[..., None])[..., 0]
+        return torch.cat([force, moment], -1)
 
     def extra_repr(self) -> str:
         return (

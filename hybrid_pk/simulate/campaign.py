@@ -8,7 +8,10 @@ One campaign (Ojer et al. 2024, section 4.1, generalised):
    order (backlash);
 3. unknown frames drawn from the seed: a laser tracker 2-4 m from the robot at any
    yaw with a small tilt (``T_meas_root``) and a tool 50-200 mm from the flange with
-   any rotation (``T_end_point``); identity when the frames are known;
+   any rotation (``T_end_point``); identity when the frames are known. With a
+   mounting (``mounting.py``: ceiling, wall, tilted base, any gravity) the tracker
+   stands level and the base frame carries the mount rotation, and gravity in the
+   robot frame follows the mount;
 4. true poses ``T_meas_root · fk(q_true, params_true) · T_end_point`` from
    :class:`~hybrid_pk.effects.ExtendedModel` with the injected effects;
 5. Gaussian measurement noise: per position coordinate ``noise_mm`` [mm]; orientation
@@ -30,7 +33,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from hybrid_pk.data.table import MeasuredData
-from hybrid_pk.effects import Conditions, Effect, ExtendedModel, approach_direction
+from hybrid_pk.effects import Conditions, Effect, ExtendedModel, Gravity, approach_direction
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import error_stats, pose_error
 from hybrid_pk.geometry import (
@@ -42,6 +45,7 @@ from hybrid_pk.geometry import (
 )
 from hybrid_pk.robot import Robot
 from hybrid_pk.simulate.effect_specs import effect_entry, is_hidden_spec, parse_effects
+from hybrid_pk.simulate.mounting import Mount, mount_from_gravity, parse_mount
 from hybrid_pk.simulate.trajectories import TRAJECTORIES, iso_cube, make_trajectory
 
 __all__ = ["SIMULATED_SOURCE", "random_frames", "simulate_campaign", "warm_up"]
@@ -71,7 +75,7 @@ def _uniform(gen: torch.Generator, lo: float, hi: float, dtype: torch.dtype) -> 
 
 
 def random_frames(
-    generator: torch.Generator, dtype: torch.dtype = torch.float64
+    generator: torch.Generator, dtype: torch.dtype = torch.float64, level: bool = False
 ) -> tuple[Tensor, Tensor]:
     """A tracker somewhere in the room and a tool on the flange.
 
@@ -79,6 +83,8 @@ def random_frames(
     ``TRACKER_HEIGHT_M``, with any yaw and up to ``TRACKER_TILT_DEG`` roll and pitch.
     The measured point lies ``TOOL_LENGTH_M`` from the flange, within
     ``TOOL_CONE_DEG`` of its z axis; the tool frame has a uniformly random rotation.
+    ``level``: no roll or pitch (the draws are made all the same, so the other frames
+    of a seed do not change).
 
     Returns:
         ``(T_meas_root, T_end_point)``, each ``(4, 4)`` [m].
@@ -92,6 +98,8 @@ def random_frames(
     )
     tilt = math.radians(TRACKER_TILT_DEG)
     roll, pitch = (_uniform(g, -tilt, tilt, dtype) for _ in range(2))
+    if level:
+        roll = pitch = 0.0
     yaw = _uniform(g, -math.pi, math.pi, dtype)
     R_root_meas = (
         so3_exp(torch.tensor([0.0, 0.0, yaw], dtype=dtype))
@@ -155,6 +163,14 @@ def _check_args(
             raise HybridPKError(f"temperature range must be LO <= HI [°C], got {lo}, {hi}")
 
 
+def _mounting(mount) -> Mount | None:
+    if mount is None or isinstance(mount, Mount):
+        return mount
+    if isinstance(mount, Gravity):
+        return mount_from_gravity(mount)
+    return parse_mount(mount)
+
+
 def simulate_campaign(
     robot: Robot,
     n: int,
@@ -168,6 +184,7 @@ def simulate_campaign(
     temperature_range: tuple[float, float] | None = (20.0, 28.0),
     position_only: bool = False,
     known_frames: bool = False,
+    mount: str | Mount | Gravity | None = None,
     seed: int = 0,
     progress: bool = False,
 ) -> tuple[MeasuredData, dict]:
@@ -187,6 +204,11 @@ def simulate_campaign(
             None writes no temperature column.
         position_only: write no orientation (``qw..qz``).
         known_frames: measure in the robot root frame at the flange (identity frames).
+        mount: how the robot is mounted: ``--mount`` text (``ceiling``, ``wall``,
+            ``tilt:DEG[,AZ]``, ``floor``), a :class:`Mount`, or a root-frame
+            :class:`Gravity`; the tracker is then level and the truth base frame holds
+            the mount rotation. None: upright, and the tracker tilted up to
+            ``TRACKER_TILT_DEG`` (the campaigns before mountings existed).
         seed: every random draw comes from it.
         progress: show a progress bar on stderr when it takes more than 2 s.
 
@@ -203,8 +225,10 @@ def simulate_campaign(
     streams = _streams(seed)
     spec = effects if isinstance(effects, str) else None
     mean_payload = payload if payload_range is None else sum(payload_range) / 2
+    mounting = _mounting(mount)
+    gravity = Gravity() if mounting is None else mounting.gravity
     if spec is not None:
-        effects = parse_effects(robot, spec, seed=seed, payload=mean_payload)
+        effects = parse_effects(robot, spec, seed=seed, payload=mean_payload, gravity=gravity)
     effects = list(effects)
     for e in effects:
         if e.needs == "temperature" and temperature_range is None:
@@ -214,7 +238,9 @@ def simulate_campaign(
     with torch.no_grad():
         traj = make_trajectory(robot, trajectory, n, streams["trajectory"])
         q = traj.q.to(dt)
-        base, tool = random_frames(streams["frames"], dt)
+        base, tool = random_frames(streams["frames"], dt, level=mounting is not None)
+        if mounting is not None:  # T_meas_root = T_meas_world · T_world_root
+            base = base @ transform(mounting.rotation.to(dt), torch.zeros(3, dtype=dt))
         if known_frames:
             base = tool = torch.eye(4, dtype=dt)
         cond = Conditions(
@@ -222,7 +248,7 @@ def simulate_campaign(
             temperature=None if temperature_range is None else warm_up(n, *temperature_range, dt),
             direction=approach_direction(q),
         )
-        true_model = ExtendedModel(robot, effects, base=base, tool=tool)
+        true_model = ExtendedModel(robot, effects, base=base, tool=tool, gravity=gravity)
         nominal_model = ExtendedModel(robot, [], base=base, tool=tool)
         T_true = torch.empty(n, 4, 4, dtype=dt)
         T_nominal = torch.empty(n, 4, 4, dtype=dt)
@@ -267,6 +293,8 @@ def simulate_campaign(
         ),
         "position_only": bool(position_only),
         "known_frames": bool(known_frames),
+        "mount": None if mounting is None else mounting.to_dict(),
+        "gravity": list(gravity.vector),
         "effects_spec": spec,
         "effects_hidden": bool(spec is not None and is_hidden_spec(spec)),
         "effects": [effect_entry(e) for e in effects],

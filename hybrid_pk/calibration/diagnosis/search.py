@@ -43,6 +43,7 @@ from hybrid_pk.effects import (
     Conditions,
     Effect,
     ExtendedModel,
+    Gravity,
     conditions_from_data,
     make_effect,
 )
@@ -132,7 +133,21 @@ class Diagnosis:
             "identifiability": self.identifiability,
             "selection": self.steps,
             "warnings": self.warnings,
+            "gravity": _gravity_json(self.model),
         }
+
+
+def _gravity_json(model: ExtendedModel) -> dict:
+    """The mounting the statics used, with gravity in the root frame of each base set."""
+    out = model.gravity.to_dict()
+    with torch.no_grad():
+        if model.gravity.levelled:
+            R = model.base.matrix()[:, :3, :3]
+            g = torch.tensor(model.gravity.vector, dtype=R.dtype)
+            out["root_frame"] = [(R[k].T @ g).tolist() for k in range(R.shape[0])]
+        else:
+            out["root_frame"] = [list(model.gravity.vector)]
+    return out
 
 
 def candidate_labels(robot: Robot, data: MeasuredData) -> list[str]:
@@ -148,6 +163,8 @@ def candidate_labels(robot: Robot, data: MeasuredData) -> list[str]:
                 robot.joint_types[i] == "prismatic"
             ):
                 continue
+            if kind == "column_bending" and robot.joint_types[i] != "prismatic":
+                continue  # a column's bending grows with its extension
             labels.append(f"{kind}:{joint}")
     if data.temperature is not None:
         spread = float(data.temperature.max() - data.temperature.min())
@@ -175,7 +192,9 @@ def _clone_model(model: ExtendedModel, extra: list[Effect] = ()) -> ExtendedMode
     """Same robot, frames and effect values, plus ``extra`` effects."""
     robot = model.robot
     effects = [make_effect(robot, e.label, e.value.detach().clone()) for e in model.effects]
-    out = ExtendedModel(robot, effects + list(extra), frame_sets=model.base.sets)
+    out = ExtendedModel(
+        robot, effects + list(extra), frame_sets=model.base.sets, gravity=model.gravity
+    )
     out.base.reset_to(model.base.matrix().detach())
     out.tool.reset_to(model.tool.matrix().detach())
     return out
@@ -262,6 +281,7 @@ def diagnose(
     max_causes: int = 8,
     frames_per_file: bool = False,
     progress: Callable[[str], None] | None = None,
+    gravity: Gravity | None = None,
 ) -> Diagnosis:
     """Name the physical causes of the nominal model's errors on ``data``.
 
@@ -275,6 +295,7 @@ def diagnose(
         max_causes: stop after this many causes.
         frames_per_file: give each input file its own base and tool frames.
         progress: called with a short text at each stage.
+        gravity: the mounting (root-frame vector or levelled tracker); default upright.
     """
     say = progress or (lambda _msg: None)
     robot.requires_grad_(False)
@@ -285,7 +306,9 @@ def diagnose(
     position_only = data.quat is None
 
     say("fitting base and tool frames to the nominal model")
-    model = ExtendedModel(robot, frame_sets=len(data.sources) if frames_per_file else 1)
+    model = ExtendedModel(
+        robot, frame_sets=len(data.sources) if frames_per_file else 1, gravity=gravity
+    )
     initialise_frames(model, train, cond_fit)
     res = fit(model, train, cond=cond_fit)
     nominal_model = _clone_model(model)
