@@ -65,7 +65,9 @@ Fit base/tool frames and physical error effects to measured poses; write one MOD
 
 Effects and units: joint_offset [rad], joint_compliance [rad/Nm], gear_ratio [1],
 joint_eccentricity [rad], backlash [rad, full play], link_length [m, vector],
-axis_misalignment [rad, rotation vector], thermal_expansion [1/K, not per joint].
+axis_misalignment [rad, rotation vector], thermal_expansion [1/K, not per joint],
+tilt_compliance [rad/Nm about the two axes perpendicular to the joint], column_bending
+[rad/Nm/m, prismatic joints]. Compliance and deflection use --gravity (the mounting).
 The frames are always estimated: base = measurement frame <- robot root, tool =
 flange -> measured point. Errors are reported in mm (position) and deg (orientation).
 """

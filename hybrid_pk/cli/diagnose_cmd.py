@@ -18,13 +18,15 @@ from hybrid_pk.errors import HybridPKError
 _DESCRIPTION = """\
 Diagnose a robot from measured poses: fit base and tool frames to the nominal URDF,
 then name the physical effects (joint offsets, compliance, gear ratios, eccentricity,
-backlash, link lengths, axis misalignments, thermal expansion) that explain its
-errors, with their values, uncertainties and gains, tested on hold-out rows.
+backlash, link lengths, axis misalignments, thermal expansion, bearing tilt and link or
+column bending under the static load) that explain its errors, with their values,
+uncertainties and gains, tested on hold-out rows. A robot on a ceiling, a wall or a
+tilted base: --gravity X,Y,Z or --gravity level-tracker.
 
 Units: DATA tables have joints [rad, m for prismatic], x y z [m], optional
 qw qx qy qz (unit quaternion), payload [kg], temperature [°C]. Errors are reported in
 mm (position: point distance) and deg (orientation: rotation angle); each cause in the
-unit of its effect (rad, rad/Nm, 1, m, 1/K). --holdout is a fraction of the rows.
+unit of its effect (rad, rad/Nm, 1, m, 1/K, rad/Nm/m). --holdout is a fraction of the rows.
 """
 
 # Width of the label column of the printed error table.
