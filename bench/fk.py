@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 import hybrid_pk as hpk
+from tests.oracles.pk_chain import pk_chain
 
 
 def _time(fn: Callable[[], object], budget_s: float) -> float:
@@ -80,7 +81,7 @@ def main() -> None:
     print("-" * len(header))
     for dtype_name in args.dtypes:
         dtype = getattr(torch, dtype_name)
-        chain = robot.pk_chain().to(dtype=dtype)
+        chain = pk_chain(robot, dtype)
         for batch in args.batches:
             q = robot.sample_q(batch, torch.Generator().manual_seed(0)).to(dtype)
             q.requires_grad_(args.grad)

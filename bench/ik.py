@@ -38,6 +38,7 @@ from hybrid_pk.ik import IKOptions, solve_ik, solve_ik_two_stage, wang_baseline
 from hybrid_pk.ik.dedup import distinct_mask
 from hybrid_pk.ik.seeds import quasi_random_seeds
 from tests.oracles.eaik_oracle import branch_coverage, eaik_branches
+from tests.oracles.pk_chain import pk_chain
 
 
 def _verified(robot: hpk.Robot, T: torch.Tensor, q: torch.Tensor, ok: torch.Tensor, args):
@@ -61,7 +62,7 @@ def _pk(robot, T, seeds, args):
     import pytorch_kinematics as pk
 
     ik = pk.PseudoInverseIK(
-        robot.pk_chain(),
+        pk_chain(robot),
         retry_configs=seeds,
         joint_limits=torch.stack(robot.joint_limits, -1),
         max_iterations=args.iterations,

@@ -1,4 +1,5 @@
-"""Shared test helpers: pose/quaternion comparisons, gradient checks, batch shapes.
+"""Shared test helpers: pose/quaternion comparisons, gradient checks, batch shapes, and the
+per-run seed of the hidden-effect tests.
 
 Comparisons are computed here from first principles (not with ``hybrid_pk.geometry``),
 so a bug in the library cannot hide itself in the check.
@@ -7,6 +8,8 @@ so a bug in the library cannot hide itself in the check.
 from __future__ import annotations
 
 import math
+import os
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -15,6 +18,16 @@ from torch import Tensor
 
 # Leading batch shapes every batched function is tested with (jaxlie style).
 BATCH_SHAPES: list[tuple[int, ...]] = [(), (1,), (3, 2)]
+
+# Hidden-effect tests draw the effect, joint and magnitude from this seed, which changes
+# every run; ``HYBRID_PK_TEST_SEED=N`` replays run N (pytest's header prints it, and every
+# failure message of those tests names it).
+RUN_SEED: int = int(os.environ.get("HYBRID_PK_TEST_SEED", time.time_ns() % 1_000_003))
+
+
+def run_rng(salt: str) -> np.random.Generator:
+    """A generator seeded by ``RUN_SEED`` and ``salt`` (one independent stream per test)."""
+    return np.random.default_rng([RUN_SEED, sum(map(ord, salt))])
 
 
 def _f64(x: Tensor | np.ndarray) -> Tensor:

@@ -8,8 +8,6 @@ sized to 0.15–0.9 mm mean error on the campaign itself, unknown base and tool 
 from __future__ import annotations
 
 import math
-import os
-import time
 from pathlib import Path
 
 import numpy as np
@@ -20,20 +18,16 @@ import hybrid_pk as hpk
 from hybrid_pk.calibration.diagnosis.search import diagnose
 from hybrid_pk.effects import EFFECTS, ExtendedModel, make_effect
 from hybrid_pk.simulate import simulate_campaign
+from tests.helpers import RUN_SEED, run_rng
 
 pytestmark = pytest.mark.slow
 
-RUN_SEED = int(os.environ.get("HYBRID_PK_TEST_SEED", time.time_ns() % 1_000_003))
 ROBOTS = ("rx160", "ur10")
 # A prismatic joint for column_bending: the generic 7-axis arm's slide j4.
 ARM7 = str(Path(__file__).resolve().parent / "data" / "arm7_generic.urdf")
 # Smallest mean |moment| [Nm] about either axis perpendicular to a joint for its tilt to
 # be drawn: a 0.15-0.9 mm tilt then needs a compliance metal joints have (<= 1e-5 rad/Nm).
 MIN_TILT_MOMENT_NM = 20.0
-
-
-def _rng(salt: str) -> np.random.Generator:
-    return np.random.default_rng([RUN_SEED, sum(map(ord, salt))])
 
 
 def _robot(name: str) -> hpk.Robot:
@@ -175,7 +169,7 @@ def _check(diag, truth_values, where):
 
 @pytest.mark.parametrize("kind", sorted(EFFECTS))
 def test_hidden_effect_is_named_with_its_value(kind):
-    rng = _rng(kind)
+    rng = run_rng(kind)
     robot = _robot(str(rng.choice(ROBOTS if kind != "column_bending" else (ARM7,))))
     spec = _draw(robot, kind, rng, payload=10.0)
     data, truth, where = _campaign(robot, [spec], rng)
@@ -185,7 +179,7 @@ def test_hidden_effect_is_named_with_its_value(kind):
 
 
 def test_hidden_effect_position_only_data():
-    rng = _rng("position-only")
+    rng = run_rng("position-only")
     robot = _robot(str(rng.choice(ROBOTS)))
     kind = str(rng.choice(["joint_offset", "joint_compliance", "gear_ratio", "link_length"]))
     data, truth, where = _campaign(robot, [_draw(robot, kind, rng, 10.0)], rng, position_only=True)
@@ -196,7 +190,7 @@ def test_hidden_effect_position_only_data():
 
 
 def test_two_hidden_effects_at_once():
-    rng = _rng("two")
+    rng = run_rng("two")
     robot = _robot(str(rng.choice(ROBOTS)))
     kinds = rng.choice(["joint_offset", "joint_compliance", "gear_ratio", "backlash"], 2, False)
     specs = [_draw(robot, str(k), rng, 10.0) for k in kinds]
@@ -207,7 +201,7 @@ def test_two_hidden_effects_at_once():
 
 
 def test_hidden_compliance_with_varying_payload():
-    rng = _rng("payload")
+    rng = run_rng("payload")
     robot = _robot(str(rng.choice(ROBOTS)))
     spec = _draw(robot, "joint_compliance", rng, 10.0)
     data, truth, where = _campaign(robot, [spec], rng, payload=0.0, payload_range=(0.0, 20.0))
@@ -216,7 +210,7 @@ def test_hidden_compliance_with_varying_payload():
 
 
 def test_noise_only_data_has_no_causes():
-    rng = _rng("noise")
+    rng = run_rng("noise")
     robot = _robot(str(rng.choice(ROBOTS)))
     data, _, where = _campaign(robot, [], rng)
     diag = diagnose(robot, data, seed=4)
@@ -224,10 +218,9 @@ def test_noise_only_data_has_no_causes():
     assert not diag.unexplained["structured"], f"{where}: noise flagged as structured"
 
 
-def test_diagnosis_on_data_generated_with_pinocchio():
+def test_diagnosis_on_data_generated_with_pinocchio(pin):
     """An independent generator: pinocchio FK and gravity, our code only diagnoses."""
-    pin = pytest.importorskip("pinocchio")
-    rng = _rng("pinocchio")
+    rng = run_rng("pinocchio")
     robot = _robot("rx160")
     model = pin.buildModelFromUrdf(robot.spec.urdf_path)
     data_pin = model.createData()

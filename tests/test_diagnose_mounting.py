@@ -16,14 +16,14 @@ from hybrid_pk.calibration.diagnosis.search import diagnose
 from hybrid_pk.calibration.fit import fit, initialise_frames
 from hybrid_pk.effects import ExtendedModel, Gravity, conditions_from_data, make_effect
 from hybrid_pk.simulate import parse_mount, simulate_campaign
+from tests.helpers import RUN_SEED
+from tests.helpers import run_rng as _rng
 from tests.test_diagnose import (
     ROBOTS,
-    RUN_SEED,
     _campaign,
     _check,
     _draw,
     _joints_for,
-    _rng,
     _robot,
     _value_error,
 )

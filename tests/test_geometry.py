@@ -13,6 +13,7 @@ from torch.autograd.gradcheck import GradcheckError
 from hybrid_pk.geometry import (
     matrix_to_quat,
     matrix_to_rpy,
+    nearest_rotation,
     quat_to_matrix,
     rotation_angle,
     rpy_to_matrix,
@@ -286,6 +287,41 @@ def test_transform_broadcasts_rotation_and_translation() -> None:
     T = transform(R, p)
     assert T.shape == (2, 4, 4)
     assert torch.equal(T[:, :3, 3], p)
+
+
+@pytest.mark.parametrize("shape", BATCH_SHAPES)
+def test_nearest_rotation_matches_scipy(shape: tuple[int, ...]) -> None:
+    """Noisy rotations: scipy's ``from_matrix`` (Bar-Itzhack's quaternion method, the
+    nearest orthogonal matrix with det +1) is the oracle."""
+    gen = torch.Generator().manual_seed(21)
+    R = so3_exp(_random_rotvecs(shape, seed=20))
+    M = R + 0.2 * torch.randn(*shape, 3, 3, generator=gen, dtype=torch.float64)
+    expected = Rotation.from_matrix(M.reshape(-1, 3, 3).numpy()).as_matrix()
+    got = nearest_rotation(M)
+    assert got.shape == (*shape, 3, 3)
+    np.testing.assert_allclose(got.reshape(-1, 3, 3).numpy(), expected, atol=1e-12)
+
+
+def test_nearest_rotation_keeps_rotations_and_removes_stretch() -> None:
+    R = so3_exp(_random_rotvecs((5,), seed=22))
+    torch.testing.assert_close(nearest_rotation(R), R, atol=1e-13, rtol=0)
+    S = torch.diag(torch.tensor([3.0, 0.5, 1.5], dtype=torch.float64))  # symmetric > 0
+    torch.testing.assert_close(nearest_rotation(R @ S), R, atol=1e-13, rtol=0)
+    assert nearest_rotation(R.float()).dtype == torch.float32
+
+
+def test_nearest_rotation_of_a_reflection_is_a_local_optimum() -> None:
+    """det(M) < 0 (scipy refuses it): still a rotation, and no rotation near it is closer."""
+    gen = torch.Generator().manual_seed(23)
+    flip = torch.diag(torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64))
+    M = so3_exp(_random_rotvecs((), seed=24)) @ flip + 0.1 * torch.randn(
+        3, 3, generator=gen, dtype=torch.float64
+    )
+    R = nearest_rotation(M)
+    torch.testing.assert_close(R @ R.T, torch.eye(3, dtype=torch.float64), atol=1e-13, rtol=0)
+    assert abs(float(torch.linalg.det(R)) - 1) < 1e-13
+    nearby = R @ so3_exp(1e-3 * torch.randn(200, 3, generator=gen, dtype=torch.float64))
+    assert bool(((nearby - M).norm(dim=(-2, -1)) >= (R - M).norm()).all())
 
 
 # --- gradients -------------------------------------------------------------------------

@@ -51,13 +51,6 @@ def _resnet_count(widths: list[int], n_in: int = DOF) -> int:
     return total + 5 * width + 3
 
 
-@pytest.fixture(scope="module")
-def rx160() -> Robot:
-    robot = Robot.from_urdf("rx160")
-    robot.requires_grad_(False)
-    return robot
-
-
 # ----------------------------------------------------------------------------- networks
 
 

@@ -4,7 +4,6 @@ deduplication (contract section 6), and the two-stage solver on expensive models
 from __future__ import annotations
 
 import math
-import time
 from pathlib import Path
 
 import numpy as np
@@ -30,22 +29,14 @@ from hybrid_pk.ik.forward_model import autograd_pose_jacobian
 from hybrid_pk.robot.kernel import ChainKernel
 from tests.helpers import BATCH_SHAPES
 
+pytestmark = pytest.mark.usefixtures("one_thread")
+
 F64 = torch.float64
 ROBOTS = ("ur10", "rx160")
 ARM7 = Path(__file__).resolve().parent / "data" / "arm7_generic.urdf"
 N_TARGETS = 200
 N_SEEDS = 64
 TOL_MM, TOL_DEG = 1e-3, 1e-3
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    # Two cores shared with other jobs: measured, two intra-op threads made batched FK
-    # 10-100x slower when the other core was busy (and only ~30 % faster when idle).
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")
@@ -117,9 +108,7 @@ def test_all_analytic_branches_found_within_limits_and_tolerance(robots, name):
 
     robot = robots[name]
     T = _targets(robot, N_TARGETS, seed=11)
-    start = time.perf_counter()
-    result = solve_ik(robot, T, seeds=N_SEEDS)
-    elapsed = time.perf_counter() - start
+    result = solve_ik(robot, T, seeds=N_SEEDS)  # its speed: bench/ik.py
     reference = eaik_branches(robot, T)
     found = [result.solutions(i).numpy() for i in range(N_TARGETS)]
     matched, total, missed = branch_coverage(found, reference)
@@ -132,7 +121,6 @@ def test_all_analytic_branches_found_within_limits_and_tolerance(robots, name):
         s = torch.as_tensor(sols)
         same = same_solution(s[:, None], s[None, :], robot.revolute)
         assert int(same.sum()) == len(sols)
-    assert elapsed < 30, f"{name}: {N_TARGETS} targets took {elapsed:.1f} s"
 
 
 def test_redundant_arm_with_prismatic_joint(robots):

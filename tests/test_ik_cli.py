@@ -18,15 +18,9 @@ from hybrid_pk.hybrid import HybridFK, InputBox
 from hybrid_pk.io.hybrid_file import load_hybrid, save_hybrid
 from hybrid_pk.io.model_file import save_model
 
+pytestmark = pytest.mark.usefixtures("one_thread")
+
 F64 = torch.float64
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def _vec(*v: float) -> torch.Tensor:

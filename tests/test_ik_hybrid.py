@@ -13,8 +13,6 @@ from __future__ import annotations
 import pytest
 import torch
 
-pytest.importorskip("lightning")
-
 from hybrid_pk import Robot
 from hybrid_pk.calibration.fit import fit, initialise_frames
 from hybrid_pk.effects import ExtendedModel, conditions_from_data
@@ -39,51 +37,40 @@ TOL_MM, TOL_DEG = 1e-3, 1e-3  # the solver's default tolerances
 ATOL_MM = 1e-6
 
 
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
 @pytest.fixture(scope="module")
-def trained():
+def trained(one_thread, rx160):
     """(robot, campaign, its conditions, base model, TrainResult)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        robot = Robot.from_urdf("rx160")
-        robot.requires_grad_(False)
-        data, _ = simulate_campaign(
-            robot,
-            ROWS,
-            EFFECTS,
-            noise_mm=0.005,
-            noise_deg=5e-4,
-            payload=PAYLOAD,
-            temperature_range=None,
-            seed=7,
-        )
-        cond = conditions_from_data(data)
-        base = ExtendedModel(robot)  # nominal kinematics + fitted frames
-        initialise_frames(base, data, cond)
-        fit(base, data, cond=cond, covariance=False)
-        base.requires_grad_(False)
-        result = train_hybrid(
-            data,
-            base,
-            cond,
-            model=NETS,
-            datamodule={"batch_size": 64},
-            max_epochs=EPOCHS,
-            seed=SEED,
-            progress=False,
-        )
-        result.hybrid.requires_grad_(False)
-    finally:
-        torch.set_num_threads(threads)
+    robot = rx160
+    data, _ = simulate_campaign(
+        robot,
+        ROWS,
+        EFFECTS,
+        noise_mm=0.005,
+        noise_deg=5e-4,
+        payload=PAYLOAD,
+        temperature_range=None,
+        seed=7,
+    )
+    cond = conditions_from_data(data)
+    base = ExtendedModel(robot)  # nominal kinematics + fitted frames
+    initialise_frames(base, data, cond)
+    fit(base, data, cond=cond, covariance=False)
+    base.requires_grad_(False)
+    result = train_hybrid(
+        data,
+        base,
+        cond,
+        model=NETS,
+        datamodule={"batch_size": 64},
+        max_epochs=EPOCHS,
+        seed=SEED,
+        progress=False,
+    )
+    result.hybrid.requires_grad_(False)
     return robot, data, cond, base, result
-
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def _targets(robot: Robot, model, n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:

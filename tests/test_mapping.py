@@ -9,6 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+import yaml
 
 from hybrid_pk.cli.main import main
 from hybrid_pk.data import read_table_for
@@ -173,7 +174,6 @@ def test_map_file_round_trips_a_campaign_with_xyzw_quaternions(tmp_path, fmt):
     if fmt == "json":
         map_path.write_text(json.dumps(spec))
     else:
-        yaml = pytest.importorskip("yaml")
         map_path.write_text(yaml.safe_dump(spec))
     dst = tmp_path / "table.parquet"
     result = convert_columns(src, dst, load_column_map(map_path))

@@ -22,11 +22,6 @@ ARM7 = HERE / "data" / "arm7_generic.urdf"
 F64 = torch.float64
 
 
-@pytest.fixture(scope="module")
-def rx160() -> Robot:
-    return Robot.from_urdf("rx160")
-
-
 def _random_pose(gen: torch.Generator, scale: float) -> torch.Tensor:
     w = torch.randn(3, generator=gen, dtype=F64)
     p = scale * torch.randn(3, generator=gen, dtype=F64)

@@ -14,15 +14,13 @@ from hybrid_pk.geometry import so3_exp
 from hybrid_pk.robot import KinematicParams
 from tests.helpers import BATCH_SHAPES, assert_transforms_close, check_gradients
 
-pin = pytest.importorskip("pinocchio")
-
 HERE = Path(__file__).resolve().parent
 ARM7 = HERE / "data" / "arm7_generic.urdf"
 ROBOTS = ["rx160", "ur10", str(ARM7)]
 N_RANDOM = 50
 
 
-def _pin_model(robot: hpk.Robot):
+def _pin_model(pin, robot: hpk.Robot):
     model = pin.buildModelFromUrdf(robot.spec.urdf_path)
     return model, model.createData(), model.getFrameId(robot.end_link)
 
@@ -45,8 +43,8 @@ def robot(request) -> hpk.Robot:
     return hpk.Robot.from_urdf(request.param, end_link="tool0")
 
 
-def test_fk_matches_pinocchio_float64(robot):
-    model, data, fid = _pin_model(robot)
+def test_fk_matches_pinocchio_float64(pin, robot):
+    model, data, fid = _pin_model(pin, robot)
     q = robot.sample_q(N_RANDOM, torch.Generator().manual_seed(1))
     with torch.no_grad():
         T = robot.fk(q)
@@ -57,8 +55,8 @@ def test_fk_matches_pinocchio_float64(robot):
     assert_transforms_close(T, np.stack(expected), atol_pos=1e-9, atol_rot=1e-9)
 
 
-def test_jacobian_matches_pinocchio(robot):
-    model, data, fid = _pin_model(robot)
+def test_jacobian_matches_pinocchio(pin, robot):
+    model, data, fid = _pin_model(pin, robot)
     q = robot.sample_q(10, torch.Generator().manual_seed(2))
     with torch.no_grad():
         J = robot.jacobian(q).numpy()
@@ -72,8 +70,8 @@ def test_jacobian_matches_pinocchio(robot):
 
 
 @pytest.mark.parametrize("payload", [0.0, 12.5])
-def test_gravity_torques_match_pinocchio(robot, payload):
-    model, data, fid = _pin_model(robot)
+def test_gravity_torques_match_pinocchio(pin, robot, payload):
+    model, data, fid = _pin_model(pin, robot)
     if payload:
         # Independent payload model: a point mass added to the last joint's body at the
         # end-link frame, as pinocchio would represent a mounted tool.

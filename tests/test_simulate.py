@@ -20,16 +20,9 @@ from hybrid_pk.simulate.effect_specs import effects_from_file
 from hybrid_pk.simulate.trajectories import ISO_CYCLE, make_trajectory
 from tests.helpers import assert_quats_close, assert_transforms_close
 
+pytestmark = pytest.mark.usefixtures("one_thread")
+
 ROBOTS = ["rx160", "ur10"]
-
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Small batched solves: on a shared 2-core machine threads cost more than they give."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.fixture(scope="module")

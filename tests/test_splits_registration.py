@@ -18,7 +18,6 @@ from hybrid_pk.effects import ExtendedModel, conditions_from_data
 from hybrid_pk.errors import DataError
 from hybrid_pk.evaluation.splits import joint_box_split, random_split, region_split
 from hybrid_pk.geometry import matrix_to_quat, so3_exp
-from hybrid_pk.robot import Robot
 from hybrid_pk.simulate import random_frames, simulate_campaign
 from tests.helpers import rotation_distance
 from tests.oracles.circle_referencing import (
@@ -36,13 +35,6 @@ SERIES = {
     "B": (IPA / "Series_B" / "measurements_joint_configurations.csv", 6),
 }
 needs_shared = pytest.mark.skipif(not IPA.is_dir(), reason=f"shared data not found at {IPA}")
-
-
-@pytest.fixture(scope="module")
-def ur10() -> Robot:
-    robot = Robot.from_urdf("ur10")
-    robot.requires_grad_(False)
-    return robot
 
 
 @pytest.fixture(scope="module")

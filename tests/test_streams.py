@@ -16,17 +16,9 @@ from hybrid_pk.data.streams import estimate_time_offset, interpolate_poses, sync
 from hybrid_pk.effects import ExtendedModel, make_effect
 from hybrid_pk.errors import DataError
 from hybrid_pk.geometry import matrix_to_quat, quat_to_matrix, so3_exp
-from hybrid_pk.robot import Robot
 from hybrid_pk.simulate import random_frames
 
 ROBOT_HZ, TRACKER_HZ = 110.0, 3000.0
-
-
-@pytest.fixture(scope="module")
-def robot() -> Robot:
-    r = Robot.from_urdf("ur10")
-    r.requires_grad_(False)
-    return r
 
 
 def joint_path(t: np.ndarray, seed: int = 0) -> np.ndarray:
@@ -59,27 +51,27 @@ def simulate_streams(robot, offset, *, duration=12.0, noise_mm=0.02, noise_deg=0
     return t_r, joint_path(t_r, seed), t_m, pos.numpy(), quat.numpy(), (base, tool, true)
 
 
-def test_offset_recovered_within_1ms_with_full_poses(robot):
+def test_offset_recovered_within_1ms_with_full_poses(ur10):
     offset = 0.0373
-    t_r, q, t_m, pos, quat, _ = simulate_streams(robot, offset)
-    est = estimate_time_offset(t_r, q, t_m, pos, robot, quat=quat)
+    t_r, q, t_m, pos, quat, _ = simulate_streams(ur10, offset)
+    est = estimate_time_offset(t_r, q, t_m, pos, ur10, quat=quat)
     assert abs(est.offset - offset) < 1e-3, est.summary()
     assert est.residual_mm < est.coarse_residual_mm
     assert est.residual_mm < 0.1  # noise 0.02 mm per coordinate, plus a 0.3 mrad offset
 
 
-def test_offset_recovered_position_only_negative_offset_and_a_beam_break(robot):
+def test_offset_recovered_position_only_negative_offset_and_a_beam_break(ur10):
     offset = -0.2121
-    t_r, q, t_m, pos, _, _ = simulate_streams(robot, offset, seed=1)
+    t_r, q, t_m, pos, _, _ = simulate_streams(ur10, offset, seed=1)
     cut = (t_m > t_m[0] + 4.0) & (t_m < t_m[0] + 4.3)  # 0.3 s without tracker data
-    est = estimate_time_offset(t_r, q, t_m[~cut], pos[~cut], robot)
+    est = estimate_time_offset(t_r, q, t_m[~cut], pos[~cut], ur10)
     assert abs(est.offset - offset) < 1e-3, est.summary()
 
 
-def test_synchronised_table_matches_the_truth_at_robot_times(robot):
+def test_synchronised_table_matches_the_truth_at_robot_times(ur10):
     offset = 0.0373
     t_r, q, t_m, pos, quat, (_, _, true) = simulate_streams(
-        robot, offset, noise_mm=0.0, noise_deg=0.0
+        ur10, offset, noise_mm=0.0, noise_deg=0.0
     )
     t_m, pos, quat = t_m[::2], pos[::2], quat[::2]  # 1.5 kHz: interpolation must still hold
     cut = (t_m > 3.0) & (t_m < 3.2)
@@ -90,7 +82,7 @@ def test_synchronised_table_matches_the_truth_at_robot_times(robot):
         pos[~cut],
         offset,
         quat=quat[~cut],
-        joint_names=robot.joint_names,
+        joint_names=ur10.joint_names,
     )
     data = sync.data
     kept = data.rows.numpy() - 1
@@ -123,34 +115,34 @@ def test_slerp_midpoint_is_the_half_rotation():
     np.testing.assert_allclose(out[:, 0], np.cos(expected / 2), atol=1e-12)
 
 
-def test_streams_that_never_overlap_are_an_error(robot):
-    t_r, q, t_m, pos, _, _ = simulate_streams(robot, 0.0, duration=3.0)
+def test_streams_that_never_overlap_are_an_error(ur10):
+    t_r, q, t_m, pos, _, _ = simulate_streams(ur10, 0.0, duration=3.0)
     with pytest.raises(DataError, match="do not overlap"):
-        estimate_time_offset(t_r, q, t_m + 100.0, pos, robot, max_offset=1.0)
+        estimate_time_offset(t_r, q, t_m + 100.0, pos, ur10, max_offset=1.0)
 
 
-def test_decreasing_robot_time_is_an_error_with_row(robot):
-    t_r, q, t_m, pos, _, _ = simulate_streams(robot, 0.0, duration=2.0)
+def test_decreasing_robot_time_is_an_error_with_row(ur10):
+    t_r, q, t_m, pos, _, _ = simulate_streams(ur10, 0.0, duration=2.0)
     t_r[10] = t_r[8]
     with pytest.raises(DataError, match="must increase") as info:
-        synchronise(t_r, q, t_m, pos, 0.0, joint_names=robot.joint_names)
+        synchronise(t_r, q, t_m, pos, 0.0, joint_names=ur10.joint_names)
     assert info.value.row == 11
 
 
-def test_cli_import_streams_estimates_offset_and_writes_table(robot, tmp_path, capsys):
+def test_cli_import_streams_estimates_offset_and_writes_table(ur10, tmp_path, capsys):
     offset = 0.0373
-    t_r, q, t_m, pos, quat, _ = simulate_streams(robot, offset, duration=8.0, seed=2)
-    joints = pd.DataFrame(q, columns=robot.joint_names)
+    t_r, q, t_m, pos, quat, _ = simulate_streams(ur10, offset, duration=8.0, seed=2)
+    joints = pd.DataFrame(q, columns=ur10.joint_names)
     # robot stream in its own layout: time in ms, joints in degrees, ';' separated
     joints.insert(0, "time_ms", 1e3 * t_r)
-    joints[robot.joint_names] = np.degrees(q)
+    joints[ur10.joint_names] = np.degrees(q)
     robot_csv = tmp_path / "robot.csv"
     joints.to_csv(robot_csv, sep=";", index=False)
     tracker = pd.DataFrame({"t": t_m, "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2]})
     tracker[["qw", "qx", "qy", "qz"]] = quat
     tracker_csv = tmp_path / "tracker.csv"
     tracker.to_csv(tracker_csv, index=False)
-    robot_map = "t=time_ms[ms]," + ",".join(f"{n}={n}[deg]" for n in robot.joint_names)
+    robot_map = "t=time_ms[ms]," + ",".join(f"{n}={n}[deg]" for n in ur10.joint_names)
     dst = tmp_path / "table.parquet"
     argv = ["import", "streams", str(robot_csv), str(tracker_csv), "--robot", "ur10"]
     argv += ["--robot-map", robot_map, "--robot-sep", ";", "--out", str(dst)]
@@ -159,7 +151,7 @@ def test_cli_import_streams_estimates_offset_and_writes_table(robot, tmp_path, c
     assert "time offset" in out
     value_ms = float(out.split("time offset ")[1].split(" ms")[0])
     assert abs(value_ms - 1e3 * offset) < 1.0
-    data = read_table_for(dst, robot)
+    data = read_table_for(dst, ur10)
     assert data.t is not None
     assert data.has_orientation
     assert data.n == len(t_r)

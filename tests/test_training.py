@@ -10,11 +10,8 @@ from pathlib import Path
 
 import pytest
 import torch
-
-pytest.importorskip("lightning")
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from hybrid_pk import Robot
 from hybrid_pk.cli.main import main
 from hybrid_pk.data import write_table
 from hybrid_pk.effects import ExtendedModel, conditions_from_data
@@ -44,25 +41,18 @@ SCALARS = (
 
 
 @pytest.fixture(scope="module")
-def robot() -> Robot:
-    r = Robot.from_urdf("rx160")
-    r.requires_grad_(False)
-    return r
-
-
-@pytest.fixture(scope="module")
-def campaign(robot):
-    data, _ = simulate_campaign(robot, 400, EFFECTS, noise_mm=0.0, known_frames=True, seed=11)
+def campaign(rx160):
+    data, _ = simulate_campaign(rx160, 400, EFFECTS, noise_mm=0.0, known_frames=True, seed=11)
     return data
 
 
 @pytest.fixture(scope="module")
-def fitted(robot, campaign, tmp_path_factory):
+def fitted(rx160, campaign, tmp_path_factory):
     """One logged tiny fit, shared by the tests that inspect its result and logs."""
     logdir = tmp_path_factory.mktemp("logs")
     result = train_hybrid(
         campaign,
-        ExtendedModel(robot),
+        ExtendedModel(rx160),
         model=SMALL,
         datamodule={"batch_size": 64},
         max_epochs=25,
@@ -73,7 +63,7 @@ def fitted(robot, campaign, tmp_path_factory):
     return result
 
 
-def test_tiny_fit_reduces_an_injected_residual(fitted, robot, campaign):
+def test_tiny_fit_reduces_an_injected_residual(fitted, rx160, campaign):
     assert fitted.base["position_mm"] > 0.5  # the residual is there
     assert fitted.best["position_mm"] < 0.5 * fitted.base["position_mm"]
     assert fitted.best["orientation_deg"] < 0.5 * fitted.base["orientation_deg"]
@@ -81,7 +71,7 @@ def test_tiny_fit_reduces_an_injected_residual(fitted, robot, campaign):
     cond = conditions_from_data(campaign)
     with torch.no_grad():
         err = pose_error(campaign.T_measured(), fitted.hybrid(campaign.q, cond))
-        base = pose_error(campaign.T_measured(), ExtendedModel(robot)(campaign.q, cond))
+        base = pose_error(campaign.T_measured(), ExtendedModel(rx160)(campaign.q, cond))
     assert float(err.position_mm.mean()) < 0.5 * float(base.position_mm.mean())
     assert fitted.epochs == 25
 
@@ -100,11 +90,11 @@ def test_tensorboard_has_scalars_histograms_and_the_figure(fitted):
     assert any((Path(fitted.logdir) / "checkpoints").glob("*.ckpt"))
 
 
-def test_same_seed_same_networks_other_seed_differs(robot, campaign):
+def test_same_seed_same_networks_other_seed_differs(rx160, campaign):
     def run(seed):
         return train_hybrid(
             campaign,
-            ExtendedModel(robot),
+            ExtendedModel(rx160),
             model=SMALL,
             datamodule={"batch_size": 64},
             max_epochs=2,
@@ -121,15 +111,15 @@ def test_same_seed_same_networks_other_seed_differs(robot, campaign):
 
 
 @pytest.fixture(scope="module")
-def files(robot, campaign, tmp_path_factory):
+def files(rx160, campaign, tmp_path_factory):
     folder = tmp_path_factory.mktemp("cli")
     table = folder / "campaign.csv"
     write_table(table, campaign)
-    base = save_model(folder / "base.pt", ExtendedModel(robot))
+    base = save_model(folder / "base.pt", ExtendedModel(rx160))
     return table, base
 
 
-def test_cli_train_writes_a_model_that_evaluate_reads(files, robot, campaign, tmp_path, capsys):
+def test_cli_train_writes_a_model_that_evaluate_reads(files, rx160, campaign, tmp_path, capsys):
     table, base = files
     out = tmp_path / "hybrid.pt"
     code = main(
@@ -237,6 +227,7 @@ def test_lightningcli_fit_writes_the_model_file(files, tmp_path):
     assert any((tmp_path / "lightning_logs").rglob("events.out.tfevents.*"))
 
 
+@pytest.mark.slow
 def test_ddp_with_two_cpu_processes(files, tmp_path):
     """``--strategy ddp --devices 2``: two processes (gloo), one model file."""
     table, base = files

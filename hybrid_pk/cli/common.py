@@ -1,19 +1,21 @@
-"""Helpers shared by the sub-commands: robot, data and model loading with clear errors,
-progress on stderr, frame (re-)fitting, summaries and JSON output."""
+"""Helpers shared by the sub-commands: robot and data loading with clear errors, frame
+sets and (re-)fitting, Lightning's quiet start, summaries and JSON output. The shared
+flags are in :mod:`hybrid_pk.cli.options`, the progress display in
+:mod:`hybrid_pk.cli.progress`."""
 
 from __future__ import annotations
 
+import argparse
 import json
+import logging
 import math
 import os
-import sys
 import warnings
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
 import torch
-from tqdm import tqdm
 
 from hybrid_pk.calibration.fit import FitResult, fit, initialise_frames
 from hybrid_pk.data import DataWarning, MeasuredData, read_table_for
@@ -24,13 +26,13 @@ from hybrid_pk.robot import Robot
 
 __all__ = [
     "FRAME_LABELS",
-    "add_data_arguments",
-    "add_gravity_argument",
+    "data_notes",
     "fit_frames",
     "frame_parameter_count",
+    "frame_sets_for",
     "load_robot",
     "mounting_lines",
-    "progress",
+    "quiet_lightning",
     "read_data",
     "stats_line",
     "with_frame_sets",
@@ -43,43 +45,6 @@ FRAME_LABELS = {
     "tool": ("tool_frame.translation", "tool_frame.rotation"),
 }
 FRAME_LABELS["frames"] = FRAME_LABELS["base"] + FRAME_LABELS["tool"]
-
-
-def add_data_arguments(parser) -> None:
-    """``DATA...``, ``--frames-per-file`` and ``--skip-bad-rows``, worded alike everywhere."""
-    parser.add_argument(
-        "data",
-        nargs="+",
-        metavar="DATA",
-        help="measured pose table(s), .csv or .parquet: one column per joint [rad, m for "
-        "prismatic], x y z [m], optional qw qx qy qz, temperature [degC], payload [kg]; "
-        "several files are one campaign measured in series",
-    )
-    parser.add_argument(
-        "--frames-per-file",
-        action="store_true",
-        help="give each DATA file its own base and tool frame (tracker moved, tool "
-        "re-mounted); effects are shared",
-    )
-    parser.add_argument(
-        "--skip-bad-rows",
-        action="store_true",
-        help="leave out rows with NaN/inf, text, out-of-limit joints or non-unit "
-        "quaternions (each reported by file and row) instead of stopping at the first",
-    )
-
-
-def add_gravity_argument(parser) -> None:
-    """``--gravity X,Y,Z|level-tracker``, worded alike in calibrate and diagnose."""
-    parser.add_argument(
-        "--gravity",
-        metavar="X,Y,Z|level-tracker",
-        help="how the robot is mounted, for compliance and deflection: gravity in the "
-        "robot's root frame [m/s^2] (ceiling: 0,0,9.81), or level-tracker: the "
-        "measurement frame is levelled (laser tracker, total station), so gravity is -z "
-        "there and its direction in the robot frame follows from the fitted base frame "
-        "(default: upright, 0,0,-9.81)",
-    )
 
 
 def mounting_lines(model: ExtendedModel) -> list[str]:
@@ -155,24 +120,6 @@ def frame_parameter_count(sets: int, position_only: bool) -> int:
     return sets * (9 if position_only else 12)
 
 
-@contextmanager
-def progress(desc: str, total: int | None = None) -> Iterator:
-    """Progress bar on stderr; yields ``step(text)`` that starts the next named stage.
-
-    The bar is removed when done, so a quick command leaves only its summary.
-    """
-    bar = tqdm(total=total, desc=desc, file=sys.stderr, leave=False, unit="step", delay=0.5)
-
-    def step(text: str) -> None:
-        bar.set_postfix_str(text, refresh=False)
-        bar.update(1)
-
-    try:
-        yield step
-    finally:
-        bar.close()
-
-
 def with_frame_sets(model: ExtendedModel, sets: int, keep: str | None = None) -> ExtendedModel:
     """``model`` with ``sets`` base/tool frame sets (same robot and effect modules).
 
@@ -200,6 +147,43 @@ def with_frame_sets(model: ExtendedModel, sets: int, keep: str | None = None) ->
     return ExtendedModel(
         model.robot, list(model.effects), frame_sets=sets, gravity=model.gravity, **kept
     )
+
+
+def frame_sets_for(args: argparse.Namespace, model_sets: int) -> int:
+    """Base/tool frame sets of a command that reads MODEL and DATA (evaluate, train).
+
+    With ``--fit-frames``: one set, or one per DATA file with ``--frames-per-file``.
+    Without: the model's own sets, which must match the DATA files one to one.
+
+    Raises:
+        HybridPKError: when the model's sets and the DATA files do not match.
+    """
+    files = len(args.data)
+    if args.fit_frames:
+        return files if args.frames_per_file else 1
+    if model_sets > 1 and model_sets != files:
+        raise HybridPKError(
+            f"{args.model} has {model_sets} base/tool frame sets (one per calibration file) "
+            f"but {files} DATA file(s) were given; give one file per set, in the same order, "
+            "or --fit-frames"
+        )
+    if args.frames_per_file and model_sets == 1 and files > 1:
+        raise HybridPKError(
+            f"{args.model} has one base/tool frame set; --frames-per-file needs --fit-frames"
+        )
+    return model_sets
+
+
+def quiet_lightning() -> None:
+    """Keep Lightning's start-up chatter (accelerators found, tips, 'max_epochs reached')
+    and library deprecation notes off the terminal (imports Lightning first: it sets its
+    loggers up when imported)."""
+    import lightning.pytorch  # noqa: F401  (configures its loggers on import)
+
+    logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
+    warnings.filterwarnings("ignore", message=".*LeafSpec.*", category=DeprecationWarning)
+    warnings.filterwarnings("ignore", message=".*LeafSpec.*", category=FutureWarning)
+    warnings.filterwarnings("ignore", message=r".*distributed\.nn\.functional\.all_gather.*")
 
 
 def fit_frames(

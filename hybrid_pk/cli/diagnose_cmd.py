@@ -5,14 +5,19 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import shutil
-import sys
-import threading
-import time
-import warnings
 from pathlib import Path
-from typing import TextIO
 
+from hybrid_pk.cli.common import load_robot, mounting_lines, read_data
+from hybrid_pk.cli.options import (
+    add_data,
+    add_end_link,
+    add_fit_options,
+    add_json,
+    add_report,
+    add_robot,
+    add_seed,
+)
+from hybrid_pk.cli.progress import Progress
 from hybrid_pk.errors import HybridPKError
 
 _DESCRIPTION = """\
@@ -33,18 +38,6 @@ unit of its effect (rad, rad/Nm, 1, m, 1/K, rad/Nm/m). --holdout is a fraction o
 _LABEL_WIDTH = 26
 
 
-def _fraction(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number in (0, 1), got {text!r}") from None
-    if not 0.0 < value < 1.0:
-        raise argparse.ArgumentTypeError(
-            f"expected a fraction of the rows in (0, 1), got {value:g} (e.g. 0.2 for 20 %)"
-        )
-    return value
-
-
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the ``diagnose`` command."""
     p = subparsers.add_parser(
@@ -53,38 +46,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument(
-        "data",
-        nargs="+",
-        metavar="DATA",
-        help="measured pose table(s), .csv or .parquet (several files: one campaign)",
-    )
-    p.add_argument("--robot", required=True, help="URDF path or shipped robot (rx160, ur10)")
-    p.add_argument(
-        "--holdout",
-        type=_fraction,
-        default=0.2,
-        metavar="FRACTION",
-        help="fraction of the rows (0-1) kept out of every fit to compare the models "
+    add_data(p)
+    add_robot(p, required=True)
+    add_end_link(p)
+    add_fit_options(
+        p,
+        holdout_help="fraction of the rows (0-1) kept out of every fit to compare the models "
         "(default: 0.2)",
     )
-    p.add_argument(
-        "--json", required=True, metavar="OUT.json", help="write the diagnosis JSON here"
-    )
-    p.add_argument(
-        "--report",
-        metavar="DIR",
-        help="write DIR/report.md with plots (PNG) of the evidence for each cause",
-    )
-    p.add_argument(
-        "--frames-per-file",
-        action="store_true",
-        help="each DATA file gets its own base and tool frames (re-mounted tool, moved tracker)",
-    )
-    p.add_argument(
-        "--seed", type=int, default=0, metavar="K", help="seed of the hold-out split (default: 0)"
-    )
-    p.add_argument("--end-link", metavar="NAME", help="end link (default: the URDF's leaf)")
+    add_json(p, required=True, help="write the diagnosis JSON here")
+    add_report(p, help="write DIR/report.md with plots (PNG) of the evidence for each cause")
+    add_seed(p, what="seed of the hold-out split")
     p.add_argument(
         "--candidates",
         metavar="LIST",
@@ -101,63 +73,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--max-causes", type=int, default=8, metavar="N", help="stop after N causes (default: 8)"
     )
-    from hybrid_pk.cli.common import add_gravity_argument
-
-    add_gravity_argument(p)
     p.set_defaults(func=_run)
-
-
-class _Progress:
-    """Stage and elapsed time on stderr while the diagnosis runs.
-
-    On a terminal: one tqdm status line, redrawn every half second so the clock keeps
-    moving during long fits. Otherwise (logs, pipes): one line per stage.
-    """
-
-    def __init__(self, stream: TextIO | None = None) -> None:
-        # Looked up per call, not at import: a default of sys.stderr would pin whatever
-        # stream was installed when the module was first imported.
-        stream = sys.stderr if stream is None else stream
-        self.stream = stream
-        self.start = time.monotonic()
-        self.bar = None
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        if getattr(stream, "isatty", lambda: False)():
-            from tqdm import tqdm
-
-            # Some terminals report a 0 x 0 size, on which tqdm would draw nothing.
-            width, height = shutil.get_terminal_size((100, 24))
-            self.bar = tqdm(
-                total=None,
-                file=stream,
-                ncols=width if width >= 40 else 100,
-                nrows=height if height >= 2 else 24,
-                bar_format="diagnose: {desc} [{elapsed}]",
-                leave=False,  # the summary says how long it took
-            )
-            self._thread = threading.Thread(target=self._tick, daemon=True)
-            self._thread.start()
-
-    def _tick(self) -> None:
-        while not self._stop.wait(0.5):
-            self.bar.refresh()
-
-    def __call__(self, message: str) -> None:
-        if self.bar is not None:
-            self.bar.set_description_str(message)
-        else:
-            print(f"diagnose [{self.elapsed():6.1f} s] {message}", file=self.stream, flush=True)
-
-    def elapsed(self) -> float:
-        return time.monotonic() - self.start
-
-    def close(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join()
-        if self.bar is not None:
-            self.bar.close()
 
 
 def _finite(obj):
@@ -217,8 +133,6 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
         lines += [f"  {' ~ '.join(a['effects'])}" for a in diagnosis.ambiguous]
     for w in diagnosis.warnings:
         lines.append(f"warning: {w['cause']}: {w['why']}")
-    from hybrid_pk.cli.common import mounting_lines
-
     lines += mounting_lines(diagnosis.model)
     un = diagnosis.unexplained
     rest = f"unexplained: RMS {_num(un.get('position_mm_rms'))} mm"
@@ -233,26 +147,14 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
     return lines
 
 
-def _read(paths: list[str], robot):
-    from hybrid_pk.data import read_table_for
-
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        data = read_table_for(paths, robot)
-    for w in caught:  # reader notes (ignored columns, …) as one line each
-        print(f"hybrid-pk diagnose: note: {' '.join(str(w.message).split())}", file=sys.stderr)
-    return data
-
-
 def _run(args: argparse.Namespace) -> int:
     from hybrid_pk.calibration.diagnosis.search import diagnose
     from hybrid_pk.effects import make_effect, parse_gravity
-    from hybrid_pk.robot import Robot
 
     for path in args.data:
         if not Path(path).is_file():
             raise FileNotFoundError(f"no such data file: {path}")
-    robot = Robot.from_urdf(args.robot, end_link=args.end_link)
+    robot = load_robot(args.robot, args.end_link)
     candidates = None
     if args.candidates:
         candidates = [c.strip() for c in args.candidates.split(",") if c.strip()]
@@ -263,9 +165,9 @@ def _run(args: argparse.Namespace) -> int:
     if not 0.0 < args.alpha < 1.0:
         raise HybridPKError(f"--alpha must lie in (0, 1), got {args.alpha:g}")
     gravity = parse_gravity(args.gravity)
-    data = _read(args.data, robot)
+    data = read_data(args.data, robot, skip_bad_rows=args.skip_bad_rows)
 
-    progress = _Progress()
+    progress = Progress("diagnose", delay=0.0)
     try:
         result = diagnose(
             robot,
@@ -276,11 +178,11 @@ def _run(args: argparse.Namespace) -> int:
             alpha=args.alpha,
             max_causes=args.max_causes,
             frames_per_file=args.frames_per_file,
-            progress=progress,
+            progress=progress.stage,
             gravity=gravity,
         )
         if args.report:
-            progress("writing the report")
+            progress.stage("writing the report")
             from hybrid_pk.report import write_diagnosis_report
 
             report = write_diagnosis_report(result, data, robot, args.report)

@@ -9,17 +9,17 @@ from pathlib import Path
 import torch
 
 from hybrid_pk.cli.common import (
-    add_data_arguments,
     fit_frames,
     frame_parameter_count,
-    progress,
+    frame_sets_for,
     read_data,
     stats_line,
     with_frame_sets,
     write_json,
 )
+from hybrid_pk.cli.options import add_data, add_fit_frames, add_json, add_model, add_report
+from hybrid_pk.cli.progress import progress
 from hybrid_pk.effects import ExtendedModel, conditions_from_data
-from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import evaluate_json, row_errors
 from hybrid_pk.io.hybrid_file import predict_poses
 from hybrid_pk.io.model_file import NOMINAL_PREFIX, load_model, model_robot
@@ -44,80 +44,63 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("model", metavar="MODEL", help="model file, or nominal:ROBOT")
-    add_data_arguments(p)
-    p.add_argument(
-        "--json",
-        metavar="OUT.json",
+    add_model(p)
+    add_data(p)
+    add_json(
+        p,
         help="write the errors: n, position_mm and orientation_deg (mean, rms, p95, max "
         "in mm and deg)",
     )
-    p.add_argument(
-        "--report",
-        metavar="DIR",
+    add_report(
+        p,
         help="write DIR/report.md with PNGs: the error table [mm, deg] of MODEL beside the "
         "nominal URDF with frames fitted to DATA, error histograms (like the paper's Fig. "
         "4), the error along each joint, and ISO 9283 AP/RP [mm, deg] of repeated poses",
     )
-    p.add_argument(
-        "--fit-frames",
-        action="store_true",
+    add_fit_frames(
+        p,
         help="first fit only the base and tool frames [m, rad] to DATA (effects and networks kept)",
     )
-    p.add_argument(
-        "--robot", metavar="ROBOT", help="refuse a MODEL made for another robot than ROBOT"
-    )
-    p.add_argument(
-        "--end-link", metavar="NAME", help="end link of nominal:ROBOT (default: the URDF's leaf)"
-    )
     p.set_defaults(func=_run)
-
-
-def _frame_sets(args: argparse.Namespace, model_sets: int) -> int:
-    files = len(args.data)
-    if args.fit_frames:
-        return files if args.frames_per_file else 1
-    if model_sets > 1 and model_sets != files:
-        raise HybridPKError(
-            f"{args.model} has {model_sets} base/tool frame sets (one per calibration file) "
-            f"but {files} DATA file(s) were given; give one file per set, in the same order, "
-            "or --fit-frames"
-        )
-    if args.frames_per_file and model_sets == 1 and files > 1:
-        raise HybridPKError(
-            f"{args.model} has one base/tool frame set; --frames-per-file needs --fit-frames"
-        )
-    return model_sets
 
 
 def _run(args: argparse.Namespace) -> int:
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
     robot = model_robot(loaded)
     robot.requires_grad_(False)
-    sets = _frame_sets(args, loaded.model.base.sets)
-    nominal = args.model.startswith(NOMINAL_PREFIX)
+    sets = frame_sets_for(args, loaded.model.base.sets)
 
     total = 2 + bool(args.fit_frames) + bool(args.report)
-    with progress("evaluate", total=total) as step:
-        step("reading data")
+    with progress("evaluate", total=total) as bar:
+        bar.stage("reading data")
         n_params = frame_parameter_count(sets, False) if args.fit_frames else None
         data = read_data(args.data, robot, n_params=n_params, skip_bad_rows=args.skip_bad_rows)
         cond = conditions_from_data(data, sets > 1)
         if args.fit_frames:
-            step("fitting base and tool frames")
+            bar.stage("fitting base and tool frames")
             model = with_frame_sets(loaded.model, sets)
             fit_frames(model, data, cond)
             loaded = dataclasses.replace(loaded, model=model, frames_fitted=True)
-        step("predicting")
+        bar.stage("predicting")
         T = predict_poses(loaded, data, cond)
         position, orientation = row_errors(T, data)
         result = evaluate_json(data.n, position, orientation)
         if args.json:
             write_json(args.json, result)
         if args.report:
-            step("writing the report")
+            bar.stage("writing the report")
             report = _report(args, loaded, robot, data, cond, sets, T)
 
+    _print_summary(args, loaded, robot, data, position, orientation)
+    if args.json:
+        print(f"wrote {args.json}")
+    if args.report:
+        print(f"wrote {report}")
+    return 0
+
+
+def _print_summary(args, loaded, robot, data, position, orientation) -> None:
+    nominal = args.model.startswith(NOMINAL_PREFIX)
     kind = "nominal URDF" if nominal else f"{len(loaded.model.effects)} effect(s)"
     if loaded.has_networks:
         kind += " + residual networks"
@@ -150,11 +133,6 @@ def _run(args: argparse.Namespace) -> int:
         print(stats_line("orientation error [deg]", orientation))
     else:
         print("orientation error [deg]: none (position-only data)")
-    if args.json:
-        print(f"wrote {args.json}")
-    if args.report:
-        print(f"wrote {report}")
-    return 0
 
 
 def _report(args, loaded, robot, data, cond, sets: int, T) -> Path:

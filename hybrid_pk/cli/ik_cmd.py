@@ -9,6 +9,7 @@ import torch
 from tqdm import tqdm
 
 from hybrid_pk.cli.common import data_notes
+from hybrid_pk.cli.options import add_model, add_out, add_seed
 from hybrid_pk.data import read_table_for
 from hybrid_pk.data.table import write_frame
 from hybrid_pk.effects import Conditions, ExtendedModel
@@ -48,16 +49,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("model", metavar="MODEL", help="model file, or nominal:ROBOT")
+    add_model(p)
     p.add_argument(
         "targets",
         metavar="TARGETS",
         help="target table, .csv or .parquet: x y z [m], optional qw qx qy qz, payload [kg], "
         "temperature [degC]",
     )
-    p.add_argument(
-        "--out", required=True, metavar="SOLUTIONS", help="output table, .csv or .parquet"
-    )
+    add_out(p, metavar="SOLUTIONS", help="output table, .csv or .parquet")
     p.add_argument(
         "--seeds",
         type=int,
@@ -65,20 +64,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="N",
         help="quasi-random start configurations per target (default 64)",
     )
-    p.add_argument(
-        "--tol-mm",
-        type=float,
-        default=1e-3,
-        metavar="MM",
-        help="largest position error of a solution [mm] (default 0.001)",
-    )
-    p.add_argument(
-        "--tol-deg",
-        type=float,
-        default=1e-3,
-        metavar="DEG",
-        help="largest orientation error of a solution [deg] (default 0.001)",
-    )
+    for unit, name in (("mm", "position"), ("deg", "orientation")):
+        p.add_argument(
+            f"--tol-{unit}",
+            type=float,
+            default=1e-3,
+            metavar=unit.upper(),
+            help=f"largest {name} error of a solution [{unit}] (default 0.001)",
+        )
     p.add_argument(
         "--max-iterations",
         type=int,
@@ -101,15 +94,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="K",
         help="base/tool frame set of a model calibrated with one set per file (0-based)",
     )
-    p.add_argument(
-        "--seed", type=int, default=0, help="scrambling seed of the start configurations"
-    )
-    p.add_argument(
-        "--robot", metavar="ROBOT", help="refuse a MODEL made for another robot than ROBOT"
-    )
-    p.add_argument(
-        "--end-link", metavar="NAME", help="end link of nominal:ROBOT (default: the URDF's leaf)"
-    )
+    add_seed(p, what="scrambling seed of the start configurations")
     p.set_defaults(func=_run)
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from hybrid_pk.cli.options import add_out, add_robot
 from hybrid_pk.data.ipa import EULER_SEQUENCES, MEASUREMENT_CONVENTION, convert_ipa
 from hybrid_pk.errors import DataError
 
@@ -47,17 +48,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=_IPA_HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    ipa.add_argument("sources", nargs="+", metavar="SRC", help="IPA measurements_*.csv file(s)")
-    ipa.add_argument(
-        "--out", required=True, metavar="DST", help="output table, or directory for several SRC"
-    )
-    ipa.add_argument(
-        "--format",
-        choices=("csv", "parquet"),
-        default="csv",
-        dest="table_format",
-        help="table type written into a DST directory (default: csv)",
-    )
+    _add_sources_and_out(ipa, "IPA measurements_*.csv file(s)")
     ipa.add_argument(
         "--convention",
         choices=(*EULER_SEQUENCES, "auto"),
@@ -70,6 +61,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ipa.set_defaults(func=_run_ipa)
     _register_columns(formats)
     _register_streams(formats)
+
+
+def _add_sources_and_out(parser: argparse.ArgumentParser, sources_help: str) -> None:
+    """``SRC...``, ``--out DST`` and ``--format`` of a conversion of files."""
+    parser.add_argument("sources", nargs="+", metavar="SRC", help=sources_help)
+    add_out(parser, metavar="DST", help="output table, or directory for several SRC")
+    parser.add_argument(
+        "--format",
+        choices=("csv", "parquet"),
+        default="csv",
+        dest="table_format",
+        help="table type written into a DST directory (default: csv)",
+    )
 
 
 def _destinations(sources: list[Path], out: Path, table_format: str) -> list[Path]:
@@ -139,19 +143,9 @@ def _register_columns(formats: argparse._SubParsersAction) -> None:
         description=_COLUMNS_HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    cols.add_argument("sources", nargs="+", metavar="SRC", help="export file(s) to convert")
+    _add_sources_and_out(cols, "export file(s) to convert")
     cols.add_argument(
         "--map", required=True, metavar="MAP", help="column map: .json/.yaml file or inline"
-    )
-    cols.add_argument(
-        "--out", required=True, metavar="DST", help="output table, or directory for several SRC"
-    )
-    cols.add_argument(
-        "--format",
-        choices=("csv", "parquet"),
-        default="csv",
-        dest="table_format",
-        help="table type written into a DST directory (default: csv)",
     )
     _add_map_options(cols)
     cols.add_argument(
@@ -159,11 +153,7 @@ def _register_columns(formats: argparse._SubParsersAction) -> None:
         action="store_true",
         help="leave out rows with unreadable cells (each reported) instead of stopping",
     )
-    cols.add_argument(
-        "--robot",
-        metavar="ROBOT",
-        help="also validate the written table for this robot (joint limits, degrees)",
-    )
+    add_robot(cols, help="also validate the written table for this robot (joint limits, degrees)")
     cols.set_defaults(func=_run_columns)
 
 
@@ -276,8 +266,8 @@ def _register_streams(formats: argparse._SubParsersAction) -> None:
     )
     st.add_argument("robot_stream", metavar="ROBOT_STREAM", help="joint stream file")
     st.add_argument("tracker_stream", metavar="TRACKER_STREAM", help="tracker stream file")
-    st.add_argument("--robot", required=True, metavar="ROBOT", help="URDF path or shipped name")
-    st.add_argument("--out", required=True, metavar="DST", help="output table (.csv/.parquet)")
+    add_robot(st, required=True)
+    add_out(st, metavar="DST", help="output table (.csv/.parquet)")
     st.add_argument("--robot-map", metavar="MAP", help="column map of the robot stream")
     st.add_argument("--tracker-map", metavar="MAP", help="column map of the tracker stream")
     st.add_argument(
@@ -312,18 +302,10 @@ def _stream_map(spec: str | None, args, prefix: str, default_columns: list[str])
     return parse_inline_map(inline, **overrides)
 
 
-def _run_streams(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from hybrid_pk.cli.common import load_robot, progress
+def _read_streams(args: argparse.Namespace, names: list[str]):
+    """The robot and tracker streams as mapped tables, each checked for its columns."""
     from hybrid_pk.data.mapping import read_mapped
-    from hybrid_pk.data.streams import estimate_time_offset, synchronise
-    from hybrid_pk.data.table import write_table
 
-    if args.every < 1:
-        raise DataError(f"--every must be >= 1, got {args.every}")
-    robot = load_robot(args.robot)
-    names = list(robot.joint_names)
     rmap = _stream_map(args.robot_map, args, "robot_", ["t", *names])
     rs = read_mapped(args.robot_stream, rmap)
     tracker_cols = ["t", "x", "y", "z"]
@@ -342,6 +324,22 @@ def _run_streams(args: argparse.Namespace) -> int:
         missing = [c for c in needed if c not in table.frame]
         if missing:
             raise DataError(f"the {label} stream map gives no {', '.join(missing)}", file=str(path))
+    return rs, ts
+
+
+def _run_streams(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from hybrid_pk.cli.common import load_robot
+    from hybrid_pk.cli.progress import progress
+    from hybrid_pk.data.streams import estimate_time_offset, synchronise
+    from hybrid_pk.data.table import write_table
+
+    if args.every < 1:
+        raise DataError(f"--every must be >= 1, got {args.every}")
+    robot = load_robot(args.robot)
+    names = list(robot.joint_names)
+    rs, ts = _read_streams(args, names)
     q = rs.frame[names].to_numpy()
     t_r = rs.frame["t"].to_numpy()
     t_m = ts.frame["t"].to_numpy()
@@ -350,8 +348,8 @@ def _run_streams(args: argparse.Namespace) -> int:
     print(f"robot stream: {len(t_r)} samples, {_rate(t_r):.1f} Hz, {t_r[-1] - t_r[0]:.1f} s")
     print(f"tracker stream: {len(t_m)} samples, {_rate(t_m):.1f} Hz, {t_m[-1] - t_m[0]:.1f} s")
     if args.offset is None:
-        with progress("estimate offset") as step:
-            step("cross-correlation and registration")
+        with progress("estimate offset") as bar:
+            bar.stage("cross-correlation and registration")
             est = estimate_time_offset(
                 t_r, q, t_m, pos, robot, quat=quat, max_offset=args.max_offset
             )

@@ -6,6 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
+from hybrid_pk.cli.options import add_end_link, add_noise, add_out, add_robot, add_seed
 from hybrid_pk.data.table import write_table
 from hybrid_pk.effects import parse_gravity
 from hybrid_pk.errors import DataError
@@ -56,7 +57,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("robot", metavar="ROBOT", help="URDF path or shipped robot (rx160, ur10)")
+    add_robot(p, positional=True)
     p.add_argument("--n", type=int, required=True, metavar="N", help="number of measurements")
     p.add_argument(
         "--effects",
@@ -65,20 +66,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="injected error effects, values in the units of each effect (see above; "
         "default: none)",
     )
-    p.add_argument(
-        "--noise-mm",
-        type=float,
-        default=0.0,
-        metavar="S",
-        help="std of the position noise per coordinate [mm] (default: 0)",
-    )
-    p.add_argument(
-        "--noise-deg",
-        type=float,
-        default=0.0,
-        metavar="S",
-        help="std of the orientation noise per rotation axis [deg] (default: 0)",
-    )
+    add_noise(p, mm=0.0, deg=0.0)
     p.add_argument(
         "--trajectory",
         choices=TRAJECTORIES,
@@ -132,11 +120,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="gravity in the robot's root frame [m/s^2], e.g. 0,0,9.81 for a ceiling "
         "mount (instead of --mount)",
     )
-    p.add_argument("--end-link", metavar="NAME", help="end link (default: the URDF's leaf)")
-    p.add_argument("--seed", type=int, default=0, metavar="K", help="random seed (default: 0)")
-    p.add_argument(
-        "--out",
-        required=True,
+    add_end_link(p)
+    add_seed(p, what="random seed")
+    add_out(
+        p,
         metavar="FILE",
         help="output table (.csv, .parquet or .pq); the truth goes to FILE.truth.json",
     )

@@ -3,19 +3,26 @@
 from __future__ import annotations
 
 import argparse
-import logging
 import os
-import warnings
 
 from hybrid_pk.cli.common import (
-    add_data_arguments,
     fit_frames,
     frame_parameter_count,
-    progress,
+    frame_sets_for,
+    quiet_lightning,
     read_data,
     with_frame_sets,
 )
-from hybrid_pk.cli.evaluate_cmd import _frame_sets
+from hybrid_pk.cli.options import (
+    add_data,
+    add_epochs,
+    add_fit_frames,
+    add_model,
+    add_out,
+    add_progress,
+    add_seed,
+)
+from hybrid_pk.cli.progress import progress
 from hybrid_pk.effects import conditions_from_data
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.hybrid.nets import parse_arch
@@ -54,18 +61,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=_DESCRIPTION,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    add_data_arguments(p)
-    p.add_argument(
-        "--model", required=True, metavar="MODEL", help="base model file, or nominal:ROBOT"
-    )
-    p.add_argument("--out", required=True, metavar="MODEL2", help="output model file (.pt)")
+    add_data(p)
+    add_model(p, flag=True, help="base model file, or nominal:ROBOT (with --fit-frames)")
+    add_out(p, metavar="MODEL2", help="output model file (.pt)")
     p.add_argument("--position-net", metavar="ARCH", help="position network (default: preset)")
     p.add_argument(
         "--orientation-net", metavar="ARCH", help="orientation network (default: preset)"
     )
     p.add_argument("--preset", choices=("fast", "paper"), default="fast", help="default: fast")
     p.add_argument("--config", metavar="YAML", help="LightningCLI config over the preset")
-    p.add_argument("--epochs", type=int, metavar="N", help="maximum epochs")
+    add_epochs(p)
     p.add_argument("--batch-size", type=int, metavar="N", help="training rows per step")
     p.add_argument("--lr", type=float, metavar="LR", help="(peak) learning rate")
     p.add_argument(
@@ -89,17 +94,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "joint (default 0: no correction outside the box)",
     )
     p.add_argument("--logdir", metavar="DIR", help="TensorBoard logs and checkpoints")
-    p.add_argument("--seed", type=int, default=0, metavar="K", help="seed (default: 0)")
+    add_seed(p, what="seed of the split, the initialisation and the shuffling")
     p.add_argument("--strategy", default="auto", help="Lightning strategy: auto or ddp")
     p.add_argument("--devices", type=int, default=1, metavar="N", help="processes (default: 1)")
-    p.add_argument(
-        "--fit-frames",
-        action="store_true",
-        help="first fit only the base and tool frames of MODEL to DATA (nominal:ROBOT)",
+    add_fit_frames(
+        p, help="first fit only the base and tool frames of MODEL to DATA (nominal:ROBOT)"
     )
-    p.add_argument("--robot", metavar="ROBOT", help="refuse a MODEL made for another robot")
-    p.add_argument("--end-link", metavar="NAME", help="end link of nominal:ROBOT")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_progress(p)
     p.set_defaults(func=_run)
 
 
@@ -141,12 +142,39 @@ def _is_main_process() -> bool:
     return all(int(os.environ.get(var, "0")) == 0 for var in ("LOCAL_RANK", "NODE_RANK"))
 
 
-def _quiet_lightning() -> None:
-    """Keep Lightning's start-up banners and library deprecation notes off the terminal."""
-    logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
-    warnings.filterwarnings("ignore", message=".*LeafSpec.*", category=DeprecationWarning)
-    warnings.filterwarnings("ignore", message=".*LeafSpec.*", category=FutureWarning)
-    warnings.filterwarnings("ignore", message=r".*distributed\.nn\.functional\.all_gather.*")
+def _prepare(args, loaded, robot, sets: int):
+    """DATA read for the model's robot, its conditions, and the base model (frames
+    fitted to DATA with --fit-frames)."""
+    with progress("train: preparing", total=2 if args.fit_frames else 1) as bar:
+        bar.stage("reading data")
+        n_params = frame_parameter_count(sets, False) if args.fit_frames else None
+        data = read_data(args.data, robot, n_params=n_params, skip_bad_rows=args.skip_bad_rows)
+        cond = conditions_from_data(data, sets > 1)
+        base = loaded.model
+        if args.fit_frames:
+            bar.stage("fitting base and tool frames")
+            base = with_frame_sets(base, sets)
+            fit_frames(base, data, cond)
+    return data, cond, base
+
+
+def _metadata(args, loaded, data, result) -> dict:
+    """MODEL's metadata with this training's record."""
+    metadata = {k: v for k, v in loaded.metadata.items() if k != "created"}
+    metadata["training"] = {
+        "command": "train",
+        "base_model": args.model,
+        "data": list(data.sources),
+        "n_rows": data.n,
+        "preset": args.preset,
+        "seed": args.seed,
+        "epochs": result.epochs,
+        "seconds": round(result.seconds, 3),
+        "validation_base": result.base,
+        "validation_hybrid": result.best,
+        "logdir": result.logdir,
+    }
+    return metadata
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -157,24 +185,15 @@ def _run(args: argparse.Namespace) -> int:
         raise HybridPKError(
             f"training needs Lightning (a dependency of hybrid_pk): pip install lightning ({exc})"
         ) from exc
-    _quiet_lightning()  # after the import: Lightning sets its logger up when imported
+    quiet_lightning()  # after the import: Lightning sets its logger up when imported
     model_over, data_over, trainer_over = _overrides(args)
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
     robot = model_robot(loaded)
     robot.requires_grad_(False)
-    sets = _frame_sets(args, loaded.model.base.sets)
+    sets = frame_sets_for(args, loaded.model.base.sets)
     main = _is_main_process()
 
-    with progress("train: preparing", total=2 if args.fit_frames else 1) as step:
-        step("reading data")
-        n_params = frame_parameter_count(sets, False) if args.fit_frames else None
-        data = read_data(args.data, robot, n_params=n_params, skip_bad_rows=args.skip_bad_rows)
-        cond = conditions_from_data(data, sets > 1)
-        base = loaded.model
-        if args.fit_frames:
-            step("fitting base and tool frames")
-            base = with_frame_sets(base, sets)
-            fit_frames(base, data, cond)
+    data, cond, base = _prepare(args, loaded, robot, sets)
     if loaded.has_networks and main:
         print(f"note: {args.model} already has residual networks; they are replaced")
     result = train_hybrid(
@@ -195,20 +214,7 @@ def _run(args: argparse.Namespace) -> int:
     if not result.is_global_zero:
         return 0
     frames_fitted = loaded.frames_fitted or args.fit_frames
-    metadata = {k: v for k, v in loaded.metadata.items() if k != "created"}
-    metadata["training"] = {
-        "command": "train",
-        "base_model": args.model,
-        "data": list(data.sources),
-        "n_rows": data.n,
-        "preset": args.preset,
-        "seed": args.seed,
-        "epochs": result.epochs,
-        "seconds": round(result.seconds, 3),
-        "validation_base": result.base,
-        "validation_hybrid": result.best,
-        "logdir": result.logdir,
-    }
+    metadata = _metadata(args, loaded, data, result)
     save_hybrid(
         args.out,
         result.hybrid,

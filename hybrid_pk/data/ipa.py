@@ -53,7 +53,15 @@ import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 
-from hybrid_pk.data.table import _check_duplicates, _to_float, write_frame
+from hybrid_pk.data.cells import check_header_names, to_float
+from hybrid_pk.data.euler import (
+    EULER_SEQUENCES,
+    ConventionScore,
+    EulerDetection,
+    describe_sequence,
+    detect_euler_convention,
+)
+from hybrid_pk.data.files import write_frame
 from hybrid_pk.errors import DataError
 
 __all__ = [
@@ -74,8 +82,6 @@ __all__ = [
     "ur_flange_rotations",
 ]
 
-_AXES = ("xyz", "xzy", "yxz", "yzx", "zxy", "zyx", "xyx", "xzx", "yxy", "yzy", "zxz", "zyz")
-EULER_SEQUENCES = _AXES + tuple(s.upper() for s in _AXES)  # extrinsic, then intrinsic
 MEASUREMENT_CONVENTION = "XYZ"
 GOAL_CONVENTION = "xyz"
 UR_JOINT_NAMES = (
@@ -101,8 +107,6 @@ _STD_COLUMNS = {
 _UR_DH_ALPHA = (np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0)
 # Goal poses are given in ROS base_link, turned by pi about z from the DH base frame.
 _GOAL_FROM_DH = np.diag([-1.0, -1.0, 1.0])
-# Sequences whose fits differ by less than this (relative) are indistinguishable.
-_TIE_RTOL = 1e-7
 
 
 # ----------------------------------------------------------------------------- reading
@@ -138,7 +142,7 @@ def read_ipa_csv(
         encoding="utf-8-sig",
     )
     header = [str(c).strip() for c in raw.columns]
-    _check_duplicates(file, header)
+    check_header_names(file, header)
     raw.columns = header
     missing = [c for c in columns if c not in header]
     if missing:
@@ -152,7 +156,7 @@ def read_ipa_csv(
     out = {}
     for col in [*columns, *(c for c in optional if c in header)]:
         cells = raw[col].str.strip()
-        values, bad = _to_float(cells.str.replace(",", ".", regex=False))
+        values, bad = to_float(cells.str.replace(",", ".", regex=False))
         bad |= ~np.isfinite(values)
         if bad.any():
             k = int(np.flatnonzero(bad)[0])
@@ -252,14 +256,6 @@ def convert_ipa(
 # ----------------------------------------------------------------------------- conventions
 
 
-def describe_sequence(seq: str) -> str:
-    """E.g. ``"intrinsic 'XYZ' (R = Rx(a) Ry(b) Rz(c))"`` for angles ``(a, b, c)``."""
-    factors = [f"R{axis.lower()}({angle})" for axis, angle in zip(seq, "abc", strict=True)]
-    if seq.islower():  # extrinsic: later rotations multiply from the left
-        return f"extrinsic {seq!r} (R = {' '.join(reversed(factors))})"
-    return f"intrinsic {seq!r} (R = {' '.join(factors)})"
-
-
 def ur_flange_rotations(q: np.ndarray) -> np.ndarray:
     """Orientation of the UR flange (DH frame 6) in the DH base, ``(N, 6)`` [rad] -> ``(N, 3, 3)``.
 
@@ -271,144 +267,6 @@ def ur_flange_rotations(q: np.ndarray) -> np.ndarray:
         Rz = Rotation.from_euler("z", q[:, k : k + 1]).as_matrix()
         R = R @ Rz @ Rotation.from_euler("x", alpha).as_matrix()
     return R
-
-
-@dataclass(frozen=True)
-class ConventionScore:
-    """How well one Euler sequence explains the data.
-
-    Attributes:
-        sequence: scipy sequence (lower case extrinsic, upper case intrinsic).
-        fit_deg: RMS angle [deg] between ``R_i`` and ``A R_ref_i B`` with fitted
-            constant rotations ``A`` (base) and ``B`` (tool).
-        pair_deg: RMS difference [deg] of ``angle(R_i^T R_j)`` and
-            ``angle(R_ref_i^T R_ref_j)`` over random pairs (frame invariant).
-    """
-
-    sequence: str
-    fit_deg: float
-    pair_deg: float
-
-
-@dataclass(frozen=True)
-class EulerDetection:
-    """Result of :func:`detect_euler_convention`; ``scores`` is sorted best first."""
-
-    convention: str
-    scores: tuple[ConventionScore, ...]
-    equivalent: tuple[str, ...]  # fit exactly as well as ``convention`` (frames absorb them)
-
-    @property
-    def best(self) -> ConventionScore:
-        """Score of ``convention``."""
-        return next(s for s in self.scores if s.sequence == self.convention)
-
-    @property
-    def runner_up(self) -> ConventionScore:
-        """Best score of a sequence that is not equivalent to ``convention``."""
-        return next(s for s in self.scores if s.sequence not in self.equivalent)
-
-    def summary(self) -> str:
-        """One line: winner, its residual and the runner-up's."""
-        b, r = self.best, self.runner_up
-        return (
-            f"{describe_sequence(b.sequence)}: {b.fit_deg:.4g} deg RMS; "
-            f"runner-up {r.sequence!r}: {r.fit_deg:.4g} deg"
-        )
-
-
-def _polar(S: np.ndarray) -> np.ndarray:
-    """Rotation nearest to ``S`` (3, 3)."""
-    U, _, Vt = np.linalg.svd(S)
-    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
-
-
-def _fit_frames(
-    R: np.ndarray, G: np.ndarray, left: np.ndarray | None, i: np.ndarray, j: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Fit ``R_n ≈ A G_n B``; returns ``A`` (or ``left``), ``B`` and the angles [rad] left."""
-    Rt, Gt = R.transpose(0, 2, 1), G.transpose(0, 2, 1)
-    if left is None:
-        # R_i R_j^T = A (G_i G_j^T) A^T: the rotation axes of relative rotations are
-        # turned by A (Kabsch on rotation vectors), whatever B is.
-        m = Rotation.from_matrix(R[i] @ Rt[j]).as_rotvec()
-        g = Rotation.from_matrix(G[i] @ Gt[j]).as_rotvec()
-        A = _polar(m.T @ g)
-    else:
-        A = np.asarray(left, dtype=np.float64)
-    for _ in range(5):  # block coordinate descent on sum ||R_n - A G_n B||^2
-        B = _polar(np.tensordot(G, A.T @ R, axes=([0, 1], [0, 1])))  # sum G_n^T A^T R_n
-        if left is not None:
-            break
-        A = _polar(np.tensordot(R, G @ B, axes=([0, 2], [0, 2])))  # sum R_n B^T G_n^T
-    return A, B, _angle(Rt @ A @ G @ B)
-
-
-def _angle(R: np.ndarray) -> np.ndarray:
-    """Rotation angles [rad] of ``(N, 3, 3)`` matrices, accurate near 0 and pi."""
-    vee = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]])
-    return np.arctan2(np.linalg.norm(vee, axis=0) / 2, (np.trace(R, axis1=1, axis2=2) - 1) / 2)
-
-
-def detect_euler_convention(
-    angles: np.ndarray,
-    reference: np.ndarray,
-    *,
-    degrees: bool = True,
-    left: np.ndarray | None = None,
-    candidates: Sequence[str] = EULER_SEQUENCES,
-    n_pairs: int = 4000,
-    seed: int = 0,
-) -> EulerDetection:
-    """Find the Euler sequence under which ``angles`` match ``reference`` rotations.
-
-    Each candidate is scored by the residual after fitting constant base and tool
-    rotations (``R_i ≈ A R_ref_i B``); the frame-invariant pairwise-angle residual is
-    reported too. Sequences that fit equally well cannot be told apart by any data
-    (constant frames absorb an axis relabelling); among them the one whose axes follow
-    the angle columns (x, y, z) wins, then the order of ``candidates``.
-
-    Args:
-        angles: ``(N, 3)`` Euler angles, in column order.
-        reference: ``(N, 3, 3)`` rotations of the same poses in other frames.
-        degrees: whether ``angles`` are in degrees (else radians).
-        left: known constant rotation ``A`` (3, 3); None fits it.
-        candidates: scipy sequences to try.
-        n_pairs: random row pairs for the pairwise test and the initial ``A``.
-        seed: seed of the pair sampling.
-    """
-    angles = np.asarray(angles, dtype=np.float64)
-    G = np.asarray(reference, dtype=np.float64)
-    if angles.ndim != 2 or angles.shape[1] != 3 or G.shape != (len(angles), 3, 3):
-        raise ValueError(
-            f"need (N, 3) angles and (N, 3, 3) rotations, got {angles.shape}, {G.shape}"
-        )
-    if len(angles) < 3:
-        raise ValueError("need at least 3 poses to detect an Euler convention")
-    rng = np.random.default_rng(seed)
-    i, j = rng.integers(0, len(angles), size=(2, n_pairs))
-    i, j = i[i != j], j[i != j]
-    ref_pair = _angle(G[i].transpose(0, 2, 1) @ G[j])
-    scores = []
-    for seq in candidates:
-        R = Rotation.from_euler(seq, angles, degrees=degrees).as_matrix()
-        pair = _angle(R[i].transpose(0, 2, 1) @ R[j]) - ref_pair
-        fit = _fit_frames(R, G, left, i, j)[2]
-        rms = [float(np.degrees(np.sqrt(np.mean(x**2)))) for x in (fit, pair)]
-        scores.append(ConventionScore(seq, *rms))
-    best = min(s.fit_deg for s in scores)
-    tied = {s.sequence for s in scores if s.fit_deg <= best * (1 + _TIE_RTOL) + 1e-12}
-    pos = {seq: k for k, seq in enumerate(candidates)}
-    # Winner first, then its equivalents, then the rest by residual.
-    scores.sort(
-        key=lambda s: (
-            (0, s.sequence.lower() != "xyz", pos[s.sequence])
-            if s.sequence in tied
-            else (1, s.fit_deg)
-        )
-    )
-    equivalent = tuple(s.sequence for s in scores if s.sequence in tied)
-    return EulerDetection(equivalent[0], tuple(scores), equivalent)
 
 
 class IpaConventions(NamedTuple):

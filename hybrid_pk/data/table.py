@@ -16,7 +16,6 @@ dropped silently.
 
 from __future__ import annotations
 
-import csv
 import difflib
 import math
 import os
@@ -27,9 +26,10 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
-import pandas as pd
 import torch
 
+from hybrid_pk.data.cells import RowProblems, check_time_order, to_float
+from hybrid_pk.data.files import load_cells, to_frame, write_frame
 from hybrid_pk.data.measured import (
     OPTIONAL_COLUMNS,
     POSITION_COLUMNS,
@@ -57,8 +57,6 @@ __all__ = [
 
 JOINT_TYPES = ("revolute", "continuous", "prismatic")
 
-_CSV_SUFFIXES = (".csv",)
-_PARQUET_SUFFIXES = (".parquet", ".pq")
 QUAT_NORM_TOL = 1e-6
 # Slack on joint limits [rad or m] for values written with fewer digits than the URDF.
 _LIMIT_TOL = 1e-9
@@ -77,7 +75,7 @@ class SkippedRowsWarning(DataWarning):
     """Rows left out because ``on_bad_row="skip"`` was asked for."""
 
 
-# ----------------------------------------------------------------------------- reading
+# ----------------------------------------------------------------------------- one file
 
 
 @dataclass(frozen=True)
@@ -109,159 +107,19 @@ def _joint_spec(joint_names, lower, upper, joint_types) -> _JointSpec:
     return _JointSpec(names, limits(lower, -np.inf), limits(upper, np.inf), types)
 
 
-def _fail(file: str, message: str, row: int | None = None, column: str | None = None):
-    raise DataError(message, file=file, row=row, column=column)
-
-
-def _load(path: Path) -> pd.DataFrame:
-    """Raw cells of a CSV (strings) or Parquet file (typed), after header checks."""
-    file = str(path)
-    suffix = path.suffix.lower()
-    if suffix in _CSV_SUFFIXES:
-        if path.stat().st_size == 0:
-            _fail(file, "empty file: expected a header row and data rows")
-        with path.open(newline="", encoding="utf-8-sig") as fh:
-            header = next(csv.reader(fh), [])
-        header = [h.strip() for h in header]
-        if not any(header):
-            _fail(file, "empty file: expected a header row and data rows")
-        _check_duplicates(file, header)
-        try:
-            with warnings.catch_warnings():
-                # With index_col=False pandas drops the extra fields of a row longer than
-                # the header (when the first data row is) with only a ParserWarning.
-                warnings.simplefilter("error", pd.errors.ParserWarning)
-                frame = pd.read_csv(
-                    path,
-                    dtype=str,
-                    keep_default_na=False,
-                    na_filter=False,
-                    index_col=False,
-                    encoding="utf-8-sig",
-                )
-        except (pd.errors.ParserError, pd.errors.ParserWarning, UnicodeDecodeError) as exc:
-            if not isinstance(exc, UnicodeDecodeError):
-                _check_row_lengths(path, len(header))
-            _fail(file, f"not a readable CSV table: {' '.join(str(exc).split())}")
-        frame.columns = header
-    elif suffix in _PARQUET_SUFFIXES:
-        import pyarrow as pa
-        import pyarrow.parquet as pq
-
-        try:
-            parquet = pq.ParquetFile(path)
-        except (pa.ArrowException, OSError) as exc:
-            _fail(file, f"not a readable Parquet file: {' '.join(str(exc).split())}")
-        _check_duplicates(file, [str(n).strip() for n in parquet.schema_arrow.names])
-        frame = parquet.read().to_pandas()
-        frame.columns = [str(c).strip() for c in frame.columns]
-    else:
-        _fail(file, f"unsupported file type {path.suffix!r}; expected .csv, .parquet or .pq")
-    if len(frame) == 0:
-        _fail(file, "empty file: the header has no data rows below it")
-    return frame
-
-
-def _first_long_row(
-    path: Path,
-    width: int | None = None,
-    *,
-    delimiter: str = ",",
-    encoding: str = "utf-8-sig",
-    skip_lines: int = 0,
-) -> tuple[int, list[str], int] | None:
-    """``(data row, its fields, header width)`` of the first data row with more fields
-    than the header, or None. Rows are 1-based and counted as pandas does (blank lines
-    are not data rows); ``width`` None reads it from the header line after
-    ``skip_lines``."""
-    with path.open(newline="", encoding=encoding) as fh:
-        reader = csv.reader(fh, delimiter=delimiter)
-        for _ in range(skip_lines):
-            next(reader, None)
-        header = next(reader, [])
-        width = len(header) if width is None else width
-        row = 0
-        for fields in reader:
-            if not fields:
-                continue
-            row += 1
-            if len(fields) > width:
-                return row, fields, width
-    return None
-
-
-def _check_row_lengths(path: Path, width: int) -> None:
-    """Fail at the first data row with more fields than the header's ``width``, naming
-    its first field without a column."""
-    found = _first_long_row(path, width)
-    if found is not None:
-        row, fields, _ = found
-        _fail(
-            str(path),
-            f"{len(fields)} fields where the header has {width}: "
-            f"field {width + 1} ({fields[width]!r}) has no column name "
-            "(check the separator and the header)",
-            row=row,
-            column=f"field {width + 1}",
-        )
-
-
-def _check_duplicates(file: str, header: list[str]) -> None:
-    seen: dict[str, int] = {}
-    for pos, name in enumerate(header, start=1):
-        if name in seen:
-            _fail(
-                file,
-                f"duplicated header: column {name!r} appears at positions {seen[name]} and {pos}",
-                column=name,
-            )
-        seen[name] = pos
-
-
-def _to_float(values: pd.Series) -> tuple[np.ndarray, np.ndarray]:
-    """Cells -> ``(floats, unparsable)``; unparsable cells are NaN in ``floats``."""
-    if pd.api.types.is_numeric_dtype(values) and not pd.api.types.is_bool_dtype(values):
-        return values.to_numpy(np.float64), np.zeros(len(values), bool)
-    cells = values.to_numpy(object)
-    try:
-        return cells.astype(np.float64), np.zeros(len(cells), bool)
-    except (ValueError, TypeError):
-        pass
-    out = np.full(len(cells), np.nan)
-    bad = np.zeros(len(cells), bool)
-    for k, cell in enumerate(cells):
-        try:
-            out[k] = float(cell)
-        except (ValueError, TypeError):
-            bad[k] = True
-    return out, bad
-
-
-def _cell_problem(raw: Any, value: float, unparsable: bool) -> str | None:
-    if unparsable:
-        text = str(raw).strip()
-        return "empty value" if not text else f"text {text[:40]!r} in a numeric column"
-    if math.isnan(value):
-        return "value is NaN" if isinstance(raw, str) else "missing value (NaN)"
-    if math.isinf(value):
-        return f"value is {value}"
-    return None
-
-
-class _FilePart(NamedTuple):
-    columns: dict[str, np.ndarray]  # kept rows only
-    rows: np.ndarray  # (n,) 1-based data rows kept
-    skipped: list[SkippedRow]
-    ignored: list[str]
+class _Columns(NamedTuple):
     has_joints: bool
+    joints: list[str]  # joint columns read (empty for a file without joints)
+    quat: list[str]  # quaternion columns present (all four or none)
+    wanted: list[str]  # every column read
+    ignored: list[str]  # columns present but not part of the format
 
 
-def _read_file(path: Path, spec: _JointSpec, skip: bool, require_joints: bool) -> _FilePart:
-    file = str(path)
-    frame = _load(path)
-    found = list(frame.columns)
+def _select_columns(
+    file: str, found: list[str], spec: _JointSpec, require_joints: bool
+) -> _Columns:
+    """The columns to read; raises on missing joints or position, a partial quaternion."""
     present = set(found)
-
     missing_joints = [n for n in spec.names if n not in present]
     has_joints = len(missing_joints) < len(spec.names) or require_joints or not spec.names
     if has_joints and missing_joints:
@@ -273,66 +131,50 @@ def _read_file(path: Path, spec: _JointSpec, skip: bool, require_joints: bool) -
         hint = f"; close matches: {', '.join(hints)}" if hints else ""
         if len(found) == 1 and ";" in found[0]:
             hint += "; the file looks ';'-separated, tables need ','"
-        _fail(
-            file,
+        raise DataError(
             f"missing joint column(s) {', '.join(map(repr, missing_joints))}; "
             f"found columns: {', '.join(found)}{hint}",
+            file=file,
         )
     missing_xyz = [c for c in POSITION_COLUMNS if c not in present]
     if missing_xyz:
-        _fail(
-            file,
+        raise DataError(
             f"missing position column(s) {', '.join(map(repr, missing_xyz))} [m]; "
             f"found columns: {', '.join(found)}",
+            file=file,
         )
-    quat_present = [c for c in QUAT_COLUMNS if c in present]
-    if quat_present and len(quat_present) < 4:
+    quat = [c for c in QUAT_COLUMNS if c in present]
+    if quat and len(quat) < 4:
         absent = [c for c in QUAT_COLUMNS if c not in present]
-        _fail(
-            file,
-            f"partial orientation: found {', '.join(quat_present)} but not {', '.join(absent)}; "
+        raise DataError(
+            f"partial orientation: found {', '.join(quat)} but not {', '.join(absent)}; "
             "give all of qw, qx, qy, qz or none",
+            file=file,
             column=absent[0],
         )
-
-    joint_cols = list(spec.names) if has_joints else []
-    wanted = joint_cols + list(POSITION_COLUMNS) + quat_present
+    joints = list(spec.names) if has_joints else []
+    wanted = joints + list(POSITION_COLUMNS) + quat
     wanted += [c for c in OPTIONAL_COLUMNS if c in present]
     ignored = [c for c in found if c not in wanted and c not in spec.names]
+    return _Columns(has_joints, joints, quat, wanted, ignored)
 
-    n = len(frame)
-    problems: dict[int, tuple[str, str]] = {}  # 0-based row -> (column, reason), first wins
 
-    def note(mask: np.ndarray, column: str, reason) -> None:
-        for k in np.flatnonzero(mask):
-            problems.setdefault(int(k), (column, reason(int(k))))
-
-    def raise_first() -> None:
-        if problems and not skip:
-            k = min(problems)
-            _fail(file, problems[k][1], row=k + 1, column=problems[k][0])
-
-    columns: dict[str, np.ndarray] = {}
-    for col in wanted:
-        values, unparsable = _to_float(frame[col])
-        columns[col] = values
-        raw = frame[col].to_numpy(object)
-        bad = unparsable | ~np.isfinite(values)
-        note(bad, col, lambda k, r=raw, v=values, u=unparsable: _cell_problem(r[k], v[k], u[k]))
-    raise_first()
-
-    ok = np.ones(n, bool)
-    ok[list(problems)] = False
-    for j, name in enumerate(joint_cols):
-        _check_degrees(file, name, spec, j, columns[name], ok)
-    for j, name in enumerate(joint_cols):
+def _note_limits(
+    columns: dict[str, np.ndarray],
+    joints: list[str],
+    spec: _JointSpec,
+    ok: np.ndarray,
+    problems: RowProblems,
+) -> None:
+    """Record rows whose joint values lie outside the limits (continuous joints have none)."""
+    for j, name in enumerate(joints):
         lo, hi, kind = spec.lower[j], spec.upper[j], spec.types[j]
         if kind == "continuous":
             continue
         v = columns[name]
         unit = "m" if kind == "prismatic" else "rad"
         out = ok & ((v < lo - _LIMIT_TOL) | (v > hi + _LIMIT_TOL))
-        note(
+        problems.note(
             out,
             name,
             lambda k, v=v, lo=lo, hi=hi, name=name, unit=unit: (
@@ -340,38 +182,6 @@ def _read_file(path: Path, spec: _JointSpec, skip: bool, require_joints: bool) -
                 f"[{lo:.6g}, {hi:.6g}] {unit}"
             ),
         )
-    if quat_present:
-        norm = np.sqrt(sum(columns[c] ** 2 for c in QUAT_COLUMNS))
-        off = ok & (np.abs(norm - 1) > QUAT_NORM_TOL)
-        note(
-            off,
-            "qw..qz",
-            lambda k: f"quaternion norm {norm[k]:.9g} is not 1 within {QUAT_NORM_TOL:g}",
-        )
-    raise_first()
-
-    keep = np.ones(n, bool)
-    keep[list(problems)] = False
-    skipped = [
-        SkippedRow(file, k + 1, f"column {c!r}: {reason}")
-        for k, (c, reason) in sorted(problems.items())
-    ]
-    if not keep.any():
-        _fail(file, f"no valid rows: all {n} data rows have problems (first: {skipped[0].reason})")
-    columns = {c: v[keep] for c, v in columns.items()}
-    rows = np.flatnonzero(keep) + 1
-    if "t" in columns:
-        back = np.flatnonzero(np.diff(columns["t"]) < 0)
-        if back.size:
-            k = back[0] + 1
-            _fail(
-                file,
-                f"time stamp decreases from {columns['t'][k - 1]:.9g} s (row {rows[k - 1]}) "
-                f"to {columns['t'][k]:.9g} s; t must be monotonic within a file",
-                row=int(rows[k]),
-                column="t",
-            )
-    return _FilePart(columns, rows, skipped, ignored, has_joints)
 
 
 def _check_degrees(
@@ -394,13 +204,57 @@ def _check_degrees(
     # (or far beyond anything the joint can reach in radians).
     if np.mean(mag > _TWO_PI) > 0.5 or mag[k] > 2 * max(abs(lo), abs(hi)):
         row = int(np.flatnonzero(ok)[k]) + 1
-        _fail(
-            file,
+        raise DataError(
             f"looks like degrees (max {mag[k]:.1f}); convert to rad "
             f"(limits [{lo:.4g}, {hi:.4g}] rad)",
+            file=file,
             row=row,
             column=name,
         )
+
+
+class _FilePart(NamedTuple):
+    columns: dict[str, np.ndarray]  # kept rows only
+    rows: np.ndarray  # (n,) 1-based data rows kept
+    skipped: tuple[SkippedRow, ...]
+    ignored: list[str]
+    has_joints: bool
+
+
+def _read_file(path: Path, spec: _JointSpec, skip: bool, require_joints: bool) -> _FilePart:
+    file = str(path)
+    frame = load_cells(path)
+    select = _select_columns(file, list(frame.columns), spec, require_joints)
+    problems = RowProblems(file, len(frame))
+    columns: dict[str, np.ndarray] = {}
+    for col in select.wanted:
+        columns[col], unparsable = to_float(frame[col])
+        problems.note_cells(col, frame[col].to_numpy(object), columns[col], unparsable)
+    problems.raise_first(skip)
+
+    ok = problems.ok()
+    for j, name in enumerate(select.joints):
+        _check_degrees(file, name, spec, j, columns[name], ok)
+    _note_limits(columns, select.joints, spec, ok, problems)
+    if select.quat:
+        norm = np.sqrt(sum(columns[c] ** 2 for c in QUAT_COLUMNS))
+        problems.note(
+            ok & (np.abs(norm - 1) > QUAT_NORM_TOL),
+            "qw..qz",
+            lambda k: f"quaternion norm {norm[k]:.9g} is not 1 within {QUAT_NORM_TOL:g}",
+        )
+    problems.raise_first(skip)
+    problems.raise_if_none_left()
+
+    keep = problems.ok()
+    columns = {c: v[keep] for c, v in columns.items()}
+    rows = np.flatnonzero(keep) + 1
+    if "t" in columns:
+        check_time_order(file, columns["t"], rows, "t")
+    return _FilePart(columns, rows, problems.skipped(), select.ignored, select.has_joints)
+
+
+# ----------------------------------------------------------------------------- all files
 
 
 def _as_paths(paths) -> list[Path]:
@@ -410,6 +264,54 @@ def _as_paths(paths) -> list[Path]:
     if not out:
         raise ValueError("no input files given")
     return out
+
+
+def _check_same_columns(files: list[Path], parts: list[_FilePart]) -> None:
+    """Files of one campaign must have the same kinds of columns as the first."""
+    first = parts[0]
+    for path, part in zip(files[1:], parts[1:], strict=True):
+        for label, a, b in (
+            ("joint", first.has_joints, part.has_joints),
+            ("orientation", "qw" in first.columns, "qw" in part.columns),
+            *((c, c in first.columns, c in part.columns) for c in OPTIONAL_COLUMNS),
+        ):
+            if a != b:
+                have, lack = (files[0], path) if a else (path, files[0])
+                raise DataError(
+                    f"has no {label} column(s) but {have} has; files of one "
+                    "campaign need the same columns",
+                    file=str(lack),
+                )
+
+
+def _stack(parts: list[_FilePart], files: list[Path], spec: _JointSpec) -> MeasuredData:
+    """One :class:`MeasuredData` of the rows of all files, in file order then row order."""
+    first = parts[0]
+
+    def stack(cols: Sequence[str]) -> np.ndarray:
+        return np.concatenate([np.stack([p.columns[c] for c in cols], -1) for p in parts])
+
+    def optional(col: str) -> torch.Tensor | None:
+        if col not in first.columns:
+            return None
+        return torch.from_numpy(np.concatenate([p.columns[col] for p in parts]))
+
+    names = spec.names if first.has_joints else ()
+    n_rows = [len(p.rows) for p in parts]
+    return MeasuredData(
+        q=stack(names) if names else np.zeros((sum(n_rows), 0)),
+        position=stack(POSITION_COLUMNS),
+        quat=stack(QUAT_COLUMNS) if "qw" in first.columns else None,
+        joint_names=names,
+        file_index=torch.repeat_interleave(torch.arange(len(parts)), torch.tensor(n_rows)),
+        rows=torch.as_tensor(np.concatenate([p.rows for p in parts])),
+        sources=tuple(str(p) for p in files),
+        t=optional("t"),
+        temperature=optional("temperature"),
+        payload=optional("payload"),
+        ignored_columns=tuple(dict.fromkeys(c for p in parts for c in p.ignored)),
+        skipped=tuple(s for p in parts for s in p.skipped),
+    )
 
 
 def read_table(
@@ -450,51 +352,13 @@ def read_table(
     spec = _joint_spec(joint_names, lower, upper, joint_types)
     files = _as_paths(paths)
     parts = [_read_file(p, spec, on_bad_row == "skip", require_joints) for p in files]
-
-    first = parts[0]
-    for path, part in zip(files[1:], parts[1:], strict=True):
-        for label, a, b in (
-            ("joint", first.has_joints, part.has_joints),
-            ("orientation", "qw" in first.columns, "qw" in part.columns),
-            *((c, c in first.columns, c in part.columns) for c in OPTIONAL_COLUMNS),
-        ):
-            if a != b:
-                have, lack = (files[0], path) if a else (path, files[0])
-                _fail(
-                    str(lack),
-                    f"has no {label} column(s) but {have} has; files of one "
-                    "campaign need the same columns",
-                )
-
-    def stack(cols: Sequence[str]) -> np.ndarray:
-        return np.concatenate([np.stack([p.columns[c] for c in cols], -1) for p in parts])
-
-    def optional(col: str) -> torch.Tensor | None:
-        if col not in first.columns:
-            return None
-        return torch.from_numpy(np.concatenate([p.columns[col] for p in parts]))
-
-    names = spec.names if first.has_joints else ()
-    n_rows = [len(p.rows) for p in parts]
-    data = MeasuredData(
-        q=stack(names) if names else np.zeros((sum(n_rows), 0)),
-        position=stack(POSITION_COLUMNS),
-        quat=stack(QUAT_COLUMNS) if "qw" in first.columns else None,
-        joint_names=names,
-        file_index=torch.repeat_interleave(torch.arange(len(parts)), torch.tensor(n_rows)),
-        rows=torch.as_tensor(np.concatenate([p.rows for p in parts])),
-        sources=tuple(str(p) for p in files),
-        t=optional("t"),
-        temperature=optional("temperature"),
-        payload=optional("payload"),
-        ignored_columns=tuple(dict.fromkeys(c for p in parts for c in p.ignored)),
-        skipped=tuple(s for p in parts for s in p.skipped),
-    )
+    _check_same_columns(files, parts)
+    data = _stack(parts, files, spec)
     if n_params is not None and data.n < n_params:
-        where = ", ".join(data.sources)
         note = f" ({len(data.skipped)} bad row(s) skipped)" if data.skipped else ""
-        _fail(
-            where, f"needs at least {n_params} rows for {n_params} parameters, found {data.n}{note}"
+        raise DataError(
+            f"needs at least {n_params} rows for {n_params} parameters, found {data.n}{note}",
+            file=", ".join(data.sources),
         )
     if data.ignored_columns:
         warnings.warn(
@@ -528,39 +392,6 @@ def read_table_for(
 
 
 # ----------------------------------------------------------------------------- writing
-
-
-def to_frame(data: MeasuredData) -> pd.DataFrame:
-    """The table columns of ``data`` in contract order (joints, x..z, qw..qz, t, ...)."""
-    cols: dict[str, np.ndarray] = {}
-    q = data.q.detach().cpu().numpy()
-    for j, name in enumerate(data.joint_names):
-        cols[name] = q[:, j]
-    pos = data.position.detach().cpu().numpy()
-    cols.update({c: pos[:, k] for k, c in enumerate(POSITION_COLUMNS)})
-    if data.quat is not None:
-        quat = data.quat.detach().cpu().numpy()
-        cols.update({c: quat[:, k] for k, c in enumerate(QUAT_COLUMNS)})
-    for name in OPTIONAL_COLUMNS:
-        value = getattr(data, name)
-        if value is not None:
-            cols[name] = value.detach().cpu().numpy()
-    return pd.DataFrame(cols)
-
-
-def write_frame(path: str | os.PathLike, frame: pd.DataFrame) -> Path:
-    """Write a table to CSV (shortest round-trip floats) or Parquet, by extension."""
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix in _CSV_SUFFIXES:
-        frame.to_csv(path, index=False)  # float64 -> repr: exact on re-read
-    elif suffix in _PARQUET_SUFFIXES:
-        frame.to_parquet(path, index=False)
-    else:
-        raise DataError(
-            f"unsupported file type {path.suffix!r}; expected .csv, .parquet or .pq", file=str(path)
-        )
-    return path
 
 
 def write_table(path: str | os.PathLike, data: MeasuredData) -> Path:

@@ -5,6 +5,7 @@ from hybrid_pk.effects import geometric as _geometric  # noqa: F401  (registers 
 from hybrid_pk.effects import joint as _joint  # noqa: F401  (registers effects)
 from hybrid_pk.effects.base import EFFECTS as EFFECTS
 from hybrid_pk.effects.base import Effect as Effect
+from hybrid_pk.effects.base import effect_joint_names as effect_joint_names
 from hybrid_pk.effects.base import make_effect as make_effect
 from hybrid_pk.effects.conditions import Conditions as Conditions
 from hybrid_pk.effects.conditions import approach_direction as approach_direction
@@ -23,6 +24,7 @@ __all__ = [
     "RigidFrame",
     "approach_direction",
     "conditions_from_data",
+    "effect_joint_names",
     "make_effect",
     "parse_gravity",
 ]

@@ -10,6 +10,12 @@ Compliance is a joint effect solved as a fixed point by the model (it needs grav
 torques at the deflected configuration), so it only exposes its coefficient.
 
 The same modules serve simulation (set ``value``) and identification (fit it).
+
+Which joint names a per-joint effect (:func:`effect_joint_names`): joint-space effects
+(offsets, gear ratios, backlash, compliance, ...) name one of the robot's joints, the
+independent ones that the data holds (a mimic leader, never a mimic joint); geometric
+effects name a movable joint of the chain (mimic joints included) and act on the
+origin in front of it, ``joint_index`` being its index along the chain.
 """
 
 from __future__ import annotations
@@ -23,7 +29,7 @@ from hybrid_pk.effects.conditions import Conditions
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.robot import KinematicParams, Robot
 
-__all__ = ["EFFECTS", "Effect", "make_effect"]
+__all__ = ["EFFECTS", "Effect", "effect_joint_names", "make_effect"]
 
 
 class Effect(nn.Module):
@@ -36,6 +42,8 @@ class Effect(nn.Module):
         scale: typical magnitude of ``value``; identification works in ``value / scale``
             so that mm-, mrad- and µrad/Nm-sized parameters are equally conditioned.
         needs: which :class:`Conditions` field it reads, if any.
+        joint_set: ``"robot"`` (named by one of ``robot.joint_names``) or ``"chain"``
+            (one of ``robot.chain_joint_names``: geometric effects on an origin).
     """
 
     kind: ClassVar[str]
@@ -45,16 +53,18 @@ class Effect(nn.Module):
     shape: ClassVar[tuple[int, ...]] = ()
     needs: ClassVar[str | None] = None
     per_joint: ClassVar[bool] = True
+    joint_set: ClassVar[str] = "robot"
 
     def __init__(self, robot: Robot, joint: str | None = None, value=None) -> None:
         super().__init__()
         if self.per_joint:
-            if joint not in robot.joint_names:
+            names = effect_joint_names(robot, type(self))
+            if joint not in names:
                 raise HybridPKError(
                     f"effect {self.kind} needs a joint of {robot.name}: "
-                    f"one of {', '.join(robot.joint_names)}; got {joint!r}"
+                    f"one of {', '.join(names)}; got {joint!r}"
                 )
-            self.joint_index = robot.joint_names.index(joint)
+            self.joint_index = names.index(joint)
         self.joint = joint
         init = torch.zeros(self.shape, dtype=robot.dtype)
         if value is not None:
@@ -86,6 +96,11 @@ class Effect(nn.Module):
 
 
 EFFECTS: dict[str, type[Effect]] = {}
+
+
+def effect_joint_names(robot: Robot, cls: type[Effect]) -> list[str]:
+    """The joints an effect of class ``cls`` may name on ``robot`` (in index order)."""
+    return robot.chain_joint_names if cls.joint_set == "chain" else robot.joint_names
 
 
 def register(cls: type[Effect]) -> type[Effect]:

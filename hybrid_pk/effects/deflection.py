@@ -82,6 +82,7 @@ class DeflectionEffect(Effect):
     """
 
     stage, shape, scale = "deflection", (2,), 1e-6
+    joint_set = "chain"  # a physical joint of the chain (each mimic segment bends)
 
     def __init__(self, robot, joint: str | None = None, value=None) -> None:
         super().__init__(robot, joint, value)
@@ -101,7 +102,7 @@ class DeflectionEffect(Effect):
 
     def apply_deflection(self, params: KinematicParams, wrench: Tensor, q: Tensor):
         """Parameters deflected by this effect, from the joint-frame wrenches
-        ``(*B, dof, 6)`` and the true joint values ``q (*B, dof)``."""
+        ``(*B, n_chain, 6)`` and the chain's true joint values ``q (*B, n_chain)``."""
         w, pivot = self.rotation(wrench[..., self.joint_index, :], q)
         return deflect_origin(params, self.joint_index, w, pivot)
 
@@ -128,17 +129,20 @@ class ColumnBending(DeflectionEffect):
     """A prismatic column bends more the further it is extended.
 
     Value ``(b1, b2)`` [rad/Nm/m]: tilt per unit moment and per metre of extension
-    ``q`` (from the URDF's zero), about mid-extension.
+    ``q`` (from the URDF's zero), about mid-extension. A telescopic column whose
+    segments are mimic joints of one actuator has one per segment, each with its own
+    extension.
     """
 
     kind, unit = "column_bending", "rad/Nm/m"
 
     def __init__(self, robot, joint: str | None = None, value=None) -> None:
         super().__init__(robot, joint, value)
-        if robot.joint_types[self.joint_index] != "prismatic":
+        kind = robot.chain_joint_types[self.joint_index]
+        if kind != "prismatic":
             raise HybridPKError(
-                f"column_bending needs a prismatic joint; {joint} is "
-                f"{robot.joint_types[self.joint_index]} (use tilt_compliance:{joint})"
+                f"column_bending needs a prismatic joint; {joint} is {kind} (use "
+                f"tilt_compliance:{joint})"
             )
 
     def rotation(self, wrench: Tensor, q: Tensor) -> tuple[Tensor, Tensor]:

@@ -203,7 +203,7 @@ class ExtendedModel(nn.Module):
         return q
 
     def static_wrenches(self, q_true: Tensor, params, cond: Conditions, gravity=None) -> Tensor:
-        """``(*B, dof, 6)`` holding wrench of every joint, in its own joint frame."""
+        """``(*B, n_chain, 6)`` holding wrench of every chain joint, in its own frame."""
         payload = 0.0 if cond.payload is None else cond.payload
         g = self.gravity_root(cond) if gravity is None else gravity
         return self.robot.static_wrenches(
@@ -223,8 +223,9 @@ class ExtendedModel(nn.Module):
             return params
         if wrenches is None:
             wrenches = self.static_wrenches(q_true, params, cond, gravity)
+        q_chain = self.robot.chain_q(q_true)
         for e in bending:
-            params = e.apply_deflection(params, wrenches, q_true)
+            params = e.apply_deflection(params, wrenches, q_chain)
         return params
 
     # ------------------------------------------------------------------ prediction

@@ -1,10 +1,11 @@
 """Geometric effects: perturbations of the kinematic parameters.
 
 Origin ``k`` (see :class:`~hybrid_pk.robot.ChainSpec`) is the fixed transform in front
-of joint ``k + 1``, so the effect named by joint ``j`` (index ``i``) perturbs origin
-``i``: the link that carries joint ``j``. Origin 0 (in front of the first joint) and
-the tip are indistinguishable from the base and tool frames, which every fit
-estimates, so the first joint has no geometric candidates.
+of chain joint ``k + 1``, so the effect named by chain joint ``j`` (index ``i`` along the
+chain, mimic joints included) perturbs origin ``i``: the link that carries joint ``j``.
+Origin 0 (in front of the first joint) and the tip are indistinguishable from the base
+and tool frames, which every fit estimates, so the first joint has no geometric
+candidates.
 
 - ``link_length``:       origin translation + dp                  value dp (3,) [m]
 - ``axis_misalignment``: origin rotation · exp(w)                 value w (3,) [rad]
@@ -35,6 +36,7 @@ def _onehot_rows(n: int, index: int, like: torch.Tensor) -> torch.Tensor:
 @register
 class LinkLength(Effect):
     kind, unit, stage, scale, shape = "link_length", "m", "geometry", 1e-3, (3,)
+    joint_set = "chain"
 
     def apply_params(self, params: KinematicParams, cond: Conditions) -> KinematicParams:
         xyz = params.origin_xyz
@@ -52,6 +54,7 @@ class AxisMisalignment(Effect):
     """
 
     kind, unit, stage, scale, shape = "axis_misalignment", "rad", "geometry", 1e-3, (2,)
+    joint_set = "chain"
 
     def __init__(self, robot, joint: str | None = None, value=None) -> None:
         super().__init__(robot, joint, None)
@@ -104,7 +107,10 @@ class ThermalExpansion(Effect):
 
     def apply_params(self, params: KinematicParams, cond: Conditions) -> KinematicParams:
         if cond.temperature is None:
-            raise HybridPKError("thermal_expansion needs a temperature column")
+            raise HybridPKError(
+                "thermal_expansion needs the temperature of each row [°C]: a temperature "
+                "column in the data, or cond=Conditions(temperature=...)"
+            )
         dT = (cond.temperature - REFERENCE_TEMPERATURE).to(params.origin_xyz.dtype)
         factor = 1 + self.value * dT[..., None, None]  # (*B, 1, 1)
         n = params.origin_xyz.shape[-2]

@@ -61,13 +61,26 @@ class JointEccentricity(Effect):
 
 @register
 class Backlash(Effect):
-    """Value ``b`` = full play [rad]; needs the approach direction of every sample."""
+    """Value ``b`` = full play [rad]; needs the approach direction of every sample.
+
+    Measured rows get it from their acquisition order (``conditions_from_data``). An IK
+    target has none: ``solve_ik`` / ``solve_ik_two_stage`` (and ``hybrid-pk ik
+    --approach``) solve for a stated direction per joint (+1: the joint arrives moving
+    in its positive direction, -1: negative) or, by default, for the mid-play model
+    (direction 0, half-way between both approaches) and say so
+    (:mod:`hybrid_pk.ik.conditions`).
+    """
 
     kind, unit, stage, scale, needs = "backlash", "rad", "joint", 1e-3, "direction"
 
     def apply_q(self, q: Tensor, cond: Conditions) -> Tensor:
         if cond.direction is None:
-            raise HybridPKError("backlash needs the approach direction (rows in acquisition order)")
+            raise HybridPKError(
+                f"backlash on {self.joint} needs the approach direction of each row: pass "
+                "cond=conditions_from_data(data) for measured rows in acquisition order, or "
+                "Conditions(direction=...) with +1 / -1 / 0 (mid-play) per joint; the IK "
+                "functions take approach= instead"
+            )
         d = cond.direction[..., self.joint_index].to(q.dtype)
         return _add_to_joint(q, self.joint_index, 0.5 * self.value * d)
 

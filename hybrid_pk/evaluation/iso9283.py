@@ -37,7 +37,7 @@ from torch import Tensor
 
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.errors import DataError, ShapeError
-from hybrid_pk.geometry import quat_to_matrix, so3_log
+from hybrid_pk.geometry import nearest_rotation, quat_to_matrix, so3_log
 
 __all__ = ["ISO_CYCLES", "Iso9283Result", "expected_rp_mm", "group_repeated_poses", "iso9283"]
 
@@ -159,10 +159,7 @@ class Iso9283Result:
 
 def _chordal_mean(R: Tensor) -> Tensor:
     """Rotation nearest to the mean of ``R (n, 3, 3)``."""
-    U, _, Vt = torch.linalg.svd(R.mean(0))
-    d = torch.sign(torch.linalg.det(U @ Vt))
-    D = torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d]))
-    return U @ D @ Vt
+    return nearest_rotation(R.mean(0))
 
 
 def iso9283(

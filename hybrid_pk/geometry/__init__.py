@@ -3,8 +3,10 @@
 The lowest layer of the package: it imports nothing else of hybrid_pk but errors.
 """
 
+from hybrid_pk.geometry import rotations
 from hybrid_pk.geometry.rotations import matrix_to_quat as matrix_to_quat
 from hybrid_pk.geometry.rotations import matrix_to_rpy as matrix_to_rpy
+from hybrid_pk.geometry.rotations import nearest_rotation as nearest_rotation
 from hybrid_pk.geometry.rotations import quat_to_matrix as quat_to_matrix
 from hybrid_pk.geometry.rotations import rotation_angle as rotation_angle
 from hybrid_pk.geometry.rotations import rpy_to_matrix as rpy_to_matrix
@@ -14,15 +16,4 @@ from hybrid_pk.geometry.rotations import so3_log as so3_log
 from hybrid_pk.geometry.rotations import transform as transform
 from hybrid_pk.geometry.rotations import transform_inverse as transform_inverse
 
-__all__ = [
-    "matrix_to_quat",
-    "matrix_to_rpy",
-    "quat_to_matrix",
-    "rotation_angle",
-    "rpy_to_matrix",
-    "skew",
-    "so3_exp",
-    "so3_log",
-    "transform",
-    "transform_inverse",
-]
+__all__ = list(rotations.__all__)

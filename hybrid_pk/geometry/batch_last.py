@@ -13,7 +13,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["compose", "rotate", "solve_spd", "to_soa_matrix"]
+__all__ = ["compose", "rotate", "solve_spd"]
 
 # Below this batch size the per-operation overhead of the unrolled Cholesky exceeds
 # the cost of the batched LU.
@@ -32,11 +32,6 @@ def rotate(A: Tensor, v: Tensor) -> Tensor:
     out = A[:, 0] * v[0]
     out = torch.addcmul(out, A[:, 1], v[1])
     return torch.addcmul(out, A[:, 2], v[2])
-
-
-def to_soa_matrix(A: Tensor) -> Tensor:
-    """``(M, n, m)`` -> ``(n, m, M)`` contiguous."""
-    return A.permute(1, 2, 0).contiguous()
 
 
 def _cholesky_unrolled(A: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:

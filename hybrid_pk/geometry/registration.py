@@ -19,16 +19,9 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.errors import HybridPKError
-from hybrid_pk.geometry.rotations import so3_log, transform
+from hybrid_pk.geometry.rotations import nearest_rotation, so3_log, transform
 
 __all__ = ["kabsch", "register_frames"]
-
-
-def _project_to_rotation(M: Tensor) -> Tensor:
-    U, _, Vt = torch.linalg.svd(M)
-    D = torch.ones(3, dtype=M.dtype)
-    D[2] = torch.sign(torch.linalg.det(U @ Vt))
-    return U @ torch.diag(D) @ Vt
 
 
 def kabsch(a: Tensor, b: Tensor, with_translation: bool = True) -> tuple[Tensor, Tensor]:
@@ -41,7 +34,7 @@ def kabsch(a: Tensor, b: Tensor, with_translation: bool = True) -> tuple[Tensor,
         ca, cb = a.mean(0), b.mean(0)
     else:
         ca = cb = torch.zeros(3, dtype=a.dtype)
-    R = _project_to_rotation((b - cb).T @ (a - ca))
+    R = nearest_rotation((b - cb).T @ (a - ca))
     return R, cb - R @ ca
 
 
@@ -83,10 +76,10 @@ def register_frames(
             # The flange never turns (e.g. ISO 9283 cube poses): relative rotations are
             # noise. Register the points instead; the tool rotation follows from R_B.
             base, tool = register_frames(T_end, position, None, iterations)
-            R_X = _project_to_rotation((R_F.transpose(-1, -2) @ base[:3, :3].T @ quat_rot).sum(0))
+            R_X = nearest_rotation((R_F.transpose(-1, -2) @ base[:3, :3].T @ quat_rot).sum(0))
             return base, transform(R_X, tool[:3, 3])
         R_B, _ = kabsch(b, a, with_translation=False)
-        R_X = _project_to_rotation((R_F.transpose(-1, -2) @ R_B.T @ quat_rot).sum(0))
+        R_X = nearest_rotation((R_F.transpose(-1, -2) @ R_B.T @ quat_rot).sum(0))
         # p_meas - R_B p_F = p_B + (R_B R_F) p_X : linear in (p_B, p_X)
         A = torch.cat([torch.eye(3, dtype=p_F.dtype).expand(n, 3, 3), R_B @ R_F], -1)
         rhs = position - p_F @ R_B.T

@@ -14,6 +14,7 @@ from torch import Tensor
 __all__ = [
     "matrix_to_quat",
     "matrix_to_rpy",
+    "nearest_rotation",
     "quat_to_matrix",
     "rotation_angle",
     "rpy_to_matrix",
@@ -68,6 +69,20 @@ def rotation_angle(R: Tensor) -> Tensor:
     s = _vee_antisym(R).norm(dim=-1) / 2
     c = (R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2
     return torch.atan2(s, c)
+
+
+def nearest_rotation(M: Tensor) -> Tensor:
+    """Rotation nearest to ``M`` in the Frobenius norm, ``(*B, 3, 3) -> (*B, 3, 3)``.
+
+    The orthogonal polar factor of ``M = U S V^T`` with the sign of its last singular
+    direction chosen so that ``det = +1``: ``U diag(1, 1, det(U V^T)) V^T``. Kabsch,
+    chordal means of rotations and the re-orthonormalisation of a noisy rotation are
+    this projection of a sum of (outer products of) rotations.
+    """
+    U, _, Vh = torch.linalg.svd(M)
+    d = torch.sign(torch.linalg.det(U @ Vh))
+    one = torch.ones_like(d)
+    return (U * torch.stack([one, one, d], -1)[..., None, :]) @ Vh
 
 
 def so3_log(R: Tensor) -> Tensor:

@@ -36,7 +36,7 @@ from torch import Tensor
 from hybrid_pk.geometry import so3_log
 from hybrid_pk.geometry.batch_last import compose, solve_spd
 
-__all__ = ["LMOutput", "LMSettings", "levenberg_marquardt"]
+__all__ = ["LMOutput", "LMSettings", "batched_levenberg_marquardt"]
 
 _TWO_PI = 2 * math.pi
 
@@ -130,7 +130,119 @@ def _weighted(J: Tensor, s: LMSettings) -> Tensor:
     return torch.cat([J[:3], s.rotation_weight * J[3:]])
 
 
-def levenberg_marquardt(
+class _Active:
+    """The problems still in the batch; every tensor is batch-last (last dim ``A``)."""
+
+    BATCHED = (
+        *("idx", "rows", "R_t", "p_t", "q", "J", "e"),
+        *("cost", "pos", "rot", "mu", "nu", "near_count", "checkpoint"),
+    )
+
+    def __init__(self, evaluate, q0, rows, T_target, lower, upper, revolute, s: LMSettings):
+        f64 = {"dtype": q0.dtype, "device": q0.device}
+        P = q0.shape[0]
+        self.shared = lower.ndim == 1 and upper.ndim == 1
+        lo, hi = (lower[:, None], upper[:, None]) if self.shared else (lower.T, upper.T)
+        self.lo, self.hi = lo.to(**f64).contiguous(), hi.to(**f64).contiguous()  # (dof, 1|P)
+        per = self.hi - self.lo >= _TWO_PI
+        self.per = per & revolute.to(per.device)[:, None] if revolute is not None else per & ~per
+        self.any_periodic = bool(self.per.any())
+        self.idx = torch.arange(P, device=q0.device)
+        self.rows = rows
+        self.q = torch.minimum(torch.maximum(q0.T, self.lo), self.hi).contiguous()  # (dof, A)
+        self.R_t = T_target[:, :3, :3].permute(1, 2, 0).contiguous()
+        self.p_t = T_target[:, :3, 3].T.contiguous()
+        self.J, self.e, self.pos, self.rot, self.cost = _evaluate(evaluate, self.q, self, s)
+        self.mu = torch.full((P,), s.damping_init, **f64)
+        self.nu = torch.full((P,), 2.0, **f64)
+        self.near_count = torch.zeros(P, dtype=torch.long, device=q0.device)
+        self.checkpoint = self.cost
+
+    def keep(self, stay: Tensor) -> None:
+        """Compact the batch to the problems ``stay`` (indices into the active ones)."""
+        names = self.BATCHED if self.shared else (*self.BATCHED, "lo", "hi", "per")
+        for name in names:
+            setattr(self, name, getattr(self, name)[..., stay])
+
+
+def _evaluate(evaluate, q: Tensor, a: _Active, s: LMSettings) -> tuple[Tensor, ...]:
+    """Weighted Jacobian, residual, position / rotation error and cost at ``q (dof, A)``."""
+    R, p, J = evaluate(q, a.rows)
+    e, pos, rot = _residual(R, p, a.R_t, a.p_t, s)
+    return _weighted(J, s), e, pos, rot, (e * e).sum(0)
+
+
+def _leaving(a: _Active, it: int, s: LMSettings) -> Tensor:
+    """``(A,)`` bool, the problems that leave the batch, decided on the accepted state."""
+    near = (a.pos <= s.accept_position) & (a.rot <= s.accept_rotation)
+    a.near_count += near.long()
+    leave = (a.near_count > s.polish_iterations) | (a.mu >= s.damping_max)
+    tight_p, tight_r = s.tight_factor * s.accept_position, s.tight_factor * s.accept_rotation
+    leave |= (a.pos <= tight_p) & (a.rot <= tight_r)
+    if it > 0 and it % s.stall_window == 0:
+        keep = (a.pos <= s.keep_position) & (a.rot <= s.keep_rotation)
+        leave |= (a.cost > s.stall_ratio * a.checkpoint) & ~keep
+        a.checkpoint = a.cost
+    if it >= s.max_iterations:
+        leave = torch.ones_like(leave)
+    return leave
+
+
+def _projected_step(a: _Active) -> tuple[Tensor, Tensor, Tensor]:
+    """Damped Gauss-Newton trial point projected into the box: ``q_try (dof, A)``,
+    ``ok (A,)`` (the factorisation worked) and the predicted cost decrease ``(A,)``."""
+    J, e, q, lo, hi, per = a.J, a.e, a.q, a.lo, a.hi, a.per
+    g = (J * e[:, None, :]).sum(0)  # J^T e, (dof, A)
+    A = J[0, :, None] * J[0, None, :]  # J^T J, (dof, dof, A)
+    for k in range(1, J.shape[0]):
+        A = torch.addcmul(A, J[k, :, None], J[k, None, :])
+    # Joints on a bound that the descent direction pushes outward are held there
+    # (projected LM): their rows and columns of the normal equations become the
+    # identity, so the other joints do not move as if the held ones had.
+    held = ~per & (((q <= lo) & (g < 0)) | ((q >= hi) & (g > 0)))
+    diag = A.diagonal(0, 0, 1)  # (A, dof) view
+    if bool(held.any()):
+        free = (~held).to(q.dtype)
+        A = A * free[:, None] * free[None, :]
+        diag = A.diagonal(0, 0, 1)
+        diag += (1 - free).T
+        g = g * free
+    scale = diag.amax(-1).clamp_min(1.0)
+    lam = a.mu * a.cost.sqrt() + 1e-14 * scale
+    diag += lam[:, None]
+    dq, ok = solve_spd(A, g)
+    dq = torch.where(ok, dq, 0.0)
+    q_new = q + dq
+    q_try = torch.minimum(torch.maximum(q_new, lo), hi)
+    step = q_try - q
+    if a.any_periodic:
+        # A periodic joint leaving its box re-enters 2 pi further: same pose, no clamp.
+        out = per & (q_new != q_try)
+        if bool(out.any()):
+            step = torch.where(out, dq, step)
+            q_try = torch.where(out, lo + torch.remainder(q_new - lo, _TWO_PI), q_try)
+    e_lin = e - (J * step[None]).sum(1)
+    return q_try, ok, a.cost - (e_lin * e_lin).sum(0)
+
+
+def _accept(a: _Active, q_try: Tensor, trial: tuple, ok: Tensor, predicted: Tensor, s) -> None:
+    """Take the trial point where the cost went down; Nielsen's damping update."""
+    J_try, e_try, pos_try, rot_try, cost_try = trial
+    finite = torch.isfinite(cost_try + J_try.sum((0, 1)))  # NaN/inf anywhere
+    accept = ok & finite & (cost_try < a.cost) & (predicted > 0)
+    rho = (a.cost - cost_try) / predicted.clamp_min(torch.finfo(a.q.dtype).tiny)
+    shrink = torch.clamp(1 - (2 * rho - 1) ** 3, min=1 / 3)
+    a.mu = torch.where(accept, a.mu * shrink, a.mu * a.nu).clamp(1e-12, s.damping_max)
+    a.nu = torch.where(accept, 2.0, a.nu * 2)
+    a.q = torch.where(accept, q_try, a.q)
+    a.J = torch.where(accept, J_try, a.J)
+    a.e = torch.where(accept, e_try, a.e)
+    a.cost = torch.where(accept, cost_try, a.cost)
+    a.pos = torch.where(accept, pos_try, a.pos)
+    a.rot = torch.where(accept, rot_try, a.rot)
+
+
+def batched_levenberg_marquardt(
     evaluate: Callable[[Tensor, Tensor], tuple[Tensor, Tensor, Tensor]],
     q0: Tensor,
     rows: Tensor,
@@ -140,7 +252,10 @@ def levenberg_marquardt(
     settings: LMSettings = LMSettings(),
     revolute: Tensor | None = None,
 ) -> LMOutput:
-    """Solve ``P`` pose problems from their start configurations.
+    """Solve ``P`` small pose problems from their start configurations, in one batch.
+
+    (:func:`hybrid_pk.calibration.least_squares.levenberg_marquardt` is the other LM:
+    one dense problem with many residuals, for the calibration fits.)
 
     Args:
         evaluate: ``(q (dof, M), rows (M,)) -> (R (3, 3, M), p (3, M), J (6, dof, M))``,
@@ -158,125 +273,27 @@ def levenberg_marquardt(
     Returns:
         :class:`LMOutput`; every ``q`` is inside the box and finite.
     """
-    s = settings
-    P = q0.shape[0]
+    s, P = settings, q0.shape[0]
     if P == 0:
         empty = q0.new_zeros(0)
         return LMOutput(q0.clone(), empty, empty, empty.long(), 0)
-    f64 = {"dtype": q0.dtype, "device": q0.device}
-    shared = lower.ndim == 1 and upper.ndim == 1
-    if shared:
-        lo, hi = lower[:, None], upper[:, None]  # (dof, 1)
-    else:
-        lo, hi = lower.T, upper.T  # (dof, P)
-    lo, hi = lo.to(**f64).contiguous(), hi.to(**f64).contiguous()
-    per = hi - lo >= _TWO_PI  # (dof, 1) or (dof, P)
-    per = per & revolute.to(per.device)[:, None] if revolute is not None else per & ~per
-    any_periodic = bool(per.any())
-    tight_p, tight_r = s.tight_factor * s.accept_position, s.tight_factor * s.accept_rotation
-
-    # Outputs, filled as problems leave the batch.
-    q_out = q0.clone()
-    pos_out = q0.new_full((P,), torch.inf)
-    rot_out = q0.new_full((P,), torch.inf)
+    q_out = q0.clone()  # outputs, filled as problems leave the batch
+    pos_out, rot_out = q0.new_full((P,), torch.inf), q0.new_full((P,), torch.inf)
     it_out = torch.zeros(P, dtype=torch.long, device=q0.device)
-
-    # State of the active problems, batch last.
-    idx = torch.arange(P, device=q0.device)
-    q = torch.minimum(torch.maximum(q0.T, lo), hi).contiguous()  # (dof, A)
-    R_t = T_target[:, :3, :3].permute(1, 2, 0).contiguous()
-    p_t = T_target[:, :3, 3].T.contiguous()
-    rw = rows
-    R, p, J = evaluate(q, rw)
-    J = _weighted(J, s)
-    e, pos, rot = _residual(R, p, R_t, p_t, s)
-    cost = (e * e).sum(0)
-    mu = torch.full((P,), s.damping_init, **f64)
-    nu = torch.full((P,), 2.0, **f64)
-    near_count = torch.zeros(P, dtype=torch.long, device=q0.device)
-    checkpoint = cost
-    evaluations = P
-
-    it = 0
+    a = _Active(evaluate, q0, rows, T_target, lower, upper, revolute, s)
+    evaluations, it = P, 0
     while True:
-        # --- who leaves the batch (decided on the current, accepted state)
-        near = (pos <= s.accept_position) & (rot <= s.accept_rotation)
-        near_count += near.long()
-        leave = (near_count > s.polish_iterations) | (mu >= s.damping_max)
-        leave |= (pos <= tight_p) & (rot <= tight_r)
-        if it > 0 and it % s.stall_window == 0:
-            keep = (pos <= s.keep_position) & (rot <= s.keep_rotation)
-            leave |= (cost > s.stall_ratio * checkpoint) & ~keep
-            checkpoint = cost
-        if it >= s.max_iterations:
-            leave = torch.ones_like(leave)
+        leave = _leaving(a, it, s)
         if bool(leave.any()):
-            gone = idx[leave]
-            q_out[gone], pos_out[gone], rot_out[gone] = q[:, leave].T, pos[leave], rot[leave]
+            gone = a.idx[leave]
+            q_out[gone], pos_out[gone], rot_out[gone] = a.q[:, leave].T, a.pos[leave], a.rot[leave]
             it_out[gone] = it
-            stay = (~leave).nonzero()[:, 0]
-            idx, rw, q, J, e = idx[stay], rw[stay], q[:, stay], J[..., stay], e[:, stay]
-            R_t, p_t = R_t[..., stay], p_t[:, stay]
-            cost, pos, rot, mu, nu = cost[stay], pos[stay], rot[stay], mu[stay], nu[stay]
-            near_count, checkpoint = near_count[stay], checkpoint[stay]
-            if not shared:
-                lo, hi, per = lo[:, stay], hi[:, stay], per[:, stay]
-        if idx.numel() == 0:
+            a.keep((~leave).nonzero()[:, 0])
+        if a.idx.numel() == 0:
             break
         it += 1
-
-        # --- damped Gauss-Newton step, projected into the box
-        g = (J * e[:, None, :]).sum(0)  # J^T e, (dof, A)
-        A = J[0, :, None] * J[0, None, :]  # J^T J, (dof, dof, A)
-        for k in range(1, J.shape[0]):
-            A = torch.addcmul(A, J[k, :, None], J[k, None, :])
-        # Joints on a bound that the descent direction pushes outward are held there
-        # (projected LM): their rows and columns of the normal equations become the
-        # identity, so the other joints do not move as if the held ones had.
-        held = ~per & (((q <= lo) & (g < 0)) | ((q >= hi) & (g > 0)))
-        diag = A.diagonal(0, 0, 1)  # (A, dof) view
-        if bool(held.any()):
-            free = (~held).to(q.dtype)
-            A = A * free[:, None] * free[None, :]
-            diag = A.diagonal(0, 0, 1)
-            diag += (1 - free).T
-            g = g * free
-        scale = diag.amax(-1).clamp_min(1.0)
-        lam = mu * cost.sqrt() + 1e-14 * scale
-        diag += lam[:, None]
-        dq, ok = solve_spd(A, g)
-        dq = torch.where(ok, dq, 0.0)
-        q_new = q + dq
-        q_try = torch.minimum(torch.maximum(q_new, lo), hi)
-        step = q_try - q
-        if any_periodic:
-            # A periodic joint leaving its box re-enters 2 pi further: same pose, no clamp.
-            out = per & (q_new != q_try)
-            if bool(out.any()):
-                step = torch.where(out, dq, step)
-                q_try = torch.where(out, lo + torch.remainder(q_new - lo, _TWO_PI), q_try)
-        e_lin = e - (J * step[None]).sum(1)
-        predicted = cost - (e_lin * e_lin).sum(0)
-
-        R_try, p_try, J_try = evaluate(q_try, rw)
-        J_try = _weighted(J_try, s)
-        evaluations += idx.numel()
-        e_try, pos_try, rot_try = _residual(R_try, p_try, R_t, p_t, s)
-        cost_try = (e_try * e_try).sum(0)
-        finite = torch.isfinite(cost_try + J_try.sum((0, 1)))  # NaN/inf anywhere
-        accept = ok & finite & (cost_try < cost) & (predicted > 0)
-
-        # --- Nielsen's damping update from the gain ratio
-        rho = (cost - cost_try) / predicted.clamp_min(torch.finfo(q.dtype).tiny)
-        shrink = torch.clamp(1 - (2 * rho - 1) ** 3, min=1 / 3)
-        mu = torch.where(accept, mu * shrink, mu * nu).clamp(1e-12, s.damping_max)
-        nu = torch.where(accept, 2.0, nu * 2)
-
-        q = torch.where(accept, q_try, q)
-        J = torch.where(accept, J_try, J)
-        e = torch.where(accept, e_try, e)
-        cost = torch.where(accept, cost_try, cost)
-        pos = torch.where(accept, pos_try, pos)
-        rot = torch.where(accept, rot_try, rot)
-
+        q_try, ok, predicted = _projected_step(a)
+        trial = _evaluate(evaluate, q_try, a, s)
+        evaluations += a.idx.numel()
+        _accept(a, q_try, trial, ok, predicted, s)
     return LMOutput(q_out, pos_out, rot_out, it_out, evaluations)

@@ -20,7 +20,8 @@ batch-last layout (see ``hybrid_pk.geometry.batch_last``).
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -117,13 +118,80 @@ def _subset(cond: Conditions | None, rows: Tensor) -> Conditions | None:
 def _check_cond(cond: Conditions | None, n_targets: int | None) -> None:
     if cond is None or n_targets is None:
         return
-    names = ("payload", "temperature", "direction", "group")
-    for name, value in zip(names, cond._fields(), strict=True):
+    for f in fields(cond):
+        value = getattr(cond, f.name)
         if value is not None and value.shape[:1] != (n_targets,):
             raise ShapeError(
-                f"cond.{name}: expected one entry per target ({n_targets}), found shape "
+                f"cond.{f.name}: expected one entry per target ({n_targets}), found shape "
                 f"{tuple(value.shape)}"
             )
+
+
+class _Adapter(NamedTuple):
+    robot: Robot
+    pose: PoseFn
+    pose_and_jacobian: PoseJacobianFn
+    analytic: bool
+    batch_last: BatchLastFn | None = None
+
+
+def _robot_adapter(model: Robot) -> _Adapter:
+    """The chain kernel's analytic Jacobian."""
+    kernel = ChainKernel(model)
+
+    def pose(q: Tensor, rows: Tensor) -> Tensor:
+        return model.fk(q)
+
+    def pose_jac(q: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
+        return kernel(q)
+
+    return _Adapter(model, pose, pose_jac, True, kernel.soa)
+
+
+def _extended_adapter(model: ExtendedModel, cond: Conditions | None) -> _Adapter:
+    """Frames only: the chain kernel with the frames folded in; else autograd."""
+    if len(model.effects) == 0 and model.base.sets == 1:
+        with torch.no_grad():
+            base, tool = model.base.matrix()[0].detach(), model.tool.matrix()[0].detach()
+
+        def pose(q: Tensor, rows: Tensor) -> Tensor:
+            return base.to(q.dtype) @ model.robot.fk(q) @ tool.to(q.dtype)
+
+        kernel = ChainKernel(model.robot, base, tool)
+
+        def pose_jac(q: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
+            return kernel(q)
+
+        return _Adapter(model.robot, pose, pose_jac, True, kernel.soa)
+
+    def pose(q: Tensor, rows: Tensor) -> Tensor:
+        return model(q, _subset(cond, rows))
+
+    def pose_jac(q: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
+        return autograd_pose_jacobian(pose, q, rows)
+
+    return _Adapter(model.robot, pose, pose_jac, False)
+
+
+def _callable_adapter(
+    fn: Callable, robot: Robot | None, jacobian: Callable | None, cond: Conditions | None
+) -> _Adapter:
+    """Any differentiable ``q -> T``, with its own Jacobian or autograd's."""
+    if robot is None:
+        raise HybridPKError(
+            "IK on a callable model needs robot= (for joint names, limits and types)"
+        )
+
+    def pose(q: Tensor, rows: Tensor) -> Tensor:
+        return fn(q) if cond is None else fn(q, _subset(cond, rows))
+
+    def pose_jac(q: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
+        if jacobian is None:
+            return autograd_pose_jacobian(pose, q, rows)
+        J = jacobian(q) if cond is None else jacobian(q, _subset(cond, rows))
+        return pose(q, rows), J
+
+    return _Adapter(robot, pose, pose_jac, jacobian is not None)
 
 
 def as_ik_model(
@@ -159,78 +227,24 @@ def as_ik_model(
     if isinstance(model, IKModel):
         return model
     _check_cond(cond, n_targets)
-    batch_last = None
     if isinstance(model, Robot):
-        robot = model
-
-        def pose(q: Tensor, rows: Tensor) -> Tensor:
-            return model.fk(q)
-
-        kernel = ChainKernel(model)
-
-        def pose_jac(q: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
-            return kernel(q)
-
-        analytic, batch_last = True, kernel.soa
+        a = _robot_adapter(model)
     elif isinstance(model, ExtendedModel):
-        robot = model.robot
-        frames_only = len(model.effects) == 0 and model.base.sets == 1
-        if frames_only:
-            with torch.no_grad():
-                base, tool = model.base.matrix()[0].detach(), model.tool.matrix()[0].detach()
-
-            def pose(q: Tensor, rows: Tensor) -> Tensor:
-                return base.to(q.dtype) @ model.robot.fk(q) @ tool.to(q.dtype)
-
-            kernel = ChainKernel(model.robot, base, tool)
-            batch_last = kernel.soa
-
-            def pose_jac(q: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
-                return kernel(q)
-
-        else:
-
-            def pose(q: Tensor, rows: Tensor) -> Tensor:
-                return model(q, _subset(cond, rows))
-
-            def pose_jac(q: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
-                return autograd_pose_jacobian(pose, q, rows)
-
-        analytic = frames_only
+        a = _extended_adapter(model, cond)
     elif callable(model):
-        if robot is None:
-            raise HybridPKError(
-                "IK on a callable model needs robot= (for joint names, limits and types)"
-            )
-        fn = model
-
-        def pose(q: Tensor, rows: Tensor) -> Tensor:
-            return fn(q) if cond is None else fn(q, _subset(cond, rows))
-
-        if jacobian is None:
-
-            def pose_jac(q: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
-                return autograd_pose_jacobian(pose, q, rows)
-
-        else:
-
-            def pose_jac(q: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
-                J = jacobian(q) if cond is None else jacobian(q, _subset(cond, rows))
-                return pose(q, rows), J
-
-        analytic = jacobian is not None
+        a = _callable_adapter(model, robot, jacobian, cond)
     else:
         raise HybridPKError(
             f"IK needs a Robot, an ExtendedModel or a callable q -> T, got {type(model).__name__}"
         )
-    lower, upper = robot.joint_limits
+    lower, upper = a.robot.joint_limits
     return IKModel(
-        pose=pose,
-        pose_and_jacobian=pose_jac,
+        pose=a.pose,
+        pose_and_jacobian=a.pose_and_jacobian,
         lower=lower.detach().to(torch.float64),
         upper=upper.detach().to(torch.float64),
-        revolute=robot.revolute.clone(),
-        joint_names=tuple(robot.joint_names),
-        analytic=analytic,
-        batch_last=batch_last,
+        revolute=a.robot.revolute.clone(),
+        joint_names=tuple(a.robot.joint_names),
+        analytic=a.analytic,
+        batch_last=a.batch_last,
     )

@@ -1,11 +1,11 @@
 """`solve_ik`: every distinct IK solution of a batch of targets on one model.
 
-Targets × seeds are solved as one batch by :func:`~hybrid_pk.ik.batched_lm.levenberg_marquardt`
-(float64, joint limits by projection, per-problem damping and early exit). Every
-candidate is then checked by a fresh forward evaluation of the model against the
-tolerances and the joint limits, and the survivors are reduced to distinct solutions
-(contract section 6). A target none of whose seeds passes is a failure: the solver
-never returns a solution it has not verified.
+Targets × seeds are solved as one batch by
+:func:`~hybrid_pk.ik.batched_lm.batched_levenberg_marquardt` (float64, joint limits by
+projection, per-problem damping and early exit). Every candidate is then checked by a
+fresh forward evaluation of the model against the tolerances and the joint limits, and
+the survivors are reduced to distinct solutions (contract section 6). A target none of
+whose seeds passes is a failure: the solver never returns a solution it has not verified.
 """
 
 from __future__ import annotations
@@ -22,13 +22,23 @@ from hybrid_pk.effects import Conditions
 from hybrid_pk.errors import ShapeError
 from hybrid_pk.evaluation.metrics import pose_error, position_error_mm
 from hybrid_pk.geometry import transform
-from hybrid_pk.ik.batched_lm import LMSettings, levenberg_marquardt
+from hybrid_pk.ik.batched_lm import LMSettings, batched_levenberg_marquardt
+from hybrid_pk.ik.conditions import Approach, resolve_conditions
 from hybrid_pk.ik.dedup import PRISMATIC_TOL, REVOLUTE_TOL, distinct_mask
 from hybrid_pk.ik.forward_model import IKModel, as_ik_model
 from hybrid_pk.ik.result import IKResult
 from hybrid_pk.ik.seeds import quasi_random_seeds, seed_box
 
-__all__ = ["IKOptions", "solve_ik"]
+__all__ = [
+    "IKOptions",
+    "check_solutions",
+    "concat_padded",
+    "lexicographic_order",
+    "make_result",
+    "pack",
+    "prepare_targets",
+    "solve_ik",
+]
 
 F64 = torch.float64
 
@@ -66,7 +76,7 @@ class IKOptions:
     polish_deg: float | None = None
 
     def lm_settings(self, position_only: bool) -> LMSettings:
-        """Iteration settings of :func:`~hybrid_pk.ik.batched_lm.levenberg_marquardt`."""
+        """Iteration settings of :func:`~hybrid_pk.ik.batched_lm.batched_levenberg_marquardt`."""
         polish_mm = 0.1 * self.tol_mm if self.polish_mm is None else self.polish_mm
         polish_deg = 0.1 * self.tol_deg if self.polish_deg is None else self.polish_deg
         return LMSettings(
@@ -277,6 +287,7 @@ def solve_ik(
     jacobian: Callable | None = None,
     options: IKOptions | None = None,
     progress: Callable[[int], None] | None = None,
+    approach: Approach = None,
 ) -> IKResult:
     """All distinct joint solutions of each target pose, within the joint limits.
 
@@ -296,6 +307,9 @@ def solve_ik(
         jacobian: analytic Jacobian of a callable model (else autograd).
         options: tolerances and iteration settings (:class:`IKOptions`).
         progress: called with the number of targets finished after each batch.
+        approach: backlash approach direction (:mod:`~hybrid_pk.ik.conditions`; default
+            ``cond.direction``, else the mid-play model, said in an
+            :class:`~hybrid_pk.ik.conditions.IKAssumption` warning).
 
     Returns:
         :class:`IKResult` of batch shape ``*B``; every returned solution is within the
@@ -305,6 +319,7 @@ def solve_ik(
     options = options or IKOptions()
     T_all, batch, position_only = prepare_targets(targets)
     n = T_all.shape[0]
+    cond, assumed = resolve_conditions([model], cond, n, approach)
     ikm = as_ik_model(model, cond=cond, robot=robot, jacobian=jacobian, n_targets=n)
     start = _start_configs(ikm, n, seeds, extra_seeds, options)
     s_per = start.shape[1]
@@ -317,7 +332,7 @@ def solve_ik(
         rows = torch.arange(lo, hi).repeat_interleave(s_per)
         q0 = start[lo:hi].reshape(-1, ikm.dof)
         with torch.no_grad():
-            out = levenberg_marquardt(
+            out = batched_levenberg_marquardt(
                 ikm.evaluate,
                 q0,
                 rows,
@@ -344,6 +359,7 @@ def solve_ik(
         if progress is not None:
             progress(hi - lo)
     info = {
+        "assumed": assumed,
         "seeds": s_per,
         "problems": n * s_per,
         "mean_iterations": iterations / max(1, n * s_per),

@@ -27,7 +27,8 @@ from torch import Tensor
 
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.errors import HybridPKError, ShapeError
-from hybrid_pk.ik.batched_lm import levenberg_marquardt
+from hybrid_pk.ik.batched_lm import batched_levenberg_marquardt
+from hybrid_pk.ik.conditions import Approach, resolve_conditions
 from hybrid_pk.ik.dedup import distinct_mask
 from hybrid_pk.ik.forward_model import IKModel, as_ik_model
 from hybrid_pk.ik.result import IKResult
@@ -41,7 +42,7 @@ from hybrid_pk.ik.solver import (
 )
 from hybrid_pk.robot import Robot
 
-__all__ = ["refine_ik", "solve_ik_two_stage", "wang_baseline"]
+__all__ = ["DEFAULT_BOX", "refine_ik", "solve_ik_two_stage", "wang_baseline"]
 
 F64 = torch.float64
 DEFAULT_BOX = 0.1  # [rad] (or m) half-width of the refinement box around a branch
@@ -94,6 +95,7 @@ def refine_ik(
     robot: Robot | None = None,
     jacobian: Callable | None = None,
     options: IKOptions | None = None,
+    approach: Approach = None,
 ) -> IKResult:
     """Refine initial solutions on ``model`` within a box around each (paper Fig. 3).
 
@@ -105,7 +107,7 @@ def refine_ik(
             (NaN rows are empty slots).
         box: half-width of the search box around each initial solution [rad or m],
             scalar or ``(dof,)``; intersected with the joint limits.
-        cond, robot, jacobian: as for :func:`~hybrid_pk.ik.solve_ik`.
+        cond, robot, jacobian, approach: as for :func:`~hybrid_pk.ik.solve_ik`.
         options: tolerances and iteration budget.
 
     Returns:
@@ -116,6 +118,7 @@ def refine_ik(
     options = options or IKOptions()
     T_all, batch, position_only = prepare_targets(targets)
     n = T_all.shape[0]
+    cond, assumed = resolve_conditions([model], cond, n, approach)
     ikm = as_ik_model(model, cond=cond, robot=robot, jacobian=jacobian, n_targets=n)
     q_init, valid = _initial(initial, n, ikm.dof)
     rows, slots = valid.nonzero(as_tuple=True)
@@ -125,7 +128,7 @@ def refine_ik(
     upper = torch.minimum(q0 + half, ikm.upper)
     t0 = time.perf_counter()
     with torch.no_grad():
-        out = levenberg_marquardt(
+        out = batched_levenberg_marquardt(
             ikm.evaluate,
             q0,
             rows,
@@ -145,6 +148,7 @@ def refine_ik(
         score = score + ori.nan_to_num(math.inf) / options.tol_deg
     keep = distinct_mask(q, okf, score, ikm.revolute, options.revolute_tol, options.prismatic_tol)
     info = {
+        "assumed": assumed,
         "branches": int(valid.sum()),
         "mean_iterations": float(out.iterations.double().mean()) if rows.numel() else 0.0,
         "evaluations": out.evaluations,
@@ -170,6 +174,7 @@ def solve_ik_two_stage(
     options: IKOptions | None = None,
     progress: Callable[[int], None] | None = None,
     fallback: bool = True,
+    approach: Approach = None,
 ) -> IKResult:
     """All branches on ``cheap``, each refined on ``expensive`` (paper Fig. 3).
 
@@ -192,6 +197,9 @@ def solve_ik_two_stage(
             singular configurations and at the border of the cheap model's workspace
             (a target the cheap model cannot reach exactly) the accurate solution can
             lie far outside the box of every cheap branch.
+        approach: backlash approach direction of both models (:mod:`~hybrid_pk.ik.
+            conditions`; default ``cond.direction``, else the mid-play model, said in
+            an :class:`~hybrid_pk.ik.conditions.IKAssumption` warning).
 
     Returns:
         :class:`IKResult` w.r.t. ``expensive``; ``info["stage1"]`` describes stage one,
@@ -199,6 +207,8 @@ def solve_ik_two_stage(
     """
     options = options or IKOptions()
     robot = robot or _robot_of(cheap)
+    n_flat = prepare_targets(targets)[0].shape[0]
+    cond, assumed = resolve_conditions([cheap, expensive], cond, n_flat, approach)
     if robot is None and not isinstance(expensive, Robot | ExtendedModel):
         raise HybridPKError("two-stage IK on a callable model needs robot= or a Robot cheap model")
     # Accept branches of the cheap model up to the coarse tolerances, but polish them
@@ -232,6 +242,7 @@ def solve_ik_two_stage(
         options=options,
     )
     info = {**result.info, "stage1": {**first.info, "branches": int(first.valid.sum())}}
+    info["assumed"] = assumed
     failed = result.failed.reshape(-1).nonzero()[:, 0]
     info["fallback_targets"] = int(failed.numel()) if fallback else 0
     if fallback and failed.numel():
@@ -318,7 +329,7 @@ def wang_baseline(
         R_fix = T_cheap[:, :3, :3] @ T_acc[:, :3, :3].transpose(-1, -2)
         T_c[:, :3, :3] = R_fix @ T_t[:, :3, :3]
     with torch.no_grad():
-        out = levenberg_marquardt(
+        out = batched_levenberg_marquardt(
             cheap_m.evaluate,
             q0,
             rows,

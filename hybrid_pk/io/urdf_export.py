@@ -4,7 +4,7 @@ The original URDF text is edited in place (ElementTree, comments kept), so meshe
 inertials and every element hybrid_pk does not model survive unchanged.
 
 Origin ``k`` of the :class:`~hybrid_pk.robot.ChainSpec` is the product of the fixed
-joints after actuated joint ``k`` and the own ``<origin>`` of actuated joint ``k + 1``:
+joints after chain joint ``k`` and the own ``<origin>`` of movable chain joint ``k + 1``:
 ``O_k = F_1 ... F_m · J``. A geometric effect changes it to ``O'_k``; writing
 ``J' = J · (O_k⁻¹ O'_k)`` on the actuated joint changes the product to exactly
 ``O'_k`` and leaves the fixed joints (and everything hanging off them) alone. The tip
@@ -14,7 +14,9 @@ chain.
 Folded in: ``link_length``, ``axis_misalignment``, ``thermal_expansion`` (at the
 reference temperature, where it is the identity). Joint offsets are listed as
 comments (URDF has no offset field), or folded into the joint origin with
-``fold_joint_offsets=True`` (then the URDF reads commanded joint values). Every other
+``fold_joint_offsets=True`` (then the URDF reads commanded joint values; a mimic
+leader's offset is folded into the origin of each of its mimic joints on the chain,
+scaled by their multipliers). ``<mimic>`` tags are kept as they are. Every other
 effect (compliance, backlash, gear ratio, eccentricity) is listed in a
 ``<!-- hybrid_pk calibration ... -->`` header; it needs the hybrid_pk model.
 """
@@ -108,21 +110,26 @@ def _joint_step(joint_type: str, axis: Tensor, value: float) -> Tensor:
 
 
 def _corrected_origins(model: ExtendedModel, fold_offsets: bool) -> list[Tensor]:
-    """``dof + 1`` corrected ChainSpec origins, joint offsets folded when asked."""
+    """``n_chain + 1`` corrected ChainSpec origins, joint offsets folded when asked."""
     robot = model.robot
+    n = robot.chain_dof
     temp = torch.tensor(REFERENCE_TEMPERATURE, dtype=robot.dtype)
     with torch.no_grad():
         params = model.kinematic_params(Conditions(temperature=temp))
-        xyz = params.origin_xyz.detach().to(_F64).reshape(robot.dof + 1, 3)
-        rot = params.origin_rot.detach().to(_F64).reshape(robot.dof + 1, 3, 3)
-        axes = params.axis.detach().to(_F64).reshape(robot.dof, 3)
-    origins = [transform(rot[k], xyz[k]) for k in range(robot.dof + 1)]
+        xyz = params.origin_xyz.detach().to(_F64).reshape(n + 1, 3)
+        rot = params.origin_rot.detach().to(_F64).reshape(n + 1, 3, 3)
+        axes = params.axis.detach().to(_F64).reshape(n, 3)
+    origins = [transform(rot[k], xyz[k]) for k in range(n + 1)]
     if fold_offsets:
+        spec = robot.spec
         for e in model.effects:
-            if e.kind == "joint_offset":
-                i = e.joint_index
-                step = _joint_step(robot.joint_types[i], axes[i], float(e.value.detach()))
-                origins[i] = origins[i] @ step
+            if e.kind != "joint_offset":
+                continue
+            for i in range(n):  # every chain joint that follows this robot joint
+                if int(spec.source[i]) == e.joint_index:
+                    delta = float(spec.multiplier[i]) * float(e.value.detach())
+                    step = _joint_step(spec.chain_joint_types[i], axes[i], delta)
+                    origins[i] = origins[i] @ step
     return origins
 
 
@@ -147,8 +154,8 @@ def corrected_urdf(
         raise HybridPKError(f"frame_set {frame_set} not in 0..{model.base.sets - 1}")
 
     joints = _chain_joints(root, spec.root_link, spec.end_link)
-    actuated = {name: i for i, name in enumerate(spec.joint_names)}
-    # Segment k's origin is corrected on actuated joint k + 1, the tip on the last joint.
+    actuated = {name: i for i, name in enumerate(spec.chain_joint_names)}
+    # Segment k's origin is corrected on chain joint k + 1, the tip on the last joint.
     target: dict[int, ET.Element] = {}
     for j in joints:
         if j.get("name") in actuated:
@@ -158,14 +165,14 @@ def corrected_urdf(
     new = _corrected_origins(model, fold_joint_offsets)
     nominal = torch.as_tensor(spec.origins, dtype=_F64)
     changed: list[str] = []
-    for k in range(spec.dof + 1):
+    for k in range(spec.chain_dof + 1):
         if torch.equal(new[k], nominal[k]):
             continue
-        joint = target.get(k) if k < spec.dof else tip_joint
+        joint = target.get(k) if k < spec.chain_dof else tip_joint
         if joint is None:
             raise HybridPKError(
                 f"cannot write the corrected tip origin: no fixed joint after "
-                f"{spec.joint_names[-1]!r} in the URDF"
+                f"{spec.chain_joint_names[-1]!r} in the URDF"
             )
         delta = torch.linalg.solve(nominal[k], new[k])  # O_k^-1 O'_k
         _set_origin(joint, _parse_origin(joint) @ delta)
@@ -179,8 +186,9 @@ def corrected_urdf(
         if fold_joint_offsets
         else "URDF has no offset field: theta_true = theta_commanded + offset"
     )
+    by_name = {j.get("name"): j for j in root.findall("joint")}
     for e in offsets:
-        joint = target[e.joint_index]
+        joint = by_name[e.joint]  # a mimic leader may sit off the chain
         note = f"hybrid_pk calibration: {_format_value(e)} ({how})"
         root.insert(list(root).index(joint), ET.Comment(_comment_text(note)))
 

@@ -45,16 +45,18 @@ class KinematicParams(NamedTuple):
 
 
 class ChainTerms(NamedTuple):
-    """Per-joint constant matrices ``M0, M1, M2``: ``(*P, dof, 4, 4)`` each, and the tip.
+    """Per-joint constant matrices ``M0, M1, M2``: ``(*P, dof, 4, 4)`` each, the tip
+    ``(*P, 4, 4)`` (last segment -> end link) and the unit axes ``(*P, dof, 3)``.
 
     ``*P`` is empty for shared parameters and a batch shape broadcastable with ``q``'s
-    for per-sample parameters.
+    for per-sample parameters. Here ``dof`` counts the chain's movable joints.
     """
 
     M0: Tensor
     M1: Tensor
     M2: Tensor
-    tip: Tensor  # (4, 4) last segment -> end link
+    tip: Tensor
+    axis: Tensor
 
 
 def chain_terms(params: KinematicParams, revolute: Tensor, fold_tip: bool = False) -> ChainTerms:
@@ -87,7 +89,7 @@ def chain_terms(params: KinematicParams, revolute: Tensor, fold_tip: bool = Fals
         M1 = torch.cat([M1[..., :-1, :, :], last[..., 1:2, :, :]], -3)
         M2 = torch.cat([M2[..., :-1, :, :], last[..., 2:3, :, :]], -3)
         tip = torch.eye(4, dtype=tip.dtype, device=tip.device).expand_as(tip)
-    return ChainTerms(M0, M1, M2, tip)
+    return ChainTerms(M0, M1, M2, tip, a)
 
 
 def local_transforms(q: Tensor, terms: ChainTerms, revolute: Tensor) -> Tensor:

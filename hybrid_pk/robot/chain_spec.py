@@ -1,13 +1,18 @@
 """URDF -> :class:`ChainSpec`, the plain-number description of one serial chain.
 
-pytorch-kinematics builds the serial chain (root to end link, joint order, joint
-types); yourdfpy supplies the numbers at full float64 precision (pk parses origins
-in float32) and the inertials, which pk does not read.
+yourdfpy reads the URDF at full float64 precision, inertials and ``<mimic>`` tags
+included; the chain is the path of parent links from the end link back to the root.
 
 Segments: segment 0 is everything rigidly attached to the root link; segment ``i``
-(1..dof) is everything that moves with actuated joint ``i``. Fixed joints along the
+(1..n_chain) is everything that moves with chain joint ``i``. Fixed joints along the
 chain are folded into the origins, so the chain alternates
-``origin[0] · joint_1 · origin[1] · joint_2 · … · joint_dof · origin[dof]``.
+``origin[0] · joint_1 · origin[1] · joint_2 · … · joint_n · origin[n]``.
+
+Mimic joints: every movable joint of the chain follows one *independent* joint (itself,
+or the leader its ``<mimic>`` tags lead to, which may sit off the chain):
+``q_chain[i] = multiplier[i] · q[source[i]] + offset[i]``. The robot's joints (data
+columns, limits, IK variables) are the independent ones, in the order their first
+chain joint appears.
 """
 
 from __future__ import annotations
@@ -16,14 +21,39 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pytorch_kinematics as pk
 import yourdfpy
 
 from hybrid_pk.errors import InvalidFrame, RobotModelError
 
-__all__ = ["ChainSpec", "load_chain_spec", "resolve_urdf"]
+__all__ = ["BranchBody", "ChainSpec", "load_chain_spec", "resolve_urdf", "shipped_robots"]
 
 _MOVABLE = ("revolute", "continuous", "prismatic")
+
+
+@dataclass(frozen=True)
+class BranchBody:
+    """Mass on an off-chain joint driven by a robot joint (e.g. a mimic leader's link).
+
+    Attributes:
+        joint: name of the off-chain joint; ``joint_type`` its URDF type.
+        segment: chain segment its parent link is rigidly attached to.
+        origin: ``(4, 4)`` segment frame -> joint frame before the joint's motion.
+        axis: ``(3,)`` unit axis in the joint frame.
+        source, multiplier, offset: ``q_joint = multiplier · q[source] + offset``.
+        mass: [kg] everything rigidly attached after the joint; ``com`` ``(3,)`` [m] its
+            centre of mass in the joint's child frame.
+    """
+
+    joint: str
+    joint_type: str
+    segment: int
+    origin: np.ndarray
+    axis: np.ndarray
+    source: int
+    multiplier: float
+    offset: float
+    mass: float
+    com: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -34,17 +64,22 @@ class ChainSpec:
         name: robot name from the URDF.
         urdf_path: file it was read from.
         root_link, end_link: chain ends.
-        joint_names: actuated joints in chain order, ``dof`` of them.
-        joint_types: ``"revolute" | "continuous" | "prismatic"`` per joint.
+        joint_names: the robot's independent joints, ``dof`` of them.
+        joint_types: ``"revolute" | "continuous" | "prismatic"`` per independent joint.
         lower, upper: ``(dof,)`` joint limits [rad or m]; ``±inf`` for continuous joints.
-        origins: ``(dof + 1, 4, 4)``; ``origins[i]`` maps segment ``i`` to the frame of
-            joint ``i + 1`` before its motion; ``origins[dof]`` maps the last segment to
-            the end link.
-        axes: ``(dof, 3)`` unit joint axes in their joint frames.
-        segment_mass: ``(dof + 1,)`` [kg] mass rigidly attached to each segment.
-        segment_com: ``(dof + 1, 3)`` [m] centre of mass of each segment in its frame
-            (zero where the segment has no mass).
-        ignored_mass: [kg] mass on off-chain movable branches, not in the statics.
+        chain_joint_names, chain_joint_types: movable joints on the chain, in chain
+            order, ``n_chain`` of them (mimic joints included).
+        source, multiplier, offset: ``(n_chain,)`` the coupling
+            ``q_chain[i] = multiplier[i] · q[source[i]] + offset[i]``.
+        origins: ``(n_chain + 1, 4, 4)``; ``origins[i]`` maps segment ``i`` to the frame
+            of chain joint ``i + 1`` before its motion; ``origins[n_chain]`` maps the
+            last segment to the end link.
+        axes: ``(n_chain, 3)`` unit joint axes in their joint frames.
+        segment_mass: ``(n_chain + 1,)`` [kg] mass rigidly attached to each segment.
+        segment_com: ``(n_chain + 1, 3)`` [m] centre of mass of each segment in its
+            frame (zero where the segment has no mass).
+        branches: masses on off-chain joints that robot joints drive.
+        ignored_mass: [kg] mass on other off-chain movable branches, not in the statics.
     """
 
     name: str
@@ -55,15 +90,32 @@ class ChainSpec:
     joint_types: tuple[str, ...]
     lower: np.ndarray
     upper: np.ndarray
+    chain_joint_names: tuple[str, ...]
+    chain_joint_types: tuple[str, ...]
+    source: np.ndarray
+    multiplier: np.ndarray
+    offset: np.ndarray
     origins: np.ndarray
     axes: np.ndarray
     segment_mass: np.ndarray
     segment_com: np.ndarray
+    branches: tuple[BranchBody, ...] = ()
     ignored_mass: float = 0.0
 
     @property
     def dof(self) -> int:
         return len(self.joint_names)
+
+    @property
+    def chain_dof(self) -> int:
+        return len(self.chain_joint_names)
+
+    @property
+    def has_mimic(self) -> bool:
+        """True when the chain joints are not simply the robot's joints."""
+        return self.joint_names != self.chain_joint_names or bool(
+            np.any(self.multiplier != 1) or np.any(self.offset != 0)
+        )
 
 
 def _shipped_dirs() -> list[Path]:
@@ -97,6 +149,88 @@ def resolve_urdf(robot: str | Path) -> Path:
     )
 
 
+class _Tree:
+    """The URDF's link tree: joints by child link, children by parent link."""
+
+    def __init__(self, path: Path) -> None:
+        try:
+            model = yourdfpy.URDF.load(str(path), load_meshes=False, build_scene_graph=False)
+        except Exception as exc:  # yourdfpy raises bare lxml/ValueErrors
+            raise RobotModelError(f"{path}: cannot parse URDF: {exc}") from exc
+        self.path, self.model = path, model
+        self.joint_to = {j.child: j for j in model.robot.joints}
+        self.joints_from: dict[str, list[yourdfpy.Joint]] = {}
+        for j in model.robot.joints:
+            self.joints_from.setdefault(j.parent, []).append(j)
+        self.links = [link.name for link in model.robot.links]
+        roots = [n for n in self.links if n not in self.joint_to]
+        if len(roots) != 1:
+            raise RobotModelError(f"{path}: expected one root link, found {roots}")
+        self.root = roots[0]
+
+    def end_link(self, end_link: str | None) -> str:
+        if end_link is not None:
+            if end_link not in self.links:
+                raise InvalidFrame(end_link, self.links)
+            return end_link
+        leaves = [n for n in self.links if n not in self.joints_from]
+        if len(leaves) != 1:
+            raise RobotModelError(
+                f"{self.path}: the URDF has {len(leaves)} leaf links ({', '.join(leaves)}); "
+                "choose one with --end-link"
+            )
+        return leaves[0]
+
+    def path_joints(self, end_link: str) -> list[yourdfpy.Joint]:
+        """Joints from the root to ``end_link``, in chain order."""
+        joints, link = [], end_link
+        while link != self.root:
+            joints.append(self.joint_to[link])
+            link = joints[-1].parent
+        bad = [j for j in joints if j.type not in (*_MOVABLE, "fixed")]
+        if bad:
+            raise RobotModelError(
+                f"{self.path}: joint {bad[-1].name!r} has unsupported type {bad[-1].type!r}"
+            )
+        if not any(j.type in _MOVABLE for j in joints):
+            raise RobotModelError(
+                f"{self.path}: no movable joint between {self.root!r} and {end_link!r}"
+            )
+        return joints[::-1]
+
+    def driver(self, joint: yourdfpy.Joint) -> tuple[yourdfpy.Joint, float, float]:
+        """``(leader, multiplier, offset)``: ``q_joint = multiplier · q_leader + offset``."""
+        mul, off, seen = 1.0, 0.0, [joint.name]
+        while joint.mimic is not None:
+            leader = self.model.joint_map.get(joint.mimic.joint)
+            if leader is None or leader.type not in _MOVABLE:
+                what = "has no such joint" if leader is None else f"has it {leader.type}"
+                raise RobotModelError(
+                    f"{self.path}: joint {joint.name!r} mimics {joint.mimic.joint!r}, but the "
+                    f"URDF {what}; a <mimic joint=...> must name a movable joint"
+                )
+            m = 1.0 if joint.mimic.multiplier is None else float(joint.mimic.multiplier)
+            off += mul * (0.0 if joint.mimic.offset is None else float(joint.mimic.offset))
+            mul *= m
+            if leader.name in seen:
+                raise RobotModelError(f"{self.path}: mimic joints form a cycle: {seen}")
+            seen.append(leader.name)
+            joint = leader
+        return joint, mul, off
+
+    def rigid(self, links: dict[str, np.ndarray], stop: set[str]) -> dict[str, np.ndarray]:
+        """``links`` (name -> transform from the segment frame) and every link fixed to
+        them, not crossing into ``stop``."""
+        out, stack = dict(links), list(links)
+        while stack:
+            parent = stack.pop()
+            for j in self.joints_from.get(parent, []):
+                if j.type == "fixed" and j.child not in stop and j.child not in out:
+                    out[j.child] = out[parent] @ _origin(j)
+                    stack.append(j.child)
+        return out
+
+
 def _joint_limits(joint: yourdfpy.Joint) -> tuple[float, float]:
     if joint.type == "continuous":
         return -np.inf, np.inf
@@ -114,6 +248,24 @@ def _origin(joint: yourdfpy.Joint) -> np.ndarray:
     return np.eye(4) if joint.origin is None else np.asarray(joint.origin, dtype=np.float64)
 
 
+def _axis(tree: _Tree, joint: yourdfpy.Joint) -> np.ndarray:
+    axis = np.asarray(joint.axis if joint.axis is not None else (1.0, 0.0, 0.0), dtype=np.float64)
+    if np.linalg.norm(axis) < 1e-12:
+        raise RobotModelError(f"{tree.path}: joint {joint.name!r} has a zero axis")
+    return axis / np.linalg.norm(axis)
+
+
+def _mass(tree: _Tree, links: dict[str, np.ndarray]) -> tuple[float, np.ndarray]:
+    """Mass [kg] and first moment [kg m] of ``links`` (name -> frame transform)."""
+    mass, moment = 0.0, np.zeros(3)
+    for name, T in links.items():
+        inertial = tree.model.link_map[name].inertial
+        m = 0.0 if inertial is None or inertial.mass is None else float(inertial.mass)
+        c = np.zeros(3) if inertial is None or inertial.origin is None else inertial.origin[:3, 3]
+        mass, moment = mass + m, moment + m * (T[:3, :3] @ c + T[:3, 3])
+    return mass, moment
+
+
 def load_chain_spec(urdf: str | Path, end_link: str | None = None) -> ChainSpec:
     """Read a URDF into a :class:`ChainSpec` for the chain root -> ``end_link``.
 
@@ -121,120 +273,72 @@ def load_chain_spec(urdf: str | Path, end_link: str | None = None) -> ChainSpec:
         urdf: path of a URDF file, or a shipped robot name.
         end_link: link the chain ends at; default the URDF's single leaf link.
     """
-    path = resolve_urdf(urdf)
-    try:
-        model = yourdfpy.URDF.load(str(path), load_meshes=False, build_scene_graph=False)
-    except Exception as exc:  # yourdfpy raises bare lxml/ValueErrors
-        raise RobotModelError(f"{path}: cannot parse URDF: {exc}") from exc
-
-    children = {j.child: j for j in model.robot.joints}
-    kids: dict[str, list[str]] = {}
-    for j in model.robot.joints:
-        kids.setdefault(j.parent, []).append(j.child)
-    links = [link.name for link in model.robot.links]
-    roots = [n for n in links if n not in children]
-    if len(roots) != 1:
-        raise RobotModelError(f"{path}: expected one root link, found {roots}")
-    root = roots[0]
-    leaves = [n for n in links if n not in kids]
-    if end_link is None:
-        if len(leaves) != 1:
-            raise RobotModelError(
-                f"{path}: the URDF has {len(leaves)} leaf links ({', '.join(leaves)}); "
-                "choose one with --end-link"
-            )
-        end_link = leaves[0]
-    elif end_link not in links:
-        raise InvalidFrame(end_link, links)
-
-    # pytorch-kinematics decides the serial path and joint order.
-    chain = pk.build_serial_chain_from_urdf(path.read_bytes(), end_link, root)
-    names = list(chain.get_joint_parameter_names())
-    path_links: list[str] = []
-    link = end_link
-    while link != root:
-        path_links.append(link)
-        link = children[link].parent
-    path_links.append(root)
-    path_links.reverse()
-    path_joints = [children[n] for n in path_links[1:]]
-    movable = [j for j in path_joints if j.type in _MOVABLE]
-    if [j.name for j in movable] != names:
-        raise RobotModelError(f"{path}: chain joints disagree between parsers: {names}")
-    unsupported = [j for j in path_joints if j.type not in (*_MOVABLE, "fixed")]
-    if unsupported:
-        raise RobotModelError(
-            f"{path}: joint {unsupported[0].name!r} has unsupported type {unsupported[0].type!r}"
-        )
-    if not movable:
-        raise RobotModelError(f"{path}: no actuated joint between {root!r} and {end_link!r}")
-
-    # Fold fixed joints into origins; remember which segment each chain link is in and
-    # the transform from that segment's frame to the link.
-    dof = len(movable)
-    origins = np.zeros((dof + 1, 4, 4))
-    axes = np.zeros((dof, 3))
-    lower, upper = np.zeros(dof), np.zeros(dof)
-    seg_of: dict[str, tuple[int, np.ndarray]] = {root: (0, np.eye(4))}
-    acc, seg = np.eye(4), 0
+    tree = _Tree(resolve_urdf(urdf))
+    end_link = tree.end_link(end_link)
+    path_joints = tree.path_joints(end_link)
+    on_chain = {tree.root, *(j.child for j in path_joints)}
+    # Fixed joints fold into the origins; each segment maps its links to their frames.
+    origins, acc, segments = [], np.eye(4), [{tree.root: np.eye(4)}]
     for j in path_joints:
         acc = acc @ _origin(j)
-        if j.type == "fixed":
-            seg_of[j.child] = (seg, acc.copy())
-            continue
-        origins[seg] = acc
-        axis = np.asarray(j.axis if j.axis is not None else (1.0, 0.0, 0.0), dtype=np.float64)
-        norm = np.linalg.norm(axis)
-        if norm < 1e-12:
-            raise RobotModelError(f"{path}: joint {j.name!r} has a zero axis")
-        axes[seg] = axis / norm
-        lower[seg], upper[seg] = _joint_limits(j)
-        seg += 1
-        acc = np.eye(4)
-        seg_of[j.child] = (seg, acc.copy())
-    origins[dof] = acc
-
-    # Statics: every link rigidly attached to a chain segment (fixed joints only).
-    mass = np.zeros(dof + 1)
-    moment = np.zeros((dof + 1, 3))
-    ignored = 0.0
-    stack = list(seg_of)
-    while stack:
-        parent = stack.pop()
-        for child in kids.get(parent, []):
-            if child in seg_of:
-                continue
-            j = children[child]
-            if j.type == "fixed" and parent in seg_of:
-                s, T = seg_of[parent]
-                seg_of[child] = (s, T @ _origin(j))
-                stack.append(child)
-    for name in links:
-        inertial = model.link_map[name].inertial
-        m = 0.0 if inertial is None or inertial.mass is None else float(inertial.mass)
-        if m == 0.0:
-            continue
-        if name not in seg_of:
-            ignored += m
-            continue
-        s, T = seg_of[name]
-        c_link = np.zeros(3) if inertial.origin is None else np.asarray(inertial.origin)[:3, 3]
-        mass[s] += m
-        moment[s] += m * (T[:3, :3] @ c_link + T[:3, 3])
-    com = np.divide(moment, mass[:, None], out=np.zeros_like(moment), where=mass[:, None] > 0)
-
+        if j.type != "fixed":
+            origins.append(acc)
+            acc, segments = np.eye(4), [*segments, {}]
+        segments[-1][j.child] = acc
+    origins.append(acc)
+    segments = [tree.rigid(s, on_chain) for s in segments]
+    chain = [j for j in path_joints if j.type in _MOVABLE]
+    drivers = [tree.driver(j) for j in chain]  # (leader, multiplier, offset) each
+    leaders = list(dict.fromkeys(leader.name for leader, _, _ in drivers))
+    independent = [tree.model.joint_map[n] for n in leaders]
+    branches, branch_links = _branches(tree, segments, on_chain, leaders)
+    counted = set(branch_links).union(*segments)
+    mass, moment = (np.array(v) for v in zip(*(_mass(tree, s) for s in segments), strict=True))
+    limits = np.array([_joint_limits(j) for j in independent]).reshape(-1, 2)
     return ChainSpec(
-        name=model.robot.name,
-        urdf_path=str(path),
-        root_link=root,
+        name=tree.model.robot.name,
+        urdf_path=str(tree.path),
+        root_link=tree.root,
         end_link=end_link,
-        joint_names=tuple(names),
-        joint_types=tuple(j.type for j in movable),
-        lower=lower,
-        upper=upper,
-        origins=origins,
-        axes=axes,
+        joint_names=tuple(leaders),
+        joint_types=tuple(j.type for j in independent),
+        lower=limits[:, 0].copy(),
+        upper=limits[:, 1].copy(),
+        chain_joint_names=tuple(j.name for j in chain),
+        chain_joint_types=tuple(j.type for j in chain),
+        source=np.array([leaders.index(d[0].name) for d in drivers], dtype=np.int64),
+        multiplier=np.array([d[1] for d in drivers], dtype=np.float64),
+        offset=np.array([d[2] for d in drivers], dtype=np.float64),
+        origins=np.stack(origins),
+        axes=np.stack([_axis(tree, j) for j in chain]),
         segment_mass=mass,
-        segment_com=com,
-        ignored_mass=ignored,
+        segment_com=np.divide(
+            moment, mass[:, None], out=np.zeros_like(moment), where=mass[:, None] > 0
+        ),
+        branches=tuple(branches),
+        ignored_mass=_mass(tree, {n: np.eye(4) for n in tree.links if n not in counted})[0],
     )
+
+
+def _branches(
+    tree: _Tree, segments: list[dict[str, np.ndarray]], on_chain: set[str], leaders: list[str]
+) -> tuple[list[BranchBody], set[str]]:
+    """Off-chain joints hanging from a chain segment that follow a robot joint (e.g. a
+    mimic leader beside the chain), and the links they carry."""
+    out, carried = [], set()
+    for s, links in enumerate(segments):
+        for link, T in links.items():
+            for j in tree.joints_from.get(link, []):
+                if j.type not in _MOVABLE or j.child in on_chain:
+                    continue
+                leader, mul, off = tree.driver(j)
+                if leader.name not in leaders:
+                    continue  # a joint the data does not hold (a gripper finger): ignored
+                body = tree.rigid({j.child: np.eye(4)}, on_chain)
+                carried.update(body)
+                m, moment = _mass(tree, body)
+                com = moment / m if m > 0 else np.zeros(3)
+                src = leaders.index(leader.name)
+                T_joint, axis = T @ _origin(j), _axis(tree, j)
+                out.append(BranchBody(j.name, j.type, s, T_joint, axis, src, mul, off, m, com))
+    return out, carried

@@ -1,14 +1,17 @@
-"""Pose and geometric Jacobian of a serial chain, fast, for the IK inner loop.
+"""Pose and geometric Jacobian of a serial chain in batch-last layout, for IK.
 
-Same mathematics as :meth:`Robot.fk` / :meth:`Robot.jacobian` (and checked against
-them in the tests), in a layout that suits thousands of tiny 3×3 products on a CPU:
-batch last. A rotation is a ``(3, 3, M)`` tensor, so one product is three fused
-multiply-adds over contiguous memory instead of a batched matmul of 3×3 blocks
-(several times faster in PyTorch on CPU at IK batch sizes).
+The same chain constants as :meth:`Robot.fk` (``Robot.chain_terms``: ``M0, M1, M2``
+per joint, see :mod:`hybrid_pk.robot.chain`), evaluated in the layout that suits
+thousands of tiny 3×3 products on a CPU: batch last. A rotation is a ``(3, 3, M)``
+tensor, so one product is three fused multiply-adds over contiguous memory instead of
+a batched matmul of 3×3 blocks. Measured (``python bench/fk.py --jacobian``): faster
+than the batch-first frames for pose plus Jacobian from a few dozen configurations
+on, slower for a single one; ``Robot.fk`` (pose only) keeps the batch-first balanced
+tree, which is faster at every batch size for the pose alone.
 
-The chain's constants are a snapshot of the robot's parameters (and of optional base
-and tool frames folded into the first and last origin): build a new kernel after
-changing them. No gradients flow through it.
+The constants are a snapshot of the robot's parameters (and of optional base and tool
+frames folded into the first and last origin): build a new kernel after changing
+them. No gradients flow through it.
 """
 
 from __future__ import annotations
@@ -16,7 +19,6 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from hybrid_pk.geometry import skew, transform
 from hybrid_pk.geometry.batch_last import compose, rotate
 from hybrid_pk.robot.robot import Robot
 
@@ -32,37 +34,38 @@ class ChainKernel:
         tool: optional ``(4, 4)`` transform after the end link (``T_end_point``).
 
     ``T = base @ robot.fk(q) @ tool``; ``J`` rows ``[v; omega]``: velocity of ``T``'s
-    origin and angular velocity, both in ``base``'s (the output) frame.
+    origin and angular velocity, both in ``base``'s (the output) frame. ``q`` holds the
+    robot's joints; mimic joints follow them (``J = J_chain @ A``).
     """
 
     def __init__(self, robot: Robot, base: Tensor | None = None, tool: Tensor | None = None):
         f64 = torch.float64
         with torch.no_grad():
-            p = robot.kinematic_params()
-            O = transform(p.origin_rot.to(f64), p.origin_xyz.to(f64)).clone()  # (dof+1, 4, 4)
-            if base is not None:
-                O[0] = base.to(f64) @ O[0]
+            t = robot.chain_terms(f64)
+            M = torch.stack([t.M0, t.M1, t.M2])  # (3 terms, n, 4, 4)
+            tip = t.tip
+            if base is not None:  # the terms are linear: base @ (M0 + f1 M1 + f2 M2)
+                M = torch.cat([base.to(f64) @ M[:, :1], M[:, 1:]], 1)
             if tool is not None:
-                O[-1] = O[-1] @ tool.to(f64)
-            a = p.axis.to(f64)
-            a = a / a.norm(dim=-1, keepdim=True)
-        dof = robot.dof
-        self.dof = dof
-        self.revolute = robot.revolute.clone()
-        rev = self.revolute.to(f64)[:, None, None]
-        R0, t = O[:dof, :3, :3], O[:dof, :3, 3]
-        K = skew(a)
-        # Local rotation R0 (I + sin K + (1 - cos) K^2) for revolute joints; prismatic
-        # joints translate by q along R0 a.
-        self._R0 = R0.permute(1, 2, 0)[..., None].contiguous()  # (3, 3, dof, 1)
-        self._R1 = (rev * (R0 @ K)).permute(1, 2, 0)[..., None].contiguous()
-        self._R2 = (rev * (R0 @ K @ K)).permute(1, 2, 0)[..., None].contiguous()
-        self._t = t.T[..., None].contiguous()  # (3, dof, 1)
-        self._d = ((1 - rev[..., 0]) * (R0 @ a[..., None])[..., 0]).T[..., None].contiguous()
-        self._a = a.T[..., None].contiguous()  # (3, dof, 1) axis in the joint frame
-        self._R_tip = O[dof, :3, :3][..., None].contiguous()  # (3, 3, 1)
-        self._t_tip = O[dof, :3, 3][:, None].contiguous()  # (3, 1)
+                tip = tip @ tool.to(f64)
+            M = M[:, :, :3, :]  # (3, n, 3, 4): the last rows are constant
+        self.dof, self.n = robot.dof, robot.chain_dof
+        self.revolute = robot.chain_revolute.clone()
         self._all_revolute = bool(self.revolute.all())
+        L = M.permute(0, 2, 3, 1)[..., None]  # (3, 3, 4, n, 1): term, row, column, joint
+        self._R = L[:, :, :3].contiguous()  # (3 terms, 3, 3, n, 1)
+        self._t = L[0, :, 3].contiguous()  # (3, n, 1); revolute joints do not move it
+        self._d = L[1, :, 3].contiguous()  # prismatic: the translation per unit of q
+        self._a = t.axis.to(f64).T[..., None].contiguous()  # (3, n, 1) in the joint frames
+        self._R_tip = tip[:3, :3][..., None].contiguous()  # (3, 3, 1)
+        self._t_tip = tip[:3, 3][:, None].contiguous()  # (3, 1)
+        self._mimic = None
+        if robot.has_mimic:
+            self._mimic = (
+                robot.source.clone(),
+                robot.multiplier.to(f64)[:, None].clone(),
+                robot.offset.to(f64)[:, None].clone(),
+            )
 
     def soa(self, qt: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Batch-last evaluation at ``qt (dof, M)`` [rad or m].
@@ -70,21 +73,29 @@ class ChainKernel:
         Returns:
             ``R (3, 3, M)``, ``p (3, M)`` [m] of the pose and ``J (6, dof, M)``.
         """
-        s, c = torch.sin(qt), 1 - torch.cos(qt)
-        R_loc = torch.addcmul(self._R0, s, self._R1)
-        R_loc = torch.addcmul(R_loc, c, self._R2)  # (3, 3, dof, M)
-        t_loc = self._t if self._all_revolute else torch.addcmul(self._t, qt, self._d)
+        if self._mimic is not None:
+            src, mul, off = self._mimic
+            qt = torch.addcmul(off, qt[src], mul)  # (n, M) chain joint values
+        if self._all_revolute:
+            f1, f2 = torch.sin(qt), 1 - torch.cos(qt)
+        else:
+            rev = self.revolute[:, None]
+            f1 = torch.where(rev, torch.sin(qt), qt)
+            f2 = torch.where(rev, 1 - torch.cos(qt), 0.0)
+        R_loc = torch.addcmul(self._R[0], f1, self._R[1])
+        R_loc = torch.addcmul(R_loc, f2, self._R[2])  # (3, 3, n, M)
+        t_loc = self._t if self._all_revolute else torch.addcmul(self._t, f1, self._d)
         R = R_loc[:, :, 0]
         p = t_loc[:, 0].expand(3, qt.shape[1])
         origins, axes = [p], [rotate(R, self._a[:, 0])]
-        for i in range(1, self.dof):
+        for i in range(1, self.n):
             p = p + rotate(R, t_loc[:, i])
             R = compose(R, R_loc[:, :, i])
             origins.append(p)
             axes.append(rotate(R, self._a[:, i]))
         p_end = p + rotate(R, self._t_tip)
         R_end = compose(R, self._R_tip)
-        z = torch.stack(axes, 1)  # (3, dof, M)
+        z = torch.stack(axes, 1)  # (3, n, M)
         w = p_end[:, None, :] - torch.stack(origins, 1)
         v = torch.stack(  # z x w, written out (linalg.cross is slow on this layout)
             [
@@ -97,7 +108,11 @@ class ChainKernel:
             rev = self.revolute[None, :, None]
             v = torch.where(rev, v, z)
             z = torch.where(rev, z, 0.0)
-        return R_end, p_end, torch.cat([v, z], 0)
+        J = torch.cat([v, z], 0)  # (6, n, M)
+        if self._mimic is not None:
+            src, mul, _ = self._mimic
+            J = J.new_zeros(6, self.dof, J.shape[-1]).index_add_(1, src, J * mul)
+        return R_end, p_end, J
 
     def __call__(self, q: Tensor) -> tuple[Tensor, Tensor]:
         """Pose ``(M, 4, 4)`` and Jacobian ``(M, 6, dof)`` at ``q (M, dof)`` [rad or m]."""

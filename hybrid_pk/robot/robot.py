@@ -1,14 +1,20 @@
 """`Robot`: the nominal geometric + static model of one serial arm.
 
 Dimension names used throughout the package: ``B`` any leading batch shape, ``dof``
-actuated joints, ``n_params`` identified parameters.
+the robot's (independent) joints, ``n_chain`` the movable joints on the chain (more
+than ``dof`` when some are URDF mimic joints), ``n_params`` identified parameters.
+
+Mimic joints: the chain's joint values follow the robot's joints through the affine
+coupling ``q_chain = q @ A.T + b`` (:meth:`Robot.coupling`). Every public method takes
+and returns the robot's joints: ``fk(q)``, ``jacobian(q) = J_chain @ A`` and
+``gravity_torques(q) = A.T tau_chain`` (virtual work; a leader joint off the chain gets
+the torques of its mimic joints, plus those of its own link).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -21,7 +27,7 @@ from hybrid_pk.robot.chain import (
     local_transforms,
     product,
 )
-from hybrid_pk.robot.chain_spec import ChainSpec, load_chain_spec
+from hybrid_pk.robot.chain_spec import BranchBody, ChainSpec, load_chain_spec
 
 __all__ = ["STANDARD_GRAVITY", "Robot"]
 
@@ -31,13 +37,14 @@ STANDARD_GRAVITY = 9.80665  # [m/s^2]
 class Robot(nn.Module):
     """Serial arm read from a URDF, with learnable kinematic parameters.
 
-    Parameters (``nn.Parameter``, all differentiable together with ``q``):
-        origin_xyz: ``(dof + 1, 3)`` [m] translation of each joint origin (and the tip).
-        origin_rotvec: ``(dof + 1, 3)`` [rad] rotation of each origin relative to the
+    Parameters (``nn.Parameter``, all differentiable together with ``q``), one per
+    chain joint (``n_chain``; equal to ``dof`` without mimic joints):
+        origin_xyz: ``(n_chain + 1, 3)`` [m] translation of each joint origin (and the tip).
+        origin_rotvec: ``(n_chain + 1, 3)`` [rad] rotation of each origin relative to the
             URDF's, ``R = R_urdf · exp(origin_rotvec)``; zero for the nominal robot.
             (A rotation vector, not RPY, so it stays well conditioned at any pose —
             RPY is singular at pitch ±90°, which the UR10 URDF uses.)
-        axis: ``(dof, 3)`` joint axes in their joint frames, normalised on use.
+        axis: ``(n_chain, 3)`` joint axes in their joint frames, normalised on use.
 
     Masses and centres of mass are buffers (the statics of :meth:`gravity_torques`).
     """
@@ -47,15 +54,23 @@ class Robot(nn.Module):
         self.spec = spec
         f = {"dtype": dtype}
         self.origin_xyz = nn.Parameter(torch.tensor(spec.origins[:, :3, 3], **f))
-        self.origin_rotvec = nn.Parameter(torch.zeros(spec.dof + 1, 3, **f))
+        self.origin_rotvec = nn.Parameter(torch.zeros(spec.chain_dof + 1, 3, **f))
         self.axis = nn.Parameter(torch.tensor(spec.axes, **f))
         self.register_buffer("origin_rot_urdf", torch.tensor(spec.origins[:, :3, :3], **f))
         self.register_buffer("lower", torch.tensor(spec.lower, **f))
         self.register_buffer("upper", torch.tensor(spec.upper, **f))
         self.register_buffer("segment_mass", torch.tensor(spec.segment_mass, **f))
         self.register_buffer("segment_com", torch.tensor(spec.segment_com, **f))
-        revolute = [t in ("revolute", "continuous") for t in spec.joint_types]
-        self.register_buffer("revolute", torch.tensor(revolute, dtype=torch.bool))
+        rev = [t in ("revolute", "continuous") for t in spec.joint_types]
+        self.register_buffer("revolute", torch.tensor(rev, dtype=torch.bool))
+        rev = [t in ("revolute", "continuous") for t in spec.chain_joint_types]
+        self.register_buffer("chain_revolute", torch.tensor(rev, dtype=torch.bool))
+        self.register_buffer("source", torch.as_tensor(spec.source, dtype=torch.long))
+        self.register_buffer("multiplier", torch.tensor(spec.multiplier, **f))
+        self.register_buffer("offset", torch.tensor(spec.offset, **f))
+        A = torch.zeros(spec.chain_dof, spec.dof, **f)
+        A[torch.arange(spec.chain_dof), self.source] = self.multiplier
+        self.register_buffer("coupling_matrix", A)
         self._cache: dict[tuple, ChainTerms] = {}
         self._params_memo: dict[bool, tuple] = {}
 
@@ -88,8 +103,29 @@ class Robot(nn.Module):
 
     @property
     def joint_names(self) -> list[str]:
-        """Actuated joints in chain order."""
+        """The robot's joints (the data's columns, IK's variables), in chain order.
+
+        A mimic joint's leader takes the place of its first mimic joint on the chain.
+        """
         return list(self.spec.joint_names)
+
+    @property
+    def chain_joint_names(self) -> list[str]:
+        """Movable joints on the chain, in chain order (mimic joints included)."""
+        return list(self.spec.chain_joint_names)
+
+    @property
+    def chain_joint_types(self) -> list[str]:
+        return list(self.spec.chain_joint_types)
+
+    @property
+    def chain_dof(self) -> int:
+        """``n_chain``: movable joints on the chain."""
+        return self.spec.chain_dof
+
+    @property
+    def has_mimic(self) -> bool:
+        return self.spec.has_mimic
 
     @property
     def joint_types(self) -> list[str]:
@@ -120,14 +156,6 @@ class Robot(nn.Module):
     def dtype(self) -> torch.dtype:
         return self.origin_xyz.dtype
 
-    def pk_chain(self):
-        """The pytorch-kinematics ``SerialChain`` of the same URDF and end link."""
-        import pytorch_kinematics as pk
-
-        data = Path(self.spec.urdf_path).read_bytes()
-        chain = pk.build_serial_chain_from_urdf(data, self.spec.end_link, self.spec.root_link)
-        return chain.to(dtype=self.dtype, device=self.origin_xyz.device)
-
     def sample_q(self, n: int, generator: torch.Generator | None = None) -> Tensor:
         """``(n, dof)`` joint values uniform within the limits (continuous: ±pi)."""
         lo = torch.where(torch.isfinite(self.lower), self.lower, -torch.pi)
@@ -141,11 +169,30 @@ class Robot(nn.Module):
         rot = self.origin_rot_urdf @ so3_exp(self.origin_rotvec)
         return KinematicParams(self.origin_xyz, rot, self.axis)
 
+    def coupling(self) -> tuple[Tensor, Tensor]:
+        """``(A (n_chain, dof), b (n_chain,))`` with ``q_chain = q @ A.T + b``."""
+        return self.coupling_matrix, self.offset
+
+    def chain_q(self, q: Tensor) -> Tensor:
+        """Joint values of the chain's movable joints: ``(*B, dof) -> (*B, n_chain)``."""
+        if not self.has_mimic:
+            return q
+        mul, off = self.multiplier.to(q.dtype), self.offset.to(q.dtype)
+        return torch.addcmul(off, q.index_select(-1, self.source), mul)
+
+    def chain_terms(
+        self, dtype: torch.dtype | None = None, params: KinematicParams | None = None
+    ) -> ChainTerms:
+        """Constant matrices of the chain (see :mod:`hybrid_pk.robot.chain`), tip not
+        folded; cached while the parameters do not change."""
+        return self._terms(params, dtype or self.dtype)
+
     def _terms(
         self, params: KinematicParams | None, dtype: torch.dtype, fold_tip: bool = False
     ) -> ChainTerms:
         def build(p: KinematicParams) -> ChainTerms:
-            return chain_terms(KinematicParams(*(t.to(dtype) for t in p)), self.revolute, fold_tip)
+            p = KinematicParams(*(t.to(dtype) for t in p))
+            return chain_terms(p, self.chain_revolute, fold_tip)
 
         reverse_graph = torch.is_grad_enabled() and any(t.requires_grad for t in params or ())
         if params is not None and reverse_graph:
@@ -199,24 +246,28 @@ class Robot(nn.Module):
         Returns:
             ``(*B, 4, 4)`` homogeneous transforms ``T_root_end`` [m].
         """
-        q = self._check_q(q)
+        q = self.chain_q(self._check_q(q))
         terms = self._terms(params, q.dtype, fold_tip=True)  # the tip costs no extra matmul
-        return product(local_transforms(q, terms, self.revolute))
+        return product(local_transforms(q, terms, self.chain_revolute))
 
     forward = fk  # robot(q) is fk(q); lets torch.func.functional_call drive the module
 
     def link_frames(self, q: Tensor, params: KinematicParams | None = None) -> Tensor:
         """Frames of every segment after its joint, and of the end link.
 
+        Args:
+            q: ``(*B, dof)`` the robot's joint values [rad or m].
+
         Returns:
-            ``(*B, dof + 1, 4, 4)``: index ``i < dof`` is the frame of joint ``i + 1``
-            (whose origin lies on that joint's axis), index ``dof`` the end link.
+            ``(*B, n_chain + 1, 4, 4)``: index ``i < n_chain`` is the frame of chain
+            joint ``i + 1`` (whose origin lies on that joint's axis), index ``n_chain``
+            the end link.
         """
-        q = self._check_q(q)
+        q = self.chain_q(self._check_q(q))
         terms = self._terms(params, q.dtype)
-        local = local_transforms(q, terms, self.revolute)
+        local = local_transforms(q, terms, self.chain_revolute)
         frames = [local[..., 0, :, :]]
-        for i in range(1, self.dof):
+        for i in range(1, self.chain_dof):
             frames.append(frames[-1] @ local[..., i, :, :])
         frames.append(frames[-1] @ terms.tip)
         if terms.tip.dim() > 2:  # per-sample parameters: frames may broadcast wider than q
@@ -227,47 +278,59 @@ class Robot(nn.Module):
     def _axes_world(self, frames: Tensor, params: KinematicParams | None) -> Tensor:
         axis = self.axis if params is None else params.axis
         a = (axis / axis.norm(dim=-1, keepdim=True)).to(frames.dtype)
-        return (frames[..., : self.dof, :3, :3] @ a[..., None])[..., 0]  # (*B, dof, 3)
+        return (frames[..., : self.chain_dof, :3, :3] @ a[..., None])[..., 0]  # (*B, n, 3)
 
     def jacobian(self, q: Tensor, params: KinematicParams | None = None) -> Tensor:
         """Geometric Jacobian of the end link: ``(*B, 6, dof)``, rows ``[v; omega]``.
 
         ``v`` [m/rad] is the velocity of the end-link origin, ``omega`` the angular
-        velocity, both in the root frame.
+        velocity, both in the root frame. With mimic joints ``J = J_chain @ A``.
         """
         frames = self.link_frames(q, params)
+        n = self.chain_dof
         z = self._axes_world(frames, params)
-        o = frames[..., : self.dof, :3, 3]
-        p_end = frames[..., self.dof : self.dof + 1, :3, 3]
-        rev = self.revolute[:, None]
+        o = frames[..., :n, :3, 3]
+        p_end = frames[..., n : n + 1, :3, 3]
+        rev = self.chain_revolute[:, None]
         v = torch.where(rev, torch.linalg.cross(z, p_end - o), z)
         w = torch.where(rev, z, 0.0)
-        return torch.cat([v, w], -1).transpose(-1, -2)
+        J = torch.cat([v, w], -1).transpose(-1, -2)  # (*B, 6, n_chain)
+        return J @ self.coupling_matrix.to(J.dtype) if self.has_mimic else J
 
     # ------------------------------------------------------------------ statics
-    def _subtree_loads(self, frames: Tensor, payload: float | Tensor) -> tuple[Tensor, Tensor]:
-        """Mass ``(*B, dof)`` [kg] and first moment about each joint frame origin
-        ``(*B, dof, 3)`` [kg m] of everything joint ``i`` carries (segments ``k >= i``
-        and the payload at the end-link origin), root frame."""
-        dtype = frames.dtype
+    def _gravity(self, gravity, frames: Tensor) -> Tensor:
+        """Gravity as ``(*G, 3)`` [m/s^2]: one vector, or one per sample."""
+        g = torch.as_tensor(gravity, dtype=frames.dtype, device=frames.device)
+        if g.shape[-1:] != (3,):
+            raise ShapeError(f"gravity must have shape (*B, 3) [m/s^2], found {tuple(g.shape)}")
+        return g
+
+    def _subtree_loads(
+        self, q: Tensor, frames: Tensor, payload: float | Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """Mass ``(*B, n)`` [kg] and first moment about each chain joint frame's origin
+        ``(*B, n, 3)`` [kg m] of everything chain joint ``i`` carries: segments ``k >= i``,
+        the off-chain bodies riding on them and the payload at the end-link origin (root
+        frame)."""
+        dtype, n = frames.dtype, self.chain_dof
         R, p = frames[..., :, :3, :3], frames[..., :, :3, 3]
-        m = self.segment_mass[1:].to(dtype)  # segments moving with joints 1..dof
-        c = (R[..., : self.dof, :, :] @ self.segment_com[1:].to(dtype)[..., None])[..., 0]
-        moment = m[:, None] * (c + p[..., : self.dof, :])  # (*B, dof, 3) m_k * c_k
+        m = self.segment_mass[1:].to(dtype)  # segments moving with chain joints 1..n
+        c = (R[..., :n, :, :] @ self.segment_com[1:].to(dtype)[..., None])[..., 0]
+        moment = m[:, None] * (c + p[..., :n, :])  # (*B, n, 3) m_k * c_k
+        for b in self.spec.branches:
+            if b.segment > 0:  # its mass rides on the chain joints before its segment
+                _, lever, o = self._branch_lever(b, q, frames)
+                m = m + torch.zeros_like(m).index_fill(0, torch.tensor(b.segment - 1), b.mass)
+                moment = moment.index_add(
+                    -2, torch.tensor([b.segment - 1]), (b.mass * (lever + o))[..., None, :]
+                )
         payload = torch.as_tensor(payload, dtype=dtype, device=frames.device)
         # Suffix sums: mass and first moment carried by joint i (all segments k >= i).
         mass_out = m.flip(-1).cumsum(-1).flip(-1) + payload[..., None]
         moment_out = moment.flip(-2).cumsum(-2).flip(-2)
-        moment_out = moment_out + payload[..., None, None] * p[..., self.dof : self.dof + 1, :]
-        arm = moment_out - mass_out[..., None] * p[..., : self.dof, :]  # sum_k m_k (c_k - o_i)
+        moment_out = moment_out + payload[..., None, None] * p[..., n : n + 1, :]
+        arm = moment_out - mass_out[..., None] * p[..., :n, :]  # sum_k m_k (c_k - o_i)
         return mass_out, arm
-
-    def _gravity(self, gravity, frames: Tensor) -> Tensor:
-        """Gravity as ``(*G, 1, 3)``, broadcastable against per-joint vectors."""
-        g = torch.as_tensor(gravity, dtype=frames.dtype, device=frames.device)
-        if g.shape[-1:] != (3,):
-            raise ShapeError(f"gravity must have shape (*B, 3) [m/s^2], found {tuple(g.shape)}")
-        return g[..., None, :]
 
     def gravity_torques(
         self,
@@ -291,13 +354,46 @@ class Robot(nn.Module):
         Returns:
             ``(*B, dof)`` torques [Nm] (forces [N] for prismatic joints).
         """
+        q = self._check_q(q)
         frames = self.link_frames(q, params)
+        dtype = frames.dtype
         g = self._gravity(gravity, frames)
-        mass_out, arm = self._subtree_loads(frames, payload)
+        mass_out, arm = self._subtree_loads(q, frames, payload)
+        gj = g[..., None, :]
         z = self._axes_world(frames, params)
-        tau_rev = (z * torch.linalg.cross(g.expand_as(arm), arm)).sum(-1)
-        tau_pri = -mass_out * (z * g).sum(-1)
-        return torch.where(self.revolute, tau_rev, tau_pri)
+        tau_rev = (z * torch.linalg.cross(gj.expand_as(arm), arm)).sum(-1)
+        tau_pri = -mass_out * (z * gj).sum(-1)
+        tau = torch.where(self.chain_revolute, tau_rev, tau_pri)
+        if not self.has_mimic and not self.spec.branches:
+            return tau
+        tau = tau @ self.coupling_matrix.to(dtype)  # A.T tau_chain, per sample
+        for b in self.spec.branches:
+            z_b, lever, _ = self._branch_lever(b, q, frames)
+            if b.joint_type == "prismatic":
+                tau_b = -b.mass * (z_b * g).sum(-1).expand(lever.shape[:-1])
+            else:
+                tau_b = b.mass * (z_b * torch.linalg.cross(g.expand_as(lever), lever)).sum(-1)
+            tau = tau.index_add(-1, torch.tensor([b.source]), b.multiplier * tau_b[..., None])
+        return tau
+
+    def _branch_lever(self, b: BranchBody, q: Tensor, frames: Tensor):
+        """Axis ``z (*B, 3)`` of an off-chain joint, its body's centre of mass relative to
+        the joint ``lever = c - o (*B, 3)`` and the joint's origin ``o``, root frame."""
+        dtype = frames.dtype
+        O = torch.as_tensor(b.origin, dtype=dtype, device=frames.device)
+        F = O if b.segment == 0 else frames[..., b.segment - 1, :, :] @ O  # joint frame
+        R, o = F[..., :3, :3], F[..., :3, 3]
+        a = torch.as_tensor(b.axis, dtype=dtype, device=frames.device)
+        com = torch.as_tensor(b.com, dtype=dtype, device=frames.device)
+        qb = b.multiplier * q[..., b.source].to(dtype) + b.offset
+        if b.joint_type == "prismatic":
+            c_local = com + qb[..., None] * a
+        else:  # Rodrigues: the centre of mass turned by qb about a
+            s, k = torch.sin(qb)[..., None], (1 - torch.cos(qb))[..., None]
+            axc = torch.linalg.cross(a, com)
+            c_local = com + s * axc + k * torch.linalg.cross(a, axc)
+        lever = (R @ c_local[..., None])[..., 0]
+        return (R @ a).expand_as(lever), lever, o.expand_as(lever)
 
     def static_wrenches(
         self,
@@ -307,14 +403,14 @@ class Robot(nn.Module):
         params: KinematicParams | None = None,
         frame: str = "root",
     ) -> Tensor:
-        """The full static wrench each joint transmits to hold what it carries.
+        """The full static wrench each chain joint transmits to hold what it carries.
 
-        :meth:`gravity_torques` is its component along each joint's axis; the other
-        five components load the bearings and bend the links (what
-        ``tilt_compliance`` and ``column_bending`` read). Same sign as pinocchio's
-        ``data.f`` after ``rnea`` at zero velocity and acceleration: the wrench the
-        parent side exerts on the subtree of joint ``i`` (segments ``k >= i`` and the
-        payload).
+        :meth:`gravity_torques` is its component along each joint's axis (summed over a
+        leader's mimic joints); the other five components load the bearings and bend
+        the links (what ``tilt_compliance`` and ``column_bending`` read). Same sign as
+        pinocchio's ``data.f`` after ``rnea`` at zero velocity and acceleration: the
+        wrench the parent side exerts on the subtree of chain joint ``i`` (segments
+        ``k >= i``, the off-chain bodies on them and the payload).
 
         Args:
             q: ``(*B, dof)`` joint values [rad or m].
@@ -325,29 +421,26 @@ class Robot(nn.Module):
                 (pinocchio's ``data.f`` convention).
 
         Returns:
-            ``(*B, dof, 6)``: force [N] then moment [Nm] about the origin of joint
-            ``i``'s frame (on its axis, :meth:`link_frames` index ``i``), both in the
+            ``(*B, n_chain, 6)``: force [N] then moment [Nm] about the origin of chain
+            joint ``i``'s frame (on its axis, :meth:`link_frames` index ``i``), in the
             root frame (or that joint frame).
         """
         if frame not in ("root", "joint"):
             raise ValueError(f"frame must be 'root' or 'joint', got {frame!r}")
+        q = self._check_q(q)
         frames = self.link_frames(q, params)
-        g = self._gravity(gravity, frames)
-        mass_out, arm = self._subtree_loads(frames, payload)
+        g = self._gravity(gravity, frames)[..., None, :]
+        mass_out, arm = self._subtree_loads(q, frames, payload)
         force = (-mass_out[..., None] * g).expand_as(arm)
         moment = torch.linalg.cross(g.expand_as(arm), arm)  # -(arm x m g) summed
         if frame == "joint":
-            Rt = frames[..., : self.dof, :3, :3].transpose(-1, -2)
+            Rt = frames[..., : self.chain_dof, :3, :3].transpose(-1, -2)
             force, moment = (Rt @ force[..., None])[..., 0], (Rt @ moment[..., None])[..., 0]
         return torch.cat([force, moment], -1)
 
     def extra_repr(self) -> str:
+        chain = f", chain={self.chain_joint_names}" if self.has_mimic else ""
         return (
-            f"name={self.name!r}, dof={self.dof}, joints={self.joint_names}, "
+            f"name={self.name!r}, dof={self.dof}, joints={self.joint_names}{chain}, "
             f"end_link={self.end_link!r}, dtype={self.dtype}"
         )
-
-
-def to_numpy(x: Tensor) -> np.ndarray:
-    """Detached float64 numpy copy (for reports and JSON)."""
-    return x.detach().cpu().to(torch.float64).numpy()

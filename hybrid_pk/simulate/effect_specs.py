@@ -25,7 +25,15 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from hybrid_pk.effects import EFFECTS, Conditions, Effect, ExtendedModel, Gravity, make_effect
+from hybrid_pk.effects import (
+    EFFECTS,
+    Conditions,
+    Effect,
+    ExtendedModel,
+    Gravity,
+    effect_joint_names,
+    make_effect,
+)
 from hybrid_pk.effects import approach_direction as _approach_direction
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import transform
@@ -183,11 +191,11 @@ def _parse_item(robot: Robot, item: str) -> Effect:
 
 def _make(robot: Robot, kind: str, joint: str | None, values: list[float], where: str) -> Effect:
     cls = EFFECTS[kind]
-    if cls.per_joint and joint not in robot.joint_names:
+    names = effect_joint_names(robot, cls)
+    if cls.per_joint and joint not in names:
         got = "no joint" if not joint else f"joint {joint!r}"
         raise HybridPKError(
-            f"{where}: {kind} needs a joint of {robot.name} ({', '.join(robot.joint_names)}), "
-            f"got {got}"
+            f"{where}: {kind} needs a joint of {robot.name} ({', '.join(names)}), got {got}"
         )
     if not cls.per_joint and joint:
         raise HybridPKError(f"{where}: {kind} is not per joint; write {kind}=VALUE")
@@ -330,10 +338,10 @@ def _random_candidates(
     its own axis (no position error for a tool on that axis, a tool roll for an
     offset); compliance needs a loaded joint.
     """
-    names = robot.joint_names
     tau = _mean_abs_torque(robot, payload, gravity)
     out = []
     for kind in _RANDOM_KINDS:
+        names = effect_joint_names(robot, EFFECTS[kind])
         for i, joint in enumerate(names):
             if kind == "joint_offset" and i == 0:
                 continue

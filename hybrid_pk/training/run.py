@@ -9,12 +9,14 @@ from __future__ import annotations
 import math
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import lightning as L
 import torch
 from lightning.pytorch.callbacks import (
+    Callback,
     EarlyStopping,
     LearningRateMonitor,
     ModelCheckpoint,
@@ -31,7 +33,15 @@ from hybrid_pk.training.datamodule import HybridDataModule
 from hybrid_pk.training.lightning_module import HybridLitModule
 from hybrid_pk.training.presets import preset
 
-__all__ = ["MONITOR", "ProgressBar", "TrainResult", "auto_threads", "make_trainer", "train_hybrid"]
+__all__ = [
+    "MONITOR",
+    "EpochReport",
+    "ProgressBar",
+    "TrainResult",
+    "auto_threads",
+    "make_trainer",
+    "train_hybrid",
+]
 
 MONITOR = "val/score"
 # Networks no wider than this train on one thread: their layers are too small for a
@@ -71,6 +81,24 @@ class ProgressBar(TQDMProgressBar):
         return Tqdm(disable=True)
 
 
+class EpochReport(Callback):
+    """Calls ``say(text)`` after every epoch with the epoch count and the validation
+    mean errors: progress for a caller that draws its own display (the demo)."""
+
+    def __init__(self, say: Callable[[str], None]) -> None:
+        self.say = say
+
+    def on_validation_epoch_end(self, trainer, pl_module) -> None:
+        metrics = trainer.callback_metrics
+        errors = [
+            f"{float(metrics[f'val/{key}_{unit}_mean']):.4g} {unit}"
+            for key, unit in (("position", "mm"), ("orientation", "deg"))
+            if f"val/{key}_{unit}_mean" in metrics
+        ]
+        text = f"epoch {trainer.current_epoch + 1}/{trainer.max_epochs}"
+        self.say(text + (f", validation mean {' / '.join(errors)}" if errors else ""))
+
+
 @dataclass
 class TrainResult:
     """Outcome of :func:`train_hybrid`.
@@ -101,7 +129,7 @@ def make_trainer(
     max_epochs: int,
     patience: int | None = None,
     logdir: str | Path | None = None,
-    progress: bool = True,
+    progress: bool | Callable[[str], None] = True,
     strategy: str = "auto",
     devices: int = 1,
     num_nodes: int = 1,
@@ -114,7 +142,8 @@ def make_trainer(
         patience: early stopping on ``val/score`` after this many epochs without
             improvement; None: off.
         logdir: TensorBoard logs and checkpoints go to ``logdir/version_K``.
-        progress: show Lightning's progress bar.
+        progress: show Lightning's progress bar; a callable instead gets one line of
+            text per epoch (:class:`EpochReport`).
         strategy: Lightning strategy, e.g. ``"ddp"`` (one process per device).
         devices: processes (CPU devices) per node.
         num_nodes: machines.
@@ -128,7 +157,9 @@ def make_trainer(
         logger = TensorBoardLogger(str(logdir), name="", default_hp_metric=False)
         callbacks.append(LearningRateMonitor(logging_interval="epoch"))
         callbacks.append(ModelCheckpoint(monitor=MONITOR, mode="min", save_last=True))
-    if progress:
+    if callable(progress):
+        callbacks.append(EpochReport(progress))
+    elif progress:
         callbacks.append(ProgressBar(refresh_rate=20))
     return L.Trainer(
         accelerator="cpu",
@@ -140,7 +171,7 @@ def make_trainer(
         logger=logger,
         callbacks=callbacks,
         enable_checkpointing=logdir is not None,
-        enable_progress_bar=progress,
+        enable_progress_bar=bool(progress) and not callable(progress),
         enable_model_summary=False,
         num_sanity_val_steps=0,
         log_every_n_steps=max(1, min(10, batches_per_epoch or 10)),
@@ -159,7 +190,7 @@ def train_hybrid(
     patience: int | str | None = "preset",
     seed: int = 0,
     logdir: str | Path | None = None,
-    progress: bool = True,
+    progress: bool | Callable[[str], None] = True,
     strategy: str = "auto",
     devices: int = 1,
     threads: int | None = None,
@@ -178,7 +209,8 @@ def train_hybrid(
         seed: seeds the split, the initialisation and the shuffling (same seed, same
             networks).
         logdir: TensorBoard logs and checkpoints; None: no logging.
-        progress: Lightning's progress bar.
+        progress: Lightning's progress bar; a callable instead gets one line of text
+            per epoch (epoch count, validation errors).
         strategy: ``"auto"`` or ``"ddp"`` (with ``devices`` processes).
         devices: number of processes.
         threads: torch threads during the fit; None: one for networks up to

@@ -45,6 +45,7 @@ from hybrid_pk.effects import (
     ExtendedModel,
     Gravity,
     conditions_from_data,
+    effect_joint_names,
     make_effect,
 )
 from hybrid_pk.evaluation.metrics import error_stats
@@ -156,14 +157,14 @@ def candidate_labels(robot: Robot, data: MeasuredData) -> list[str]:
     for kind, cls in EFFECTS.items():
         if not cls.per_joint:
             continue
-        for i, joint in enumerate(robot.joint_names):
+        for i, joint in enumerate(effect_joint_names(robot, cls)):
             if cls.stage == "geometry" and i == 0:
                 continue  # origin 0 is the base frame's business
             if kind in ("gear_ratio", "joint_eccentricity", "backlash", "joint_compliance") and (
                 robot.joint_types[i] == "prismatic"
             ):
                 continue
-            if kind == "column_bending" and robot.joint_types[i] != "prismatic":
+            if kind == "column_bending" and robot.chain_joint_types[i] != "prismatic":
                 continue  # a column's bending grows with its extension
             labels.append(f"{kind}:{joint}")
     if data.temperature is not None:

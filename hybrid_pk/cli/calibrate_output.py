@@ -1,0 +1,144 @@
+"""What ``hybrid-pk calibrate`` writes and prints: effect rows, frames, error summaries,
+the corrected URDF, the identifiability warning."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from hybrid_pk.calibration.diagnosis.search import _report_value
+from hybrid_pk.calibration.fit import FitResult
+from hybrid_pk.effects import ExtendedModel
+from hybrid_pk.evaluation.metrics import error_stats
+from hybrid_pk.geometry import matrix_to_rpy
+from hybrid_pk.io.urdf_export import export_urdf
+
+__all__ = [
+    "MAX_CONDITION",
+    "add_urdf_options",
+    "condition_warning",
+    "effect_rows",
+    "error_summary",
+    "export_model_urdf",
+    "format_value",
+    "frame_lines",
+    "urdf_target",
+]
+
+# Above this condition number of the scaled identification Jacobian a fit is not
+# identifiable from the data (well-posed calibrations here stay below 1e5).
+MAX_CONDITION = 1e8
+
+
+def effect_rows(model: ExtendedModel, res: FitResult) -> list[dict]:
+    """Value, 1-sigma std and unit of every effect of a fit (reporting convention)."""
+    rows = []
+    for e in model.effects:
+        value, std, components = _report_value(e, res.std[res.block_slice(e.label)])
+        row = {"effect": e.label, "value": value, "std": std, "unit": e.unit}
+        if components is not None:
+            row["components"] = components
+        rows.append(row)
+    return rows
+
+
+def format_value(v) -> str:
+    """A scalar with 6 significant digits, a vector as ``(a, b, c)`` with 4."""
+    if isinstance(v, list):
+        return "(" + ", ".join(f"{x:.4g}" for x in v) + ")"
+    return f"{v:.6g}"
+
+
+def _fixed(x) -> str:
+    return f"{round(float(x), 5) + 0.0:.5f}"  # + 0.0: no "-0.00000"
+
+
+def frame_lines(model: ExtendedModel) -> list[str]:
+    """One line per base and tool frame set: xyz [m] and rpy [rad]."""
+    lines = []
+    for name, frame in (("base frame", model.base), ("tool frame", model.tool)):
+        T = frame.matrix().detach()
+        for g in range(frame.sets):
+            tag = f" [{g}]" if frame.sets > 1 else ""
+            xyz = ", ".join(_fixed(x) for x in T[g, :3, 3])
+            rpy = ", ".join(_fixed(x) for x in matrix_to_rpy(T[g, :3, :3]))
+            lines.append(f"  {name}{tag:<6} xyz [m] ({xyz})  rpy [rad] ({rpy})")
+    return lines
+
+
+def error_summary(res: FitResult) -> dict:
+    """Error statistics of a fit for the model file's metadata."""
+    out = {"position_mm": error_stats(res.position_mm).to_dict()}
+    out["orientation_deg"] = (
+        None if res.orientation_deg is None else error_stats(res.orientation_deg).to_dict()
+    )
+    return out
+
+
+def condition_warning(res: FitResult, limit: int = 3) -> str | None:
+    """The identifiability warning of an ill-conditioned fit, naming up to ``limit``
+    parameter pairs whose estimates are correlated at |r| >= 0.999; None if well posed."""
+    if res.condition < MAX_CONDITION:
+        return None
+    pairs = [f"{a} ~ {b} (r = {r:+.4f})" for _, a, _, b, r in res.correlated_pairs(0.999)]
+    which = (
+        "these trade off exactly: " + "; ".join(pairs[:limit])
+        if pairs
+        else "some parameter combination is not determined"
+    )
+    return (
+        f"warning: condition number {res.condition:.3g}: the rows cannot separate some "
+        f"parameters ({which}); their individual values and std are unreliable, their "
+        "sum is fine for prediction. Poses whose flange orientation never changes (only "
+        "ISO 9283 cube poses) cannot separate base and tool translation; components of "
+        "link lengths along parallel joint axes never separate"
+    )
+
+
+# ----------------------------------------------------------------------------- URDF
+
+
+def add_urdf_options(parser: argparse.ArgumentParser) -> None:
+    """``--urdf``, ``--no-urdf``, ``--urdf-frames``, ``--urdf-fold-offsets``."""
+    parser.add_argument(
+        "--urdf",
+        metavar="OUT.urdf",
+        help="corrected URDF of the geometric part, lengths [m], angles [rad] (default: "
+        "MODEL.urdf next to MODEL; with --refit only when given)",
+    )
+    parser.add_argument("--no-urdf", action="store_true", help="write no corrected URDF")
+    parser.add_argument(
+        "--urdf-frames",
+        action="store_true",
+        help="put the fitted base frame (root link 'measurement_frame') and tool frame "
+        "(leaf link 'measured_point') into the URDF as fixed joints",
+    )
+    parser.add_argument(
+        "--urdf-fold-offsets",
+        action="store_true",
+        help="fold joint offsets [rad] into the URDF joint origins (the URDF then reads "
+        "commanded joint values) instead of listing them as comments",
+    )
+
+
+def urdf_target(args: argparse.Namespace, refit: bool) -> Path | None:
+    """Where the corrected URDF goes: ``--urdf``, ``MODEL.urdf`` (not for a re-fit), or
+    nowhere (``--no-urdf``)."""
+    if args.no_urdf:
+        return None
+    if args.urdf:
+        return Path(args.urdf)
+    return None if refit else Path(f"{args.out}.urdf")
+
+
+def export_model_urdf(model: ExtendedModel, args: argparse.Namespace, target: Path | None):
+    """Write the corrected URDF of ``model`` to ``target`` (nothing if None)."""
+    if target is None:
+        return
+    export_urdf(
+        model,
+        target,
+        include_base=args.urdf_frames,
+        include_tool=args.urdf_frames,
+        fold_joint_offsets=args.urdf_fold_offsets,
+    )

@@ -1,0 +1,123 @@
+"""``hybrid-pk calibrate DATA... --model MODEL --refit tool|base|frames --out MODEL2``:
+keep everything of MODEL (effects, networks) and re-fit only its frame(s)."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+
+import torch
+
+from hybrid_pk.cli.calibrate_output import (
+    error_summary,
+    export_model_urdf,
+    frame_lines,
+    urdf_target,
+)
+from hybrid_pk.cli.common import (
+    fit_frames,
+    frame_parameter_count,
+    read_data,
+    stats_line,
+    with_frame_sets,
+)
+from hybrid_pk.cli.progress import progress
+from hybrid_pk.data import MeasuredData
+from hybrid_pk.effects import Conditions, conditions_from_data
+from hybrid_pk.errors import HybridPKError, ModelFileError
+from hybrid_pk.evaluation.metrics import row_errors
+from hybrid_pk.io.hybrid_file import predict_poses
+from hybrid_pk.io.model_file import LoadedModel, load_model, model_robot, save_model
+
+__all__ = ["run_refit"]
+
+
+def run_refit(args: argparse.Namespace) -> int:
+    """Re-fit the ``--refit`` frame(s) of ``--model`` on DATA and write ``--out``."""
+    if args.model is None or args.refit is None:
+        raise HybridPKError("re-fitting needs both --model MODEL and --refit tool|base|frames")
+    if args.effects is not None:
+        raise HybridPKError(
+            "--effects cannot be combined with --refit: the model keeps its effects"
+        )
+    if args.gravity is not None:
+        raise HybridPKError(
+            "--gravity cannot be combined with --refit: the model keeps its mounting"
+        )
+    loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
+    robot = model_robot(loaded)
+    robot.requires_grad_(False)
+    sets = len(args.data) if args.frames_per_file else 1
+    which = args.refit
+
+    with progress("calibrate --refit", total=3) as bar:
+        bar.stage("reading data")
+        data = read_data(
+            args.data,
+            robot,
+            n_params=frame_parameter_count(sets, False) // (1 if which == "frames" else 2),
+            skip_bad_rows=args.skip_bad_rows,
+        )
+        cond = conditions_from_data(data, sets > 1)
+        before = _errors(loaded, data, cond) if loaded.model.base.sets == sets else None
+        keep = {"base": "tool", "tool": "base", "frames": None}[which]
+        model = with_frame_sets(loaded.model, sets, keep=keep)
+        bar.stage(f"re-fitting the {which} frame(s)")
+        res = fit_frames(model, data, cond, which)
+        bar.stage("writing")
+        save_model(
+            args.out, model, networks=loaded.networks, metadata=_metadata(args, loaded, data, res)
+        )
+        urdf = urdf_target(args, refit=True)
+        export_model_urdf(model, args, urdf)
+
+    print(
+        f"re-fitted the {which} frame(s) of {args.model} ({robot.name}, "
+        f"{len(model.effects)} effect(s) kept"
+        + (", residual networks kept" if loaded.has_networks else "")
+        + f") on {data.n} rows from {len(data.sources)} file(s)"
+    )
+    for line in frame_lines(model):
+        print(line)
+    after = _errors(dataclasses.replace(loaded, model=model, frames_fitted=True), data, cond)
+    for i, (name, unit) in enumerate((("position", "mm"), ("orientation", "deg"))):
+        if after[i] is None:
+            continue
+        if before is not None:
+            print(stats_line(f"{name} before [{unit}]", before[i]))
+        print(stats_line(f"{name} after [{unit}]", after[i]))
+    if after[2]:
+        print(after[2])
+    print(f"wrote {args.out}" + (f" and {urdf}" if urdf else ""))
+    return 0
+
+
+def _metadata(args, loaded: LoadedModel, data: MeasuredData, res) -> dict:
+    """MODEL's metadata with this re-fit appended to its history."""
+    history = list(loaded.metadata.get("refits", []))
+    history.append(
+        {
+            "refit": args.refit,
+            "data": list(data.sources),
+            "n_rows": data.n,
+            "frames_per_file": bool(args.frames_per_file),
+            "fitted": error_summary(res),
+        }
+    )
+    metadata = {k: v for k, v in loaded.metadata.items() if k != "created"}
+    metadata["refits"] = history
+    if args.refit != "base":  # the tool's orientation is known only from orientation data
+        metadata["orientation_fitted"] = data.quat is not None
+    return metadata
+
+
+def _errors(loaded: LoadedModel, data: MeasuredData, cond: Conditions):
+    """Position [mm] and orientation [deg] errors per row, and a note if the residual
+    networks could not be evaluated by this installation (extended model alone)."""
+    try:
+        T, note = predict_poses(loaded, data, cond), ""
+    except ModelFileError as exc:
+        with torch.no_grad():
+            T = loaded.model(data.q, cond)
+        note = f"note: errors of the extended model only: {exc}"
+    return (*row_errors(T, data), note)

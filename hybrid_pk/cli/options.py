@@ -1,0 +1,236 @@
+"""The flags that several sub-commands share, declared once with one wording.
+
+Each ``add_*`` function adds one flag (or one group of flags that belong together) to
+an ``argparse`` parser. A command module calls them in its ``register`` and keeps only
+its own flags. A new flag that more than one command takes belongs here; one that
+only a single command takes stays in that command's module.
+
+Groups:
+    robot and model: :func:`add_robot`, :func:`add_end_link`, :func:`add_model`
+    data: :func:`add_data` (DATA..., --frames-per-file, --skip-bad-rows)
+    fits: :func:`add_fit_options` (every command that diagnoses or calibrates: the
+        hold-out fraction; frame and robust-fit options of those fits go here too),
+        :func:`add_fit_frames`
+    outputs: :func:`add_out`, :func:`add_json`, :func:`add_report`
+    runs: :func:`add_seed`, :func:`add_epochs`, :func:`add_noise`, :func:`add_progress`
+"""
+
+from __future__ import annotations
+
+import argparse
+
+__all__ = [
+    "END_LINK_HELP",
+    "ROBOT_HELP",
+    "add_data",
+    "add_end_link",
+    "add_epochs",
+    "add_fit_frames",
+    "add_fit_options",
+    "add_json",
+    "add_model",
+    "add_noise",
+    "add_out",
+    "add_progress",
+    "add_report",
+    "add_robot",
+    "add_seed",
+    "fraction",
+]
+
+ROBOT_HELP = "shipped robot name (rx160, ur10) or URDF path"
+END_LINK_HELP = "end link of the chain, e.g. a tool link (default: the URDF's leaf link)"
+_ROBOT_CHECK_HELP = "refuse a MODEL made for another robot than ROBOT"
+
+
+def fraction(text: str) -> float:
+    """``argparse`` type: a fraction of the rows, strictly between 0 and 1."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in (0, 1), got {text!r}") from None
+    if not 0.0 < value < 1.0:
+        raise argparse.ArgumentTypeError(
+            f"expected a fraction of the rows in (0, 1), got {value:g} (e.g. 0.2 for 20 %)"
+        )
+    return value
+
+
+# ----------------------------------------------------------------------------- robot, model
+
+
+def add_robot(
+    parser: argparse.ArgumentParser,
+    *,
+    required: bool = False,
+    default: str | None = None,
+    positional: bool = False,
+    help: str | None = None,
+) -> None:
+    """``--robot ROBOT`` (or the positional ``ROBOT``): a shipped name or a URDF path.
+
+    Args:
+        required: the command cannot run without it.
+        default: robot used when the flag is not given.
+        positional: ``ROBOT`` is the first positional argument (``simulate``).
+        help: what the command does with the robot, when more than naming it.
+    """
+    text = help or ROBOT_HELP
+    if default is not None:
+        text += " (default: %(default)s)"
+    if positional:
+        parser.add_argument("robot", metavar="ROBOT", help=text)
+    else:
+        parser.add_argument(
+            "--robot", metavar="ROBOT", required=required, default=default, help=text
+        )
+
+
+def add_end_link(parser: argparse.ArgumentParser) -> None:
+    """``--end-link NAME``: the link whose pose is measured or solved for."""
+    parser.add_argument("--end-link", metavar="NAME", help=END_LINK_HELP)
+
+
+def add_model(parser: argparse.ArgumentParser, *, flag: bool = False, help: str | None = None):
+    """MODEL (a model file or ``nominal:ROBOT``), ``--robot`` as a check, ``--end-link``.
+
+    Args:
+        flag: ``--model MODEL`` (required) instead of the positional ``MODEL``.
+        help: what MODEL is for this command.
+    """
+    text = help or "model file, or nominal:ROBOT (the URDF, identity frames)"
+    if flag:
+        parser.add_argument("--model", required=True, metavar="MODEL", help=text)
+    else:
+        parser.add_argument("model", metavar="MODEL", help=text)
+    add_robot(parser, help=_ROBOT_CHECK_HELP)
+    add_end_link(parser)
+
+
+# ----------------------------------------------------------------------------- data
+
+
+def add_data(parser: argparse.ArgumentParser) -> None:
+    """``DATA...``, ``--frames-per-file`` and ``--skip-bad-rows``."""
+    parser.add_argument(
+        "data",
+        nargs="+",
+        metavar="DATA",
+        help="measured pose table(s), .csv or .parquet: one column per joint [rad, m for "
+        "prismatic], x y z [m], optional qw qx qy qz, temperature [degC], payload [kg]; "
+        "several files are one campaign measured in series",
+    )
+    parser.add_argument(
+        "--frames-per-file",
+        action="store_true",
+        help="give each DATA file its own base and tool frame (tracker moved, tool "
+        "re-mounted); effects are shared",
+    )
+    parser.add_argument(
+        "--skip-bad-rows",
+        action="store_true",
+        help="leave out rows with NaN/inf, text, out-of-limit joints or non-unit "
+        "quaternions (each reported by file and row) instead of stopping at the first",
+    )
+
+
+# ----------------------------------------------------------------------------- fits
+
+
+def add_fit_options(parser: argparse.ArgumentParser, *, holdout_help: str) -> None:
+    """Options of every command that diagnoses effects (``diagnose``, ``calibrate``).
+
+    ``--holdout F``: the fraction of rows the diagnosis keeps out of every fit to
+    compare models. ``--gravity``: the mounting (gravity in the root frame, or
+    ``level-tracker``), which compliance and deflection follow. Options that change how
+    frames or effects are fitted (known frames, robust losses) belong in this group, so
+    that both commands take them.
+    """
+    parser.add_argument("--holdout", type=fraction, default=0.2, metavar="F", help=holdout_help)
+    parser.add_argument(
+        "--gravity",
+        metavar="X,Y,Z|level-tracker",
+        help="how the robot is mounted, for compliance and deflection: gravity in the "
+        "robot's root frame [m/s^2] (ceiling: 0,0,9.81), or level-tracker: the "
+        "measurement frame is levelled (laser tracker, total station), so gravity is -z "
+        "there and its direction in the robot frame follows from the fitted base frame "
+        "(default: upright, 0,0,-9.81)",
+    )
+
+
+def add_fit_frames(parser: argparse.ArgumentParser, *, help: str) -> None:
+    """``--fit-frames``: fit only the base and tool frames of MODEL to DATA first."""
+    parser.add_argument("--fit-frames", action="store_true", help=help)
+
+
+# ----------------------------------------------------------------------------- outputs
+
+
+def add_out(
+    parser: argparse.ArgumentParser,
+    *,
+    metavar: str,
+    help: str,
+    required: bool = True,
+    default: str | None = None,
+) -> None:
+    """``--out PATH``: the file or folder the command writes."""
+    if default is not None:
+        required = False
+        help += " (default: %(default)s)"
+    parser.add_argument("--out", required=required, default=default, metavar=metavar, help=help)
+
+
+def add_json(parser: argparse.ArgumentParser, *, help: str, required: bool = False) -> None:
+    """``--json OUT.json``: the command's result as JSON."""
+    parser.add_argument("--json", required=required, metavar="OUT.json", help=help)
+
+
+def add_report(parser: argparse.ArgumentParser, *, help: str) -> None:
+    """``--report DIR``: ``DIR/report.md`` with its PNG plots."""
+    parser.add_argument("--report", metavar="DIR", help=help)
+
+
+# ----------------------------------------------------------------------------- runs
+
+
+def add_seed(parser: argparse.ArgumentParser, *, default: int = 0, what: str) -> None:
+    """``--seed K``: same seed, same result. ``what`` says what the seed draws."""
+    parser.add_argument(
+        "--seed", type=int, default=default, metavar="K", help=f"{what} (default: {default})"
+    )
+
+
+def add_epochs(parser: argparse.ArgumentParser, *, default: int | None = None) -> None:
+    """``--epochs N``: training epochs of the residual networks."""
+    tail = "preset" if default is None else "%(default)s"
+    parser.add_argument(
+        "--epochs",
+        type=int,
+        default=default,
+        metavar="N",
+        help=f"maximum training epochs of the networks (default: {tail})",
+    )
+
+
+def add_noise(parser: argparse.ArgumentParser, *, mm: float, deg: float) -> None:
+    """``--noise-mm S`` and ``--noise-deg S``: measurement noise of a simulated campaign."""
+    parser.add_argument(
+        "--noise-mm",
+        type=float,
+        default=mm,
+        metavar="S",
+        help="std of the position noise per coordinate [mm] (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--noise-deg",
+        type=float,
+        default=deg,
+        metavar="S",
+        help="std of the orientation noise per rotation axis [deg] (default: %(default)s)",
+    )
+
+
+def add_progress(parser: argparse.ArgumentParser) -> None:
+    """``--no-progress``: no progress bar on stderr (the summary is printed anyway)."""
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")

@@ -1,0 +1,178 @@
+"""Cell- and row-level checks shared by the table reader and the importers.
+
+Numbers from text cells, the reason a cell cannot be used, header and row-length
+checks, the per-row problems of one file (first problem per row wins, so a row is
+reported once, at its first bad column) and the time-order check. Every failure is a
+one-line :class:`~hybrid_pk.errors.DataError` naming file, 1-based data row and column.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from hybrid_pk.data.measured import SkippedRow
+from hybrid_pk.errors import DataError
+
+__all__ = [
+    "RowProblems",
+    "cell_problem",
+    "check_header_names",
+    "check_time_order",
+    "first_long_row",
+    "to_float",
+]
+
+
+def to_float(values: pd.Series) -> tuple[np.ndarray, np.ndarray]:
+    """Cells -> ``(floats, unparsable)``; unparsable cells are NaN in ``floats``."""
+    if pd.api.types.is_numeric_dtype(values) and not pd.api.types.is_bool_dtype(values):
+        return values.to_numpy(np.float64), np.zeros(len(values), bool)
+    cells = values.to_numpy(object)
+    try:
+        return cells.astype(np.float64), np.zeros(len(cells), bool)
+    except (ValueError, TypeError):
+        pass
+    out = np.full(len(cells), np.nan)
+    bad = np.zeros(len(cells), bool)
+    for k, cell in enumerate(cells):
+        try:
+            out[k] = float(cell)
+        except (ValueError, TypeError):
+            bad[k] = True
+    return out, bad
+
+
+def cell_problem(raw: Any, value: float, unparsable: bool) -> str | None:
+    """Why the cell ``raw``, read as ``value``, is not a finite number (None if it is)."""
+    if unparsable:
+        text = str(raw).strip()
+        return "empty value" if not text else f"text {text[:40]!r} in a numeric column"
+    if math.isnan(value):
+        return "value is NaN" if isinstance(raw, str) else "missing value (NaN)"
+    if math.isinf(value):
+        return f"value is {value}"
+    return None
+
+
+def check_header_names(file: str, header: Sequence[str]) -> None:
+    """Raise at the first column name that appears twice in ``header``."""
+    seen: dict[str, int] = {}
+    for pos, name in enumerate(header, start=1):
+        if name in seen:
+            raise DataError(
+                f"duplicated header: column {name!r} appears at positions {seen[name]} and {pos}",
+                file=file,
+                column=name,
+            )
+        seen[name] = pos
+
+
+def first_long_row(
+    path: Path,
+    width: int | None = None,
+    *,
+    delimiter: str = ",",
+    encoding: str = "utf-8-sig",
+    skip_lines: int = 0,
+) -> tuple[int, list[str], int] | None:
+    """``(data row, its fields, header width)`` of the first data row with more fields
+    than the header, or None. Rows are 1-based and counted as pandas does (blank lines
+    are not data rows); ``width`` None reads it from the header line after
+    ``skip_lines``."""
+    with path.open(newline="", encoding=encoding) as fh:
+        reader = csv.reader(fh, delimiter=delimiter)
+        for _ in range(skip_lines):
+            next(reader, None)
+        header = next(reader, [])
+        width = len(header) if width is None else width
+        row = 0
+        for fields in reader:
+            if not fields:
+                continue
+            row += 1
+            if len(fields) > width:
+                return row, fields, width
+    return None
+
+
+def check_time_order(
+    file: str, t: np.ndarray, rows: np.ndarray, column: str, noun: str = "time stamp"
+) -> None:
+    """Raise where ``t`` [s] decreases; ``rows`` are the 1-based data rows of ``t``."""
+    back = np.flatnonzero(np.diff(t) < 0)
+    if back.size:
+        k = int(back[0]) + 1
+        raise DataError(
+            f"{noun} decreases from {t[k - 1]:.9g} s (row {rows[k - 1]}) to {t[k]:.9g} s; "
+            "t must be monotonic within a file",
+            file=file,
+            row=int(rows[k]),
+            column=column,
+        )
+
+
+class RowProblems:
+    """Per-row problems of one file of ``n`` data rows: the first problem of a row wins.
+
+    Attributes:
+        file: the file, for messages.
+        found: 0-based row -> ``(column, reason)``.
+    """
+
+    def __init__(self, file: str, n: int) -> None:
+        self.file = file
+        self.n = n
+        self.found: dict[int, tuple[str, str]] = {}
+
+    def add(self, k: int, column: str, reason: str) -> None:
+        """Record ``reason`` for 0-based row ``k`` unless the row already has one."""
+        self.found.setdefault(int(k), (column, reason))
+
+    def note(self, mask: np.ndarray, column: str, reason: Callable[[int], str]) -> None:
+        """Record ``reason(k)`` for every row ``k`` where ``mask`` is True."""
+        for k in np.flatnonzero(mask):
+            self.add(int(k), column, reason(int(k)))
+
+    def note_cells(
+        self, column: str, raw: np.ndarray, values: np.ndarray, unparsable: np.ndarray
+    ) -> np.ndarray:
+        """Record every cell of ``column`` that is not a finite number; returns that mask."""
+        bad = unparsable | ~np.isfinite(values)
+        self.note(bad, column, lambda k: cell_problem(raw[k], values[k], unparsable[k]))
+        return bad
+
+    def raise_first(self, skip: bool = False) -> None:
+        """Raise at the first row with a problem, unless ``skip``."""
+        if self.found and not skip:
+            k = min(self.found)
+            column, reason = self.found[k]
+            raise DataError(reason, file=self.file, row=k + 1, column=column)
+
+    def ok(self) -> np.ndarray:
+        """``(n,)`` True where a row has no problem so far."""
+        ok = np.ones(self.n, bool)
+        ok[list(self.found)] = False
+        return ok
+
+    def skipped(self) -> tuple[SkippedRow, ...]:
+        """The rows with a problem, in row order, as :class:`SkippedRow` records."""
+        return tuple(
+            SkippedRow(self.file, k + 1, f"column {c!r}: {reason}")
+            for k, (c, reason) in sorted(self.found.items())
+        )
+
+    def raise_if_none_left(self) -> None:
+        """Raise when every row has a problem."""
+        if len(self.found) == self.n:
+            first = self.skipped()[0].reason
+            raise DataError(
+                f"no valid rows: all {self.n} data rows have problems (first: {first})",
+                file=self.file,
+            )

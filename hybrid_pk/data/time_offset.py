@@ -1,0 +1,360 @@
+"""Time offset between a robot joint stream and a tracker pose stream.
+
+``tracker time = robot time + offset`` [s]; the method is described in
+:mod:`hybrid_pk.data.streams`: a coarse cross-correlation of speed profiles (first of
+the flange, then of the registered tool point) and a bounded search of the
+registration residual around it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from scipy.optimize import minimize_scalar
+from scipy.spatial.transform import Rotation
+
+from hybrid_pk.data.interpolation import (
+    GAP_FACTOR,
+    checked_array,
+    interpolate_poses,
+    stream_times,
+)
+from hybrid_pk.errors import DataError
+from hybrid_pk.geometry.registration import register_frames
+
+__all__ = ["OffsetEstimate", "estimate_time_offset", "speed_profile"]
+
+GRID_DT = 1e-3  # [s] resampling step of the speed profiles
+SMOOTH_S = 0.02  # [s] box filter and difference span of the speed profiles
+REFINE_POINTS = 1500  # robot rows used by the registration refinement (evenly spaced)
+
+
+def speed_profile(t: np.ndarray, p: np.ndarray, grid: np.ndarray, smooth: float) -> np.ndarray:
+    """Speed ``|dp/dt|`` [m/s] of points ``p (M, 3)`` [m] at times ``t (M,)`` [s], on ``grid``.
+
+    Positions are interpolated linearly onto ``grid`` (uniform step), box-filtered over
+    ``smooth`` seconds and differenced over ``smooth`` seconds. Applied identically to
+    both streams, the filter shifts neither. Where the filter would reach past the
+    ends of ``grid`` the speed is NaN.
+    """
+    dt = float(grid[1] - grid[0])
+    half = max(round(smooth / dt / 2), 1)
+    width = 2 * half + 1  # odd: the filtered value sits on a grid point
+    v = np.full(len(grid), np.nan)
+    if len(grid) <= 2 * width:
+        return v
+    g = np.stack([np.interp(grid, t, p[:, k]) for k in range(3)], -1)
+    c = np.concatenate([np.zeros((1, 3)), np.cumsum(g, 0)])
+    box = (c[width:] - c[:-width]) / width  # box[i] = mean of g[i : i + width]
+    speed = np.linalg.norm(box[2 * half :] - box[: -2 * half], axis=-1) / (2 * half * dt)
+    v[2 * half : 2 * half + len(speed)] = speed  # speed[0] is centred on grid index 2 half
+    return v
+
+
+@dataclass(frozen=True)
+class OffsetEstimate:
+    """Result of :func:`estimate_time_offset`.
+
+    Attributes:
+        offset: [s] tracker time = robot time + offset.
+        coarse: [s] the speed-profile cross-correlation estimate.
+        correlation: peak normalised correlation of the speed profiles (1 = same shape).
+        residual_mm: RMS position residual [mm] of the registration at ``offset``.
+        coarse_residual_mm: the same at ``coarse``.
+        bounds: [s] interval of the refinement search.
+        n_rows: robot rows used by the refinement.
+    """
+
+    offset: float
+    coarse: float
+    correlation: float
+    residual_mm: float
+    coarse_residual_mm: float
+    bounds: tuple[float, float]
+    n_rows: int
+
+    def summary(self) -> str:
+        """One line for humans."""
+        return (
+            f"time offset {1e3 * self.offset:.3f} ms (tracker = robot + offset): speed "
+            f"correlation {self.correlation:.3f} at {1e3 * self.coarse:.1f} ms, registration "
+            f"residual {self.coarse_residual_mm:.3f} -> {self.residual_mm:.3f} mm RMS "
+            f"({self.n_rows} rows)"
+        )
+
+
+def _correlation(a: np.ndarray, b: np.ndarray) -> float:
+    a, b = a - a.mean(), b - b.mean()
+    # Elementwise sums, not BLAS dot products: called hundreds of times on small
+    # vectors, where a threaded BLAS on a busy machine costs more than the arithmetic.
+    den = math.sqrt(float((a * a).sum()) * float((b * b).sum()))
+    return float((a * b).sum()) / den if den > 0 else 0.0
+
+
+def _best_lag(
+    grid: np.ndarray,
+    v_robot: np.ndarray,
+    t_tr: np.ndarray,
+    v_tr: np.ndarray,
+    lags: np.ndarray,
+    min_overlap: int,
+) -> tuple[float, float]:
+    """Lag of the largest correlation of ``v_robot(t)`` and ``v_tr(t + lag)``, refined by a
+    parabola through the peak and its neighbours."""
+    scores = np.full(len(lags), -np.inf)
+    ok_r = np.isfinite(v_robot)
+    ok_tr = np.isfinite(v_tr)
+    for i, lag in enumerate(lags):
+        inside = ok_r & (grid + lag >= t_tr[0]) & (grid + lag <= t_tr[-1])
+        other = np.interp(grid[inside] + lag, t_tr, np.where(ok_tr, v_tr, np.nan))
+        keep = np.isfinite(other)
+        if keep.sum() < min_overlap:
+            continue
+        scores[i] = _correlation(v_robot[inside][keep], other[keep])
+    if not np.isfinite(scores).any():
+        raise DataError(
+            "the robot and tracker streams do not overlap in time for any offset searched; "
+            "check both time columns and max_offset"
+        )
+    i = int(np.argmax(scores))
+    lag = float(lags[i])
+    if 0 < i < len(lags) - 1 and np.isfinite(scores[i - 1]) and np.isfinite(scores[i + 1]):
+        den = scores[i - 1] - 2 * scores[i] + scores[i + 1]
+        if den < 0:
+            lag += 0.5 * (scores[i - 1] - scores[i + 1]) / den * float(lags[1] - lags[0])
+    return lag, float(scores[i])
+
+
+def _rotations(quat: np.ndarray, dtype: torch.dtype) -> torch.Tensor:
+    """``(K, 4)`` ``(w, x, y, z)`` -> ``(K, 3, 3)`` rotation matrices."""
+    return torch.as_tensor(Rotation.from_quat(quat[:, [1, 2, 3, 0]]).as_matrix(), dtype=dtype)
+
+
+class _PointFrames:
+    """Least-squares base frame and tool point from positions: ``p ≈ R_B (R_F p_X + p_F) + p_B``.
+
+    Gauss-Newton from a closed-form registration, warm-started at each call so the
+    residual is the converged least-squares value (a smooth function of the offset).
+    """
+
+    def __init__(self, T_end: torch.Tensor, guess: tuple[torch.Tensor, torch.Tensor]) -> None:
+        T = T_end.double().numpy()
+        self.R_F, self.p_F = T[:, :3, :3], T[:, :3, 3]
+        base, tool = (g.double().numpy() for g in guess)
+        self.R_B, self.p_B = base[:3, :3], base[:3, 3]
+        self.p_X = tool[:3, 3]
+
+    def rms_mm(self, p: np.ndarray, iterations: int = 8) -> float:
+        R_B, p_B, p_X = self.R_B.copy(), self.p_B.copy(), self.p_X.copy()
+        k = len(p)
+        for _ in range(iterations):
+            a = np.einsum("kij,j->ki", self.R_F, p_X) + self.p_F
+            b = a @ R_B.T
+            r = b + p_B - p
+            J = np.zeros((k, 3, 9))
+            J[:, 0, 1], J[:, 0, 2] = b[:, 2], -b[:, 1]  # -[b]x: d(R_B a) for R_B <- exp(w) R_B
+            J[:, 1, 0], J[:, 1, 2] = -b[:, 2], b[:, 0]
+            J[:, 2, 0], J[:, 2, 1] = b[:, 1], -b[:, 0]
+            J[:, :, 3:6] = np.eye(3)
+            J[:, :, 6:9] = R_B @ self.R_F
+            Jf, rf = J.reshape(-1, 9), r.reshape(-1)
+            step = -np.linalg.solve(Jf.T @ Jf, Jf.T @ rf)
+            w = step[:3]
+            angle = float(np.linalg.norm(w))
+            if angle > 0:
+                K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]]) / angle
+                R_B = (np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K) @ R_B
+            p_B, p_X = p_B + step[3:6], p_X + step[6:9]
+            if float(np.abs(step).max()) < 1e-12:
+                break
+        a = np.einsum("kij,j->ki", self.R_F, p_X) + self.p_F
+        r = a @ R_B.T + p_B - p
+        return 1e3 * math.sqrt(float((r * r).sum(-1).mean()))
+
+
+class _OffsetSearch:
+    """Both streams on common ground: speed profiles on uniform grids, the robot rows
+    usable near an offset, and the registration residual as a function of the offset."""
+
+    def __init__(
+        self,
+        t_r: np.ndarray,
+        T_all: torch.Tensor,
+        t_m: np.ndarray,
+        pos: np.ndarray,
+        quat: np.ndarray | None,
+        *,
+        smooth: float,
+        grid_dt: float,
+        refine_points: int,
+    ) -> None:
+        self.t_r, self.T_all, self.t_m, self.pos, self.quat = t_r, T_all, t_m, pos, quat
+        self.smooth, self.grid_dt, self.refine_points = smooth, grid_dt, refine_points
+        self.grid_r = np.arange(t_r[0], t_r[-1], grid_dt)
+        self.grid_m = np.arange(t_m[0], t_m[-1], grid_dt)
+        self.v_m = speed_profile(t_m, pos, self.grid_m, smooth)
+        self.min_overlap = max(int(0.25 * len(self.grid_r)), 10)
+        self.step = max(5 * grid_dt, smooth / 4)
+        self.max_gap = GAP_FACTOR * float(np.median(np.diff(t_m)))
+
+    def robot_speed(self, tool_point: np.ndarray | None = None) -> np.ndarray:
+        """Speed profile of the flange, or of ``tool_point`` [m] on the flange."""
+        if tool_point is None:
+            p = self.T_all[:, :3, 3]
+        else:
+            tool = torch.eye(4, dtype=self.T_all.dtype)
+            tool[:3, 3] = torch.as_tensor(tool_point)
+            p = (self.T_all @ tool)[:, :3, 3]
+        return speed_profile(self.t_r, p.numpy(), self.grid_r, self.smooth)
+
+    def correlate(
+        self, v_robot: np.ndarray, centre: float, half_width: float
+    ) -> tuple[float, float]:
+        """Best lag in ``centre ± half_width``: a coarse scan, then a fine one at the peak."""
+        step, args = self.step, (self.grid_r, v_robot, self.grid_m, self.v_m)
+        lags = np.arange(centre - half_width, centre + half_width + step / 2, step)
+        lag, _ = _best_lag(*args, lags, self.min_overlap)
+        fine = np.arange(lag - 2 * step, lag + 2 * step + self.grid_dt / 2, self.grid_dt)
+        return _best_lag(*args, fine, self.min_overlap)
+
+    def rows_near(self, centre: float, half_width: float) -> np.ndarray:
+        """Robot rows whose tracker time stays inside the stream and away from gaps for
+        every offset in ``centre ± half_width`` (a fixed set: the cost does not jump)."""
+        t_r, t_m = self.t_r, self.t_m
+        lo, hi = centre - half_width, centre + half_width
+        usable = np.flatnonzero((t_r + lo >= t_m[0]) & (t_r + hi <= t_m[-1]))
+        gaps = np.flatnonzero(np.diff(t_m) > self.max_gap)
+        if gaps.size and usable.size:
+            g0, g1 = t_m[gaps], t_m[gaps + 1]
+            first = np.clip(np.searchsorted(g1, t_r[usable] + lo, side="right"), 0, gaps.size - 1)
+            touches = (g0[first] < t_r[usable] + hi) & (g1[first] > t_r[usable] + lo)
+            usable = usable[~touches]
+        if len(usable) < 10:
+            raise DataError(
+                f"only {len(usable)} robot rows overlap the tracker stream (away from gaps) "
+                f"near offset {centre:.4f} s; need at least 10"
+            )
+        count = min(self.refine_points, len(usable))
+        return usable[np.unique(np.linspace(0, len(usable) - 1, count).round().astype(int))]
+
+    def cost(self, offset: float, pick: np.ndarray, frames: _PointFrames) -> float:
+        """RMS registration residual [mm] of rows ``pick`` at ``offset``."""
+        times = self.t_r[pick] + offset
+        p, _, _ = interpolate_poses(self.t_m, self.pos, None, times, self.max_gap)
+        return frames.rms_mm(p)
+
+    def registered(self, offset: float, pick: np.ndarray) -> _PointFrames:
+        """Frames registered on rows ``pick`` at ``offset`` (the warm start of ``cost``)."""
+        times = self.t_r[pick] + offset
+        p, qq, _ = interpolate_poses(self.t_m, self.pos, self.quat, times, self.max_gap)
+        R = None if qq is None else _rotations(qq, self.T_all.dtype)
+        T = self.T_all[pick]
+        return _PointFrames(T, register_frames(T, torch.as_tensor(p), R))
+
+    def refine(self, centre: float, half_width: float):
+        """Bounded search of ``cost``, re-centred while the minimum sits on a bound.
+
+        Returns ``(result, (lo, hi), pick, frames)`` of the last search.
+        """
+        for _ in range(5):
+            lo, hi = centre - half_width, centre + half_width
+            pick = self.rows_near(centre, half_width)
+            frames = self.registered(centre, pick)
+            res = minimize_scalar(
+                self.cost,
+                bounds=(lo, hi),
+                args=(pick, frames),
+                method="bounded",
+                options={"xatol": 1e-6},
+            )
+            if min(res.x - lo, hi - res.x) > 0.05 * half_width:
+                break
+            centre = float(res.x)
+        return res, (lo, hi), pick, frames
+
+
+def _checked_streams(robot_t, q, tracker_t, position, quat):
+    """``(t_r, q, t_m, position, quat)`` as checked float64 arrays of matching lengths."""
+    t_r = stream_times(robot_t, "robot t")
+    t_m = stream_times(tracker_t, "tracker t")
+    q = checked_array(q, "q", (np.asarray(q).shape[-1],))
+    if len(q) != len(t_r):
+        raise DataError(f"q has {len(q)} rows but robot t has {len(t_r)}")
+    pos = checked_array(position, "position", (3,))
+    if len(pos) != len(t_m):
+        raise DataError(f"position has {len(pos)} rows but tracker t has {len(t_m)}")
+    quat_np = None if quat is None else checked_array(quat, "quat", (4,))
+    if quat_np is not None and len(quat_np) != len(t_m):
+        raise DataError(f"quat has {len(quat_np)} rows but tracker t has {len(t_m)}")
+    return t_r, q, t_m, pos, quat_np
+
+
+def estimate_time_offset(
+    robot_t: Any,
+    q: Any,
+    tracker_t: Any,
+    position: Any,
+    robot: Any,
+    *,
+    quat: Any = None,
+    max_offset: float = 1.0,
+    refine_window: float = 0.02,
+    smooth: float = SMOOTH_S,
+    grid_dt: float = GRID_DT,
+    refine_points: int = REFINE_POINTS,
+) -> OffsetEstimate:
+    """Offset between a robot joint stream and a tracker stream (:mod:`~hybrid_pk.data.streams`).
+
+    Args:
+        robot_t: ``(N,)`` robot time stamps [s], increasing.
+        q: ``(N, dof)`` joint values [rad, m for prismatic].
+        tracker_t: ``(M,)`` tracker time stamps [s], increasing.
+        position: ``(M, 3)`` measured points in the tracker frame [m].
+        robot: nominal :class:`~hybrid_pk.Robot` (anything with ``fk`` and ``dtype``).
+        quat: ``(M, 4)`` measured orientations ``(w, x, y, z)``, or None.
+        max_offset: [s] largest |offset| searched by the cross-correlation.
+        refine_window: [s] half-width of the refinement search around the coarse value.
+        smooth: [s] filter span of the speed profiles.
+        grid_dt: [s] resampling step of the speed profiles.
+        refine_points: robot rows used by the refinement (evenly spaced).
+
+    Returns:
+        The estimate; ``offset`` is the refined value.
+
+    Raises:
+        DataError: bad shapes or times, streams that never overlap, a robot that does
+            not move (no speed to correlate), too few rows overlapping the tracker span.
+    """
+    t_r, q, t_m, pos, quat_np = _checked_streams(robot_t, q, tracker_t, position, quat)
+    with torch.no_grad():
+        T_all = robot.fk(torch.as_tensor(q, dtype=robot.dtype)).double()
+    search = _OffsetSearch(
+        t_r, T_all, t_m, pos, quat_np, smooth=smooth, grid_dt=grid_dt, refine_points=refine_points
+    )
+    # Coarse 1: flange speed (the tool offset is not known yet) against point speed.
+    v_r = search.robot_speed()
+    if not np.isfinite(v_r).any() or float(np.nanstd(v_r)) < 1e-6:
+        raise DataError("the robot stream does not move: no speed profile to correlate")
+    lag0, _ = search.correlate(v_r, 0.0, max_offset)
+    # Coarse 2: with the tool offset of a registration at lag0, the model's point speed
+    # has the tracker's shape, so the correlation peak is no longer biased.
+    frames = search.registered(lag0, search.rows_near(lag0, 0.0))
+    v_point = search.robot_speed(frames.p_X)
+    coarse, corr = search.correlate(v_point, lag0, min(max_offset, 10 * refine_window))
+    # Refine: bounded search of the registration residual; the window covers the
+    # disagreement of the two coarse stages.
+    half_width = max(refine_window, 1.5 * abs(coarse - lag0))
+    res, (lo, hi), pick, frames = search.refine(coarse, half_width)
+    return OffsetEstimate(
+        offset=float(res.x),
+        coarse=float(coarse),
+        correlation=corr,
+        residual_mm=float(res.fun),
+        coarse_residual_mm=search.cost(coarse, pick, frames),
+        bounds=(float(lo), float(hi)),
+        n_rows=len(pick),
+    )
