@@ -14,7 +14,7 @@ import time
 import torch
 
 import hybrid_pk as hpk
-from hybrid_pk.calibration.diagnosis.search import diagnose
+from hybrid_pk.calibration.diagnosis import diagnose
 from hybrid_pk.simulate import simulate_campaign
 
 

@@ -4,8 +4,8 @@ Data flow: robot model -> measured data -> error effects -> diagnosis/calibratio
 -> residual networks -> IK -> reports.
 """
 
-from hybrid_pk.calibration.diagnosis.search import Diagnosis as Diagnosis
-from hybrid_pk.calibration.diagnosis.search import diagnose as diagnose
+from hybrid_pk.calibration.diagnosis import Diagnosis as Diagnosis
+from hybrid_pk.calibration.diagnosis import diagnose as diagnose
 from hybrid_pk.calibration.fit import FitResult as FitResult
 from hybrid_pk.calibration.fit import fit as fit
 from hybrid_pk.data import MeasuredData as MeasuredData

@@ -19,7 +19,8 @@ import pytest
 import torch
 
 import hybrid_pk as hpk
-from hybrid_pk.calibration.fit import Problem, _blocks, fit, initialise_frames
+from hybrid_pk.calibration.fit import fit, initialise_frames
+from hybrid_pk.calibration.problem import Problem, param_blocks
 from hybrid_pk.cli.main import main as cli
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import (
@@ -193,7 +194,7 @@ def test_structured_jacobian_matches_autodiff_with_a_levelled_tracker():
     model, data, cond = _level_campaign(
         robot, [make_effect(robot, k, v) for k, v in labels.items()]
     )
-    blocks = _blocks(model, None, False)
+    blocks = param_blocks(model, None, False)
     problem = Problem(model, data, cond, blocks, 0.01, 1e-4)
     theta = torch.zeros_like(problem.x0)
     _, J = problem.jacobian(theta)

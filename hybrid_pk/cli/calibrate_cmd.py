@@ -12,7 +12,7 @@ import argparse
 import json
 from pathlib import Path
 
-from hybrid_pk.calibration.diagnosis.search import diagnose
+from hybrid_pk.calibration.diagnosis import diagnose
 from hybrid_pk.calibration.fit import fit, initialise_frames
 from hybrid_pk.cli.calibrate_output import (
     add_urdf_options,

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from hybrid_pk.calibration.diagnosis.search import _report_value
+from hybrid_pk.calibration.diagnosis import report_value
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.effects import ExtendedModel
 from hybrid_pk.evaluation.metrics import error_stats
@@ -34,7 +34,7 @@ def effect_rows(model: ExtendedModel, res: FitResult) -> list[dict]:
     """Value, 1-sigma std and unit of every effect of a fit (reporting convention)."""
     rows = []
     for e in model.effects:
-        value, std, components = _report_value(e, res.std[res.block_slice(e.label)])
+        value, std, components = report_value(e, res.std[res.block_slice(e.label)])
         row = {"effect": e.label, "value": value, "std": std, "unit": e.unit}
         if components is not None:
             row["components"] = components

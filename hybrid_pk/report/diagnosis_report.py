@@ -261,7 +261,7 @@ def write_diagnosis_report(
     """Write ``out_dir/report.md`` and its PNG plots for a diagnosis.
 
     Args:
-        diagnosis: result of :func:`hybrid_pk.calibration.diagnosis.search.diagnose`.
+        diagnosis: result of :func:`hybrid_pk.calibration.diagnosis.diagnose`.
         data: the rows it was computed on (same order).
         robot: the nominal robot.
         out_dir: folder to write to (created); image links are relative to it.

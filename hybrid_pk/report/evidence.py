@@ -201,7 +201,7 @@ def cause_evidence(
     """The evidence of one diagnosed cause (see the module doc for the computation).
 
     Args:
-        cause: a :class:`~hybrid_pk.calibration.diagnosis.search.Cause`.
+        cause: a :class:`~hybrid_pk.calibration.diagnosis.Cause`.
         data: all measured rows.
         model: the fitted extended model that holds the cause's effect.
         nominal_model: URDF + frames fitted without any cause; when given,

@@ -1,0 +1,82 @@
+"""Backward elimination and leave-one-out gains of the chosen causes.
+
+A cause chosen early may have stood in for one chosen later (an eccentricity
+``sin(q)`` looks like a gear ratio ``q`` over a small range): after each addition,
+every earlier cause is tested by the F-test of removing it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from hybrid_pk.calibration.diagnosis.split import Split
+from hybrid_pk.calibration.diagnosis.statistics import f_survival, weighted_ssr
+from hybrid_pk.calibration.diagnosis.variants import refit_without, without_effect
+from hybrid_pk.calibration.fit import FitResult, fit
+from hybrid_pk.effects import ExtendedModel
+
+__all__ = ["eliminate"]
+
+
+def eliminate(
+    model: ExtendedModel,
+    res: FitResult,
+    split: Split,
+    alpha: float,
+    newest: str,
+    steps: list[dict],
+    say: Callable[[str], None],
+) -> tuple[ExtendedModel, FitResult, set[str]]:
+    """Drop earlier causes that are no longer significant given the others.
+
+    Each cause but ``newest`` is tested by the F-test of removing it (the reduced model
+    refitted, both residuals under the full fit's weights) at the Bonferroni level
+    ``alpha / #causes``; the least significant failing one is removed, the model
+    refitted, and the test repeated. Removals are logged in ``steps``.
+    """
+    train, cond = split.train, split.cond_fit
+    removed: set[str] = set()
+    while len(model.effects) > 1:
+        threshold = alpha / len(model.effects)
+        worst = _least_significant(model, res, split, threshold, newest)
+        if worst is None:
+            break
+        label, p, F = worst
+        say(f"removing {label}: no longer significant")
+        steps.append(
+            {
+                "candidate": label,
+                "removed": True,
+                "removal_F": F,
+                "removal_p": p,
+                "threshold": threshold,
+                "accepted": False,
+                "why": "backward elimination: no longer significant once later causes were added",
+            }
+        )
+        model = without_effect(model, label)
+        res = fit(model, train, cond=cond, initial_sigma=(res.sigma_pos_mm, res.sigma_rot_rad))
+        removed.add(label)
+    return model, res, removed
+
+
+def _least_significant(
+    model: ExtendedModel, res: FitResult, split: Split, threshold: float, newest: str
+) -> tuple[str, float, float] | None:
+    """``(label, p, F)`` of the cause (not ``newest``) whose removal is least significant,
+    among those with ``p >= threshold``; None when every cause is significant."""
+    train, cond = split.train, split.cond_fit
+    ssr_full = weighted_ssr(model, train, cond, res)
+    dof = max(res.n_obs - res.n_params, 1)
+    worst = None
+    for e in model.effects:
+        if e.label == newest:
+            continue
+        reduced = refit_without(model, e.label, train, cond, res)
+        k = e.value.numel()
+        ssr_red = weighted_ssr(reduced, train, cond, res)
+        F = ((ssr_red - ssr_full) / k) / max(ssr_full / dof, 1e-300)
+        p = f_survival(F, k, dof) if F > 0 else 1.0
+        if p >= threshold and (worst is None or p > worst[1]):
+            worst = (e.label, p, F)
+    return worst

@@ -1,0 +1,242 @@
+"""Forward selection: score every candidate from one Jacobian, refit the best one.
+
+At the current model, one Jacobian of *every* candidate effect gives each candidate's
+score: the drop of the (noise-normalised) sum of squares it would bring once projected
+off what the model already explains (a Lagrange multiplier / score test, linear in the
+candidates). The best candidate is added and the model refitted; it stays only if the
+refit passes an F-test at ``alpha / n_candidates`` (Bonferroni over the candidates
+tried), lowers BIC and lowers the hold-out error.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from hybrid_pk.calibration.diagnosis.ambiguity import (
+    equivalent_to_frame,
+    frame_of_equivalence,
+    projector_residual,
+)
+from hybrid_pk.calibration.diagnosis.split import Split
+from hybrid_pk.calibration.diagnosis.statistics import f_survival, holdout_score, weighted_ssr
+from hybrid_pk.calibration.diagnosis.variants import with_effects
+from hybrid_pk.calibration.fit import FitResult, fit
+from hybrid_pk.calibration.problem import Problem, param_blocks
+from hybrid_pk.data.measured import MeasuredData
+from hybrid_pk.effects import EFFECTS, ExtendedModel, effect_joint_names, make_effect
+from hybrid_pk.robot import Robot
+
+__all__ = [
+    "CandidateScore",
+    "Scores",
+    "candidate_labels",
+    "score_candidates",
+    "try_candidate",
+]
+
+# A candidate whose signature keeps less than this fraction of its norm once projected
+# off the current model's columns is taken as equivalent to them (unidentifiable).
+EQUIVALENCE_FRACTION = 1e-8
+# Singular values of a candidate's projected signature below this fraction of its own
+# norm are directions the current model already explains.
+RANK_TOLERANCE = 1e-4
+# Temperature must vary by at least this much [K] for thermal expansion to be tested.
+MIN_TEMPERATURE_SPREAD = 0.5
+
+
+def candidate_labels(robot: Robot, data: MeasuredData) -> list[str]:
+    """Every effect of the vocabulary that this data could reveal."""
+    labels = []
+    for kind, cls in EFFECTS.items():
+        if not cls.per_joint:
+            continue
+        for i, joint in enumerate(effect_joint_names(robot, cls)):
+            if cls.stage == "geometry" and i == 0:
+                continue  # origin 0 is the base frame's business
+            if kind in ("gear_ratio", "joint_eccentricity", "backlash", "joint_compliance") and (
+                robot.joint_types[i] == "prismatic"
+            ):
+                continue
+            if kind == "column_bending" and robot.chain_joint_types[i] != "prismatic":
+                continue  # a column's bending grows with its extension
+            labels.append(f"{kind}:{joint}")
+    if data.temperature is not None:
+        spread = float(data.temperature.max() - data.temperature.min())
+        if spread >= MIN_TEMPERATURE_SPREAD:
+            labels.append("thermal_expansion")
+    return labels
+
+
+@dataclass(frozen=True)
+class CandidateScore:
+    """Score test of one candidate at the current model.
+
+    Attributes:
+        label: effect label.
+        k: identifiable directions of its signature (rank after projection).
+        F, p: score-test statistic and p-value.
+        bic_gain: ``-(drop - k log m)``, the ranking key (lower is better).
+        signature: ``(m, size)`` its Jacobian columns projected off the model's.
+        fitted: ``(m,)`` the correction it would make to the residuals.
+    """
+
+    label: str
+    k: int
+    F: float
+    p: float
+    bic_gain: float
+    signature: Tensor
+    fitted: Tensor
+
+
+@dataclass
+class Scores:
+    """All candidates' score tests at one step.
+
+    Attributes:
+        scored: the candidates with an identifiable signature, in pool order.
+        ranked: the same, best first (significant ones first, then by BIC gain).
+        m, n_current: residual count and the current model's parameter count.
+        threshold: Bonferroni level ``alpha / len(scored)``.
+        unobservable: candidates without any signature in this data.
+        equivalent: ambiguity entries of candidates that a frame or effect absorbs.
+    """
+
+    scored: list[CandidateScore]
+    m: int
+    n_current: int
+    threshold: float = math.nan
+    unobservable: list[str] = field(default_factory=list)
+    equivalent: list[dict] = field(default_factory=list)
+
+    @property
+    def ranked(self) -> list[CandidateScore]:
+        return sorted(self.scored, key=lambda sc: (sc.p >= self.threshold, sc.bic_gain))
+
+    @property
+    def signatures(self) -> dict[str, Tensor]:
+        """Projected signature of every scored candidate, in pool order."""
+        return {s.label: s.signature for s in self.scored}
+
+
+def score_candidates(
+    model: ExtendedModel,
+    res: FitResult,
+    pool: list[str],
+    split: Split,
+    alpha: float,
+    name_equivalents: bool,
+) -> Scores:
+    """Score every candidate of ``pool`` against ``model`` from one Jacobian.
+
+    Candidates with no signature are ``unobservable``; those inside the current
+    columns are dropped (and, with ``name_equivalents``, reported as equivalent to
+    the frame or effect that explains them).
+    """
+    robot = model.robot
+    trial = with_effects(model, [make_effect(robot, c) for c in pool])
+    blocks = param_blocks(trial, None, split.position_only)
+    sig_r = res.sigma_rot_rad or 1.0
+    problem = Problem(trial, split.train, split.cond_fit, blocks, res.sigma_pos_mm, sig_r)
+    r, J = problem.jacobian(torch.zeros_like(problem.x0))
+    current_blocks = blocks[: len(blocks) - len(pool)]
+    n_cur = sum(b.size for b in current_blocks)
+    J_cur, J_pool = J[:, :n_cur], J[:, n_cur:]
+    Q, _ = torch.linalg.qr(J_cur)
+    ssr = float(r @ r)
+    m = r.numel()
+    out = Scores(scored=[], m=m, n_current=n_cur)
+    start = 0
+    for b, label in zip(blocks[len(blocks) - len(pool) :], pool, strict=True):
+        Jc = J_pool[:, start : start + b.size]
+        start += b.size
+        Jp = projector_residual(Jc, Q)
+        norm_c = float(Jc.norm() ** 2)
+        frac = float(Jp.norm() ** 2) / max(norm_c, 1e-300)
+        if norm_c < 1e-20:
+            out.unobservable.append(label)  # no signature at all in this data
+            continue
+        if frac < EQUIVALENCE_FRACTION:
+            if name_equivalents:
+                other = frame_of_equivalence(Jc, J_cur, current_blocks)
+                out.equivalent.append(equivalent_to_frame(label, other, frac))
+            continue
+        score = _score_test(label, Jc, Jp, r, ssr, m, n_cur)
+        if score is not None:
+            out.scored.append(score)
+    if out.scored:
+        out.threshold = alpha / len(out.scored)
+    return out
+
+
+def _score_test(
+    label: str, Jc: Tensor, Jp: Tensor, r: Tensor, ssr: float, m: int, n_cur: int
+) -> CandidateScore | None:
+    """F-test of adding the projected signature ``Jp``; None when it has no rank."""
+    # Rank-revealing projection: directions of the candidate that the model already
+    # explains (e.g. a misalignment about a neighbouring parallel axis after that
+    # joint's offset was chosen) carry no information.
+    U, S, _ = torch.linalg.svd(Jp, full_matrices=False)
+    keep = S > RANK_TOLERANCE * float(Jc.norm())
+    k = int(keep.sum())
+    if k == 0:
+        return None
+    Ur = U[:, keep]
+    fitted = Ur @ (Ur.T @ r)  # the correction this candidate would make
+    drop = min(float(fitted @ fitted), ssr)
+    F = (drop / k) / max((ssr - drop) / max(m - n_cur - k, 1), 1e-300)
+    p = f_survival(F, k, max(m - n_cur - k, 1))
+    # Rank significant candidates by BIC gain: among equally certain ones (p-values
+    # underflow to 0) the one with fewer parameters wins ties.
+    return CandidateScore(label, k, F, p, -(drop - k * math.log(m)), Jp, fitted)
+
+
+def try_candidate(
+    model: ExtendedModel,
+    res: FitResult,
+    score: CandidateScore,
+    scores: Scores,
+    split: Split,
+) -> tuple[ExtendedModel, FitResult, dict]:
+    """Refit ``model`` with the candidate; F-test, BIC and hold-out decide.
+
+    Returns the refitted model, its fit and the step record (``accepted`` says whether
+    the candidate stays).
+    """
+    label, k, m = score.label, score.k, scores.m
+    step = {
+        "candidate": label,
+        "score_F": score.F,
+        "score_p": score.p,
+        "threshold": scores.threshold,
+    }
+    new = with_effects(model, [make_effect(model.robot, label)])
+    sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
+    new_res = fit(new, split.train, cond=split.cond_fit, initial_sigma=sigmas)
+    # F-test and BIC of the refit, both models' residuals under the same weights.
+    ssr_old = weighted_ssr(model, split.train, split.cond_fit, res)
+    ssr_new = weighted_ssr(new, split.train, split.cond_fit, res)
+    dof_new = max(m - new_res.n_params, 1)
+    F_fit = ((ssr_old - ssr_new) / k) / max(ssr_new / dof_new, 1e-300)
+    p_fit = f_survival(F_fit, k, dof_new) if F_fit > 0 else 1.0
+    d_bic = m * math.log(max(ssr_new, 1e-300) / max(ssr_old, 1e-300)) + k * math.log(m)
+    # Same weights on both sides (the refit's noise estimate is smaller).
+    current_hold = holdout_score(model, split.test, split.cond_hold, res)
+    new_hold = holdout_score(new, split.test, split.cond_hold, res)
+    step.update(
+        {
+            "fit_F": F_fit,
+            "fit_p": p_fit,
+            "delta_bic": d_bic,
+            "holdout_score_before": current_hold,
+            "holdout_score_after": new_hold,
+        }
+    )
+    step["accepted"] = p_fit < scores.threshold and d_bic < 0 and new_hold < current_hold
+    if not step["accepted"]:
+        step["why"] = "refit not significant, BIC not lower, or hold-out not better"
+    return new, new_res, step

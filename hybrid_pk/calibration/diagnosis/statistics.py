@@ -1,0 +1,81 @@
+"""Test statistics of the diagnosis: F distribution, weighted sums of squares, structure."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from hybrid_pk.calibration.fit import FitResult
+from hybrid_pk.calibration.problem import Problem
+from hybrid_pk.data.measured import MeasuredData
+from hybrid_pk.effects import Conditions, ExtendedModel
+
+__all__ = [
+    "f_survival",
+    "holdout_score",
+    "neighbour_structure",
+    "residual_vectors",
+    "weighted_ssr",
+]
+
+
+def f_survival(F: float, d1: int, d2: int) -> float:
+    """Survival function of the F distribution (scipy imported on first use: slow)."""
+    from scipy import stats
+
+    return float(stats.f.sf(F, d1, d2))
+
+
+def weighted_ssr(
+    model: ExtendedModel, data: MeasuredData, cond: Conditions, res: FitResult
+) -> float:
+    """Sum of squared residuals of ``model`` on ``data`` under ``res``'s noise weights."""
+    problem = Problem(model, data, cond, (), res.sigma_pos_mm, res.sigma_rot_rad or 1.0)
+    with torch.no_grad():
+        r = problem.residual(torch.zeros(0, dtype=torch.float64))
+    return float(r @ r)
+
+
+def holdout_score(
+    model: ExtendedModel, test: MeasuredData, cond: Conditions, res: FitResult
+) -> float:
+    """Hold-out sum of squares per row under the fit's noise weights (position and
+    rotation)."""
+    return weighted_ssr(model, test, cond, res) / max(test.n, 1)
+
+
+def residual_vectors(model: ExtendedModel, data: MeasuredData, cond: Conditions) -> Tensor:
+    """``(N, 3)`` position [mm] (and rotation [mrad]: ``(N, 6)``) residuals per row."""
+    problem = Problem(model, data, cond, (), 1.0, 1e-3)  # mm and mrad
+    with torch.no_grad():
+        r = problem.residual(torch.zeros(0, dtype=torch.float64))
+    k = 6 if data.quat is not None else 3
+    return r.reshape(k // 3, data.n, 3).permute(1, 0, 2).reshape(data.n, k)
+
+
+def neighbour_structure(
+    residual: Tensor, q: Tensor, lower: Tensor, upper: Tensor
+) -> tuple[bool, float]:
+    """Do neighbouring configurations share their residuals? (smooth leftover error)
+
+    Returns ``(structured, correlation)``: the correlation of each row's residual with
+    its nearest neighbour's in normalised joint space, and whether it exceeds both
+    0.1 and 4 sigma of its no-structure distribution.
+    """
+    n = residual.shape[0]
+    if n < 20:
+        return False, 0.0
+    span = torch.where(torch.isfinite(upper - lower), upper - lower, 2 * math.pi)
+    x = (q - lower.where(torch.isfinite(lower), -math.pi)) / span
+    d = torch.cdist(x, x)
+    d.fill_diagonal_(math.inf)
+    nn_idx = d.argmin(1)
+    a = residual.reshape(n, -1)
+    a = a - a.mean(0)
+    b = a[nn_idx]
+    corr = float((a * b).sum() / (a.norm() * b.norm()).clamp_min(1e-300))
+    # Under no structure the correlation is ~N(0, 1/(n*k)); 4 sigma is "structured".
+    threshold = 4.0 / math.sqrt(a.numel())
+    return corr > max(threshold, 0.1), corr
