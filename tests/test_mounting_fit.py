@@ -353,3 +353,39 @@ def test_cli_gravity_errors_are_one_line(tmp_path, capsys):
               "--out", str(tmp_path / "x.csv")])  # fmt: skip
     assert rc != 0
     assert "tilt:DEG" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- evidence
+
+
+@pytest.mark.parametrize(
+    ("urdf", "label", "value"),
+    [
+        ("rx160", "tilt_compliance:joint_2", [1e-6, 2e-6]),
+        (str(ARM7), "column_bending:j4", [4e-4, 2e-4]),
+    ],
+)
+def test_deflection_evidence_shows_the_law_and_a_plot(tmp_path, urdf, label, value):
+    """The partial residual's tilt against the predicted tilt: slope 1 (points_value =
+    the value) when the deflection is there, and a plot file."""
+    from hybrid_pk.calibration.diagnosis import Cause
+    from hybrid_pk.report.evidence import cause_evidence
+    from hybrid_pk.report.plots import evidence_plot
+
+    robot = _robot(urdf)
+    data, _ = simulate_campaign(
+        robot, 300, [make_effect(robot, label, value)], noise_mm=0.005, payload=10.0, seed=8
+    )
+    model = ExtendedModel(robot, [make_effect(robot, label)])
+    cond = conditions_from_data(data)
+    initialise_frames(model, data, cond)
+    fit(model, data, cond=cond)
+    fitted = model.effects[0].report_value()
+    kind, joint = label.split(":")
+    cause = Cause(kind, joint, fitted, model.effects[0].unit, [0.0, 0.0], 0.1, 0.0, "")
+    ev = cause_evidence(cause, data, model)
+    assert ev.points_value == pytest.approx(ev.value, rel=0.1), (ev.points_value, ev.value)
+    assert ev.value == pytest.approx(float(np.linalg.norm(value)), rel=0.05)
+    assert ev.x.shape == ev.y.shape
+    assert ev.x.size >= 300  # both components of most rows
+    assert evidence_plot(ev, tmp_path / "tilt.png").stat().st_size > 10_000

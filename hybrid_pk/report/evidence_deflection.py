@@ -73,7 +73,7 @@ def deflection_evidence(cause, label, title, data, model, res, frames) -> dict:
     curve_x = np.array([-span, span])
     mx, my = binned_median(x, y)
     joint = cause.joint
-    per = " per metre of extension" if cause.effect == "column_bending" else ""
+    per = " x extension" if cause.effect == "column_bending" else ""
     return {
         "label": label,
         "title": title,
@@ -81,8 +81,8 @@ def deflection_evidence(cause, label, title, data, model, res, frames) -> dict:
         "y": y,
         "weight": w,
         "rows": np.tile(rows, 2),
-        "x_label": f"tilt of {joint} the gravity moment predicts, about e1 and e2 [mrad]",
-        "y_label": f"tilt of {joint} the residual shows, same axis [mrad]",
+        "x_label": f"tilt of {joint} the gravity moment predicts, about e1, e2 [mrad]",
+        "y_label": "tilt the residual shows, same axis [mrad]",
         "curve_x": curve_x,
         "curve_y": curve_x.copy(),
         "median_x": mx,
@@ -90,6 +90,5 @@ def deflection_evidence(cause, label, title, data, model, res, frames) -> dict:
         "value": magnitude,
         "points_value": slope * magnitude,
         "unit": cause.unit,
-        "law": f"tilt about each axis perpendicular to {joint} = compliance{per} x gravity "
-        "moment about it: measured against predicted, a slope-1 line",
+        "law": f"tilt = compliance{per} x moment, each axis: slope 1",
     }
