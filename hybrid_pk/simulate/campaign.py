@@ -198,17 +198,15 @@ def simulate_campaign(
         noise_deg: std of the noise rotation vector, per axis [deg].
         trajectory: one of ``random``, ``continuous``, ``iso-cube``, ``zigzag``.
         payload: mass at the flange [kg], the same for every row.
-        payload_range: ``(lo, hi)`` [kg]: the rows come in blocks at payloads spread
-            over the range (instead of ``payload``).
+        payload_range: ``(lo, hi)`` [kg]: blocks of rows at payloads spread over it.
         temperature_range: ``(start, end)`` [°C] of a warm-up drift over the campaign;
             None writes no temperature column.
         position_only: write no orientation (``qw..qz``).
         known_frames: measure in the robot root frame at the flange (identity frames).
-        mount: how the robot is mounted: ``--mount`` text (``ceiling``, ``wall``,
-            ``tilt:DEG[,AZ]``, ``floor``), a :class:`Mount`, or a root-frame
-            :class:`Gravity`; the tracker is then level and the truth base frame holds
-            the mount rotation. None: upright, and the tracker tilted up to
-            ``TRACKER_TILT_DEG`` (the campaigns before mountings existed).
+        mount: ``--mount`` text (``ceiling``, ``wall``, ``tilt:DEG[,AZ]``, ``floor``), a
+            :class:`Mount` or a root-frame :class:`Gravity`: the tracker is then level,
+            the truth base frame holds the mount rotation. None: upright, the tracker
+            tilted up to ``TRACKER_TILT_DEG`` (as before mountings existed).
         seed: every random draw comes from it.
         progress: show a progress bar on stderr when it takes more than 2 s.
 
@@ -217,7 +215,7 @@ def simulate_campaign(
         ``"<simulated>"``) and the truth dict written as ``FILE.truth.json``.
 
     Raises:
-        HybridPKError: bad arguments, an effect that needs a missing condition, or a
+        HybridPKError: bad arguments, an effect whose condition is missing, or a
             Cartesian trajectory the robot cannot reach.
     """
     _check_args(n, seed, noise_mm, noise_deg, trajectory, payload, payload_range, temperature_range)
@@ -227,12 +225,7 @@ def simulate_campaign(
     mean_payload = payload if payload_range is None else sum(payload_range) / 2
     mounting = _mounting(mount)
     gravity = Gravity() if mounting is None else mounting.gravity
-    if spec is not None:
-        effects = parse_effects(robot, spec, seed=seed, payload=mean_payload, gravity=gravity)
-    effects = list(effects)
-    for e in effects:
-        if e.needs == "temperature" and temperature_range is None:
-            raise HybridPKError(f"{e.label} needs a temperature; give a temperature range")
+    effects = _effects(robot, effects, seed, mean_payload, gravity, temperature_range)
 
     dt = robot.dtype
     with torch.no_grad():
@@ -250,35 +243,13 @@ def simulate_campaign(
         )
         true_model = ExtendedModel(robot, effects, base=base, tool=tool, gravity=gravity)
         nominal_model = ExtendedModel(robot, [], base=base, tool=tool)
-        T_true = torch.empty(n, 4, 4, dtype=dt)
-        T_nominal = torch.empty(n, 4, 4, dtype=dt)
-        with tqdm(
-            total=n, desc="simulate", unit="row", delay=2.0, file=sys.stderr, disable=not progress
-        ) as bar:
-            for start in range(0, n, _CHUNK):
-                rows = slice(start, min(start + _CHUNK, n))
-                T_true[rows] = true_model(q[rows], cond.subset(rows))
-                T_nominal[rows] = nominal_model(q[rows])
-                bar.update(rows.stop - rows.start)
-
+        T_true, T_nominal = _true_and_nominal(true_model, nominal_model, q, cond, progress)
         noise = streams["noise"]
         position = T_true[:, :3, 3] + 1e-3 * noise_mm * torch.randn(n, 3, generator=noise, dtype=dt)
         w = math.radians(noise_deg) * torch.randn(n, 3, generator=noise, dtype=dt)
         quat = None if position_only else matrix_to_quat(T_true[:, :3, :3] @ so3_exp(w))
 
-    err = pose_error(T_true, T_nominal)
-    data = MeasuredData(
-        q=q,
-        position=position,
-        quat=quat,
-        joint_names=tuple(robot.joint_names),
-        file_index=torch.zeros(n, dtype=torch.long),
-        rows=torch.arange(1, n + 1),
-        sources=(SIMULATED_SOURCE,),
-        t=traj.t,
-        temperature=cond.temperature,
-        payload=cond.payload,
-    )
+    data = _table(robot, q, position, quat, traj.t, cond)
     truth = {
         "robot": robot.name,
         "n": n,
@@ -297,6 +268,59 @@ def simulate_campaign(
         "gravity": list(gravity.vector),
         "effects_spec": spec,
         "effects_hidden": bool(spec is not None and is_hidden_spec(spec)),
+        **_truth_of_model(robot, effects, base, tool, T_true, T_nominal, trajectory),
+    }
+    return data, truth
+
+
+def _effects(robot, effects, seed, payload, gravity, temperature_range) -> list[Effect]:
+    """The effects to inject (an ``--effects`` text parsed), checked for their conditions."""
+    if isinstance(effects, str):
+        effects = parse_effects(robot, effects, seed=seed, payload=payload, gravity=gravity)
+    effects = list(effects)
+    for e in effects:
+        if e.needs == "temperature" and temperature_range is None:
+            raise HybridPKError(f"{e.label} needs a temperature; give a temperature range")
+    return effects
+
+
+def _table(robot, q, position, quat, t, cond: Conditions) -> MeasuredData:
+    """The simulated rows as one measured file."""
+    n = q.shape[0]
+    return MeasuredData(
+        q=q,
+        position=position,
+        quat=quat,
+        joint_names=tuple(robot.joint_names),
+        file_index=torch.zeros(n, dtype=torch.long),
+        rows=torch.arange(1, n + 1),
+        sources=(SIMULATED_SOURCE,),
+        t=t,
+        temperature=cond.temperature,
+        payload=cond.payload,
+    )
+
+
+def _true_and_nominal(true_model, nominal_model, q: Tensor, cond: Conditions, progress: bool):
+    """Poses ``(N, 4, 4)`` of the robot with its effects and of the nominal one."""
+    n, dt = q.shape[0], q.dtype
+    T_true = torch.empty(n, 4, 4, dtype=dt)
+    T_nominal = torch.empty(n, 4, 4, dtype=dt)
+    with tqdm(
+        total=n, desc="simulate", unit="row", delay=2.0, file=sys.stderr, disable=not progress
+    ) as bar:
+        for start in range(0, n, _CHUNK):
+            rows = slice(start, min(start + _CHUNK, n))
+            T_true[rows] = true_model(q[rows], cond.subset(rows))
+            T_nominal[rows] = nominal_model(q[rows])
+            bar.update(rows.stop - rows.start)
+    return T_true, T_nominal
+
+
+def _truth_of_model(robot, effects, base, tool, T_true, T_nominal, trajectory) -> dict:
+    """Effects, frames, dataset error (and ISO cube) entries of the truth JSON."""
+    err = pose_error(T_true, T_nominal)
+    truth = {
         "effects": [effect_entry(e) for e in effects],
         "base_frame": base.to(torch.float64).tolist(),
         "tool_frame": tool.to(torch.float64).tolist(),
@@ -313,4 +337,4 @@ def simulate_campaign(
             "rotation": cube.rotation.tolist(),
             "points": cube.points.tolist(),  # P1..P5 of the end link, root frame [m]
         }
-    return data, truth
+    return truth
