@@ -63,9 +63,20 @@ def _joints_for(robot: hpk.Robot, kind: str, payload: float, gravity=None) -> li
         return out
     if kind == "link_length":  # a length error along the link itself
         return [n for i, n in enumerate(names[1:], 1) if _link_direction(robot, i) is not None]
-    if kind == "axis_misalignment":
-        return names[1:]
+    if kind == "axis_misalignment":  # that moves the flange (the campaigns' size measure)
+        return [n for n in names[1:] if _moves_flange(robot, f"{kind}:{n}")]
     raise AssertionError(kind)
+
+
+def _moves_flange(robot: hpk.Robot, label: str) -> bool:
+    """Whether a small effect moves the flange's origin at all. A misalignment of the
+    RX160's last origin only turns the flange about its own centre: its size, measured
+    as a position error at the flange, would be zero."""
+    q = robot.sample_q(16, torch.Generator().manual_seed(0))
+    values = (1e-3 * torch.ones(make_effect(robot, label).value.shape)).tolist()
+    with torch.no_grad():
+        moved = ExtendedModel(robot, [make_effect(robot, label, values)])(q)[:, :3, 3]
+        return bool((moved - robot.fk(q)[:, :3, 3]).norm(dim=-1).max() > 1e-9)
 
 
 def _link_direction(robot: hpk.Robot, index: int) -> torch.Tensor | None:
