@@ -25,7 +25,7 @@ Experiments (markdown table and JSON in ``--out``):
 
 A. Acceptance: 20,000 training rows (10 % of them held out for validation), 10,000
    random test rows. *Ours*: calibrate (effects diagnosed on 2,000 of the rows —
-   ``--effects LIST`` names them instead — and fitted on all) + two MLPs (fast
+   ``--effects LIST`` names them instead — and fitted on all) + two MLPs (joints
    preset). *Paper*: nominal model + fitted frames + D4w (position) / Rw
    (orientation) with the paper's settings, epochs capped by a compute budget (the
    paper trained 400,000 rows for up to 300 epochs on a GPU). With ``--nominal-mlp``
@@ -34,7 +34,7 @@ B. Table I: every architecture (B1-B4, D1, D4, D4w, D4W, Rw, Rd) on 2,000 traini
    rows with the paper's settings, once on the nominal model + frames (paper) and
    once on the calibrated model (ours); each training gets the same compute budget
    (floating-point operations, default 2e11), at most 100 epochs, early stopping.
-C. Fig. 5: error vs number of training rows, paper vs ours, with the fast preset.
+C. Fig. 5: error vs number of training rows, paper vs ours, with the joints preset.
 """
 
 from __future__ import annotations
@@ -244,7 +244,7 @@ def acceptance(robot, train_rows, test_rows, plan, seed, out, effects) -> tuple[
 
     archs = (plan.ours_arch, plan.ours_arch)
     logs = out / "logs_ours"
-    hybrid, sec, ep = train(ext, train_rows, archs, "fast", plan.ours_epochs, seed, logs)
+    hybrid, sec, ep = train(ext, train_rows, archs, "joints", plan.ours_epochs, seed, logs)
     res["ours"] = {**evaluate(hybrid, test_rows), "seconds": sec, "epochs": ep, "archs": archs}
     log(f"  ours: {_short(res['ours'])} ({ep} epochs, {sec:.0f} s)")
 
@@ -278,7 +278,7 @@ def figure_five(robot, train_rows, labels, test_rows, plan, seed) -> dict:
         nominal, ext = frames_only(robot, rows), calibrated(robot, rows, labels)
         entry = {}
         for name, base in (("paper", nominal), ("ours", ext)):
-            hybrid, sec, ep = train(base, rows, archs, "fast", plan.fig5_epochs, seed)
+            hybrid, sec, ep = train(base, rows, archs, "joints", plan.fig5_epochs, seed)
             entry[name] = {**evaluate(hybrid, test_rows), "seconds": sec, "epochs": ep}
         log(f"  n={n:>6}: paper {_short(entry['paper'])} | ours {_short(entry['ours'])}")
         out[str(n)] = entry
@@ -383,7 +383,7 @@ def _table_one_lines(results: dict) -> list[str]:
 
 def _figure_five_lines(results: dict) -> list[str]:
     lines = [
-        f"## C. Fig. 5: error vs training rows (fast preset, {results['fig5_arch']})",
+        f"## C. Fig. 5: error vs training rows (joints preset, {results['fig5_arch']})",
         "",
         "| training rows | paper: nominal + net | ours: physics + net |",
         "|---:|---|---|",
@@ -561,7 +561,7 @@ def main(argv: list[str] | None = None) -> int:
         log("A'. our networks on the nominal model + frames")
         archs = (plan.ours_arch, plan.ours_arch)
         nominal = frames_only(robot, train_rows)
-        hybrid, sec, ep = train(nominal, train_rows, archs, "fast", plan.ours_epochs, args.seed)
+        hybrid, sec, ep = train(nominal, train_rows, archs, "joints", plan.ours_epochs, args.seed)
         results["nominal_mlp"] = {
             **evaluate(hybrid, test_rows),
             "seconds": sec,

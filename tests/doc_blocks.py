@@ -38,6 +38,8 @@ The convention (also in ``docs/code_blocks.md``):
                         ``expect`` checks, by ``python -m tests.doc_blocks --long DOC``.
 
 ``tests/test_docs.py`` runs every document's blocks except the long ones.
+``python -m tests.doc_blocks README.md --block LINE --in DIR`` runs one block exactly as
+written in DIR (e.g. the Python example in a demo's output folder).
 """
 
 from __future__ import annotations
@@ -53,7 +55,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["Block", "BlockFailure", "parse_blocks", "run_document"]
+__all__ = ["Block", "BlockFailure", "parse_blocks", "run_block_as_written", "run_document"]
 
 REPO = Path(__file__).resolve().parents[1]
 CODE_TAGS = {"bash": "bash", "sh": "bash", "shell": "bash", "python": "python"}
@@ -278,11 +280,43 @@ def run_document(
     return done
 
 
+def run_block_as_written(
+    doc: str | Path, line: int, folder: str | Path, timeout: float = 600.0
+) -> str:
+    """Run the block of ``doc`` that opens at ``line`` exactly as written (no directive
+    applied) in ``folder``, e.g. the README's Python example in a demo's output folder.
+
+    Returns:
+        Its output. Raises :class:`BlockFailure` if it fails.
+    """
+    block = next((b for b in parse_blocks(Path(doc).resolve()) if b.line == line), None)
+    if block is None:
+        raise BlockFailure(f"{Path(doc).name}:{line} opens no code block")
+    with tempfile.TemporaryDirectory(prefix="docblocks_") as tmp:
+        root = Path(tmp)
+        _workspace(root)
+        plain = Block(block.doc, block.line, block.lang, block.code, {"timeout": [str(timeout)]})
+        return _run_block(plain, Path(folder).resolve(), _environment(root), root / "state.sh")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description="Run the code blocks of Markdown documents.")
     parser.add_argument("docs", nargs="+", help="Markdown files")
     parser.add_argument("--long", action="store_true", help="also run the blocks marked long")
+    parser.add_argument(
+        "--block", type=int, metavar="LINE", help="run only the block opening at LINE, as written"
+    )
+    parser.add_argument("--in", dest="folder", metavar="DIR", help="with --block: run it in DIR")
+    parser.add_argument("--timeout", type=float, default=600.0, help="with --block: seconds")
     args = parser.parse_args(argv)
+    if args.block is not None:
+        try:
+            out = run_block_as_written(args.docs[0], args.block, args.folder or ".", args.timeout)
+            print(out, end="")
+        except BlockFailure as exc:
+            print(f"FAILED {exc}", file=sys.stderr)
+            return 1
+        return 0
     for doc in args.docs:
         try:
             run_document(doc, long=args.long, log=print)

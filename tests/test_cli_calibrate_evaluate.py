@@ -271,8 +271,8 @@ def test_effects_auto_fits_the_diagnosed_causes(campaign, capsys, tmp_path, monk
     robot = Robot.from_urdf("rx160")
     seen = {}
 
-    def fake_diagnose(robot_arg, data, *, holdout, seed, frames_per_file, progress, gravity):
-        seen.update(holdout=holdout, seed=seed, n=data.n, upright=gravity.is_default)
+    def fake_diagnose(robot_arg, data, *, holdout, seed, frames_per_file, progress, **priors):
+        seen.update(holdout=holdout, seed=seed, n=data.n, upright=priors["gravity"].is_default)
         progress("scoring candidates")
         cause = types.SimpleNamespace(effect="joint_offset", joint="joint_3")
         model = ExtendedModel(robot_arg, [make_effect(robot_arg, "joint_offset:joint_3", 7e-4)])
@@ -305,7 +305,8 @@ def test_effects_auto_fits_the_diagnosed_causes(campaign, capsys, tmp_path, monk
 
 def test_constant_orientation_registers_and_warns_of_unidentifiable_frames(tmp_path, capsys):
     """ISO 9283 cube poses keep the flange orientation: the hand-eye rotation is noise,
-    so registration falls back to points, and calibrate says the frames are unreliable."""
+    so registration falls back to points, and calibrate names the tool translation as
+    not determined (held at the flange origin by the prior) instead of walking off."""
     sim = tmp_path / "cube.csv"
     rc, _, err = _run(
         capsys, "simulate", "rx160", "--n", "200", "--trajectory", "iso-cube", "--noise-mm",
@@ -317,7 +318,8 @@ def test_constant_orientation_registers_and_warns_of_unidentifiable_frames(tmp_p
         capsys, "calibrate", str(sim), "--robot", "rx160", "--effects", "none", "--out", str(model)
     )
     assert rc == 0, err
-    assert "warning: condition number" in out
+    assert "warning: tool translation (all three components): not determined" in out
+    assert "warning: condition number" not in out  # the prior holds what the data cannot
     js = tmp_path / "eval.json"
     rc, _, err = _run(capsys, "evaluate", str(model), str(sim), "--json", str(js))
     assert rc == 0, err

@@ -38,7 +38,13 @@ def test_document_blocks_run(doc):
     text = doc.read_text(encoding="utf-8")
     if "../shared/data" in text and not SHARED.is_dir():
         pytest.skip(f"{doc.name} reads the shared data, not found at {SHARED}")
-    done = run_document(doc)
+    failure, done = None, []
+    try:
+        done = run_document(doc)
+    except BlockFailure as exc:
+        failure = str(exc)
+    if failure:  # the block, its line and its output; no harness internals
+        pytest.fail(failure, pytrace=False)
     assert any(status == "ran" for _, status, _ in done)
 
 

@@ -18,7 +18,7 @@ from hybrid_pk.hybrid import (
     count_parameters,
     residual_targets,
 )
-from hybrid_pk.hybrid.losses import orientation_errors_deg, position_errors_mm
+from hybrid_pk.hybrid.losses import corrected_orientation_errors_deg, corrected_position_errors_mm
 from hybrid_pk.hybrid.nets import parse_arch
 from hybrid_pk.io.hybrid_file import load_hybrid, predict_poses, save_hybrid
 from hybrid_pk.io.model_file import load_model
@@ -198,8 +198,8 @@ def test_training_errors_equal_the_contract_metrics_of_the_forward_pass(rx160):
     targets = residual_targets(hybrid.base, data, cond)
     with torch.no_grad():
         dp, dw = hybrid.corrections(targets.q)
-        pos = position_errors_mm(targets.position, targets.lever, dp, dw)
-        ori = orientation_errors_deg(targets.rotation, dw)
+        pos = corrected_position_errors_mm(targets.position, targets.lever, dp, dw)
+        ori = corrected_orientation_errors_deg(targets.rotation, dw)
         expected = pose_error(data.T_measured(), hybrid(data.q, cond))
     torch.testing.assert_close(pos, expected.position_mm, rtol=0, atol=1e-9)
     torch.testing.assert_close(ori, expected.orientation_deg, rtol=0, atol=1e-9)

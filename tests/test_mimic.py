@@ -126,14 +126,9 @@ def test_kernel_follows_the_coupling(robot):
     assert J.shape == (50, 6, 7)
 
 
-def _pinocchio():
-    return pytest.importorskip("pinocchio")  # only the tests that use the oracle skip
-
-
-def test_matches_pinocchio_on_the_full_tree(robot, plain_urdf):
+def test_matches_pinocchio_on_the_full_tree(pin, robot, plain_urdf):
     """pinocchio sees every joint (cylinder included) as independent; the coupling maps
     its joint space onto ours: q_full = f(q), J = J_full A_full, tau = A_full^T g_full."""
-    pin = _pinocchio()
     model = pin.buildModelFromUrdf(str(plain_urdf))
     data = model.createData()
     fid = model.getFrameId("tool0")
@@ -166,10 +161,37 @@ def test_matches_pinocchio_on_the_full_tree(robot, plain_urdf):
     assert bool((worst <= 1e-12).all()), f"FK, Jacobian, relative gravity: {worst}"
 
 
-def test_matches_pinocchio_mimic_joints(tmp_path):
+def _assert_matches_pinocchio_mimic(pin, robot: hpk.Robot, path: Path, seed: int) -> None:
+    """FK, Jacobian and gravity of ``robot`` = pinocchio's model of ``path`` with its
+    mimic joints (``mimic=True``: pinocchio's joint space is the independent joints)."""
+    model = pin.buildModelFromUrdf(str(path), mimic=True)
+    data = model.createData()
+    fid = model.getFrameId(robot.end_link)
+    ids = [model.getJointId(n) for n in robot.joint_names]
+    cols = [model.idx_vs[jid] for jid in ids]
+    q = robot.sample_q(30, torch.Generator().manual_seed(seed))
+    gravity = tuple(float(v) for v in model.gravity.linear)
+    with torch.no_grad():
+        T, J = robot.fk(q).numpy(), robot.jacobian(q).numpy()
+        tau = robot.gravity_torques(q, gravity=gravity).numpy()
+        _, J_kernel = ChainKernel(robot)(q)
+    np.testing.assert_allclose(J_kernel.numpy(), J, atol=1e-12)
+    for k, qk in enumerate(q.numpy()):
+        q_pin = np.zeros(model.nq)
+        for i, jid in enumerate(ids):
+            q_pin[model.idx_qs[jid]] = qk[i]
+        pin.framesForwardKinematics(model, data, q_pin)
+        pin.computeJointJacobians(model, data, q_pin)
+        J_pin = pin.getFrameJacobian(model, data, fid, pin.LOCAL_WORLD_ALIGNED)[:, cols]
+        g_pin = pin.computeGeneralizedGravity(model, data, q_pin)[cols]
+        assert_transforms_close(T[k], data.oMf[fid].homogeneous, atol_pos=1e-12, atol_rot=1e-12)
+        np.testing.assert_allclose(J[k], J_pin, atol=1e-12)
+        np.testing.assert_allclose(tau[k], g_pin, rtol=1e-12, atol=1e-10)
+
+
+def test_matches_pinocchio_mimic_joints(pin, tmp_path):
     """pinocchio's own mimic joints, on a variant it can load (its mimic support needs
     the leader on the chain): the top segment mimics the middle one, x1.0 + 5 mm."""
-    pin = _pinocchio()
     text = (hpk.shipped_robots()["column_arm"]).read_text(encoding="utf-8")
     text = text.replace(
         '    <mimic joint="column_prismatic_joint" multiplier="0.5" offset="0.0"/>\n', ""
@@ -182,27 +204,7 @@ def test_matches_pinocchio_mimic_joints(tmp_path):
     robot = hpk.Robot.from_urdf(path, end_link="tool0")
     assert robot.joint_names == ["column_middle_joint", *ARM]
     assert robot.spec.ignored_mass == ROD_MASS  # the cylinder now drives nothing we model
-    model = pin.buildModelFromUrdf(str(path), mimic=True)
-    data = model.createData()
-    fid = model.getFrameId("tool0")
-    ids = [model.getJointId(n) for n in robot.joint_names]
-    q = robot.sample_q(30, torch.Generator().manual_seed(3))
-    gravity = tuple(float(v) for v in model.gravity.linear)
-    with torch.no_grad():
-        T, J = robot.fk(q).numpy(), robot.jacobian(q).numpy()
-        tau = robot.gravity_torques(q, gravity=gravity).numpy()
-    for k, qk in enumerate(q.numpy()):
-        q_pin = np.zeros(model.nq)
-        for i, jid in enumerate(ids):
-            q_pin[model.idx_qs[jid]] = qk[i]
-        pin.framesForwardKinematics(model, data, q_pin)
-        pin.computeJointJacobians(model, data, q_pin)
-        cols = [model.idx_vs[jid] for jid in ids]
-        J_pin = pin.getFrameJacobian(model, data, fid, pin.LOCAL_WORLD_ALIGNED)[:, cols]
-        g_pin = pin.computeGeneralizedGravity(model, data, q_pin)[cols]
-        assert_transforms_close(T[k], data.oMf[fid].homogeneous, atol_pos=1e-12, atol_rot=1e-12)
-        np.testing.assert_allclose(J[k], J_pin, atol=1e-12)
-        np.testing.assert_allclose(tau[k], g_pin, rtol=1e-12, atol=1e-9)
+    _assert_matches_pinocchio_mimic(pin, robot, path, seed=3)
 
 
 def test_gradcheck_through_the_coupling(robot):
@@ -306,3 +308,21 @@ def test_ik_solves_for_the_robot_joints(robot):
         assert float(err.max()) < 1e-6
         lo, hi = robot.joint_limits
         assert bool(((sols >= lo) & (sols <= hi)).all())
+
+
+def test_revolute_mimic_on_the_chain_matches_pinocchio(tmp_path, pin):
+    """A leader on the chain with a revolute mimic further down (a parallelogram-like
+    coupling, multiplier -1.5, offset 0.1 rad): the leader's Jacobian column sums both."""
+    arm7 = Path(__file__).resolve().parent / "data" / "arm7_generic.urdf"
+    text = arm7.read_text(encoding="utf-8").replace(
+        '<limit lower="-2.0" upper="2.0" effort="30" velocity="3"/></joint>\n  <joint name="j7"',
+        '<limit lower="-2.0" upper="2.0" effort="30" velocity="3"/>\n'
+        '    <mimic joint="j2" multiplier="-1.5" offset="0.1"/></joint>\n  <joint name="j7"',
+    )
+    assert text.count("<mimic") == 1
+    path = tmp_path / "arm7_mimic.urdf"
+    path.write_text(text, encoding="utf-8")
+    robot = hpk.Robot.from_urdf(path, end_link="tool0")
+    assert robot.joint_names == ["j1", "j2", "j3", "j4", "j5", "j7"]
+    assert robot.chain_dof == 7
+    _assert_matches_pinocchio_mimic(pin, robot, path, seed=9)

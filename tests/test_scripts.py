@@ -37,3 +37,28 @@ def test_reproduce_paper_quick_parts_merge(tmp_path):
         assert heading in text
     assert "| nominal + frames + our MLPs, our training |" in text
     assert (merged / "figure5.png").stat().st_size > 10_000
+
+
+def test_real_ur10_runs_every_split_on_thin_data_and_keeps_its_models(tmp_path):
+    """experiments/real_ur10.py on every 30th row, one epoch, named effects (no
+    diagnosis): the four models of each split, the tables, the subset check; a second
+    run with --evaluate-only reuses the model files."""
+    from experiments import real_ur10
+
+    out = tmp_path / "ur10"
+    argv = ["--out", str(out), "--thin", "30", "--epochs", "1", "--splits", "pan,random"]
+    argv += ["--effects", "joint_compliance:shoulder_lift_joint"]
+    assert real_ur10.main(argv) == 0
+    results = json.loads((out / "results.json").read_text())
+    for split in ("pan", "random"):
+        res = results["splits"][split]
+        assert set(res["evaluate"]) == {k for k, _ in real_ur10.MODELS}
+        for key in ("hybrid_joints", "hybrid"):
+            assert res[f"{key}_vs_extended"]["worst_subset_ratio"] > 0
+    # pan: every held-out row is outside the joint box, so the paper's networks are off
+    pan = results["splits"]["pan"]
+    assert pan["hybrid_joints_stage_weights"] == {"joints": 0.0}
+    assert "## Split `pan`" in (out / "results.md").read_text()
+    stamp = (out / "pan" / "hybrid.pt").stat().st_mtime_ns
+    assert real_ur10.main([*argv, "--evaluate-only"]) == 0
+    assert (out / "pan" / "hybrid.pt").stat().st_mtime_ns == stamp

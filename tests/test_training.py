@@ -181,7 +181,7 @@ def test_cli_rejects_an_unknown_architecture_before_training(files, capsys):
 # ----------------------------------------------------------------------------- configs
 
 
-@pytest.mark.parametrize("name", ["paper", "fast"])
+@pytest.mark.parametrize("name", ["paper", "fast", "joints"])
 def test_lightningcli_configs_spell_the_presets(name):
     cfg = settings_from_config(REPO / "train" / "configs" / f"{name}.yaml")
     assert cfg == PRESETS[name]

@@ -12,25 +12,37 @@ the normal equations are well conditioned.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from hybrid_pk.calibration.frames import FramePriors, PriorRows, prior_centres, prior_residual
+from hybrid_pk.calibration.identifiability import FrameReport, frame_report
 from hybrid_pk.calibration.least_squares import levenberg_marquardt
 from hybrid_pk.calibration.problem import ParamBlock, Problem, param_blocks
-from hybrid_pk.data.table import MeasuredData
+from hybrid_pk.calibration.robust import irls_update, row_weights_vector
+from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data
 from hybrid_pk.evaluation.metrics import pose_error, position_error_mm
 from hybrid_pk.geometry import quat_to_matrix
 from hybrid_pk.geometry.registration import register_frames
 
-__all__ = ["FitResult", "fit", "initialise_frames", "model_errors"]
+__all__ = [
+    "FitResult",
+    "fit",
+    "initialise_frames",
+    "model_errors",
+    "predicted_poses",
+    "reestimated_noise",
+]
 
 # First-pass noise levels, replaced by the estimates of the re-weighted pass.
 DEFAULT_SIGMA_POS_MM = 0.05
 DEFAULT_SIGMA_ROT_RAD = 1e-4
+# Most passes of a robust fit (each re-estimates the noise and re-weights the rows).
+ROBUST_PASSES = 8
 
 
 @dataclass(frozen=True)
@@ -46,6 +58,15 @@ class FitResult:
         sigma_pos_mm, sigma_rot_rad: per-coordinate noise estimated from residuals.
         position_mm, orientation_deg: per-sample errors after the fit.
         n_obs, n_params: residual and parameter counts.
+        iterations, converged: LM iterations over all passes; the last pass converged.
+        normal_matrix: ``(n, n)`` ``J^T J`` of the final weighted residuals in scaled
+            parameters (``x / scale``): the information of linearised updates.
+        robust: the robust loss of the fit, or None (least squares).
+        weights: ``(N,)`` robust weights of the rows (None for least squares).
+        frame_report: which frame components the data do not determine, and frame
+            plausibility warnings (only with ``covariance``).
+        priors: the known frames and frame prior the fit used.
+        cost: their sum of squares at the solution (with the covariance only).
     """
 
     blocks: tuple[ParamBlock, ...]
@@ -62,6 +83,17 @@ class FitResult:
     n_params: int
     iterations: int
     converged: bool
+    normal_matrix: Tensor | None = None
+    cost: float | None = None
+    robust: str | None = None
+    weights: Tensor | None = None
+    frame_report: FrameReport | None = None
+    priors: FramePriors | None = None
+
+    def settings(self) -> dict:
+        """``fit()`` keyword arguments that refit under this fit's frame prior and
+        robust loss, starting from its row weights (same rows)."""
+        return {"frames": self.priors, "robust": self.robust, "weights": self.weights}
 
     @property
     def ssr_weighted(self) -> float:
@@ -120,7 +152,7 @@ def initialise_frames(
     loaded = any(e.stage in ("compliance", "deflection") for e in model.effects)
     passes = 2 if model.gravity.levelled and loaded and which != "tool" else 1
     for _ in range(passes):
-        T_end = model.end_pose(data.q, cond)
+        T_end = predicted_poses(model, data.q, cond, end_link=True)
         for g in groups:
             rows = slice(None) if g is None else cond.group == g
             if g is not None and not bool(rows.any()):
@@ -145,6 +177,12 @@ def fit(
     max_iter: int = 50,
     initial_sigma: tuple[float, float | None] | None = None,
     covariance: bool = True,
+    row_weights: Tensor | None = None,
+    extra: Callable[[Tensor], tuple[Tensor, Tensor]] | None = None,
+    progress: Callable[[str], None] | None = None,
+    frames: FramePriors | None = None,
+    robust: str | None = None,
+    weights: Tensor | None = None,
 ) -> FitResult:
     """Least-squares fit of the model's frames and effect values to measured data.
 
@@ -158,23 +196,46 @@ def fit(
         max_iter: LM iterations per pass.
         initial_sigma: ``(sigma_pos_mm, sigma_rot_rad)`` to start the noise
             re-estimation from (e.g. a previous fit's), which saves passes.
-        covariance: compute standard deviations, correlations and singular values
-            (one more Jacobian); without it those fields are empty.
+        covariance: compute standard deviations, correlations, singular values and the
+            frames' identifiability report (one more Jacobian); without it those
+            fields are empty.
+        row_weights: ``(N,)`` weight of each row's residuals (see :class:`Problem`).
+        extra: extra residual rows (priors, constraints; see :class:`Problem`).
+        progress: called with a short text at every LM iteration, and at most every
+            few seconds while a large Jacobian is built.
+        frames: known frames (fixed components are not fitted) and the prior that holds
+            what the data do not determine (:mod:`hybrid_pk.calibration.frames`).
+        robust: ``"huber"`` or ``"cauchy"``: rows with gross errors are down-weighted
+            (iteratively re-weighted, noise from the median); None: least squares.
+        weights: ``(N,)`` robust row weights to start from (e.g. a previous fit's).
     """
     cond = cond or conditions_from_data(data)
     position_only = data.quat is None
-    blocks = param_blocks(model, free, position_only)
+    blocks, prior, start = _frame_setup(model, data, cond, free, frames)
+    rows_extra = _joined(prior, extra)
+    if robust is not None and weights is None:
+        weights = torch.ones(data.n, dtype=model.robot.dtype)
+
+    def problem_at(sig_p: float, sig_r: float, w: Tensor | None = None) -> Problem:
+        rw = row_weights
+        if w is not None:  # IRLS weights scale the squared residuals
+            rw = w.sqrt() if rw is None else rw * w.sqrt()
+        return Problem(
+            model, data, cond, blocks, sig_p, sig_r, row_weights=rw, extra=rows_extra,
+            progress=progress,
+        )  # fmt: skip
+
     start_p, start_r = initial_sigma or (None, None)
     sigmas = (
         sigma_pos_mm or start_p or DEFAULT_SIGMA_POS_MM,
         sigma_rot_rad or start_r or DEFAULT_SIGMA_ROT_RAD,
     )
     fixed = (sigma_pos_mm, sigma_rot_rad)
-    sig_p, sig_r, iterations, converged = _solve_reweighted(
-        model, data, cond, blocks, sigmas, fixed, max_iter
+    sig_p, sig_r, iterations, converged, weights = _solve_reweighted(
+        problem_at, data, sigmas, fixed, max_iter, progress, robust, weights
     )
     # Residuals and Jacobian at the solution with the final weights.
-    problem = Problem(model, data, cond, blocks, sig_p, sig_r)
+    problem = problem_at(sig_p, sig_r, weights)
     pos, ori = model_errors(model, data, cond)
     common = {
         "blocks": blocks,
@@ -186,6 +247,9 @@ def fit(
         "n_params": problem.x0.numel(),
         "iterations": iterations,
         "converged": converged,
+        "robust": robust,
+        "weights": weights,
+        "priors": frames,
     }
     if not covariance:
         empty = torch.zeros(0, dtype=problem.x0.dtype)
@@ -197,69 +261,149 @@ def fit(
             n_obs=3 * data.n * (1 if position_only else 2),
             **common,
         )
-    return FitResult(**common, **_covariance(problem))
+    report = frame_report(
+        model, data, cond, blocks, sigma_pos_mm=sig_p, sigma_rot_rad=common["sigma_rot_rad"],
+        prior=prior, priors=frames, start=start, rms_mm=float(pos.pow(2).mean().sqrt()),
+    )  # fmt: skip
+    return FitResult(**common, **_covariance(problem, prior), frame_report=report)
 
 
-def _solve_reweighted(
+def _frame_setup(
     model: ExtendedModel,
     data: MeasuredData,
     cond: Conditions,
-    blocks: tuple[ParamBlock, ...],
+    free: Sequence[str] | None,
+    frames: FramePriors | None,
+) -> tuple[tuple[ParamBlock, ...], PriorRows | None, dict]:
+    """The blocks to fit (known frames' components left out), the frame prior's rows
+    (centred where the fit starts, or at the known values) and that start (base frames
+    and rms position error [mm]) for the plausibility of the result."""
+    fixed_frames = set((frames or FramePriors()).fixed_labels())
+    blocks = param_blocks(model, free, data.quat is None)
+    blocks = tuple(b for b in blocks if b.label not in fixed_frames)
+    prior = prior_residual(model, blocks, prior_centres(model, blocks, frames))
+    start = {"base": model.base.matrix().detach().clone()}
+    start["rms_mm"] = float(model_errors(model, data, cond)[0].pow(2).mean().sqrt())
+    return blocks, prior, start
+
+
+def _joined(a, b):
+    """Extra residual rows ``a`` then ``b`` (either may be None)."""
+    if a is None or b is None:
+        return a or b
+
+    def both(theta: Tensor) -> tuple[Tensor, Tensor]:
+        (ra, Ja), (rb, Jb) = a(theta), b(theta)
+        return torch.cat([ra, rb]), torch.cat([Ja, Jb])
+
+    return both
+
+
+def _solve_reweighted(
+    problem_at: Callable[..., Problem],
+    data: MeasuredData,
     sigmas: tuple[float, float],
     fixed: tuple[float | None, float | None],
     max_iter: int,
-) -> tuple[float, float, int, bool]:
-    """LM fit, noise re-estimated from the residuals and refitted (at most 3 passes).
+    progress: Callable[[str], None] | None,
+    robust: str | None = None,
+    weights: Tensor | None = None,
+) -> tuple[float, float, int, bool, Tensor | None]:
+    """LM fit, noise re-estimated from the residuals and refitted (at most 3 passes;
+    robust fits re-weight their rows each pass too, at most ``ROBUST_PASSES``).
 
-    ``sigmas`` are the starting noise levels, ``fixed`` those given by the caller (not
-    re-estimated). Returns the final noise levels, LM iterations and convergence.
+    ``problem_at(sigma_pos_mm, sigma_rot_rad, weights)`` is the problem under those
+    noise levels and robust weights; ``sigmas`` are the starting levels, ``fixed``
+    those given by the caller (not re-estimated). Returns the final noise levels, LM
+    iterations, convergence and the robust weights.
     """
     sig_p, sig_r = sigmas
     sigma_pos_mm, sigma_rot_rad = fixed
     position_only = data.quat is None
     iterations, converged = 0, False
     fixed_noise = sigma_pos_mm is not None and (sigma_rot_rad is not None or position_only)
-    for _ in range(3):  # fit, re-estimate the noise, refit (at most twice)
-        problem = Problem(model, data, cond, blocks, sig_p, sig_r)
+    for _ in range(3 if robust is None else ROBUST_PASSES):
+        problem = problem_at(sig_p, sig_r, weights)
         result = levenberg_marquardt(
-            problem.residual, torch.zeros_like(problem.x0), max_iter=max_iter, jac=problem.jacobian
+            problem.residual,
+            torch.zeros_like(problem.x0),
+            max_iter=max_iter,
+            normal=problem.normal_equations,
+            progress=progress,
         )
         problem.write(result.x)
         iterations += result.iterations
         converged = result.converged
-        if fixed_noise:
+        if fixed_noise and robust is None:
             break
-        r, n_pos = result.residual, 3 * data.n
-        dof_factor = r.numel() / max(r.numel() - result.x.numel(), 1)
-        new_p = sigma_pos_mm or max(
-            sig_p * float((r[:n_pos] ** 2).mean() * dof_factor) ** 0.5, 1e-6
-        )
-        new_r = sig_r
-        if not position_only and sigma_rot_rad is None:
-            new_r = max(sig_r * float((r[n_pos:] ** 2).mean() * dof_factor) ** 0.5, 1e-9)
-        change = max(abs(new_p / sig_p - 1), abs(new_r / sig_r - 1))
+        r = result.residual[: 3 * data.n * (1 if position_only else 2)]
+        if weights is not None:  # the rows' own residuals, without the robust weights
+            r = r / row_weights_vector(weights.sqrt().clamp_min(1e-150), r.numel() // (3 * data.n))
+        if robust is None:
+            new_p, new_r = reestimated_noise(
+                r, data.n, result.x.numel(), (sig_p, sig_r), fixed, position_only
+            )
+            change = max(abs(new_p / sig_p - 1), abs(new_r / sig_r - 1))
+        else:
+            new_p, new_r, weights, change = irls_update(
+                r, data.n, result.x.numel(), (sig_p, sig_r), fixed, robust, weights
+            )
         sig_p, sig_r = new_p, new_r
         if change < 0.05:
             break
-    return sig_p, sig_r, iterations, converged
+    return sig_p, sig_r, iterations, converged, weights
 
 
-def _covariance(problem: Problem) -> dict:
-    """Standard deviations, correlations and singular values at the problem's point."""
-    r, J = problem.jacobian(torch.zeros_like(problem.x0))
-    n_obs, n_par = r.numel(), problem.x0.numel()
-    s2 = float(r @ r) / max(n_obs - n_par, 1)
-    cov_scaled = torch.linalg.pinv(J.T @ J) * s2
+def reestimated_noise(
+    r: Tensor,
+    n_rows: int,
+    n_params: int,
+    sigmas: tuple[float, float],
+    fixed: tuple[float | None, float | None] = (None, None),
+    position_only: bool = False,
+) -> tuple[float, float]:
+    """Noise levels ``(sigma_pos_mm, sigma_rot_rad)`` that make the mean square of the
+    residuals ``r`` (computed under ``sigmas``) one per degree of freedom.
+
+    ``fixed`` levels (not None) are kept; so is the rotation level without orientation.
+    """
+    sig_p, sig_r = sigmas
+    n_pos = 3 * n_rows
+    dof_factor = r.numel() / max(r.numel() - n_params, 1)
+    new_p = fixed[0] or max(sig_p * float((r[:n_pos] ** 2).mean() * dof_factor) ** 0.5, 1e-6)
+    new_r = sig_r
+    if not position_only and fixed[1] is None:
+        rot = r[n_pos : 2 * n_pos]
+        new_r = max(sig_r * float((rot**2).mean() * dof_factor) ** 0.5, 1e-9)
+    return new_p, new_r
+
+
+def _covariance(problem: Problem, prior: PriorRows | None = None) -> dict:
+    """Standard deviations, correlations and singular values at the problem's point,
+    and the normal matrix ``J^T J`` (scaled parameters) they come from."""
+    R = problem.r_factor(torch.zeros_like(problem.x0))
+    n_par = problem.x0.numel()
+    J, z = R[:, :n_par], R[:, n_par]
+    n_obs = problem.n_residuals
+    s2 = float(z @ z) / max(n_obs - n_par, 1)
+    normal = J.T @ J
+    cov_scaled = torch.linalg.pinv(normal) * s2
     std = cov_scaled.diagonal().clamp_min(0).sqrt() * problem.scale
     d = cov_scaled.diagonal().clamp_min(1e-300).sqrt()
     corr = cov_scaled / (d[:, None] * d[None, :])
     sv = torch.linalg.svdvals(J / J.norm(dim=0).clamp_min(1e-300))
+    cost = float(z @ z)
+    if prior is not None:  # the cost of the data alone (tests compare it with refits')
+        r_prior = prior(torch.zeros_like(problem.x0))[0]
+        cost -= float(r_prior @ r_prior)
     return {
         "std": std,
         "corr": corr,
         "singular_values": sv,
         "condition": float(sv[0] / sv[-1].clamp_min(1e-300)),
         "n_obs": n_obs,
+        "normal_matrix": normal,
+        "cost": cost,
     }
 
 
@@ -268,7 +412,25 @@ def model_errors(
     model: ExtendedModel, data: MeasuredData, cond: Conditions | None = None
 ) -> tuple[Tensor, Tensor | None]:
     """Per-row position [mm] and orientation [deg] errors (None without orientation)."""
-    T = model(data.q, cond or conditions_from_data(data))
+    T = predicted_poses(model, data.q, cond or conditions_from_data(data))
     if data.quat is None:
         return position_error_mm(data.position, T[:, :3, 3]), None
     return pose_error(data.T_measured(), T)
+
+
+# Rows per model evaluation in predicted_poses (bounds the gravity and FK temporaries).
+POSE_CHUNK_ROWS = 32768
+
+
+@torch.no_grad()
+def predicted_poses(
+    model: ExtendedModel, q: Tensor, cond: Conditions, end_link: bool = False
+) -> Tensor:
+    """``(N, 4, 4)`` predicted measured poses (or flange poses in the robot root frame,
+    ``end_link``) of joint values ``q (N, dof)``, evaluated in chunks of rows."""
+    parts = []
+    for start in range(0, q.shape[0], POSE_CHUNK_ROWS):
+        rows = slice(start, min(start + POSE_CHUNK_ROWS, q.shape[0]))
+        sub = cond.subset(rows)
+        parts.append(model.end_pose(q[rows], sub) if end_link else model(q[rows], sub))
+    return torch.cat(parts) if parts else model(q, cond)

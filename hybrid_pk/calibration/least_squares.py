@@ -2,9 +2,10 @@
 
 Residual counts are large (6 per measured pose, thousands of poses) and parameter
 counts small (tens), so the Jacobian is built in forward mode (``torch.func.jacfwd``:
-one vectorised pass over the parameter directions) and each step solves the small
-normal equations with Marquardt's diagonal scaling, which makes the step invariant
-to the units of the parameters.
+one vectorised pass over the parameter directions), or a problem supplies its normal
+equations directly (built chunk by chunk over the rows), and each step solves the
+small normal equations with Marquardt's diagonal scaling, which makes the step
+invariant to the units of the parameters.
 """
 
 from __future__ import annotations
@@ -25,7 +26,6 @@ class LMResult:
     Attributes:
         x: ``(n,)`` solution.
         residual: ``(m,)`` residuals at ``x``.
-        jac: ``(m, n)`` Jacobian at ``x``.
         cost: ``sum(residual**2)``.
         iterations: accepted steps.
         converged: a tolerance was met (not just the iteration limit).
@@ -33,7 +33,6 @@ class LMResult:
 
     x: Tensor
     residual: Tensor
-    jac: Tensor
     cost: float
     iterations: int
     converged: bool
@@ -67,6 +66,8 @@ def levenberg_marquardt(
     xtol: float = 1e-10,
     lam0: float = 1e-3,
     jac: Callable[[Tensor], tuple[Tensor, Tensor]] | None = None,
+    normal: Callable[[Tensor], tuple[Tensor, Tensor, float]] | None = None,
+    progress: Callable[[str], None] | None = None,
 ) -> LMResult:
     """Minimise ``sum(fun(x)**2)`` from ``x0``.
 
@@ -78,16 +79,23 @@ def levenberg_marquardt(
         xtol: stop when the step is below this fraction of ``|x| + xtol``.
         lam0: initial damping.
         jac: ``x -> (residual, Jacobian)``; default forward-mode autodiff of ``fun``.
+        normal: ``x -> (J^T J, J^T r, r^T r)`` instead of ``jac``: the normal equations
+            of a problem too large to hold its Jacobian (built chunk by chunk).
+        progress: called with a short text after every accepted step.
     """
-    jac = jac or (lambda x: jacobian(fun, x))
+    if normal is None:
+        jac = jac or (lambda x: jacobian(fun, x))
+
+        def normal(x: Tensor) -> tuple[Tensor, Tensor, float]:
+            r, J = jac(x)
+            return J.T @ J, J.T @ r, float(r @ r)
+
     x = x0.detach().clone()
-    r, J = jac(x)
-    cost = float(r @ r)
+    A, g, cost = normal(x)
+    r = None
     lam, it, converged = lam0, 0, False
     eye = torch.eye(x.numel(), dtype=x.dtype, device=x.device)
     while it < max_iter:
-        A = J.T @ J
-        g = J.T @ r
         d = A.diagonal().clamp_min(1e-12 * float(A.diagonal().max().clamp_min(1e-300)))
         improved = False
         for _ in range(12):  # raise the damping until a step lowers the cost
@@ -106,11 +114,16 @@ def levenberg_marquardt(
         it += 1
         rel_drop = (cost - cost_new) / max(cost, 1e-300)
         small_step = float(step.norm()) < xtol * (float(x.norm()) + xtol)
-        x = x_new
+        x, r, cost = x_new, r_new, cost_new
         lam = max(lam / 10.0, 1e-12)
-        r, J = jac(x)
-        cost = float(r @ r)
+        if progress is not None:
+            progress(f"LM iteration {it}: cost {cost:.6g} ({100 * rel_drop:.2g} % lower)")
         if rel_drop < ftol or small_step:
             converged = True
             break
-    return LMResult(x=x, residual=r, jac=J, cost=cost, iterations=it, converged=converged)
+        if it < max_iter:  # the last iteration's Jacobian would be unused
+            A, g, cost = normal(x)
+    if r is None:
+        with torch.no_grad():
+            r = fun(x)
+    return LMResult(x=x, residual=r, cost=cost, iterations=it, converged=converged)

@@ -9,11 +9,10 @@ Two forms (contract section 3)::
 from __future__ import annotations
 
 import argparse
-import json
-from pathlib import Path
 
 from hybrid_pk.calibration.diagnosis import diagnose
-from hybrid_pk.calibration.fit import fit, initialise_frames
+from hybrid_pk.calibration.fit import fit
+from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.cli.calibrate_output import (
     add_urdf_options,
     condition_warning,
@@ -33,7 +32,16 @@ from hybrid_pk.cli.common import (
     mounting_lines,
     read_data,
 )
+from hybrid_pk.cli.effect_lists import effect_labels
+from hybrid_pk.cli.fit_settings import (
+    fit_lines,
+    frame_priors,
+    implausible_effect_lines,
+    robust_loss,
+    robust_summary,
+)
 from hybrid_pk.cli.options import (
+    ROBOT_HELP,
     add_data,
     add_end_link,
     add_fit_options,
@@ -76,19 +84,17 @@ flange -> measured point. Errors are reported in mm (position) and deg (orientat
 """
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``calibrate`` command."""
-    p = subparsers.add_parser(
-        "calibrate",
-        help="fit frames + physical effects to measured poses; write a MODEL file",
-        description=_DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+NAME = "calibrate"
+HELP = "fit frames + physical effects to measured poses; write a MODEL file"
+DESCRIPTION = _DESCRIPTION
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``hybrid-pk calibrate``."""
     add_data(p)
     add_robot(
         p,
-        help="shipped robot name (rx160, ur10) or URDF path; with --model: only "
-        "checked against the model's robot",
+        help=f"{ROBOT_HELP}; with --model: only checked against the model's robot",
     )
     add_end_link(p)
     p.add_argument(
@@ -117,40 +123,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     add_urdf_options(p)
     add_seed(p, what="seed of the diagnosis hold-out split")
-    p.set_defaults(func=_run)
 
 
-def _effect_labels(text: str) -> list[str]:
-    if text.lower().endswith(".json"):
-        return _diagnosis_labels(text)
-    labels = [s.strip() for s in text.split(",") if s.strip()]
-    if not labels:
-        raise HybridPKError("--effects: give auto, none, or a comma-separated list of effects")
-    seen = set()
-    for label in labels:
-        if label in seen:
-            raise HybridPKError(f"--effects: {label} is listed twice")
-        seen.add(label)
-    return labels
-
-
-def _diagnosis_labels(path: str) -> list[str]:
-    """The causes of a ``diagnose --json`` file as effect labels."""
-    try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise HybridPKError(f"--effects: diagnosis file not found: {path}") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise HybridPKError(f"--effects: {path} is not a diagnosis JSON file: {exc}") from None
-    causes = doc.get("causes") if isinstance(doc, dict) else None
-    if not isinstance(causes, list) or not all(
-        isinstance(c, dict) and isinstance(c.get("effect"), str) for c in causes
-    ):
-        raise HybridPKError(f"--effects: {path} has no 'causes' list of a diagnosis JSON file")
-    return [c["effect"] + (f":{c['joint']}" if c.get("joint") else "") for c in causes]
-
-
-def _run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     if args.model is not None or args.refit is not None:
         return run_refit(args)
     if args.robot is None:
@@ -162,7 +137,7 @@ def _requested_labels(robot, spec: str) -> tuple[str, list[str]]:
     """``--effects`` as (spec, labels): auto and none give no labels; a diagnosis JSON
     that named no cause is ``none``. Unknown kinds or joints fail here, before any data
     is read."""
-    labels = [] if spec in ("auto", "none") else _effect_labels(spec)
+    labels = [] if spec in ("auto", "none") else effect_labels(spec, others="auto, none, ")
     if not labels and spec.lower().endswith(".json"):
         spec = "none"  # the diagnosis named no cause: frames only
     for label in labels:
@@ -186,6 +161,7 @@ def _run_new(args: argparse.Namespace) -> int:
     spec, labels = _requested_labels(robot, (args.effects or "auto").strip())
     auto = spec == "auto"
     sets = len(args.data) if args.frames_per_file else 1
+    priors, robust = frame_priors(args), robust_loss(args)
 
     diag = None
     with progress("calibrate", total=5 if auto else 4) as bar:
@@ -207,11 +183,19 @@ def _run_new(args: argparse.Namespace) -> int:
                 seed=args.seed,
                 frames_per_file=args.frames_per_file,
                 progress=bar,
+                frames=priors,
+                robust=robust,
                 gravity=gravity,
             )
             labels = [c.effect if c.joint is None else f"{c.effect}:{c.joint}" for c in diag.causes]
         bar.stage("fitting frames to the nominal robot")
-        res0 = fit_frames(ExtendedModel(robot, frame_sets=sets, gravity=gravity), data, cond)
+        res0 = fit_frames(
+            ExtendedModel(robot, frame_sets=sets, gravity=gravity),
+            data,
+            cond,
+            priors=priors,
+            robust=robust,
+        )
         bar.stage("fitting frames and effects")
         model = ExtendedModel(
             robot,
@@ -219,8 +203,8 @@ def _run_new(args: argparse.Namespace) -> int:
             frame_sets=sets,
             gravity=gravity,
         )
-        initialise_frames(model, data, cond)
-        res = fit(model, data, cond=cond)
+        initialise_with_priors(model, data, cond, priors)
+        res = fit(model, data, cond=cond, frames=priors, robust=robust, weights=res0.weights)
         bar.stage("writing")
         effects = effect_rows(model, res)
         metadata = {
@@ -239,6 +223,8 @@ def _run_new(args: argparse.Namespace) -> int:
                 "orientation_rad": res.sigma_rot_rad,
             },
             "condition_number": res.condition,
+            "frames": None if res.frame_report is None else res.frame_report.to_json(),
+            "robust": robust_summary(data, res),
             "diagnosis": None if diag is None else diag.to_json(),
         }
         save_model(args.out, model, metadata=metadata)
@@ -274,7 +260,8 @@ def _print_summary(robot, data, diag, effects, model, res0, res) -> None:
             )
     else:
         print("  no effects: frames only" + (" (the diagnosis named none)" if diag else ""))
-    for line in frame_lines(model) + mounting_lines(model):
+    lines = frame_lines(model) + mounting_lines(model) + fit_lines(data, res)
+    for line in lines + implausible_effect_lines(model, data):
         print(line)
     p0, p1 = error_stats(res0.position_mm), error_stats(res.position_mm)
     print(

@@ -21,6 +21,7 @@ from hybrid_pk.cli.common import (
     stats_line,
     with_frame_sets,
 )
+from hybrid_pk.cli.fit_settings import fit_lines, frame_priors, robust_loss, robust_summary
 from hybrid_pk.cli.progress import progress
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import Conditions, conditions_from_data
@@ -63,7 +64,8 @@ def run_refit(args: argparse.Namespace) -> int:
         keep = {"base": "tool", "tool": "base", "frames": None}[which]
         model = with_frame_sets(loaded.model, sets, keep=keep)
         bar.stage(f"re-fitting the {which} frame(s)")
-        res = fit_frames(model, data, cond, which)
+        priors = frame_priors(args, loaded.model if loaded.frames_fitted else None)
+        res = fit_frames(model, data, cond, which, priors=priors, robust=robust_loss(args))
         bar.stage("writing")
         save_model(
             args.out, model, networks=loaded.networks, metadata=_metadata(args, loaded, data, res)
@@ -77,7 +79,7 @@ def run_refit(args: argparse.Namespace) -> int:
         + (", residual networks kept" if loaded.has_networks else "")
         + f") on {data.n} rows from {len(data.sources)} file(s)"
     )
-    for line in frame_lines(model):
+    for line in frame_lines(model) + fit_lines(data, res):
         print(line)
     after = _errors(dataclasses.replace(loaded, model=model, frames_fitted=True), data, cond)
     for i, (name, unit) in enumerate((("position", "mm"), ("orientation", "deg"))):
@@ -102,6 +104,8 @@ def _metadata(args, loaded: LoadedModel, data: MeasuredData, res) -> dict:
             "n_rows": data.n,
             "frames_per_file": bool(args.frames_per_file),
             "fitted": error_summary(res),
+            "frames": None if res.frame_report is None else res.frame_report.to_json(),
+            "robust": robust_summary(data, res),
         }
     )
     metadata = {k: v for k, v in loaded.metadata.items() if k != "created"}

@@ -1,5 +1,5 @@
 """Helpers shared by the sub-commands: robot and data loading with clear errors, frame
-sets and (re-)fitting, Lightning's quiet start, summaries and JSON output. The shared
+sets and (re-)fitting, summaries and JSON output. The shared
 flags are in :mod:`hybrid_pk.cli.options`, the progress display in
 :mod:`hybrid_pk.cli.progress`."""
 
@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import math
 import os
 import warnings
@@ -17,7 +16,9 @@ from pathlib import Path
 
 import torch
 
-from hybrid_pk.calibration.fit import FitResult, fit, initialise_frames
+from hybrid_pk.calibration.fit import FitResult, fit
+from hybrid_pk.calibration.frames import FramePriors
+from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.data import DataWarning, MeasuredData, read_table_for
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.errors import HybridPKError
@@ -29,10 +30,11 @@ __all__ = [
     "data_notes",
     "fit_frames",
     "frame_parameter_count",
+    "frame_set_index",
     "frame_sets_for",
+    "load_frozen_model",
     "load_robot",
     "mounting_lines",
-    "quiet_lightning",
     "read_data",
     "stats_line",
     "with_frame_sets",
@@ -120,6 +122,36 @@ def frame_parameter_count(sets: int, position_only: bool) -> int:
     return sets * (9 if position_only else 12)
 
 
+def load_frozen_model(args: argparse.Namespace):
+    """``args.model`` loaded for solving (ik, compensate): ``(loaded, model, robot, k)``
+    with parameters frozen and ``k`` the ``--frame-set`` to use (checked)."""
+    from hybrid_pk.io.model_file import load_model, model_robot
+
+    loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
+    model = loaded.model
+    model.requires_grad_(False)
+    robot = model_robot(loaded)
+    return loaded, model, robot, frame_set_index(args.frame_set, model.base.sets, args.model)
+
+
+def frame_set_index(value: int | None, sets: int, model: str) -> int:
+    """The ``--frame-set`` of a MODEL with ``sets`` frame sets (0 for a single set).
+
+    Raises:
+        HybridPKError: several sets and none chosen, or one out of range.
+    """
+    if value is None:
+        if sets > 1:
+            raise HybridPKError(
+                f"{model} has {sets} base/tool frame sets (one per calibration file); "
+                f"choose one with --frame-set 0..{sets - 1}"
+            )
+        return 0
+    if not 0 <= value < sets:
+        raise HybridPKError(f"--frame-set {value}: {model} has sets 0..{sets - 1}")
+    return value
+
+
 def with_frame_sets(model: ExtendedModel, sets: int, keep: str | None = None) -> ExtendedModel:
     """``model`` with ``sets`` base/tool frame sets (same robot and effect modules).
 
@@ -174,28 +206,23 @@ def frame_sets_for(args: argparse.Namespace, model_sets: int) -> int:
     return model_sets
 
 
-def quiet_lightning() -> None:
-    """Keep Lightning's start-up chatter (accelerators found, tips, 'max_epochs reached')
-    and library deprecation notes off the terminal (imports Lightning first: it sets its
-    loggers up when imported)."""
-    import lightning.pytorch  # noqa: F401  (configures its loggers on import)
-
-    logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
-    warnings.filterwarnings("ignore", message=".*LeafSpec.*", category=DeprecationWarning)
-    warnings.filterwarnings("ignore", message=".*LeafSpec.*", category=FutureWarning)
-    warnings.filterwarnings("ignore", message=r".*distributed\.nn\.functional\.all_gather.*")
-
-
 def fit_frames(
-    model: ExtendedModel, data: MeasuredData, cond: Conditions, which: str = "frames"
+    model: ExtendedModel,
+    data: MeasuredData,
+    cond: Conditions,
+    which: str = "frames",
+    priors: FramePriors | None = None,
+    robust: str | None = None,
 ) -> FitResult:
     """Register then least-squares fit only the ``which`` frame(s); effects stay fixed.
 
     Args:
         which: ``"base"``, ``"tool"`` or ``"frames"`` (both).
+        priors: known frames (``--tool``, ``--base``) and the prior of the fit.
+        robust: robust loss (``--robust``), or None.
     """
-    initialise_frames(model, data, cond, which=which)
-    return fit(model, data, free=list(FRAME_LABELS[which]), cond=cond)
+    initialise_with_priors(model, data, cond, priors, which=which)
+    return fit(model, data, free=list(FRAME_LABELS[which]), cond=cond, frames=priors, robust=robust)
 
 
 def stats_line(label: str, stats: ErrorStats | torch.Tensor, digits: int = 4) -> str:

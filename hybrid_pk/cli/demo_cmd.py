@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 
-from hybrid_pk.cli.common import quiet_lightning
 from hybrid_pk.cli.options import add_epochs, add_noise, add_out, add_progress, add_robot, add_seed
 from hybrid_pk.cli.progress import progress
 from hybrid_pk.pipelines.demo import (
@@ -20,25 +19,27 @@ from hybrid_pk.pipelines.demo import (
     run_demo,
 )
 
-_DESCRIPTION = (
-    "The whole pipeline on a simulated laser-tracker campaign: simulate hidden effects -> "
-    "diagnose (name the causes, show the evidence) -> calibrate -> train the residual "
-    "networks -> evaluate on rows no fit saw -> IK with every solution -> report; the "
-    "injected effects are revealed only at the end. Units: positions in m (errors in mm), "
-    "angles in rad (errors in deg), payload in kg. Writes DIR/report.md (start there), "
-    "campaign.csv with its truth JSON, diagnosis.json, model.pt (calibrated), hybrid.pt "
-    "(+ networks), ik_targets.csv / ik_solutions.csv and TensorBoard logs in "
-    "DIR/tensorboard."
-)
+_DESCRIPTION = """\
+The whole pipeline on a simulated laser-tracker campaign: simulate hidden effects ->
+diagnose (name the causes, show the evidence) -> calibrate -> train the residual
+networks -> evaluate on rows no fit saw -> IK with every solution -> report. The
+injected effects are revealed only at the end.
+
+Units: positions in m (errors in mm), angles in rad (errors in deg), payload in kg.
+Writes DIR/report.md (start there), campaign.csv with its truth JSON, diagnosis.json,
+model.pt (calibrated), hybrid.pt (+ networks), ik_targets.csv / ik_solutions.csv and
+TensorBoard logs in DIR/tensorboard. Progress (stage, inner step, elapsed time) goes
+to stderr; the report's run-time line gives the time of each stage.
+"""
 
 
-def register(sub) -> None:
-    """Add the ``demo`` command."""
-    p = sub.add_parser(
-        "demo",
-        help="run the whole pipeline on a simulated RX160 campaign and write a report",
-        description=_DESCRIPTION,
-    )
+NAME = "demo"
+HELP = "run the whole pipeline on a simulated RX160 campaign and write a report"
+DESCRIPTION = _DESCRIPTION
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``hybrid-pk demo``."""
     add_out(p, metavar="DIR", help="output folder", default="hybrid_pk_demo")
     add_robot(p, default=DEFAULT_ROBOT)
     p.add_argument("--n", type=int, default=3000, help="measured poses (default: %(default)s)")
@@ -64,11 +65,9 @@ def register(sub) -> None:
     add_epochs(p, default=100)
     add_seed(p, default=7, what="seed of the campaign, the diagnosis split and the training")
     add_progress(p)
-    p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    quiet_lightning()
     with progress("demo", total=len(STAGES), delay=0.0, enabled=not args.no_progress) as bar:
         result = run_demo(
             args.out,

@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 
 from hybrid_pk.cli.common import load_robot, mounting_lines, read_data
+from hybrid_pk.cli.fit_settings import diagnosis_notes, frame_priors, robust_loss
 from hybrid_pk.cli.options import (
     add_data,
     add_end_link,
@@ -38,14 +39,13 @@ unit of its effect (rad, rad/Nm, 1, m, 1/K, rad/Nm/m). --holdout is a fraction o
 _LABEL_WIDTH = 26
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``diagnose`` command."""
-    p = subparsers.add_parser(
-        "diagnose",
-        help="name the physical causes of the nominal model's errors (JSON + report)",
-        description=_DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+NAME = "diagnose"
+HELP = "name the physical causes of the nominal model's errors (JSON + report)"
+DESCRIPTION = _DESCRIPTION
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``hybrid-pk diagnose``."""
     add_data(p)
     add_robot(p, required=True)
     add_end_link(p)
@@ -73,7 +73,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--max-causes", type=int, default=8, metavar="N", help="stop after N causes (default: 8)"
     )
-    p.set_defaults(func=_run)
 
 
 def _finite(obj):
@@ -126,6 +125,8 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
             if c.orientation_gain_deg is not None:
                 gain += f", {c.orientation_gain_deg:.3g} deg"
             lines.append(f"  {c.effect}{where} = {_value(c.value, c.std, c.unit)}  ({gain})")
+    elif getattr(diagnosis, "structural", None) and diagnosis.structural["structurally_wrong"]:
+        lines.append("causes: withheld, the URDF looks structurally wrong (see structural)")
     else:
         lines.append("causes: none beyond measurement noise")
     if diagnosis.ambiguous:
@@ -144,11 +145,11 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
         else "; structured: no (looks like measurement noise)"
     )
     lines.append(rest)
-    return lines
+    return lines + diagnosis_notes(diagnosis)
 
 
-def _run(args: argparse.Namespace) -> int:
-    from hybrid_pk.calibration.diagnosis.search import diagnose
+def run(args: argparse.Namespace) -> int:
+    from hybrid_pk.calibration.diagnosis import diagnose
     from hybrid_pk.effects import make_effect, parse_gravity
 
     for path in args.data:
@@ -178,6 +179,8 @@ def _run(args: argparse.Namespace) -> int:
             alpha=args.alpha,
             max_causes=args.max_causes,
             frames_per_file=args.frames_per_file,
+            frames=frame_priors(args),
+            robust=robust_loss(args),
             progress=progress.stage,
             gravity=gravity,
         )
@@ -185,7 +188,7 @@ def _run(args: argparse.Namespace) -> int:
             progress.stage("writing the report")
             from hybrid_pk.report import write_diagnosis_report
 
-            report = write_diagnosis_report(result, data, robot, args.report)
+            report = write_diagnosis_report(result, data, robot, args.report, progress)
     finally:
         progress.close()
     seconds = progress.elapsed()

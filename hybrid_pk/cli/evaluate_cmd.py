@@ -17,9 +17,19 @@ from hybrid_pk.cli.common import (
     with_frame_sets,
     write_json,
 )
-from hybrid_pk.cli.options import add_data, add_fit_frames, add_json, add_model, add_report
+from hybrid_pk.cli.fit_settings import fit_lines, frame_priors, robust_loss
+from hybrid_pk.cli.options import (
+    add_data,
+    add_fit_frames,
+    add_frame_options,
+    add_json,
+    add_model,
+    add_report,
+    add_robust,
+)
 from hybrid_pk.cli.progress import progress
 from hybrid_pk.effects import ExtendedModel, conditions_from_data
+from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import evaluate_json, row_errors
 from hybrid_pk.io.hybrid_file import predict_poses
 from hybrid_pk.io.model_file import NOMINAL_PREFIX, load_model, model_robot
@@ -36,14 +46,13 @@ JSON: {"n", "position_mm": {mean, rms, p95, max}, "orientation_deg": {...} | nul
 """
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``evaluate`` command."""
-    p = subparsers.add_parser(
-        "evaluate",
-        help="position [mm] / orientation [deg] errors of a model on measured data",
-        description=_DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+NAME = "evaluate"
+HELP = "position [mm] / orientation [deg] errors of a model on measured data"
+DESCRIPTION = _DESCRIPTION
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``hybrid-pk evaluate``."""
     add_model(p)
     add_data(p)
     add_json(
@@ -61,14 +70,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         p,
         help="first fit only the base and tool frames [m, rad] to DATA (effects and networks kept)",
     )
-    p.set_defaults(func=_run)
+    add_frame_options(p)
+    add_robust(p)
 
 
-def _run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
     robot = model_robot(loaded)
     robot.requires_grad_(False)
     sets = frame_sets_for(args, loaded.model.base.sets)
+    if not args.fit_frames and (args.tool or args.base or args.robust != "none"):
+        raise HybridPKError(
+            "--tool, --base and --robust set how frames are fitted: add --fit-frames"
+        )
 
     total = 2 + bool(args.fit_frames) + bool(args.report)
     with progress("evaluate", total=total) as bar:
@@ -76,10 +90,13 @@ def _run(args: argparse.Namespace) -> int:
         n_params = frame_parameter_count(sets, False) if args.fit_frames else None
         data = read_data(args.data, robot, n_params=n_params, skip_bad_rows=args.skip_bad_rows)
         cond = conditions_from_data(data, sets > 1)
+        notes = []
         if args.fit_frames:
             bar.stage("fitting base and tool frames")
+            priors = frame_priors(args, loaded.model if loaded.frames_fitted else None)
             model = with_frame_sets(loaded.model, sets)
-            fit_frames(model, data, cond)
+            res = fit_frames(model, data, cond, priors=priors, robust=robust_loss(args))
+            notes = fit_lines(data, res)
             loaded = dataclasses.replace(loaded, model=model, frames_fitted=True)
         bar.stage("predicting")
         T = predict_poses(loaded, data, cond)
@@ -92,6 +109,8 @@ def _run(args: argparse.Namespace) -> int:
             report = _report(args, loaded, robot, data, cond, sets, T)
 
     _print_summary(args, loaded, robot, data, position, orientation)
+    for line in notes:
+        print(line)
     if args.json:
         print(f"wrote {args.json}")
     if args.report:

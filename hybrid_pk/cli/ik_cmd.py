@@ -4,20 +4,37 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 
+import pandas as pd
 import torch
 from tqdm import tqdm
 
-from hybrid_pk.cli.common import data_notes
-from hybrid_pk.cli.options import add_model, add_out, add_seed
+from hybrid_pk.cli.common import data_notes, load_frozen_model
+from hybrid_pk.cli.options import add_approach, add_frame_set, add_model, add_out, add_seed
 from hybrid_pk.data import read_table_for
 from hybrid_pk.data.table import write_frame
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.errors import HybridPKError
-from hybrid_pk.ik import IKOptions, solve_ik, solve_ik_two_stage
+from hybrid_pk.ik import (
+    IKAssumption,
+    IKOptions,
+    IKResult,
+    parse_approach,
+    resolve_conditions,
+    solve_ik,
+    solve_ik_two_stage,
+)
 from hybrid_pk.ik.two_stage import DEFAULT_BOX
 from hybrid_pk.io.hybrid_file import load_hybrid
-from hybrid_pk.io.model_file import load_model, model_robot
+
+CHUNK = 128  # targets per two-stage solve (the progress bar moves after each)
+# The fixes of assumed conditions, as flags and columns.
+_FIXES = {
+    "approach": "--approach + / - / JOINT=+,JOINT=- states how the robot approaches",
+    "temperature": "a temperature column [degC] in TARGETS states it",
+    "payload": "a payload column [kg] in TARGETS states it",
+}
 
 _DESCRIPTION = """\
 All distinct joint solutions of each target pose, within the URDF joint limits.
@@ -38,17 +55,22 @@ joint [rad, m for prismatic joints], position_error_mm [mm], orientation_error_d
 [deg]. Two solutions are the same when every revolute joint agrees within 1e-3 rad
 modulo 2 pi (prismatic: 1e-6 m). A target with no solution within --tol-mm and
 --tol-deg has no row and counts as failed.
+
+A model with backlash needs the side each joint approaches the target from: give it
+with --approach (+: moving in the joint's positive direction, -: negative, per joint
+as joint_3=+,joint_4=-); without it the target is solved for the mid-play model
+(half-way between both approaches, at most half the play from either), and a note
+says so. Targets without payload / temperature columns are solved at 0 kg / 20 degC.
 """
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``ik`` command."""
-    p = subparsers.add_parser(
-        "ik",
-        help="all distinct joint solutions [rad] of target poses (errors in mm / deg)",
-        description=_DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+NAME = "ik"
+HELP = "all distinct joint solutions [rad] of target poses (errors in mm / deg)"
+DESCRIPTION = _DESCRIPTION
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``hybrid-pk ik``."""
     add_model(p)
     p.add_argument(
         "targets",
@@ -87,28 +109,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="half-width of the refinement box around each branch on a model with "
         f"effects or networks [rad, m for prismatic joints] (default {DEFAULT_BOX})",
     )
-    p.add_argument(
-        "--frame-set",
-        type=int,
-        default=None,
-        metavar="K",
-        help="base/tool frame set of a model calibrated with one set per file (0-based)",
-    )
+    add_frame_set(p)
     add_seed(p, what="scrambling seed of the start configurations")
-    p.set_defaults(func=_run)
-
-
-def _frame_set(args: argparse.Namespace, sets: int) -> int:
-    if args.frame_set is None:
-        if sets > 1:
-            raise HybridPKError(
-                f"{args.model} has {sets} base/tool frame sets (one per calibration file); "
-                f"choose one with --frame-set 0..{sets - 1}"
-            )
-        return 0
-    if not 0 <= args.frame_set < sets:
-        raise HybridPKError(f"--frame-set {args.frame_set}: {args.model} has sets 0..{sets - 1}")
-    return args.frame_set
+    add_approach(p)
 
 
 def _read_targets(path: str, robot):
@@ -123,66 +126,102 @@ def _expensive(loaded, model: ExtendedModel):
     return model if len(model.effects) else None
 
 
-def _run(args: argparse.Namespace) -> int:
-    if args.seeds < 1:
-        raise HybridPKError(f"--seeds must be at least 1, got {args.seeds}")
-    if args.tol_mm <= 0 or args.tol_deg <= 0:
-        raise HybridPKError("--tol-mm and --tol-deg must be positive")
-    loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
-    model = loaded.model
-    model.requires_grad_(False)
-    robot = model_robot(loaded)
-    k = _frame_set(args, model.base.sets)
-    data = _read_targets(args.targets, robot)
+def _conditions(args, data, models, k: int, sets: int) -> Conditions:
+    """Conditions of the targets: payload and temperature from TARGETS, the frame set,
+    and the backlash approach of --approach (else mid-play), said in a note."""
     n = data.n
-    targets = data.T_measured() if data.has_orientation else data.position
-    group = torch.full((n,), k, dtype=torch.long) if model.base.sets > 1 else None
-    cond = Conditions(
-        payload=data.payload,
-        temperature=data.temperature,
-        direction=torch.zeros(n, robot.dof, dtype=torch.float64),  # unknown approach
-        group=group,
-    )
-    extra = data.q[:, None, :] if data.q.shape[1] == robot.dof else None
-    with torch.no_grad():
-        base, tool = model.base.matrix()[k], model.tool.matrix()[k]
-    cheap = ExtendedModel(robot, [], base=base, tool=tool)
-    expensive = _expensive(loaded, model)
+    group = torch.full((n,), k, dtype=torch.long) if sets > 1 else None
+    cond = Conditions(payload=data.payload, temperature=data.temperature, group=group)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IKAssumption)  # printed as notes below
+        cond, notes = resolve_conditions(
+            models, cond, n, parse_approach(args.approach), fixes=_FIXES
+        )
+    for note in notes:
+        print(f"note: {note}")
+    return cond
+
+
+def _solve(args, cheap, expensive, targets, cond, extra, robot) -> IKResult | list[IKResult]:
+    """All solutions; a two-stage solve goes by chunks of targets, so the bar moves."""
     options = IKOptions(
         tol_mm=args.tol_mm, tol_deg=args.tol_deg, max_iterations=args.max_iterations, seed=args.seed
     )
-    common = {"seeds": args.seeds, "extra_seeds": extra, "options": options}
+    common = {"seeds": args.seeds, "options": options}
+    n = targets.shape[0]
     stages = "kinematic model" if expensive is None else "kinematic model, refined on full model"
     with tqdm(
         total=n, desc=f"ik ({stages})", unit="target", file=sys.stderr, leave=False, delay=0.5
     ) as bar:
         if expensive is None:
-            result = solve_ik(cheap, targets, progress=bar.update, **common)
-        else:
-            result = solve_ik_two_stage(
-                cheap, expensive, targets, box=args.box, cond=cond, robot=robot,
-                progress=bar.update, **common,
+            return solve_ik(cheap, targets, extra_seeds=extra, progress=bar.update, **common)
+        parts = []
+        for lo in range(0, n, CHUNK):
+            rows = torch.arange(lo, min(n, lo + CHUNK))
+            parts.append(
+                solve_ik_two_stage(
+                    cheap, expensive, targets[rows], box=args.box, cond=cond.subset(rows),
+                    robot=robot, extra_seeds=None if extra is None else extra[rows], **common,
+                )
             )  # fmt: skip
-    write_frame(args.out, result.to_frame())
+            bar.update(rows.numel())
+        return parts
 
-    kind = "nominal URDF" if loaded.source.startswith("nominal:") else "model"
+
+def _frame(results: IKResult | list[IKResult]):
+    """One solutions table; chunks' target indices offset to rows of TARGETS."""
+    if isinstance(results, IKResult):
+        return results.to_frame()
+    frames, offset = [], 0
+    for part in results:
+        frame = part.to_frame()
+        frame["target"] += offset
+        offset += part.counts.numel()
+        frames.append(frame)
+    return pd.concat(frames, ignore_index=True)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.seeds < 1:
+        raise HybridPKError(f"--seeds must be at least 1, got {args.seeds}")
+    if args.tol_mm <= 0 or args.tol_deg <= 0:
+        raise HybridPKError("--tol-mm and --tol-deg must be positive")
+    loaded, model, robot, k = load_frozen_model(args)
+    data = _read_targets(args.targets, robot)
+    targets = data.T_measured() if data.has_orientation else data.position
+    extra = data.q[:, None, :] if data.q.shape[1] == robot.dof else None
+    with torch.no_grad():
+        base, tool = model.base.matrix()[k], model.tool.matrix()[k]
+    cheap = ExtendedModel(robot, [], base=base, tool=tool)
+    expensive = _expensive(loaded, model)
+    cond = None
     if expensive is not None:
+        cond = _conditions(args, data, [expensive], k, model.base.sets)
+    elif args.approach is not None:
+        raise HybridPKError(f"--approach: {args.model} has no backlash effect")
+    frame = _frame(_solve(args, cheap, expensive, targets, cond, extra, robot))
+    write_frame(args.out, frame)
+    _print_summary(args, loaded, robot, data, frame, expensive is not None)
+    return 0
+
+
+def _print_summary(args, loaded, robot, data, frame, two_stage: bool) -> None:
+    n = data.n
+    kind = "nominal URDF" if loaded.source.startswith("nominal:") else "model"
+    if two_stage:
         kind += " (two stages: kinematics + frames, then the full model)"
-    n_sol = int(result.counts.sum())
+    n_sol = len(frame)
     print(
         f"ik {args.model} ({robot.name}, {kind}) on {n} target(s) from {args.targets}"
         f"{' (position only)' if not data.has_orientation else ''}: {n_sol} solution(s), "
         f"{n_sol / max(n, 1):.2f} per target, {args.seeds} seeds"
     )
     if n_sol:
-        pos = result.position_error_mm[result.valid]
-        line = f"largest error: {float(pos.max()):.3g} mm"
+        line = f"largest error: {float(frame['position_error_mm'].max()):.3g} mm"
         if data.has_orientation:
-            line += f", {float(result.orientation_error_deg[result.valid].max()):.3g} deg"
+            line += f", {float(frame['orientation_error_deg'].max()):.3g} deg"
         print(line)
     tol = f"{args.tol_mm:g} mm" + (f" / {args.tol_deg:g} deg" if data.has_orientation else "")
-    print(
-        f"{result.n_failed} of {n} target(s) failed (no solution within {tol} and the joint limits)"
-    )
+    failed = n - frame["target"].nunique()
+    print(f"{failed} of {n} target(s) failed (no solution within {tol} and the joint limits)")
     print(f"wrote {args.out}")
-    return 0

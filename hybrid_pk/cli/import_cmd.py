@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from hybrid_pk.cli.options import add_out, add_robot
+from hybrid_pk.cli.options import add_out, add_robot, command_parser
 from hybrid_pk.data.ipa import EULER_SEQUENCES, MEASUREMENT_CONVENTION, convert_ipa
 from hybrid_pk.errors import DataError
 
@@ -42,11 +42,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "(joints [rad], x, y, z [m], qw, qx, qy, qz).",
     )
     formats = parser.add_subparsers(dest="format", metavar="FORMAT", required=True)
-    ipa = formats.add_parser(
-        "ipa",
-        help="UR10 laser-tracker files of the IPA data set",
-        description=_IPA_HELP,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+    ipa = command_parser(
+        formats, "ipa", help="UR10 laser-tracker files of the IPA data set", description=_IPA_HELP
     )
     _add_sources_and_out(ipa, "IPA measurements_*.csv file(s)")
     ipa.add_argument(
@@ -137,11 +134,11 @@ Options given on the command line replace those of a map file.
 
 
 def _register_columns(formats: argparse._SubParsersAction) -> None:
-    cols = formats.add_parser(
+    cols = command_parser(
+        formats,
         "columns",
         help="any export, by a column map (units, separators, Euler conventions)",
         description=_COLUMNS_HELP,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     _add_sources_and_out(cols, "export file(s) to convert")
     cols.add_argument(
@@ -157,37 +154,27 @@ def _register_columns(formats: argparse._SubParsersAction) -> None:
     cols.set_defaults(func=_run_columns)
 
 
+# File-format options of a column map: (flag, dest, metavar, help); type int for N.
+_MAP_OPTIONS = (
+    ("sep", "separator", "SEP", "field separator: ',' ';' tab whitespace ... (default: the "
+     "map's, else ',')"),
+    ("decimal", "decimal", "CHAR", "decimal mark"),
+    ("skip-lines", "skip_lines", "N", "lines before the header row"),
+    ("euler", "euler", "SEQ", "scipy Euler sequence of e1 e2 e3 (XYZ intrinsic, xyz "
+     "extrinsic, ZYX, ...)"),
+    ("length-unit", "length", "UNIT", "default length unit"),
+    ("angle-unit", "angle", "UNIT", "default angle unit"),
+)  # fmt: skip
+
+
 def _add_map_options(parser: argparse.ArgumentParser, prefix: str = "") -> None:
     """File-format options of a column map; ``prefix`` names them per stream."""
     dest = prefix.replace("-", "_")
-    parser.add_argument(
-        f"--{prefix}sep",
-        dest=f"{dest}separator",
-        metavar="SEP",
-        help="field separator: ',' ';' tab whitespace ... (default: the map's, else ',')",
-    )
-    parser.add_argument(
-        f"--{prefix}decimal", dest=f"{dest}decimal", metavar="CHAR", help="decimal mark"
-    )
-    parser.add_argument(
-        f"--{prefix}skip-lines",
-        dest=f"{dest}skip_lines",
-        type=int,
-        metavar="N",
-        help="lines before the header row",
-    )
-    parser.add_argument(
-        f"--{prefix}euler",
-        dest=f"{dest}euler",
-        metavar="SEQ",
-        help="scipy Euler sequence of e1 e2 e3 (XYZ intrinsic, xyz extrinsic, ZYX, ...)",
-    )
-    parser.add_argument(
-        f"--{prefix}length-unit", dest=f"{dest}length", metavar="UNIT", help="default length unit"
-    )
-    parser.add_argument(
-        f"--{prefix}angle-unit", dest=f"{dest}angle", metavar="UNIT", help="default angle unit"
-    )
+    for flag, name, metavar, text in _MAP_OPTIONS:
+        kind = int if metavar == "N" else str
+        parser.add_argument(
+            f"--{prefix}{flag}", dest=f"{dest}{name}", type=kind, metavar=metavar, help=text
+        )
     parser.add_argument(
         f"--{prefix}time-format",
         dest=f"{dest}time_format",
@@ -258,11 +245,11 @@ map per stream (--robot-map, --tracker-map; see 'hybrid-pk import columns -h').
 
 
 def _register_streams(formats: argparse._SubParsersAction) -> None:
-    st = formats.add_parser(
+    st = command_parser(
+        formats,
         "streams",
         help="dynamic campaign: robot joint stream + tracker stream with a time offset",
         description=_STREAMS_HELP,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     st.add_argument("robot_stream", metavar="ROBOT_STREAM", help="joint stream file")
     st.add_argument("tracker_stream", metavar="TRACKER_STREAM", help="tracker stream file")

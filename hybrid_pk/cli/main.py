@@ -1,27 +1,36 @@
 """Entry point of ``hybrid-pk``: one sub-command module per command, one error policy.
 
-Every sub-command module exposes ``register(subparsers)`` which adds its parser and
-sets ``func`` to a callable ``(args) -> int``. Errors of the ``HybridPKError``
-hierarchy (and OS errors such as a missing file) become one line on stderr and exit
-code 2; a traceback is shown only with ``--debug``.
+Every sub-command module declares ``NAME``, ``HELP`` (one line for the command list),
+``DESCRIPTION`` (its ``--help`` text, units and formats, kept as written),
+``add_arguments(parser)`` (its flags; the shared ones come from
+:mod:`hybrid_pk.cli.options`) and ``run(args) -> int``. A command with sub-commands of
+its own (``import FORMAT``) defines ``register(subparsers)`` instead.
+
+Errors of the ``HybridPKError`` hierarchy (and OS errors such as a missing file) become
+one line on stderr and exit code 2; anything else (a bug) becomes one ``internal
+error`` line and exit code 1. A traceback is shown only with ``--debug``.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from collections.abc import Sequence
 
+from hybrid_pk.cli.options import command_parser
 from hybrid_pk.errors import HybridPKError
 
 # Sub-command modules, in the order `--help` lists them.
 _COMMANDS = (
+    "hybrid_pk.cli.plan_cmd",
     "hybrid_pk.cli.simulate_cmd",
     "hybrid_pk.cli.diagnose_cmd",
     "hybrid_pk.cli.calibrate_cmd",
     "hybrid_pk.cli.train_cmd",
     "hybrid_pk.cli.evaluate_cmd",
     "hybrid_pk.cli.ik_cmd",
+    "hybrid_pk.cli.compensate_cmd",
     "hybrid_pk.cli.import_cmd",
     "hybrid_pk.cli.demo_cmd",
 )
@@ -35,10 +44,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--debug", action="store_true", help="show full tracebacks on error")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    import importlib
-
     for name in _COMMANDS:
-        importlib.import_module(name).register(sub)
+        module = importlib.import_module(name)
+        if hasattr(module, "register"):
+            module.register(sub)
+            continue
+        p = command_parser(sub, module.NAME, help=module.HELP, description=module.DESCRIPTION)
+        module.add_arguments(p)
+        p.set_defaults(func=module.run)
     return parser
 
 
@@ -56,6 +69,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"hybrid-pk {args.command}: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # a bug, not bad input: still one line, the traceback on demand
+        if args.debug:
+            raise
+        msg = " ".join(f"{type(exc).__name__}: {exc}".split())
+        print(
+            f"hybrid-pk {args.command}: internal error: {msg} (rerun with --debug for the "
+            "traceback, and please report it)",
+            file=sys.stderr,
+        )
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -6,27 +6,38 @@ its own flags. A new flag that more than one command takes belongs here; one tha
 only a single command takes stays in that command's module.
 
 Groups:
+    the command itself: :func:`command_parser`
     robot and model: :func:`add_robot`, :func:`add_end_link`, :func:`add_model`
     data: :func:`add_data` (DATA..., --frames-per-file, --skip-bad-rows)
     fits: :func:`add_fit_options` (every command that diagnoses or calibrates: the
-        hold-out fraction; frame and robust-fit options of those fits go here too),
+        hold-out fraction, :func:`add_frame_options` and :func:`add_robust`),
         :func:`add_fit_frames`
     outputs: :func:`add_out`, :func:`add_json`, :func:`add_report`
     runs: :func:`add_seed`, :func:`add_epochs`, :func:`add_noise`, :func:`add_progress`
+    solving for targets (ik, compensate): :func:`add_approach`, :func:`add_frame_set`
 """
 
 from __future__ import annotations
 
 import argparse
 
+from hybrid_pk.calibration.frames import MAX_TOOL_TRANSLATION_M
+from hybrid_pk.calibration.robust import ROBUST_LOSSES
+from hybrid_pk.robot import shipped_robots
+
 __all__ = [
+    "APPROACH_HELP",
     "END_LINK_HELP",
     "ROBOT_HELP",
+    "add_approach",
     "add_data",
     "add_end_link",
     "add_epochs",
     "add_fit_frames",
     "add_fit_options",
+    "add_frame_options",
+    "add_frame_set",
+    "add_gravity",
     "add_json",
     "add_model",
     "add_noise",
@@ -34,13 +45,32 @@ __all__ = [
     "add_progress",
     "add_report",
     "add_robot",
+    "add_robust",
     "add_seed",
+    "command_parser",
     "fraction",
 ]
 
-ROBOT_HELP = "shipped robot name (rx160, ur10) or URDF path"
+ROBOT_HELP = f"shipped robot name ({', '.join(shipped_robots())}) or URDF path"
 END_LINK_HELP = "end link of the chain, e.g. a tool link (default: the URDF's leaf link)"
 _ROBOT_CHECK_HELP = "refuse a MODEL made for another robot than ROBOT"
+APPROACH_HELP = (
+    "backlash: the side each joint approaches the target from, + (moving in the joint's "
+    "positive direction), - or mid, for every backlash joint or per joint as "
+    "joint_3=+,joint_4=- (default: the mid-play model, half-way between both; a note "
+    "says so)"
+)
+
+
+def command_parser(subparsers, name: str, *, help: str, description: str):
+    """The parser of sub-command ``name``: ``help`` in the command list, ``description``
+    (units, formats) kept as written in ``NAME --help``."""
+    return subparsers.add_parser(
+        name,
+        help=help,
+        description=description,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
 
 
 def fraction(text: str) -> float:
@@ -141,12 +171,18 @@ def add_fit_options(parser: argparse.ArgumentParser, *, holdout_help: str) -> No
     """Options of every command that diagnoses effects (``diagnose``, ``calibrate``).
 
     ``--holdout F``: the fraction of rows the diagnosis keeps out of every fit to
-    compare models. ``--gravity``: the mounting (gravity in the root frame, or
-    ``level-tracker``), which compliance and deflection follow. Options that change how
-    frames or effects are fitted (known frames, robust losses) belong in this group, so
-    that both commands take them.
+    compare models; the known frames (:func:`add_frame_options`), the robust loss
+    (:func:`add_robust`) and the mounting (:func:`add_gravity`) of its fits.
     """
     parser.add_argument("--holdout", type=fraction, default=0.2, metavar="F", help=holdout_help)
+    add_frame_options(parser)
+    add_robust(parser)
+    add_gravity(parser)
+
+
+def add_gravity(parser: argparse.ArgumentParser) -> None:
+    """``--gravity X,Y,Z|level-tracker``: the mounting, which compliance and deflection
+    follow."""
     parser.add_argument(
         "--gravity",
         metavar="X,Y,Z|level-tracker",
@@ -155,6 +191,56 @@ def add_fit_options(parser: argparse.ArgumentParser, *, holdout_help: str) -> No
         "measurement frame is levelled (laser tracker, total station), so gravity is -z "
         "there and its direction in the robot frame follows from the fitted base frame "
         "(default: upright, 0,0,-9.81)",
+    )
+
+
+_FRAME_HELP = (
+    "{what} known from outside the data, X,Y,Z[,RX,RY,RZ] in metres and roll-pitch-yaw "
+    "radians ({frame}): fixed as given (only the translation with three values), or "
+    "after 'seed:' a start and prior that the data refine where they determine it"
+)
+
+
+def add_frame_options(parser: argparse.ArgumentParser) -> None:
+    """``--tool``, ``--base`` and ``--max-tool-offset``: frames known from outside the
+    data (fixed, or ``seed:`` values), and the plausibility limit of a fitted tool (every
+    command that fits frames: with :func:`add_fit_options`, and ``evaluate --fit-frames``)."""
+    parser.add_argument(
+        "--tool",
+        metavar="X,Y,Z[,RX,RY,RZ]",
+        help=_FRAME_HELP.format(
+            what="tool frame (the measured point on the flange, e.g. from the target's "
+            "mount drawing)",
+            frame="flange frame",
+        ),
+    )
+    parser.add_argument(
+        "--base",
+        metavar="X,Y,Z[,RX,RY,RZ]",
+        help=_FRAME_HELP.format(
+            what="base frame (the robot root in the measurement frame)",
+            frame="measurement frame",
+        ),
+    )
+    parser.add_argument(
+        "--max-tool-offset",
+        type=float,
+        default=MAX_TOOL_TRANSLATION_M,
+        metavar="M",
+        help="a fitted tool translation beyond M metres from the flange is reported as "
+        f"implausible (default: {MAX_TOOL_TRANSLATION_M:g})",
+    )
+
+
+def add_robust(parser: argparse.ArgumentParser) -> None:
+    """``--robust none|huber|cauchy``."""
+    parser.add_argument(
+        "--robust",
+        choices=("none", *ROBUST_LOSSES),
+        default="none",
+        help="down-weight rows with gross errors (a broken beam, a bad visit): huber "
+        "(bounded influence) or cauchy (a wild row has no pull); every down-weighted row "
+        "is reported (default: none, plain least squares)",
     )
 
 
@@ -234,3 +320,24 @@ def add_noise(parser: argparse.ArgumentParser, *, mm: float, deg: float) -> None
 def add_progress(parser: argparse.ArgumentParser) -> None:
     """``--no-progress``: no progress bar on stderr (the summary is printed anyway)."""
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+
+
+# ----------------------------------------------------------------------------- targets
+
+
+def add_approach(parser: argparse.ArgumentParser) -> None:
+    """``--approach SPEC``: backlash approach direction of IK targets
+    (:func:`hybrid_pk.ik.parse_approach` reads it)."""
+    parser.add_argument("--approach", metavar="SPEC", help=APPROACH_HELP)
+
+
+def add_frame_set(parser: argparse.ArgumentParser) -> None:
+    """``--frame-set K``: which base/tool frame set of MODEL (``ik``, ``compensate``);
+    :func:`hybrid_pk.cli.common.frame_set_index` checks it."""
+    parser.add_argument(
+        "--frame-set",
+        type=int,
+        default=None,
+        metavar="K",
+        help="base/tool frame set of a model calibrated with one set per file (0-based)",
+    )

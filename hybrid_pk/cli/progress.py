@@ -79,7 +79,7 @@ class Progress:
             file=self.stream,
             ncols=width if width >= 40 else 100,
             nrows=height if height >= 2 else 24,
-            bar_format=f"{self.name}: {count}{{postfix}} [{{elapsed}}]",
+            bar_format=f"{self.name}: {count}{{desc}} [{{elapsed}}]",
             delay=self.delay,
             leave=False,  # the summary says how long it took
         )
@@ -97,7 +97,7 @@ class Progress:
         text = f"{self.stage_name} ({time.monotonic() - self._stage_start:.0f} s)"
         if self.step_text:
             text += f" | {self.step_text}"
-        self._bar.set_postfix_str(text, refresh=True)
+        self._bar.set_description_str(text, refresh=True)
 
     def elapsed(self) -> float:
         """Seconds since the start."""

@@ -4,12 +4,26 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import warnings
 from pathlib import Path
 
-from hybrid_pk.cli.options import add_end_link, add_noise, add_out, add_robot, add_seed
+import torch
+
+from hybrid_pk.calibration.fit import fit
+from hybrid_pk.calibration.frames import MAX_TOOL_TRANSLATION_M, parse_frame_spec
+from hybrid_pk.cli.common import FRAME_LABELS
+from hybrid_pk.cli.options import (
+    add_end_link,
+    add_noise,
+    add_out,
+    add_robot,
+    add_seed,
+)
+from hybrid_pk.data.joint_table import read_joint_table
 from hybrid_pk.data.table import write_table
-from hybrid_pk.effects import parse_gravity
-from hybrid_pk.errors import DataError
+from hybrid_pk.effects import ExtendedModel, parse_gravity
+from hybrid_pk.errors import DataError, HybridPKError
 from hybrid_pk.robot import Robot
 from hybrid_pk.simulate import TRAJECTORIES, is_hidden_spec, simulate_campaign
 
@@ -49,16 +63,21 @@ upright and the tracker is tilted up to 2 deg.
 """
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``simulate`` command."""
-    p = subparsers.add_parser(
-        "simulate",
-        help="virtual measurement campaign: pose table + truth JSON",
-        description=_DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+NAME = "simulate"
+HELP = "virtual measurement campaign: pose table + truth JSON"
+DESCRIPTION = _DESCRIPTION
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``hybrid-pk simulate``."""
     add_robot(p, positional=True)
-    p.add_argument("--n", type=int, required=True, metavar="N", help="number of measurements")
+    p.add_argument("--n", type=int, metavar="N", help="number of measurements")
+    p.add_argument(
+        "--poses",
+        metavar="POSES",
+        help="measure at these joints instead of a --trajectory: a table with one column "
+        "per joint [rad, m], e.g. the output of `hybrid-pk plan` (--n: its row count)",
+    )
     p.add_argument(
         "--effects",
         default="none",
@@ -120,6 +139,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="gravity in the robot's root frame [m/s^2], e.g. 0,0,9.81 for a ceiling "
         "mount (instead of --mount)",
     )
+    p.add_argument(
+        "--tool",
+        metavar="X,Y,Z[,RX,RY,RZ]",
+        help="the true tool frame (measured point on the flange) [m, roll-pitch-yaw rad] "
+        "instead of a drawn one; without angles its rotation is drawn",
+    )
+    p.add_argument(
+        "--base",
+        metavar="X,Y,Z[,RX,RY,RZ]",
+        help="the true base frame (robot root in the tracker frame) [m, roll-pitch-yaw "
+        "rad] instead of a drawn one; without angles its rotation is drawn",
+    )
     add_end_link(p)
     add_seed(p, what="random seed")
     add_out(
@@ -127,7 +158,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="FILE",
         help="output table (.csv, .parquet or .pq); the truth goes to FILE.truth.json",
     )
-    p.set_defaults(func=_run)
 
 
 def truth_path(out: str | Path) -> Path:
@@ -152,17 +182,68 @@ def _mount(args: argparse.Namespace):
     return args.mount
 
 
-def _run(args: argparse.Namespace) -> int:
+def _given_frames(frames: dict) -> dict:
+    """``base``/``tool`` of ``--base``/``--tool``: a transform, or a translation whose
+    rotation the campaign draws."""
+    out = {}
+    for name, spec in frames.items():
+        if spec is not None:
+            out[name] = spec.translation if spec.rotation is None else spec.matrix(torch.eye(4))
+    return out
+
+
+def campaign_frame_lines(robot: Robot, data, truth: dict, tool_spec) -> list[str]:
+    """What a calibration of this campaign could tell about its frames: a frames-only
+    fit from the true frames (at most 2000 rows), and the plausibility of the tool."""
+    base = torch.tensor(truth["base_frame"], dtype=torch.float64)
+    tool = torch.tensor(truth["tool_frame"], dtype=torch.float64)
+    lines = []
+    if tool_spec is not None and float(tool[:3, 3].norm()) > MAX_TOOL_TRANSLATION_M:
+        lines.append(
+            f"warning: --tool puts the measured point {float(tool[:3, 3].norm()):.3g} m "
+            f"from the flange, beyond what a tracker target can be "
+            f"({MAX_TOOL_TRANSLATION_M:g} m); calibrations will flag such a tool"
+        )
+    rows = data.subset(slice(0, None, max(1, data.n // 2000)))
+    if rows.n < 3:
+        return lines
+    model = ExtendedModel(robot, base=base, tool=tool)
+    noise = max(float(truth["noise_mm"]), 1e-3)
+    noise_rad = max(math.radians(float(truth["noise_deg"])), 1e-5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = fit(
+            model, rows, free=list(FRAME_LABELS["frames"]), sigma_pos_mm=noise,
+            sigma_rot_rad=noise_rad, max_iter=5,
+        )  # fmt: skip
+    for d in res.frame_report.directions:
+        lines.append(f"note: in this campaign the {d['summary']}")
+    return lines
+
+
+def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix.lower() not in _TABLE_SUFFIXES:
         raise DataError(
             f"unsupported file type {out.suffix!r}; expected .csv, .parquet or .pq", file=str(out)
         )
     robot = Robot.from_urdf(args.robot, end_link=args.end_link)
+    frames = {
+        name: None
+        if getattr(args, name) is None
+        else parse_frame_spec(getattr(args, name), f"--{name}")
+        for name in ("base", "tool")
+    }
+    poses = None
+    if args.poses is not None:
+        poses, _ = read_joint_table(args.poses, robot)
+    elif args.n is None:
+        raise HybridPKError("give --n N (rows of a --trajectory) or --poses POSES")
     data, truth = simulate_campaign(
         robot,
         args.n,
         args.effects,
+        poses=poses,
         noise_mm=args.noise_mm,
         noise_deg=args.noise_deg,
         trajectory=args.trajectory,
@@ -174,11 +255,13 @@ def _run(args: argparse.Namespace) -> int:
         mount=_mount(args),
         seed=args.seed,
         progress=True,
+        **_given_frames(frames),
     )
     truth_file = truth_path(out)
     write_table(out, data)
     truth_file.write_text(json.dumps(truth, indent=2) + "\n", encoding="utf-8")
 
+    where = f"poses of {args.poses}" if poses is not None else f"trajectory {args.trajectory}"
     load = (
         f"payload {args.payload:g} kg"
         if args.payload_range is None
@@ -186,7 +269,7 @@ def _run(args: argparse.Namespace) -> int:
     )
     pos, rot = truth["dataset_error"]["position_mm"], truth["dataset_error"]["orientation_deg"]
     print(
-        f"simulated {data.n} rows of {robot.name}: trajectory {args.trajectory}, {load}, "
+        f"simulated {data.n} rows of {robot.name}: {where}, {load}, "
         f"noise {args.noise_mm:g} mm / {args.noise_deg:g} deg, seed {args.seed}"
     )
     print(f"wrote {out} and {truth_file}")
@@ -201,6 +284,8 @@ def _run(args: argparse.Namespace) -> int:
         f"max {pos['max']:.3f} mm; orientation mean {rot['mean']:.4f} deg, "
         f"max {rot['max']:.4f} deg"
     )
+    for line in campaign_frame_lines(robot, data, truth, frames["tool"]):
+        print(line)
     if is_hidden_spec(args.effects):
         print(f"effects hidden; see {truth_file}")
     elif not truth["effects"]:

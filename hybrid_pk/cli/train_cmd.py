@@ -9,7 +9,6 @@ from hybrid_pk.cli.common import (
     fit_frames,
     frame_parameter_count,
     frame_sets_for,
-    quiet_lightning,
     read_data,
     with_frame_sets,
 )
@@ -41,11 +40,26 @@ training rows the model is the base model (--fade 0, the default), or the correc
 fade out within --fade x the box size (e.g. 0.1: they may help just outside the
 data, or hurt: measure it on held-out rows outside the box).
 
-Presets: fast (ours: 3 x 256 SiLU MLPs, Adam + one-cycle, batch 256, 150 epochs,
-MSE) and paper (D4w / Rw, Adagrad lr 0.005, batch 128, <= 300 epochs, early stopping,
-mean-distance / mean-angle losses, limits normalisation). --config reads the model /
-data / trainer sections of a LightningCLI YAML (train/configs/*.yaml) over the preset.
-Networks: D1, D4, D4w, D4W, Rw, Rd, B1-B4, mlp, mlp:WIDTHxDEPTH, or none.
+--inputs gives the networks inputs chosen by the physics instead. frameK[+qI-J]
+[+gravity][+torque|+full]: corrections in the frame of link K from the joints after K
+(or only joints I..J), so they turn with joints 1..K and need no data over their range,
+plus the gravity direction there and the gravity torque (torque) or full static wrench
+(full) of each joint after K. local[+q1]: one small network per joint (--local-net)
+from its angle and the static wrench there, its small motion carried to the flange by
+the chain. Stages join with ',' (where the first is not trusted the next one
+corrects, after the last the base model) and '/' (refines the stage before it). Such
+networks apply where their inputs are covered by the training rows (--trust coverage,
+their default: distance to the training inputs, the base model beyond
+--coverage-ratio x the radius of the validation rows, a smooth blend between).
+
+Presets: fast (ours: posture networks in link 1's frame refined by networks on every
+joint, then local deformation networks: --inputs frame1+q2-4+torque/joints,local+q1,
+Adam + one-cycle, batch 256, 150 epochs, MSE), joints (ours before: 3 x 256 SiLU MLPs
+on every joint, --inputs joints) and paper (D4w / Rw, Adagrad lr 0.005, batch 128,
+<= 300 epochs, early stopping, mean-distance / mean-angle losses, limits
+normalisation). --config reads the model / data / trainer sections of a LightningCLI
+YAML (train/configs/*.yaml) over the preset. Networks: D1, D4, D4w, D4W, Rw, Rd,
+B1-B4, mlp, mlp:WIDTHxDEPTH, or none.
 
 --logdir DIR writes TensorBoard logs (losses, mean/p95 position [mm] and orientation
 [deg] errors, error histograms, a Fig.-4-like figure) and checkpoints.
@@ -53,14 +67,13 @@ Networks: D1, D4, D4w, D4W, Rw, Rd, B1-B4, mlp, mlp:WIDTHxDEPTH, or none.
 """
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``train`` command."""
-    p = subparsers.add_parser(
-        "train",
-        help="train the residual networks of a hybrid model (Lightning, TensorBoard)",
-        description=_DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+NAME = "train"
+HELP = "train the residual networks of a hybrid model (Lightning, TensorBoard)"
+DESCRIPTION = _DESCRIPTION
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``hybrid-pk train``."""
     add_data(p)
     add_model(p, flag=True, help="base model file, or nominal:ROBOT (with --fit-frames)")
     add_out(p, metavar="MODEL2", help="output model file (.pt)")
@@ -68,7 +81,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--orientation-net", metavar="ARCH", help="orientation network (default: preset)"
     )
-    p.add_argument("--preset", choices=("fast", "paper"), default="fast", help="default: fast")
+    p.add_argument(
+        "--preset",
+        choices=("fast", "joints", "paper"),
+        default="fast",
+        help="fast (physics-chosen stages), joints (MLPs on every joint), paper (D4w / Rw); "
+        "default: fast",
+    )
     p.add_argument("--config", metavar="YAML", help="LightningCLI config over the preset")
     add_epochs(p)
     p.add_argument("--batch-size", type=int, metavar="N", help="training rows per step")
@@ -93,6 +112,35 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="fade-out width outside the training joint box, fraction of its size per "
         "joint (default 0: no correction outside the box)",
     )
+    p.add_argument(
+        "--inputs",
+        metavar="SPEC",
+        help="network stages: joints (the paper's), frameK[+qI-J][+gravity][+torque|+full] "
+        "or local[+q1], joined by ',' (fall-back) and '/' (refinement), e.g. "
+        "frame1+q2-4+torque/joints,local+q1 (default: preset)",
+    )
+    p.add_argument(
+        "--trust",
+        choices=("auto", "box", "coverage", "none"),
+        help="where the networks apply: joint box, coverage of their inputs, everywhere "
+        "(default auto: box for joints, coverage for frameK inputs)",
+    )
+    p.add_argument(
+        "--refine-net",
+        metavar="ARCH",
+        help="architecture of the refining stages' networks ('/' in --inputs; default: mlp)",
+    )
+    p.add_argument(
+        "--local-net",
+        metavar="ARCH",
+        help="architecture of each joint's network in local stages (default: mlp:32x2)",
+    )
+    p.add_argument(
+        "--coverage-ratio",
+        type=float,
+        metavar="R",
+        help="--trust coverage: networks off beyond R x the full-trust radius (default 2)",
+    )
     p.add_argument("--logdir", metavar="DIR", help="TensorBoard logs and checkpoints")
     add_seed(p, what="seed of the split, the initialisation and the shuffling")
     p.add_argument("--strategy", default="auto", help="Lightning strategy: auto or ddp")
@@ -101,7 +149,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         p, help="first fit only the base and tool frames of MODEL to DATA (nominal:ROBOT)"
     )
     add_progress(p)
-    p.set_defaults(func=_run)
 
 
 def _overrides(args: argparse.Namespace) -> tuple[dict, dict, dict]:
@@ -118,12 +165,25 @@ def _overrides(args: argparse.Namespace) -> tuple[dict, dict, dict]:
         ("lr", args.lr),
         ("input_range", args.input_range),
         ("fade", args.fade),
+        ("inputs", args.inputs),
+        ("trust", args.trust),
+        ("coverage_ratio", args.coverage_ratio),
+        ("refine_net", args.refine_net),
+        ("local_net", args.local_net),
     ):
         if value is not None:
             model[key] = value
     if args.fade is not None and not 0 <= args.fade <= 10:
         raise HybridPKError(f"--fade must be between 0 and 10, got {args.fade}")
-    for key in ("position_net", "orientation_net"):  # fail before any data is read
+    if args.coverage_ratio is not None and not args.coverage_ratio > 1:
+        raise HybridPKError(f"--coverage-ratio must be > 1, got {args.coverage_ratio}")
+    if model.get("inputs", "joints") != "joints":
+        from hybrid_pk.hybrid.builder import parse_stages
+
+        parse_stages(model["inputs"])  # HybridPKError naming the forms
+        if model.get("trust") == "box":
+            raise HybridPKError("--trust box needs --inputs joints; use --trust coverage")
+    for key in ("position_net", "orientation_net", "refine_net", "local_net"):  # before data
         if model.get(key, "none") != "none":
             parse_arch(model[key])
     if args.batch_size is not None:
@@ -177,10 +237,10 @@ def _metadata(args, loaded, data, result) -> dict:
     return metadata
 
 
-def _run(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     try:
         from hybrid_pk.io.hybrid_file import save_hybrid
-        from hybrid_pk.training import train_hybrid
+        from hybrid_pk.training import quiet_lightning, train_hybrid
     except ImportError as exc:
         raise HybridPKError(
             f"training needs Lightning (a dependency of hybrid_pk): pip install lightning ({exc})"
@@ -236,10 +296,10 @@ def _print_summary(args, robot, data, result) -> None:
 
     hybrid = result.hybrid
     nets = []
-    for name in ("position", "orientation"):
-        head = getattr(hybrid, name)
-        if head is not None:
-            nets.append(f"{name} {head.arch} ({count_parameters(head.net):,} parameters)")
+    for stage in hybrid.stages:
+        for name, head in stage.heads().items():
+            where = "" if len(hybrid.stages) == 1 else f" [{stage.label}]"
+            nets.append(f"{name}{where} {head.arch} ({count_parameters(head):,} parameters)")
     base = "nominal URDF" if args.model.startswith(NOMINAL_PREFIX) else args.model
     print(
         f"trained {', '.join(nets)} on {data.n} rows of {robot.name} over {base}: "
@@ -249,11 +309,19 @@ def _print_summary(args, robot, data, result) -> None:
     for key, label in (("position_mm", "position [mm]"), ("orientation_deg", "orientation [deg]")):
         if key in result.best:
             print(f"  {label:<30} {result.base[key]:>12.5g} -> {result.best[key]:>8.5g}")
-    lo, hi = hybrid.box.trust_lower, hybrid.box.trust_upper
-    box = ", ".join(
-        f"{n} [{a:.3f}, {b:.3f}]" for n, a, b in zip(robot.joint_names, lo, hi, strict=True)
-    )
-    print(f"networks trusted inside the training box (fading out beyond it): {box}")
+    if len(hybrid.stages) > 1 or hybrid.coverage is not None:
+        print(
+            f"networks ({hybrid.input_label}) trusted near their training inputs (coverage), "
+            "each stage falling back to the next, the last to the base model"
+        )
+    elif hybrid.box is not None and bool(hybrid.box.trust_lower.isfinite().all()):
+        lo, hi = hybrid.box.trust_lower, hybrid.box.trust_upper
+        box = ", ".join(
+            f"{n} [{a:.3f}, {b:.3f}]" for n, a, b in zip(robot.joint_names, lo, hi, strict=True)
+        )
+        print(f"networks trusted inside the training box (fading out beyond it): {box}")
+    else:
+        print(f"networks ({hybrid.input_label}) applied everywhere (--trust none)")
     if result.logdir:
         print(f"TensorBoard logs: tensorboard --logdir {result.logdir}")
     print(f"wrote {args.out}")

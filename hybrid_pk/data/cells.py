@@ -26,6 +26,7 @@ __all__ = [
     "check_header_names",
     "check_time_order",
     "first_long_row",
+    "missing_columns_error",
     "to_float",
 ]
 
@@ -72,6 +73,22 @@ def check_header_names(file: str, header: Sequence[str]) -> None:
                 column=name,
             )
         seen[name] = pos
+
+
+def missing_columns_error(
+    file: str,
+    missing: Sequence[str],
+    found: Sequence[str],
+    what: str = "",
+    note: str = "",
+    hint: str = "",
+) -> DataError:
+    """``missing {what}column(s) 'a', 'b'{note}; found columns: ...{hint}`` for ``file``."""
+    return DataError(
+        f"missing {what}column(s) {', '.join(map(repr, missing))}{note}; "
+        f"found columns: {', '.join(found)}{hint}",
+        file=file,
+    )
 
 
 def first_long_row(

@@ -53,7 +53,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 
-from hybrid_pk.data.cells import check_header_names, to_float
+from hybrid_pk.data.cells import check_header_names, missing_columns_error, to_float
 from hybrid_pk.data.euler import (
     EULER_SEQUENCES,
     ConventionScore,
@@ -84,14 +84,8 @@ __all__ = [
 
 MEASUREMENT_CONVENTION = "XYZ"
 GOAL_CONVENTION = "xyz"
-UR_JOINT_NAMES = (
-    "shoulder_pan_joint",
-    "shoulder_lift_joint",
-    "elbow_joint",
-    "wrist_1_joint",
-    "wrist_2_joint",
-    "wrist_3_joint",
-)
+_UR_WRISTS = tuple(f"wrist_{k}_joint" for k in (1, 2, 3))
+UR_JOINT_NAMES = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", *_UR_WRISTS)
 MEASUREMENT_ANGLES = ("measurement_rx", "measurement_ry", "measurement_rz")
 MEASUREMENT_POSITION = ("measurement_x", "measurement_y", "measurement_z")
 GOAL_ANGLES = ("Goal roll", "Goal pitch", "Goal yaw")
@@ -146,11 +140,7 @@ def read_ipa_csv(
     raw.columns = header
     missing = [c for c in columns if c not in header]
     if missing:
-        raise DataError(
-            f"missing column(s) {', '.join(map(repr, missing))} of the IPA UR10 format; "
-            f"found columns: {', '.join(header)}",
-            file=file,
-        )
+        raise missing_columns_error(file, missing, header, note=" of the IPA UR10 format")
     if len(raw) == 0:
         raise DataError("no data rows below the header", file=file)
     out = {}

@@ -28,7 +28,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from hybrid_pk.data.cells import RowProblems, check_time_order, to_float
+from hybrid_pk.data.cells import RowProblems, check_time_order, missing_columns_error, to_float
 from hybrid_pk.data.files import load_cells, to_frame, write_frame
 from hybrid_pk.data.measured import (
     OPTIONAL_COLUMNS,
@@ -40,13 +40,8 @@ from hybrid_pk.data.measured import (
 from hybrid_pk.errors import DataError
 
 __all__ = [
-    "OPTIONAL_COLUMNS",
-    "POSITION_COLUMNS",
-    "QUAT_COLUMNS",
     "DataWarning",
     "IgnoredColumnsWarning",
-    "MeasuredData",
-    "SkippedRow",
     "SkippedRowsWarning",
     "read_table",
     "read_table_for",
@@ -131,18 +126,10 @@ def _select_columns(
         hint = f"; close matches: {', '.join(hints)}" if hints else ""
         if len(found) == 1 and ";" in found[0]:
             hint += "; the file looks ';'-separated, tables need ','"
-        raise DataError(
-            f"missing joint column(s) {', '.join(map(repr, missing_joints))}; "
-            f"found columns: {', '.join(found)}{hint}",
-            file=file,
-        )
+        raise missing_columns_error(file, missing_joints, found, "joint ", hint=hint)
     missing_xyz = [c for c in POSITION_COLUMNS if c not in present]
     if missing_xyz:
-        raise DataError(
-            f"missing position column(s) {', '.join(map(repr, missing_xyz))} [m]; "
-            f"found columns: {', '.join(found)}",
-            file=file,
-        )
+        raise missing_columns_error(file, missing_xyz, found, "position ", " [m]")
     quat = [c for c in QUAT_COLUMNS if c in present]
     if quat and len(quat) < 4:
         absent = [c for c in QUAT_COLUMNS if c not in present]

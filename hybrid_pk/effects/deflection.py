@@ -90,15 +90,26 @@ class DeflectionEffect(Effect):
         self.register_buffer("axis_unit", axis / axis.norm())
         self.register_buffer("basis", perpendicular_basis(axis))  # (2, 3)
 
-    def _bend(self, moment: Tensor) -> Tensor:
+    def _bend(self, moment: Tensor, value: Tensor | None) -> Tensor:
         """``-(c1 m1 e1 + c2 m2 e2)`` for moments ``(*B, 3)`` in the joint frame."""
         basis = self.basis.to(moment.dtype)
         components = moment @ basis.T  # (*B, 2)
-        return -(self.value.to(moment.dtype) * components) @ basis
+        c = self.value if value is None else value
+        return -(c.to(moment.dtype) * components) @ basis
 
-    def rotation(self, wrench: Tensor, q: Tensor) -> tuple[Tensor, Tensor]:
-        """Rotation ``w (*B, 3)`` [rad] and pivot ``(*B, 3)`` [m], joint frame."""
+    def rotation(
+        self, wrench: Tensor, q: Tensor, value: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """Rotation ``w (*B, 3)`` [rad] and pivot ``(*B, 3)`` [m], joint frame, from the
+        joint's wrench ``(*B, 6)`` and the chain's joint values ``q (*B, n_chain)``
+        (``value``: in place of the effect's own; ``w`` is linear in it)."""
         raise NotImplementedError
+
+    def rotation_per_unit(self, wrench: Tensor, q: Tensor, k: int) -> Tensor:
+        """``d w / d value_k (*B, 3)``: the rotation at a unit value of component ``k``."""
+        unit = torch.zeros(2, dtype=wrench.dtype)
+        unit[k] = 1
+        return self.rotation(wrench, q, unit)[0]
 
     def apply_deflection(self, params: KinematicParams, wrench: Tensor, q: Tensor):
         """Parameters deflected by this effect, from the joint-frame wrenches
@@ -119,8 +130,8 @@ class TiltCompliance(DeflectionEffect):
 
     kind, unit = "tilt_compliance", "rad/Nm"
 
-    def rotation(self, wrench: Tensor, q: Tensor) -> tuple[Tensor, Tensor]:
-        w = self._bend(wrench[..., 3:])
+    def rotation(self, wrench: Tensor, q: Tensor, value: Tensor | None = None):
+        w = self._bend(wrench[..., 3:], value)
         return w, torch.zeros_like(w)
 
 
@@ -145,10 +156,10 @@ class ColumnBending(DeflectionEffect):
                 f"tilt_compliance:{joint})"
             )
 
-    def rotation(self, wrench: Tensor, q: Tensor) -> tuple[Tensor, Tensor]:
+    def rotation(self, wrench: Tensor, q: Tensor, value: Tensor | None = None):
         length = q[..., self.joint_index, None]  # (*B, 1) extension [m]
         a = self.axis_unit.to(wrench.dtype)
         force, moment = wrench[..., :3], wrench[..., 3:]
         pivot = -0.5 * length * a  # mid-extension, in the joint frame
         moment_mid = moment + torch.linalg.cross(-pivot, force)  # M about the pivot
-        return length * self._bend(moment_mid), pivot
+        return length * self._bend(moment_mid, value), pivot

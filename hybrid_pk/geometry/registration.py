@@ -45,6 +45,22 @@ def _pairs(n: int, generator: torch.Generator, count: int = 2000) -> tuple[Tenso
     return i[keep], j[keep]
 
 
+# Ridge on the tool translation, relative to the mean information of the translations:
+# where the flange orientation hardly varies, base and tool translation trade off and
+# the guess keeps the tool at the flange instead of kilometres away (a well-determined
+# tool moves by ~1e-6 of its length, which the fit that follows removes).
+TOOL_RIDGE = 1e-6
+
+
+def _translations(A: Tensor, rhs: Tensor) -> Tensor:
+    """``(p_B, p_X)`` from ``A (N, 3, 6) x = rhs (N, 3)``, with a ridge on ``p_X``."""
+    A2, b = A.reshape(-1, 6), rhs.reshape(-1)
+    H = A2.T @ A2
+    ridge = torch.zeros(6, dtype=H.dtype)
+    ridge[3:] = TOOL_RIDGE * float(H.diagonal().mean())
+    return torch.linalg.solve(H + torch.diag(ridge), A2.T @ b)
+
+
 # Below this largest relative flange rotation [rad] the hand-eye rotation is noise.
 MIN_ROTATION_SPREAD = 0.05
 
@@ -82,16 +98,14 @@ def register_frames(
         R_X = nearest_rotation((R_F.transpose(-1, -2) @ R_B.T @ quat_rot).sum(0))
         # p_meas - R_B p_F = p_B + (R_B R_F) p_X : linear in (p_B, p_X)
         A = torch.cat([torch.eye(3, dtype=p_F.dtype).expand(n, 3, 3), R_B @ R_F], -1)
-        rhs = position - p_F @ R_B.T
-        sol = torch.linalg.lstsq(A.reshape(-1, 6), rhs.reshape(-1, 1)).solution[:, 0]
+        sol = _translations(A, position - p_F @ R_B.T)
         return transform(R_B, sol[:3]), transform(R_X, sol[3:])
     p_X = torch.zeros(3, dtype=p_F.dtype)
     A_cols = None
     for _ in range(iterations):
         R_B, p_B = kabsch(p_F + (R_F @ p_X[:, None])[..., 0], position)
         A_cols = torch.cat([torch.eye(3, dtype=p_F.dtype).expand(n, 3, 3), R_B @ R_F], -1)
-        rhs = position - p_F @ R_B.T
-        sol = torch.linalg.lstsq(A_cols.reshape(-1, 6), rhs.reshape(-1, 1)).solution[:, 0]
+        sol = _translations(A_cols, position - p_F @ R_B.T)
         p_B, p_X = sol[:3], sol[3:]
     eye = torch.eye(3, dtype=p_F.dtype)
     return transform(R_B, p_B), transform(eye, p_X)

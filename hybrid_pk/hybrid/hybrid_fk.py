@@ -4,170 +4,64 @@ Composition (all differentiable w.r.t. ``q``)::
 
     E  = base.end_pose(q, cond)                       flange in the robot root frame
     R1 = axes of the frame joint 1 moves (nominal robot at the commanded q)
-    E* = [exp(R1 w dw(u)) R_E | p_E + R1 w dp(u)]    corrected flange pose
+    u, A = inputs(q)                                  network inputs, axes of the output
+    E* = [exp(R1 A w dw(u)) R_E | p_E + R1 A w dp(u)] corrected flange pose
     T  = T_meas_root · E* · T_end_point               measured point, measurement frame
 
-``u`` are the joints normalised to [-1, 1] over the input range (the full joint limits,
-paper 4.1, or the range of the training data, paper 4.2); ``dp`` [m] and ``dw`` [rad,
-axis-angle] are the position and orientation networks' outputs times their output
-scales, in the axes of joint 1's frame.
+``dp`` [m] and ``dw`` [rad, axis-angle] are the position and orientation networks'
+outputs times their output scales; ``w`` in [0, 1] is their trust. Two kinds of inputs:
 
-Why these choices:
+- :class:`~hybrid_pk.hybrid.inputs.InputBox` (the paper's): every joint, min-max
+  normalised, corrections in joint 1's axes (``A = I``), trust 1 inside the training
+  rows' joint box and 0 (or fading out) outside it;
+- :class:`~hybrid_pk.hybrid.features.PhysicsFeatures` (issue 13): corrections in the
+  axes of link ``k`` (``A = R1ᵀ Rk``), from the joints after ``k``, the gravity
+  direction and the static load there: equivariant to the joints before ``k``.
 
-- The *flange* pose is corrected in robot coordinates, so the networks do not depend
-  on the base and tool frames: a re-fitted tracker or tool frame (``calibrate
-  --refit``) leaves them valid, and the frame sets of several files share them.
-- Joint 1's axes: every error that arises downstream of joint 1 (gravity deflection
-  when joint 1 is vertical, link and joint errors of joints 2..n) turns rigidly with
-  joint 1, so in these axes it does not depend on ``q1``; in root axes the networks
-  would have to learn that rotation too (on the RX160 acceptance data: 1.4 x lower
-  error after 30 epochs).
-- ``w(q)`` in [0, 1] is the trust of the networks: 1 inside the joint box of the
-  training data, 0 outside it by default (the base model, as the paper restricts its
-  networks to the training range), or falling smoothly (C¹) to 0 within ``fade`` x
-  the box size outside it. On the real UR10 a 10 % fade made the orientation worse
-  on held-out rows just outside the box while helping on average further out, so the
-  safe fall-back is the default and the fade is opt-in.
+An optional :class:`~hybrid_pk.hybrid.coverage.Coverage` replaces the trust by the
+distance to the training rows in the networks' own input space (physics as fall-back,
+a smooth blend between).
+
+Why the *flange* is corrected in robot coordinates: the networks then do not depend on
+the base and tool frames, so a re-fitted tracker or tool frame (``calibrate --refit``)
+leaves them valid, and the frame sets of several files share them. Why joint 1's axes
+even for the paper's inputs: every error that arises downstream of joint 1 turns with
+it (on the RX160 acceptance data: 1.4 x lower error after 30 epochs than in root axes).
 """
 
 from __future__ import annotations
 
-from collections import OrderedDict
+from collections.abc import Sequence
 
-import torch
 from torch import Tensor, nn
 
 from hybrid_pk.effects import Conditions, ExtendedModel
-from hybrid_pk.errors import ModelFileError
 from hybrid_pk.geometry import so3_exp, transform
-from hybrid_pk.hybrid.nets import build_net
+from hybrid_pk.hybrid.coverage import Coverage
+from hybrid_pk.hybrid.inputs import DEFAULT_FADE, InputBox, joint_1_axes
+from hybrid_pk.hybrid.networks_state import networks_state, stages_from_state
+from hybrid_pk.hybrid.stage import (
+    Head,
+    NetworkInputs,
+    ResidualStage,
+    check_stages,
+    combine_stages,
+)
 
 __all__ = [
-    "NETWORKS_FORMAT",
-    "NETWORKS_VERSION",
+    "DEFAULT_FADE",
+    "Head",
     "HybridFK",
-    "InputBox",
-    "ResidualHead",
+    "NetworkInputs",
     "correction_axes",
     "frame_matrices",
 ]
 
-NETWORKS_FORMAT = "hybrid_pk.residual_networks"
-NETWORKS_VERSION = 1
-DEFAULT_FADE = 0.0  # fade-out width outside the training box, fraction of its size
-
-
-def _finite_limits(lower: Tensor, upper: Tensor) -> tuple[Tensor, Tensor]:
-    """Limits with ``±inf`` (continuous joints) replaced by ``±pi``."""
-    pi = torch.full_like(lower, torch.pi)
-    return torch.where(torch.isfinite(lower), lower, -pi), torch.where(
-        torch.isfinite(upper), upper, pi
-    )
-
-
-class InputBox(nn.Module):
-    """Input normalisation and trust region of the networks.
-
-    Buffers (each ``(dof,)``, joint units [rad or m]):
-        lower, upper: range mapped to [-1, 1] (joint limits or the data's range).
-        trust_lower, trust_upper: joint box of the training data.
-
-    Args:
-        lower, upper: normalisation range.
-        trust_lower, trust_upper: training-data box (default: the normalisation range).
-        fade: width of the fade-out outside the box, as a fraction of its size per joint.
-    """
-
-    def __init__(
-        self,
-        lower: Tensor,
-        upper: Tensor,
-        trust_lower: Tensor | None = None,
-        trust_upper: Tensor | None = None,
-        fade: float = DEFAULT_FADE,
-    ) -> None:
-        super().__init__()
-        lower, upper = _finite_limits(lower.to(torch.float64), upper.to(torch.float64))
-        if not bool((upper > lower).all()):
-            raise ValueError(f"input range needs upper > lower per joint, got {lower}, {upper}")
-        tl = lower if trust_lower is None else trust_lower.to(torch.float64)
-        tu = upper if trust_upper is None else trust_upper.to(torch.float64)
-        self.register_buffer("lower", lower.clone())
-        self.register_buffer("upper", upper.clone())
-        self.register_buffer("trust_lower", tl.clone())
-        self.register_buffer("trust_upper", tu.clone())
-        self.fade = float(fade)
-
-    @classmethod
-    def from_data(cls, q: Tensor, limits: tuple[Tensor, Tensor] | None, fade: float) -> InputBox:
-        """Box of the training joints ``q (N, dof)``; normalised over ``limits`` if given
-        (paper 4.1), else over the data's own range (paper 4.2)."""
-        lo, hi = q.min(0).values, q.max(0).values
-        hi = torch.where(hi > lo, hi, lo + 1e-6)  # a joint that never moved
-        if limits is None:
-            return cls(lo, hi, fade=fade)
-        return cls(*limits, trust_lower=lo, trust_upper=hi, fade=fade)
-
-    def normalise(self, q: Tensor) -> Tensor:
-        """``(*B, dof)`` joints -> ``(*B, dof)`` in [-1, 1] over the range (beyond it outside)."""
-        lo, hi = self.lower.to(q.dtype), self.upper.to(q.dtype)
-        return 2 * (q - lo) / (hi - lo) - 1
-
-    def trust(self, q: Tensor) -> Tensor:
-        """``(*B,)`` weight of the network corrections: 1 inside the training box, 0 beyond
-        ``fade`` x its size, ``(1 - r²)²`` in between (``r``: distance outside the box in
-        units of the fade width), which is C¹ at both ends."""
-        lo, hi = self.trust_lower.to(q.dtype), self.trust_upper.to(q.dtype)
-        width = (self.fade * (hi - lo)).clamp_min(1e-9)
-        outside = (torch.relu(lo - q) + torch.relu(q - hi)) / width
-        r2 = (outside * outside).sum(-1)
-        return (1 - r2).clamp_min(0) ** 2
-
-    def extra_repr(self) -> str:
-        return f"dof={self.lower.numel()}, fade={self.fade}"
-
-
-class ResidualHead(nn.Module):
-    """A network and the scale of its output: ``(N, dof) u -> (N, 3)`` in physical units.
-
-    The network predicts in units of ``scale (3,)`` (the RMS of its training targets,
-    e.g. tens of µm), so its outputs are O(1) whatever the size of the residual.
-
-    Args:
-        arch: architecture name (:func:`~hybrid_pk.hybrid.nets.build_net`).
-        dof: number of inputs.
-        scale: ``(3,)`` output unit [m or rad].
-        zero_init: start with a zero output layer (the hybrid starts as the base model).
-    """
-
-    def __init__(self, arch: str, dof: int, scale: Tensor, zero_init: bool = False) -> None:
-        super().__init__()
-        self.arch = arch
-        self.net = build_net(arch, dof, 3)
-        self.register_buffer("scale", scale.detach().to(torch.float64).reshape(3).clone())
-        if zero_init:
-            last = [m for m in self.net.modules() if isinstance(m, nn.Linear)][-1]
-            nn.init.zeros_(last.weight)
-            nn.init.zeros_(last.bias)
-
-    @property
-    def net_dtype(self) -> torch.dtype:
-        return next(self.net.parameters()).dtype
-
-    def forward(self, u: Tensor) -> Tensor:
-        """``(*B, dof)`` normalised joints -> ``(*B, 3)`` correction [m or rad], dtype of ``u``."""
-        batch = u.shape[:-1]
-        out = self.net(u.reshape(-1, u.shape[-1]).to(self.net_dtype))
-        return out.to(u.dtype).reshape(*batch, 3) * self.scale.to(u.dtype)
-
-    def extra_repr(self) -> str:
-        return f"arch={self.arch!r}"
-
 
 def correction_axes(base: ExtendedModel, q: Tensor) -> Tensor:
-    """``(*B, 3, 3)`` axes of the network corrections: joint 1's frame in the root frame
-    (nominal robot at the commanded ``q (*B, dof)``)."""
-    return base.robot.link_frames(q)[..., 0, :3, :3]
+    """``(*B, 3, 3)`` axes in which the training targets are kept: joint 1's frame in the
+    root frame (nominal robot at the commanded ``q (*B, dof)``)."""
+    return joint_1_axes(base.robot, q)
 
 
 def frame_matrices(model: ExtendedModel, cond: Conditions | None) -> tuple[Tensor, Tensor]:
@@ -180,89 +74,171 @@ def frame_matrices(model: ExtendedModel, cond: Conditions | None) -> tuple[Tenso
 
 
 class HybridFK(nn.Module):
-    """Base model + position and orientation residual networks.
+    """Base model + residual networks in one or more stages.
+
+    The first stage is given by ``inputs``, ``position``, ``orientation`` and
+    ``coverage``; ``more`` stages follow it (:mod:`~hybrid_pk.hybrid.stage`: cascade
+    levels of fall-back and refinements). :attr:`inputs`, :attr:`position`,
+    :attr:`orientation`, :attr:`coverage` and :attr:`box` are the first stage's.
 
     Args:
         base: the nominal or calibrated model (frames + effects); not trained here.
-        box: input normalisation and trust region.
+        inputs: the first networks' inputs (:class:`InputBox`, :class:`PhysicsFeatures`
+            or :class:`~hybrid_pk.hybrid.local.LocalFeatures`).
         position: head predicting the flange position correction ``dp`` [m], or None.
         orientation: head predicting the flange rotation correction ``dw`` [rad], or
             None (position-only data).
+        coverage: trust from the distance to the training inputs; None: the joint box
+            of an :class:`InputBox`, or full trust for the physics inputs.
+        more: further stages, in order.
     """
 
     def __init__(
         self,
         base: ExtendedModel,
-        box: InputBox,
-        position: ResidualHead | None,
-        orientation: ResidualHead | None,
+        inputs: NetworkInputs,
+        position: Head | None,
+        orientation: Head | None,
+        coverage: Coverage | None = None,
+        more: Sequence[ResidualStage] = (),
     ) -> None:
         super().__init__()
-        if box.lower.numel() != base.robot.dof:
-            raise ValueError(f"input box has {box.lower.numel()} joints, robot {base.robot.dof}")
         self.base = base
-        self.box = box
-        self.position = position
-        self.orientation = orientation
+        first = ResidualStage(inputs, position, orientation, coverage)
+        self.stages = nn.ModuleList([first, *more])
+        dof = base.robot.dof
+        for stage in self.stages:
+            if isinstance(stage.inputs, InputBox) and stage.inputs.lower.numel() != dof:
+                raise ValueError(f"input box has {stage.inputs.lower.numel()} joints, robot {dof}")
+            if not isinstance(stage.inputs, InputBox) and stage.inputs.dof != dof:
+                raise ValueError(f"network inputs made for {stage.inputs.dof} joints, robot {dof}")
+        check_stages(list(self.stages))
 
     @classmethod
     def build(
         cls,
         base: ExtendedModel,
-        box: InputBox,
+        inputs: NetworkInputs,
         position_net: str | None,
         orientation_net: str | None,
         position_scale: Tensor | None = None,
         orientation_scale: Tensor | None = None,
         zero_init: bool = False,
+        coverage: Coverage | None = None,
     ) -> HybridFK:
-        """Fresh networks of the named architectures (None: no such network).
-
-        Args:
-            position_scale, orientation_scale: ``(3,)`` output units [m], [rad]
-                (default 1 mm and 1 mrad).
-        """
-        default = torch.full((3,), 1e-3, dtype=torch.float64)
-
-        def head(arch: str | None, scale: Tensor | None) -> ResidualHead | None:
-            if arch is None:
-                return None
-            return ResidualHead(
-                arch, base.robot.dof, default if scale is None else scale, zero_init
-            )
-
-        return cls(
-            base, box, head(position_net, position_scale), head(orientation_net, orientation_scale)
+        """One stage of fresh networks of the named architectures (None: no such
+        network); see :meth:`ResidualStage.build`."""
+        stage = ResidualStage.build(
+            inputs, position_net, orientation_net, position_scale, orientation_scale, zero_init
         )
+        return cls(base, inputs, stage.position, stage.orientation, coverage)
+
+    # ------------------------------------------------------------------ the first stage
+    @property
+    def inputs(self) -> NetworkInputs:
+        return self.stages[0].inputs
+
+    @property
+    def position(self) -> Head | None:
+        return self.stages[0].position
+
+    @property
+    def orientation(self) -> Head | None:
+        return self.stages[0].orientation
+
+    @property
+    def coverage(self) -> Coverage | None:
+        return self.stages[0].coverage
+
+    def set_coverage(self, coverage: Coverage | None, stage: int = 0) -> None:
+        """Give stage ``stage`` a coverage (None: its default trust)."""
+        self.stages[stage].coverage = coverage
+
+    @property
+    def box(self) -> InputBox | None:
+        """The first stage's input box (the paper's inputs), or None."""
+        return self.stages[0].box
+
+    @property
+    def input_label(self) -> str:
+        """The stages' inputs: ``joints``, ``frame1+q2-4+torque/joints,local+q1``, ..."""
+        out = ""
+        for i, stage in enumerate(self.stages):
+            out += ("" if i == 0 else "/" if stage.role == "refine" else ",") + stage.label
+        return out
 
     # ------------------------------------------------------------------ prediction
     def networks(self) -> nn.ModuleDict:
-        """The trainable heads by name (``position``, ``orientation``)."""
-        heads = {"position": self.position, "orientation": self.orientation}
-        return nn.ModuleDict({k: v for k, v in heads.items() if v is not None})
+        """The trainable heads by name: ``position``, ``orientation`` for the first
+        stage, ``s1.position``, ... for the next."""
+        out = {}
+        for i, stage in enumerate(self.stages):
+            for name, head in stage.heads().items():
+                out[name if i == 0 else f"s{i}.{name}"] = head
+        return nn.ModuleDict({k.replace(".", "_"): v for k, v in out.items()})
+
+    def encode(self, q: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+        """The first stage's network inputs at ``q (*B, dof)`` and their output
+        geometry (``{}``, ``{"A"}`` or ``{"R", "lever"}``; see the inputs' ``raw``)."""
+        return self.stages[0].encode(self.base.robot, q)
+
+    def encode_all(self, q: Tensor) -> list[tuple[Tensor, dict[str, Tensor]]]:
+        """Every stage's inputs and geometry at ``q``."""
+        return [stage.encode(self.base.robot, q) for stage in self.stages]
+
+    def weights(self, q: Tensor, encoded: list[tuple[Tensor, dict]] | None = None) -> list:
+        """Effective weight of every stage's networks at ``q`` (own trust combined by the
+        stage rules): ``(*B,)``, or ``(*B, dof)`` for local networks."""
+        encoded = self.encode_all(q) if encoded is None else encoded
+        own = [stage.weight(q, u) for stage, (u, _) in zip(self.stages, encoded, strict=True)]
+        return combine_stages(list(self.stages), own)
+
+    def weight(self, q: Tensor, u: Tensor) -> Tensor:
+        """The first stage's own trust at ``q`` with its inputs ``u``."""
+        return self.stages[0].weight(q, u)
 
     def trust(self, q: Tensor) -> Tensor:
-        """``(*B,)`` weight in [0, 1] of the corrections at ``q`` (1: inside the training box)."""
-        return self.box.trust(q)
+        """Weight in [0, 1] of the first stage's corrections at ``q`` (1: networks fully
+        on, 0: the base model alone, or the next stage): ``(*B,)``, or ``(*B, dof)`` per
+        joint for local networks."""
+        return self.weight(q, self.encode(q)[0])
+
+    def coverage_distance(self, q: Tensor) -> Tensor | None:
+        """Distance of ``q``'s first-stage inputs to the training inputs (None without a
+        :class:`Coverage`)."""
+        return None if self.coverage is None else self.coverage.distance(self.encode(q)[0])
 
     def correction_axes(self, q: Tensor) -> Tensor:
-        """``(*B, 3, 3)`` rotation of joint 1's frame in the root frame: the axes of the
-        corrections (nominal robot, commanded ``q``)."""
+        """``(*B, 3, 3)`` rotation of joint 1's frame in the root frame: the axes of
+        :meth:`corrections` (nominal robot, commanded ``q``)."""
         return correction_axes(self.base, q)
 
     def corrections(self, q: Tensor) -> tuple[Tensor, Tensor]:
-        """Flange corrections at ``q (*B, dof)``, already weighted by :meth:`trust`.
+        """Flange corrections at ``q (*B, dof)``: every stage at its weight.
 
         Returns:
             ``dp (*B, 3)`` [m] and ``dw (*B, 3)`` [rad] in the axes of
             :meth:`correction_axes`, dtype of ``q``.
         """
-        u = self.box.normalise(q)
-        w = self.box.trust(q)[..., None]
-        zero = torch.zeros(*q.shape[:-1], 3, dtype=q.dtype, device=q.device)
-        dp = zero if self.position is None else w * self.position(u)
-        dw = zero if self.orientation is None else w * self.orientation(u)
+        encoded = self.encode_all(q)
+        return self.predict_all(encoded, self.weights(q, encoded))
+
+    def predict_all(
+        self, encoded: list[tuple[Tensor, dict]], weights: list[Tensor | None]
+    ) -> tuple[Tensor, Tensor]:
+        """Sum of the stages' corrections from encoded inputs and effective weights."""
+        dp = dw = None
+        for stage, (u, geo), w in zip(self.stages, encoded, weights, strict=True):
+            p, r = stage.predict(u, geo, w)
+            dp, dw = (p, r) if dp is None else (dp + p, dw + r)
         return dp, dw
+
+    def predict(
+        self, u: Tensor, geo: dict[str, Tensor], w: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """The first stage's corrections from its encoded inputs (see
+        :meth:`ResidualStage.predict`)."""
+        return self.stages[0].predict(u, geo, w)
 
     def end_pose(self, q: Tensor, cond: Conditions | None = None) -> Tensor:
         """``(*B, 4, 4)`` corrected flange pose in the robot root frame."""
@@ -281,88 +257,19 @@ class HybridFK(nn.Module):
 
     # ------------------------------------------------------------------ model file
     def state(self, metadata: dict | None = None) -> dict:
-        """The ``networks`` entry of a model file (tensors and plain data only).
-
-        Format::
-
-            {"format": NETWORKS_FORMAT, "version": 1, "joint_names": [...],
-             "frame": "flange origin, joint-1 axes",
-             "input": {"lower", "upper", "trust_lower", "trust_upper" (dof,) tensors,
-                       "fade": float},
-             "position" / "orientation": {"arch": str, "scale": (3,) tensor,
-                                          "dtype": str, "state_dict": {...}} or None,
-             "training": {...}}
-        """
-
-        def head(h: ResidualHead | None) -> dict | None:
-            if h is None:
-                return None
-            sd = OrderedDict((k, v.detach().cpu().clone()) for k, v in h.net.state_dict().items())
-            return {
-                "arch": h.arch,
-                "scale": h.scale.detach().cpu().clone(),
-                "dtype": str(h.net_dtype).removeprefix("torch."),
-                "state_dict": sd,
-            }
-
-        box = self.box
-        return {
-            "format": NETWORKS_FORMAT,
-            "version": NETWORKS_VERSION,
-            "joint_names": list(self.base.robot.joint_names),
-            "frame": "flange origin, joint-1 axes",
-            "input": {
-                "lower": box.lower.cpu().clone(),
-                "upper": box.upper.cpu().clone(),
-                "trust_lower": box.trust_lower.cpu().clone(),
-                "trust_upper": box.trust_upper.cpu().clone(),
-                "fade": box.fade,
-            },
-            "position": head(self.position),
-            "orientation": head(self.orientation),
-            "training": dict(metadata or {}),
-        }
+        """The ``networks`` entry of a model file (tensors and plain data only; format:
+        :func:`~hybrid_pk.hybrid.networks_state.networks_state`)."""
+        return networks_state(self.base.robot.joint_names, list(self.stages), metadata)
 
     @classmethod
     def from_state(cls, base: ExtendedModel, state: dict, source: str = "model file") -> HybridFK:
-        """Rebuild from :meth:`state` on ``base`` (the model file's extended model).
+        """Rebuild from :meth:`state` on ``base`` (the model file's extended model), in
+        eval mode; reads networks format versions 1 and 2.
 
         Raises:
             ModelFileError: not a networks entry, a newer version, or networks made for
                 other joints than ``base``'s robot.
         """
-        if not isinstance(state, dict) or state.get("format") != NETWORKS_FORMAT:
-            raise ModelFileError(f"{source}: its networks are not hybrid_pk residual networks")
-        if int(state.get("version", 0)) > NETWORKS_VERSION:
-            raise ModelFileError(
-                f"{source}: residual networks of format version {state['version']}; this "
-                f"hybrid_pk reads up to {NETWORKS_VERSION}: upgrade hybrid_pk"
-            )
-        joints = list(state["joint_names"])
-        if joints != list(base.robot.joint_names):
-            raise ModelFileError(
-                f"{source}: its residual networks were trained for joints {joints}, the "
-                f"model's robot {base.robot.name!r} has {base.robot.joint_names}"
-            )
-        inp = state["input"]
-        box = InputBox(
-            inp["lower"], inp["upper"], inp["trust_lower"], inp["trust_upper"], inp["fade"]
-        )
-        heads = {}
-        for name in ("position", "orientation"):
-            entry = state.get(name)
-            if entry is None:
-                heads[name] = None
-                continue
-            h = ResidualHead(entry["arch"], base.robot.dof, entry["scale"])
-            h.net.to(getattr(torch, entry.get("dtype", "float32")))
-            try:
-                h.net.load_state_dict(entry["state_dict"])
-            except RuntimeError as exc:
-                raise ModelFileError(
-                    f"{source}: the {name} network does not match its architecture "
-                    f"{entry['arch']!r}: {' '.join(str(exc).split())[:200]}"
-                ) from exc
-            heads[name] = h
-        model = cls(base, box, heads["position"], heads["orientation"])
+        first, *more = stages_from_state(base.robot, state, source)
+        model = cls(base, first.inputs, first.position, first.orientation, first.coverage, more)
         return model.eval()

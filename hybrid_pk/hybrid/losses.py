@@ -10,6 +10,13 @@ predicted point (the Euclidean norm of the translation of ``T_diff``), the
 orientation network the angle of ``R_meas R_pred^T`` (the norm of the axis-angle of
 ``T_diff``). Each network sees only its own loss: the rotation correction enters the
 predicted *point* through the tool lever arm, but is detached there.
+
+Names: :func:`corrected_position_errors_mm` and :func:`corrected_orientation_errors_deg`
+take a base model's residual and the networks' corrections (the errors *after*
+correcting, from :class:`ResidualTargets`); the evaluation metrics
+:func:`hybrid_pk.evaluation.metrics.position_error_mm` and
+:func:`~hybrid_pk.evaluation.metrics.pose_error` take two points or poses. On the same
+rows both give the same numbers (``tests/test_hybrid_nets.py`` checks it).
 """
 
 from __future__ import annotations
@@ -27,8 +34,8 @@ from hybrid_pk.hybrid.hybrid_fk import correction_axes, frame_matrices
 __all__ = [
     "LOSSES",
     "ResidualTargets",
-    "orientation_errors_deg",
-    "position_errors_mm",
+    "corrected_orientation_errors_deg",
+    "corrected_position_errors_mm",
     "reduce_errors",
     "residual_targets",
 ]
@@ -116,10 +123,11 @@ def residual_targets(
     )
 
 
-def position_errors_mm(
+def corrected_position_errors_mm(
     position: Tensor, lever: Tensor, dp: Tensor, dw: Tensor, detach_rotation: bool = True
 ) -> Tensor:
-    """Distance [mm] between measured and hybrid point, ``(N,)``.
+    """Distance [mm] between measured and hybrid point, ``(N,)``, from the base model's
+    residual and the corrections (for two points: ``evaluation.metrics.position_error_mm``).
 
     Args:
         position: ``(N, 3)`` residual of the base model [m] (:class:`ResidualTargets`).
@@ -136,8 +144,9 @@ def position_errors_mm(
     return 1e3 * torch.linalg.vector_norm(position - dp - swing, dim=-1)
 
 
-def orientation_errors_deg(rotation: Tensor, dw: Tensor) -> Tensor:
-    """Angle [deg] of ``R_meas R_hybrid^T`` = ``rotation exp(dw)^T``, ``(N,)``."""
+def corrected_orientation_errors_deg(rotation: Tensor, dw: Tensor) -> Tensor:
+    """Angle [deg] of ``R_meas R_hybrid^T`` = ``rotation exp(dw)^T``, ``(N,)``, from the
+    base model's rotation residual and the correction ``dw``."""
     return torch.rad2deg(rotation_angle(rotation @ so3_exp(dw).transpose(-1, -2)))
 
 

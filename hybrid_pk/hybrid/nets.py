@@ -21,10 +21,12 @@ counts them as non-trainable parameters).
 
 from __future__ import annotations
 
+import itertools
 import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
+import torch
 from torch import Tensor, nn
 
 from hybrid_pk.errors import HybridPKError
@@ -35,9 +37,12 @@ __all__ = [
     "ChenResNet",
     "DenseBlock",
     "DenseNet",
+    "GroupedDenseNet",
     "IdentityBlock",
+    "ResidualHead",
     "build_net",
     "count_parameters",
+    "make_activation",
     "parse_arch",
 ]
 
@@ -50,7 +55,8 @@ _ACTIVATIONS: dict[str, Callable[[], nn.Module]] = {
 }
 
 
-def _activation(name: str) -> nn.Module:
+def make_activation(name: str) -> nn.Module:
+    """A fresh activation module by name (``relu``, ``silu``, ``tanh``, ``sigmoid``, ``gelu``)."""
     if name not in _ACTIVATIONS:
         raise HybridPKError(f"unknown activation {name!r}; one of {', '.join(_ACTIVATIONS)}")
     return _ACTIVATIONS[name]()
@@ -77,7 +83,7 @@ class DenseNet(nn.Module):
         layers: list[nn.Module] = []
         width = in_features
         for h in hidden:
-            layers += [nn.Linear(width, h), _activation(activation)]
+            layers += [nn.Linear(width, h), make_activation(activation)]
             width = h
         layers.append(nn.Linear(width, out_features))
         self.layers = nn.Sequential(*layers)
@@ -85,6 +91,56 @@ class DenseNet(nn.Module):
     def forward(self, u: Tensor) -> Tensor:
         """``(N, in_features) -> (N, out_features)``."""
         return self.layers(u)
+
+
+class GroupedDenseNet(nn.Module):
+    """``groups`` independent dense networks of one shape, evaluated in one batched
+    product per layer (the local networks: one per joint).
+
+    ``(N, groups, in_features) -> (N, groups, out_features)``; each group's layers are
+    initialised as :class:`torch.nn.Linear` would.
+
+    Args:
+        groups: number of networks.
+        in_features, out_features: inputs and outputs of each.
+        hidden: widths of the hidden layers.
+        activation: as :class:`DenseNet`.
+    """
+
+    def __init__(
+        self,
+        groups: int,
+        in_features: int,
+        hidden: Sequence[int],
+        out_features: int,
+        activation: str = "silu",
+    ) -> None:
+        super().__init__()
+        dims = [in_features, *hidden, out_features]
+        self.weights = nn.ParameterList()
+        self.biases = nn.ParameterList()
+        for n_in, n_out in itertools.pairwise(dims):
+            bound = 1.0 / n_in**0.5
+            self.weights.append(
+                nn.Parameter(torch.empty(groups, n_in, n_out).uniform_(-bound, bound))
+            )
+            self.biases.append(nn.Parameter(torch.empty(groups, n_out).uniform_(-bound, bound)))
+        self.act = make_activation(activation)
+
+    def zero_output(self) -> None:
+        """Zero the last layer (the networks start at zero output)."""
+        with torch.no_grad():
+            self.weights[-1].zero_()
+            self.biases[-1].zero_()
+
+    def forward(self, u: Tensor) -> Tensor:
+        h = u
+        last = len(self.weights) - 1
+        for i, (w, b) in enumerate(zip(self.weights, self.biases, strict=True)):
+            h = torch.einsum("ngi,gio->ngo", h, w) + b
+            if i < last:
+                h = self.act(h)
+        return h
 
 
 def _dense_bn(n_in: int, n_out: int) -> list[nn.Module]:
@@ -252,3 +308,48 @@ def build_net(name: str, in_features: int, out_features: int = 3) -> nn.Module:
 def count_parameters(net: nn.Module) -> int:
     """Number of trainable parameters."""
     return sum(p.numel() for p in net.parameters() if p.requires_grad)
+
+
+class ResidualHead(nn.Module):
+    """A network and the scale of its output: ``(N, n_inputs) u -> (N, 3)`` in physical
+    units.
+
+    The network predicts in units of ``scale (3,)`` (the RMS of its training targets,
+    e.g. tens of µm), so its outputs are O(1) whatever the size of the residual.
+
+    Args:
+        arch: architecture name (:func:`~hybrid_pk.hybrid.nets.build_net`).
+        n_inputs: number of inputs (the robot's ``dof`` for the paper's inputs).
+        scale: ``(3,)`` output unit [m or rad].
+        zero_init: start with a zero output layer (the hybrid starts as the base model).
+    """
+
+    def __init__(self, arch: str, n_inputs: int, scale: Tensor, zero_init: bool = False) -> None:
+        super().__init__()
+        self.arch = arch
+        self.net = build_net(arch, n_inputs, 3)
+        self.register_buffer("scale", scale.detach().to(torch.float64).reshape(3).clone())
+        if zero_init:
+            last = [m for m in self.net.modules() if isinstance(m, nn.Linear)][-1]
+            nn.init.zeros_(last.weight)
+            nn.init.zeros_(last.bias)
+
+    @property
+    def net_dtype(self) -> torch.dtype:
+        return next(self.net.parameters()).dtype
+
+    def forward(self, u: Tensor) -> Tensor:
+        """``(*B, n_inputs)`` inputs -> ``(*B, 3)`` correction [m or rad], dtype of ``u``."""
+        batch = u.shape[:-1]
+        out = self.net(u.reshape(-1, u.shape[-1]).to(self.net_dtype))
+        return out.to(u.dtype).reshape(*batch, 3) * self.scale.to(u.dtype)
+
+    def correct(self, u: Tensor, geo: dict[str, Tensor], w: Tensor | None) -> Tensor:
+        """``(*B, 3)`` correction in joint 1's axes: the output weighted by ``w (*B,)``
+        (None: 1) and turned by ``geo["A"] (*B, 3, 3)`` when the inputs give one."""
+        out = self(u) if w is None else w[..., None] * self(u)
+        A = geo.get("A")
+        return out if A is None else (A.to(out.dtype) @ out[..., None])[..., 0]
+
+    def extra_repr(self) -> str:
+        return f"arch={self.arch!r}"

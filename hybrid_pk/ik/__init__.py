@@ -8,6 +8,8 @@
   problems in one batch-last batch (the calibration's ``levenberg_marquardt`` solves one
   dense problem instead).
 - :func:`wang_baseline`: the comparison method of the paper's Tables IV and V.
+- :func:`compensate`: a robot program's joint targets corrected for a calibrated or
+  hybrid model (the controller keeps its nominal model).
 - :func:`resolve_conditions`: the backlash approach direction (and temperature,
   payload) an IK target is solved under, stated when not given.
 """
@@ -15,6 +17,8 @@
 from hybrid_pk.ik.batched_lm import LMOutput as LMOutput
 from hybrid_pk.ik.batched_lm import LMSettings as LMSettings
 from hybrid_pk.ik.batched_lm import batched_levenberg_marquardt as batched_levenberg_marquardt
+from hybrid_pk.ik.compensation import Compensation as Compensation
+from hybrid_pk.ik.compensation import compensate as compensate
 from hybrid_pk.ik.conditions import IKAssumption as IKAssumption
 from hybrid_pk.ik.conditions import parse_approach as parse_approach
 from hybrid_pk.ik.conditions import resolve_conditions as resolve_conditions
@@ -31,6 +35,7 @@ from hybrid_pk.ik.two_stage import solve_ik_two_stage as solve_ik_two_stage
 from hybrid_pk.ik.two_stage import wang_baseline as wang_baseline
 
 __all__ = [
+    "Compensation",
     "IKAssumption",
     "IKModel",
     "IKOptions",
@@ -39,6 +44,7 @@ __all__ = [
     "LMSettings",
     "as_ik_model",
     "batched_levenberg_marquardt",
+    "compensate",
     "distinct_mask",
     "parse_approach",
     "quasi_random_seeds",

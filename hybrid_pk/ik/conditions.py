@@ -32,12 +32,18 @@ from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.effects.geometric import REFERENCE_TEMPERATURE
 from hybrid_pk.errors import HybridPKError
 
-__all__ = ["Approach", "IKAssumption", "parse_approach", "resolve_conditions"]
+__all__ = ["FIXES", "Approach", "IKAssumption", "parse_approach", "resolve_conditions"]
 
 Approach = int | str | Mapping[str, int | str] | Tensor | None
 
 _SIDES = {"+": 1.0, "+1": 1.0, "1": 1.0, "-": -1.0, "-1": -1.0, "mid": 0.0, "0": 0.0}
-_HOW = "approach=+1 / -1 (all backlash joints), {'joint': +1, ...} or a (dof,) tensor"
+# How to state each condition instead of having it assumed (callers may word it their way).
+FIXES = {
+    "approach": "pass approach=+1 / -1 (all backlash joints), {'joint': +1, ...} or a (dof,) "
+    "tensor to state how the robot will approach the target",
+    "temperature": "pass cond=Conditions(temperature=...) [°C] per target",
+    "payload": "pass cond=Conditions(payload=...) [kg] per target",
+}
 
 
 class IKAssumption(UserWarning):
@@ -108,7 +114,7 @@ def _direction(approach: Approach, model: ExtendedModel, joints: list[str], n: i
     return d
 
 
-def _describe(direction: Tensor, model: ExtendedModel, joints: list[str], stated: bool) -> str:
+def _describe(direction: Tensor, model: ExtendedModel, joints: list[str], fix: str | None) -> str:
     names = list(model.robot.joint_names)
     parts = []
     for joint in joints:
@@ -116,17 +122,21 @@ def _describe(direction: Tensor, model: ExtendedModel, joints: list[str], stated
         side = {1.0: "positive", -1.0: "negative", 0.0: "mid-play"}
         how = side[values.pop()] if len(values) == 1 else "per target"
         parts.append(f"{joint} {how}")
-    if stated:
+    if fix is None:
         return f"backlash approach as stated: {', '.join(parts)}"
     return (
         f"backlash on {', '.join(joints)} without an approach direction: solved for the "
-        f"mid-play model (half-way between both approaches); pass {_HOW} to state how the "
-        "robot will approach the target"
+        f"mid-play model (half-way between both approaches); {fix}"
     )
 
 
 def resolve_conditions(
-    models: Sequence, cond: Conditions | None, n_targets: int, approach: Approach = None
+    models: Sequence,
+    cond: Conditions | None,
+    n_targets: int,
+    approach: Approach = None,
+    *,
+    fixes: Mapping[str, str] | None = None,
 ) -> tuple[Conditions | None, list[str]]:
     """Conditions for IK on ``models``, with what they need and ``cond`` lacks filled in.
 
@@ -136,6 +146,8 @@ def resolve_conditions(
         cond: conditions per flat target, or None.
         n_targets: number of flat targets.
         approach: see the module docstring; overrides ``cond.direction``.
+        fixes: how to state each assumed condition, by key of :data:`FIXES` (the
+            command line words them as flags).
 
     Returns:
         The conditions and one line per assumption made (also warned as
@@ -150,6 +162,7 @@ def resolve_conditions(
         if approach is not None:
             raise HybridPKError("approach: the model has no backlash effect to apply it to")
         return cond, []
+    fix = {**FIXES, **(fixes or {})}
     notes: list[str] = []
     out = cond or Conditions()
     if approach is not None and not joints:
@@ -157,20 +170,19 @@ def resolve_conditions(
     if joints and (approach is not None or out.direction is None):
         direction = _direction(0 if approach is None else approach, model, joints, n_targets)
         out = replace(out, direction=direction)
-        notes.append(_describe(direction, model, joints, stated=approach is not None))
+        notes.append(
+            _describe(direction, model, joints, None if approach is not None else fix["approach"])
+        )
     if needs_temperature and out.temperature is None:
         temperature = torch.full((n_targets,), REFERENCE_TEMPERATURE, dtype=torch.float64)
         out = replace(out, temperature=temperature)
         notes.append(
             f"thermal expansion without a temperature: solved at {REFERENCE_TEMPERATURE:g} °C "
-            "(no expansion); pass cond=Conditions(temperature=...) [°C] per target"
+            f"(no expansion); {fix['temperature']}"
         )
     if compliance and out.payload is None:
         out = replace(out, payload=torch.zeros(n_targets, dtype=torch.float64))
-        notes.append(
-            "joint compliance without a payload: solved at 0 kg; pass "
-            "cond=Conditions(payload=...) [kg] per target"
-        )
+        notes.append(f"joint compliance without a payload: solved at 0 kg; {fix['payload']}")
     for note in notes:
         if not note.startswith("backlash approach as stated"):
             warnings.warn(note, IKAssumption, stacklevel=3)

@@ -211,16 +211,7 @@ def solve_ik_two_stage(
     cond, assumed = resolve_conditions([cheap, expensive], cond, n_flat, approach)
     if robot is None and not isinstance(expensive, Robot | ExtendedModel):
         raise HybridPKError("two-stage IK on a callable model needs robot= or a Robot cheap model")
-    # Accept branches of the cheap model up to the coarse tolerances, but polish them
-    # as finely as the final ones (a sloppy branch would be a duplicate of another).
-    polish = options.lm_settings(False)
-    coarse = replace(
-        options,
-        tol_mm=coarse_tol_mm,
-        tol_deg=coarse_tol_deg,
-        polish_mm=polish.accept_position * 1e3,
-        polish_deg=math.degrees(polish.accept_rotation),
-    )
+    coarse = _coarse_options(options, coarse_tol_mm, coarse_tol_deg)
     first = solve_ik(
         cheap,
         targets,
@@ -246,20 +237,41 @@ def solve_ik_two_stage(
     failed = result.failed.reshape(-1).nonzero()[:, 0]
     info["fallback_targets"] = int(failed.numel()) if fallback else 0
     if fallback and failed.numel():
-        T_all, _, position_only = prepare_targets(targets)
-        n, k1, dof = T_all.shape[0], first.q.shape[-2], first.q.shape[-1]
-        direct = solve_ik(
-            expensive,
-            T_all[failed, :3, 3] if position_only else T_all[failed],
-            seeds=seeds,
-            extra_seeds=first.q.reshape(n, k1, dof)[failed],
-            cond=None if cond is None else cond.subset(failed),
-            robot=robot,
-            jacobian=jacobian,
-            options=options,
-        )
+        direct = _solve_directly(
+            expensive, targets, failed, first, seeds=seeds, cond=cond, robot=robot,
+            jacobian=jacobian, options=options,
+        )  # fmt: skip
         result = _replace_targets(result, failed, direct)
     return replace(result, info=info)
+
+
+def _coarse_options(options: IKOptions, tol_mm: float, tol_deg: float) -> IKOptions:
+    """First-stage options: branches of the cheap model accepted up to the coarse
+    tolerances, but polished as finely as the final ones (a sloppy branch would be a
+    duplicate of another)."""
+    polish = options.lm_settings(False)
+    return replace(
+        options,
+        tol_mm=tol_mm,
+        tol_deg=tol_deg,
+        polish_mm=polish.accept_position * 1e3,
+        polish_deg=math.degrees(polish.accept_rotation),
+    )
+
+
+def _solve_directly(expensive, targets, failed: Tensor, first: IKResult, **kwargs) -> IKResult:
+    """The targets ``failed`` (flat indices) solved on ``expensive`` itself: all seeds
+    plus the first-stage branches as start configurations."""
+    T_all, _, position_only = prepare_targets(targets)
+    n, k1, dof = T_all.shape[0], first.q.shape[-2], first.q.shape[-1]
+    cond = kwargs.pop("cond")
+    return solve_ik(
+        expensive,
+        T_all[failed, :3, 3] if position_only else T_all[failed],
+        extra_seeds=first.q.reshape(n, k1, dof)[failed],
+        cond=None if cond is None else cond.subset(failed),
+        **kwargs,
+    )
 
 
 def _replace_targets(result: IKResult, index: Tensor, other: IKResult) -> IKResult:

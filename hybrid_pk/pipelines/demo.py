@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-from hybrid_pk.calibration.diagnosis.search import Diagnosis, diagnose
+from hybrid_pk.calibration.diagnosis import Diagnosis, diagnose
 from hybrid_pk.calibration.fit import fit, initialise_frames
 from hybrid_pk.data import MeasuredData, write_table
 from hybrid_pk.data.table import write_frame
@@ -185,31 +185,18 @@ def run_demo(
     sim = {"noise_mm": noise_mm, "noise_deg": noise_deg, "payload": payload, "seed": seed}
     data, truth = _simulate(out, nominal_robot, n, hidden, sim)
     split = _Split(data)
-
-    say = stages.start(1)
-    diag = diagnose(nominal_robot, split.calib, seed=seed, progress=say)
-    (out / "diagnosis.json").write_text(json.dumps(diag.to_json(), indent=2, default=str))
-    say("writing the diagnosis report (evidence plots)")
-    diag_report = write_diagnosis_report(diag, split.calib, nominal_robot, out / "diagnosis")
-
-    say = stages.start(2)
-    model, nominal = _calibrate(out, nominal_robot, diag, split, say)
-
-    say = stages.start(3)
-    trained = _train(out, model, split, epochs, seed, say)
-
-    say = stages.start(4)
+    diag, diag_report = _diagnose(out, nominal_robot, split, seed, stages.start(1))
+    model, nominal = _calibrate(out, nominal_robot, diag, split, stages.start(2))
+    trained = _train(out, model, split, epochs, seed, stages.start(3))
+    stages.start(4)
     evaluation_report, results = _evaluate(out, nominal, model, trained.hybrid, split)
-
     stages.start(5)
     ik = _ik(out, nominal_robot, model, trained.hybrid, split.test, split.test_cond)
-
     stages.start(6)
-    seconds = dict(stages.seconds)
-    total = time.perf_counter() - started
     report = write_demo_report(
-        out, truth, diag, results, ik, diag_report, evaluation_report, trained, seconds, total
-    )
+        out, truth, diag, results, ik, diag_report, evaluation_report, trained,
+        dict(stages.seconds), time.perf_counter() - started,
+    )  # fmt: skip
     stages.finish()
     return DemoResult(
         out=out,
@@ -250,6 +237,14 @@ class _Split:
         self.cond, self.test_cond = cond.subset(calib_rows), cond.subset(test_rows)
 
 
+def _diagnose(out: Path, robot: Robot, split: _Split, seed: int, say):
+    """The diagnosis of the calibration rows, its JSON and its report with the plots."""
+    diag = diagnose(robot, split.calib, seed=seed, progress=say)
+    (out / "diagnosis.json").write_text(json.dumps(diag.to_json(), indent=2, default=str))
+    say("writing the diagnosis report")
+    return diag, write_diagnosis_report(diag, split.calib, robot, out / "diagnosis", say)
+
+
 def _calibrate(out: Path, robot: Robot, diag: Diagnosis, split: _Split, say):
     """The extended model of the named causes and the nominal model, frames and
     effects fitted on the calibration rows."""
@@ -275,6 +270,7 @@ def _train(out: Path, model: ExtendedModel, split: _Split, epochs: int, seed: in
         split.calib,
         model,
         split.cond,
+        preset_name="joints",  # its random rows cover the workspace: MLPs on every joint
         max_epochs=epochs,
         seed=seed,
         datamodule={"batch_size": 128},  # more steps on a small campaign

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +22,7 @@ from hybrid_pk.effects import conditions_from_data
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.plots import error_histograms
 from hybrid_pk.report.evidence import Evidence, cause_evidence, cause_label
+from hybrid_pk.report.findings import frames_section, robust_section, structural_section
 from hybrid_pk.report.markdown import fmt, image, markdown_table, stats_table, value_with_std
 from hybrid_pk.report.plots import evidence_plot, residual_scan
 from hybrid_pk.robot import Robot
@@ -71,7 +73,7 @@ def _cause_rows(diagnosis) -> list[list[object]]:
     return rows
 
 
-def _evidence_section(diagnosis, data, out: Path) -> list[str]:
+def _evidence_section(diagnosis, data, out: Path, say=None) -> list[str]:
     lines = ["## Evidence for each cause", ""]
     if not diagnosis.causes:
         return [*lines, "No cause: the nominal model's errors are measurement noise.", ""]
@@ -88,6 +90,8 @@ def _evidence_section(diagnosis, data, out: Path) -> list[str]:
     ]
     for i, cause in enumerate(diagnosis.causes, start=1):
         label = cause_label(cause)
+        if say is not None:
+            say(f"evidence plot {i}/{len(diagnosis.causes)}: {label}")
         lines += [f"### {i}. {label}", ""]
         path = out / f"evidence_{i:02d}_{_slug(label)}.png"
         try:
@@ -256,7 +260,11 @@ def _selection_log(diagnosis) -> list[str]:
 
 
 def write_diagnosis_report(
-    diagnosis, data: MeasuredData, robot: Robot, out_dir: str | Path
+    diagnosis,
+    data: MeasuredData,
+    robot: Robot,
+    out_dir: str | Path,
+    progress: Callable[[str], None] | None = None,
 ) -> Path:
     """Write ``out_dir/report.md`` and its PNG plots for a diagnosis.
 
@@ -265,6 +273,7 @@ def write_diagnosis_report(
         data: the rows it was computed on (same order).
         robot: the nominal robot.
         out_dir: folder to write to (created); image links are relative to it.
+        progress: called with a short text before each plot.
 
     Returns:
         Path of ``report.md``.
@@ -303,6 +312,7 @@ def write_diagnosis_report(
         stats_table({"nominal": diagnosis.nominal, "extended": diagnosis.extended}),
         image(hist, "hold-out error histograms, nominal vs extended", out),
         "",
+        *structural_section(diagnosis),
         "## Causes",
         "",
     ]
@@ -317,6 +327,8 @@ def write_diagnosis_report(
                 ["l", "l", "l", "r", "r"],
             ),
         ]
+    elif diagnosis.structural and diagnosis.structural["structurally_wrong"]:
+        lines += ["Withheld: the URDF looks structurally wrong (see above).", ""]
     else:
         lines += ["None: no effect beyond measurement noise is statistically supported.", ""]
     if diagnosis.ambiguous:
@@ -325,9 +337,12 @@ def write_diagnosis_report(
             "[Identifiability](#identifiability).",
             "",
         ]
-    lines += _evidence_section(diagnosis, data, out)
+    lines += _evidence_section(diagnosis, data, out, progress)
+    if progress is not None:
+        progress("plots of what is left")
     lines += _what_is_left(diagnosis, data, robot, out, ext)
     lines += _identifiability(diagnosis)
+    lines += frames_section(diagnosis) + robust_section(diagnosis)
     lines += _selection_log(diagnosis)
     path = out / "report.md"
     path.write_text("\n".join(lines).rstrip() + "\n", encoding="utf-8")

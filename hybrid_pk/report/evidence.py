@@ -28,9 +28,12 @@ to one number per row that the cause's law predicts:
   moment predicts, a slope-1 line (``evidence_deflection.py``).
 - geometric effects (link length, axis misalignment): the displacement ``d`` the fitted
   effect makes at each row; every coordinate of the residual against the same
-  coordinate of ``d``, a slope-1 line if the effect is there. (Not the residual along
-  ``d`` against ``|d|``: a link-length error moves the point by the same distance at
-  every row, in a direction that turns with the arm, so ``|d|`` does not vary.)
+  coordinate of ``d``, a slope-1 line if the effect is there. Both are taken without
+  the part that a change of the base and tool frames makes (projected off the frames'
+  columns), so the plot shows the effect's physical signature, not a trade-off with
+  the frames. (Not the residual along ``d`` against ``|d|``: a link-length error moves
+  the point by the same distance at every row, in a direction that turns with the arm,
+  so ``|d|`` does not vary.)
 
 Rows where the joint barely moves the measured point (``|J_j|`` under 20 % of its
 median) say nothing about that joint and are left out.
@@ -45,6 +48,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from hybrid_pk.calibration.diagnosis.structural import off_frames
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data, make_effect
 from hybrid_pk.effects.geometric import REFERENCE_TEMPERATURE
@@ -371,11 +375,15 @@ def _geometric_evidence(cause, label, title, data, model, res: ResidualView) -> 
     with torch.no_grad():
         reduced = without_effect(model, label)
         d = model(data.q, cond)[:, :3, 3] - reduced(data.q, cond)[:, :3, 3]  # [m]
+    # The physical signature: what a change of the base and tool frames would make is
+    # taken out of both (a misalignment that mostly turns the whole arm would otherwise
+    # draw a long slope-1 line of pure frame trade-off).
+    d, r = off_frames(model, data, cond, d, res.r_meas)
     # Every coordinate of every row is a point: a link-length error moves the point by a
     # constant distance in a direction that turns with the arm, so the coordinates (not
     # the distance) are what varies from row to row.
     x = 1e3 * d.numpy().T.reshape(-1)  # [mm], x coordinates of all rows, then y, then z
-    y = 1e3 * res.r_meas.numpy().T.reshape(-1)
+    y = 1e3 * r.numpy().T.reshape(-1)
     rows = np.tile(np.arange(data.n), 3)
     w = np.ones_like(x)
     slope = float((x * y).sum() / max(float((x * x).sum()), 1e-300))
@@ -390,8 +398,8 @@ def _geometric_evidence(cause, label, title, data, model, res: ResidualView) -> 
         y=y,
         weight=w,
         rows=rows,
-        x_label="displacement the effect makes, x/y/z coordinates of every row [mm]",
-        y_label="residual, same coordinate [mm]",
+        x_label="displacement the effect makes beyond any frame change, x/y/z of every row [mm]",
+        y_label="residual beyond any frame change, same coordinate [mm]",
         curve_x=curve_x,
         curve_y=curve_x.copy(),
         median_x=mx,
@@ -399,5 +407,6 @@ def _geometric_evidence(cause, label, title, data, model, res: ResidualView) -> 
         value=magnitude,
         points_value=slope * magnitude,
         unit=cause.unit,
-        law="residual = displacement of the effect: a slope-1 line",
+        law="residual = displacement of the effect, both without what a change of the "
+        "base and tool frames makes: a slope-1 line",
     )

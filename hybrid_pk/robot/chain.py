@@ -11,9 +11,17 @@ Each joint's local transform is linear in two scalar functions of ``q``::
     origin · [I  q·a;  0 1]     = M0 + q · M1                                (prismatic)
 
 with ``M1 = origin · [K 0; 0 0]``, ``M2 = origin · [K² 0; 0 0]`` (Rodrigues, ``K``
-the cross matrix of the unit axis ``a``). The constant matrices are computed once
-per call for all joints, then the ``dof`` local transforms multiply in a balanced
-tree (``log2(dof)`` batched matmuls).
+the cross matrix of the unit axis ``a``). The constant matrices (:func:`chain_terms`)
+are computed once for all joints and evaluated in one of two layouts:
+
+- batch first, the pose only (:func:`local_transforms`, :func:`product`): the
+  ``dof`` local transforms multiply in a balanced tree (``log2(dof)`` batched
+  matmuls), the fastest pose at every batch size (``Robot.fk``);
+- batch last, pose and geometric Jacobian (:func:`batch_last_terms`,
+  :func:`pose_jacobian_batch_last`): a rotation is a ``(3, 3, M)`` tensor, so one
+  product is three fused multiply-adds over contiguous memory instead of a batched
+  matmul of 3×3 blocks; several times faster than batch-first frames for the
+  Jacobian from about a hundred configurations on (``Robot.jacobian``, the IK kernel).
 """
 
 from __future__ import annotations
@@ -24,8 +32,18 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.geometry import skew, transform
+from hybrid_pk.geometry.batch_last import compose, rotate
 
-__all__ = ["ChainTerms", "KinematicParams", "chain_terms", "local_transforms", "product"]
+__all__ = [
+    "BatchLastTerms",
+    "ChainTerms",
+    "KinematicParams",
+    "batch_last_terms",
+    "chain_terms",
+    "local_transforms",
+    "pose_jacobian_batch_last",
+    "product",
+]
 
 
 class KinematicParams(NamedTuple):
@@ -115,3 +133,86 @@ def product(local: Tensor) -> Tensor:
     if n % 2:
         return product(local[..., : n - 1, :, :]) @ local[..., n - 1, :, :]
     return product(local[..., 0::2, :, :] @ local[..., 1::2, :, :])
+
+
+class BatchLastTerms(NamedTuple):
+    """:class:`ChainTerms` of ``n`` joints in batch-last layout; ``m`` is 1 for shared
+    parameters or the flat batch size of per-sample ones.
+
+    Attributes:
+        R: ``(3 terms, 3, 3, n, m)`` rotation blocks of ``M0, M1, M2``.
+        t: ``(3, n, m)`` translation of ``M0``.
+        d: ``(3, n, m)`` translation of ``M1`` (prismatic joints: per unit of ``q``).
+        axis: ``(3, n, m)`` unit axes in the joint frames.
+        R_tip, t_tip: ``(3, 3, m)``, ``(3, m)`` the tip transform.
+    """
+
+    R: Tensor
+    t: Tensor
+    d: Tensor
+    axis: Tensor
+    R_tip: Tensor
+    t_tip: Tensor
+
+
+def batch_last_terms(terms: ChainTerms, batch: tuple[int, ...] = ()) -> BatchLastTerms:
+    """Rearrange ``terms`` (shared, or per sample with a batch shape broadcastable to
+    ``batch``) into :class:`BatchLastTerms` (views; ``.contiguous()`` them to keep)."""
+    n = terms.M0.shape[-3]
+    per_sample = terms.M0.dim() > 3
+    if per_sample:
+        M0, M1, M2 = (t.expand(*batch, n, 4, 4) for t in terms[:3])
+        tip, axis = terms.tip.expand(*batch, 4, 4), terms.axis.expand(*batch, n, 3)
+        terms = ChainTerms(M0, M1, M2, tip, axis)
+    m = -1 if per_sample else 1
+    M = torch.stack([t.reshape(m, n, 4, 4) for t in terms[:3]])[..., :3, :]  # (3, m, n, 3, 4)
+    L = M.permute(0, 3, 4, 2, 1)  # (3 terms, 3, 4, n, m)
+    tip = terms.tip.reshape(m, 4, 4).permute(1, 2, 0)
+    axis = terms.axis.reshape(m, n, 3).permute(2, 1, 0)
+    return BatchLastTerms(L[:, :, :3], L[0, :, 3], L[1, :, 3], axis, tip[:3, :3], tip[:3, 3])
+
+
+def pose_jacobian_batch_last(
+    C: BatchLastTerms, qt: Tensor, revolute: Tensor, all_revolute: bool | None = None
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Pose and geometric Jacobian at chain joint values ``qt (n, M)`` [rad or m].
+
+    ``revolute (n,)`` marks the revolute joints; ``all_revolute`` is ``revolute.all()``
+    when the caller knows it (the IK loop calls this thousands of times).
+
+    Returns:
+        ``R (3, 3, M)``, ``p (3, M)`` [m] of the end link and ``J (6, n, M)``, rows
+        ``[v; omega]``: velocity of the end-link origin and angular velocity, in the
+        frame of the chain's root (or of whatever ``C``'s first origin starts from).
+    """
+    if all_revolute is None:
+        all_revolute = bool(revolute.all())
+    if all_revolute:
+        f1, f2 = torch.sin(qt), 1 - torch.cos(qt)
+    else:
+        rev = revolute[:, None]
+        f1 = torch.where(rev, torch.sin(qt), qt)
+        f2 = torch.where(rev, 1 - torch.cos(qt), 0.0)
+    R_loc = torch.addcmul(C.R[0], f1, C.R[1])
+    R_loc = torch.addcmul(R_loc, f2, C.R[2])  # (3, 3, n, M)
+    t_loc = C.t if all_revolute else torch.addcmul(C.t, f1, C.d)
+    R = R_loc[:, :, 0]
+    p = t_loc[:, 0].expand(3, qt.shape[1])
+    origins, axes = [p], [rotate(R, C.axis[:, 0])]
+    for i in range(1, qt.shape[0]):
+        p = p + rotate(R, t_loc[:, i])
+        R = compose(R, R_loc[:, :, i])
+        origins.append(p)
+        axes.append(rotate(R, C.axis[:, i]))
+    p_end = p + rotate(R, C.t_tip)
+    R_end = compose(R, C.R_tip)
+    z = torch.stack(axes, 1)  # (3, n, M)
+    w = p_end[:, None, :] - torch.stack(origins, 1)
+    v = torch.stack(  # z x w, written out (linalg.cross is slow on this layout)
+        [z[1] * w[2] - z[2] * w[1], z[2] * w[0] - z[0] * w[2], z[0] * w[1] - z[1] * w[0]]
+    )
+    if not all_revolute:
+        rev = revolute[None, :, None]
+        v = torch.where(rev, v, z)
+        z = torch.where(rev, z, 0.0)
+    return R_end, p_end, torch.cat([v, z], 0)

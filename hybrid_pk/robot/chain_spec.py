@@ -1,7 +1,9 @@
 """URDF -> :class:`ChainSpec`, the plain-number description of one serial chain.
 
-yourdfpy reads the URDF at full float64 precision, inertials and ``<mimic>`` tags
-included; the chain is the path of parent links from the end link back to the root.
+pytorch-kinematics builds the serial chain (root to end link, joint order); yourdfpy
+supplies every number at full float64 precision (pk parses origins in float32), the
+inertials and the ``<mimic>`` tags, which pk does not read. The path is walked once,
+by pk; yourdfpy's joints are looked up by name along it.
 
 Segments: segment 0 is everything rigidly attached to the root link; segment ``i``
 (1..n_chain) is everything that moves with chain joint ``i``. Fixed joints along the
@@ -21,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pytorch_kinematics as pk
 import yourdfpy
 
 from hybrid_pk.errors import InvalidFrame, RobotModelError
@@ -182,21 +185,23 @@ class _Tree:
         return leaves[0]
 
     def path_joints(self, end_link: str) -> list[yourdfpy.Joint]:
-        """Joints from the root to ``end_link``, in chain order."""
-        joints, link = [], end_link
-        while link != self.root:
-            joints.append(self.joint_to[link])
-            link = joints[-1].parent
+        """Joints from the root to ``end_link``, in chain order (pytorch-kinematics' path)."""
+        try:
+            chain = pk.build_serial_chain_from_urdf(self.path.read_bytes(), end_link, self.root)
+        except Exception as exc:  # pk raises bare KeyErrors/ValueErrors
+            raise RobotModelError(f"{self.path}: no serial chain to {end_link!r}: {exc}") from exc
+        frames = chain.get_frame_names(exclude_fixed=False)[1:]  # the root has no joint
+        joints = [self.model.joint_map[chain.find_frame(f).joint.name] for f in frames]
         bad = [j for j in joints if j.type not in (*_MOVABLE, "fixed")]
         if bad:
             raise RobotModelError(
-                f"{self.path}: joint {bad[-1].name!r} has unsupported type {bad[-1].type!r}"
+                f"{self.path}: joint {bad[0].name!r} has unsupported type {bad[0].type!r}"
             )
         if not any(j.type in _MOVABLE for j in joints):
             raise RobotModelError(
                 f"{self.path}: no movable joint between {self.root!r} and {end_link!r}"
             )
-        return joints[::-1]
+        return joints
 
     def driver(self, joint: yourdfpy.Joint) -> tuple[yourdfpy.Joint, float, float]:
         """``(leader, multiplier, offset)``: ``q_joint = multiplier · q_leader + offset``."""

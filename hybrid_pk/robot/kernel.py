@@ -1,17 +1,11 @@
-"""Pose and geometric Jacobian of a serial chain in batch-last layout, for IK.
+"""Pose and geometric Jacobian of a serial chain for the IK inner loop.
 
-The same chain constants as :meth:`Robot.fk` (``Robot.chain_terms``: ``M0, M1, M2``
-per joint, see :mod:`hybrid_pk.robot.chain`), evaluated in the layout that suits
-thousands of tiny 3×3 products on a CPU: batch last. A rotation is a ``(3, 3, M)``
-tensor, so one product is three fused multiply-adds over contiguous memory instead of
-a batched matmul of 3×3 blocks. Measured (``python bench/fk.py --jacobian``): faster
-than the batch-first frames for pose plus Jacobian from a few dozen configurations
-on, slower for a single one; ``Robot.fk`` (pose only) keeps the batch-first balanced
-tree, which is faster at every batch size for the pose alone.
-
-The constants are a snapshot of the robot's parameters (and of optional base and tool
-frames folded into the first and last origin): build a new kernel after changing
-them. No gradients flow through it.
+A snapshot of the robot's chain constants (``Robot.chain_terms``, the same as
+:meth:`Robot.fk`'s), with optional base and tool frames folded into the first and last
+origin, kept contiguous in float64 in the batch-last layout of
+:func:`~hybrid_pk.robot.chain.pose_jacobian_batch_last`, the one implementation of pose
+plus Jacobian that :meth:`Robot.jacobian` uses too. Build a new kernel after changing
+the robot's parameters. No gradients flow through it.
 """
 
 from __future__ import annotations
@@ -19,7 +13,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from hybrid_pk.geometry.batch_last import compose, rotate
+from hybrid_pk.robot.chain import BatchLastTerms, batch_last_terms, pose_jacobian_batch_last
 from hybrid_pk.robot.robot import Robot
 
 __all__ = ["ChainKernel"]
@@ -48,17 +42,12 @@ class ChainKernel:
                 M = torch.cat([base.to(f64) @ M[:, :1], M[:, 1:]], 1)
             if tool is not None:
                 tip = tip @ tool.to(f64)
-            M = M[:, :, :3, :]  # (3, n, 3, 4): the last rows are constant
-        self.dof, self.n = robot.dof, robot.chain_dof
+            t = t._replace(M0=M[0], M1=M[1], M2=M[2], tip=tip)
+            C = batch_last_terms(t)
+        self.dof = robot.dof
         self.revolute = robot.chain_revolute.clone()
         self._all_revolute = bool(self.revolute.all())
-        L = M.permute(0, 2, 3, 1)[..., None]  # (3, 3, 4, n, 1): term, row, column, joint
-        self._R = L[:, :, :3].contiguous()  # (3 terms, 3, 3, n, 1)
-        self._t = L[0, :, 3].contiguous()  # (3, n, 1); revolute joints do not move it
-        self._d = L[1, :, 3].contiguous()  # prismatic: the translation per unit of q
-        self._a = t.axis.to(f64).T[..., None].contiguous()  # (3, n, 1) in the joint frames
-        self._R_tip = tip[:3, :3][..., None].contiguous()  # (3, 3, 1)
-        self._t_tip = tip[:3, 3][:, None].contiguous()  # (3, 1)
+        self._C = BatchLastTerms(*(x.contiguous() for x in C))
         self._mimic = None
         if robot.has_mimic:
             self._mimic = (
@@ -73,46 +62,12 @@ class ChainKernel:
         Returns:
             ``R (3, 3, M)``, ``p (3, M)`` [m] of the pose and ``J (6, dof, M)``.
         """
-        if self._mimic is not None:
-            src, mul, off = self._mimic
-            qt = torch.addcmul(off, qt[src], mul)  # (n, M) chain joint values
-        if self._all_revolute:
-            f1, f2 = torch.sin(qt), 1 - torch.cos(qt)
-        else:
-            rev = self.revolute[:, None]
-            f1 = torch.where(rev, torch.sin(qt), qt)
-            f2 = torch.where(rev, 1 - torch.cos(qt), 0.0)
-        R_loc = torch.addcmul(self._R[0], f1, self._R[1])
-        R_loc = torch.addcmul(R_loc, f2, self._R[2])  # (3, 3, n, M)
-        t_loc = self._t if self._all_revolute else torch.addcmul(self._t, f1, self._d)
-        R = R_loc[:, :, 0]
-        p = t_loc[:, 0].expand(3, qt.shape[1])
-        origins, axes = [p], [rotate(R, self._a[:, 0])]
-        for i in range(1, self.n):
-            p = p + rotate(R, t_loc[:, i])
-            R = compose(R, R_loc[:, :, i])
-            origins.append(p)
-            axes.append(rotate(R, self._a[:, i]))
-        p_end = p + rotate(R, self._t_tip)
-        R_end = compose(R, self._R_tip)
-        z = torch.stack(axes, 1)  # (3, n, M)
-        w = p_end[:, None, :] - torch.stack(origins, 1)
-        v = torch.stack(  # z x w, written out (linalg.cross is slow on this layout)
-            [
-                z[1] * w[2] - z[2] * w[1],
-                z[2] * w[0] - z[0] * w[2],
-                z[0] * w[1] - z[1] * w[0],
-            ]
-        )
-        if not self._all_revolute:
-            rev = self.revolute[None, :, None]
-            v = torch.where(rev, v, z)
-            z = torch.where(rev, z, 0.0)
-        J = torch.cat([v, z], 0)  # (6, n, M)
-        if self._mimic is not None:
-            src, mul, _ = self._mimic
-            J = J.new_zeros(6, self.dof, J.shape[-1]).index_add_(1, src, J * mul)
-        return R_end, p_end, J
+        if self._mimic is None:
+            return pose_jacobian_batch_last(self._C, qt, self.revolute, self._all_revolute)
+        src, mul, off = self._mimic
+        qt = torch.addcmul(off, qt[src], mul)  # (n_chain, M)
+        R, p, J = pose_jacobian_batch_last(self._C, qt, self.revolute, self._all_revolute)
+        return R, p, J.new_zeros(6, self.dof, J.shape[-1]).index_add_(1, src, J * mul)
 
     def __call__(self, q: Tensor) -> tuple[Tensor, Tensor]:
         """Pose ``(M, 4, 4)`` and Jacobian ``(M, 6, dof)`` at ``q (M, dof)`` [rad or m]."""

@@ -23,8 +23,10 @@ from hybrid_pk.geometry import so3_exp
 from hybrid_pk.robot.chain import (
     ChainTerms,
     KinematicParams,
+    batch_last_terms,
     chain_terms,
     local_transforms,
+    pose_jacobian_batch_last,
     product,
 )
 from hybrid_pk.robot.chain_spec import BranchBody, ChainSpec, load_chain_spec
@@ -71,6 +73,7 @@ class Robot(nn.Module):
         A = torch.zeros(spec.chain_dof, spec.dof, **f)
         A[torch.arange(spec.chain_dof), self.source] = self.multiplier
         self.register_buffer("coupling_matrix", A)
+        self._has_mimic = spec.has_mimic  # read on every call: not recomputed
         self._cache: dict[tuple, ChainTerms] = {}
         self._params_memo: dict[bool, tuple] = {}
 
@@ -125,7 +128,7 @@ class Robot(nn.Module):
 
     @property
     def has_mimic(self) -> bool:
-        return self.spec.has_mimic
+        return self._has_mimic
 
     @property
     def joint_types(self) -> list[str]:
@@ -285,16 +288,16 @@ class Robot(nn.Module):
 
         ``v`` [m/rad] is the velocity of the end-link origin, ``omega`` the angular
         velocity, both in the root frame. With mimic joints ``J = J_chain @ A``.
+        Evaluated batch last (:func:`~hybrid_pk.robot.chain.pose_jacobian_batch_last`),
+        differentiable.
         """
-        frames = self.link_frames(q, params)
+        q = self.chain_q(self._check_q(q))
+        terms = self._terms(params, q.dtype)
+        batch = torch.broadcast_shapes(q.shape[:-1], terms.tip.shape[:-2])
         n = self.chain_dof
-        z = self._axes_world(frames, params)
-        o = frames[..., :n, :3, 3]
-        p_end = frames[..., n : n + 1, :3, 3]
-        rev = self.chain_revolute[:, None]
-        v = torch.where(rev, torch.linalg.cross(z, p_end - o), z)
-        w = torch.where(rev, z, 0.0)
-        J = torch.cat([v, w], -1).transpose(-1, -2)  # (*B, 6, n_chain)
+        qt = q.expand(*batch, n).reshape(-1, n).T
+        _, _, J = pose_jacobian_batch_last(batch_last_terms(terms, batch), qt, self.chain_revolute)
+        J = J.permute(2, 0, 1).reshape(*batch, 6, n)
         return J @ self.coupling_matrix.to(J.dtype) if self.has_mimic else J
 
     # ------------------------------------------------------------------ statics

@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from hybrid_pk.data.table import MeasuredData
+from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, Effect, ExtendedModel, Gravity, approach_direction
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import error_stats, pose_error
@@ -46,7 +46,7 @@ from hybrid_pk.geometry import (
 from hybrid_pk.robot import Robot
 from hybrid_pk.simulate.effect_specs import effect_entry, is_hidden_spec, parse_effects
 from hybrid_pk.simulate.mounting import Mount, mount_from_gravity, parse_mount
-from hybrid_pk.simulate.trajectories import TRAJECTORIES, iso_cube, make_trajectory
+from hybrid_pk.simulate.trajectories import TRAJECTORIES, Trajectory, iso_cube, make_trajectory
 
 __all__ = ["SIMULATED_SOURCE", "random_frames", "simulate_campaign", "warm_up"]
 
@@ -137,6 +137,23 @@ def _payloads(n: int, payload: float, payload_range, gen, dtype) -> Tensor:
     return levels[block_of_row]
 
 
+def _frame_arg(T: Tensor, drawn: Tensor, name: str) -> Tensor:
+    """A given frame: a ``(4, 4)`` transform, or a ``(3,)`` translation with the drawn
+    rotation."""
+    T = torch.as_tensor(T, dtype=drawn.dtype)
+    if T.shape == (3,):
+        T = transform(drawn[:3, :3], T)
+    if T.shape != (4, 4) or not bool(torch.isfinite(T).all()):
+        raise HybridPKError(
+            f"{name} must be a finite (4, 4) transform or (3,) translation [m], "
+            f"got shape {tuple(T.shape)}"
+        )
+    R = T[:3, :3]
+    if float((R.T @ R - torch.eye(3, dtype=R.dtype)).abs().max()) > 1e-6:
+        raise HybridPKError(f"{name}: the rotation part of the transform is not orthonormal")
+    return T
+
+
 def _check_args(
     n, seed, noise_mm, noise_deg, trajectory, payload, payload_range, temperature_range
 ):
@@ -147,7 +164,7 @@ def _check_args(
     for name, v in (("noise_mm", noise_mm), ("noise_deg", noise_deg), ("payload", payload)):
         if not (math.isfinite(v) and v >= 0):
             raise HybridPKError(f"{name} must be a finite number >= 0, got {v}")
-    if trajectory not in TRAJECTORIES:
+    if trajectory not in (*TRAJECTORIES, "poses"):
         raise HybridPKError(
             f"unknown trajectory {trajectory!r}; choose one of {', '.join(TRAJECTORIES)}"
         )
@@ -171,11 +188,23 @@ def _mounting(mount) -> Mount | None:
     return parse_mount(mount)
 
 
+def _check_poses(robot: Robot, poses: Tensor, n: int | None) -> Tensor:
+    q = torch.as_tensor(poses).to(robot.dtype)
+    if q.ndim != 2 or q.shape[1] != robot.dof or q.shape[0] == 0:
+        raise HybridPKError(f"poses must be (N, {robot.dof}) joint values, got {tuple(q.shape)}")
+    if n is not None and n != q.shape[0]:
+        raise HybridPKError(f"n = {n} but {q.shape[0]} poses were given; give one or the other")
+    if not bool(torch.isfinite(q).all()):
+        raise HybridPKError("poses must be finite joint values")
+    return q
+
+
 def simulate_campaign(
     robot: Robot,
-    n: int,
+    n: int | None,
     effects: str | Sequence[Effect],
     *,
+    poses: Tensor | None = None,
     noise_mm: float,
     noise_deg: float = 0.0,
     trajectory: str = "random",
@@ -187,13 +216,17 @@ def simulate_campaign(
     mount: str | Mount | Gravity | None = None,
     seed: int = 0,
     progress: bool = False,
+    base: Tensor | None = None,
+    tool: Tensor | None = None,
 ) -> tuple[MeasuredData, dict]:
     """Simulate a measurement campaign of ``robot`` with hidden error effects.
 
     Args:
         robot: the nominal robot; the campaign measures it with ``effects`` added.
-        n: number of rows N.
+        n: number of rows N (None with ``poses``: one row per pose).
         effects: effects to inject, or an ``--effects`` text (:func:`parse_effects`).
+        poses: ``(N, dof)`` commanded joints [rad, m] to measure at, in this order
+            (e.g. a planned campaign), instead of a ``trajectory``.
         noise_mm: std of the Gaussian noise of each position coordinate [mm].
         noise_deg: std of the noise rotation vector, per axis [deg].
         trajectory: one of ``random``, ``continuous``, ``iso-cube``, ``zigzag``.
@@ -209,6 +242,8 @@ def simulate_campaign(
             tilted up to ``TRACKER_TILT_DEG`` (as before mountings existed).
         seed: every random draw comes from it.
         progress: show a progress bar on stderr when it takes more than 2 s.
+        base, tool: true ``T_meas_root`` / ``T_end_point`` instead of the drawn ones:
+            ``(4, 4)``, or a ``(3,)`` translation [m] with the drawn rotation.
 
     Returns:
         ``(data, truth)``: the measured table (float64, one file index, source
@@ -218,6 +253,9 @@ def simulate_campaign(
         HybridPKError: bad arguments, an effect whose condition is missing, or a
             Cartesian trajectory the robot cannot reach.
     """
+    if poses is not None:
+        poses = _check_poses(robot, poses, n)
+        n, trajectory = poses.shape[0], "poses"
     _check_args(n, seed, noise_mm, noise_deg, trajectory, payload, payload_range, temperature_range)
     n = int(n)
     streams = _streams(seed)
@@ -229,13 +267,19 @@ def simulate_campaign(
 
     dt = robot.dtype
     with torch.no_grad():
-        traj = make_trajectory(robot, trajectory, n, streams["trajectory"])
+        if poses is None:
+            traj = make_trajectory(robot, trajectory, n, streams["trajectory"])
+        else:
+            traj = Trajectory(poses)
         q = traj.q.to(dt)
-        base, tool = random_frames(streams["frames"], dt, level=mounting is not None)
+        drawn_base, drawn_tool = random_frames(streams["frames"], dt, level=mounting is not None)
         if mounting is not None:  # T_meas_root = T_meas_world · T_world_root
-            base = base @ transform(mounting.rotation.to(dt), torch.zeros(3, dtype=dt))
+            mount_rotation = transform(mounting.rotation.to(dt), torch.zeros(3, dtype=dt))
+            drawn_base = drawn_base @ mount_rotation
         if known_frames:
-            base = tool = torch.eye(4, dtype=dt)
+            drawn_base = drawn_tool = torch.eye(4, dtype=dt)
+        base = drawn_base if base is None else _frame_arg(base, drawn_base, "base")
+        tool = drawn_tool if tool is None else _frame_arg(tool, drawn_tool, "tool")
         cond = Conditions(
             payload=_payloads(n, payload, payload_range, streams["payload"], dt),
             temperature=None if temperature_range is None else warm_up(n, *temperature_range, dt),

@@ -12,6 +12,7 @@ from hybrid_pk.training.presets import PRESETS as PRESETS
 from hybrid_pk.training.presets import preset as preset
 from hybrid_pk.training.run import TrainResult as TrainResult
 from hybrid_pk.training.run import make_trainer as make_trainer
+from hybrid_pk.training.run import quiet_lightning as quiet_lightning
 from hybrid_pk.training.run import train_hybrid as train_hybrid
 
 __all__ = [
@@ -21,5 +22,6 @@ __all__ = [
     "TrainResult",
     "make_trainer",
     "preset",
+    "quiet_lightning",
     "train_hybrid",
 ]

@@ -19,15 +19,16 @@ from hybrid_pk.errors import HybridPKError
 from hybrid_pk.hybrid.losses import ResidualTargets, residual_targets
 from hybrid_pk.io.model_file import load_model
 
-__all__ = ["HybridDataModule", "TargetDataset"]
+__all__ = ["HybridDataModule", "TargetDataset", "keep_batch"]
 
 
 class TargetDataset(Dataset):
     """Rows of :class:`ResidualTargets` as dict items (``q``, ``position``, ``lever``,
-    and ``rotation`` with orientation data)."""
+    and ``rotation`` with orientation data), plus any ``extra`` columns of as many rows
+    (e.g. the networks' encoded inputs)."""
 
-    def __init__(self, targets: ResidualTargets) -> None:
-        self.columns = targets.tensors()
+    def __init__(self, targets: ResidualTargets, extra: dict[str, Tensor] | None = None) -> None:
+        self.columns = {**targets.tensors(), **(extra or {})}
         self.n = targets.n
 
     def __len__(self) -> int:
@@ -35,6 +36,17 @@ class TargetDataset(Dataset):
 
     def __getitem__(self, index: int) -> dict[str, Tensor]:
         return {k: v[index] for k, v in self.columns.items()}
+
+    def __getitems__(self, indices: list[int]) -> dict[str, Tensor]:
+        """A whole batch by one index per column (what the DataLoader fetches; row by
+        row and stacking costs more than the small networks' step)."""
+        index = torch.as_tensor(indices, dtype=torch.long)
+        return {k: v[index] for k, v in self.columns.items()}
+
+
+def keep_batch(batch: dict[str, Tensor]) -> dict[str, Tensor]:
+    """Collate function for :meth:`TargetDataset.__getitems__`: the batch is ready."""
+    return batch
 
 
 class HybridDataModule(L.LightningDataModule):
@@ -70,6 +82,7 @@ class HybridDataModule(L.LightningDataModule):
         self.base: ExtendedModel | None = None
         self.train_targets: ResidualTargets | None = None
         self.val_targets: ResidualTargets | None = None
+        self.extra: dict[str, dict[str, Tensor]] = {"train": {}, "val": {}}
 
     @classmethod
     def from_measured(
@@ -111,6 +124,11 @@ class HybridDataModule(L.LightningDataModule):
         data = read_table_for(list(self.paths), robot, n_params=1)
         self.prepare(data, loaded.model, None)
 
+    def add_columns(self, train: dict[str, Tensor], val: dict[str, Tensor]) -> None:
+        """Extra per-row columns of the training and validation batches (the module
+        encodes its network inputs once instead of at every step)."""
+        self.extra = {"train": dict(train), "val": dict(val)}
+
     @property
     def has_orientation(self) -> bool:
         return self.train_targets is not None and self.train_targets.rotation is not None
@@ -118,8 +136,15 @@ class HybridDataModule(L.LightningDataModule):
     def train_dataloader(self) -> DataLoader:
         # The global RNG is seeded (seed_everything): the shuffle order is deterministic.
         return DataLoader(
-            TargetDataset(self.train_targets), batch_size=self.batch_size, shuffle=True
+            TargetDataset(self.train_targets, self.extra["train"]),
+            batch_size=self.batch_size,
+            shuffle=True,
+            collate_fn=keep_batch,
         )
 
     def val_dataloader(self) -> DataLoader:
-        return DataLoader(TargetDataset(self.val_targets), batch_size=self.val_batch_size)
+        return DataLoader(
+            TargetDataset(self.val_targets, self.extra["val"]),
+            batch_size=self.val_batch_size,
+            collate_fn=keep_batch,
+        )

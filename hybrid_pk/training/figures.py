@@ -8,7 +8,11 @@ from pathlib import Path
 
 import torch
 
-from hybrid_pk.hybrid.losses import ResidualTargets, orientation_errors_deg, position_errors_mm
+from hybrid_pk.hybrid.losses import (
+    ResidualTargets,
+    corrected_orientation_errors_deg,
+    corrected_position_errors_mm,
+)
 
 __all__ = ["FIGURE_TAG", "log_error_figure"]
 
@@ -45,11 +49,11 @@ def log_error_figure(module, rows: ResidualTargets) -> Path | None:
     dp, dw = hybrid.corrections(rows.q)
     hybrid.train(was_training)
     zero = torch.zeros_like(dp)
-    base = [position_errors_mm(rows.position, rows.lever, zero, zero), None]
-    after = [position_errors_mm(rows.position, rows.lever, dp, dw), None]
+    base = [corrected_position_errors_mm(rows.position, rows.lever, zero, zero), None]
+    after = [corrected_position_errors_mm(rows.position, rows.lever, dp, dw), None]
     if rows.rotation is not None:
-        base[1] = orientation_errors_deg(rows.rotation, zero)
-        after[1] = orientation_errors_deg(rows.rotation, dw)
+        base[1] = corrected_orientation_errors_deg(rows.rotation, zero)
+        after[1] = corrected_orientation_errors_deg(rows.rotation, dw)
     folder = Path(module.logger.log_dir or tempfile.mkdtemp(prefix="hybrid_pk_fig_"))
     path = error_histograms(
         base,

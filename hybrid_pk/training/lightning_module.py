@@ -26,11 +26,19 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.evaluation.metrics import error_stats
-from hybrid_pk.hybrid.hybrid_fk import DEFAULT_FADE, HybridFK, InputBox
+from hybrid_pk.hybrid.builder import (
+    TRUSTS,
+    HybridSettings,
+    build_hybrid,
+    fit_coverages,
+    parse_stages,
+)
+from hybrid_pk.hybrid.hybrid_fk import HybridFK
+from hybrid_pk.hybrid.inputs import DEFAULT_FADE
 from hybrid_pk.hybrid.losses import (
     LOSSES,
-    orientation_errors_deg,
-    position_errors_mm,
+    corrected_orientation_errors_deg,
+    corrected_position_errors_mm,
     reduce_errors,
 )
 from hybrid_pk.hybrid.nets import parse_arch
@@ -59,6 +67,20 @@ class HybridLitModule(L.LightningModule):
         input_range: ``limits`` (normalise over the joint limits, paper 4.1) or ``data``
             (over the training rows' range, paper 4.2).
         fade: fade-out width outside the training box (fraction of its size).
+        inputs: the stages of networks (:mod:`~hybrid_pk.hybrid.builder`): ``joints``
+            (the paper's: every joint, min-max normalised), physics inputs
+            ``frameK[+qI-J][+gravity][+torque|+full]`` or ``local[+q1]``, several joined
+            by ``,`` (cascade of fall-backs) and ``/`` (refinement).
+        trust: where the networks apply: ``box`` (the training rows' joint box; joints
+            alone only), ``coverage`` (distance to the training rows in input space,
+            :class:`~hybrid_pk.hybrid.coverage.Coverage`), ``none`` (everywhere), or
+            ``auto``: ``box`` for the joints alone, ``coverage`` otherwise.
+        coverage_quantile: share of the validation rows inside the full-trust radius
+            (stages on all joints or physics features).
+        coverage_ratio: radius where the networks are off / full-trust radius (same).
+        refine_net: architecture of the refine stages' networks.
+        local_net: architecture of each joint's network in local stages.
+        local_coverage_quantile, local_coverage_ratio: the same for local stages.
         zero_init: zero output layers (training starts from the base model).
         histogram_every: log error histograms every this many validation epochs (0: off).
     """
@@ -74,6 +96,14 @@ class HybridLitModule(L.LightningModule):
         loss: str = "mse",
         input_range: str = "data",
         fade: float = DEFAULT_FADE,
+        inputs: str = "joints",
+        trust: str = "auto",
+        coverage_quantile: float = 0.9,
+        coverage_ratio: float = 1.5,
+        refine_net: str = "mlp",
+        local_net: str = "mlp:32x2",
+        local_coverage_quantile: float = 0.99,
+        local_coverage_ratio: float = 2.0,
         zero_init: bool = True,
         histogram_every: int = 5,
     ) -> None:
@@ -83,15 +113,22 @@ class HybridLitModule(L.LightningModule):
             ("scheduler", scheduler, SCHEDULERS),
             ("loss", loss, LOSSES),
             ("input_range", input_range, ("limits", "data")),
+            ("trust", trust, TRUSTS),
         ):
             if value not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(allowed)}, got {value!r}")
-        for arch in (position_net, orientation_net):
+        for arch in (position_net, orientation_net, refine_net, local_net):
             if arch != "none":
                 parse_arch(arch)  # fail before any data is read
+        if trust == "box" and inputs != "joints":
+            raise ValueError(
+                f"trust 'box' needs the joints inputs alone; with {inputs!r}: coverage"
+            )
+        parse_stages(inputs)
         self.save_hyperparameters()
         self.hybrid: HybridFK | None = None
         self._val: dict[str, list[Tensor]] = {}
+        self._train_sums: dict[str, float] = {}
         self._base_val: dict[str, Tensor] = {}
         self._best: dict[str, tuple[float, dict]] = {}
 
@@ -101,27 +138,61 @@ class HybridLitModule(L.LightningModule):
             return
         dm = self.trainer.datamodule
         hp = self.hparams
-        train = dm.train_targets
-        limits = dm.base.robot.joint_limits if hp.input_range == "limits" else None
-        box = InputBox.from_data(train.q, limits, hp.fade)
+        train, val = dm.train_targets, dm.val_targets
         pos_scale, rot_scale = train.scales()
-        ori = hp.orientation_net if train.rotation is not None else "none"
-        self.hybrid = HybridFK.build(
-            dm.base,
-            box,
-            None if hp.position_net == "none" else hp.position_net,
-            None if ori == "none" else ori,
-            pos_scale,
-            rot_scale,
-            zero_init=hp.zero_init,
-        )
+        settings = self.settings(has_orientation=train.rotation is not None)
+        self.hybrid = build_hybrid(dm.base, hp.inputs, settings, train.q, pos_scale, rot_scale)
+        self._encode_once(dm, settings)
         self.hybrid.base.requires_grad_(False)
         self.hybrid.train()  # a base model shared with an earlier (eval-mode) hybrid
-        val = dm.val_targets
         zero = torch.zeros_like(val.position)
-        self._base_val["position"] = position_errors_mm(val.position, val.lever, zero, zero)
+        self._base_val["position"] = corrected_position_errors_mm(
+            val.position, val.lever, zero, zero
+        )
         if val.rotation is not None:
-            self._base_val["orientation"] = orientation_errors_deg(val.rotation, zero)
+            self._base_val["orientation"] = corrected_orientation_errors_deg(val.rotation, zero)
+
+    def settings(self, has_orientation: bool = True) -> HybridSettings:
+        """The :class:`~hybrid_pk.hybrid.builder.HybridSettings` of these arguments."""
+        hp = self.hparams
+
+        def arch(name: str) -> str | None:
+            return None if name == "none" else name
+
+        return HybridSettings(
+            position_net=arch(hp.position_net),
+            orientation_net=arch(hp.orientation_net) if has_orientation else None,
+            refine_net=hp.refine_net,
+            local_net=hp.local_net,
+            trust=hp.trust,
+            input_range=hp.input_range,
+            fade=hp.fade,
+            coverage_quantile=hp.coverage_quantile,
+            coverage_ratio=hp.coverage_ratio,
+            local_coverage_quantile=hp.local_coverage_quantile,
+            local_coverage_ratio=hp.local_coverage_ratio,
+            zero_init=hp.zero_init,
+        )
+
+    @torch.no_grad()
+    def _encode_once(self, dm, settings: HybridSettings) -> None:
+        """Encode every stage's inputs once, fit the coverages on them, and hand them to
+        the datamodule as batch columns (``u{i}``, ``geo{i}_*``; ``w{i}``, the stages'
+        effective weights, for validation)."""
+        hybrid = self.hybrid
+        encoded = {
+            p: hybrid.encode_all(r.q)
+            for p, r in (("train", dm.train_targets), ("val", dm.val_targets))
+        }
+        fit_coverages(hybrid, encoded["train"], encoded["val"], settings)
+        columns: dict[str, dict[str, Tensor]] = {"train": {}, "val": {}}
+        for part, stages in encoded.items():
+            for i, (u, geo) in enumerate(stages):
+                columns[part][f"u{i}"] = u
+                columns[part].update({f"geo{i}_{k}": v for k, v in geo.items()})
+        weights = hybrid.weights(dm.val_targets.q, encoded["val"])
+        columns["val"].update({f"w{i}": w for i, w in enumerate(weights)})
+        dm.add_columns(columns["train"], columns["val"])
 
     def configure_optimizers(self):
         hp = self.hparams
@@ -149,25 +220,61 @@ class HybridLitModule(L.LightningModule):
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
 
     # ------------------------------------------------------------------ steps
-    def _errors(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
-        """Per-row position [mm] and orientation [deg] errors of the hybrid model."""
-        dp, dw = self.hybrid.corrections(batch["q"])
-        out = {"position": position_errors_mm(batch["position"], batch["lever"], dp, dw)}
+    def _encoded(self, batch: dict[str, Tensor]) -> list[tuple[Tensor, dict]]:
+        out = []
+        for i in range(len(self.hybrid.stages)):
+            prefix = f"geo{i}_"
+            geo = {k[len(prefix) :]: v for k, v in batch.items() if k.startswith(prefix)}
+            out.append((batch[f"u{i}"], geo))
+        return out
+
+    def _row_errors(self, batch: dict[str, Tensor], dp: Tensor, dw: Tensor) -> dict[str, Tensor]:
+        out = {"position": corrected_position_errors_mm(batch["position"], batch["lever"], dp, dw)}
         if "rotation" in batch and self.hybrid.orientation is not None:
-            out["orientation"] = orientation_errors_deg(batch["rotation"], dw)
+            out["orientation"] = corrected_orientation_errors_deg(batch["rotation"], dw)
+        return out
+
+    def _errors(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        """Per-row position [mm] and orientation [deg] errors of the hybrid model, every
+        stage at its weight (validation rows)."""
+        if "u0" not in batch:
+            return self._row_errors(batch, *self.hybrid.corrections(batch["q"]))
+        weights = [batch[f"w{i}"] for i in range(len(self.hybrid.stages))]
+        return self._row_errors(batch, *self.hybrid.predict_all(self._encoded(batch), weights))
+
+    def _stage_errors(self, batch: dict[str, Tensor]) -> list[dict[str, Tensor]]:
+        """Training rows: each stage's errors on its own target, networks unweighted. A
+        cascade stage fits what the base model leaves; a refine stage what its cascade
+        stage (and earlier refinements, held fixed) leave."""
+        out, group = [], None
+        for stage, (u, geo) in zip(self.hybrid.stages, self._encoded(batch), strict=True):
+            dp, dw = stage.predict(u, geo, None)
+            if stage.role == "refine":
+                dp, dw = dp + group[0].detach(), dw + group[1].detach()
+            group = (dp, dw)
+            out.append(self._row_errors(batch, dp, dw))
         return out
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
-        errors = self._errors(batch)
-        losses = {k: reduce_errors(v, self.hparams.loss) for k, v in errors.items()}
-        loss = sum(losses.values())
+        stages = self._stage_errors(batch)
+        loss = sum(reduce_errors(v, self.hparams.loss) for e in stages for v in e.values())
+        errors = stages[0]  # logged: the first stage's errors
+        # Epoch means are summed here and logged once per epoch: self.log costs more
+        # per call than a step of the small networks.
         n = batch["q"].shape[0]
-        log = {"on_step": False, "on_epoch": True, "batch_size": n, "sync_dist": True}
-        self.log("train/loss", loss, **log)
-        units = {"position": "mm", "orientation": "deg"}
+        sums = self._train_sums
+        sums["rows"] = sums.get("rows", 0) + n
+        sums["train/loss"] = sums.get("train/loss", 0.0) + float(loss.detach()) * n
         for k, v in errors.items():
-            self.log(f"train/{k}_{units[k]}", v.mean(), **log)
+            key = f"train/{_KEYS[k]}"
+            sums[key] = sums.get(key, 0.0) + float(v.detach().sum())
         return loss
+
+    def on_train_epoch_end(self) -> None:
+        sums, self._train_sums = self._train_sums, {}
+        rows = sums.pop("rows", 0)
+        for key, total in sums.items():
+            self.log(key, total / max(rows, 1), on_step=False, on_epoch=True, sync_dist=True)
 
     def validation_step(self, batch: dict[str, Tensor], batch_idx: int) -> None:
         for k, v in self._errors(batch).items():
@@ -194,16 +301,21 @@ class HybridLitModule(L.LightningModule):
         self._log_histograms(errors)
 
     def _keep_best(self, name: str, value: float) -> None:
+        """Keep every stage's ``name`` networks at the epoch of the lowest validation
+        error of the whole model in that quantity."""
         best = self._best.get(name)
         if best is None or value < best[0]:
-            head = getattr(self.hybrid, name)
-            self._best[name] = (value, copy.deepcopy(head.state_dict()))
+            heads = [getattr(stage, name) for stage in self.hybrid.stages]
+            states = [None if h is None else copy.deepcopy(h.state_dict()) for h in heads]
+            self._best[name] = (value, states)
 
     def on_train_end(self) -> None:
         # on_train_end, not on_fit_end: callbacks' on_fit_end (WriteModelFile) run
         # before the module's, and must see the restored networks.
-        for name, (_, state) in self._best.items():
-            getattr(self.hybrid, name).load_state_dict(state)
+        for name, (_, states) in self._best.items():
+            for stage, state in zip(self.hybrid.stages, states, strict=True):
+                if state is not None:
+                    getattr(stage, name).load_state_dict(state)
         if self.trainer.is_global_zero and self.trainer.datamodule is not None:
             log_error_figure(self, self.trainer.datamodule.val_targets)
 

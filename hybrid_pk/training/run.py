@@ -6,9 +6,11 @@ the same module and datamodule through ``train/cli.py`` and a YAML config.
 
 from __future__ import annotations
 
+import logging
 import math
 import sys
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,6 +42,7 @@ __all__ = [
     "TrainResult",
     "auto_threads",
     "make_trainer",
+    "quiet_lightning",
     "train_hybrid",
 ]
 
@@ -79,6 +82,16 @@ class ProgressBar(TQDMProgressBar):
 
     def init_validation_tqdm(self) -> Tqdm:
         return Tqdm(disable=True)
+
+
+def quiet_lightning() -> None:
+    """Keep Lightning's start-up chatter (accelerators found, tips, 'max_epochs reached')
+    and library deprecation notes off the terminal. Lightning sets its loggers up when
+    imported, so this runs after the import (this module's)."""
+    logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
+    warnings.filterwarnings("ignore", message=".*LeafSpec.*", category=DeprecationWarning)
+    warnings.filterwarnings("ignore", message=".*LeafSpec.*", category=FutureWarning)
+    warnings.filterwarnings("ignore", message=r".*distributed\.nn\.functional\.all_gather.*")
 
 
 class EpochReport(Callback):
@@ -210,7 +223,8 @@ def train_hybrid(
             networks).
         logdir: TensorBoard logs and checkpoints; None: no logging.
         progress: Lightning's progress bar; a callable instead gets one line of text
-            per epoch (epoch count, validation errors).
+            per epoch (epoch count, validation errors), and Lightning's start-up
+            chatter is silenced (:func:`quiet_lightning`): the caller draws the display.
         strategy: ``"auto"`` or ``"ddp"`` (with ``devices`` processes).
         devices: number of processes.
         threads: torch threads during the fit; None: one for networks up to
@@ -223,6 +237,8 @@ def train_hybrid(
         settings["trainer"]["max_epochs"] = int(max_epochs)
     if patience != "preset":
         settings["trainer"]["patience"] = patience
+    if callable(progress):
+        quiet_lightning()
     L.seed_everything(seed, workers=True, verbose=False)
     dm = HybridDataModule.from_measured(data, base, cond, seed=seed, **settings["data"])
     module = HybridLitModule(**settings["model"])

@@ -75,6 +75,10 @@ class Diagnosis:
     holdout_rows: Tensor
     steps: list[dict] = field(default_factory=list)
     warnings: list[dict] = field(default_factory=list)
+    outliers: list[dict] = field(default_factory=list)
+    robust: dict | None = None
+    structural: dict | None = None
+    frames: dict | None = None
 
     def to_json(self) -> dict:
         return {
@@ -89,6 +93,10 @@ class Diagnosis:
             "identifiability": self.identifiability,
             "selection": self.steps,
             "warnings": self.warnings,
+            "outliers": self.outliers,
+            "robust": self.robust,
+            "structural": self.structural,
+            "frames": self.frames,
             "gravity": gravity_json(self.model),
         }
 

@@ -35,8 +35,12 @@ from hybrid_pk.calibration.diagnosis.selection import (
 )
 from hybrid_pk.calibration.diagnosis.split import Split, split_campaign
 from hybrid_pk.calibration.diagnosis.statistics import neighbour_structure, residual_vectors
+from hybrid_pk.calibration.diagnosis.structural import implausibility, structural_check
 from hybrid_pk.calibration.diagnosis.variants import with_effects
-from hybrid_pk.calibration.fit import FitResult, fit, initialise_frames, model_errors
+from hybrid_pk.calibration.fit import FitResult, fit, model_errors
+from hybrid_pk.calibration.frames import FramePriors
+from hybrid_pk.calibration.known_frames import initialise_with_priors
+from hybrid_pk.calibration.robust import OUTLIER_K, down_weighted, list_outliers
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import ExtendedModel, Gravity, conditions_from_data, make_effect
 from hybrid_pk.robot import Robot
@@ -58,6 +62,8 @@ def diagnose(
     max_causes: int = 8,
     frames_per_file: bool = False,
     progress: Callable[[str], None] | None = None,
+    frames: FramePriors | None = None,
+    robust: str | None = None,
     gravity: Gravity | None = None,
 ) -> Diagnosis:
     """Name the physical causes of the nominal model's errors on ``data``.
@@ -72,6 +78,10 @@ def diagnose(
         max_causes: stop after this many causes.
         frames_per_file: give each input file its own base and tool frames.
         progress: called with a short text at each stage.
+        frames: known frames (``--tool``, ``--base``) and the frame prior of every fit.
+        robust: ``"huber"`` or ``"cauchy"``: every fit down-weights rows with gross
+            errors (listed in ``robust``); None: least squares. Outliers beyond
+            ``OUTLIER_K`` sigma are listed either way.
         gravity: the mounting (root-frame vector or levelled tracker); default upright.
     """
     say = progress or (lambda _msg: None)
@@ -82,8 +92,12 @@ def diagnose(
     model = ExtendedModel(
         robot, frame_sets=len(data.sources) if frames_per_file else 1, gravity=gravity
     )
-    initialise_frames(model, split.train, split.cond_fit)
-    res = fit(model, split.train, cond=split.cond_fit)
+    initialise_with_priors(model, split.train, split.cond_fit, frames)
+    res = fit(
+        model, split.train, cond=split.cond_fit, progress=_prefixed(say, "frames"),
+        frames=frames, robust=robust,
+    )  # fmt: skip
+    frame_json = None if res.frame_report is None else res.frame_report.to_json()
     nominal_model = with_effects(model)
     nominal = stats_json(*model_errors(model, split.test, split.cond_hold))
 
@@ -93,15 +107,22 @@ def diagnose(
         for c in pool
         if make_effect(robot, c).needs != "temperature" or data.temperature is not None
     ]
+    flagged: list[dict] = []
     model, res, steps, ambiguous, unobservable = _select(
-        model, res, pool, split, alpha, max_causes, say
+        model, res, pool, split, alpha, max_causes, say, flagged
     )
 
     say("measuring each cause's gain")
     errors = model_errors(model, split.test, split.cond_hold)
-    causes = measure_causes(model, res, split, steps, alpha, errors)
+    causes = measure_causes(model, res, split, steps, alpha, errors, progress=say)
+    sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
+    causes, structural = structural_check(model, causes, flagged, split, nominal_model, sigmas, say)
     ambiguous += correlated_groups(res)
     return Diagnosis(
+        outliers=_outliers(model, data, frames_per_file, res),
+        robust=_robust_json(res, data, split),
+        structural=structural,
+        frames=frame_json,
         warnings=plausibility_warnings(causes, data),
         robot=robot.name,
         n_samples=data.n,
@@ -128,8 +149,12 @@ def _select(
     alpha: float,
     max_causes: int,
     say: Callable[[str], None],
+    flagged: list[dict],
 ) -> tuple[ExtendedModel, FitResult, list[dict], list[dict], list[str]]:
     """Forward selection with backward elimination after each accepted cause.
+
+    A candidate whose refit value is not a small physical correction is set aside and
+    appended to ``flagged`` (its :func:`implausibility` entry).
 
     Returns the final model and fit, the step records, the ambiguity entries found
     on the way and the candidates without any signature in this data.
@@ -141,7 +166,9 @@ def _select(
     rejected_in_a_row = 0
     while pool and len(model.effects) < max_causes:
         say(f"scoring {len(pool)} candidate effects (step {len(steps) + 1})")
-        scores = score_candidates(model, res, pool, split, alpha, name_equivalents=first_step)
+        scores = score_candidates(
+            model, res, pool, split, alpha, name_equivalents=first_step, progress=say
+        )
         unobservable += scores.unobservable
         ambiguous += scores.equivalent
         first_step = False
@@ -162,9 +189,16 @@ def _select(
             )
             break
         say(f"testing {best.label}")
-        new, new_res, step = try_candidate(model, res, best, scores, split)
+        new, new_res, step = try_candidate(
+            model, res, best, scores, split, progress=_prefixed(say, f"testing {best.label}")
+        )
         steps.append(step)
         pool = [c for c in pool if c != best.label]
+        implausible = implausibility(new.effect(best.label), new.robot, split.train)
+        if step["accepted"] and implausible is not None:
+            step["accepted"] = False
+            step["why"] = f"not a small correction of the URDF: {implausible['why']}"
+            flagged.append(implausible)
         if not step["accepted"]:
             rejected_in_a_row += 1
             if rejected_in_a_row >= MAX_REJECTED_IN_A_ROW:
@@ -179,6 +213,23 @@ def _select(
     return model, res, steps, ambiguous, unobservable
 
 
+def _outliers(model: ExtendedModel, data: MeasuredData, per_file: bool, res: FitResult):
+    """Rows of ``data`` (fit and hold-out) beyond ``OUTLIER_K`` sigma of the final fit."""
+    pos, ori = model_errors(model, data, conditions_from_data(data, per_file))
+    return list_outliers(data, pos, ori, res.sigma_pos_mm, res.sigma_rot_rad)
+
+
+def _robust_json(res: FitResult, data: MeasuredData, split: Split) -> dict | None:
+    """What a robust diagnosis down-weighted (rows of the fit set)."""
+    if res.robust is None:
+        return None
+    return {
+        "loss": res.robust,
+        "outlier_k": OUTLIER_K,
+        "down_weighted": down_weighted(data, res.weights, split.fit_rows),
+    }
+
+
 def _unexplained(model: ExtendedModel, split: Split, errors: tuple) -> dict:
     """RMS of what the model leaves on the hold-out rows, and whether it is smooth."""
     pos1, ori1 = errors
@@ -191,3 +242,8 @@ def _unexplained(model: ExtendedModel, split: Split, errors: tuple) -> dict:
         "structured": structured,
         "neighbour_correlation": nn_corr,
     }
+
+
+def _prefixed(say: Callable[[str], None], prefix: str) -> Callable[[str], None]:
+    """``say`` with ``prefix: `` in front of every message."""
+    return lambda text: say(f"{prefix}: {text}")

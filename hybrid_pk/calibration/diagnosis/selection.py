@@ -11,6 +11,7 @@ tried), lowers BIC and lowers the hold-out error.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
@@ -22,9 +23,14 @@ from hybrid_pk.calibration.diagnosis.ambiguity import (
     projector_residual,
 )
 from hybrid_pk.calibration.diagnosis.split import Split
-from hybrid_pk.calibration.diagnosis.statistics import f_survival, holdout_score, weighted_ssr
-from hybrid_pk.calibration.diagnosis.variants import with_effects
-from hybrid_pk.calibration.fit import FitResult, fit
+from hybrid_pk.calibration.diagnosis.statistics import (
+    f_survival,
+    holdout_score,
+    weighted_residual,
+    weighted_ssr,
+)
+from hybrid_pk.calibration.diagnosis.variants import shift_parameters, with_effects
+from hybrid_pk.calibration.fit import FitResult, fit, reestimated_noise
 from hybrid_pk.calibration.problem import Problem, param_blocks
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import EFFECTS, ExtendedModel, effect_joint_names, make_effect
@@ -34,6 +40,7 @@ __all__ = [
     "CandidateScore",
     "Scores",
     "candidate_labels",
+    "gauss_newton_start",
     "score_candidates",
     "try_candidate",
 ]
@@ -104,6 +111,8 @@ class Scores:
         threshold: Bonferroni level ``alpha / len(scored)``.
         unobservable: candidates without any signature in this data.
         equivalent: ambiguity entries of candidates that a frame or effect absorbs.
+        R: ``(n + 1, n + 1)`` triangular factor of ``[J r]`` of the current model and
+            every candidate (``blocks``), for the Gauss–Newton start of a refit.
     """
 
     scored: list[CandidateScore]
@@ -112,6 +121,8 @@ class Scores:
     threshold: float = math.nan
     unobservable: list[str] = field(default_factory=list)
     equivalent: list[dict] = field(default_factory=list)
+    R: Tensor | None = None
+    blocks: tuple = ()
 
     @property
     def ranked(self) -> list[CandidateScore]:
@@ -130,6 +141,7 @@ def score_candidates(
     split: Split,
     alpha: float,
     name_equivalents: bool,
+    progress: Callable[[str], None] | None = None,
 ) -> Scores:
     """Score every candidate of ``pool`` against ``model`` from one Jacobian.
 
@@ -139,17 +151,27 @@ def score_candidates(
     """
     robot = model.robot
     trial = with_effects(model, [make_effect(robot, c) for c in pool])
+    fixed = set() if res.priors is None else set(res.priors.fixed_labels())
     blocks = param_blocks(trial, None, split.position_only)
+    blocks = tuple(b for b in blocks if b.label not in fixed)
     sig_r = res.sigma_rot_rad or 1.0
-    problem = Problem(trial, split.train, split.cond_fit, blocks, res.sigma_pos_mm, sig_r)
-    r, J = problem.jacobian(torch.zeros_like(problem.x0))
+    # robust fits: the rows weigh as in the fit (a gross row does not score a candidate)
+    weights = None if res.weights is None else res.weights.sqrt()
+    problem = Problem(
+        trial, split.train, split.cond_fit, blocks, res.sigma_pos_mm, sig_r,
+        row_weights=weights, progress=progress,
+    )  # fmt: skip
+    # [J r] = Q R: R's columns stand for J's and r's (same norms, inner products and
+    # projections) with n + 1 rows instead of m.
+    R = problem.r_factor(torch.zeros_like(problem.x0))
+    J, r = R[:, :-1], R[:, -1]
     current_blocks = blocks[: len(blocks) - len(pool)]
     n_cur = sum(b.size for b in current_blocks)
     J_cur, J_pool = J[:, :n_cur], J[:, n_cur:]
     Q, _ = torch.linalg.qr(J_cur)
     ssr = float(r @ r)
-    m = r.numel()
-    out = Scores(scored=[], m=m, n_current=n_cur)
+    m = problem.n_residuals
+    out = Scores(scored=[], m=m, n_current=n_cur, R=R, blocks=blocks)
     start = 0
     for b, label in zip(blocks[len(blocks) - len(pool) :], pool, strict=True):
         Jc = J_pool[:, start : start + b.size]
@@ -195,17 +217,38 @@ def _score_test(
     return CandidateScore(label, k, F, p, -(drop - k * math.log(m)), Jp, fitted)
 
 
+def gauss_newton_start(scores: Scores, label: str) -> dict[str, Tensor]:
+    """Scaled steps (by block label) of the current model's blocks and candidate
+    ``label`` that minimise the linearised residual: where its refit starts."""
+    start, cols, labels = 0, [], []
+    for b in scores.blocks:  # the current model's blocks first, then the candidates'
+        if start < scores.n_current or b.label == label:
+            cols.append(torch.arange(start, start + b.size))
+            labels.append((b.label, b.size))
+        start += b.size
+    idx = torch.cat(cols)
+    J, r = scores.R[:, idx], scores.R[:, -1:]
+    step = -torch.linalg.lstsq(J, r, driver="gelsd").solution[:, 0]
+    out, s0 = {}, 0
+    for lbl, size in labels:
+        out[lbl] = step[s0 : s0 + size]
+        s0 += size
+    return out
+
+
 def try_candidate(
     model: ExtendedModel,
     res: FitResult,
     score: CandidateScore,
     scores: Scores,
     split: Split,
+    progress: Callable[[str], None] | None = None,
 ) -> tuple[ExtendedModel, FitResult, dict]:
     """Refit ``model`` with the candidate; F-test, BIC and hold-out decide.
 
-    Returns the refitted model, its fit and the step record (``accepted`` says whether
-    the candidate stays).
+    The refit starts at the Gauss–Newton step of the score's linearisation (unless
+    that start is worse than the current values). Returns the refitted model, its
+    fit and the step record (``accepted`` says whether the candidate stays).
     """
     label, k, m = score.label, score.k, scores.m
     step = {
@@ -215,11 +258,28 @@ def try_candidate(
         "threshold": scores.threshold,
     }
     new = with_effects(model, [make_effect(model.robot, label)])
+    # (a robust fit's cost is its IRLS sum; its F-test compares robust costs)
+    ssr_old = res.cost if res.cost is not None and res.robust is None else _ssr(model, split, res)
     sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
-    new_res = fit(new, split.train, cond=split.cond_fit, initial_sigma=sigmas)
+    start = with_effects(new)
+    shift_parameters(start, gauss_newton_start(scores, label), split.position_only)
+    r_start = weighted_residual(start, split.train, split.cond_fit, res)
+    start_cost = float(r_start @ r_start) if res.robust is None else _ssr(start, split, res)
+    if start_cost < ssr_old:
+        # The start is (linearised) optimal under the current noise weights: its
+        # residuals give the noise levels the refit's second pass would start from.
+        new = start
+        n_params = scores.n_current + sum(b.size for b in scores.blocks if b.label == label)
+        noise = reestimated_noise(
+            r_start, split.train.n, n_params, sigmas, position_only=split.position_only
+        )
+        sigmas = (noise[0], None if split.position_only else noise[1])
+    new_res = fit(
+        new, split.train, cond=split.cond_fit, initial_sigma=sigmas, progress=progress,
+        **res.settings(),
+    )  # fmt: skip
     # F-test and BIC of the refit, both models' residuals under the same weights.
-    ssr_old = weighted_ssr(model, split.train, split.cond_fit, res)
-    ssr_new = weighted_ssr(new, split.train, split.cond_fit, res)
+    ssr_new = _ssr(new, split, res)
     dof_new = max(m - new_res.n_params, 1)
     F_fit = ((ssr_old - ssr_new) / k) / max(ssr_new / dof_new, 1e-300)
     p_fit = f_survival(F_fit, k, dof_new) if F_fit > 0 else 1.0
@@ -240,3 +300,7 @@ def try_candidate(
     if not step["accepted"]:
         step["why"] = "refit not significant, BIC not lower, or hold-out not better"
     return new, new_res, step
+
+
+def _ssr(model: ExtendedModel, split: Split, res: FitResult) -> float:
+    return weighted_ssr(model, split.train, split.cond_fit, res)

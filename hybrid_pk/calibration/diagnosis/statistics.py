@@ -9,14 +9,17 @@ from torch import Tensor
 
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.calibration.problem import Problem
+from hybrid_pk.calibration.robust import robust_cost, row_distances
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
 
 __all__ = [
+    "f_critical",
     "f_survival",
     "holdout_score",
     "neighbour_structure",
     "residual_vectors",
+    "weighted_residual",
     "weighted_ssr",
 ]
 
@@ -28,13 +31,31 @@ def f_survival(F: float, d1: int, d2: int) -> float:
     return float(stats.f.sf(F, d1, d2))
 
 
+def f_critical(alpha: float, d1: int, d2: int) -> float:
+    """``F`` whose survival probability is ``alpha`` (inverse of :func:`f_survival`)."""
+    from scipy import stats
+
+    return float(stats.f.isf(alpha, d1, d2))
+
+
+def weighted_residual(
+    model: ExtendedModel, data: MeasuredData, cond: Conditions, res: FitResult
+) -> Tensor:
+    """Residuals of ``model`` on ``data`` under ``res``'s noise weights."""
+    problem = Problem(model, data, cond, (), res.sigma_pos_mm, res.sigma_rot_rad or 1.0)
+    with torch.no_grad():
+        return problem.residual(torch.zeros(0, dtype=torch.float64))
+
+
 def weighted_ssr(
     model: ExtendedModel, data: MeasuredData, cond: Conditions, res: FitResult
 ) -> float:
-    """Sum of squared residuals of ``model`` on ``data`` under ``res``'s noise weights."""
-    problem = Problem(model, data, cond, (), res.sigma_pos_mm, res.sigma_rot_rad or 1.0)
-    with torch.no_grad():
-        r = problem.residual(torch.zeros(0, dtype=torch.float64))
+    """Sum of squared residuals of ``model`` on ``data`` under ``res``'s noise weights;
+    for a robust fit the robust cost of its loss, on the same scale (see
+    :func:`~hybrid_pk.calibration.robust.robust_cost`)."""
+    r = weighted_residual(model, data, cond, res)
+    if res.robust is not None:
+        return robust_cost(row_distances(r, data.n), 3 if data.quat is None else 6, res.robust)
     return float(r @ r)
 
 
@@ -69,9 +90,7 @@ def neighbour_structure(
         return False, 0.0
     span = torch.where(torch.isfinite(upper - lower), upper - lower, 2 * math.pi)
     x = (q - lower.where(torch.isfinite(lower), -math.pi)) / span
-    d = torch.cdist(x, x)
-    d.fill_diagonal_(math.inf)
-    nn_idx = d.argmin(1)
+    nn_idx = _nearest_other(x)
     a = residual.reshape(n, -1)
     a = a - a.mean(0)
     b = a[nn_idx]
@@ -79,3 +98,20 @@ def neighbour_structure(
     # Under no structure the correlation is ~N(0, 1/(n*k)); 4 sigma is "structured".
     threshold = 4.0 / math.sqrt(a.numel())
     return corr > max(threshold, 0.1), corr
+
+
+# Rows of the distance matrix per block in the nearest-neighbour search.
+NEIGHBOUR_BLOCK = 2048
+
+
+def _nearest_other(x: Tensor) -> Tensor:
+    """Index of each row's nearest other row ``(n,)``, blocks of rows at a time (the
+    ``n x n`` distance matrix of 50,000 rows would need 20 GB)."""
+    n = x.shape[0]
+    out = torch.empty(n, dtype=torch.long)
+    for start in range(0, n, NEIGHBOUR_BLOCK):
+        rows = slice(start, min(start + NEIGHBOUR_BLOCK, n))
+        d = torch.cdist(x[rows], x)
+        d[torch.arange(d.shape[0]), torch.arange(rows.start, rows.stop)] = math.inf
+        out[rows] = d.argmin(1)
+    return out

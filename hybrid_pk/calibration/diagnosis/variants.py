@@ -1,14 +1,29 @@
-"""Model variants the search compares: the current model plus or minus one effect."""
+"""Model variants the search compares: the current model plus or minus one effect.
+
+Refits start where a linearised (Gauss–Newton) update from the current fit puts them,
+so that the refit only corrects the nonlinearity (a step or two of LM) and ends where
+a refit from the current values would.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
+from torch import Tensor
 
 from hybrid_pk.calibration.fit import FitResult, fit
+from hybrid_pk.calibration.problem import param_blocks
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, Effect, ExtendedModel, make_effect
 
-__all__ = ["refit_without", "with_effects", "without_effect"]
+__all__ = [
+    "linearised_removal",
+    "refit_without",
+    "shift_parameters",
+    "with_effects",
+    "without_effect",
+]
 
 
 def with_effects(model: ExtendedModel, extra: list[Effect] = ()) -> ExtendedModel:
@@ -30,11 +45,63 @@ def without_effect(model: ExtendedModel, label: str) -> ExtendedModel:
     return out
 
 
+@torch.no_grad()
+def shift_parameters(model: ExtendedModel, steps: dict[str, Tensor], position_only: bool) -> None:
+    """Add ``steps`` (scaled offsets by block label) to the model's parameters."""
+    params = dict(model.named_parameters())
+    for b in param_blocks(model, None, position_only):
+        if b.label in steps:
+            p = params[b.name]
+            p.add_((steps[b.label] * b.scale).reshape(p.shape).to(p.dtype))
+
+
+def linearised_removal(res: FitResult, label: str) -> tuple[float, dict[str, Tensor]]:
+    """Removing effect ``label`` from the fit ``res``, linearised at its solution.
+
+    Setting the effect's scaled value ``t`` to zero and re-balancing the others raises
+    the weighted sum of squares by ``t^T S t`` (``S`` the Schur complement of the
+    normal matrix on the effect, the Wald statistic); the others move by
+    ``-G_rr^+ G_re (-t)``. Returns that increase and the moves, by block label.
+    """
+    G = res.normal_matrix
+    sl = res.block_slice(label)
+    keep = torch.ones(G.shape[0], dtype=torch.bool)
+    keep[sl] = False
+    scale = torch.cat([torch.full((b.size,), b.scale, dtype=G.dtype) for b in res.blocks])
+    delta = -res.x[sl] / scale[sl]
+    G_rr_inv = torch.linalg.pinv(G[keep][:, keep], hermitian=True)
+    G_re = G[keep][:, sl]
+    move = -G_rr_inv @ (G_re @ delta)
+    schur = G[sl, sl] - G_re.T @ G_rr_inv @ G_re
+    increase = float(delta @ schur @ delta)
+    steps, start = {}, 0
+    for b in res.blocks:
+        if b.label != label:
+            steps[b.label] = move[start : start + b.size]
+            start += b.size
+    return increase, steps
+
+
 def refit_without(
-    model: ExtendedModel, label: str, data: MeasuredData, cond: Conditions, res: FitResult
+    model: ExtendedModel,
+    label: str,
+    data: MeasuredData,
+    cond: Conditions,
+    res: FitResult,
+    progress: Callable[[str], None] | None = None,
+    max_iter: int = 15,
 ) -> ExtendedModel:
-    """``model`` without effect ``label``, refitted under ``res``'s noise weights."""
+    """``model`` without effect ``label``, refitted under ``res``'s noise weights.
+
+    Starts from the linearised removal (:func:`linearised_removal`) when ``res`` has
+    its normal matrix, otherwise from the full model's values; ``max_iter`` LM steps
+    from there (a few re-balance the rest; after the linearised start one is enough
+    for a value, ~1e-9 of the cost left to gain).
+    """
     reduced = without_effect(model, label)
+    if res.normal_matrix is not None:
+        _, steps = linearised_removal(res, label)
+        shift_parameters(reduced, steps, data.quat is None)
     fit(
         reduced,
         data,
@@ -42,6 +109,8 @@ def refit_without(
         sigma_pos_mm=res.sigma_pos_mm,
         sigma_rot_rad=res.sigma_rot_rad,
         covariance=False,
-        max_iter=15,  # warm start from the full model: a few steps re-balance the rest
+        max_iter=max_iter,
+        progress=progress,
+        **res.settings(),
     )
     return reduced

@@ -1,0 +1,425 @@
+"""A cause is a small correction of the URDF; a large one says the URDF is wrong.
+
+Statistically supported is not physically credible. A fitted effect is *implausible*
+when its value is beyond what the physics it names can be:
+
+- a rotation (joint offset, axis misalignment, eccentricity amplitude) beyond
+  ``MAX_ROTATION_DEG``, a backlash beyond ``MAX_BACKLASH_DEG``;
+- a translation (link length; the offset of a prismatic joint) beyond
+  ``MAX_TRANSLATION_M``;
+- a gear ratio error beyond ``MAX_GEAR_RATIO``;
+- a compliance beyond ``MAX_COMPLIANCE`` (metal joints and gearboxes), or one that
+  bends its joint by more than ``MAX_ROTATION_DEG`` under the gravity of the data;
+- any other effect with a value of unit rad / m beyond the rotation / translation
+  limit;
+
+or when its *signature is mostly the frames'*: more than ``MAX_FRAME_SHARE`` of the
+displacement it makes is what a change of the base and tool frames makes too, so its
+value measures a trade-off with the frames, not a physical error.
+
+Such a cause is never listed as a plain cause. The diagnosis instead looks for the
+place where the URDF is wrong (:func:`locate_structural_error`): at each joint a full
+origin correction (translation, rotation about the joint axis and perpendicular to it)
+is fitted without limits, and the joint whose correction explains the errors best is
+named with the size of the correction and the error it would leave.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from hybrid_pk.calibration.fit import fit, model_errors
+from hybrid_pk.calibration.problem import Problem, param_blocks
+from hybrid_pk.data.measured import MeasuredData
+from hybrid_pk.effects import (
+    EFFECTS,
+    Conditions,
+    Effect,
+    ExtendedModel,
+    effect_joint_names,
+    make_effect,
+)
+from hybrid_pk.geometry import so3_exp, so3_log
+from hybrid_pk.robot import Robot
+
+__all__ = [
+    "MAX_BACKLASH_DEG",
+    "MAX_COMPLIANCE",
+    "MAX_FRAME_SHARE",
+    "MAX_GEAR_RATIO",
+    "MAX_ROTATION_DEG",
+    "MAX_TRANSLATION_M",
+    "displacement",
+    "frame_share",
+    "implausibility",
+    "locate_structural_error",
+    "off_frames",
+    "structural_check",
+]
+
+MAX_ROTATION_DEG = 5.0
+MAX_BACKLASH_DEG = 1.0
+MAX_TRANSLATION_M = 0.05
+MAX_GEAR_RATIO = 0.01
+MAX_COMPLIANCE = 1e-4  # [rad/Nm]; industrial joints are 1e-7 .. 1e-5
+MAX_FRAME_SHARE = 0.98
+# Rows the frame share is computed on (an even subset of larger data).
+FRAME_SHARE_ROWS = 2000
+# The structural correction of a joint is fitted from these starting rotations too
+# (about the two axes perpendicular to the joint axis) when the plain start leaves
+# more than this fraction of the error.
+RESTART_FRACTION = 0.2
+# A nominal hold-out mean error beyond this [mm] is not what small corrections make.
+GROSS_ERROR_MM = 20.0
+# A structural correction that leaves less than this fraction of the nominal hold-out
+# error explains it.
+STRUCTURAL_FRACTION = 0.2
+
+
+def _rotation_limit(kind: str) -> float:
+    return math.radians(MAX_BACKLASH_DEG if kind == "backlash" else MAX_ROTATION_DEG)
+
+
+def implausibility(effect: Effect, robot: Robot, data: MeasuredData | None = None) -> dict | None:
+    """Why ``effect``'s value is not a small physical correction, or None.
+
+    Args:
+        effect: a fitted effect of ``robot``.
+        data: the rows (compliance: the gravity torques they load the joint with).
+
+    Returns:
+        ``{"cause", "value", "limit", "unit", "why"}`` when beyond the limits.
+    """
+    kind, unit = effect.kind, effect.unit
+    size = float(effect.value.detach().norm())
+    prismatic = (
+        effect.stage == "joint"
+        and effect.joint is not None
+        and robot.joint_types[effect.joint_index] == "prismatic"
+    )
+    if kind == "joint_compliance":
+        return _compliance_check(effect, robot, data)
+    if kind in ("tilt_compliance", "column_bending"):
+        return _deflection_check(effect, robot, data)
+    if kind == "gear_ratio":
+        limit, what, shown = MAX_GEAR_RATIO, "gear ratio error", f"{100 * size:.3g} %"
+        limit_text = f"{100 * MAX_GEAR_RATIO:g} %"
+    elif unit == "m" or prismatic:
+        limit, what, shown = MAX_TRANSLATION_M, "translation", f"{1e3 * size:.4g} mm"
+        limit_text = f"{1e3 * MAX_TRANSLATION_M:g} mm"
+    elif unit == "rad":
+        limit, what = _rotation_limit(kind), "rotation"
+        shown, limit_text = f"{math.degrees(size):.3g}°", f"{math.degrees(limit):g}°"
+    else:
+        return None
+    if size <= limit:
+        return None
+    return {
+        "cause": effect.label,
+        "value": size,
+        "limit": limit,
+        "unit": unit,
+        "why": f"a {what} of {shown} is beyond what a small correction of the URDF can be "
+        f"({limit_text})",
+    }
+
+
+def _compliance_check(effect: Effect, robot: Robot, data: MeasuredData | None) -> dict | None:
+    c = float(effect.value.detach())
+    reasons = []
+    if abs(c) > MAX_COMPLIANCE:
+        reasons.append(
+            f"a compliance of {c:.3g} rad/Nm is beyond what metal joints show "
+            f"({MAX_COMPLIANCE:g} rad/Nm)"
+        )
+    if data is not None:
+        payload = 0.0 if data.payload is None else data.payload
+        with torch.no_grad():
+            tau = robot.gravity_torques(data.q, payload=payload)[:, effect.joint_index]
+        bend = math.degrees(abs(c) * float(tau.abs().max()))
+        if bend > MAX_ROTATION_DEG:
+            reasons.append(
+                f"it would bend {effect.joint} by {bend:.3g}° under the gravity of these "
+                f"poses ({MAX_ROTATION_DEG:g}° at most)"
+            )
+    if not reasons:
+        return None
+    return {
+        "cause": effect.label,
+        "value": c,
+        "limit": MAX_COMPLIANCE,
+        "unit": effect.unit,
+        "why": "; ".join(reasons),
+    }
+
+
+def _deflection_check(effect: Effect, robot: Robot, data: MeasuredData | None) -> dict | None:
+    """A bearing or link compliance beyond what metal shows (a column's per metre of
+    extension, times the longest extension of the data)."""
+    c = float(effect.value.detach().abs().max())
+    what = f"a compliance of {c:.3g} {effect.unit}"
+    if effect.kind == "column_bending":
+        reach = 1.0
+        if data is not None:
+            with torch.no_grad():
+                reach = float(robot.chain_q(data.q)[:, effect.joint_index].abs().max())
+        what += f" ({c * reach:.3g} rad/Nm at the longest extension, {reach:.3g} m)"
+        c *= reach
+    if c <= MAX_COMPLIANCE:
+        return None
+    return {
+        "cause": effect.label,
+        "value": c,
+        "limit": MAX_COMPLIANCE,
+        "unit": "rad/Nm",
+        "why": f"{what} is beyond what metal joints and links show ({MAX_COMPLIANCE:g} rad/Nm)",
+    }
+
+
+@torch.no_grad()
+def displacement(model: ExtendedModel, label: str, data: MeasuredData, cond: Conditions):
+    """``(N, 3)`` [mm] what effect ``label`` moves the measured points by, frames fixed
+    (the measurement frame)."""
+    reduced = ExtendedModel(
+        model.robot,
+        [
+            make_effect(model.robot, e.label, e.value.detach().clone())
+            for e in model.effects
+            if e.label != label
+        ],
+        frame_sets=model.base.sets,
+        gravity=model.gravity,
+    )
+    reduced.base.reset_to(model.base.matrix().detach())
+    reduced.tool.reset_to(model.tool.matrix().detach())
+    return 1e3 * (model(data.q, cond)[:, :3, 3] - reduced(data.q, cond)[:, :3, 3])
+
+
+def off_frames(
+    model: ExtendedModel, data: MeasuredData, cond: Conditions, *fields: Tensor
+) -> list[Tensor]:
+    """``fields`` (each ``(N, 3)``, displacements of the measured points in the
+    measurement frame) without the part a change of the base and tool frames makes
+    (least-squares projection off the frames' position columns at ``model``)."""
+    blocks = param_blocks(
+        model, ["base_frame.translation", "base_frame.rotation", "tool_frame.translation"], True
+    )
+    problem = Problem(model, data, cond, blocks, 1.0, 1.0)
+    _, J = problem.jacobian(torch.zeros_like(problem.x0))
+    Q, _ = torch.linalg.qr(J[: 3 * data.n])  # position rows, row-major like the fields
+    out = []
+    for f in fields:
+        flat = f.reshape(-1).to(Q.dtype)
+        out.append((flat - Q @ (Q.T @ flat)).reshape(-1, 3))
+    return out
+
+
+def frame_share(
+    model: ExtendedModel, label: str, data: MeasuredData, cond: Conditions
+) -> tuple[float, Tensor, Tensor]:
+    """Fraction of the displacement effect ``label`` makes that a frame change makes too.
+
+    Returns:
+        ``(share, d, d_phys)``: ``share`` in [0, 1], the displacement ``d (n, 3)`` [mm]
+        and its part ``d_phys`` that no change of the base and tool frames makes, on
+        the rows used (an even subset of at most ``FRAME_SHARE_ROWS``).
+    """
+    if data.n > FRAME_SHARE_ROWS:  # a ratio of the rows' spread: an even subset will do
+        rows = torch.arange(0, data.n, math.ceil(data.n / FRAME_SHARE_ROWS))
+        data, cond = data.subset(rows), cond.subset(rows)
+    d = displacement(model, label, data, cond)
+    (d_phys,) = off_frames(model, data, cond, d)
+    total = float((d**2).sum())
+    share = 1.0 - float((d_phys**2).sum()) / max(total, 1e-300)
+    return min(max(share, 0.0), 1.0), d, d_phys
+
+
+def _origin_correction(model: ExtendedModel, joint: str) -> dict:
+    """Rotation [deg] (and axis in the joint frame) and translation [mm] of the origin
+    correction held by the joint's offset, misalignment and link-length effects."""
+    robot = model.robot
+    misalignment = model.effect(f"axis_misalignment:{joint}")
+    axis = torch.as_tensor(robot.spec.axes[misalignment.joint_index], dtype=torch.float64)
+    R = so3_exp(misalignment.rotation_vector().detach().double())
+    offset, prismatic = 0.0, False
+    if f"joint_offset:{joint}" in [e.label for e in model.effects]:
+        j = robot.joint_names.index(joint)
+        prismatic = robot.joint_types[j] == "prismatic"
+        offset = float(model.effect(f"joint_offset:{joint}").value.detach())
+        if not prismatic:
+            R = R @ so3_exp(axis * offset)
+    rotvec = so3_log(R)
+    dp = model.effect(f"link_length:{joint}").value.detach().double()
+    angle = math.degrees(float(rotvec.norm()))
+    unit = rotvec / rotvec.norm().clamp_min(1e-300)
+    mm = 1e3 * float(dp.norm()) + (1e3 * abs(offset) if prismatic else 0.0)
+    return {"rotation_deg": angle, "rotation_axis": [float(x) for x in unit], "translation_mm": mm}
+
+
+def _fit_correction(nominal: ExtendedModel, joint: str, split, sigmas, start: Tensor | None):
+    """The nominal model plus a full origin correction of ``joint``, fitted (frames too)
+    on the fit rows from ``start`` (a misalignment on its basis, or zero). Returns the
+    model and its mean hold-out position error [mm]."""
+    robot = nominal.robot
+    labels = [f"axis_misalignment:{joint}", f"link_length:{joint}"]
+    if joint in robot.joint_names:  # an independent joint (not a mimic) has an offset
+        labels.append(f"joint_offset:{joint}")
+    effects = [make_effect(robot, lb) for lb in labels]
+    if start is not None:
+        with torch.no_grad():
+            effects[0].value.copy_(start)
+    model = ExtendedModel(robot, effects, frame_sets=nominal.base.sets, gravity=nominal.gravity)
+    model.base.reset_to(nominal.base.matrix().detach())
+    model.tool.reset_to(nominal.tool.matrix().detach())
+    fit(model, split.train, cond=split.cond_fit, covariance=False, max_iter=40,
+        sigma_pos_mm=sigmas[0], sigma_rot_rad=sigmas[1])  # fmt: skip
+    return model, float(model_errors(model, split.test, split.cond_hold)[0].mean())
+
+
+def locate_structural_error(
+    nominal: ExtendedModel,
+    split,
+    sigmas: tuple[float, float | None],
+    hint: list[str] = (),
+    say: Callable[[str], None] | None = None,
+) -> dict | None:
+    """Where the URDF looks wrong: the joint whose full origin correction (fitted without
+    limits on the fit rows) leaves the smallest mean hold-out error.
+
+    Joints named in ``hint`` (those of implausible causes) are tried first; the search
+    stops at the first correction that explains the error (leaves less than
+    ``STRUCTURAL_FRACTION`` of it). Only when none does, each joint is refitted from
+    quarter and half turns about its perpendicular axes (a large rotation is out of
+    reach of a fit that starts at zero).
+
+    Returns:
+        ``{"joint", "rotation_deg", "rotation_axis", "translation_mm",
+        "holdout_mean_mm_before", "holdout_mean_mm_after"}``, or None if no joint can
+        take geometric corrections.
+    """
+    say = say or (lambda _m: None)
+    robot = nominal.robot
+    before = float(model_errors(nominal, split.test, split.cond_hold)[0].mean())
+    chain = effect_joint_names(robot, EFFECTS["link_length"])[1:]  # origin 0: the base's
+    joints = [j for j in chain if j in hint]
+    joints += [j for j in chain if j not in joints]
+    best = None
+    for turns in ((None,), _TURNS):
+        for joint in joints:
+            say(f"looking for a structural error at {joint}")
+            for start in turns:
+                model, after = _fit_correction(nominal, joint, split, sigmas, start)
+                if best is None or after < best[1]:
+                    best = (joint, after, model)
+            if best[1] < STRUCTURAL_FRACTION * before:
+                break
+        if best is None or best[1] < STRUCTURAL_FRACTION * before:
+            break
+    if best is None:
+        return None
+    joint, after, model = best
+    return {
+        "joint": joint,
+        **_origin_correction(model, joint),
+        "holdout_mean_mm_before": before,
+        "holdout_mean_mm_after": after,
+    }
+
+
+# Starting misalignments of the second search: quarter and half turns on the basis.
+_TURNS = tuple(
+    torch.tensor([a, 0.0] if k == 0 else [0.0, a], dtype=torch.float64)
+    for k in range(2)
+    for a in (math.pi / 2, -math.pi / 2, math.pi)
+)
+
+
+def _located_words(loc: dict) -> str:
+    axis = ", ".join(f"{x:+.2f}" for x in loc["rotation_axis"])
+    return (
+        f"the URDF looks structurally wrong at {loc['joint']}: its origin would have to "
+        f"turn by {loc['rotation_deg']:.3g}° about ({axis}) of the joint frame and move by "
+        f"{loc['translation_mm']:.3g} mm, which takes the hold-out mean position error "
+        f"from {loc['holdout_mean_mm_before']:.4g} to {loc['holdout_mean_mm_after']:.4g} mm"
+    )
+
+
+def structural_check(
+    model: ExtendedModel,
+    causes: list,
+    flagged: list[dict],
+    split,
+    nominal: ExtendedModel,
+    sigmas: tuple[float, float | None],
+    say: Callable[[str], None] | None = None,
+) -> tuple[list, dict | None]:
+    """Keep only plausible causes; say where the URDF looks wrong when it does.
+
+    Args:
+        model: the diagnosed model (holds the causes' effects).
+        causes: the causes found, largest gain first.
+        flagged: implausible candidates the selection set aside (``implausibility``
+            entries).
+        split: the diagnosis's fit / hold-out rows.
+        nominal: the nominal model with frames fitted to the fit rows.
+        sigmas: noise levels ``(position mm, rotation rad)`` of the structural fits.
+
+    Returns:
+        ``(causes, structural)``: the causes that stay plain causes, and the
+        ``"structural"`` section (None when every cause is a small correction and the
+        nominal error is not gross). When a structural correction explains the errors
+        (it leaves less than ``STRUCTURAL_FRACTION`` of the hold-out error), no cause is
+        listed: those found were fitted on a wrong structure and are withheld.
+    """
+    robot = model.robot
+    findings, keep = list(flagged), []
+    for c in causes:
+        label = f"{c.effect}:{c.joint}" if c.joint else c.effect
+        why = implausibility(model.effect(label), robot, split.train)
+        if why is None:
+            share, _, _ = frame_share(model, label, split.train, split.cond_fit)
+            if share > MAX_FRAME_SHARE:
+                why = {
+                    "cause": label,
+                    "value": c.value,
+                    "limit": None,
+                    "unit": c.unit,
+                    "why": f"{100 * share:.1f} % of the displacement it makes is what a "
+                    "change of the base and tool frames makes: its value measures a "
+                    "trade-off with the frames, not a physical error",
+                }
+        (keep if why is None else findings).append(c if why is None else why)
+    before = float(model_errors(nominal, split.test, split.cond_hold)[0].mean())
+    if not findings and before < GROSS_ERROR_MM:
+        return causes, None
+    hint = [f["cause"].partition(":")[2] for f in findings]
+    location = locate_structural_error(nominal, split, sigmas, hint, say)
+    explained = (
+        location is not None
+        and location["holdout_mean_mm_after"] < STRUCTURAL_FRACTION * before
+        and (location["rotation_deg"] > MAX_ROTATION_DEG
+             or location["translation_mm"] > 1e3 * MAX_TRANSLATION_M)
+    )  # fmt: skip
+    structural = {
+        "findings": findings,
+        "location": location,
+        "structurally_wrong": explained,
+        "withheld_causes": [c.to_json() for c in keep] if explained else [],
+    }
+    if explained:
+        structural["message"] = (
+            _located_words(location) + ". Correct the URDF there (the joint's <origin>) "
+            "and diagnose again; causes fitted on this structure are withheld"
+        )
+        return [], structural
+    names = ", ".join(f["cause"] for f in findings) or "no single cause"
+    structural["message"] = (
+        f"{names}: not a small correction of the URDF (see findings); no origin "
+        "correction at one joint explains the errors either, so the URDF may be wrong "
+        "in more than one place or an unmodelled effect is at work"
+    )
+    return keep, structural

@@ -1,0 +1,276 @@
+"""The residual Jacobian of one chunk of rows, by structure, as twists per parameter.
+
+- Frames compose with the end pose, ``T = B · E · X``: twists in closed form.
+- Joint-space effects (and compliance) act through the true joint values ``q*``, the
+  fixed point of ``q = q_kin(theta) - C g(q)``. By the implicit function theorem
+  ``dq*/dtheta = (I + C dg/dq)^-1 (dq_kin/dtheta - dC/dtheta g)``, and the pose
+  follows through the geometric Jacobian at ``q*``.
+- Geometric effects: forward mode on the few kinematic parameters (the chain origins
+  they perturb), then the closed-form twists of the perturbed origins at fixed ``q*``
+  (their coupling through the gravity torques is second order, ~1e-3 relative, and
+  dropped). An effect that turns a joint axis goes through FK in forward mode.
+- Deflection effects and a levelled tracker's gravity: closed-form twists about the
+  loaded state, :mod:`~hybrid_pk.calibration.loaded_jacobian`.
+"""
+
+from __future__ import annotations
+
+import weakref
+
+import torch
+from torch import Tensor
+
+from hybrid_pk.calibration.least_squares import jacobian
+from hybrid_pk.calibration.loaded_jacobian import (
+    deflection_twists,
+    levelled_gravity_twists,
+    loaded_state,
+)
+from hybrid_pk.calibration.twists import (
+    frame_twists,
+    geometry_twists,
+    origin_twist_maps,
+    point_joint_twists,
+    vee,
+)
+from hybrid_pk.effects import Conditions, ExtendedModel
+from hybrid_pk.robot import KinematicParams
+
+__all__ = ["GRAVITY_REUSE_RAD", "PoseTwists", "StructuredJacobian"]
+
+
+class _KinematicJoints(torch.nn.Module):
+    """``model.kinematic_joint_values`` as a module forward, for ``functional_call``."""
+
+    def __init__(self, model: ExtendedModel) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, q: Tensor, cond: Conditions) -> Tensor:
+        return self.model.kinematic_joint_values(q, cond)
+
+
+class _KinematicParams(torch.nn.Module):
+    """``model.kinematic_params`` as a module forward, for ``functional_call``."""
+
+    def __init__(self, model: ExtendedModel) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, cond: Conditions) -> tuple[Tensor, Tensor, Tensor]:
+        return tuple(self.model.kinematic_params(cond))
+
+
+class PoseTwists:
+    """Predicted poses ``T (n, 4, 4)`` of a chunk and their twists ``(n, 6, n_params)``."""
+
+    def __init__(self, T: Tensor, twists: Tensor) -> None:
+        self.T, self.twists = T, twists
+
+
+class StructuredJacobian:
+    """Twists of every parameter of ``blocks`` at the model's current values.
+
+    The gravity-torque derivative ``dg/dq`` at ``q*`` (compliance models only) is
+    kept per data set and chunk and reused while ``q*`` stays within
+    :data:`GRAVITY_REUSE_RAD` of where it was computed (later LM iterations, the next
+    fits of a diagnosis): the term ``C dg/dq`` is ~1e-3, so the reuse changes the
+    Jacobian by < 1e-6 relative, the residuals not at all.
+    """
+
+    def __init__(self, model: ExtendedModel, blocks) -> None:
+        self.model, self.blocks = model, blocks
+        self.params = dict(model.named_parameters())
+        effects = {f"effects.{i}.value": e for i, e in enumerate(model.effects)}
+        self.effects = effects
+        stage = {b.name: effects[b.name].stage for b in blocks if b.name in effects}
+        self.joint = [b for b in blocks if stage.get(b.name) in ("joint", "compliance")]
+        self.geometry = [b for b in blocks if stage.get(b.name) == "geometry"]
+        self.deflection = [b for b in blocks if stage.get(b.name) == "deflection"]
+
+    def _sub_params(self, blocks, theta_sub: Tensor, prefix: str = "") -> dict[str, Tensor]:
+        """Parameter values of ``blocks`` at scaled offsets ``theta_sub`` from current."""
+        vals, s0 = {}, 0
+        for b in blocks:
+            x = self.params[b.name].detach().reshape(-1)
+            chunk = x + theta_sub[s0 : s0 + b.size] * b.scale
+            vals[prefix + b.name] = chunk.reshape(self.params[b.name].shape)
+            s0 += b.size
+        return vals
+
+    def pose_twists(self, q: Tensor, cond: Conditions, key=None) -> PoseTwists:
+        """Poses and twists of rows ``q (n, dof)`` under ``cond``.
+
+        Args:
+            key: ``(data_q, start, stop)``, the data set's joint tensor and the chunk's
+                rows, under which ``dg/dq`` is kept for reuse (None: not kept).
+        """
+        model, robot = self.model, self.model.robot
+        group = cond.group if model.base.sets > 1 else None
+        with torch.no_grad():
+            params, gravity, q_star, wrenches, bent = loaded_state(model, q, cond)
+            E = robot.fk(q_star, params=bent)
+            if group is None:
+                B, X = model.base.matrix()[0], model.tool.matrix()[0]
+            else:
+                B, X = model.base.matrix(group), model.tool.matrix(group)
+            T_BE = B @ E
+            T = T_BE @ X
+        R_B = B[..., :3, :3]
+        cols: dict[str, Tensor] = {}
+        if any(b.name.startswith(("base.", "tool.")) for b in self.blocks):
+            frames = frame_twists(model.base, model.tool, group, T_BE, T)
+            gravity_path = levelled_gravity_twists(model, q, cond, B, X, T)
+            if gravity_path is not None:  # a levelled tracker's gravity turns with the base
+                frames["base.rotvec"] = frames["base.rotvec"] + gravity_path
+            scale = {b.name: b.scale for b in self.blocks}
+            cols.update({k: v * scale.get(k, 1.0) for k, v in frames.items()})
+        if self.joint:
+            dq = self._joint_derivatives(q, cond, q_star, params, key, gravity)
+            lever = (E @ X)[:, :3, 3] - E[:, :3, 3]
+            tw = point_joint_twists(robot.jacobian(q_star, params=bent), lever, R_B) @ dq
+            cols.update(self._split(self.joint, tw))
+        if self.geometry:
+            cols.update(self._geometry_twists(cond, q_star, params, E, B, X, T, bent, wrenches))
+        if self.deflection:
+            point = (E @ X)[:, :3, 3]
+            cols.update(
+                deflection_twists(model, self.deflection, q_star, wrenches, bent, point, R_B)
+            )
+        n = q.shape[0]
+        twists = torch.cat([q.new_zeros(n, 6, 0)] + [cols[b.name] for b in self.blocks], -1)
+        return PoseTwists(T, twists)
+
+    @staticmethod
+    def _split(blocks, tw: Tensor) -> dict[str, Tensor]:
+        out, start = {}, 0
+        for b in blocks:
+            out[b.name] = tw[..., start : start + b.size]
+            start += b.size
+        return out
+
+    def _geometry_twists(
+        self, cond, q_star, params, E, B, X, T, bent, wrenches
+    ) -> dict[str, Tensor]:
+        blocks = self.geometry
+        size = sum(b.size for b in blocks)
+        wrapper = _KinematicParams(self.model)
+
+        def origins(theta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+            vals = self._sub_params(blocks, theta, prefix="model.")
+            return torch.func.functional_call(wrapper, vals, (cond,))
+
+        theta0 = torch.zeros(size, dtype=q_star.dtype)
+
+        def along(v: Tensor):
+            return torch.func.jvp(origins, (theta0,), (v,))[1]
+
+        eye = torch.eye(size, dtype=q_star.dtype)
+        d_xyz, d_rot, d_axis = torch.func.vmap(along)(eye)
+        frames = self.model.robot.link_frames(q_star, params=bent)
+        maps = origin_twist_maps(frames, params.origin_xyz, (E @ X)[:, :3, 3], B[..., :3, :3])
+        tw = geometry_twists(maps, params.origin_rot, d_xyz, d_rot)
+        out = self._split(blocks, tw)
+        turns_axis = d_axis.reshape(size, -1).abs().amax(1) > 0
+        start = 0
+        for b in blocks:  # effects that turn a joint axis: forward mode through FK
+            if bool(turns_axis[start : start + b.size].any()):
+                out[b.name] = self._fk_twists(b, cond, q_star, B, X, T, wrenches)
+            start += b.size
+        return out
+
+    def _fk_twists(self, block, cond, q_star, B, X, T, wrenches) -> Tensor:
+        """Twists of one geometric block by forward mode through FK (generic path),
+        the deflection's wrenches held fixed."""
+        wrapper = _KinematicParams(self.model)
+        model, robot = self.model, self.model.robot
+
+        def pose(theta: Tensor) -> Tensor:
+            vals = self._sub_params([block], theta, prefix="model.")
+            p = KinematicParams(*torch.func.functional_call(wrapper, vals, (cond,)))
+            p = model.deflected_params(q_star, p, cond, wrenches=wrenches)
+            return B @ robot.fk(q_star, params=p) @ X
+
+        theta0 = torch.zeros(block.size, dtype=q_star.dtype)
+        eye = torch.eye(block.size, dtype=q_star.dtype)
+        dT = torch.func.vmap(lambda v: torch.func.jvp(pose, (theta0,), (v,))[1])(eye)
+        w = vee(dT[..., :3, :3] @ T[:, :3, :3].transpose(-1, -2))  # (k, n, 3)
+        return torch.cat([dT[..., :3, 3], w], -1).permute(1, 2, 0)
+
+    def _compliance(self) -> Tensor | None:
+        comp = [e for e in self.model.effects if e.stage == "compliance"]
+        if not comp:
+            return None
+        c = torch.zeros(self.model.robot.dof, dtype=comp[0].value.dtype)
+        for e in comp:
+            c[e.joint_index] += e.value.detach()
+        return c
+
+    def _joint_derivatives(self, q, cond, q_star, params, key, gravity) -> Tensor:
+        """``dq*/dtheta (n, dof, k)`` for joint-space and compliance parameters."""
+        model, robot = self.model, self.model.robot
+        n, dof = q.shape
+        payload = 0.0 if cond.payload is None else cond.payload
+        with torch.no_grad():
+            g = robot.gravity_torques(q_star, payload=payload, gravity=gravity, params=params)
+        kin = [b for b in self.joint if self.effects[b.name].stage == "joint"]
+        dq_kin = None
+        if kin:
+            wrapper = _KinematicJoints(model)
+
+            def q_kin(theta_k: Tensor) -> Tensor:
+                vals = self._sub_params(kin, theta_k, prefix="model.")
+                return torch.func.functional_call(wrapper, vals, (q, cond)).reshape(-1)
+
+            size = sum(b.size for b in kin)
+            _, Jk = jacobian(q_kin, torch.zeros(size, dtype=q.dtype), chunk_size=None)
+            dq_kin = Jk.reshape(n, dof, size)
+        columns, k_col = [], 0
+        for b in self.joint:  # assemble in block order
+            e = self.effects[b.name]
+            if e.stage == "compliance":
+                col = torch.zeros(n, dof, 1, dtype=q.dtype)
+                col[:, e.joint_index, 0] = -g[:, e.joint_index] * b.scale  # d(-c g)/dc
+                columns.append(col)
+            else:
+                columns.append(dq_kin[..., k_col : k_col + b.size])
+                k_col += b.size
+        dq = torch.cat(columns, -1)
+        c = self._compliance()
+        if c is not None and bool((c != 0).any()):
+            # q* = q_kin - C g(q*)  =>  (I + C dg/dq) dq* = dq_kin - dC g
+            G = _gravity_jacobian(robot, q_star, payload, params, key, gravity)
+            M = torch.eye(dof, dtype=q.dtype) + c.to(q.dtype)[:, None] * G
+            dq = torch.linalg.solve(M, dq)
+        return dq
+
+
+# dg/dq kept for reuse: id(data q) -> (weakref to it, {(start, stop): (q_star, G)}).
+_GRAVITY_JACOBIANS: dict[int, tuple[weakref.ref, dict]] = {}
+# Reuse dg/dq while the true joint values moved less than this [rad] (max over rows).
+GRAVITY_REUSE_RAD = 1e-4
+
+
+def _gravity_jacobian(robot, q_star: Tensor, payload, params, key, gravity) -> Tensor:
+    """``dg/dq (n, dof, dof)`` at ``q_star``, reused from an earlier call where valid."""
+    entry = None
+    if key is not None:
+        data_q, start, stop = key
+        for k in [k for k, (ref, _) in _GRAVITY_JACOBIANS.items() if ref() is None]:
+            del _GRAVITY_JACOBIANS[k]  # data sets that no longer exist
+        ref, chunks = _GRAVITY_JACOBIANS.setdefault(id(data_q), (weakref.ref(data_q), {}))
+        entry = chunks.get((start, stop)) if ref() is data_q else None
+        if entry is not None and entry[0].shape == q_star.shape:
+            if float((entry[0] - q_star).abs().max()) <= GRAVITY_REUSE_RAD:
+                return entry[1]
+
+    def grav(d: Tensor) -> Tensor:
+        tau = robot.gravity_torques(q_star + d, payload=payload, gravity=gravity, params=params)
+        return tau.reshape(-1)
+
+    dof = q_star.shape[-1]
+    _, Jg = jacobian(grav, torch.zeros(dof, dtype=q_star.dtype))
+    G = Jg.reshape(-1, dof, dof)
+    if key is not None and ref() is data_q:
+        chunks[(start, stop)] = (q_star.clone(), G)
+    return G

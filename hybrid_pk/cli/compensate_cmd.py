@@ -1,0 +1,181 @@
+"""``hybrid-pk compensate MODEL PROGRAM --out CORRECTED``: a robot program corrected for
+the calibrated (or hybrid) model, for a controller that runs its nominal model."""
+
+from __future__ import annotations
+
+import argparse
+import warnings
+from collections import Counter
+
+import pandas as pd
+import torch
+
+from hybrid_pk.cli.common import data_notes, load_frozen_model
+from hybrid_pk.cli.options import (
+    add_approach,
+    add_frame_set,
+    add_model,
+    add_out,
+    add_progress,
+)
+from hybrid_pk.cli.progress import progress
+from hybrid_pk.data import read_table_for
+from hybrid_pk.data.joint_table import has_joint_columns, read_joint_table, write_joint_table
+from hybrid_pk.effects import Conditions
+from hybrid_pk.errors import HybridPKError
+from hybrid_pk.ik import IKOptions
+from hybrid_pk.ik.compensation import COMPENSATION_BOX, STATUSES, Compensation, compensate
+from hybrid_pk.ik.conditions import IKAssumption, parse_approach
+from hybrid_pk.io.hybrid_file import forward_model
+
+F64 = torch.float64
+
+_DESCRIPTION = f"""\
+Correct a robot program for the real robot: for each PROGRAM row, the joint values
+that put the robot, as MODEL describes it (a calibrated model, or a hybrid model with
+residual networks), at the pose the controller's nominal model meant.
+
+PROGRAM (.csv or .parquet), one row per target, in program order:
+  joint targets   one column per joint [rad, m], computed with the nominal model; or
+  target poses    x y z [m] and qw qx qy qz of the flange in the robot base frame
+                  (the branch: the nominal solution nearest the previous row's).
+  optional        payload [kg], temperature [degC] for models with such effects.
+
+Each row is solved from its nominal joints within --box of them and within the joint
+limits, so it stays on the same branch. A model with backlash takes the approach side
+of every joint from the order of the corrected program (first row: mid-play) unless
+--approach states it (then every row is solved for that side: the program must
+approach its targets so).
+
+CORRECTED has one row per PROGRAM row, in order: the joint columns, residual_mm and
+residual_deg (the model's predicted error at those joints), status, nominal_mm and
+nominal_deg (the same for the uncorrected joints) and note. status is one of
+{", ".join(STATUSES)}; a row that is not ok keeps its nominal joints and the note
+says why (a joint beyond its limit, or no solution within --box): nothing is bent
+into the limits silently.
+
+The robot base frame is the one the calibration identified (MODEL's base frame).
+"""
+
+
+NAME = "compensate"
+HELP = "correct a robot program's joint targets for the calibrated model"
+DESCRIPTION = _DESCRIPTION
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``hybrid-pk compensate``."""
+    add_model(p, help="model file (calibrate or train output): the real robot")
+    p.add_argument(
+        "program", metavar="PROGRAM", help="joint targets or flange poses, .csv/.parquet"
+    )
+    add_out(p, metavar="CORRECTED", help="output table, .csv or .parquet")
+    p.add_argument(
+        "--box",
+        type=float,
+        default=COMPENSATION_BOX,
+        metavar="RAD",
+        help=f"largest correction of a joint [rad, m for prismatic] (default {COMPENSATION_BOX})",
+    )
+    p.add_argument(
+        "--tol-mm", type=float, default=1e-3, metavar="MM",
+        help="largest predicted position error of an ok row [mm] (default 0.001)",
+    )  # fmt: skip
+    p.add_argument(
+        "--tol-deg", type=float, default=1e-3, metavar="DEG",
+        help="largest predicted orientation error of an ok row [deg] (default 0.001)",
+    )  # fmt: skip
+    add_frame_set(p)
+    add_approach(p)
+    add_progress(p)
+
+
+def _read_program(path: str, robot):
+    """``(q_nominal or None, targets or None, payload, temperature, kind)``."""
+    if has_joint_columns(path, robot.joint_names):
+        q, rest = read_joint_table(path, robot)
+        unused = [c for c in rest.columns if c not in ("payload", "temperature")]
+        if unused:
+            print(f"note: {path}: joint targets used; columns {', '.join(unused)} are not")
+        extra = {
+            c: torch.as_tensor(pd.to_numeric(rest[c], errors="raise").to_numpy(), dtype=F64)
+            for c in ("payload", "temperature")
+            if c in rest.columns
+        }
+        return q, None, extra.get("payload"), extra.get("temperature"), "joint targets"
+    with data_notes():
+        data = read_table_for([path], robot, n_params=1, require_joints=False)
+    if not data.has_orientation:
+        raise HybridPKError(
+            f"{path}: a pose program needs the flange orientation qw qx qy qz besides x y z "
+            "(or give the joint targets, one column per joint)"
+        )
+    return None, data.T_measured(), data.payload, data.temperature, "flange poses"
+
+
+def _frame(comp: Compensation) -> pd.DataFrame:
+    return pd.DataFrame(
+        {
+            "residual_mm": comp.residual_mm.numpy(),
+            "residual_deg": comp.residual_deg.numpy(),
+            "status": list(comp.status),
+            "nominal_mm": comp.nominal_mm.numpy(),
+            "nominal_deg": comp.nominal_deg.numpy(),
+            "note": list(comp.note),
+        }
+    )
+
+
+def _summary(comp: Compensation, args, robot, kind: str) -> list[str]:
+    n = len(comp.status)
+    counts = Counter(comp.status)
+    ok = comp.ok
+    lines = [f"compensate {args.model} ({robot.name}) on {n} row(s) of {args.program} ({kind})"]
+    if bool(ok.any()):
+        before, after = comp.nominal_mm[ok], comp.residual_mm[ok]
+        lines.append(
+            f"predicted error of the ok rows: nominal joints mean {float(before.mean()):.4g} mm"
+            f" / {float(comp.nominal_deg[ok].mean()):.4g} deg (max {float(before.max()):.4g} "
+            f"mm) -> corrected max {float(after.max()):.3g} mm / "
+            f"{float(comp.residual_deg[ok].max()):.3g} deg; largest joint correction "
+            f"{float((comp.q - comp.q_nominal)[ok].abs().max()):.4g} rad"
+        )
+    lines.append("rows: " + ", ".join(f"{counts[s]} {s}" for s in STATUSES if counts[s]))
+    for status in STATUSES[1:]:
+        rows = [i for i, s in enumerate(comp.status) if s == status]
+        if rows:
+            shown = "; ".join(f"row {i + 1}: {comp.note[i]}" for i in rows[:5])
+            more = f" (and {len(rows) - 5} more)" if len(rows) > 5 else ""
+            lines.append(
+                f"warning: {len(rows)} row(s) {status}, nominal joints kept: {shown}{more}"
+            )
+    return lines
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.box <= 0 or args.tol_mm <= 0 or args.tol_deg <= 0:
+        raise HybridPKError("--box, --tol-mm and --tol-deg must be positive")
+    loaded, model, robot, k = load_frozen_model(args)
+    q_nom, targets, payload, temperature, kind = _read_program(args.program, robot)
+    n = (q_nom if q_nom is not None else targets).shape[0]
+    group = torch.full((n,), k, dtype=torch.long) if model.base.sets > 1 else None
+    cond = Conditions(payload=payload, temperature=temperature, group=group)
+    real = forward_model(loaded)
+    real.requires_grad_(False)
+    with torch.no_grad():
+        base, tool = model.base.matrix()[k], model.tool.matrix()[k]
+    options = IKOptions(tol_mm=args.tol_mm, tol_deg=args.tol_deg)
+    with progress("compensate", enabled=not args.no_progress) as bar, warnings.catch_warnings():
+        warnings.simplefilter("ignore", IKAssumption)  # printed below as notes
+        bar.stage(f"solving {n} row(s) on the model")
+        comp = compensate(
+            real, robot, base=base, tool=tool, q_nominal=q_nom, targets=targets, cond=cond,
+            box=args.box, options=options, approach=parse_approach(args.approach),
+        )  # fmt: skip
+    for line in comp.assumed:
+        print(f"note: {line}")
+    write_joint_table(args.out, comp.q, robot.joint_names, _frame(comp))
+    for line in _summary(comp, args, robot, kind):
+        print(line)
+    print(f"wrote {args.out}")
+    return 0

@@ -1,0 +1,49 @@
+"""``--effects LIST|DIAG.json``: effect labels from a comma-separated list or from the
+causes of a ``diagnose --json`` file."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from hybrid_pk.errors import HybridPKError
+
+__all__ = ["diagnosis_labels", "effect_labels"]
+
+
+def effect_labels(text: str, flag: str = "--effects", others: str = "") -> list[str]:
+    """``kind:joint`` labels of ``text``: a comma-separated list, or a diagnosis JSON file.
+
+    Args:
+        flag: the option named in error messages.
+        others: the option's other accepted words, for the message (``"auto, none, "``).
+    """
+    if text.lower().endswith(".json"):
+        return diagnosis_labels(text, flag)
+    labels = [s.strip() for s in text.split(",") if s.strip()]
+    if not labels:
+        raise HybridPKError(
+            f"{flag}: give {others}a comma-separated list of effects, or a diagnosis JSON file"
+        )
+    seen = set()
+    for label in labels:
+        if label in seen:
+            raise HybridPKError(f"{flag}: {label} is listed twice")
+        seen.add(label)
+    return labels
+
+
+def diagnosis_labels(path: str, flag: str = "--effects") -> list[str]:
+    """The causes of a ``diagnose --json`` file as effect labels."""
+    try:
+        doc = json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise HybridPKError(f"{flag}: diagnosis file not found: {path}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise HybridPKError(f"{flag}: {path} is not a diagnosis JSON file: {exc}") from None
+    causes = doc.get("causes") if isinstance(doc, dict) else None
+    if not isinstance(causes, list) or not all(
+        isinstance(c, dict) and isinstance(c.get("effect"), str) for c in causes
+    ):
+        raise HybridPKError(f"{flag}: {path} has no 'causes' list of a diagnosis JSON file")
+    return [c["effect"] + (f":{c['joint']}" if c.get("joint") else "") for c in causes]

@@ -1,0 +1,223 @@
+"""``hybrid-pk plan ROBOT --n N --out POSES``: the joint configurations to measure."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+from hybrid_pk.calibration.planning import CRITERIA, Plan, plan_poses
+from hybrid_pk.cli.common import load_robot, write_json
+from hybrid_pk.cli.effect_lists import effect_labels
+from hybrid_pk.cli.options import (
+    add_end_link,
+    add_json,
+    add_noise,
+    add_out,
+    add_progress,
+    add_robot,
+    add_seed,
+)
+from hybrid_pk.cli.progress import progress
+from hybrid_pk.data.joint_table import write_joint_table
+from hybrid_pk.effects import make_effect
+from hybrid_pk.errors import HybridPKError
+
+_DESCRIPTION = """\
+Choose N joint configurations to measure so that a calibration identifies the base and
+tool frames and the named effects best: a D-optimal design (largest determinant of the
+fit's information J^T J) chosen from --candidates random configurations within the
+joint limits (2 % margin) and the --joint-box, by a greedy pass and exchange passes.
+
+Prints the predicted 1-sigma of every parameter and the condition number of the
+identification Jacobian, next to the same for N random configurations. Writes POSES
+(one column per joint [rad, m], in a measuring order that keeps joint moves short, or
+shuffled when backlash is named: its approach side comes from the order),
+which `hybrid-pk simulate ROBOT --poses POSES` or a real campaign measures.
+
+--effects LIST|DIAG.json: comma-separated effects (joint_offset:joint_2,
+joint_compliance:joint_3, ...) or the causes of a `diagnose --json` file; default none
+(frames only). The prediction assumes the stated noise; the fit estimates its own.
+--joint-box FILE: JSON {"joint_2": [lower, upper], ...} [rad, m]: stay within it.
+"""
+
+_UNITS = {"m": ("mm", 1e3), "rad": ("mrad", 1e3), "rad/Nm": ("urad/Nm", 1e6)}
+_UNITS.update({"1": ("ppm", 1e6), "1/K": ("ppm/K", 1e6)})
+
+
+NAME = "plan"
+HELP = "choose the poses to measure (D-optimal for the frames + named effects)"
+DESCRIPTION = _DESCRIPTION
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``hybrid-pk plan``."""
+    add_robot(p, positional=True)
+    p.add_argument("--n", type=int, required=True, metavar="N", help="number of poses to measure")
+    p.add_argument(
+        "--effects",
+        default="none",
+        metavar="LIST|DIAG.json",
+        help="effects to identify besides the frames (default: none)",
+    )
+    p.add_argument(
+        "--candidates",
+        type=int,
+        default=2000,
+        metavar="M",
+        help="random candidate configurations to choose from (default: %(default)s)",
+    )
+    p.add_argument(
+        "--criterion",
+        choices=tuple(CRITERIA),
+        default="d",
+        help="; ".join(f"{k}: {v}" for k, v in CRITERIA.items()) + " (default: d)",
+    )
+    p.add_argument(
+        "--position-only",
+        action="store_true",
+        help="the instrument measures points only (no orientation)",
+    )
+    p.add_argument("--joint-box", metavar="FILE", help="JSON {joint: [lower, upper]} [rad, m]")
+    add_noise(p, mm=0.02, deg=0.002)
+    p.add_argument(
+        "--payload",
+        type=float,
+        default=0.0,
+        metavar="KG",
+        help="mass at the flange during the campaign [kg] (compliance; default: 0)",
+    )
+    add_end_link(p)
+    add_seed(p, what="seed of the random candidates and of the random comparison poses")
+    add_out(p, metavar="POSES", help="output joint table, .csv or .parquet")
+    add_json(p, help="also write the prediction (std per parameter, condition) as JSON")
+    add_progress(p)
+
+
+def read_joint_box(path: str) -> dict[str, tuple[float, float]]:
+    """``{joint: (lower, upper)}`` of a ``--joint-box`` JSON file."""
+    try:
+        doc = json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise HybridPKError(f"--joint-box: file not found: {path}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise HybridPKError(f"--joint-box: {path} is not a JSON file: {exc}") from None
+    if not isinstance(doc, dict) or not doc:
+        raise HybridPKError(f'--joint-box: {path} must hold {{"joint_2": [lower, upper], ...}}')
+    box = {}
+    for joint, value in doc.items():
+        ok = isinstance(value, list) and len(value) == 2
+        if not ok or not all(isinstance(v, int | float) for v in value):
+            raise HybridPKError(
+                f"--joint-box: {path}: {joint!r} must be [lower, upper] in rad (m), got {value!r}"
+            )
+        box[joint] = (float(value[0]), float(value[1]))
+    return box
+
+
+def _row(name: str, unit: str, planned: float, random: float) -> str:
+    shown, factor = _UNITS.get(unit, (unit, 1.0))
+    finite = math.isfinite(planned) and math.isfinite(random) and random > 0
+    ratio = f"{planned / random:.2f}" if finite else "-"
+    cells = [
+        f"{v * factor:.4g}" if math.isfinite(v) else "not identifiable" for v in (planned, random)
+    ]
+    return f"  {name:<32} {shown:<8} {cells[0]:>16} {cells[1]:>16} {ratio:>9}"
+
+
+def _units(plan: Plan) -> list[str]:
+    return [b.unit for b in plan.blocks for _ in range(b.size)]
+
+
+def _summary(plan: Plan, args: argparse.Namespace, labels: list[str]) -> list[str]:
+    n = plan.q.shape[0]
+    design = CRITERIA[args.criterion].split(":")[0]
+    left = {e for e, _ in plan.left_out}
+    kept = [label for label in labels if label not in left]
+    named = f" + {', '.join(kept)}" if kept else " (no effects)"
+    lines = [
+        f"plan {args.robot}: {n} poses from {plan.candidates} random candidates "
+        f"({design}, {plan.exchanges} exchange(s)), seed {args.seed}",
+        f"identifies: base and tool frames{named}",
+    ]
+    for label, why in plan.left_out:
+        lines.append(f"note: {label} is not planned for: {why}")
+    noise = f"{args.noise_mm:g} mm" + ("" if args.position_only else f" / {args.noise_deg:g} deg")
+    lines.append(f"predicted 1-sigma at noise {noise} per coordinate:")
+    header = f"{'planned':>16} {f'{n} random':>16} {'ratio':>9}"
+    lines.append(f"  {'parameter':<32} {'unit':<8} {header}")
+    for name, unit, a, b in zip(
+        plan.names, _units(plan), plan.planned.std.tolist(), plan.random.std.tolist(), strict=True
+    ):
+        lines.append(_row(name, unit, a, b))
+    c1, c2 = plan.planned.condition, plan.random.condition
+    lines.append(f"  {'condition number':<41} {c1:>16.4g} {c2:>16.4g} {c1 / c2:>9.2f}")
+    lost = [n for n, v in zip(plan.names, plan.planned.std.tolist(), strict=True) if math.isinf(v)]
+    if lost:
+        lines.append(
+            f"warning: no poses separate {', '.join(lost)} (they trade off exactly); plan "
+            "without the effect that duplicates a frame (diagnose lists such pairs as ambiguous)"
+        )
+    return lines
+
+
+def _document(plan: Plan, args: argparse.Namespace, labels: list[str]) -> dict:
+    def finite(v: float) -> float | None:
+        return v if math.isfinite(v) else None
+
+    rows = zip(
+        plan.names, _units(plan), plan.planned.std.tolist(), plan.random.std.tolist(), strict=True
+    )
+    return {
+        "robot": args.robot,
+        "n": int(plan.q.shape[0]),
+        "candidates": plan.candidates,
+        "criterion": args.criterion,
+        "seed": args.seed,
+        "effects": labels,
+        "left_out": [{"effect": e, "reason": why} for e, why in plan.left_out],
+        "noise_mm": args.noise_mm,
+        "noise_deg": None if args.position_only else args.noise_deg,
+        "payload": args.payload,
+        "parameters": [
+            {"name": name, "unit": unit, "planned_std": finite(a), "random_std": finite(b)}
+            for name, unit, a, b in rows
+        ],
+        "condition": {"planned": plan.planned.condition, "random": plan.random.condition},
+        "poses": args.out,
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    robot = load_robot(args.robot, args.end_link)
+    spec = args.effects.strip()
+    labels = [] if spec == "none" else effect_labels(spec)
+    for label in labels:  # unknown kinds / joints fail before any work
+        make_effect(robot, label)
+    box = read_joint_box(args.joint_box) if args.joint_box else None
+    if args.noise_mm <= 0 or (not args.position_only and args.noise_deg <= 0):
+        raise HybridPKError("--noise-mm and --noise-deg must be positive")
+    with progress("plan", total=2, enabled=not args.no_progress) as bar:
+        plan = plan_poses(
+            robot,
+            args.n,
+            effects=labels,
+            candidates=args.candidates,
+            position_only=args.position_only,
+            box=box,
+            seed=args.seed,
+            noise_mm=args.noise_mm,
+            noise_deg=args.noise_deg,
+            payload=args.payload,
+            criterion=args.criterion,
+            progress=bar.report,
+        )
+    write_joint_table(args.out, plan.q, robot.joint_names)
+    for line in _summary(plan, args, labels):
+        print(line)
+    if args.json:
+        write_json(args.json, _document(plan, args, labels))
+    print(f"wrote {args.out}" + (f" and {args.json}" if args.json else ""))
+    print(f"measure them: hybrid-pk simulate {args.robot} --poses {args.out} ... (or on the robot)")
+    return 0

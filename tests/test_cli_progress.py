@@ -1,0 +1,47 @@
+"""The progress display of long commands, off a terminal: one line per stage and the
+latest inner step, time per stage kept, nothing during the first ``delay`` seconds."""
+
+from __future__ import annotations
+
+import io
+
+from hybrid_pk.cli.progress import Progress
+
+
+def test_stages_and_steps_become_lines_and_times():
+    stream = io.StringIO()
+    bar = Progress("demo", 3, stream=stream, delay=0.0)
+    bar.stage("simulating")
+    bar("writing the table")
+    bar.report("diagnosing", None)
+    bar.report("diagnosing", "scoring 41 candidates")
+    bar.stage("writing the report")
+    bar.close()
+    lines = stream.getvalue().splitlines()
+    assert all(line.startswith("demo [") for line in lines)
+    texts = [line.split("] ", 1)[1] for line in lines]
+    for stage in ("1/3 simulating", "2/3 diagnosing", "3/3 writing the report"):
+        assert stage in texts  # every stage start is printed
+    assert texts.index("1/3 simulating") < texts.index("2/3 diagnosing")
+    assert list(bar.seconds) == ["simulating", "diagnosing", "writing the report"]
+    assert all(s >= 0 for s in bar.seconds.values())
+
+
+def test_the_latest_step_is_printed_by_the_end():
+    stream = io.StringIO()
+    with_steps = Progress("calibrate", stream=stream, delay=0.0)
+    with_steps.stage("reading data")
+    for k in range(5):
+        with_steps(f"row block {k}")
+    with_steps.close()
+    assert stream.getvalue().splitlines()[-1].endswith("reading data | row block 4")
+
+
+def test_a_quick_command_prints_nothing():
+    stream = io.StringIO()
+    bar = Progress("evaluate", 2, stream=stream, delay=60.0)
+    bar.stage("reading data")
+    bar.stage("predicting")
+    bar.close()
+    assert stream.getvalue() == ""
+    assert set(bar.seconds) == {"reading data", "predicting"}

@@ -1,0 +1,245 @@
+"""Program compensation (issue 15): joints that put the real robot at the nominal pose,
+on the same branch, within limits; unreachable rows reported; the ``compensate`` CLI."""
+
+from __future__ import annotations
+
+import pandas as pd
+import pytest
+import torch
+
+from hybrid_pk.cli.main import main
+from hybrid_pk.data.joint_table import write_joint_table
+from hybrid_pk.effects import Conditions, ExtendedModel, approach_direction, make_effect
+from hybrid_pk.evaluation.metrics import pose_error
+from hybrid_pk.geometry import matrix_to_quat
+from hybrid_pk.hybrid import HybridFK, InputBox
+from hybrid_pk.ik import compensate
+from hybrid_pk.io.hybrid_file import save_hybrid
+from hybrid_pk.io.model_file import save_model
+from hybrid_pk.simulate import random_frames
+
+F64 = torch.float64
+N = 60
+
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def _real(robot, *extra: str) -> ExtendedModel:
+    """A 'calibrated' robot: offset, compliance, backlash, plus ``extra`` effects."""
+    base, tool = random_frames(torch.Generator().manual_seed(4))
+    effects = [
+        make_effect(robot, "joint_offset:joint_2", torch.tensor(8e-4, dtype=F64)),
+        make_effect(robot, "joint_compliance:joint_3", torch.tensor(3e-6, dtype=F64)),
+        make_effect(robot, "backlash:joint_5", torch.tensor(6e-4, dtype=F64)),
+    ]
+    for label in extra:
+        kind, _, value = label.partition("=")
+        values = [float(v) for v in value.split(",")]
+        effects.append(make_effect(robot, kind, torch.tensor(values, dtype=F64).squeeze()))
+    model = ExtendedModel(robot, effects, base=base, tool=tool)
+    model.requires_grad_(False)
+    return model
+
+
+def _program(robot, n: int = N, seed: int = 0) -> torch.Tensor:
+    lo, hi = robot.joint_limits
+    u = torch.rand(n, robot.dof, generator=torch.Generator().manual_seed(seed), dtype=F64)
+    return lo + (0.05 + 0.9 * u) * (hi - lo)
+
+
+def _cond(q: torch.Tensor) -> Conditions:
+    return Conditions(payload=torch.zeros(q.shape[0], dtype=F64))
+
+
+def _frames(model: ExtendedModel):
+    with torch.no_grad():
+        return model.base.matrix()[0], model.tool.matrix()[0]
+
+
+def test_compensated_joints_reach_the_nominal_pose(rx160):
+    real = _real(rx160)
+    q_nom = _program(rx160)
+    base, tool = _frames(real)
+    payload = torch.full((N,), 15.0, dtype=F64)
+    comp = compensate(real, rx160, base=base, tool=tool, q_nominal=q_nom,
+                      cond=Conditions(payload=payload))  # fmt: skip
+    assert comp.status == ("ok",) * N
+    # independent check: the real model at the corrected joints, under the program's
+    # approach directions, vs the nominal flange pose placed by the model's frames
+    cond = Conditions(payload=payload, direction=approach_direction(q_nom))
+    with torch.no_grad():
+        err = pose_error(base @ rx160.fk(q_nom) @ tool, real(comp.q, cond))
+        before = pose_error(base @ rx160.fk(q_nom) @ tool, real(q_nom, cond))
+    assert float(err.position_mm.max()) < 1e-3
+    assert float(err.orientation_deg.max()) < 1e-3
+    assert float(before.position_mm.mean()) > 0.3  # the program was off before
+    assert torch.allclose(comp.nominal_mm, before.position_mm, atol=1e-9)
+    # same branch: small corrections; within the limits
+    assert float((comp.q - q_nom).abs().max()) < 0.01
+    lo, hi = rx160.joint_limits
+    assert bool(((comp.q >= lo) & (comp.q <= hi)).all())
+    assert any("program order" in a for a in comp.assumed)
+
+
+def test_a_row_needing_a_joint_beyond_its_limit_is_reported_not_bent(rx160):
+    real = _real(rx160, "joint_offset:joint_4=2e-3")  # true joint 4 = commanded + 2 mrad
+    q_nom = _program(rx160, 5)
+    lo, hi = rx160.joint_limits
+    q_nom[2, 3] = hi[3] - 1e-4  # the correction must go below, fine
+    q_nom[3, 3] = lo[3] + 1e-4  # needs ~2 mrad below the lower limit of joint 4
+    base, tool = _frames(real)
+    comp = compensate(
+        real, rx160, base=base, tool=tool, q_nominal=q_nom, approach="mid", cond=_cond(q_nom)
+    )
+    assert comp.status[2] == "ok"
+    assert comp.status[3] == "joint_limit"
+    assert "joint_4" in comp.note[3]
+    assert "lower limit" in comp.note[3]
+    assert torch.equal(comp.q[3], q_nom[3])  # nominal joints kept
+    assert float(comp.residual_mm[3]) == pytest.approx(float(comp.nominal_mm[3]))
+    assert comp.status.count("ok") == 4
+
+
+def test_a_pose_beyond_the_real_reach_is_unreachable(rx160):
+    # stretch the arm straight ahead: the elbow angle of largest reach
+    q3 = torch.linspace(-2.5, 2.5, 2001, dtype=F64)
+    q = torch.zeros(q3.shape[0], rx160.dof, dtype=F64)
+    q[:, 1], q[:, 2] = 0.3, q3
+    with torch.no_grad():
+        reach = rx160.fk(q)[:, :3, 3].norm(dim=-1)
+    q_nom = q[reach.argmax()][None].clone()
+    real = _real(rx160, "link_length:joint_3=0,0,-0.01")
+    base, tool = _frames(real)
+    comp = compensate(
+        real, rx160, base=base, tool=tool, q_nominal=q_nom, approach="mid", cond=_cond(q_nom)
+    )
+    assert comp.status == ("unreachable",)
+    assert "no solution within" in comp.note[0]
+
+
+def test_pose_program_takes_the_branch_nearest_the_previous_row(rx160):
+    real = _real(rx160)
+    a, b = _program(rx160, 2, seed=3)
+    q_nom = a + torch.linspace(0, 0.3, 30, dtype=F64)[:, None] * (b - a)  # a smooth path
+    base, tool = _frames(real)
+    with torch.no_grad():
+        targets = rx160.fk(q_nom)
+    by_joints = compensate(
+        real, rx160, base=base, tool=tool, q_nominal=q_nom, approach="mid", cond=_cond(q_nom)
+    )
+    by_poses = compensate(real, rx160, base=base, tool=tool, targets=targets,
+                          reference=q_nom[0], approach="mid", cond=_cond(q_nom))  # fmt: skip
+    assert torch.allclose(by_poses.q_nominal, q_nom, atol=1e-6)
+    assert torch.allclose(by_poses.q, by_joints.q, atol=1e-6)
+
+
+def test_hybrid_model_is_compensated_through_its_networks(rx160):
+    base_model = _real(rx160)
+    q_box = rx160.sample_q(64, torch.Generator().manual_seed(1))
+    torch.manual_seed(0)
+    hybrid = HybridFK.build(
+        base_model, InputBox.from_data(q_box, None, fade=0.2), "mlp:8x2", "mlp:8x2",
+        torch.full((3,), 1e-3, dtype=F64), torch.full((3,), 2e-3, dtype=F64),
+    ).eval()  # fmt: skip
+    hybrid.requires_grad_(False)
+    q_nom = _program(rx160, 20, seed=5)
+    base, tool = _frames(base_model)
+    comp = compensate(
+        hybrid, rx160, base=base, tool=tool, q_nominal=q_nom, approach="mid", cond=_cond(q_nom)
+    )
+    assert comp.status == ("ok",) * 20
+    with torch.no_grad():
+        err = pose_error(base @ rx160.fk(q_nom) @ tool, hybrid(comp.q, Conditions(
+            direction=torch.zeros(20, rx160.dof, dtype=F64))))  # fmt: skip
+    assert float(err.position_mm.max()) < 1e-3
+
+
+# ----------------------------------------------------------------------------- CLI
+
+
+def test_cli_joint_and_pose_programs(tmp_path, capsys, rx160):
+    model_file = save_model(tmp_path / "model.pt", _real(rx160))
+    q_nom = _program(rx160, 8, seed=2)
+    program = write_joint_table(tmp_path / "program.csv", q_nom, rx160.joint_names)
+    out = tmp_path / "corrected.csv"
+    assert main(["compensate", str(model_file), str(program), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "8 ok" in text
+    assert "program order" in text
+    table = pd.read_csv(out)
+    assert list(table.columns) == [
+        *rx160.joint_names, "residual_mm", "residual_deg", "status", "nominal_mm",
+        "nominal_deg", "note",
+    ]  # fmt: skip
+    assert len(table) == 8
+    assert (table["status"] == "ok").all()
+    assert table["residual_mm"].max() < 1e-3
+    assert table["nominal_mm"].min() > 0.05
+    # the same program as flange poses
+    with torch.no_grad():
+        T = rx160.fk(q_nom)
+    quat = matrix_to_quat(T[:, :3, :3])
+    poses = pd.DataFrame({"x": T[:, 0, 3], "y": T[:, 1, 3], "z": T[:, 2, 3]})
+    for k, c in enumerate(("qw", "qx", "qy", "qz")):
+        poses[c] = quat[:, k].numpy()
+    poses.to_csv(tmp_path / "poses.csv", index=False)
+    argv = ["compensate", str(model_file), str(tmp_path / "poses.csv"), "--out", str(out)]
+    assert main([*argv, "--approach", "mid"]) == 0
+    assert "flange poses" in capsys.readouterr().out
+    assert len(pd.read_csv(out)) == 8
+
+
+def test_cli_hybrid_model_file(tmp_path, capsys, rx160):
+    torch.manual_seed(0)
+    q_box = rx160.sample_q(64, torch.Generator().manual_seed(1))
+    hybrid = HybridFK.build(
+        _real(rx160), InputBox.from_data(q_box, None, fade=0.2), "mlp:8x2", None,
+        torch.full((3,), 1e-3, dtype=F64),
+    ).eval()  # fmt: skip
+    model_file = save_hybrid(tmp_path / "hybrid.pt", hybrid)
+    program = write_joint_table(tmp_path / "p.csv", _program(rx160, 4), rx160.joint_names)
+    out = tmp_path / "c.csv"
+    assert main(["compensate", str(model_file), str(program), "--out", str(out)]) == 0
+    assert "4 ok" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        ("x,y,z\n1,0,1\n", "needs the flange orientation"),
+        ("joint_1,joint_2,joint_3,joint_4,joint_5,joint_6\n0,0,0,0,9,0\n", "joint limits"),
+    ],
+)
+def test_cli_bad_programs_are_one_line_errors(tmp_path, capsys, rx160, content, message):
+    model_file = save_model(tmp_path / "model.pt", _real(rx160))
+    (tmp_path / "p.csv").write_text(content)
+    argv = ["compensate", str(model_file), str(tmp_path / "p.csv"), "--out", "c.csv"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err
+    assert err.count("\n") == 1
+
+
+def test_backlash_sides_are_those_of_the_corrected_program(rx160):
+    """The approach side of a backlash joint is the sign of the *corrected* move: rows are
+    re-solved until the sides agree; a joint that turns around by less than the play
+    cannot be compensated from the program order and is reported."""
+    real = _real(rx160)  # backlash 0.6 mrad on joint_5
+    j5 = rx160.joint_names.index("joint_5")
+    q0 = _program(rx160, 1, seed=7)[0]
+    steps = torch.zeros(5, rx160.dof, dtype=F64)
+    steps[:, 0] = 0.05  # joint 1 moves every row
+    steps[1, j5], steps[2, j5], steps[3, j5], steps[4, j5] = -0.05, 2e-5, 2e-5, -0.05
+    q_nom = q0 + steps.cumsum(0)
+    base, tool = _frames(real)
+    comp = compensate(real, rx160, base=base, tool=tool, q_nominal=q_nom, cond=_cond(q_nom))
+    # row 2 turns joint 5 around by 0.02 mrad (< play): no consistent side
+    assert comp.status[2] == "approach_conflict"
+    assert "turns around" in comp.note[2]
+    ok = comp.ok
+    side = approach_direction(torch.where(ok[:, None], comp.q, q_nom))
+    cond = Conditions(payload=torch.zeros(5, dtype=F64), direction=side)
+    with torch.no_grad():
+        err = pose_error(base @ rx160.fk(q_nom) @ tool, real(comp.q, cond)).position_mm
+    assert float(err[ok].max()) < 1e-3, err

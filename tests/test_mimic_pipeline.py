@@ -1,0 +1,180 @@
+"""The mimic-joint robot through the library and the command line: model file, corrected
+URDF (mimic tags kept), simulate -> diagnose -> calibrate -> evaluate -> ik with the
+robot's joints as the data's columns, and a hidden effect found on it."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+import hybrid_pk as hpk
+from hybrid_pk.calibration.diagnosis.search import diagnose
+from hybrid_pk.cli.main import main
+from hybrid_pk.effects import EFFECTS
+from hybrid_pk.simulate import simulate_campaign
+from tests.helpers import RUN_SEED, run_rng
+
+F64 = torch.float64
+JOINTS = ["column_prismatic_joint", *(f"dsr_joint{i}" for i in range(1, 7))]
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+@pytest.fixture(scope="module")
+def robot() -> hpk.Robot:
+    robot = hpk.Robot.from_urdf("column_arm", end_link="tool0")
+    robot.requires_grad_(False)
+    return robot
+
+
+def _model(robot) -> hpk.ExtendedModel:
+    effects = [
+        hpk.make_effect(robot, "link_length:column_top_joint", [0.001, -0.002, 0.0005]),
+        hpk.make_effect(robot, "axis_misalignment:dsr_joint3", [0.002, 0.0, -0.001]),
+        hpk.make_effect(robot, "link_length:dsr_joint5", [0.0, 0.001, 0.0]),
+        hpk.make_effect(robot, "joint_offset:column_prismatic_joint", 0.003),
+        hpk.make_effect(robot, "joint_offset:dsr_joint2", -0.002),
+    ]
+    return hpk.ExtendedModel(robot, effects)
+
+
+def test_exported_urdf_keeps_mimic_tags_and_reproduces_the_model(robot, tmp_path):
+    model = _model(robot)
+    path = hpk.export_urdf(model, tmp_path / "cal.urdf", fold_joint_offsets=True)
+    text = path.read_text(encoding="utf-8")
+    assert text.count('<mimic joint="column_prismatic_joint"') == 2
+    assert "joint_offset:column_prismatic_joint" in text  # listed in the header
+    exported = hpk.Robot.from_urdf(path, end_link="tool0")
+    assert exported.joint_names == robot.joint_names
+    assert exported.chain_joint_names == robot.chain_joint_names
+    q = robot.sample_q(64, torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        worst = (exported.fk(q) - model.end_pose(q)).abs().max()
+    assert float(worst) < 1e-12
+
+
+def test_model_file_round_trip(robot, tmp_path):
+    model = _model(robot)
+    hpk.save_model(tmp_path / "m.pt", model)
+    loaded = hpk.load_model(tmp_path / "m.pt").model
+    assert loaded.robot.joint_names == JOINTS
+    q = robot.sample_q(16, torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        assert torch.equal(loaded(q), model(q))
+
+
+def _run(capsys, *argv) -> tuple[int, str]:
+    code = main([str(a) for a in argv])
+    captured = capsys.readouterr()
+    return code, captured.out + captured.err
+
+
+@pytest.mark.slow
+def test_command_line_end_to_end(tmp_path, capsys):
+    """simulate -> diagnose -> calibrate -> evaluate -> ik; the table holds the robot's
+    7 joints (the cylinder, not the two mimic segments)."""
+    sim = tmp_path / "campaign.csv"
+    # the column head's shift between two prismatic segments is a base-frame shift
+    effects = "joint_offset:dsr_joint3=1.5e-3;link_length:column_top_joint=0,1e-3,0"
+    end = ("--end-link", "tool0")
+    rc, out = _run(
+        capsys, "simulate", "column_arm", *end, "--n", 300, "--effects", effects,
+        "--noise-mm", 0.02, "--position-only", "--seed", 3, "--out", sim,
+    )  # fmt: skip
+    assert rc == 0, out
+    table = pd.read_csv(sim)
+    assert [c for c in table.columns if "joint" in c] == JOINTS
+
+    diag = tmp_path / "diagnosis.json"
+    rc, out = _run(capsys, "diagnose", sim, "--robot", "column_arm", *end, "--json", diag)
+    assert rc == 0, out
+    causes = json.loads(diag.read_text())["causes"]
+    assert [(c["effect"], c["joint"]) for c in causes] == [("joint_offset", "dsr_joint3")]
+    assert causes[0]["value"] == pytest.approx(1.5e-3, rel=0.2)
+
+    model = tmp_path / "model.pt"
+    rc, out = _run(
+        capsys, "calibrate", sim, "--robot", "column_arm", *end, "--effects", diag, "--out", model
+    )
+    assert rc == 0, out
+    assert (tmp_path / "model.pt.urdf").read_text().count("<mimic ") == 2
+
+    report = tmp_path / "evaluation.json"
+    rc, out = _run(capsys, "evaluate", model, sim, "--json", report)
+    assert rc == 0, out
+    assert json.loads(report.read_text())["position_mm"]["mean"] < 0.05
+
+    targets = tmp_path / "targets.csv"
+    table.head(3)[["x", "y", "z"]].to_csv(targets, index=False)
+    solutions = tmp_path / "solutions.csv"
+    rc, out = _run(capsys, "ik", model, targets, "--out", solutions, "--seeds", 16)
+    assert rc == 0, out
+    found = pd.read_csv(solutions)
+    assert [c for c in found.columns if "joint" in c] == JOINTS
+    assert sorted(found["target"].unique()) == [0, 1, 2]
+    assert float(found["position_error_mm"].max()) < 1e-3
+
+
+def _hidden(robot: hpk.Robot, rng: np.random.Generator) -> tuple[str, object]:
+    """A random effect with a signature that no frame can take (unit size)."""
+    kind = str(rng.choice(["joint_offset", "gear_ratio", "joint_compliance", "axis_misalignment"]))
+    if kind == "axis_misalignment":
+        label = f"{kind}:{rng.choice(['dsr_joint2', 'dsr_joint3', 'dsr_joint5'])}"
+        basis = hpk.make_effect(robot, label).basis
+        uv = rng.normal(size=2)
+        return label, (torch.tensor(uv / np.linalg.norm(uv)) @ basis).tolist()
+    joints = ["dsr_joint2", "dsr_joint3"] if kind == "joint_compliance" else JOINTS[2:6]
+    sign = 1.0 if kind == "joint_compliance" else float(rng.choice([-1.0, 1.0]))
+    return f"{kind}:{rng.choice(joints)}", sign
+
+
+def test_hidden_effect_on_the_mimic_robot(robot):
+    """Kind, joint, sign and size drawn per run; 500 position-only rows, unknown frames."""
+    rng = run_rng("mimic hidden effect")
+    label, unit = _hidden(robot, rng)
+    scale = EFFECTS[label.split(":")[0]].scale * float(rng.uniform(0.5, 2.0))
+    value = (np.asarray(unit) * scale).tolist()
+    effect = hpk.make_effect(robot, label, value)
+    seed = int(rng.integers(1 << 30))
+    data, _ = simulate_campaign(
+        robot, 500, [effect], noise_mm=0.02, position_only=True, payload=5.0, seed=seed
+    )
+    where = f"seed {RUN_SEED}: {label} = {effect.report_value()}"
+    diag = diagnose(robot, data, seed=0)
+    named = {f"{c.effect}:{c.joint}": c for c in diag.causes}
+    assert list(named) == [label], f"{where}: named {list(named)}; steps {diag.steps}"
+    found = np.asarray(named[label].value, dtype=float)
+    true = np.asarray(effect.report_value(), dtype=float)
+    assert np.linalg.norm(found - true) < 0.2 * np.linalg.norm(true), f"{where}: found {found}"
+
+
+def test_column_bending_of_the_mimic_column_is_named_within_20_percent(robot):
+    """Acceptance: a position-only diagnosis of a simulated 500-row campaign of the
+    mimic column with a column deflection names it, within 20 % of its value. Segment,
+    bending direction, size (0.5-2 mm at the tool), payload and noise drawn per run."""
+    if "column_bending" not in EFFECTS:  # phys's deflection effects, not on this branch yet
+        pytest.skip("column_bending is not in the effect vocabulary of this checkout")
+    rng = run_rng("mimic column bending")
+    joint = str(rng.choice(["column_middle_joint", "column_top_joint"]))
+    direction = rng.normal(size=2)
+    label = f"column_bending:{joint}"
+    unit = hpk.make_effect(robot, label, (direction / np.linalg.norm(direction)).tolist())
+    payload, noise = float(rng.uniform(0.0, 8.0)), float(rng.uniform(0.02, 0.05))
+    _, probe = simulate_campaign(robot, 500, [unit], noise_mm=0.0, known_frames=True, seed=1)
+    size = float(rng.uniform(0.5, 2.0)) / probe["dataset_error"]["position_mm"]["mean"]
+    effect = hpk.make_effect(robot, label, (direction / np.linalg.norm(direction) * size).tolist())
+    seed = int(rng.integers(1 << 30))
+    data, _ = simulate_campaign(
+        robot, 500, [effect], noise_mm=noise, position_only=True, payload=payload, seed=seed
+    )
+    where = f"seed {RUN_SEED}: {label} = {effect.report_value()}, noise {noise:.3f} mm"
+    diag = diagnose(robot, data, seed=0)
+    named = {f"{c.effect}:{c.joint}": c for c in diag.causes}
+    assert label in named, f"{where}: named {list(named)}; ambiguous {diag.ambiguous}"
+    found = np.asarray(named[label].value, dtype=float)
+    true = np.asarray(effect.report_value(), dtype=float)
+    err = np.linalg.norm(found - true) / np.linalg.norm(true)
+    assert err < 0.2, f"{where}: found {found.tolist()} ({err:.0%} off)"

@@ -1,0 +1,155 @@
+"""A cause is a small correction of the URDF (issue 11): implausible values and
+frame-dominated signatures are never plain causes, and a structurally wrong URDF gets
+the structural message with the joint and the size of the error, not a cause list."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+from hybrid_pk.calibration.diagnosis import diagnose
+from hybrid_pk.calibration.diagnosis.structural import (
+    MAX_ROTATION_DEG,
+    MAX_TRANSLATION_M,
+    frame_share,
+    implausibility,
+)
+from hybrid_pk.cli.main import main
+from hybrid_pk.data import write_table
+from hybrid_pk.effects import ExtendedModel, conditions_from_data, make_effect
+from hybrid_pk.robot import Robot
+from hybrid_pk.simulate import simulate_campaign
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+URDF = Path(__file__).resolve().parents[1] / "urdf" / "rx160.urdf"
+SHOULDER = '<origin xyz="0.15 0 0" rpy="0 0 0"/>'  # joint_2: the arm on the turret
+
+
+def _turned_rx160(tmp_path: Path, rpy: str) -> Robot:
+    """The RX160 whose arm is mounted on the turret turned by ``rpy`` (URDF rpy text)."""
+    text = URDF.read_text()
+    assert text.count(SHOULDER) == 1
+    path = tmp_path / "rx160_turned.urdf"
+    path.write_text(text.replace(SHOULDER, f'<origin xyz="0.15 0 0" rpy="{rpy}"/>'))
+    robot = Robot.from_urdf(str(path))
+    robot.requires_grad_(False)
+    return robot
+
+
+def test_values_beyond_a_small_correction_are_named(rx160):
+    def check(label, value):
+        return implausibility(make_effect(rx160, label, value), rx160)
+
+    assert check("joint_offset:joint_3", math.radians(0.9 * MAX_ROTATION_DEG)) is None
+    assert "rotation of 6°" in check("joint_offset:joint_3", math.radians(6.0))["why"]
+    assert check("axis_misalignment:joint_2", [1.48, 0.0, 0.0]) is not None  # issue 11's 85°
+    assert check("link_length:joint_3", [0.0, 0.0, 0.9 * MAX_TRANSLATION_M]) is None
+    assert "translation of 60 mm" in check("link_length:joint_3", [0.06, 0.0, 0.0])["why"]
+    assert check("gear_ratio:joint_2", 0.02) is not None
+    assert check("backlash:joint_4", math.radians(2.0)) is not None
+    assert "metal joints" in check("joint_compliance:joint_2", 5e-4)["why"]
+    assert check("joint_compliance:joint_2", 2e-6) is None
+
+
+def test_a_frame_change_dressed_as_a_link_length_is_mostly_the_frames(rx160):
+    """A shift of joint 2's origin along the turret axis is a base translation; along
+    the upper arm it is not."""
+    data, truth = simulate_campaign(rx160, 80, "none", noise_mm=0.0, seed=2, position_only=True)
+    cond = conditions_from_data(data)
+    shares = {}
+    for name, dp in (("vertical", [0.0, 0.0, 2e-3]), ("along x", [2e-3, 0.0, 0.0])):
+        model = ExtendedModel(
+            rx160,
+            [make_effect(rx160, "link_length:joint_2", dp)],
+            base=torch.tensor(truth["base_frame"], dtype=torch.float64),
+            tool=torch.tensor(truth["tool_frame"], dtype=torch.float64),
+        )
+        shares[name] = frame_share(model, "link_length:joint_2", data, cond)[0]
+    assert shares["vertical"] > 0.999
+    assert shares["along x"] < 0.9
+
+
+@pytest.mark.slow
+def test_an_arm_mounted_turned_by_90_degrees_gets_the_structural_message(tmp_path, capsys):
+    """Acceptance of issue 11: the campaign of an RX160 whose arm sits on the turret
+    turned by 90° (URDF untouched) gets the structural message at joint_2, not causes."""
+    turned = _turned_rx160(tmp_path, "0 0 1.5707963267948966")
+    data, _ = simulate_campaign(turned, 150, "none", noise_mm=0.05, noise_deg=0.005, seed=1)
+    table = tmp_path / "turned.csv"
+    write_table(table, data)
+    out_json = tmp_path / "diag.json"
+    report = tmp_path / "report"
+    rc = main(["diagnose", str(table), "--robot", "rx160", "--json", str(out_json),
+               "--report", str(report)])  # fmt: skip
+    out = capsys.readouterr().out
+    assert rc == 0
+    doc = json.loads(out_json.read_text())
+    assert doc["causes"] == []
+    structural = doc["structural"]
+    assert structural["structurally_wrong"]
+    assert structural["location"]["joint"] == "joint_2"
+    assert structural["location"]["holdout_mean_mm_after"] < 0.2  # [mm], noise level
+    assert doc["nominal"]["position_mm"]["mean"] > 100.0
+    assert "causes: withheld, the URDF looks structurally wrong" in out
+    assert "structural: the URDF looks structurally wrong at joint_2" in out
+    text = (report / "report.md").read_text()
+    assert "## The URDF looks structurally wrong" in text
+    assert "Withheld: the URDF looks structurally wrong" in text
+
+
+@pytest.mark.slow
+def test_a_large_joint_offset_is_reported_as_a_wrong_urdf_not_as_a_cause(rx160):
+    """An 11° offset of joint 3 is statistically obvious but no calibration error: the
+    diagnosis says the URDF is wrong at joint_3 by that much, and lists no cause."""
+    data, _ = simulate_campaign(rx160, 150, "joint_offset:joint_3=0.2", noise_mm=0.05,
+                                noise_deg=0.005, seed=3)  # fmt: skip
+    result = diagnose(rx160, data)
+    assert result.causes == []
+    structural = result.structural
+    assert structural["structurally_wrong"]
+    assert [f["cause"] for f in structural["findings"]][:1] == ["joint_offset:joint_3"]
+    location = structural["location"]
+    assert location["joint"] == "joint_3"
+    assert location["rotation_deg"] == pytest.approx(math.degrees(0.2), rel=0.02)
+    assert abs(location["rotation_axis"][1]) > 0.99  # about joint 3's own axis (y)
+
+
+def test_the_evidence_plot_of_a_link_length_shows_its_physical_signature(rx160):
+    """A shift of joint 2's origin of (0.5, 0, 3) mm: its vertical 3 mm are a base
+    translation (the frame trade-off); the evidence shows the 0.5 mm that only the link
+    length makes, on a slope-1 line."""
+    from hybrid_pk.calibration.diagnosis import Cause
+    from hybrid_pk.report.evidence import cause_evidence
+
+    truth = [make_effect(rx160, "link_length:joint_2", [5e-4, 0.0, 3e-3])]
+    data, sim = simulate_campaign(rx160, 120, truth, noise_mm=0.005, seed=5, position_only=True)
+    model = ExtendedModel(
+        rx160,
+        [make_effect(rx160, "link_length:joint_2", [5e-4, 0.0, 3e-3])],
+        base=torch.tensor(sim["base_frame"], dtype=torch.float64),
+        tool=torch.tensor(sim["tool_frame"], dtype=torch.float64),
+    )
+    cause = Cause("link_length", "joint_2", [5e-4, 0.0, 3e-3], "m", [1e-5] * 3, 1.0, None, "")
+    ev = cause_evidence(cause, data, model)
+    assert float(abs(ev.x).max()) < 1.0  # [mm]: the 0.5 mm signature, not the 3 mm shift
+    assert float(abs(ev.x).max()) > 0.3
+    slope = float((ev.x * ev.y).sum() / (ev.x * ev.x).sum())
+    assert slope == pytest.approx(1.0, abs=0.05)
+
+
+def test_calibrate_does_not_let_a_large_value_pass_for_a_cause(rx160, tmp_path, capsys):
+    data, _ = simulate_campaign(rx160, 60, "joint_offset:joint_3=0.2", noise_mm=0.05,
+                                noise_deg=0.005, seed=4)  # fmt: skip
+    table = tmp_path / "offset.csv"
+    write_table(table, data)
+    rc = main(["calibrate", str(table), "--robot", "rx160", "--effects", "joint_offset:joint_3",
+               "--no-urdf", "--out", str(tmp_path / "m.pt")])  # fmt: skip
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "warning: joint_offset:joint_3: a rotation of 11.5° is beyond" in out
+    assert "the URDF is wrong there" in out
