@@ -14,6 +14,7 @@ from hybrid_pk.data import read_table_for as read_table_for
 from hybrid_pk.data import write_table as write_table
 from hybrid_pk.effects import Conditions as Conditions
 from hybrid_pk.effects import ExtendedModel as ExtendedModel
+from hybrid_pk.effects import Gravity as Gravity
 from hybrid_pk.effects import make_effect as make_effect
 from hybrid_pk.errors import DataError as DataError
 from hybrid_pk.errors import HybridPKError as HybridPKError
@@ -47,6 +48,7 @@ __all__ = [
     "Diagnosis",
     "ExtendedModel",
     "FitResult",
+    "Gravity",
     "HybridFK",
     "HybridPKError",
     "IKOptions",

@@ -272,7 +272,7 @@ def test_effects_auto_fits_the_diagnosed_causes(campaign, capsys, tmp_path, monk
     seen = {}
 
     def fake_diagnose(robot_arg, data, *, holdout, seed, frames_per_file, progress, **priors):
-        seen.update(holdout=holdout, seed=seed, n=data.n)
+        seen.update(holdout=holdout, seed=seed, n=data.n, upright=priors["gravity"].is_default)
         progress("scoring candidates")
         cause = types.SimpleNamespace(effect="joint_offset", joint="joint_3")
         model = ExtendedModel(robot_arg, [make_effect(robot_arg, "joint_offset:joint_3", 7e-4)])
@@ -294,7 +294,7 @@ def test_effects_auto_fits_the_diagnosed_causes(campaign, capsys, tmp_path, monk
         "--holdout", "0.3", "--seed", "7", "--no-urdf",
     )  # fmt: skip
     assert rc == 0, err
-    assert seen == {"holdout": 0.3, "seed": 7, "n": N_ROWS}
+    assert seen == {"holdout": 0.3, "seed": 7, "n": N_ROWS, "upright": True}
     loaded = load_model(out_model)
     assert [e.label for e in loaded.model.effects] == ["joint_offset:joint_3"]
     assert abs(float(loaded.model.effects[0].value.detach()) - OFFSET) < 0.05 * OFFSET

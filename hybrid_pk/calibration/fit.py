@@ -143,21 +143,27 @@ def initialise_frames(
 
     Args:
         which: ``"frames"`` (both), ``"base"`` or ``"tool"``.
+
+    With gravity from a levelled tracker the loaded end pose depends on the base frame
+    itself, so the registration is repeated once from the first one's base.
     """
-    T_end = predicted_poses(model, data.q, cond, end_link=True)
     R_meas = None if data.quat is None else quat_to_matrix(data.quat)
     groups = [None] if model.base.sets == 1 or cond.group is None else range(model.base.sets)
-    for g in groups:
-        rows = slice(None) if g is None else cond.group == g
-        if g is not None and not bool(rows.any()):
-            continue
-        base, tool = register_frames(
-            T_end[rows], data.position[rows], None if R_meas is None else R_meas[rows]
-        )
-        if which in ("frames", "base"):
-            model.base.reset_to(base, g)
-        if which in ("frames", "tool"):
-            model.tool.reset_to(tool, g)
+    loaded = any(e.stage in ("compliance", "deflection") for e in model.effects)
+    passes = 2 if model.gravity.levelled and loaded and which != "tool" else 1
+    for _ in range(passes):
+        T_end = predicted_poses(model, data.q, cond, end_link=True)
+        for g in groups:
+            rows = slice(None) if g is None else cond.group == g
+            if g is not None and not bool(rows.any()):
+                continue
+            base, tool = register_frames(
+                T_end[rows], data.position[rows], None if R_meas is None else R_meas[rows]
+            )
+            if which in ("frames", "base"):
+                model.base.reset_to(base, g)
+            if which in ("frames", "tool"):
+                model.tool.reset_to(tool, g)
 
 
 def fit(

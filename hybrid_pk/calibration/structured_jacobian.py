@@ -9,6 +9,8 @@
   they perturb), then the closed-form twists of the perturbed origins at fixed ``q*``
   (their coupling through the gravity torques is second order, ~1e-3 relative, and
   dropped). An effect that turns a joint axis goes through FK in forward mode.
+- Deflection effects and a levelled tracker's gravity: closed-form twists about the
+  loaded state, :mod:`~hybrid_pk.calibration.loaded_jacobian`.
 """
 
 from __future__ import annotations
@@ -19,6 +21,11 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.calibration.least_squares import jacobian
+from hybrid_pk.calibration.loaded_jacobian import (
+    deflection_twists,
+    levelled_gravity_twists,
+    loaded_state,
+)
 from hybrid_pk.calibration.twists import (
     frame_twists,
     geometry_twists,
@@ -76,10 +83,10 @@ class StructuredJacobian:
         self.params = dict(model.named_parameters())
         effects = {f"effects.{i}.value": e for i, e in enumerate(model.effects)}
         self.effects = effects
-        self.joint = [
-            b for b in blocks if b.name in effects and effects[b.name].stage != "geometry"
-        ]
-        self.geometry = [b for b in blocks if b.name in effects and b not in self.joint]
+        stage = {b.name: effects[b.name].stage for b in blocks if b.name in effects}
+        self.joint = [b for b in blocks if stage.get(b.name) in ("joint", "compliance")]
+        self.geometry = [b for b in blocks if stage.get(b.name) == "geometry"]
+        self.deflection = [b for b in blocks if stage.get(b.name) == "deflection"]
 
     def _sub_params(self, blocks, theta_sub: Tensor, prefix: str = "") -> dict[str, Tensor]:
         """Parameter values of ``blocks`` at scaled offsets ``theta_sub`` from current."""
@@ -101,9 +108,8 @@ class StructuredJacobian:
         model, robot = self.model, self.model.robot
         group = cond.group if model.base.sets > 1 else None
         with torch.no_grad():
-            params = model.kinematic_params(cond)
-            q_star = model.joint_values(q, cond, params)
-            E = robot.fk(q_star, params=params)
+            params, gravity, q_star, wrenches, bent = loaded_state(model, q, cond)
+            E = robot.fk(q_star, params=bent)
             if group is None:
                 B, X = model.base.matrix()[0], model.tool.matrix()[0]
             else:
@@ -114,15 +120,23 @@ class StructuredJacobian:
         cols: dict[str, Tensor] = {}
         if any(b.name.startswith(("base.", "tool.")) for b in self.blocks):
             frames = frame_twists(model.base, model.tool, group, T_BE, T)
+            gravity_path = levelled_gravity_twists(model, q, cond, B, X, T)
+            if gravity_path is not None:  # a levelled tracker's gravity turns with the base
+                frames["base.rotvec"] = frames["base.rotvec"] + gravity_path
             scale = {b.name: b.scale for b in self.blocks}
             cols.update({k: v * scale.get(k, 1.0) for k, v in frames.items()})
         if self.joint:
-            dq = self._joint_derivatives(q, cond, q_star, params, key)
+            dq = self._joint_derivatives(q, cond, q_star, params, key, gravity)
             lever = (E @ X)[:, :3, 3] - E[:, :3, 3]
-            tw = point_joint_twists(robot.jacobian(q_star, params=params), lever, R_B) @ dq
+            tw = point_joint_twists(robot.jacobian(q_star, params=bent), lever, R_B) @ dq
             cols.update(self._split(self.joint, tw))
         if self.geometry:
-            cols.update(self._geometry_twists(cond, q_star, params, E, B, X, T))
+            cols.update(self._geometry_twists(cond, q_star, params, E, B, X, T, bent, wrenches))
+        if self.deflection:
+            point = (E @ X)[:, :3, 3]
+            cols.update(
+                deflection_twists(model, self.deflection, q_star, wrenches, bent, point, R_B)
+            )
         n = q.shape[0]
         twists = torch.cat([q.new_zeros(n, 6, 0)] + [cols[b.name] for b in self.blocks], -1)
         return PoseTwists(T, twists)
@@ -135,7 +149,9 @@ class StructuredJacobian:
             start += b.size
         return out
 
-    def _geometry_twists(self, cond, q_star, params, E, B, X, T) -> dict[str, Tensor]:
+    def _geometry_twists(
+        self, cond, q_star, params, E, B, X, T, bent, wrenches
+    ) -> dict[str, Tensor]:
         blocks = self.geometry
         size = sum(b.size for b in blocks)
         wrapper = _KinematicParams(self.model)
@@ -151,7 +167,7 @@ class StructuredJacobian:
 
         eye = torch.eye(size, dtype=q_star.dtype)
         d_xyz, d_rot, d_axis = torch.func.vmap(along)(eye)
-        frames = self.model.robot.link_frames(q_star, params=params)
+        frames = self.model.robot.link_frames(q_star, params=bent)
         maps = origin_twist_maps(frames, params.origin_xyz, (E @ X)[:, :3, 3], B[..., :3, :3])
         tw = geometry_twists(maps, params.origin_rot, d_xyz, d_rot)
         out = self._split(blocks, tw)
@@ -159,19 +175,21 @@ class StructuredJacobian:
         start = 0
         for b in blocks:  # effects that turn a joint axis: forward mode through FK
             if bool(turns_axis[start : start + b.size].any()):
-                out[b.name] = self._fk_twists(b, cond, q_star, B, X, T)
+                out[b.name] = self._fk_twists(b, cond, q_star, B, X, T, wrenches)
             start += b.size
         return out
 
-    def _fk_twists(self, block, cond, q_star, B, X, T) -> Tensor:
-        """Twists of one geometric block by forward mode through FK (generic path)."""
+    def _fk_twists(self, block, cond, q_star, B, X, T, wrenches) -> Tensor:
+        """Twists of one geometric block by forward mode through FK (generic path),
+        the deflection's wrenches held fixed."""
         wrapper = _KinematicParams(self.model)
-        robot = self.model.robot
+        model, robot = self.model, self.model.robot
 
         def pose(theta: Tensor) -> Tensor:
             vals = self._sub_params([block], theta, prefix="model.")
-            p = torch.func.functional_call(wrapper, vals, (cond,))
-            return B @ robot.fk(q_star, params=KinematicParams(*p)) @ X
+            p = KinematicParams(*torch.func.functional_call(wrapper, vals, (cond,)))
+            p = model.deflected_params(q_star, p, cond, wrenches=wrenches)
+            return B @ robot.fk(q_star, params=p) @ X
 
         theta0 = torch.zeros(block.size, dtype=q_star.dtype)
         eye = torch.eye(block.size, dtype=q_star.dtype)
@@ -188,13 +206,13 @@ class StructuredJacobian:
             c[e.joint_index] += e.value.detach()
         return c
 
-    def _joint_derivatives(self, q, cond, q_star, params, key) -> Tensor:
+    def _joint_derivatives(self, q, cond, q_star, params, key, gravity) -> Tensor:
         """``dq*/dtheta (n, dof, k)`` for joint-space and compliance parameters."""
         model, robot = self.model, self.model.robot
         n, dof = q.shape
         payload = 0.0 if cond.payload is None else cond.payload
         with torch.no_grad():
-            g = robot.gravity_torques(q_star, payload=payload, params=params)  # (n, dof)
+            g = robot.gravity_torques(q_star, payload=payload, gravity=gravity, params=params)
         kin = [b for b in self.joint if self.effects[b.name].stage == "joint"]
         dq_kin = None
         if kin:
@@ -221,7 +239,7 @@ class StructuredJacobian:
         c = self._compliance()
         if c is not None and bool((c != 0).any()):
             # q* = q_kin - C g(q*)  =>  (I + C dg/dq) dq* = dq_kin - dC g
-            G = _gravity_jacobian(robot, q_star, payload, params, key)
+            G = _gravity_jacobian(robot, q_star, payload, params, key, gravity)
             M = torch.eye(dof, dtype=q.dtype) + c.to(q.dtype)[:, None] * G
             dq = torch.linalg.solve(M, dq)
         return dq
@@ -234,7 +252,7 @@ _GRAVITY_JACOBIANS: dict[int, tuple] = {}
 GRAVITY_REUSE_RAD = 1e-4
 
 
-def _gravity_jacobian(robot, q_star: Tensor, payload, params, key) -> Tensor:
+def _gravity_jacobian(robot, q_star: Tensor, payload, params, key, gravity) -> Tensor:
     """``dg/dq (n, dof, dof)`` at ``q_star``, reused from an earlier call where valid."""
     store = None
     if key is not None:
@@ -258,7 +276,8 @@ def _gravity_jacobian(robot, q_star: Tensor, payload, params, key) -> Tensor:
                 return G_kept[rows]
 
     def grav(d: Tensor) -> Tensor:
-        return robot.gravity_torques(q_star + d, payload=payload, params=params).reshape(-1)
+        tau = robot.gravity_torques(q_star + d, payload=payload, gravity=gravity, params=params)
+        return tau.reshape(-1)
 
     dof = q_star.shape[-1]
     _, Jg = jacobian(grav, torch.zeros(dof, dtype=q_star.dtype))

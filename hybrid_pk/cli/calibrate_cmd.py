@@ -29,6 +29,7 @@ from hybrid_pk.cli.common import (
     fit_frames,
     frame_parameter_count,
     load_robot,
+    mounting_lines,
     read_data,
 )
 from hybrid_pk.cli.effect_lists import effect_labels
@@ -49,7 +50,13 @@ from hybrid_pk.cli.options import (
     add_seed,
 )
 from hybrid_pk.cli.progress import progress
-from hybrid_pk.effects import Effect, ExtendedModel, conditions_from_data, make_effect
+from hybrid_pk.effects import (
+    Effect,
+    ExtendedModel,
+    conditions_from_data,
+    make_effect,
+    parse_gravity,
+)
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import error_stats
 from hybrid_pk.io.model_file import save_model
@@ -69,7 +76,9 @@ Fit base/tool frames and physical error effects to measured poses; write one MOD
 
 Effects and units: joint_offset [rad], joint_compliance [rad/Nm], gear_ratio [1],
 joint_eccentricity [rad], backlash [rad, full play], link_length [m, vector],
-axis_misalignment [rad, rotation vector], thermal_expansion [1/K, not per joint].
+axis_misalignment [rad, rotation vector], thermal_expansion [1/K, not per joint],
+tilt_compliance [rad/Nm about the two axes perpendicular to the joint], column_bending
+[rad/Nm/m, prismatic joints]. Compliance and deflection use --gravity (the mounting).
 The frames are always estimated: base = measurement frame <- robot root, tool =
 flange -> measured point. Errors are reported in mm (position) and deg (orientation).
 """
@@ -148,6 +157,7 @@ def _start_effects(robot, labels: list[str], diag_model: ExtendedModel | None) -
 
 def _run_new(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot, args.end_link)
+    gravity = parse_gravity(args.gravity)
     spec, labels = _requested_labels(robot, (args.effects or "auto").strip())
     auto = spec == "auto"
     sets = len(args.data) if args.frames_per_file else 1
@@ -175,15 +185,23 @@ def _run_new(args: argparse.Namespace) -> int:
                 progress=bar,
                 frames=priors,
                 robust=robust,
+                gravity=gravity,
             )
             labels = [c.effect if c.joint is None else f"{c.effect}:{c.joint}" for c in diag.causes]
         bar.stage("fitting frames to the nominal robot")
         res0 = fit_frames(
-            ExtendedModel(robot, frame_sets=sets), data, cond, priors=priors, robust=robust
+            ExtendedModel(robot, frame_sets=sets, gravity=gravity),
+            data,
+            cond,
+            priors=priors,
+            robust=robust,
         )
         bar.stage("fitting frames and effects")
         model = ExtendedModel(
-            robot, _start_effects(robot, labels, diag.model if diag else None), frame_sets=sets
+            robot,
+            _start_effects(robot, labels, diag.model if diag else None),
+            frame_sets=sets,
+            gravity=gravity,
         )
         initialise_with_priors(model, data, cond, priors)
         res = fit(model, data, cond=cond, frames=priors, robust=robust, weights=res0.weights)
@@ -196,6 +214,7 @@ def _run_new(args: argparse.Namespace) -> int:
             "frames_per_file": bool(args.frames_per_file),
             "orientation_fitted": data.quat is not None,
             "effects_requested": spec,
+            "gravity": gravity.describe(),
             "effects": effects,
             "nominal": error_summary(res0),
             "calibrated": error_summary(res),
@@ -241,7 +260,8 @@ def _print_summary(robot, data, diag, effects, model, res0, res) -> None:
             )
     else:
         print("  no effects: frames only" + (" (the diagnosis named none)" if diag else ""))
-    for line in frame_lines(model) + fit_lines(data, res) + implausible_effect_lines(model, data):
+    lines = frame_lines(model) + mounting_lines(model) + fit_lines(data, res)
+    for line in lines + implausible_effect_lines(model, data):
         print(line)
     p0, p1 = error_stats(res0.position_mm), error_stats(res.position_mm)
     print(

@@ -41,6 +41,10 @@ def run_refit(args: argparse.Namespace) -> int:
         raise HybridPKError(
             "--effects cannot be combined with --refit: the model keeps its effects"
         )
+    if args.gravity is not None:
+        raise HybridPKError(
+            "--gravity cannot be combined with --refit: the model keeps its mounting"
+        )
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
     robot = model_robot(loaded)
     robot.requires_grad_(False)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import warnings
 from collections.abc import Iterator, Sequence
@@ -33,6 +34,7 @@ __all__ = [
     "frame_sets_for",
     "load_frozen_model",
     "load_robot",
+    "mounting_lines",
     "read_data",
     "stats_line",
     "with_frame_sets",
@@ -45,6 +47,29 @@ FRAME_LABELS = {
     "tool": ("tool_frame.translation", "tool_frame.rotation"),
 }
 FRAME_LABELS["frames"] = FRAME_LABELS["base"] + FRAME_LABELS["tool"]
+
+
+def mounting_lines(model: ExtendedModel) -> list[str]:
+    """One line per base frame set on the gravity the model's statics use (none when
+    the robot is the default upright one)."""
+    if model.gravity.is_default:
+        return []
+    lines = []
+    with torch.no_grad():
+        T = model.base.matrix()
+        for g in range(model.base.sets):
+            vec = model.gravity.vector
+            if model.gravity.levelled:
+                vec = (T[g, :3, :3].T @ torch.tensor(vec, dtype=T.dtype)).tolist()
+            norm = max(sum(v * v for v in vec) ** 0.5, 1e-12)
+            tilt = math.degrees(math.acos(max(-1.0, min(1.0, -vec[2] / norm))))
+            tag = f" [{g}]" if model.base.sets > 1 else ""
+            text = ", ".join(f"{v:.4g}" for v in vec)
+            lines.append(
+                f"  gravity{tag} ({text}) m/s^2 in the robot root frame: root z axis "
+                f"{tilt:.1f} deg from upright ({model.gravity.describe()})"
+            )
+    return lines
 
 
 def load_robot(name: str, end_link: str | None = None) -> Robot:
@@ -151,7 +176,9 @@ def with_frame_sets(model: ExtendedModel, sets: int, keep: str | None = None) ->
                 f"files with --frames-per-file, or --refit frames"
             )
         kept[keep] = frame.matrix().detach()
-    return ExtendedModel(model.robot, list(model.effects), frame_sets=sets, **kept)
+    return ExtendedModel(
+        model.robot, list(model.effects), frame_sets=sets, gravity=model.gravity, **kept
+    )
 
 
 def frame_sets_for(args: argparse.Namespace, model_sets: int) -> int:

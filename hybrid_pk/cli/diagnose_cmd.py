@@ -7,7 +7,7 @@ import json
 import math
 from pathlib import Path
 
-from hybrid_pk.cli.common import load_robot, read_data
+from hybrid_pk.cli.common import load_robot, mounting_lines, read_data
 from hybrid_pk.cli.fit_settings import diagnosis_notes, frame_priors, robust_loss
 from hybrid_pk.cli.options import (
     add_data,
@@ -24,13 +24,15 @@ from hybrid_pk.errors import HybridPKError
 _DESCRIPTION = """\
 Diagnose a robot from measured poses: fit base and tool frames to the nominal URDF,
 then name the physical effects (joint offsets, compliance, gear ratios, eccentricity,
-backlash, link lengths, axis misalignments, thermal expansion) that explain its
-errors, with their values, uncertainties and gains, tested on hold-out rows.
+backlash, link lengths, axis misalignments, thermal expansion, bearing tilt and link or
+column bending under the static load) that explain its errors, with their values,
+uncertainties and gains, tested on hold-out rows. A robot on a ceiling, a wall or a
+tilted base: --gravity X,Y,Z or --gravity level-tracker.
 
 Units: DATA tables have joints [rad, m for prismatic], x y z [m], optional
 qw qx qy qz (unit quaternion), payload [kg], temperature [°C]. Errors are reported in
 mm (position: point distance) and deg (orientation: rotation angle); each cause in the
-unit of its effect (rad, rad/Nm, 1, m, 1/K). --holdout is a fraction of the rows.
+unit of its effect (rad, rad/Nm, 1, m, 1/K, rad/Nm/m). --holdout is a fraction of the rows.
 """
 
 # Width of the label column of the printed error table.
@@ -132,6 +134,7 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
         lines += [f"  {' ~ '.join(a['effects'])}" for a in diagnosis.ambiguous]
     for w in diagnosis.warnings:
         lines.append(f"warning: {w['cause']}: {w['why']}")
+    lines += mounting_lines(diagnosis.model)
     un = diagnosis.unexplained
     rest = f"unexplained: RMS {_num(un.get('position_mm_rms'))} mm"
     if un.get("orientation_deg_rms") is not None:
@@ -147,7 +150,7 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     from hybrid_pk.calibration.diagnosis import diagnose
-    from hybrid_pk.effects import make_effect
+    from hybrid_pk.effects import make_effect, parse_gravity
 
     for path in args.data:
         if not Path(path).is_file():
@@ -162,6 +165,7 @@ def run(args: argparse.Namespace) -> int:
         raise HybridPKError(f"--max-causes must be at least 1, got {args.max_causes}")
     if not 0.0 < args.alpha < 1.0:
         raise HybridPKError(f"--alpha must lie in (0, 1), got {args.alpha:g}")
+    gravity = parse_gravity(args.gravity)
     data = read_data(args.data, robot, skip_bad_rows=args.skip_bad_rows)
 
     progress = Progress("diagnose", delay=0.0)
@@ -178,6 +182,7 @@ def run(args: argparse.Namespace) -> int:
             frames=frame_priors(args),
             robust=robust_loss(args),
             progress=progress.stage,
+            gravity=gravity,
         )
         if args.report:
             progress.stage("writing the report")

@@ -37,6 +37,7 @@ __all__ = [
     "add_fit_options",
     "add_frame_options",
     "add_frame_set",
+    "add_gravity",
     "add_json",
     "add_model",
     "add_noise",
@@ -170,12 +171,27 @@ def add_fit_options(parser: argparse.ArgumentParser, *, holdout_help: str) -> No
     """Options of every command that diagnoses effects (``diagnose``, ``calibrate``).
 
     ``--holdout F``: the fraction of rows the diagnosis keeps out of every fit to
-    compare models; the known frames (:func:`add_frame_options`) and the robust loss
-    (:func:`add_robust`) of its fits.
+    compare models; the known frames (:func:`add_frame_options`), the robust loss
+    (:func:`add_robust`) and the mounting (:func:`add_gravity`) of its fits.
     """
     parser.add_argument("--holdout", type=fraction, default=0.2, metavar="F", help=holdout_help)
     add_frame_options(parser)
     add_robust(parser)
+    add_gravity(parser)
+
+
+def add_gravity(parser: argparse.ArgumentParser) -> None:
+    """``--gravity X,Y,Z|level-tracker``: the mounting, which compliance and deflection
+    follow."""
+    parser.add_argument(
+        "--gravity",
+        metavar="X,Y,Z|level-tracker",
+        help="how the robot is mounted, for compliance and deflection: gravity in the "
+        "robot's root frame [m/s^2] (ceiling: 0,0,9.81), or level-tracker: the "
+        "measurement frame is levelled (laser tracker, total station), so gravity is -z "
+        "there and its direction in the robot frame follows from the fitted base frame "
+        "(default: upright, 0,0,-9.81)",
+    )
 
 
 _FRAME_HELP = (

@@ -22,7 +22,7 @@ from hybrid_pk.cli.options import (
 )
 from hybrid_pk.data.joint_table import read_joint_table
 from hybrid_pk.data.table import write_table
-from hybrid_pk.effects import ExtendedModel
+from hybrid_pk.effects import ExtendedModel, parse_gravity
 from hybrid_pk.errors import DataError, HybridPKError
 from hybrid_pk.robot import Robot
 from hybrid_pk.simulate import TRAJECTORIES, is_hidden_spec, simulate_campaign
@@ -50,6 +50,16 @@ nominal model with the true frames, as in the paper's Table I).
                           (RX160 + 20 kg payload: about 1.8 mm mean error)
   random[:K]              K (default 2) effects drawn from --seed, 0.2-1 mm each; not printed
   FILE.json               the effects of a truth JSON (or a list of {effect, joint, value})
+
+Deflection beyond the joint axis: tilt_compliance:joint_2=1e-6,2e-6 (rad/Nm about the two
+axes perpendicular to the joint), column_bending:JOINT=b1,b2 (rad/Nm/m, prismatic joints:
+grows with the extension).
+
+--mount floor|ceiling|wall|tilt:DEG[,AZ] or --gravity X,Y,Z [m/s^2, robot root frame]:
+how the robot is mounted; compliance and deflection follow that gravity. The tracker
+then stands level and the truth base frame carries the mount rotation (what
+calibrate/diagnose --gravity level-tracker recover). Without either, the robot stands
+upright and the tracker is tilted up to 2 deg.
 """
 
 
@@ -116,6 +126,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="measure the flange in the robot base frame (identity base and tool frames)",
     )
+    mounting = p.add_mutually_exclusive_group()
+    mounting.add_argument(
+        "--mount",
+        metavar="MOUNT",
+        help="floor, ceiling, wall or tilt:DEG[,AZ] (base tilted DEG degrees towards "
+        "azimuth AZ); the tracker stands level (default: upright, tracker tilted <= 2 deg)",
+    )
+    mounting.add_argument(
+        "--gravity",
+        metavar="X,Y,Z",
+        help="gravity in the robot's root frame [m/s^2], e.g. 0,0,9.81 for a ceiling "
+        "mount (instead of --mount)",
+    )
     p.add_argument(
         "--tool",
         metavar="X,Y,Z[,RX,RY,RZ]",
@@ -150,6 +173,13 @@ def _describe(entry: dict) -> str:
         f"({', '.join(f'{v:.4g}' for v in value)})" if isinstance(value, list) else f"{value:.4g}"
     )
     return f"{label} = {text} {entry['unit']}"
+
+
+def _mount(args: argparse.Namespace):
+    """``--mount`` text, a root-frame Gravity from ``--gravity``, or None."""
+    if args.gravity is not None:
+        return parse_gravity(args.gravity)
+    return args.mount
 
 
 def _given_frames(frames: dict) -> dict:
@@ -222,6 +252,7 @@ def run(args: argparse.Namespace) -> int:
         temperature_range=None if args.no_temperature else tuple(args.temperature_range),
         position_only=args.position_only,
         known_frames=args.known_frames,
+        mount=_mount(args),
         seed=args.seed,
         progress=True,
         **_given_frames(frames),
@@ -242,6 +273,12 @@ def run(args: argparse.Namespace) -> int:
         f"noise {args.noise_mm:g} mm / {args.noise_deg:g} deg, seed {args.seed}"
     )
     print(f"wrote {out} and {truth_file}")
+    if truth["mount"] is not None:
+        g = ", ".join(f"{v:.4g}" for v in truth["gravity"])
+        print(
+            f"mounted {truth['mount']['spec']} ({truth['mount']['tilt_deg']:.1f} deg from "
+            f"upright): gravity ({g}) m/s^2 in the robot root frame; tracker level"
+        )
     print(
         f"dataset error vs nominal (true frames): position mean {pos['mean']:.3f} mm, "
         f"max {pos['max']:.3f} mm; orientation mean {rot['mean']:.4f} deg, "

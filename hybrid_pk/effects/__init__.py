@@ -1,5 +1,6 @@
 """Physical error effects and the extended model that applies them."""
 
+from hybrid_pk.effects import deflection as _deflection  # noqa: F401  (registers effects)
 from hybrid_pk.effects import geometric as _geometric  # noqa: F401  (registers effects)
 from hybrid_pk.effects import joint as _joint  # noqa: F401  (registers effects)
 from hybrid_pk.effects.base import EFFECTS as EFFECTS
@@ -11,15 +12,19 @@ from hybrid_pk.effects.conditions import approach_direction as approach_directio
 from hybrid_pk.effects.conditions import conditions_from_data as conditions_from_data
 from hybrid_pk.effects.extended import ExtendedModel as ExtendedModel
 from hybrid_pk.effects.extended import RigidFrame as RigidFrame
+from hybrid_pk.effects.gravity import Gravity as Gravity
+from hybrid_pk.effects.gravity import parse_gravity as parse_gravity
 
 __all__ = [
     "EFFECTS",
     "Conditions",
     "Effect",
     "ExtendedModel",
+    "Gravity",
     "RigidFrame",
     "approach_direction",
     "conditions_from_data",
     "effect_joint_names",
     "make_effect",
+    "parse_gravity",
 ]

@@ -2,9 +2,11 @@
 
 Data flow of one forward pass (all differentiable)::
 
-    q (commanded) --joint effects--> q_kin --compliance fixed point--> q_true
     kinematic params --geometric effects--> params
-    T_meas_point = T_meas_root · fk(q_true, params) · T_end_point
+    gravity in the root frame (fixed, or from the base frame of a levelled tracker)
+    q (commanded) --joint effects--> q_kin --compliance fixed point--> q_true
+    params --deflection effects (static wrench at q_true)--> params_deflected
+    T_meas_point = T_meas_root · fk(q_true, params_deflected) · T_end_point
 
 ``T_meas_root`` (base frame: measurement frame <- robot root, e.g. a laser tracker
 in the room) and ``T_end_point`` (tool frame: flange -> measured point/frame) are
@@ -18,6 +20,7 @@ from torch import Tensor, nn
 
 from hybrid_pk.effects.base import Effect
 from hybrid_pk.effects.conditions import Conditions
+from hybrid_pk.effects.gravity import Gravity
 from hybrid_pk.geometry import so3_exp, transform
 from hybrid_pk.robot import Robot
 
@@ -82,6 +85,9 @@ class ExtendedModel(nn.Module):
         tool: initial ``T_end_point`` (4, 4) or (G, 4, 4); identity when omitted.
         frame_sets: number ``G`` of independent base/tool frame sets; rows pick theirs
             with ``Conditions.group`` (e.g. one set per measurement file).
+        gravity: the mounting: gravity in the root frame, or in a levelled measurement
+            frame (:class:`~hybrid_pk.effects.gravity.Gravity`); default level on the
+            floor, ``(0, 0, -9.80665)`` m/s² in the root frame.
     """
 
     def __init__(
@@ -91,12 +97,38 @@ class ExtendedModel(nn.Module):
         base: Tensor | None = None,
         tool: Tensor | None = None,
         frame_sets: int = 1,
+        gravity: Gravity | None = None,
     ) -> None:
         super().__init__()
         self.robot = robot
         self.base = RigidFrame(base, robot.dtype, frame_sets)
         self.tool = RigidFrame(tool, robot.dtype, frame_sets)
         self.effects = nn.ModuleList(effects)
+        self.gravity = gravity or Gravity()
+
+    def with_effects(self, effects: list[Effect] | tuple[Effect, ...]) -> ExtendedModel:
+        """Same robot, gravity and frame values (copied), with ``effects`` instead."""
+        out = ExtendedModel(
+            self.robot, list(effects), frame_sets=self.base.sets, gravity=self.gravity
+        )
+        for mine, theirs in ((self.base, out.base), (self.tool, out.tool)):
+            with torch.no_grad():
+                for name in ("T0", "dp", "rotvec"):
+                    getattr(theirs, name).copy_(getattr(mine, name))
+        return out
+
+    # ------------------------------------------------------------------ gravity
+    def gravity_root(self, cond: Conditions | None = None) -> Tensor:
+        """Gravity in the robot root frame [m/s²]: ``(3,)``, or ``(*B, 3)`` per row
+        when a levelled measurement frame and several base frames give each row its own."""
+        g = torch.tensor(self.gravity.vector, dtype=self.robot.dtype)
+        if not self.gravity.levelled:
+            return g
+        group = None if cond is None else cond.group
+        R = self.base.matrix()[..., :3, :3]  # T_meas_root: p_meas = R p_root + t
+        if group is None or self.base.sets == 1:
+            return R[0].transpose(-1, -2) @ g
+        return (R[group].transpose(-1, -2) @ g.to(R.dtype)[:, None])[..., 0]
 
     # ------------------------------------------------------------------ effects
     def effect(self, label: str) -> Effect:
@@ -133,19 +165,28 @@ class ExtendedModel(nn.Module):
                 q = e.apply_q(q, cond)
         return q
 
-    def joint_values(self, q: Tensor, cond: Conditions | None = None, params=None) -> Tensor:
-        """True joint values ``(*B, dof)`` for commanded ``q``."""
+    def joint_values(
+        self,
+        q: Tensor,
+        cond: Conditions | None = None,
+        params=None,
+        gravity: Tensor | None = None,
+    ) -> Tensor:
+        """True joint values ``(*B, dof)`` for commanded ``q`` (``gravity``: the root-frame
+        vector of :meth:`gravity_root`, computed when omitted)."""
         cond = cond or Conditions()
         q = self.kinematic_joint_values(q, cond)
         c = self._compliance()
         if c is not None:
             payload = 0.0 if cond.payload is None else cond.payload
             q_kin, c = q, c.to(q.dtype)
+            g = self.gravity_root(cond) if gravity is None else gravity
 
             # gravity_torques is the holding torque g(q) (pinocchio's sign); gravity
             # itself loads the joint with -g(q), so a positive compliance sags.
             def step(q_now: Tensor, p=params) -> Tensor:
-                return q_kin - c * self.robot.gravity_torques(q_now, payload=payload, params=p)
+                tau = self.robot.gravity_torques(q_now, payload=payload, gravity=g, params=p)
+                return q_kin - c * tau
 
             # Converge without derivatives, then differentiate the last two steps: the
             # derivative error shrinks like (c dtau/dq)^2 ~ 1e-6 relative, at a quarter
@@ -155,19 +196,51 @@ class ExtendedModel(nn.Module):
             with torch.no_grad():
                 for _ in range(COMPLIANCE_ITERATIONS - 2):
                     q = q_kin.detach() - c.detach() * self.robot.gravity_torques(
-                        q, payload=payload, params=detached
+                        q, payload=payload, gravity=g.detach(), params=detached
                     )
             for _ in range(2):
                 q = step(q)
         return q
+
+    def static_wrenches(self, q_true: Tensor, params, cond: Conditions, gravity=None) -> Tensor:
+        """``(*B, n_chain, 6)`` holding wrench of every chain joint, in its own frame."""
+        payload = 0.0 if cond.payload is None else cond.payload
+        g = self.gravity_root(cond) if gravity is None else gravity
+        return self.robot.static_wrenches(
+            q_true, payload=payload, gravity=g, params=params, frame="joint"
+        )
+
+    def deflected_params(
+        self, q_true: Tensor, params, cond: Conditions, gravity=None, wrenches=None
+    ):
+        """``params`` bent by the deflection effects at ``q_true`` (unchanged without).
+
+        ``wrenches``: precomputed :meth:`static_wrenches` (the identification Jacobian
+        holds them fixed); computed from the rigid ``params`` when omitted.
+        """
+        bending = [e for e in self.effects if e.stage == "deflection"]
+        if not bending:
+            return params
+        if wrenches is None:
+            wrenches = self.static_wrenches(q_true, params, cond, gravity)
+        q_chain = self.robot.chain_q(q_true)
+        for e in bending:
+            params = e.apply_deflection(params, wrenches, q_chain)
+        return params
 
     # ------------------------------------------------------------------ prediction
     def end_pose(self, q: Tensor, cond: Conditions | None = None) -> Tensor:
         """``(*B, 4, 4)`` flange pose in the robot root frame, with every effect."""
         cond = cond or Conditions()
         params = self.kinematic_params(cond)
-        q_true = self.joint_values(q, cond, params)
+        gravity = self.gravity_root(cond) if self._loaded() else None
+        q_true = self.joint_values(q, cond, params, gravity)
+        params = self.deflected_params(q_true, params, cond, gravity)
         return self.robot.fk(q_true, params=params)
+
+    def _loaded(self) -> bool:
+        """True when some effect reads the static load (compliance, deflection)."""
+        return any(e.stage in ("compliance", "deflection") for e in self.effects)
 
     def forward(self, q: Tensor, cond: Conditions | None = None) -> Tensor:
         """``(*B, 4, 4)`` pose of the measured point/frame in the measurement frame."""

@@ -1,22 +1,27 @@
 """The MODEL file: one self-contained file that ``calibrate`` writes and ``evaluate``,
 ``train`` and ``ik`` read.
 
-Format (version 1): :func:`torch.save` of a plain dict, read back with
+Format (version 2): :func:`torch.save` of a plain dict, read back with
 ``torch.load(..., weights_only=True)`` (no pickled code is ever executed)::
 
-    {"format": "hybrid_pk.model", "version": 1,
+    {"format": "hybrid_pk.model", "version": 2,
      "robot":   {"name", "urdf" (the URDF *text*), "urdf_path" (where it was read),
                  "end_link", "joint_names", "dtype",
                  "params": {"origin_xyz", "origin_rotvec", "axis"} (tensors)},
      "effects": [{"effect", "joint" (or None), "unit", "value" (internal tensor)}],
      "frames":  {"sets": G, "fitted": bool,
                  "base": {"T" (G, 4, 4), "T0", "dp", "rotvec"}, "tool": {...}},
+     "gravity": {"vector": [gx, gy, gz] (m/s^2), "frame": "root" | "measurement"},
      "networks": opaque state of residual networks, or None,
      "metadata": {..., "created": {"time", "hybrid_pk", "torch"}}}
 
 ``base.T`` / ``tool.T`` are the frames as matrices (``T_meas_root``, ``T_end_point``);
 ``T0, dp, rotvec`` are the exact parameter state, so a loaded model reproduces the
 saved one's ``forward`` bit for bit.
+
+``gravity`` is the mounting the statics use (version 2; a version-1 file has none and
+means a robot upright on the floor, which is how such a file is still written, so that
+an older hybrid_pk reads it right).
 
 ``nominal:ROBOT`` in place of a file gives the URDF as it is, with identity frames.
 """
@@ -36,8 +41,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from hybrid_pk.effects import ExtendedModel, make_effect
-from hybrid_pk.errors import ModelFileError, RobotModelError
+from hybrid_pk.effects import ExtendedModel, Gravity, make_effect
+from hybrid_pk.errors import HybridPKError, ModelFileError, RobotModelError
 from hybrid_pk.robot import Robot, load_chain_spec, resolve_urdf
 
 __all__ = [
@@ -51,7 +56,7 @@ __all__ = [
 ]
 
 FORMAT_TAG = "hybrid_pk.model"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: the mounting ("gravity"); 1: upright only
 NOMINAL_PREFIX = "nominal:"
 _ROBOT_PARAMS = ("origin_xyz", "origin_rotvec", "axis")
 _FRAME_STATE = ("T0", "dp", "rotvec")
@@ -159,7 +164,7 @@ def save_model(
     _check_plain(meta, "metadata")
     payload = {
         "format": FORMAT_TAG,
-        "version": FORMAT_VERSION,
+        "version": 1 if model.gravity.is_default else FORMAT_VERSION,
         "robot": {
             "name": spec.name,
             "urdf": urdf_text,
@@ -187,6 +192,8 @@ def save_model(
         "networks": networks,
         "metadata": meta,
     }
+    if not model.gravity.is_default:
+        payload["gravity"] = model.gravity.to_dict()
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     os.close(fd)
@@ -371,7 +378,11 @@ def _build(path: Path, payload: dict, robot_check, end_link: str | None) -> Load
         label = entry["effect"] if entry["joint"] is None else f"{entry['effect']}:{entry['joint']}"
         effects.append(make_effect(robot, label, entry["value"]))
     frames = payload["frames"]
-    model = ExtendedModel(robot, effects, frame_sets=int(frames["sets"]))
+    try:
+        gravity = Gravity.from_dict(payload.get("gravity"))
+    except HybridPKError as exc:
+        raise ModelFileError(f"{path}: corrupt gravity entry ({exc})") from exc
+    model = ExtendedModel(robot, effects, frame_sets=int(frames["sets"]), gravity=gravity)
     _restore_frame(model.base, frames["base"])
     _restore_frame(model.tool, frames["tool"])
     return LoadedModel(

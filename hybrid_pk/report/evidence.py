@@ -23,6 +23,9 @@ to one number per row that the cause's law predicts:
 - thermal expansion: the equivalent strain ``(p_end . r) / |p_end|^2`` (scaling every
   link translation by ``1 + eps`` moves the flange by ``eps p_end``) against
   temperature.
+- deflection (tilt compliance, column bending): the tilt about the two axes
+  perpendicular to the joint that the residual shows against the tilt the gravity
+  moment predicts, a slope-1 line (``evidence_deflection.py``).
 - geometric effects (link length, axis misalignment): the displacement ``d`` the fitted
   effect makes at each row; every coordinate of the residual against the same
   coordinate of ``d``, a slope-1 line if the effect is there. Both are taken without
@@ -51,6 +54,7 @@ from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data, m
 from hybrid_pk.effects.geometric import REFERENCE_TEMPERATURE
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.plots import binned_median
+from hybrid_pk.report.evidence_deflection import DEFLECTION_EFFECTS, deflection_evidence
 
 __all__ = [
     "Evidence",
@@ -146,7 +150,7 @@ def without_effect(model: ExtendedModel, label: str | None) -> ExtendedModel:
         for e in model.effects
         if e.label != label
     ]
-    out = ExtendedModel(robot, effects, frame_sets=model.base.sets)
+    out = ExtendedModel(robot, effects, frame_sets=model.base.sets, gravity=model.gravity)
     out.base.reset_to(model.base.matrix().detach())
     out.tool.reset_to(model.tool.matrix().detach())
     return out
@@ -231,6 +235,8 @@ def _evidence(cause, label: str, data, model, view: ResidualView) -> Evidence:
         return _thermal_evidence(cause, label, title, data, view)
     if cause.effect in GEOMETRIC_EFFECTS:
         return _geometric_evidence(cause, label, title, data, model, view)
+    if cause.effect in DEFLECTION_EFFECTS:
+        return Evidence(**deflection_evidence(cause, label, title, data, model, view, _frames))
     raise HybridPKError(f"no evidence plot for effect {cause.effect!r}")
 
 

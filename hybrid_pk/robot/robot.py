@@ -301,6 +301,40 @@ class Robot(nn.Module):
         return J @ self.coupling_matrix.to(J.dtype) if self.has_mimic else J
 
     # ------------------------------------------------------------------ statics
+    def _gravity(self, gravity, frames: Tensor) -> Tensor:
+        """Gravity as ``(*G, 3)`` [m/s^2]: one vector, or one per sample."""
+        g = torch.as_tensor(gravity, dtype=frames.dtype, device=frames.device)
+        if g.shape[-1:] != (3,):
+            raise ShapeError(f"gravity must have shape (*B, 3) [m/s^2], found {tuple(g.shape)}")
+        return g
+
+    def _subtree_loads(
+        self, q: Tensor, frames: Tensor, payload: float | Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """Mass ``(*B, n)`` [kg] and first moment about each chain joint frame's origin
+        ``(*B, n, 3)`` [kg m] of everything chain joint ``i`` carries: segments ``k >= i``,
+        the off-chain bodies riding on them and the payload at the end-link origin (root
+        frame)."""
+        dtype, n = frames.dtype, self.chain_dof
+        R, p = frames[..., :, :3, :3], frames[..., :, :3, 3]
+        m = self.segment_mass[1:].to(dtype)  # segments moving with chain joints 1..n
+        c = (R[..., :n, :, :] @ self.segment_com[1:].to(dtype)[..., None])[..., 0]
+        moment = m[:, None] * (c + p[..., :n, :])  # (*B, n, 3) m_k * c_k
+        for b in self.spec.branches:
+            if b.segment > 0:  # its mass rides on the chain joints before its segment
+                _, lever, o = self._branch_lever(b, q, frames)
+                m = m + torch.zeros_like(m).index_fill(0, torch.tensor(b.segment - 1), b.mass)
+                moment = moment.index_add(
+                    -2, torch.tensor([b.segment - 1]), (b.mass * (lever + o))[..., None, :]
+                )
+        payload = torch.as_tensor(payload, dtype=dtype, device=frames.device)
+        # Suffix sums: mass and first moment carried by joint i (all segments k >= i).
+        mass_out = m.flip(-1).cumsum(-1).flip(-1) + payload[..., None]
+        moment_out = moment.flip(-2).cumsum(-2).flip(-2)
+        moment_out = moment_out + payload[..., None, None] * p[..., n : n + 1, :]
+        arm = moment_out - mass_out[..., None] * p[..., :n, :]  # sum_k m_k (c_k - o_i)
+        return mass_out, arm
+
     def gravity_torques(
         self,
         q: Tensor,
@@ -311,14 +345,13 @@ class Robot(nn.Module):
         """Static joint torques that hold the arm against gravity.
 
         Same sign as the ``g(q)`` term of ``M(q) q'' + C q' + g(q) = tau``: the torque
-        each motor must apply at rest. With mimic joints, by virtual work, the torques
-        of the chain joints map to the robot's joints as ``A.T tau_chain``, and the mass
-        on an off-chain joint that a robot joint drives (a leader's own link) counts too.
+        each motor must apply at rest.
 
         Args:
             q: ``(*B, dof)`` joint values [rad or m].
             payload: mass [kg] at the end-link origin; float or ``(*B,)`` tensor.
-            gravity: gravity acceleration in the root frame [m/s^2].
+            gravity: gravity acceleration in the root frame [m/s^2], ``(3,)`` or per
+                sample ``(*B, 3)`` (a robot on a ceiling, a wall or a tilted base).
             params: kinematic parameters to use instead of the robot's own.
 
         Returns:
@@ -326,44 +359,29 @@ class Robot(nn.Module):
         """
         q = self._check_q(q)
         frames = self.link_frames(q, params)
-        dtype, n = frames.dtype, self.chain_dof
-        g = torch.as_tensor(gravity, dtype=dtype, device=frames.device)
-        R, p = frames[..., :, :3, :3], frames[..., :, :3, 3]
-        m = self.segment_mass[1:].to(dtype)  # segments moving with chain joints 1..n
-        c = (R[..., :n, :, :] @ self.segment_com[1:].to(dtype)[..., None])[..., 0]
-        moment = m[:, None] * (c + p[..., :n, :])  # (*B, n, 3) m_k * c_k
-        tau_branch = []
-        for b in self.spec.branches:
-            body_moment, tau_b = self._branch_statics(b, q, frames, g)
-            if b.segment > 0:  # its mass rides on the chain joints before its segment
-                m = m + torch.zeros_like(m).index_fill(0, torch.tensor(b.segment - 1), b.mass)
-                moment = moment.index_add(
-                    -2, torch.tensor([b.segment - 1]), body_moment[..., None, :]
-                )
-            tau_branch.append((b, tau_b))
-        payload = torch.as_tensor(payload, dtype=dtype, device=frames.device)
-        # Suffix sums: mass and first moment carried by joint i (all segments k >= i).
-        mass_out = m.flip(-1).cumsum(-1).flip(-1) + payload[..., None]
-        moment_out = moment.flip(-2).cumsum(-2).flip(-2)
-        moment_out = moment_out + payload[..., None, None] * p[..., n : n + 1, :]
+        dtype = frames.dtype
+        g = self._gravity(gravity, frames)
+        mass_out, arm = self._subtree_loads(q, frames, payload)
+        gj = g[..., None, :]
         z = self._axes_world(frames, params)
-        o = p[..., :n, :]
-        arm = moment_out - mass_out[..., None] * o  # sum_k m_k (c_k - o_i)
-        tau_rev = (z * torch.linalg.cross(g.expand_as(arm), arm)).sum(-1)
-        tau_pri = -mass_out * (z * g).sum(-1)
+        tau_rev = (z * torch.linalg.cross(gj.expand_as(arm), arm)).sum(-1)
+        tau_pri = -mass_out * (z * gj).sum(-1)
         tau = torch.where(self.chain_revolute, tau_rev, tau_pri)
-        if not self.has_mimic and not tau_branch:
+        if not self.has_mimic and not self.spec.branches:
             return tau
         tau = tau @ self.coupling_matrix.to(dtype)  # A.T tau_chain, per sample
-        for b, tau_b in tau_branch:
+        for b in self.spec.branches:
+            z_b, lever, _ = self._branch_lever(b, q, frames)
+            if b.joint_type == "prismatic":
+                tau_b = -b.mass * (z_b * g).sum(-1).expand(lever.shape[:-1])
+            else:
+                tau_b = b.mass * (z_b * torch.linalg.cross(g.expand_as(lever), lever)).sum(-1)
             tau = tau.index_add(-1, torch.tensor([b.source]), b.multiplier * tau_b[..., None])
         return tau
 
-    def _branch_statics(
-        self, b: BranchBody, q: Tensor, frames: Tensor, g: Tensor
-    ) -> tuple[Tensor, Tensor]:
-        """First moment ``(*B, 3)`` [kg m] of an off-chain body in the root frame and the
-        holding torque ``(*B,)`` on its own joint."""
+    def _branch_lever(self, b: BranchBody, q: Tensor, frames: Tensor):
+        """Axis ``z (*B, 3)`` of an off-chain joint, its body's centre of mass relative to
+        the joint ``lever = c - o (*B, 3)`` and the joint's origin ``o``, root frame."""
         dtype = frames.dtype
         O = torch.as_tensor(b.origin, dtype=dtype, device=frames.device)
         F = O if b.segment == 0 else frames[..., b.segment - 1, :, :] @ O  # joint frame
@@ -371,19 +389,57 @@ class Robot(nn.Module):
         a = torch.as_tensor(b.axis, dtype=dtype, device=frames.device)
         com = torch.as_tensor(b.com, dtype=dtype, device=frames.device)
         qb = b.multiplier * q[..., b.source].to(dtype) + b.offset
-        z = R @ a
         if b.joint_type == "prismatic":
             c_local = com + qb[..., None] * a
         else:  # Rodrigues: the centre of mass turned by qb about a
             s, k = torch.sin(qb)[..., None], (1 - torch.cos(qb))[..., None]
             axc = torch.linalg.cross(a, com)
             c_local = com + s * axc + k * torch.linalg.cross(a, axc)
-        lever = (R @ c_local[..., None])[..., 0]  # c - o
-        if b.joint_type == "prismatic":
-            tau_b = -b.mass * (z * g).sum(-1).expand(qb.shape)
-        else:
-            tau_b = b.mass * (z * torch.linalg.cross(g.expand_as(lever), lever)).sum(-1)
-        return b.mass * (lever + o), tau_b
+        lever = (R @ c_local[..., None])[..., 0]
+        return (R @ a).expand_as(lever), lever, o.expand_as(lever)
+
+    def static_wrenches(
+        self,
+        q: Tensor,
+        payload: float | Tensor = 0.0,
+        gravity: Tensor | tuple[float, float, float] = (0.0, 0.0, -STANDARD_GRAVITY),
+        params: KinematicParams | None = None,
+        frame: str = "root",
+    ) -> Tensor:
+        """The full static wrench each chain joint transmits to hold what it carries.
+
+        :meth:`gravity_torques` is its component along each joint's axis (summed over a
+        leader's mimic joints); the other five components load the bearings and bend
+        the links (what ``tilt_compliance`` and ``column_bending`` read). Same sign as
+        pinocchio's ``data.f`` after ``rnea`` at zero velocity and acceleration: the
+        wrench the parent side exerts on the subtree of chain joint ``i`` (segments
+        ``k >= i``, the off-chain bodies on them and the payload).
+
+        Args:
+            q: ``(*B, dof)`` joint values [rad or m].
+            payload: mass [kg] at the end-link origin; float or ``(*B,)`` tensor.
+            gravity: ``(3,)`` or ``(*B, 3)`` gravity in the root frame [m/s^2].
+            params: kinematic parameters to use instead of the robot's own.
+            frame: ``"root"``, or ``"joint"``: each wrench in its own joint's frame
+                (pinocchio's ``data.f`` convention).
+
+        Returns:
+            ``(*B, n_chain, 6)``: force [N] then moment [Nm] about the origin of chain
+            joint ``i``'s frame (on its axis, :meth:`link_frames` index ``i``), in the
+            root frame (or that joint frame).
+        """
+        if frame not in ("root", "joint"):
+            raise ValueError(f"frame must be 'root' or 'joint', got {frame!r}")
+        q = self._check_q(q)
+        frames = self.link_frames(q, params)
+        g = self._gravity(gravity, frames)[..., None, :]
+        mass_out, arm = self._subtree_loads(q, frames, payload)
+        force = (-mass_out[..., None] * g).expand_as(arm)
+        moment = torch.linalg.cross(g.expand_as(arm), arm)  # -(arm x m g) summed
+        if frame == "joint":
+            Rt = frames[..., : self.chain_dof, :3, :3].transpose(-1, -2)
+            force, moment = (Rt @ force[..., None])[..., 0], (Rt @ moment[..., None])[..., 0]
+        return torch.cat([force, moment], -1)
 
     def extra_repr(self) -> str:
         chain = f", chain={self.chain_joint_names}" if self.has_mimic else ""

@@ -8,7 +8,10 @@ One campaign (Ojer et al. 2024, section 4.1, generalised):
    order (backlash);
 3. unknown frames drawn from the seed: a laser tracker 2-4 m from the robot at any
    yaw with a small tilt (``T_meas_root``) and a tool 50-200 mm from the flange with
-   any rotation (``T_end_point``); identity when the frames are known;
+   any rotation (``T_end_point``); identity when the frames are known. With a
+   mounting (``mounting.py``: ceiling, wall, tilted base, any gravity) the tracker
+   stands level and the base frame carries the mount rotation, and gravity in the
+   robot frame follows the mount;
 4. true poses ``T_meas_root · fk(q_true, params_true) · T_end_point`` from
    :class:`~hybrid_pk.effects.ExtendedModel` with the injected effects;
 5. Gaussian measurement noise: per position coordinate ``noise_mm`` [mm]; orientation
@@ -30,7 +33,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from hybrid_pk.data.measured import MeasuredData
-from hybrid_pk.effects import Conditions, Effect, ExtendedModel, approach_direction
+from hybrid_pk.effects import Conditions, Effect, ExtendedModel, Gravity, approach_direction
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import error_stats, pose_error
 from hybrid_pk.geometry import (
@@ -42,6 +45,7 @@ from hybrid_pk.geometry import (
 )
 from hybrid_pk.robot import Robot
 from hybrid_pk.simulate.effect_specs import effect_entry, is_hidden_spec, parse_effects
+from hybrid_pk.simulate.mounting import Mount, mount_from_gravity, parse_mount
 from hybrid_pk.simulate.trajectories import TRAJECTORIES, Trajectory, iso_cube, make_trajectory
 
 __all__ = ["SIMULATED_SOURCE", "random_frames", "simulate_campaign", "warm_up"]
@@ -71,7 +75,7 @@ def _uniform(gen: torch.Generator, lo: float, hi: float, dtype: torch.dtype) -> 
 
 
 def random_frames(
-    generator: torch.Generator, dtype: torch.dtype = torch.float64
+    generator: torch.Generator, dtype: torch.dtype = torch.float64, level: bool = False
 ) -> tuple[Tensor, Tensor]:
     """A tracker somewhere in the room and a tool on the flange.
 
@@ -79,6 +83,8 @@ def random_frames(
     ``TRACKER_HEIGHT_M``, with any yaw and up to ``TRACKER_TILT_DEG`` roll and pitch.
     The measured point lies ``TOOL_LENGTH_M`` from the flange, within
     ``TOOL_CONE_DEG`` of its z axis; the tool frame has a uniformly random rotation.
+    ``level``: no roll or pitch (the draws are made all the same, so the other frames
+    of a seed do not change).
 
     Returns:
         ``(T_meas_root, T_end_point)``, each ``(4, 4)`` [m].
@@ -92,6 +98,8 @@ def random_frames(
     )
     tilt = math.radians(TRACKER_TILT_DEG)
     roll, pitch = (_uniform(g, -tilt, tilt, dtype) for _ in range(2))
+    if level:
+        roll = pitch = 0.0
     yaw = _uniform(g, -math.pi, math.pi, dtype)
     R_root_meas = (
         so3_exp(torch.tensor([0.0, 0.0, yaw], dtype=dtype))
@@ -172,6 +180,14 @@ def _check_args(
             raise HybridPKError(f"temperature range must be LO <= HI [°C], got {lo}, {hi}")
 
 
+def _mounting(mount) -> Mount | None:
+    if mount is None or isinstance(mount, Mount):
+        return mount
+    if isinstance(mount, Gravity):
+        return mount_from_gravity(mount)
+    return parse_mount(mount)
+
+
 def _check_poses(robot: Robot, poses: Tensor, n: int | None) -> Tensor:
     q = torch.as_tensor(poses).to(robot.dtype)
     if q.ndim != 2 or q.shape[1] != robot.dof or q.shape[0] == 0:
@@ -197,6 +213,7 @@ def simulate_campaign(
     temperature_range: tuple[float, float] | None = (20.0, 28.0),
     position_only: bool = False,
     known_frames: bool = False,
+    mount: str | Mount | Gravity | None = None,
     seed: int = 0,
     progress: bool = False,
     base: Tensor | None = None,
@@ -214,12 +231,15 @@ def simulate_campaign(
         noise_deg: std of the noise rotation vector, per axis [deg].
         trajectory: one of ``random``, ``continuous``, ``iso-cube``, ``zigzag``.
         payload: mass at the flange [kg], the same for every row.
-        payload_range: ``(lo, hi)`` [kg]: the rows come in blocks at payloads spread
-            over the range (instead of ``payload``).
+        payload_range: ``(lo, hi)`` [kg]: blocks of rows at payloads spread over it.
         temperature_range: ``(start, end)`` [°C] of a warm-up drift over the campaign;
             None writes no temperature column.
         position_only: write no orientation (``qw..qz``).
         known_frames: measure in the robot root frame at the flange (identity frames).
+        mount: ``--mount`` text (``ceiling``, ``wall``, ``tilt:DEG[,AZ]``, ``floor``), a
+            :class:`Mount` or a root-frame :class:`Gravity`: the tracker is then level,
+            the truth base frame holds the mount rotation. None: upright, the tracker
+            tilted up to ``TRACKER_TILT_DEG`` (as before mountings existed).
         seed: every random draw comes from it.
         progress: show a progress bar on stderr when it takes more than 2 s.
         base, tool: true ``T_meas_root`` / ``T_end_point`` instead of the drawn ones:
@@ -230,7 +250,7 @@ def simulate_campaign(
         ``"<simulated>"``) and the truth dict written as ``FILE.truth.json``.
 
     Raises:
-        HybridPKError: bad arguments, an effect that needs a missing condition, or a
+        HybridPKError: bad arguments, an effect whose condition is missing, or a
             Cartesian trajectory the robot cannot reach.
     """
     if poses is not None:
@@ -241,12 +261,9 @@ def simulate_campaign(
     streams = _streams(seed)
     spec = effects if isinstance(effects, str) else None
     mean_payload = payload if payload_range is None else sum(payload_range) / 2
-    if spec is not None:
-        effects = parse_effects(robot, spec, seed=seed, payload=mean_payload)
-    effects = list(effects)
-    for e in effects:
-        if e.needs == "temperature" and temperature_range is None:
-            raise HybridPKError(f"{e.label} needs a temperature; give a temperature range")
+    mounting = _mounting(mount)
+    gravity = Gravity() if mounting is None else mounting.gravity
+    effects = _effects(robot, effects, seed, mean_payload, gravity, temperature_range)
 
     dt = robot.dtype
     with torch.no_grad():
@@ -255,7 +272,10 @@ def simulate_campaign(
         else:
             traj = Trajectory(poses)
         q = traj.q.to(dt)
-        drawn_base, drawn_tool = random_frames(streams["frames"], dt)
+        drawn_base, drawn_tool = random_frames(streams["frames"], dt, level=mounting is not None)
+        if mounting is not None:  # T_meas_root = T_meas_world · T_world_root
+            mount_rotation = transform(mounting.rotation.to(dt), torch.zeros(3, dtype=dt))
+            drawn_base = drawn_base @ mount_rotation
         if known_frames:
             drawn_base = drawn_tool = torch.eye(4, dtype=dt)
         base = drawn_base if base is None else _frame_arg(base, drawn_base, "base")
@@ -265,37 +285,15 @@ def simulate_campaign(
             temperature=None if temperature_range is None else warm_up(n, *temperature_range, dt),
             direction=approach_direction(q),
         )
-        true_model = ExtendedModel(robot, effects, base=base, tool=tool)
+        true_model = ExtendedModel(robot, effects, base=base, tool=tool, gravity=gravity)
         nominal_model = ExtendedModel(robot, [], base=base, tool=tool)
-        T_true = torch.empty(n, 4, 4, dtype=dt)
-        T_nominal = torch.empty(n, 4, 4, dtype=dt)
-        with tqdm(
-            total=n, desc="simulate", unit="row", delay=2.0, file=sys.stderr, disable=not progress
-        ) as bar:
-            for start in range(0, n, _CHUNK):
-                rows = slice(start, min(start + _CHUNK, n))
-                T_true[rows] = true_model(q[rows], cond.subset(rows))
-                T_nominal[rows] = nominal_model(q[rows])
-                bar.update(rows.stop - rows.start)
-
+        T_true, T_nominal = _true_and_nominal(true_model, nominal_model, q, cond, progress)
         noise = streams["noise"]
         position = T_true[:, :3, 3] + 1e-3 * noise_mm * torch.randn(n, 3, generator=noise, dtype=dt)
         w = math.radians(noise_deg) * torch.randn(n, 3, generator=noise, dtype=dt)
         quat = None if position_only else matrix_to_quat(T_true[:, :3, :3] @ so3_exp(w))
 
-    err = pose_error(T_true, T_nominal)
-    data = MeasuredData(
-        q=q,
-        position=position,
-        quat=quat,
-        joint_names=tuple(robot.joint_names),
-        file_index=torch.zeros(n, dtype=torch.long),
-        rows=torch.arange(1, n + 1),
-        sources=(SIMULATED_SOURCE,),
-        t=traj.t,
-        temperature=cond.temperature,
-        payload=cond.payload,
-    )
+    data = _table(robot, q, position, quat, traj.t, cond)
     truth = {
         "robot": robot.name,
         "n": n,
@@ -310,8 +308,63 @@ def simulate_campaign(
         ),
         "position_only": bool(position_only),
         "known_frames": bool(known_frames),
+        "mount": None if mounting is None else mounting.to_dict(),
+        "gravity": list(gravity.vector),
         "effects_spec": spec,
         "effects_hidden": bool(spec is not None and is_hidden_spec(spec)),
+        **_truth_of_model(robot, effects, base, tool, T_true, T_nominal, trajectory),
+    }
+    return data, truth
+
+
+def _effects(robot, effects, seed, payload, gravity, temperature_range) -> list[Effect]:
+    """The effects to inject (an ``--effects`` text parsed), checked for their conditions."""
+    if isinstance(effects, str):
+        effects = parse_effects(robot, effects, seed=seed, payload=payload, gravity=gravity)
+    effects = list(effects)
+    for e in effects:
+        if e.needs == "temperature" and temperature_range is None:
+            raise HybridPKError(f"{e.label} needs a temperature; give a temperature range")
+    return effects
+
+
+def _table(robot, q, position, quat, t, cond: Conditions) -> MeasuredData:
+    """The simulated rows as one measured file."""
+    n = q.shape[0]
+    return MeasuredData(
+        q=q,
+        position=position,
+        quat=quat,
+        joint_names=tuple(robot.joint_names),
+        file_index=torch.zeros(n, dtype=torch.long),
+        rows=torch.arange(1, n + 1),
+        sources=(SIMULATED_SOURCE,),
+        t=t,
+        temperature=cond.temperature,
+        payload=cond.payload,
+    )
+
+
+def _true_and_nominal(true_model, nominal_model, q: Tensor, cond: Conditions, progress: bool):
+    """Poses ``(N, 4, 4)`` of the robot with its effects and of the nominal one."""
+    n, dt = q.shape[0], q.dtype
+    T_true = torch.empty(n, 4, 4, dtype=dt)
+    T_nominal = torch.empty(n, 4, 4, dtype=dt)
+    with tqdm(
+        total=n, desc="simulate", unit="row", delay=2.0, file=sys.stderr, disable=not progress
+    ) as bar:
+        for start in range(0, n, _CHUNK):
+            rows = slice(start, min(start + _CHUNK, n))
+            T_true[rows] = true_model(q[rows], cond.subset(rows))
+            T_nominal[rows] = nominal_model(q[rows])
+            bar.update(rows.stop - rows.start)
+    return T_true, T_nominal
+
+
+def _truth_of_model(robot, effects, base, tool, T_true, T_nominal, trajectory) -> dict:
+    """Effects, frames, dataset error (and ISO cube) entries of the truth JSON."""
+    err = pose_error(T_true, T_nominal)
+    truth = {
         "effects": [effect_entry(e) for e in effects],
         "base_frame": base.to(torch.float64).tolist(),
         "tool_frame": tool.to(torch.float64).tolist(),
@@ -328,4 +381,4 @@ def simulate_campaign(
             "rotation": cube.rotation.tolist(),
             "points": cube.points.tolist(),  # P1..P5 of the end link, root frame [m]
         }
-    return data, truth
+    return truth

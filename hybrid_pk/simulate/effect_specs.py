@@ -30,6 +30,7 @@ from hybrid_pk.effects import (
     Conditions,
     Effect,
     ExtendedModel,
+    Gravity,
     effect_joint_names,
     make_effect,
 )
@@ -98,7 +99,14 @@ def _items(text: str) -> list[str]:
     return [item.strip() for item in str(text).split(";") if item.strip()]
 
 
-def parse_effects(robot: Robot, text: str, *, seed: int = 0, payload: float = 0.0) -> list[Effect]:
+def parse_effects(
+    robot: Robot,
+    text: str,
+    *,
+    seed: int = 0,
+    payload: float = 0.0,
+    gravity: Gravity | None = None,
+) -> list[Effect]:
     """Effects described by ``text`` (see the module docstring for the grammar).
 
     Args:
@@ -106,6 +114,7 @@ def parse_effects(robot: Robot, text: str, *, seed: int = 0, payload: float = 0.
         text: the specification, e.g. ``"joint_offset:joint_2=1e-3; backlash:joint_4=2e-4"``.
         seed: seed of ``random[:K]`` draws (same seed, same effects).
         payload: [kg] load used to size random compliances.
+        gravity: the mounting random compliances are sized under (default upright).
 
     Returns:
         The effects in the order given (a preset expands in place).
@@ -133,7 +142,9 @@ def parse_effects(robot: Robot, text: str, *, seed: int = 0, payload: float = 0.
     for part in parts:
         if isinstance(part, tuple):  # drawn from the candidates not given explicitly
             k = _random_count(*part)
-            drawn = random_effects(robot, k, seed=seed, payload=payload, exclude=given)
+            drawn = random_effects(
+                robot, k, seed=seed, payload=payload, exclude=given, gravity=gravity
+            )
             given |= {e.label for e in drawn}
             part = drawn
         for e in part:
@@ -275,21 +286,24 @@ def _calibration_sample(robot: Robot) -> tuple[Tensor, Conditions, Tensor]:
     return q, cond, tool
 
 
-def _mean_error_mm(robot: Robot, effects: list[Effect], payload: float) -> float:
+def _mean_error_mm(
+    robot: Robot, effects: list[Effect], payload: float, gravity: Gravity | None = None
+) -> float:
     """Mean distance [mm] between the measured point with and without ``effects``."""
     q, cond, tool = _calibration_sample(robot)
     mass = torch.full((q.shape[0],), float(payload), dtype=q.dtype)
     cond = Conditions(payload=mass, direction=cond.direction)
     with torch.no_grad():
         nominal = ExtendedModel(robot, [], tool=tool)(q, cond)[:, :3, 3]
-        true = ExtendedModel(robot, effects, tool=tool)(q, cond)[:, :3, 3]
+        true = ExtendedModel(robot, effects, tool=tool, gravity=gravity)(q, cond)[:, :3, 3]
     return float((true - nominal).norm(dim=-1).mean()) * 1e3
 
 
-def _mean_abs_torque(robot: Robot, payload: float) -> Tensor:
+def _mean_abs_torque(robot: Robot, payload: float, gravity: Gravity | None = None) -> Tensor:
     q, _, _ = _calibration_sample(robot)
+    g = (gravity or Gravity()).vector
     with torch.no_grad():
-        return robot.gravity_torques(q, payload=payload).abs().mean(0)  # (dof,) [Nm]
+        return robot.gravity_torques(q, payload=payload, gravity=g).abs().mean(0)  # (dof,) [Nm]
 
 
 def paper_effects(robot: Robot) -> list[Effect]:
@@ -314,7 +328,9 @@ def paper_effects(robot: Robot) -> list[Effect]:
     return [make_effect(robot, e.label, float(e.value.detach()) * scale) for e in unit]
 
 
-def _random_candidates(robot: Robot, payload: float) -> list[tuple[str, str]]:
+def _random_candidates(
+    robot: Robot, payload: float, gravity: Gravity | None = None
+) -> list[tuple[str, str]]:
     """``(kind, joint)`` pairs worth drawing: observable apart from the base/tool frames.
 
     A first-joint offset is a base yaw; geometric effects of the first joint are
@@ -322,7 +338,7 @@ def _random_candidates(robot: Robot, payload: float) -> list[tuple[str, str]]:
     its own axis (no position error for a tool on that axis, a tool roll for an
     offset); compliance needs a loaded joint.
     """
-    tau = _mean_abs_torque(robot, payload)
+    tau = _mean_abs_torque(robot, payload, gravity)
     out = []
     for kind in _RANDOM_KINDS:
         names = effect_joint_names(robot, EFFECTS[kind])
@@ -346,15 +362,17 @@ def random_effects(
     seed: int = 0,
     payload: float = 0.0,
     exclude: set[str] | frozenset[str] = frozenset(),
+    gravity: Gravity | None = None,
 ) -> list[Effect]:
     """``k`` distinct effects with kind, joint, direction and size drawn from ``seed``.
 
     Each effect's size is set so that alone it moves the flange + a 125 mm tool by a
     mean distance drawn uniformly in :data:`RANDOM_TARGET_MM` over random
-    configurations at ``payload`` [kg]. Joints are distinct while there are enough;
-    labels in ``exclude`` (``kind:joint``) are not drawn.
+    configurations at ``payload`` [kg] under ``gravity`` (default upright). Joints are
+    distinct while there are enough; labels in ``exclude`` (``kind:joint``) are not drawn.
     """
-    candidates = [c for c in _random_candidates(robot, payload) if ":".join(c) not in exclude]
+    candidates = _random_candidates(robot, payload, gravity)
+    candidates = [c for c in candidates if ":".join(c) not in exclude]
     if k > len(candidates):
         raise HybridPKError(f"random:{k}: {robot.name} has only {len(candidates)} candidates")
     gen = torch.Generator().manual_seed(int(seed) * 7919 + 17)  # a stream of its own
@@ -378,7 +396,7 @@ def random_effects(
         target = lo + (hi - lo) * float(torch.rand((), generator=gen, dtype=torch.float64))
         probe = (direction * cls.scale).tolist()
         unit = make_effect(robot, f"{kind}:{joint}", probe[0] if n == 1 else probe)
-        error = _mean_error_mm(robot, [unit], payload)
+        error = _mean_error_mm(robot, [unit], payload, gravity)
         if not error > 1e-9:  # a candidate must move the measured point
             raise HybridPKError(f"{unit.label} does not move the measured point of {robot.name}")
         size = target / error

@@ -24,6 +24,15 @@ def plausibility_warnings(causes: list[Cause], data: MeasuredData) -> list[dict]
     out = []
     for c in causes:
         label = c.effect if c.joint is None else f"{c.effect}:{c.joint}"
+        if c.effect in ("tilt_compliance", "column_bending") and min(c.value) < 0:
+            out.append(
+                {
+                    "cause": label,
+                    "why": f"negative {c.effect} ({', '.join(f'{v:.3g}' for v in c.value)} "
+                    f"{c.unit}): a load cannot bend a structure towards itself; it likely "
+                    "absorbs another, unmodelled error",
+                }
+            )
         if c.effect in ("joint_compliance", "backlash") and float(c.value) < 0:
             out.append(
                 {

@@ -13,7 +13,14 @@ from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.effects import Effect, ExtendedModel
 from hybrid_pk.evaluation.metrics import error_stats
 
-__all__ = ["Cause", "Diagnosis", "identifiability_json", "report_value", "stats_json"]
+__all__ = [
+    "Cause",
+    "Diagnosis",
+    "gravity_json",
+    "identifiability_json",
+    "report_value",
+    "stats_json",
+]
 
 
 @dataclass
@@ -90,7 +97,21 @@ class Diagnosis:
             "robust": self.robust,
             "structural": self.structural,
             "frames": self.frames,
+            "gravity": gravity_json(self.model),
         }
+
+
+def gravity_json(model: ExtendedModel) -> dict:
+    """The mounting the statics used, with gravity in the root frame of each base set."""
+    out = model.gravity.to_dict()
+    with torch.no_grad():
+        if model.gravity.levelled:
+            R = model.base.matrix()[:, :3, :3]
+            g = torch.tensor(model.gravity.vector, dtype=R.dtype)
+            out["root_frame"] = [(R[k].T @ g).tolist() for k in range(R.shape[0])]
+        else:
+            out["root_frame"] = [list(model.gravity.vector)]
+    return out
 
 
 def stats_json(pos: Tensor, ori: Tensor | None) -> dict:

@@ -42,7 +42,7 @@ from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.calibration.robust import OUTLIER_K, down_weighted, list_outliers
 from hybrid_pk.data.measured import MeasuredData
-from hybrid_pk.effects import ExtendedModel, conditions_from_data, make_effect
+from hybrid_pk.effects import ExtendedModel, Gravity, conditions_from_data, make_effect
 from hybrid_pk.robot import Robot
 
 __all__ = ["Cause", "Diagnosis", "candidate_labels", "diagnose", "plausibility_warnings"]
@@ -64,6 +64,7 @@ def diagnose(
     progress: Callable[[str], None] | None = None,
     frames: FramePriors | None = None,
     robust: str | None = None,
+    gravity: Gravity | None = None,
 ) -> Diagnosis:
     """Name the physical causes of the nominal model's errors on ``data``.
 
@@ -81,13 +82,16 @@ def diagnose(
         robust: ``"huber"`` or ``"cauchy"``: every fit down-weights rows with gross
             errors (listed in ``robust``); None: least squares. Outliers beyond
             ``OUTLIER_K`` sigma are listed either way.
+        gravity: the mounting (root-frame vector or levelled tracker); default upright.
     """
     say = progress or (lambda _msg: None)
     robot.requires_grad_(False)
     split = split_campaign(data, conditions_from_data(data, frames_per_file), holdout, seed)
 
     say("fitting base and tool frames to the nominal model")
-    model = ExtendedModel(robot, frame_sets=len(data.sources) if frames_per_file else 1)
+    model = ExtendedModel(
+        robot, frame_sets=len(data.sources) if frames_per_file else 1, gravity=gravity
+    )
     initialise_with_priors(model, split.train, split.cond_fit, frames)
     res = fit(
         model, split.train, cond=split.cond_fit, progress=_prefixed(say, "frames"),

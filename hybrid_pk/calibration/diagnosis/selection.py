@@ -68,6 +68,8 @@ def candidate_labels(robot: Robot, data: MeasuredData) -> list[str]:
                 robot.joint_types[i] == "prismatic"
             ):
                 continue
+            if kind == "column_bending" and robot.chain_joint_types[i] != "prismatic":
+                continue  # a column's bending grows with its extension
             labels.append(f"{kind}:{joint}")
     if data.temperature is not None:
         spread = float(data.temperature.max() - data.temperature.min())

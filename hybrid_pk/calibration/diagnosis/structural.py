@@ -103,6 +103,8 @@ def implausibility(effect: Effect, robot: Robot, data: MeasuredData | None = Non
     )
     if kind == "joint_compliance":
         return _compliance_check(effect, robot, data)
+    if kind in ("tilt_compliance", "column_bending"):
+        return _deflection_check(effect, robot, data)
     if kind == "gear_ratio":
         limit, what, shown = MAX_GEAR_RATIO, "gear ratio error", f"{100 * size:.3g} %"
         limit_text = f"{100 * MAX_GEAR_RATIO:g} %"
@@ -155,6 +157,29 @@ def _compliance_check(effect: Effect, robot: Robot, data: MeasuredData | None) -
     }
 
 
+def _deflection_check(effect: Effect, robot: Robot, data: MeasuredData | None) -> dict | None:
+    """A bearing or link compliance beyond what metal shows (a column's per metre of
+    extension, times the longest extension of the data)."""
+    c = float(effect.value.detach().abs().max())
+    what = f"a compliance of {c:.3g} {effect.unit}"
+    if effect.kind == "column_bending":
+        reach = 1.0
+        if data is not None:
+            with torch.no_grad():
+                reach = float(robot.chain_q(data.q)[:, effect.joint_index].abs().max())
+        what += f" ({c * reach:.3g} rad/Nm at the longest extension, {reach:.3g} m)"
+        c *= reach
+    if c <= MAX_COMPLIANCE:
+        return None
+    return {
+        "cause": effect.label,
+        "value": c,
+        "limit": MAX_COMPLIANCE,
+        "unit": "rad/Nm",
+        "why": f"{what} is beyond what metal joints and links show ({MAX_COMPLIANCE:g} rad/Nm)",
+    }
+
+
 @torch.no_grad()
 def displacement(model: ExtendedModel, label: str, data: MeasuredData, cond: Conditions):
     """``(N, 3)`` [mm] what effect ``label`` moves the measured points by, frames fixed
@@ -167,6 +192,7 @@ def displacement(model: ExtendedModel, label: str, data: MeasuredData, cond: Con
             if e.label != label
         ],
         frame_sets=model.base.sets,
+        gravity=model.gravity,
     )
     reduced.base.reset_to(model.base.matrix().detach())
     reduced.tool.reset_to(model.tool.matrix().detach())
@@ -246,7 +272,7 @@ def _fit_correction(nominal: ExtendedModel, joint: str, split, sigmas, start: Te
     if start is not None:
         with torch.no_grad():
             effects[0].value.copy_(start)
-    model = ExtendedModel(robot, effects, frame_sets=nominal.base.sets)
+    model = ExtendedModel(robot, effects, frame_sets=nominal.base.sets, gravity=nominal.gravity)
     model.base.reset_to(nominal.base.matrix().detach())
     model.tool.reset_to(nominal.tool.matrix().detach())
     fit(model, split.train, cond=split.cond_fit, covariance=False, max_iter=40,

@@ -30,7 +30,9 @@ def with_effects(model: ExtendedModel, extra: list[Effect] = ()) -> ExtendedMode
     """A copy of ``model`` (same robot, frames and effect values) plus ``extra`` effects."""
     robot = model.robot
     effects = [make_effect(robot, e.label, e.value.detach().clone()) for e in model.effects]
-    out = ExtendedModel(robot, effects + list(extra), frame_sets=model.base.sets)
+    out = ExtendedModel(
+        robot, effects + list(extra), frame_sets=model.base.sets, gravity=model.gravity
+    )
     out.base.reset_to(model.base.matrix().detach())
     out.tool.reset_to(model.tool.matrix().detach())
     return out
