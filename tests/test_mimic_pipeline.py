@@ -159,13 +159,18 @@ def test_column_bending_of_the_mimic_column_is_named_within_20_percent(robot):
         pytest.skip("column_bending is not in the effect vocabulary of this checkout")
     rng = run_rng("mimic column bending")
     joint = str(rng.choice(["column_middle_joint", "column_top_joint"]))
-    direction = rng.normal(size=2)
+    direction = np.abs(rng.normal(size=2)) + 0.2  # compliances about two axes: positive
+    direction /= np.linalg.norm(direction)
     label = f"column_bending:{joint}"
-    unit = hpk.make_effect(robot, label, (direction / np.linalg.norm(direction)).tolist())
     payload, noise = float(rng.uniform(0.0, 8.0)), float(rng.uniform(0.02, 0.05))
-    _, probe = simulate_campaign(robot, 500, [unit], noise_mm=0.0, known_frames=True, seed=1)
-    size = float(rng.uniform(0.5, 2.0)) / probe["dataset_error"]["position_mm"]["mean"]
-    effect = hpk.make_effect(robot, label, (direction / np.linalg.norm(direction) * size).tolist())
+    # Probe at the effect's own scale (1e-6 rad/Nm/m), where the error is linear in it.
+    scale = EFFECTS["column_bending"].scale
+    unit = hpk.make_effect(robot, label, (direction * scale).tolist())
+    _, probe = simulate_campaign(
+        robot, 500, [unit], noise_mm=0.0, known_frames=True, payload=payload, seed=1
+    )
+    size = scale * float(rng.uniform(0.5, 2.0)) / probe["dataset_error"]["position_mm"]["mean"]
+    effect = hpk.make_effect(robot, label, (direction * size).tolist())
     seed = int(rng.integers(1 << 30))
     data, _ = simulate_campaign(
         robot, 500, [effect], noise_mm=noise, position_only=True, payload=payload, seed=seed

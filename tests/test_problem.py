@@ -75,6 +75,13 @@ def _geometric(model, block) -> bool:
     return model.effects[index].stage == "geometry"
 
 
+def _stage(model, block) -> str | None:
+    """The effect stage of a parameter block (None for the frames)."""
+    if not block.name.startswith("effects."):
+        return None
+    return model.effects[int(block.name.split(".")[1])].stage
+
+
 @pytest.mark.parametrize(
     ("robot_name", "position_only", "files"),
     [("rx160", False, 1), ("ur10", False, 2), ("ur10", True, 1)],
@@ -101,9 +108,16 @@ def test_structured_jacobian_matches_forward_mode_through_the_model(
             for b in blocks
         ]
     )
-    # The reference differentiates only the last two compliance fixed-point steps
-    # (ExtendedModel.joint_values: ~(c dg/dq)^2 relative), the structure is exact.
-    assert float(col_err[~geometric].max()) < 1e-6, float(col_err[~geometric].max())
+    # Frames and deflections: exact. Effects that move a joint (offsets, gear ratios,
+    # compliances, ...) leave out how that joint changes the loads the compliances and
+    # deflections see (c dtau/dq relative: 1e-6 to 2e-5 here, with 1e-7 to 5e-7 rad/Nm),
+    # and the reference differentiates only the last two compliance fixed-point steps
+    # (ExtendedModel.joint_values: ~(c dg/dq)^2 relative).
+    stages = [_stage(model, b) for b in blocks for _ in range(b.size)]
+    exact = torch.tensor([s in (None, "deflection") for s in stages])
+    moves = torch.tensor([s in ("joint", "compliance") for s in stages])
+    assert float(col_err[exact].max()) < 1e-9, float(col_err[exact].max())
+    assert float(col_err[moves].max()) < 1e-4, float(col_err[moves].max())
     # Geometric effects ignore their second-order coupling through the gravity torques.
     assert float(col_err[geometric].max()) < 1e-3, float(col_err[geometric].max())
     # The chunked reductions are the same products of the same rows.
