@@ -335,5 +335,8 @@ def test_a_model_file_of_format_1_still_loads_and_predicts_the_same():
     assert hybrid.box is not None
     assert hybrid.coverage is None
     with torch.no_grad():
-        assert torch.equal(hybrid(expected["q"]), expected["T"])
+        # The same networks on a base model whose gravity and compliance iteration were
+        # rewritten since (issue 11): equal to 1e-9 m (2.8e-11 m seen), not bit for bit.
+        T = hybrid(expected["q"])
+        assert torch.allclose(T, expected["T"], rtol=0, atol=1e-9), (T - expected["T"]).abs().max()
         assert torch.equal(hybrid.trust(expected["q"]), expected["trust"])
