@@ -5,7 +5,9 @@
 2. Forward selection (:mod:`.selection`): score every candidate from one Jacobian at
    the current model, refit the best one, keep it if the refit's F-test, BIC and
    hold-out error agree. Then the next step.
-3. Backward elimination (:mod:`.elimination`) after each addition.
+3. Backward elimination (:mod:`.elimination`) after each addition; after the search,
+   a cause with a near-duplicate is swapped for it where the data then need fewer
+   causes (:mod:`.swaps`).
 4. Ambiguity (:mod:`.ambiguity`): candidates equivalent to a fitted frame, chosen
    causes whose correction another candidate could make, correlated estimates.
 5. Each cause's gain is measured by leaving it out (refit without it) on the
@@ -36,6 +38,7 @@ from hybrid_pk.calibration.diagnosis.selection import (
 from hybrid_pk.calibration.diagnosis.split import Split, split_campaign
 from hybrid_pk.calibration.diagnosis.statistics import neighbour_structure, residual_vectors
 from hybrid_pk.calibration.diagnosis.structural import implausibility, structural_check
+from hybrid_pk.calibration.diagnosis.swaps import prefer_fewer_causes
 from hybrid_pk.calibration.diagnosis.variants import with_effects
 from hybrid_pk.calibration.fit import FitResult, fit, model_errors
 from hybrid_pk.calibration.frames import FramePriors
@@ -164,6 +167,7 @@ def _select(
     unobservable: list[str] = []
     first_step = True
     rejected_in_a_row = 0
+    pairs: list[tuple[str, str]] = []  # (chosen, near-duplicate) for the swaps after
     while pool and len(model.effects) < max_causes:
         say(f"scoring {len(pool)} candidate effects (step {len(steps) + 1})")
         scores = score_candidates(
@@ -206,10 +210,13 @@ def _select(
             continue
         rejected_in_a_row = 0
         # Near-duplicates among the remaining candidates make this choice ambiguous.
-        ambiguous += near_duplicates(best.label, best.fitted, scores.signatures)
+        duplicates = near_duplicates(best.label, best.fitted, scores.signatures)
+        ambiguous += duplicates
+        pairs += [(best.label, d["effects"][1]) for d in duplicates]
         model, res = new, new_res
         model, res, removed = eliminate(model, res, split, alpha, best.label, steps, say)
         pool = [c for c in pool if c not in removed]
+    model, res = prefer_fewer_causes(model, res, pairs, split, alpha, steps, say)
     return model, res, steps, ambiguous, unobservable
 
 

@@ -1,0 +1,129 @@
+"""Parsimony after the greedy search: one cause where the search needed two.
+
+Forward selection picks by score, one cause at a time. A cause chosen early can need a
+second one to finish what a near-duplicate does alone: on the RX160 a joint_2 offset
+plus a joint_3 origin moved perpendicular to the upper arm is, to first order, exactly
+a joint_3 offset. Each chosen cause with a near-duplicate (``near_duplicates``) is
+therefore swapped for it, refitted and followed by backward elimination; the swap stays
+when the data then need fewer causes and fit no worse (BIC and hold-out score, both
+models' residuals under the same noise weights).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+from hybrid_pk.calibration.diagnosis.elimination import eliminate
+from hybrid_pk.calibration.diagnosis.split import Split
+from hybrid_pk.calibration.diagnosis.statistics import f_survival, holdout_score, weighted_ssr
+from hybrid_pk.calibration.diagnosis.structural import implausibility
+from hybrid_pk.calibration.diagnosis.variants import refit_without, with_effects, without_effect
+from hybrid_pk.calibration.fit import FitResult, fit
+from hybrid_pk.effects import ExtendedModel, make_effect
+
+__all__ = ["prefer_fewer_causes"]
+
+
+def prefer_fewer_causes(
+    model: ExtendedModel,
+    res: FitResult,
+    pairs: list[tuple[str, str]],
+    split: Split,
+    alpha: float,
+    steps: list[dict],
+    say: Callable[[str], None],
+) -> tuple[ExtendedModel, FitResult]:
+    """Swap chosen causes for near-duplicates where that leaves fewer causes.
+
+    Args:
+        pairs: ``(chosen, alternative)`` labels, as ``near_duplicates`` found them.
+        steps: the search's step records; an accepted swap appends its own and the
+            removals that followed it.
+
+    Returns the (possibly) simpler model and its fit.
+    """
+    for chosen in dict.fromkeys(c for c, _ in pairs):
+        labels = [e.label for e in model.effects]
+        if chosen not in labels or len(labels) < 2:
+            continue
+        best = None  # (d_bic, alternative, model, fit, removed, removal steps)
+        for alternative in [a for c, a in pairs if c == chosen and a not in labels]:
+            trial = _swapped(model, res, chosen, alternative, split, alpha, say)
+            if trial is not None and (best is None or trial[0] < best[0]):
+                best = trial
+        if best is None:
+            continue
+        _, alternative, trial, trial_res, removed, removals = best
+        chosen_step = next(s for s in steps if s["candidate"] == chosen and s.get("accepted"))
+        step = {"candidate": alternative, "replaces": chosen, "accepted": True}
+        step.update(_evidence(trial, trial_res, alternative, split, chosen_step["threshold"]))
+        step["why"] = (
+            f"{alternative} alone does what {chosen} needed {', '.join(sorted(removed))} "
+            "for: fewer causes, the same fit"
+        )
+        chosen_step["accepted"] = False
+        chosen_step["why"] = f"replaced by {alternative} (fewer causes, the same fit)"
+        steps.append(step)
+        steps.extend(removals)
+        model, res = trial, trial_res
+    return model, res
+
+
+def _swapped(model, res, chosen, alternative, split, alpha, say):
+    """``(BIC change, alternative, model, fit, removed, removal steps)`` of ``model``
+    with ``alternative`` in place of ``chosen`` after backward elimination, or None when
+    that is implausible, removes nothing, or fits worse."""
+    say(f"trying {alternative} in place of {chosen}")
+    trial = with_effects(without_effect(model, chosen), [make_effect(model.robot, alternative)])
+    sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
+    trial_res = fit(
+        trial, split.train, cond=split.cond_fit, initial_sigma=sigmas, progress=say,
+        **res.settings(),
+    )  # fmt: skip
+    if implausibility(trial.effect(alternative), trial.robot, split.train) is not None:
+        return None
+    removals: list[dict] = []
+    trial, trial_res, removed = eliminate(
+        trial, trial_res, split, alpha, alternative, removals, say
+    )
+    if not removed:
+        return None
+    d_bic = _bic_change(model, res, trial, trial_res, split)
+    hold_cur = holdout_score(model, split.test, split.cond_hold, res)
+    hold_new = holdout_score(trial, split.test, split.cond_hold, res)
+    if d_bic > 0 or hold_new > hold_cur * 1.01:
+        return None
+    return d_bic, alternative, trial, trial_res, removed, removals
+
+
+def _bic_change(current, res, trial, trial_res, split: Split) -> float:
+    """BIC of ``trial`` minus ``current``'s on the fit rows, both under ``res``'s noise
+    weights."""
+    m = res.n_obs
+    ssr_cur = weighted_ssr(current, split.train, split.cond_fit, res)
+    ssr_new = weighted_ssr(trial, split.train, split.cond_fit, res)
+    d_bic = m * math.log(max(ssr_new, 1e-300) / max(ssr_cur, 1e-300))
+    return d_bic + (trial_res.n_params - res.n_params) * math.log(m)
+
+
+def _evidence(
+    model: ExtendedModel, res: FitResult, label: str, split: Split, threshold: float
+) -> dict:
+    """The F-test, BIC change and hold-out scores of ``label`` in ``model`` against
+    ``model`` refitted without it (the fields a search step records)."""
+    train, cond = split.train, split.cond_fit
+    reduced = refit_without(model, label, train, cond, res)
+    ssr_full = weighted_ssr(model, train, cond, res)
+    ssr_red = weighted_ssr(reduced, train, cond, res)
+    k, m = model.effect(label).value.numel(), res.n_obs
+    dof = max(m - res.n_params, 1)
+    F = ((ssr_red - ssr_full) / k) / max(ssr_full / dof, 1e-300)
+    return {
+        "fit_F": F,
+        "fit_p": f_survival(F, k, dof) if F > 0 else 1.0,
+        "threshold": threshold,
+        "delta_bic": m * math.log(max(ssr_full, 1e-300) / max(ssr_red, 1e-300)) + k * math.log(m),
+        "holdout_score_before": holdout_score(reduced, split.test, split.cond_hold, res),
+        "holdout_score_after": holdout_score(model, split.test, split.cond_hold, res),
+    }
