@@ -3,12 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
-from pathlib import Path
 
 from hybrid_pk.calibration.planning import CRITERIA, Plan, plan_poses
-from hybrid_pk.cli.common import load_robot, write_json
+from hybrid_pk.cli.common import load_robot, read_json, write_json
 from hybrid_pk.cli.effect_lists import effect_labels
 from hybrid_pk.cli.options import (
     add_end_link,
@@ -97,12 +95,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def read_joint_box(path: str) -> dict[str, tuple[float, float]]:
     """``{joint: (lower, upper)}`` of a ``--joint-box`` JSON file."""
-    try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise HybridPKError(f"--joint-box: file not found: {path}") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise HybridPKError(f"--joint-box: {path} is not a JSON file: {exc}") from None
+    doc = read_json(path, "--joint-box")
     if not isinstance(doc, dict) or not doc:
         raise HybridPKError(f'--joint-box: {path} must hold {{"joint_2": [lower, upper], ...}}')
     box = {}
