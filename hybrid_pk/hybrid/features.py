@@ -46,6 +46,7 @@ __all__ = [
     "FeatureSpec",
     "PhysicsFeatures",
     "StandardisedInputs",
+    "cpu_copies",
     "gravity_along",
     "static_wrenches",
 ]
@@ -145,6 +146,11 @@ class FeatureSpec:
         return cls(int(parts[0][5:]), "gravity" in rest, wrench, span)
 
 
+def cpu_copies(obj, *names: str) -> dict[str, Tensor]:
+    """``{name: copy on the CPU}`` of the tensors ``obj.<name>`` (model-file state)."""
+    return {name: getattr(obj, name).cpu().clone() for name in names}
+
+
 def gravity_along(robot: Robot, gravity: Tensor) -> bool:
     """Whether ``gravity (3,)`` [root frame] lies along joint 1's axis (floor or ceiling
     mounting): then the arm's load does not change when joint 1 turns."""
@@ -225,11 +231,7 @@ class StandardisedInputs(nn.Module):
 
     def standardisation_state(self) -> dict[str, Tensor]:
         """The buffers as plain data for a model file (the tail of ``state()``)."""
-        return {
-            "gravity": self.gravity.cpu().clone(),
-            "shift": self.shift.cpu().clone(),
-            "scale": self.scale.cpu().clone(),
-        }
+        return cpu_copies(self, "gravity", "shift", "scale")
 
     def load_standardisation(self, state: dict) -> StandardisedInputs:
         """Copy ``shift`` / ``scale`` of a ``state()`` into the buffers; returns self."""
