@@ -29,6 +29,7 @@ __all__ = [
     "FRAME_LABELS",
     "data_notes",
     "fit_frames",
+    "flag_values",
     "frame_parameter_count",
     "frame_set_index",
     "frame_sets_for",
@@ -233,6 +234,11 @@ def stats_line(label: str, stats: ErrorStats | torch.Tensor, digits: int = 4) ->
         f"{label:<24} mean {s.mean:.{digits}g}  rms {s.rms:.{digits}g}  "
         f"p95 {s.p95:.{digits}g}  max {s.max:.{digits}g}"
     )
+
+
+def flag_values(args: argparse.Namespace, *names: str) -> dict:
+    """``{name: args.<name>}``: flags passed on as the keyword arguments of the same name."""
+    return {name: getattr(args, name) for name in names}
 
 
 def read_json(path: str | os.PathLike, flag: str, kind: str = ""):

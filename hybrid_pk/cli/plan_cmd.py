@@ -6,7 +6,7 @@ import argparse
 import math
 
 from hybrid_pk.calibration.planning import CRITERIA, Plan, plan_poses
-from hybrid_pk.cli.common import load_robot, read_json, write_json
+from hybrid_pk.cli.common import flag_values, load_robot, read_json, write_json
 from hybrid_pk.cli.effect_lists import effect_labels
 from hybrid_pk.cli.options import (
     add_end_link,
@@ -43,6 +43,17 @@ joint_compliance:joint_3, ...) or the causes of a `diagnose --json` file; defaul
 _UNITS = {"m": ("mm", 1e3), "rad": ("mrad", 1e3), "rad/Nm": ("urad/Nm", 1e6)}
 _UNITS.update({"1": ("ppm", 1e6), "1/K": ("ppm/K", 1e6)})
 
+
+# Flags that are plan_poses() keywords of the same name.
+_PLAN_FLAGS = (
+    "candidates",
+    "position_only",
+    "seed",
+    "noise_mm",
+    "noise_deg",
+    "payload",
+    "criterion",
+)
 
 NAME = "plan"
 HELP = "choose the poses to measure (D-optimal for the frames + named effects)"
@@ -196,15 +207,9 @@ def run(args: argparse.Namespace) -> int:
             robot,
             args.n,
             effects=labels,
-            candidates=args.candidates,
-            position_only=args.position_only,
             box=box,
-            seed=args.seed,
-            noise_mm=args.noise_mm,
-            noise_deg=args.noise_deg,
-            payload=args.payload,
-            criterion=args.criterion,
             progress=bar.report,
+            **flag_values(args, *_PLAN_FLAGS),
         )
     write_joint_table(args.out, plan.q, robot.joint_names)
     for line in _summary(plan, args, labels):
