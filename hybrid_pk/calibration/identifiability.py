@@ -237,22 +237,20 @@ def _frame_information(
 
 
 def _directions(
-    model: ExtendedModel,
-    data: MeasuredData,
-    cond: Conditions,
-    blocks: tuple[ParamBlock, ...],
+    cols: list[tuple[str, int, int, int]],
+    information: tuple[Tensor, Tensor, int],
+    n_rows: int,
     sigma_pos_mm: float,
     sigma_rot_rad: float | None,
     prior: PriorRows | None,
-) -> tuple[list[dict], Tensor | None]:
-    cols = _columns(blocks)
-    if not cols:
-        return [], None
+) -> list[dict]:
+    """The weak directions of the frame columns ``cols`` given their position and
+    rotation information on ``n_sub`` of the ``n_rows`` rows (``information``)."""
     idx = [c[3] for c in cols]
-    H_pos, H_rot, R_flange, n_sub = _frame_information(model, data, cond, blocks)
+    H_pos, H_rot, n_sub = information
     lam, V = torch.linalg.eigh((H_pos + H_rot) / max(n_sub, 1))  # physical, per row
     # noise-normalised information of all the rows (scaled units)
-    H = (data.n / n_sub) * (H_pos / sigma_pos_mm**2 + H_rot / (1e3 * (sigma_rot_rad or 1.0)) ** 2)
+    H = (n_rows / n_sub) * (H_pos / sigma_pos_mm**2 + H_rot / (1e3 * (sigma_rot_rad or 1.0)) ** 2)
     P = torch.zeros_like(H) if prior is None else (prior.A[:, idx].T @ prior.A[:, idx])
     out = []
     for k in range(len(idx)):
@@ -282,7 +280,7 @@ def _directions(
                 "prior_std": prior_std,
             }
         )
-    return out, R_flange
+    return out
 
 
 def frame_report(
@@ -314,7 +312,10 @@ def frame_report(
         start: ``{"base": (G, 4, 4), "rms_mm": float}`` where the fit started.
         rms_mm: rms position error [mm] after the fit.
     """
-    raw, R_flange = _directions(model, data, cond, blocks, sigma_pos_mm, sigma_rot_rad, prior)
+    cols, raw, R_flange = _columns(blocks), [], None
+    if cols:
+        H_pos, H_rot, R_flange, n_sub = _frame_information(model, data, cond, blocks)
+        raw = _directions(cols, (H_pos, H_rot, n_sub), data.n, sigma_pos_mm, sigma_rot_rad, prior)
     groups: dict[tuple, list[dict]] = {}
     for d in raw:
         groups.setdefault((d["block"], d["set"], d["status"]), []).append(d)

@@ -16,15 +16,23 @@ from hybrid_pk.geometry.registration import kabsch
 __all__ = ["initialise_with_priors"]
 
 
+def _frame_groups(sets: int, cond: Conditions):
+    """``(g, rows)`` of each set ``g`` of a frame with ``sets`` sets that has rows (``g``
+    None and all rows for a single set or rows without groups)."""
+    if sets == 1 or cond.group is None:
+        yield None, slice(None)
+        return
+    for g in range(sets):
+        rows = cond.group == g
+        if bool(rows.any()):
+            yield g, rows
+
+
 def _register_base_to_tool(model: ExtendedModel, data: MeasuredData, cond: Conditions) -> None:
     """Closed-form base for the model's current tool: Kabsch of the predicted points."""
     with torch.no_grad():
         T_end = predicted_poses(model, data.q, cond, end_link=True)
-        groups = [None] if model.base.sets == 1 or cond.group is None else range(model.base.sets)
-        for g in groups:
-            rows = slice(None) if g is None else cond.group == g
-            if g is not None and not bool(rows.any()):
-                continue
+        for g, rows in _frame_groups(model.base.sets, cond):
             X = model.tool.matrix()[0 if g is None else g].to(T_end.dtype)
             points = (T_end[rows] @ X)[:, :3, 3]
             R, p = kabsch(points, data.position[rows])
@@ -35,11 +43,7 @@ def _register_tool_to_base(model: ExtendedModel, data: MeasuredData, cond: Condi
     """Closed-form tool for the model's current base: linear in its translation."""
     with torch.no_grad():
         T_end = predicted_poses(model, data.q, cond, end_link=True)
-        groups = [None] if model.tool.sets == 1 or cond.group is None else range(model.tool.sets)
-        for g in groups:
-            rows = slice(None) if g is None else cond.group == g
-            if g is not None and not bool(rows.any()):
-                continue
+        for g, rows in _frame_groups(model.tool.sets, cond):
             B = model.base.matrix()[0 if g is None else g].to(T_end.dtype)
             R_F, p_F = T_end[rows, :3, :3], T_end[rows, :3, 3]
             A = B[:3, :3] @ R_F  # (n, 3, 3): p_meas = p_B + R_B p_F + (R_B R_F) p_X

@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.effects import Conditions, ExtendedModel
-from hybrid_pk.geometry import skew, so3_exp
+from hybrid_pk.geometry import so3_exp, so3_left_jacobian
 
 __all__ = ["deflection_twists", "levelled_gravity_twists", "loaded_state"]
 
@@ -56,18 +56,6 @@ def loaded_state(model: ExtendedModel, q: Tensor, cond: Conditions):
         wrenches = model.static_wrenches(q_star, params, cond, gravity)
     bent = model.deflected_params(q_star, params, cond, gravity, wrenches)
     return params, gravity, q_star, wrenches, bent
-
-
-def _left_jacobian(w: Tensor) -> Tensor:
-    """``(*B, 3, 3)`` ``J_l(w)``: ``d exp(w) = [J_l(w) dw] exp(w)``."""
-    theta2 = (w * w).sum(-1)[..., None, None]
-    small = theta2 < 1e-8
-    t2 = torch.where(small, torch.ones_like(theta2), theta2)
-    t = t2.sqrt()
-    a = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(t)) / t2)
-    b = torch.where(small, 1.0 / 6 - theta2 / 120, (t - torch.sin(t)) / (t2 * t))
-    K = skew(w)
-    return torch.eye(3, dtype=w.dtype).expand_as(K) + a * K + b * (K @ K)
 
 
 @torch.no_grad()
@@ -102,7 +90,7 @@ def deflection_twists(
             [e.rotation_per_unit(wrenches[..., i, :], q_chain, k) for k in range(2)], -1
         )  # (n, 3, 2)
         F = frames[:, i]
-        omega = F[:, :3, :3] @ _left_jacobian(w) @ unit  # (n, 3, 2), root frame
+        omega = F[:, :3, :3] @ so3_left_jacobian(w) @ unit  # (n, 3, 2), root frame
         pivot_root = F[:, :3, 3] + (F[:, :3, :3] @ pivot[..., None])[..., 0]
         lever = (point - pivot_root)[:, :, None].expand_as(omega)
         v = torch.linalg.cross(omega, lever, dim=1)

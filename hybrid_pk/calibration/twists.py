@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.effects import RigidFrame
-from hybrid_pk.geometry import skew, so3_exp
+from hybrid_pk.geometry import skew, so3_exp, so3_left_jacobian
 
 __all__ = [
     "frame_rotation_derivatives",
@@ -39,26 +39,13 @@ def vee(S: Tensor) -> Tensor:
     )
 
 
-def _so3_left_jacobian(w: Tensor) -> Tensor:
-    """``(*B, 3, 3)`` left Jacobian of ``so3_exp``: ``d exp(w) = [J_l(w) dw] exp(w)``."""
-    theta2 = (w * w).sum(-1)[..., None, None]
-    small = theta2 < 1e-8
-    t2 = torch.where(small, torch.ones_like(theta2), theta2)
-    t = t2.sqrt()
-    a = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(t)) / t2)
-    b = torch.where(small, 1.0 / 6 - theta2 / 120, (t - torch.sin(t)) / (t2 * t))
-    K = skew(w)
-    eye = torch.eye(3, dtype=w.dtype, device=w.device).expand_as(K)
-    return eye + a * K + b * (K @ K)
-
-
 def frame_rotation_derivatives(frame: RigidFrame) -> tuple[Tensor, Tensor]:
     """Rotations ``R (G, 3, 3)`` of a frame's sets and the spatial angular velocity
     ``w (G, 3, 3)`` (``w[g, :, c]``) of each rotation-vector component ``c``:
     ``dR / d rotvec_c = [w_c] R``, ``R = R0 exp(rotvec)``, so ``w = R0 J_l(rotvec)``."""
     R0 = frame.T0[:, :3, :3]
     rv = frame.rotvec.detach()
-    return R0 @ so3_exp(rv), R0 @ _so3_left_jacobian(rv)
+    return R0 @ so3_exp(rv), R0 @ so3_left_jacobian(rv)
 
 
 def frame_twists(

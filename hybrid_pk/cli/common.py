@@ -29,6 +29,7 @@ __all__ = [
     "FRAME_LABELS",
     "data_notes",
     "fit_frames",
+    "flag_values",
     "frame_parameter_count",
     "frame_set_index",
     "frame_sets_for",
@@ -36,6 +37,7 @@ __all__ = [
     "load_robot",
     "mounting_lines",
     "read_data",
+    "read_json",
     "stats_line",
     "with_frame_sets",
     "write_json",
@@ -232,6 +234,24 @@ def stats_line(label: str, stats: ErrorStats | torch.Tensor, digits: int = 4) ->
         f"{label:<24} mean {s.mean:.{digits}g}  rms {s.rms:.{digits}g}  "
         f"p95 {s.p95:.{digits}g}  max {s.max:.{digits}g}"
     )
+
+
+def flag_values(args: argparse.Namespace, *names: str) -> dict:
+    """``{name: args.<name>}``: flags passed on as the keyword arguments of the same name."""
+    return {name: getattr(args, name) for name in names}
+
+
+def read_json(path: str | os.PathLike, flag: str, kind: str = ""):
+    """The document of the JSON file ``path`` given to option ``flag``; a missing or
+    unreadable file is a :class:`HybridPKError` naming both (``kind``: what the file
+    holds, e.g. ``"diagnosis"``, for the messages)."""
+    what = f"{kind} " if kind else ""
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise HybridPKError(f"{flag}: {what}file not found: {path}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise HybridPKError(f"{flag}: {path} is not a {what}JSON file: {exc}") from None
 
 
 def write_json(path: str | os.PathLike, obj: dict) -> Path:

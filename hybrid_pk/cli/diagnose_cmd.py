@@ -7,7 +7,7 @@ import json
 import math
 from pathlib import Path
 
-from hybrid_pk.cli.common import load_robot, mounting_lines, read_data
+from hybrid_pk.cli.common import flag_values, load_robot, mounting_lines, read_data
 from hybrid_pk.cli.fit_settings import diagnosis_notes, frame_priors, robust_loss
 from hybrid_pk.cli.options import (
     add_data,
@@ -173,12 +173,8 @@ def run(args: argparse.Namespace) -> int:
         result = diagnose(
             robot,
             data,
-            holdout=args.holdout,
-            seed=args.seed,
             candidates=candidates,
-            alpha=args.alpha,
-            max_causes=args.max_causes,
-            frames_per_file=args.frames_per_file,
+            **flag_values(args, "holdout", "seed", "alpha", "max_causes", "frames_per_file"),
             frames=frame_priors(args),
             robust=robust_loss(args),
             progress=progress.stage,

@@ -3,9 +3,7 @@ causes of a ``diagnose --json`` file."""
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
-
+from hybrid_pk.cli.common import read_json
 from hybrid_pk.errors import HybridPKError
 
 __all__ = ["diagnosis_labels", "effect_labels"]
@@ -35,12 +33,7 @@ def effect_labels(text: str, flag: str = "--effects", others: str = "") -> list[
 
 def diagnosis_labels(path: str, flag: str = "--effects") -> list[str]:
     """The causes of a ``diagnose --json`` file as effect labels."""
-    try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise HybridPKError(f"{flag}: diagnosis file not found: {path}") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise HybridPKError(f"{flag}: {path} is not a diagnosis JSON file: {exc}") from None
+    doc = read_json(path, flag, "diagnosis")
     causes = doc.get("causes") if isinstance(doc, dict) else None
     if not isinstance(causes, list) or not all(
         isinstance(c, dict) and isinstance(c.get("effect"), str) for c in causes

@@ -42,9 +42,25 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "(joints [rad], x, y, z [m], qw, qx, qy, qz).",
     )
     formats = parser.add_subparsers(dest="format", metavar="FORMAT", required=True)
-    ipa = command_parser(
-        formats, "ipa", help="UR10 laser-tracker files of the IPA data set", description=_IPA_HELP
-    )
+    for name, text, description, add_options in (
+        ("ipa", "UR10 laser-tracker files of the IPA data set", _IPA_HELP, _ipa_options),
+        (
+            "columns",
+            "any export, by a column map (units, separators, Euler conventions)",
+            _COLUMNS_HELP,
+            _columns_options,
+        ),
+        (
+            "streams",
+            "dynamic campaign: robot joint stream + tracker stream with a time offset",
+            _STREAMS_HELP,
+            _streams_options,
+        ),
+    ):
+        add_options(command_parser(formats, name, help=text, description=description))
+
+
+def _ipa_options(ipa: argparse.ArgumentParser) -> None:
     _add_sources_and_out(ipa, "IPA measurements_*.csv file(s)")
     ipa.add_argument(
         "--convention",
@@ -56,8 +72,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         f"joint angles (default: {MEASUREMENT_CONVENTION}, verified on the published data)",
     )
     ipa.set_defaults(func=_run_ipa)
-    _register_columns(formats)
-    _register_streams(formats)
 
 
 def _add_sources_and_out(parser: argparse.ArgumentParser, sources_help: str) -> None:
@@ -133,13 +147,7 @@ Options given on the command line replace those of a map file.
 """
 
 
-def _register_columns(formats: argparse._SubParsersAction) -> None:
-    cols = command_parser(
-        formats,
-        "columns",
-        help="any export, by a column map (units, separators, Euler conventions)",
-        description=_COLUMNS_HELP,
-    )
+def _columns_options(cols: argparse.ArgumentParser) -> None:
     _add_sources_and_out(cols, "export file(s) to convert")
     cols.add_argument(
         "--map", required=True, metavar="MAP", help="column map: .json/.yaml file or inline"
@@ -244,13 +252,7 @@ map per stream (--robot-map, --tracker-map; see 'hybrid-pk import columns -h').
 """
 
 
-def _register_streams(formats: argparse._SubParsersAction) -> None:
-    st = command_parser(
-        formats,
-        "streams",
-        help="dynamic campaign: robot joint stream + tracker stream with a time offset",
-        description=_STREAMS_HELP,
-    )
+def _streams_options(st: argparse.ArgumentParser) -> None:
     st.add_argument("robot_stream", metavar="ROBOT_STREAM", help="joint stream file")
     st.add_argument("tracker_stream", metavar="TRACKER_STREAM", help="tracker stream file")
     add_robot(st, required=True)

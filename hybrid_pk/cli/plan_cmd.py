@@ -3,12 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
-from pathlib import Path
 
 from hybrid_pk.calibration.planning import CRITERIA, Plan, plan_poses
-from hybrid_pk.cli.common import load_robot, write_json
+from hybrid_pk.cli.common import flag_values, load_robot, read_json, write_json
 from hybrid_pk.cli.effect_lists import effect_labels
 from hybrid_pk.cli.options import (
     add_end_link,
@@ -45,6 +43,17 @@ joint_compliance:joint_3, ...) or the causes of a `diagnose --json` file; defaul
 _UNITS = {"m": ("mm", 1e3), "rad": ("mrad", 1e3), "rad/Nm": ("urad/Nm", 1e6)}
 _UNITS.update({"1": ("ppm", 1e6), "1/K": ("ppm/K", 1e6)})
 
+
+# Flags that are plan_poses() keywords of the same name.
+_PLAN_FLAGS = (
+    "candidates",
+    "position_only",
+    "seed",
+    "noise_mm",
+    "noise_deg",
+    "payload",
+    "criterion",
+)
 
 NAME = "plan"
 HELP = "choose the poses to measure (D-optimal for the frames + named effects)"
@@ -97,12 +106,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def read_joint_box(path: str) -> dict[str, tuple[float, float]]:
     """``{joint: (lower, upper)}`` of a ``--joint-box`` JSON file."""
-    try:
-        doc = json.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise HybridPKError(f"--joint-box: file not found: {path}") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise HybridPKError(f"--joint-box: {path} is not a JSON file: {exc}") from None
+    doc = read_json(path, "--joint-box")
     if not isinstance(doc, dict) or not doc:
         raise HybridPKError(f'--joint-box: {path} must hold {{"joint_2": [lower, upper], ...}}')
     box = {}
@@ -203,15 +207,9 @@ def run(args: argparse.Namespace) -> int:
             robot,
             args.n,
             effects=labels,
-            candidates=args.candidates,
-            position_only=args.position_only,
             box=box,
-            seed=args.seed,
-            noise_mm=args.noise_mm,
-            noise_deg=args.noise_deg,
-            payload=args.payload,
-            criterion=args.criterion,
             progress=bar.report,
+            **flag_values(args, *_PLAN_FLAGS),
         )
     write_joint_table(args.out, plan.q, robot.joint_names)
     for line in _summary(plan, args, labels):

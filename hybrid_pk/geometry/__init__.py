@@ -12,6 +12,7 @@ from hybrid_pk.geometry.rotations import rotation_angle as rotation_angle
 from hybrid_pk.geometry.rotations import rpy_to_matrix as rpy_to_matrix
 from hybrid_pk.geometry.rotations import skew as skew
 from hybrid_pk.geometry.rotations import so3_exp as so3_exp
+from hybrid_pk.geometry.rotations import so3_left_jacobian as so3_left_jacobian
 from hybrid_pk.geometry.rotations import so3_log as so3_log
 from hybrid_pk.geometry.rotations import transform as transform
 from hybrid_pk.geometry.rotations import transform_inverse as transform_inverse

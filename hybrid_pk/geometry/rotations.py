@@ -20,6 +20,7 @@ __all__ = [
     "rpy_to_matrix",
     "skew",
     "so3_exp",
+    "so3_left_jacobian",
     "so3_log",
     "transform",
     "transform_inverse",
@@ -55,6 +56,20 @@ def so3_exp(w: Tensor) -> Tensor:
     a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
     # (1 - cos t) / t^2 written as 2 sin^2(t/2) / t^2: no cancellation for small t in float32.
     b = torch.where(small, 0.5 - theta2 / 24, 2 * torch.sin(theta / 2) ** 2 / theta2_safe)
+    K = skew(w)
+    eye = torch.eye(3, dtype=w.dtype, device=w.device).expand_as(K)
+    return eye + a * K + b * (K @ K)
+
+
+def so3_left_jacobian(w: Tensor) -> Tensor:
+    """``(*B, 3, 3)`` left Jacobian of :func:`so3_exp` at ``w (*B, 3)`` [rad]:
+    ``d exp(w) = [J_l(w) dw] exp(w)``."""
+    theta2 = (w * w).sum(-1)[..., None, None]
+    small = theta2 < 1e-8
+    t2 = torch.where(small, torch.ones_like(theta2), theta2)
+    t = t2.sqrt()
+    a = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(t)) / t2)
+    b = torch.where(small, 1.0 / 6 - theta2 / 120, (t - torch.sin(t)) / (t2 * t))
     K = skew(w)
     eye = torch.eye(3, dtype=w.dtype, device=w.device).expand_as(K)
     return eye + a * K + b * (K @ K)

@@ -19,6 +19,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from hybrid_pk.hybrid.features import cpu_copies
+
 __all__ = ["DEFAULT_NEIGHBOURS", "DEFAULT_QUANTILE", "DEFAULT_RATIO", "Coverage", "smoothstep"]
 
 DEFAULT_NEIGHBOURS = 5
@@ -162,9 +164,7 @@ class Coverage(nn.Module):
     def state(self) -> dict:
         """Plain data for a model file."""
         return {
-            "reference": self.reference.cpu().clone(),
-            "radius_in": self.radius_in.cpu().clone(),
-            "radius_out": self.radius_out.cpu().clone(),
+            **cpu_copies(self, "reference", "radius_in", "radius_out"),
             "neighbours": self.neighbours,
         }
 

@@ -45,6 +45,8 @@ __all__ = [
     "WRENCHES",
     "FeatureSpec",
     "PhysicsFeatures",
+    "StandardisedInputs",
+    "cpu_copies",
     "gravity_along",
     "static_wrenches",
 ]
@@ -144,6 +146,11 @@ class FeatureSpec:
         return cls(int(parts[0][5:]), "gravity" in rest, wrench, span)
 
 
+def cpu_copies(obj, *names: str) -> dict[str, Tensor]:
+    """``{name: copy on the CPU}`` of the tensors ``obj.<name>`` (model-file state)."""
+    return {name: getattr(obj, name).cpu().clone() for name in names}
+
+
 def gravity_along(robot: Robot, gravity: Tensor) -> bool:
     """Whether ``gravity (3,)`` [root frame] lies along joint 1's axis (floor or ceiling
     mounting): then the arm's load does not change when joint 1 turns."""
@@ -186,7 +193,54 @@ def static_wrenches(
     return (Rt @ force[..., first:, :, None])[..., 0], (Rt @ torque[..., first:, :, None])[..., 0]
 
 
-class PhysicsFeatures(nn.Module):
+class StandardisedInputs(nn.Module):
+    """Network inputs of a robot standardised by fitted buffers: the common part of
+    :class:`PhysicsFeatures` and :class:`~hybrid_pk.hybrid.local.LocalFeatures`.
+
+    A subclass registers the ``shift`` / ``scale`` buffers (the shape of its inputs)
+    and defines :meth:`raw`.
+
+    Buffers:
+        gravity: ``(3,)`` gravity in the root frame [m/s^2].
+    """
+
+    def __init__(self, robot: Robot, gravity: Tensor | tuple[float, float, float]) -> None:
+        super().__init__()
+        self.dof = robot.dof
+        self.revolute = [bool(r) for r in robot.revolute.tolist()]
+        g = torch.as_tensor(gravity, dtype=torch.float64).reshape(3)
+        self.register_buffer("gravity", g.clone())
+        self.gravity_along_joint_1 = gravity_along(robot, g)
+
+    def raw(self, robot: Robot, q: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+        """Unstandardised inputs at ``q (*B, dof)`` and the geometry of the outputs."""
+        raise NotImplementedError
+
+    def fit_standardisation(self, robot: Robot, q: Tensor) -> StandardisedInputs:
+        """Set ``shift`` / ``scale`` to the mean / spread of the inputs of rows ``q``."""
+        with torch.no_grad():
+            f, _ = self.raw(robot, q.to(torch.float64))
+        self.shift.copy_(f.mean(0))
+        self.scale.copy_(f.std(0).nan_to_num(0.0).clamp_min(1e-6 * f.abs().max().clamp_min(1)))
+        return self
+
+    def encode(self, robot: Robot, q: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+        """Standardised inputs (the shape of ``shift``) and the geometry of :meth:`raw`."""
+        f, geo = self.raw(robot, q)
+        return (f - self.shift.to(f.dtype)) / self.scale.to(f.dtype), geo
+
+    def standardisation_state(self) -> dict[str, Tensor]:
+        """The buffers as plain data for a model file (the tail of ``state()``)."""
+        return cpu_copies(self, "gravity", "shift", "scale")
+
+    def load_standardisation(self, state: dict) -> StandardisedInputs:
+        """Copy ``shift`` / ``scale`` of a ``state()`` into the buffers; returns self."""
+        self.shift.copy_(state["shift"])
+        self.scale.copy_(state["scale"])
+        return self
+
+
+class PhysicsFeatures(StandardisedInputs):
     """Network inputs and correction axes of :class:`FeatureSpec` for a robot.
 
     Buffers:
@@ -205,16 +259,11 @@ class PhysicsFeatures(nn.Module):
         robot: Robot,
         gravity: Tensor | tuple[float, float, float] = STANDARD_GRAVITY_VECTOR,
     ) -> None:
-        super().__init__()
+        super().__init__(robot, gravity)
         self.spec = spec.check(robot)
-        self.dof = robot.dof
-        self.revolute = [bool(r) for r in robot.revolute.tolist()]
-        g = torch.as_tensor(gravity, dtype=torch.float64).reshape(3)
-        self.register_buffer("gravity", g.clone())
         n = self.n_features
         self.register_buffer("shift", torch.zeros(n, dtype=torch.float64))
         self.register_buffer("scale", torch.ones(n, dtype=torch.float64))
-        self.gravity_along_joint_1 = gravity_along(robot, g)
 
     @property
     def n_features(self) -> int:
@@ -257,19 +306,6 @@ class PhysicsFeatures(nn.Module):
                 parts += [force.flatten(-2), moment.flatten(-2)]
         return torch.cat(parts, -1), geo
 
-    def fit_standardisation(self, robot: Robot, q: Tensor) -> PhysicsFeatures:
-        """Set ``shift`` / ``scale`` to the mean / spread of the inputs of rows ``q``."""
-        with torch.no_grad():
-            f, _ = self.raw(robot, q.to(torch.float64))
-        self.shift.copy_(f.mean(0))
-        self.scale.copy_(f.std(0).nan_to_num(0.0).clamp_min(1e-6 * f.abs().max().clamp_min(1)))
-        return self
-
-    def encode(self, robot: Robot, q: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
-        """Standardised inputs ``(*B, n_features)`` and the geometry of :meth:`raw`."""
-        f, geo = self.raw(robot, q)
-        return (f - self.shift.to(f.dtype)) / self.scale.to(f.dtype), geo
-
     def state(self) -> dict:
         """Plain data for a model file."""
         return {
@@ -278,9 +314,7 @@ class PhysicsFeatures(nn.Module):
             "gravity_input": self.spec.gravity,
             "wrench": self.spec.wrench,
             "angles": None if self.spec.angles is None else list(self.spec.angles),
-            "gravity": self.gravity.cpu().clone(),
-            "shift": self.shift.cpu().clone(),
-            "scale": self.scale.cpu().clone(),
+            **self.standardisation_state(),
         }
 
     @classmethod
@@ -293,10 +327,7 @@ class PhysicsFeatures(nn.Module):
             state["wrench"],
             None if angles is None else (int(angles[0]), int(angles[1])),
         )
-        out = cls(spec, robot, state["gravity"])
-        out.shift.copy_(state["shift"])
-        out.scale.copy_(state["scale"])
-        return out
+        return cls(spec, robot, state["gravity"]).load_standardisation(state)
 
     def extra_repr(self) -> str:
         return f"{self.spec.label}, n_features={self.n_features}"

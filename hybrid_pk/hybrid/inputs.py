@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from hybrid_pk.hybrid.features import FeatureSpec
+from hybrid_pk.hybrid.features import FeatureSpec, cpu_copies
 from hybrid_pk.hybrid.local import LocalSpec
 from hybrid_pk.robot import Robot
 
@@ -105,10 +105,7 @@ class InputBox(nn.Module):
     def state(self) -> dict:
         """Plain data for a model file (the ``input`` entry of format 1)."""
         return {
-            "lower": self.lower.cpu().clone(),
-            "upper": self.upper.cpu().clone(),
-            "trust_lower": self.trust_lower.cpu().clone(),
-            "trust_upper": self.trust_upper.cpu().clone(),
+            **cpu_copies(self, "lower", "upper", "trust_lower", "trust_upper"),
             "fade": self.fade,
         }
 

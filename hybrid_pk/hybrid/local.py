@@ -31,7 +31,11 @@ import torch
 from torch import Tensor, nn
 
 from hybrid_pk.errors import HybridPKError
-from hybrid_pk.hybrid.features import STANDARD_GRAVITY_VECTOR, gravity_along, static_wrenches
+from hybrid_pk.hybrid.features import (
+    STANDARD_GRAVITY_VECTOR,
+    StandardisedInputs,
+    static_wrenches,
+)
 from hybrid_pk.hybrid.nets import GroupedDenseNet, parse_arch
 from hybrid_pk.robot import Robot
 
@@ -66,7 +70,7 @@ class LocalSpec:
         return cls(text.strip() == "local+q1")
 
 
-class LocalFeatures(nn.Module):
+class LocalFeatures(StandardisedInputs):
     """Per-joint inputs ``(*B, dof, 8)`` and the chain geometry that carries each joint's
     twist to the flange.
 
@@ -86,20 +90,15 @@ class LocalFeatures(nn.Module):
         robot: Robot,
         gravity: Tensor | tuple[float, float, float] = STANDARD_GRAVITY_VECTOR,
     ) -> None:
-        super().__init__()
         if robot.has_mimic:
             raise HybridPKError(
                 f"network inputs {spec.label}: {robot.name!r} has mimic joints, which the "
                 "physics inputs do not handle yet; use the joints inputs (--inputs joints)"
             )
+        super().__init__(robot, gravity)
         self.spec = spec
-        self.dof = robot.dof
-        self.revolute = [bool(r) for r in robot.revolute.tolist()]
-        g = torch.as_tensor(gravity, dtype=torch.float64).reshape(3)
-        self.register_buffer("gravity", g.clone())
         self.register_buffer("shift", torch.zeros(robot.dof, LOCAL_FEATURES, dtype=torch.float64))
         self.register_buffer("scale", torch.ones(robot.dof, LOCAL_FEATURES, dtype=torch.float64))
-        self.gravity_along_joint_1 = gravity_along(robot, g)
 
     @property
     def groups(self) -> int:
@@ -134,36 +133,19 @@ class LocalFeatures(nn.Module):
         arm = frames0[..., dof : dof + 1, :3, 3] - frames0[..., :dof, :3, 3]
         return u, {"R": R, "lever": (R01t @ arm[..., None])[..., 0]}
 
-    def fit_standardisation(self, robot: Robot, q: Tensor) -> LocalFeatures:
-        """Set ``shift`` / ``scale`` to the mean / spread of the inputs of rows ``q``."""
-        with torch.no_grad():
-            f, _ = self.raw(robot, q.to(torch.float64))
-        self.shift.copy_(f.mean(0))
-        self.scale.copy_(f.std(0).nan_to_num(0.0).clamp_min(1e-6 * f.abs().max().clamp_min(1)))
-        return self
-
-    def encode(self, robot: Robot, q: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
-        """Standardised inputs ``(*B, dof, 8)`` and the geometry of :meth:`raw`."""
-        f, geo = self.raw(robot, q)
-        return (f - self.shift.to(f.dtype)) / self.scale.to(f.dtype), geo
-
     def state(self) -> dict:
         """Plain data for a model file."""
         return {
             "kind": "local",
             "joint_1_angle": self.spec.joint_1_angle,
-            "gravity": self.gravity.cpu().clone(),
-            "shift": self.shift.cpu().clone(),
-            "scale": self.scale.cpu().clone(),
+            **self.standardisation_state(),
         }
 
     @classmethod
     def from_state(cls, state: dict, robot: Robot) -> LocalFeatures:
         """Inverse of :meth:`state`."""
         out = cls(LocalSpec(bool(state["joint_1_angle"])), robot, state["gravity"])
-        out.shift.copy_(state["shift"])
-        out.scale.copy_(state["scale"])
-        return out
+        return out.load_standardisation(state)
 
     def extra_repr(self) -> str:
         return f"{self.spec.label}, dof={self.dof}"

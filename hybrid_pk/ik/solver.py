@@ -37,6 +37,7 @@ __all__ = [
     "make_result",
     "pack",
     "prepare_targets",
+    "solve_and_check",
     "solve_ik",
 ]
 
@@ -155,6 +156,31 @@ def check_solutions(
             good = (err.position_mm <= options.tol_mm) & (err.orientation_deg <= options.tol_deg)
         ok[sel] = good & torch.isfinite(pos[sel])
     return ok, pos, ori
+
+
+def solve_and_check(
+    ikm: IKModel,
+    q0: Tensor,
+    rows: Tensor,
+    T_all: Tensor,
+    bounds: tuple[Tensor, Tensor],
+    settings: LMSettings,
+    position_only: bool,
+    options: IKOptions,
+):
+    """Batched LM from starts ``q0 (P, dof)`` towards the targets ``T_all[rows]``
+    within ``bounds = (lower, upper)``, then :func:`check_solutions` of the results.
+
+    Returns:
+        ``(out, ok, pos, ori)``: the LM result and the checks of ``out.q``.
+    """
+    T_target = T_all[rows]
+    with torch.no_grad():
+        out = batched_levenberg_marquardt(
+            ikm.evaluate, q0, rows, T_target, *bounds, settings, ikm.revolute
+        )
+    ok, pos, ori = check_solutions(ikm, out.q, rows, T_target, position_only, options)
+    return out, ok, pos, ori
 
 
 def lexicographic_order(q: Tensor, valid: Tensor) -> Tensor:
@@ -331,18 +357,10 @@ def solve_ik(
         hi = min(n, lo + per_batch)
         rows = torch.arange(lo, hi).repeat_interleave(s_per)
         q0 = start[lo:hi].reshape(-1, ikm.dof)
-        with torch.no_grad():
-            out = batched_levenberg_marquardt(
-                ikm.evaluate,
-                q0,
-                rows,
-                T_all[rows],
-                ikm.lower,
-                ikm.upper,
-                settings,
-                ikm.revolute,
-            )
-        ok, pos, ori = check_solutions(ikm, out.q, rows, T_all[rows], position_only, options)
+        bounds = (ikm.lower, ikm.upper)
+        out, ok, pos, ori = solve_and_check(
+            ikm, q0, rows, T_all, bounds, settings, position_only, options
+        )
         shape = (hi - lo, s_per)
         score = pos / options.tol_mm + (0 if position_only else ori.nan_to_num() / options.tol_deg)
         keep = distinct_mask(

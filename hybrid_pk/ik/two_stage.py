@@ -38,6 +38,7 @@ from hybrid_pk.ik.solver import (
     make_result,
     pack,
     prepare_targets,
+    solve_and_check,
     solve_ik,
 )
 from hybrid_pk.robot import Robot
@@ -127,18 +128,10 @@ def refine_ik(
     lower = torch.maximum(q0 - half, ikm.lower)
     upper = torch.minimum(q0 + half, ikm.upper)
     t0 = time.perf_counter()
-    with torch.no_grad():
-        out = batched_levenberg_marquardt(
-            ikm.evaluate,
-            q0,
-            rows,
-            T_all[rows],
-            lower,
-            upper,
-            options.lm_settings(position_only),
-            ikm.revolute,
-        )
-    ok, pos, ori = check_solutions(ikm, out.q, rows, T_all[rows], position_only, options)
+    settings = options.lm_settings(position_only)
+    out, ok, pos, ori = solve_and_check(
+        ikm, q0, rows, T_all, (lower, upper), settings, position_only, options
+    )
     k = q_init.shape[1]
     q, pos, ori = _scatter(n, k, rows, slots, out.q, pos, ori)
     okf = torch.zeros(n, k, dtype=torch.bool)

@@ -308,28 +308,14 @@ def _joint_evidence(cause, label, title, data, model, res: ResidualView) -> Evid
             points = math.nan
         law = "θ_true - θ = ± b/2 by approach direction: two levels, b apart"
         value = float(v)
-    if categorical:
-        levels = [d for d in (-1.0, 0.0, 1.0) if (x == d).any()]
-        mx = np.array(levels)
-        my = np.array([np.median(y[x == d]) for d in levels])
-    else:
-        mx, my = binned_median(x, y)
-    return Evidence(
-        label=label,
-        title=title,
-        x=x,
-        y=y,
-        weight=w,
-        rows=rows,
-        x_label=x_label,
-        y_label=y_label,
-        curve_x=curve_x,
-        curve_y=curve_y,
-        median_x=mx,
-        median_y=my,
-        value=value,
-        points_value=points,
-        unit=cause.unit,
+    return _points_evidence(
+        cause,
+        label,
+        title,
+        points=(x, y, w, rows),
+        axes=(x_label, y_label),
+        curve=(curve_x, curve_y),
+        values=(value, points),
         law=law,
         categorical=categorical,
     )
@@ -349,23 +335,14 @@ def _thermal_evidence(cause, label, title, data, res: ResidualView) -> Evidence:
     points = float(_wls(np.stack([dT, np.ones_like(dT)], 1), y, wn)[0]) * 1e-6
     curve_x = np.linspace(x.min(), x.max(), 50)
     curve_y = 1e6 * float(cause.value) * (curve_x - REFERENCE_TEMPERATURE)
-    mx, my = binned_median(x, y)
-    return Evidence(
-        label=label,
-        title=title,
-        x=x,
-        y=y,
-        weight=wn,
-        rows=rows,
-        x_label="temperature [°C]",
-        y_label="equivalent strain of the links [µm/m]",
-        curve_x=curve_x,
-        curve_y=curve_y,
-        median_x=mx,
-        median_y=my,
-        value=float(cause.value),
-        points_value=points,
-        unit=cause.unit,
+    return _points_evidence(
+        cause,
+        label,
+        title,
+        points=(x, y, wn, rows),
+        axes=("temperature [°C]", "equivalent strain of the links [µm/m]"),
+        curve=(curve_x, curve_y),
+        values=(float(cause.value), points),
         law=f"strain = α · (T - {REFERENCE_TEMPERATURE:g} °C): a line, slope α",
     )
 
@@ -390,23 +367,46 @@ def _geometric_evidence(cause, label, title, data, model, res: ResidualView) -> 
     magnitude = float(model.effect(label).value.detach().norm())
     span = float(np.abs(x).max()) if x.size else 1.0
     curve_x = np.array([-span, span])
-    mx, my = binned_median(x, y)
-    return Evidence(
-        label=label,
-        title=title,
-        x=x,
-        y=y,
-        weight=w,
-        rows=rows,
-        x_label="displacement the effect makes beyond any frame change, x/y/z of every row [mm]",
-        y_label="residual beyond any frame change, same coordinate [mm]",
-        curve_x=curve_x,
-        curve_y=curve_x.copy(),
-        median_x=mx,
-        median_y=my,
-        value=magnitude,
-        points_value=slope * magnitude,
-        unit=cause.unit,
+    return _points_evidence(
+        cause,
+        label,
+        title,
+        points=(x, y, w, rows),
+        axes=(
+            "displacement the effect makes beyond any frame change, x/y/z of every row [mm]",
+            "residual beyond any frame change, same coordinate [mm]",
+        ),
+        curve=(curve_x, curve_x.copy()),
+        values=(magnitude, slope * magnitude),
         law="residual = displacement of the effect, both without what a change of the "
         "base and tool frames makes: a slope-1 line",
+    )
+
+
+def _points_evidence(
+    cause,
+    label: str,
+    title: str,
+    *,
+    points: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    axes: tuple[str, str],
+    curve: tuple[np.ndarray, np.ndarray],
+    values: tuple[float, float],
+    law: str,
+    categorical: bool = False,
+) -> Evidence:
+    """The :class:`Evidence` of the plotted ``points`` ``(x, y, weight, rows)`` with
+    their medians: binned, or one per level of a ``categorical`` ``x``. ``axes`` are the
+    x and y labels, ``curve`` the law's ``(curve_x, curve_y)``, ``values`` the diagnosed
+    value and the one fitted to the points."""
+    x, y = points[0], points[1]
+    if categorical:
+        levels = [d for d in (-1.0, 0.0, 1.0) if (x == d).any()]
+        mx = np.array(levels)
+        my = np.array([np.median(y[x == d]) for d in levels])
+    else:
+        mx, my = binned_median(x, y)
+    # the groups stand in the order of the Evidence fields
+    return Evidence(
+        label, title, *points, *axes, *curve, mx, my, *values, cause.unit, law, categorical
     )

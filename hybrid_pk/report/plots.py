@@ -24,6 +24,15 @@ from hybrid_pk.evaluation.plots import (
 
 __all__ = ["evidence_plot", "residual_scan"]
 
+POINT_COLOR = "#4c72b0"  # measured points
+
+
+def _measured_points(ax, x: np.ndarray, y: np.ndarray, size: float, alpha: float) -> None:
+    """Scatter the measured points of an evidence plot (rasterised: thousands of them)."""
+    ax.scatter(
+        x, y, s=size, alpha=alpha, color=POINT_COLOR, lw=0, rasterized=True, label="measured"
+    )
+
 
 def evidence_plot(evidence, path: str | Path) -> Path:
     """Points, binned median and the fitted law of one cause (an ``Evidence``).
@@ -40,16 +49,7 @@ def evidence_plot(evidence, path: str | Path) -> Path:
         levels = np.unique(ev.x)
         rng = np.random.default_rng(0)  # jitter only; deterministic figures
         jitter = rng.uniform(-0.15, 0.15, idx.size)
-        ax.scatter(
-            ev.x[idx] + jitter,
-            ev.y[idx],
-            s=5,
-            alpha=0.35,
-            color="#4c72b0",
-            lw=0,
-            rasterized=True,
-            label="measured",
-        )
+        _measured_points(ax, ev.x[idx] + jitter, ev.y[idx], size=5, alpha=0.35)
         groups = [ev.y[ev.x == level] for level in levels]
         ax.boxplot(
             groups,
@@ -70,16 +70,7 @@ def evidence_plot(evidence, path: str | Path) -> Path:
         names = {-1.0: "negative", 0.0: "unknown", 1.0: "positive"}
         ax.set_xticks(levels, [names.get(float(v), f"{v:g}") for v in levels])
     else:
-        ax.scatter(
-            ev.x[idx],
-            ev.y[idx],
-            s=8,
-            alpha=0.4,
-            color="#4c72b0",
-            lw=0,
-            rasterized=True,
-            label="measured",
-        )
+        _measured_points(ax, ev.x[idx], ev.y[idx], size=8, alpha=0.4)
         ax.plot(ev.curve_x, ev.curve_y, color=LAW_COLOR, lw=2.5, label=law_label)
         ax.plot(
             ev.median_x,
@@ -150,7 +141,7 @@ def residual_scan(
         for k, name in enumerate(names):
             ax = axes[r * nrow_per + k // ncol][k % ncol]
             x = as_array(variables[name])
-            ax.scatter(x[idx], e[idx], s=4, alpha=0.35, lw=0, color="#4c72b0", rasterized=True)
+            ax.scatter(x[idx], e[idx], s=4, alpha=0.35, lw=0, color=POINT_COLOR, rasterized=True)
             mx, my = binned_median(x, e)
             ax.plot(mx, my, "o-", color=MEDIAN_COLOR, ms=3, lw=1.0)
             if reference and err_label in reference:

@@ -267,31 +267,14 @@ def simulate_campaign(
 
     dt = robot.dtype
     with torch.no_grad():
-        if poses is None:
-            traj = make_trajectory(robot, trajectory, n, streams["trajectory"])
-        else:
-            traj = Trajectory(poses)
+        traj = _commanded(robot, poses, trajectory, n, streams["trajectory"])
         q = traj.q.to(dt)
-        drawn_base, drawn_tool = random_frames(streams["frames"], dt, level=mounting is not None)
-        if mounting is not None:  # T_meas_root = T_meas_world · T_world_root
-            mount_rotation = transform(mounting.rotation.to(dt), torch.zeros(3, dtype=dt))
-            drawn_base = drawn_base @ mount_rotation
-        if known_frames:
-            drawn_base = drawn_tool = torch.eye(4, dtype=dt)
-        base = drawn_base if base is None else _frame_arg(base, drawn_base, "base")
-        tool = drawn_tool if tool is None else _frame_arg(tool, drawn_tool, "tool")
-        cond = Conditions(
-            payload=_payloads(n, payload, payload_range, streams["payload"], dt),
-            temperature=None if temperature_range is None else warm_up(n, *temperature_range, dt),
-            direction=approach_direction(q),
-        )
+        base, tool = _true_frames(streams["frames"], dt, mounting, known_frames, base, tool)
+        cond = _conditions(q, payload, payload_range, temperature_range, streams["payload"])
         true_model = ExtendedModel(robot, effects, base=base, tool=tool, gravity=gravity)
         nominal_model = ExtendedModel(robot, [], base=base, tool=tool)
         T_true, T_nominal = _true_and_nominal(true_model, nominal_model, q, cond, progress)
-        noise = streams["noise"]
-        position = T_true[:, :3, 3] + 1e-3 * noise_mm * torch.randn(n, 3, generator=noise, dtype=dt)
-        w = math.radians(noise_deg) * torch.randn(n, 3, generator=noise, dtype=dt)
-        quat = None if position_only else matrix_to_quat(T_true[:, :3, :3] @ so3_exp(w))
+        position, quat = _measure(T_true, noise_mm, noise_deg, position_only, streams["noise"])
 
     data = _table(robot, q, position, quat, traj.t, cond)
     truth = {
@@ -302,10 +285,8 @@ def simulate_campaign(
         "noise_mm": float(noise_mm),
         "noise_deg": float(noise_deg),
         "payload": float(mean_payload),
-        "payload_range": None if payload_range is None else [float(v) for v in payload_range],
-        "temperature_range": (
-            None if temperature_range is None else [float(v) for v in temperature_range]
-        ),
+        "payload_range": _float_list(payload_range),
+        "temperature_range": _float_list(temperature_range),
         "position_only": bool(position_only),
         "known_frames": bool(known_frames),
         "mount": None if mounting is None else mounting.to_dict(),
@@ -315,6 +296,53 @@ def simulate_campaign(
         **_truth_of_model(robot, effects, base, tool, T_true, T_nominal, trajectory),
     }
     return data, truth
+
+
+def _commanded(robot: Robot, poses: Tensor | None, trajectory: str, n: int, gen) -> Trajectory:
+    """The commanded rows: the given ``poses`` in order, else a drawn ``trajectory``."""
+    if poses is None:
+        return make_trajectory(robot, trajectory, n, gen)
+    return Trajectory(poses)
+
+
+def _conditions(q: Tensor, payload, payload_range, temperature_range, gen) -> Conditions:
+    """The campaign's conditions of rows ``q``: payloads (blocks over a range), the
+    warm-up temperature drift and the approach directions."""
+    n, dt = q.shape[0], q.dtype
+    return Conditions(
+        payload=_payloads(n, payload, payload_range, gen, dt),
+        temperature=None if temperature_range is None else warm_up(n, *temperature_range, dt),
+        direction=approach_direction(q),
+    )
+
+
+def _float_list(values: tuple[float, float] | None) -> list[float] | None:
+    """A range argument as plain floats for the truth dict (None stays None)."""
+    return None if values is None else [float(v) for v in values]
+
+
+def _true_frames(gen, dtype, mounting: Mount | None, known_frames: bool, base, tool):
+    """The truth ``(T_meas_root, T_end_point)``: drawn (turned by the mounting), the
+    identity with ``known_frames``, or the given ``base`` / ``tool``."""
+    drawn_base, drawn_tool = random_frames(gen, dtype, level=mounting is not None)
+    if mounting is not None:  # T_meas_root = T_meas_world · T_world_root
+        mount_rotation = transform(mounting.rotation.to(dtype), torch.zeros(3, dtype=dtype))
+        drawn_base = drawn_base @ mount_rotation
+    if known_frames:
+        drawn_base = drawn_tool = torch.eye(4, dtype=dtype)
+    base = drawn_base if base is None else _frame_arg(base, drawn_base, "base")
+    tool = drawn_tool if tool is None else _frame_arg(tool, drawn_tool, "tool")
+    return base, tool
+
+
+def _measure(T_true: Tensor, noise_mm: float, noise_deg: float, position_only: bool, gen):
+    """Measured ``(position (N, 3), quat (N, 4) or None)``: the true poses with Gaussian
+    position noise and a Gaussian noise rotation, drawn from ``gen``."""
+    n, dt = T_true.shape[0], T_true.dtype
+    position = T_true[:, :3, 3] + 1e-3 * noise_mm * torch.randn(n, 3, generator=gen, dtype=dt)
+    w = math.radians(noise_deg) * torch.randn(n, 3, generator=gen, dtype=dt)
+    quat = None if position_only else matrix_to_quat(T_true[:, :3, :3] @ so3_exp(w))
+    return position, quat
 
 
 def _effects(robot, effects, seed, payload, gravity, temperature_range) -> list[Effect]:

@@ -18,6 +18,27 @@ from hybrid_pk.errors import HybridPKError
 
 __all__ = ["PRESETS", "preset", "settings_from_config"]
 
+
+def _ours(networks: dict) -> dict[str, dict]:
+    """One of our presets: the ``networks`` (inputs and architectures) with our common
+    schedule (Adam + one-cycle, MSE, inputs scaled to the data, zero-initialised
+    outputs), batches and epochs; fresh dicts on every call."""
+    schedule = {
+        "optimizer": "adam",
+        "lr": 0.003,
+        "weight_decay": 0.0,
+        "scheduler": "onecycle",
+        "loss": "mse",
+        "input_range": "data",
+        "zero_init": True,
+    }
+    return {
+        "model": {**networks, **schedule},
+        "data": {"batch_size": 256, "val_fraction": 0.1},
+        "trainer": {"max_epochs": 150, "patience": None},
+    }
+
+
 PRESETS: dict[str, dict[str, dict]] = {
     # Ojer et al. 2024, 4.1.1: min-max input normalisation over the full joint range,
     # Adagrad, lr 0.005, batch 128, at most 300 epochs, early stopping on validation;
@@ -45,42 +66,18 @@ PRESETS: dict[str, dict[str, dict]] = {
     # deformation networks (one per joint: its angle and static wrench), then the base
     # model. Small smooth MLPs starting at the base model, Adam + one-cycle. On the real
     # UR10 hold-out splits (experiments/real_ur10.py) better than "joints" on all three.
-    "fast": {
-        "model": {
+    "fast": _ours(
+        {
             "inputs": "frame1+q2-4+torque/joints,local+q1",
             "position_net": "mlp:128x3",
             "orientation_net": "mlp:128x3",
             "refine_net": "mlp",
             "local_net": "mlp:32x2",
-            "optimizer": "adam",
-            "lr": 0.003,
-            "weight_decay": 0.0,
-            "scheduler": "onecycle",
-            "loss": "mse",
-            "input_range": "data",
-            "zero_init": True,
-        },
-        "data": {"batch_size": 256, "val_fraction": 0.1},
-        "trainer": {"max_epochs": 150, "patience": None},
-    },
+        }
+    ),
     # Ours before issue 13: the same schedule, MLPs on every joint (the paper's inputs),
     # the base model outside the training rows' joint box.
-    "joints": {
-        "model": {
-            "inputs": "joints",
-            "position_net": "mlp",
-            "orientation_net": "mlp",
-            "optimizer": "adam",
-            "lr": 0.003,
-            "weight_decay": 0.0,
-            "scheduler": "onecycle",
-            "loss": "mse",
-            "input_range": "data",
-            "zero_init": True,
-        },
-        "data": {"batch_size": 256, "val_fraction": 0.1},
-        "trainer": {"max_epochs": 150, "patience": None},
-    },
+    "joints": _ours({"inputs": "joints", "position_net": "mlp", "orientation_net": "mlp"}),
 }
 
 

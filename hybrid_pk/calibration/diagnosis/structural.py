@@ -84,6 +84,11 @@ def _rotation_limit(kind: str) -> float:
     return math.radians(MAX_BACKLASH_DEG if kind == "backlash" else MAX_ROTATION_DEG)
 
 
+def _finding(cause: str, value, limit: float | None, unit: str, why: str) -> dict:
+    """A structural finding: ``{"cause", "value", "limit", "unit", "why"}``."""
+    return {"cause": cause, "value": value, "limit": limit, "unit": unit, "why": why}
+
+
 def implausibility(effect: Effect, robot: Robot, data: MeasuredData | None = None) -> dict | None:
     """Why ``effect``'s value is not a small physical correction, or None.
 
@@ -118,14 +123,8 @@ def implausibility(effect: Effect, robot: Robot, data: MeasuredData | None = Non
         return None
     if size <= limit:
         return None
-    return {
-        "cause": effect.label,
-        "value": size,
-        "limit": limit,
-        "unit": unit,
-        "why": f"a {what} of {shown} is beyond what a small correction of the URDF can be "
-        f"({limit_text})",
-    }
+    why = f"a {what} of {shown} is beyond what a small correction of the URDF can be ({limit_text})"
+    return _finding(effect.label, size, limit, unit, why)
 
 
 def _compliance_check(effect: Effect, robot: Robot, data: MeasuredData | None) -> dict | None:
@@ -148,13 +147,7 @@ def _compliance_check(effect: Effect, robot: Robot, data: MeasuredData | None) -
             )
     if not reasons:
         return None
-    return {
-        "cause": effect.label,
-        "value": c,
-        "limit": MAX_COMPLIANCE,
-        "unit": effect.unit,
-        "why": "; ".join(reasons),
-    }
+    return _finding(effect.label, c, MAX_COMPLIANCE, effect.unit, "; ".join(reasons))
 
 
 def _deflection_check(effect: Effect, robot: Robot, data: MeasuredData | None) -> dict | None:
@@ -171,13 +164,8 @@ def _deflection_check(effect: Effect, robot: Robot, data: MeasuredData | None) -
         c *= reach
     if c <= MAX_COMPLIANCE:
         return None
-    return {
-        "cause": effect.label,
-        "value": c,
-        "limit": MAX_COMPLIANCE,
-        "unit": "rad/Nm",
-        "why": f"{what} is beyond what metal joints and links show ({MAX_COMPLIANCE:g} rad/Nm)",
-    }
+    why = f"{what} is beyond what metal joints and links show ({MAX_COMPLIANCE:g} rad/Nm)"
+    return _finding(effect.label, c, MAX_COMPLIANCE, "rad/Nm", why)
 
 
 @torch.no_grad()
@@ -383,15 +371,15 @@ def structural_check(
         if why is None:
             share, _, _ = frame_share(model, label, split.train, split.cond_fit)
             if share > MAX_FRAME_SHARE:
-                why = {
-                    "cause": label,
-                    "value": c.value,
-                    "limit": None,
-                    "unit": c.unit,
-                    "why": f"{100 * share:.1f} % of the displacement it makes is what a "
+                why = _finding(
+                    label,
+                    c.value,
+                    None,
+                    c.unit,
+                    f"{100 * share:.1f} % of the displacement it makes is what a "
                     "change of the base and tool frames makes: its value measures a "
                     "trade-off with the frames, not a physical error",
-                }
+                )
         (keep if why is None else findings).append(c if why is None else why)
     before = float(model_errors(nominal, split.test, split.cond_hold)[0].mean())
     if not findings and before < GROSS_ERROR_MM:
