@@ -43,6 +43,13 @@ from hybrid_pk.effects import (
     effect_joint_names,
     make_effect,
 )
+from hybrid_pk.effects.limits import (
+    MAX_BACKLASH_DEG,
+    MAX_COMPLIANCE,
+    MAX_GEAR_RATIO,
+    MAX_ROTATION_DEG,
+    MAX_TRANSLATION_M,
+)
 from hybrid_pk.geometry import so3_exp, so3_log
 from hybrid_pk.robot import Robot
 
@@ -61,11 +68,6 @@ __all__ = [
     "structural_check",
 ]
 
-MAX_ROTATION_DEG = 5.0
-MAX_BACKLASH_DEG = 1.0
-MAX_TRANSLATION_M = 0.05
-MAX_GEAR_RATIO = 0.01
-MAX_COMPLIANCE = 1e-4  # [rad/Nm]; industrial joints are 1e-7 .. 1e-5
 MAX_FRAME_SHARE = 0.98
 # Rows the frame share is computed on (an even subset of larger data).
 FRAME_SHARE_ROWS = 2000
