@@ -108,18 +108,19 @@ def hidden_effects(
     unmodelled hardening spring on joint 2 or 3 (drawn from ``seed``), if asked for.
 
     The spring goes to the other of the two joints when the drawn one carries a
-    joint-space vocabulary effect and the other does not: its linear part is a
-    compliance of that joint, and would otherwise bias what the diagnosis can say of an
-    injected compliance, gear ratio or offset there."""
+    joint-space vocabulary effect, or to joint 5 (a wrist gearbox) when both do: its
+    linear part is a compliance of that joint, and would otherwise bias what the
+    diagnosis can say of an injected compliance, gear ratio or offset there."""
     vocabulary = parse_effects(robot, effects, seed=seed, payload=payload)
     extra: list[Effect] = []
     if unmodelled:
         gen = torch.Generator().manual_seed(seed + 1)
         index = 1 + int(torch.randint(2, (1,), generator=gen))  # joint 2 or 3
         taken = {e.joint for e in vocabulary if e.stage in ("joint", "compliance")}
-        other = 3 - index  # the other of indices 1 and 2
-        if robot.joint_names[index] in taken and robot.joint_names[other] not in taken:
-            index = other
+        for choice in (index, 3 - index, 4):  # drawn, the other of 2 and 3, joint 5
+            if choice < robot.dof - 1 and robot.joint_names[choice] not in taken:
+                index = choice
+                break
         tau0 = UNMODELLED_KNEE * float(rms_gravity_torques(robot, payload, gen)[index])
         extra.append(
             HardeningCompliance(robot, robot.joint_names[index], UNMODELLED_DEFLECTION / tau0, tau0)
