@@ -81,12 +81,15 @@ def test_three_hidden_effects_on_a_tilted_base():
     specs = [(f"tilt_compliance:{tilt}", (c / np.linalg.norm(c)).tolist())]
     loaded = [j for j in _joints_for(robot, "joint_compliance", 10.0, gravity) if j != tilt]
     specs.append((f"joint_compliance:{rng.choice(loaded)}", 1.0))
-    third = str(rng.choice(["joint_offset", "link_length", "gear_ratio"]))
     used = {s[0].split(":")[1] for s in specs}
-    while True:
-        spec = _draw(robot, third, rng, 10.0)
+    for _ in range(100):  # kind and joint redrawn: a kind may have no free joint left
+        spec = _draw(
+            robot, str(rng.choice(["joint_offset", "link_length", "gear_ratio"])), rng, 10.0
+        )
         if spec[0].split(":")[1] not in used:
             break
+    else:
+        raise AssertionError(f"no third effect on a joint other than {sorted(used)}")
     specs.append(spec)
     data, truth, where = _campaign(robot, specs, rng, mount=mount)
     diag = diagnose(robot, data, seed=RUN_SEED % 983, gravity=Gravity.level_tracker())
