@@ -35,7 +35,7 @@ from hybrid_pk.effects import (
     make_effect,
 )
 from hybrid_pk.effects import approach_direction as _approach_direction
-from hybrid_pk.effects.limits import size_limit
+from hybrid_pk.effects.limits import effect_limit
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import transform
 from hybrid_pk.robot import Robot
@@ -370,7 +370,7 @@ def random_effects(
     Each effect's size is set so that alone it moves the flange + a 125 mm tool by a
     mean distance drawn uniformly in :data:`RANDOM_TARGET_MM` over random
     configurations at ``payload`` [kg] under ``gravity`` (default upright), or to half
-    its credible limit (:func:`hybrid_pk.effects.limits.size_limit`) where that distance
+    its credible limit (:func:`hybrid_pk.effects.limits.effect_limit`) where that distance
     would need more. Joints are
     distinct while there are enough; labels in ``exclude`` (``kind:joint``) are not drawn.
     """
@@ -405,7 +405,7 @@ def random_effects(
         size = target / error
         # Physics first: where the target needs more than a credible correction (a
         # wrist compliance of 1e-4 rad/Nm), draw it at half the limit instead.
-        limit = size_limit(kind, unit.unit)
+        limit = effect_limit(unit, robot)
         if limit is not None:
             size = min(size, 0.5 * limit / math.hypot(*probe))
         value = [v * size for v in probe]

@@ -49,6 +49,7 @@ from hybrid_pk.effects.limits import (
     MAX_GEAR_RATIO,
     MAX_ROTATION_DEG,
     MAX_TRANSLATION_M,
+    effect_limit,
 )
 from hybrid_pk.geometry import so3_exp, so3_log
 from hybrid_pk.robot import Robot
@@ -82,10 +83,6 @@ GROSS_ERROR_MM = 20.0
 STRUCTURAL_FRACTION = 0.2
 
 
-def _rotation_limit(kind: str) -> float:
-    return math.radians(MAX_BACKLASH_DEG if kind == "backlash" else MAX_ROTATION_DEG)
-
-
 def _finding(cause: str, value, limit: float | None, unit: str, why: str) -> dict:
     """A structural finding: ``{"cause", "value", "limit", "unit", "why"}``."""
     return {"cause": cause, "value": value, "limit": limit, "unit": unit, "why": why}
@@ -103,28 +100,20 @@ def implausibility(effect: Effect, robot: Robot, data: MeasuredData | None = Non
     """
     kind, unit = effect.kind, effect.unit
     size = float(effect.value.detach().norm())
-    prismatic = (
-        effect.stage == "joint"
-        and effect.joint is not None
-        and robot.joint_types[effect.joint_index] == "prismatic"
-    )
     if kind == "joint_compliance":
         return _compliance_check(effect, robot, data)
     if kind in ("tilt_compliance", "column_bending"):
         return _deflection_check(effect, robot, data)
+    limit = effect_limit(effect, robot)
+    if limit is None or size <= limit:
+        return None
     if kind == "gear_ratio":
-        limit, what, shown = MAX_GEAR_RATIO, "gear ratio error", f"{100 * size:.3g} %"
-        limit_text = f"{100 * MAX_GEAR_RATIO:g} %"
-    elif unit == "m" or prismatic:
-        limit, what, shown = MAX_TRANSLATION_M, "translation", f"{1e3 * size:.4g} mm"
-        limit_text = f"{1e3 * MAX_TRANSLATION_M:g} mm"
-    elif unit == "rad":
-        limit, what = _rotation_limit(kind), "rotation"
-        shown, limit_text = f"{math.degrees(size):.3g}°", f"{math.degrees(limit):g}°"
+        what, shown, limit_text = "gear ratio error", f"{100 * size:.3g} %", f"{100 * limit:g} %"
+    elif limit == MAX_TRANSLATION_M:  # a length: unit m, or a prismatic joint's shift
+        what, shown, limit_text = "translation", f"{1e3 * size:.4g} mm", f"{1e3 * limit:g} mm"
     else:
-        return None
-    if size <= limit:
-        return None
+        what, shown = "rotation", f"{math.degrees(size):.3g}°"
+        limit_text = f"{math.degrees(limit):g}°"
     why = f"a {what} of {shown} is beyond what a small correction of the URDF can be ({limit_text})"
     return _finding(effect.label, size, limit, unit, why)
 

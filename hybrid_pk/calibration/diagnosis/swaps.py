@@ -47,9 +47,10 @@ def prefer_fewer_causes(
         labels = [e.label for e in model.effects]
         if chosen not in labels or len(labels) < 2:
             continue
+        current = _scores(model, split, res)  # what every swap of this cause must match
         best = None  # (d_bic, alternative, model, fit, removed, removal steps)
         for alternative in [a for c, a in pairs if c == chosen and a not in labels]:
-            trial = _swapped(model, res, chosen, alternative, split, alpha, say)
+            trial = _swapped(model, res, current, chosen, alternative, split, alpha, say)
             if trial is not None and (best is None or trial[0] < best[0]):
                 best = trial
         if best is None:
@@ -70,10 +71,18 @@ def prefer_fewer_causes(
     return model, res
 
 
-def _swapped(model, res, chosen, alternative, split, alpha, say):
+def _scores(model: ExtendedModel, split: Split, res: FitResult) -> tuple[float, float]:
+    """``(weighted SSR on the fit rows, hold-out score)`` of ``model`` under ``res``'s
+    noise weights."""
+    ssr = weighted_ssr(model, split.train, split.cond_fit, res)
+    return ssr, holdout_score(model, split.test, split.cond_hold, res)
+
+
+def _swapped(model, res, current, chosen, alternative, split, alpha, say):
     """``(BIC change, alternative, model, fit, removed, removal steps)`` of ``model``
     with ``alternative`` in place of ``chosen`` after backward elimination, or None when
-    that is implausible, removes nothing, or fits worse."""
+    that is implausible, removes nothing, or fits worse than ``current`` (``model``'s
+    :func:`_scores`)."""
     say(f"trying {alternative} in place of {chosen}")
     trial = with_effects(without_effect(model, chosen), [make_effect(model.robot, alternative)])
     sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
@@ -89,22 +98,13 @@ def _swapped(model, res, chosen, alternative, split, alpha, say):
     )
     if not removed:
         return None
-    d_bic = _bic_change(model, res, trial, trial_res, split)
-    hold_cur = holdout_score(model, split.test, split.cond_hold, res)
-    hold_new = holdout_score(trial, split.test, split.cond_hold, res)
+    (ssr_cur, hold_cur), (ssr_new, hold_new) = current, _scores(trial, split, res)
+    m = res.n_obs  # BIC of the trial minus the current model's
+    d_bic = m * math.log(max(ssr_new, 1e-300) / max(ssr_cur, 1e-300))
+    d_bic += (trial_res.n_params - res.n_params) * math.log(m)
     if d_bic > 0 or hold_new > hold_cur * 1.01:
         return None
     return d_bic, alternative, trial, trial_res, removed, removals
-
-
-def _bic_change(current, res, trial, trial_res, split: Split) -> float:
-    """BIC of ``trial`` minus ``current``'s on the fit rows, both under ``res``'s noise
-    weights."""
-    m = res.n_obs
-    ssr_cur = weighted_ssr(current, split.train, split.cond_fit, res)
-    ssr_new = weighted_ssr(trial, split.train, split.cond_fit, res)
-    d_bic = m * math.log(max(ssr_new, 1e-300) / max(ssr_cur, 1e-300))
-    return d_bic + (trial_res.n_params - res.n_params) * math.log(m)
 
 
 def _evidence(
