@@ -22,6 +22,7 @@ from hybrid_pk.data.joint_table import read_joint_table, write_joint_table
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data, make_effect
 from hybrid_pk.errors import DataError, HybridPKError
 from hybrid_pk.simulate import simulate_campaign
+from hybrid_pk.simulate.trajectories import joint_box
 
 F64 = torch.float64
 EFFECTS = ["joint_offset:joint_3", "joint_compliance:joint_2"]
@@ -90,6 +91,40 @@ def test_prediction_matches_the_fit_covariance(rx160, plan):
     assert float((ratio / ratio.mean() - 1).abs().max()) < 0.01, ratio
     dof = res.n_obs - res.n_params
     assert abs(float(ratio.mean()) - 1) < 3.5 / math.sqrt(2 * dof), (float(ratio.mean()), dof)
+
+
+def test_predicted_position_error_matches_repeated_fits(rx160, plan):
+    """The plan's RMS position error over the box is what fits at its poses show: the
+    calibrated model against the truth at random poses of the box, over noise draws."""
+    lo, hi = joint_box(rx160)
+    q_test = lo + torch.rand(
+        500, rx160.dof, generator=torch.Generator().manual_seed(9), dtype=F64
+    ) * (hi - lo)
+    cond_test = Conditions(payload=torch.full((500,), 20.0, dtype=F64))
+    truth = ExtendedModel(rx160, [make_effect(rx160, e) for e in EFFECTS])
+    truth.requires_grad_(False)
+    with torch.no_grad():
+        p_true = truth(q_test, cond_test)[:, :3, 3]
+    squares = []
+    for seed in range(12):
+        data, _ = simulate_campaign(
+            rx160, None, "none", poses=plan.q, noise_mm=0.02, noise_deg=0.002, payload=20.0,
+            known_frames=True, temperature_range=None, seed=100 + seed,
+        )  # fmt: skip
+        model = ExtendedModel(rx160, [make_effect(rx160, e) for e in EFFECTS])
+        cond = conditions_from_data(data)
+        initialise_frames(model, data, cond)
+        fit(model, data, cond=cond, sigma_pos_mm=0.02, sigma_rot_rad=math.radians(0.002))
+        with torch.no_grad():
+            err = 1e3 * (model(q_test, cond_test)[:, :3, 3] - p_true)
+        squares.append(float(err.pow(2).sum(-1).mean()))
+    observed = math.sqrt(sum(squares) / len(squares))
+    # 12 draws of about 18 parameters: the observed RMS has a spread of about 5 %
+    assert abs(observed / plan.planned.position_rms_mm - 1) < 0.2, (
+        observed,
+        plan.planned.position_rms_mm,
+    )
+    assert plan.random.position_rms_mm > 0
 
 
 def test_unidentifiable_parameter_is_reported(rx160):
@@ -173,6 +208,8 @@ def test_plan_and_simulate_cli(tmp_path, capsys):
     plan_doc = json.loads(doc.read_text())
     assert len(plan_doc["parameters"]) == 13
     assert plan_doc["condition"]["planned"] > 1
+    assert "position error over the box" in out
+    assert 0 < plan_doc["position_rms_mm"]["planned"] < 1
     assert main(["simulate", "rx160", "--poses", str(poses), "--out", str(tmp_path / "m.csv")]) == 0
     assert "simulated 14 rows of rx160: poses of" in capsys.readouterr().out
 

@@ -48,6 +48,7 @@ __all__ = [
     "CRITERIA",
     "DesignQuality",
     "Plan",
+    "box_weight",
     "design_quality",
     "parameter_names",
     "plan_poses",
@@ -82,11 +83,16 @@ class DesignQuality:
         condition: condition number of the Jacobian with unit-norm columns (as
             :class:`~hybrid_pk.calibration.fit.FitResult` reports it).
         log_det: ``log det`` of the information (parameters in scale units).
+        position_rms_mm: predicted RMS position error of the calibrated model over the
+            joint box (the measured point, averaged over the candidate poses) [mm];
+            NaN when not asked for. What a test campaign would see of the fit's own
+            uncertainty; the frames' share of it no choice of poses removes.
     """
 
     std: Tensor
     condition: float
     log_det: float
+    position_rms_mm: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -186,11 +192,15 @@ def pose_information(
     return torch.cat(out)
 
 
-def design_quality(J: Tensor, scale: Tensor) -> DesignQuality:
+def design_quality(
+    J: Tensor, scale: Tensor, box: Tensor | None = None, noise_mm: float = 1.0
+) -> DesignQuality:
     """Predicted std, condition number and ``log det`` of the poses with rows ``J (N, r, n)``.
 
     A parameter that takes part in a null direction of the information (one the
-    poses cannot separate from others) gets ``std = inf``.
+    poses cannot separate from others) gets ``std = inf``. With ``box`` (the mean
+    ``P^T P`` of the position rows ``P`` over the joint box, :func:`box_weight`), also
+    the predicted RMS position error over the box at ``noise_mm``.
     """
     flat = J.reshape(-1, J.shape[-1])
     eig, vec = torch.linalg.eigh(flat.T @ flat)
@@ -200,11 +210,23 @@ def design_quality(J: Tensor, scale: Tensor) -> DesignQuality:
     involved = (vec[:, ~good].abs() > 1e-6).any(-1)
     std = torch.where(involved, math.inf, std)
     sv = torch.linalg.svdvals(flat / flat.norm(dim=0).clamp_min(1e-300))
+    rms = math.nan
+    if box is not None:
+        rms = noise_mm * math.sqrt(max(float(torch.trace(box @ cov)), 0.0))
+        rms = math.inf if bool(involved.any()) else rms
     return DesignQuality(
         std=std,
         condition=float(sv[0] / sv[-1].clamp_min(1e-300)),
         log_det=float(eig.clamp_min(1e-300).log().sum()),
+        position_rms_mm=rms,
     )
+
+
+def box_weight(J: Tensor) -> Tensor:
+    """``(n, n)`` mean ``P^T P`` of the position rows ``P`` of ``J (M, r, n)``: the
+    parameter weight of the mean predicted position variance over those poses."""
+    P = J[:, :3]
+    return (P.transpose(1, 2) @ P).mean(0)
 
 
 def _gains(J: Tensor, A: Tensor, W: Tensor | None) -> Tensor:
@@ -281,8 +303,7 @@ def _criterion_weight(criterion: str, J_cand: Tensor, J_rand: Tensor) -> Tensor 
         var = torch.linalg.pinv(flat.T @ flat, hermitian=True).diagonal()
         return torch.diag(1 / var.clamp_min(1e-300))
     if criterion == "i":  # prediction variance of the measured point over the box
-        P = J_cand[:, :3]
-        return (P.transpose(1, 2) @ P).mean(0)
+        return box_weight(J_cand)
     raise HybridPKError(f"unknown criterion {criterion!r}; choose one of {', '.join(CRITERIA)}")
 
 
@@ -409,13 +430,14 @@ def plan_poses(
         noise = (noise_mm, sigma_deg)
         J_plan = pose_information(model, q_plan, _ordered(cond, q_plan), blocks, *noise)
         J_rand = pose_information(model, q_rand, _ordered(cond, q_rand), blocks, *noise)
+    box_w = box_weight(J_cand)
     return Plan(
         q=q_plan,
         blocks=blocks,
         names=parameter_names(blocks),
-        planned=design_quality(J_plan, scale),
+        planned=design_quality(J_plan, scale, box_w, noise_mm),
         q_random=q_rand,
-        random=design_quality(J_rand, scale),
+        random=design_quality(J_rand, scale, box_w, noise_mm),
         candidates=candidates,
         exchanges=exchanges,
         left_out=left_out,

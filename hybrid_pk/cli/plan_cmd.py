@@ -157,6 +157,15 @@ def _summary(plan: Plan, args: argparse.Namespace, labels: list[str]) -> list[st
         lines.append(_row(name, unit, a, b))
     c1, c2 = plan.planned.condition, plan.random.condition
     lines.append(f"  {'condition number':<41} {c1:>16.4g} {c2:>16.4g} {c1 / c2:>9.2f}")
+    e1, e2 = plan.planned.position_rms_mm, plan.random.position_rms_mm
+    if math.isfinite(e1) and math.isfinite(e2):
+        lines.append(
+            f"  {'position error over the box, RMS':<32} {'mm':<8} {e1:>16.4g} {e2:>16.4g} "
+            f"{e1 / e2:>9.2f}"
+        )
+        lines.append(
+            "  (predicted test error of the calibrated model from the fit's own uncertainty)"
+        )
     lost = [n for n, v in zip(plan.names, plan.planned.std.tolist(), strict=True) if math.isinf(v)]
     if lost:
         lines.append(
@@ -189,6 +198,10 @@ def _document(plan: Plan, args: argparse.Namespace, labels: list[str]) -> dict:
             for name, unit, a, b in rows
         ],
         "condition": {"planned": plan.planned.condition, "random": plan.random.condition},
+        "position_rms_mm": {
+            "planned": finite(plan.planned.position_rms_mm),
+            "random": finite(plan.random.position_rms_mm),
+        },
         "poses": args.out,
     }
 

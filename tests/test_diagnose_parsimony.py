@@ -1,0 +1,54 @@
+"""Near-duplicate causes must not split one effect between them.
+
+The RX160's elbow compliance (joint 3) and a bending of the forearm about an axis
+parallel to joint 3 (``tilt_compliance:joint_4``) have nearly the same signature: the
+loads differ only by the short segment between the two joints. With an unmodelled
+hardening spring in the wrist, the greedy search can pick the tilt first and add the
+compliance later, both significant, the truth shared between them (demo seed 8: the
+compliance came out 9.6 % low). The diagnosis must name the compliance at its value and
+drop the stand-in. Values, spring and campaign are drawn per run (``HYBRID_PK_TEST_SEED``
+replays one).
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import hybrid_pk as hpk
+from hybrid_pk.calibration.diagnosis.search import diagnose
+from hybrid_pk.effects import make_effect
+from hybrid_pk.simulate import simulate_campaign
+from hybrid_pk.simulate.unmodelled import HardeningCompliance, rms_gravity_torques
+from tests.helpers import RUN_SEED, run_rng
+
+pytestmark = pytest.mark.slow
+
+
+def test_elbow_compliance_is_not_split_with_a_forearm_tilt():
+    rng = run_rng("split-duplicates")
+    robot = hpk.Robot.from_urdf("rx160")
+    robot.requires_grad_(False)
+    payload = 20.0
+    c2, c3 = float(rng.uniform(0.5e-6, 1.5e-6)), float(rng.uniform(2e-6, 4e-6))
+    tau0 = 0.4 * float(rms_gravity_torques(robot, payload, torch.Generator())[4])
+    spring = HardeningCompliance(robot, "joint_5", float(rng.uniform(1.5e-4, 3e-4)) / tau0, tau0)
+    effects = [
+        make_effect(robot, "joint_compliance:joint_2", c2),
+        make_effect(robot, "joint_compliance:joint_3", c3),
+        spring,
+    ]
+    seed = int(rng.integers(1_000_000))
+    data, _ = simulate_campaign(
+        robot, 2250, effects, noise_mm=0.02, noise_deg=0.002, payload=payload, seed=seed
+    )
+    diag = diagnose(robot, data, seed=RUN_SEED % 1000)
+    where = (
+        f"run seed {RUN_SEED}: c2 {c2:.3g}, c3 {c3:.3g}, spring {float(spring.value):.3g} rad/Nm"
+    )
+    named = {(c.effect, c.joint): c for c in diag.causes}
+    for joint, truth in (("joint_2", c2), ("joint_3", c3)):
+        cause = named.get(("joint_compliance", joint))
+        assert cause is not None, f"{where}: joint_compliance:{joint} not named: {list(named)}"
+        assert abs(cause.value / truth - 1) < 0.05, f"{where}: {joint} {cause.value:.4g}"
+    assert ("tilt_compliance", "joint_4") not in named, f"{where}: {list(named)}"
