@@ -33,8 +33,8 @@ equivalent shell command is printed before each). Steps:
 Model files already in OUT are kept (``--evaluate-only``: fit nothing). Writes
 ``OUT/results.json`` and ``OUT/results.md``. Run from the repository root::
 
-    nice -n 10 python experiments/real_ur10.py --out /tmp/ur10_real            # ~10 min
-    nice -n 10 python experiments/real_ur10.py --out /tmp/ur10_full --epochs 150  # long
+    nice -n 10 python experiments/real_ur10.py --out /tmp/ur10_real              # ~10 min
+    python experiments/real_ur10.py --out /tmp/ur10_quick --epochs 40 --splits region
 """
 
 from __future__ import annotations
@@ -87,7 +87,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--out", type=Path, required=True, help="output directory (created)")
     p.add_argument("--thin", type=int, default=1, metavar="K", help="keep every K-th row")
     p.add_argument(
-        "--epochs", type=int, default=40, help="training epochs (default 40; preset: 150)"
+        "--epochs", type=int, default=150, help="training epochs (default 150, the presets')"
     )
     p.add_argument("--seed", type=int, default=0, help="seed of splits, diagnosis, training")
     p.add_argument("--holdout", type=float, default=0.2, help="region/random/joint share")

@@ -52,3 +52,23 @@ def test_elbow_compliance_is_not_split_with_a_forearm_tilt():
         assert cause is not None, f"{where}: joint_compliance:{joint} not named: {list(named)}"
         assert abs(cause.value / truth - 1) < 0.05, f"{where}: {joint} {cause.value:.4g}"
     assert ("tilt_compliance", "joint_4") not in named, f"{where}: {list(named)}"
+
+
+def test_search_stopped_at_its_limit_says_so():
+    """Three hidden effects, at most one cause: the diagnosis warns that a significant
+    candidate was left; with room for all three it does not."""
+    rng = run_rng("max-causes")
+    robot = hpk.Robot.from_urdf("rx160")
+    robot.requires_grad_(False)
+    seed = int(rng.integers(1_000_000))
+    data, truth = simulate_campaign(
+        robot, 1500, "random:3", noise_mm=0.02, noise_deg=0.002, seed=seed
+    )
+    where = f"run seed {RUN_SEED}: {[e['effect'] for e in truth['effects']]}"
+    capped = diagnose(robot, data, max_causes=1, seed=1)
+    assert len(capped.causes) == 1, where
+    warned = [w for w in capped.warnings if "stopped at its limit of 1 cause:" in w["why"]]
+    assert len(warned) == 1, f"{where}: {capped.warnings}"
+    assert capped.to_json()["warnings"] == capped.warnings
+    roomy = diagnose(robot, data, max_causes=8, seed=1)
+    assert not [w for w in roomy.warnings if "stopped at its limit" in w["why"]], where

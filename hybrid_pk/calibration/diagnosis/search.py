@@ -126,7 +126,7 @@ def diagnose(
         robust=_robust_json(res, data, split),
         structural=structural,
         frames=frame_json,
-        warnings=plausibility_warnings(causes, data),
+        warnings=plausibility_warnings(causes, data) + _cap_warnings(steps),
         robot=robot.name,
         n_samples=data.n,
         n_holdout=split.test.n,
@@ -216,8 +216,46 @@ def _select(
         model, res = new, new_res
         model, res, removed = eliminate(model, res, split, alpha, best.label, steps, say)
         pool = [c for c in pool if c not in removed]
+    if pool and len(model.effects) >= max_causes:
+        _note_cap(model, res, pool, split, alpha, max_causes, steps, say)
     model, res = prefer_fewer_causes(model, res, pairs, split, alpha, steps, say)
     return model, res, steps, ambiguous, unobservable
+
+
+def _note_cap(model, res, pool, split, alpha, max_causes, steps, say) -> None:
+    """Record (``"capped"`` step) the best remaining candidate when the search stopped
+    at ``max_causes`` with it still significant: the data carry more than was named."""
+    say(f"{max_causes} causes named (the limit): is the next candidate still significant?")
+    scores = score_candidates(model, res, pool, split, alpha, False, progress=say)
+    if not scores.scored or scores.ranked[0].p >= scores.threshold:
+        return
+    best = scores.ranked[0]
+    steps.append(
+        {
+            "candidate": best.label,
+            "score_F": best.F,
+            "score_p": best.p,
+            "threshold": scores.threshold,
+            "accepted": False,
+            "capped": max_causes,
+            "why": f"not tested: the search stopped at max_causes = {max_causes}",
+        }
+    )
+
+
+def _cap_warnings(steps: list[dict]) -> list[dict]:
+    """A warning for a search that stopped at its limit with a significant candidate."""
+    return [
+        {
+            "cause": s["candidate"],
+            "why": f"still significant (score F {s['score_F']:.3g}, p {s['score_p']:.2g}) "
+            f"when the search stopped at its limit of {s['capped']} "
+            f"cause{'s' if s['capped'] != 1 else ''}: the "
+            "data carry more causes than were named; --max-causes N names more",
+        }
+        for s in steps
+        if s.get("capped")
+    ]
 
 
 def _outliers(model: ExtendedModel, data: MeasuredData, per_file: bool, res: FitResult):
