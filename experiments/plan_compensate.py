@@ -271,6 +271,15 @@ def report(
     ]
     lines.append(f"planned poses lower the mean test error by {100 * (1 - planned / rand):.1f} %")
     lines.append(f"the plan predicted {100 * (1 - mean(predicted)):.1f} % (its RMS over the box)")
+    # Cramer-Rao: the base and tool translations enter every position row with an
+    # orthonormal Jacobian (identity, and the flange rotation), so no N poses know either
+    # better than sigma / sqrt(N) per coordinate; their share of the RMS is a floor.
+    floor = args.noise_mm * math.sqrt(6 / args.n)
+    rand_rms = mean([r["plan"]["position_rms_mm"]["random"] for r in results])
+    lines.append(
+        f"floor of any design (base and tool translations, sigma sqrt(6 / N)): {floor:.5f} mm "
+        f"RMS, {100 * (1 - floor / rand_rms):.1f} % below the random poses' predicted RMS"
+    )
     for kind, key in (("planned", "planned_std"), ("random", "random_std")):
         ratios, pooled = spread(results, kind, key)
         lines += ["", f"{kind} poses: observed spread / predicted std (1 = right)", ""]
