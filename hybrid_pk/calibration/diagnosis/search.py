@@ -181,16 +181,7 @@ def _select(
             break
         best = scores.ranked[0]
         if best.p >= scores.threshold:
-            steps.append(
-                {
-                    "candidate": best.label,
-                    "score_F": best.F,
-                    "score_p": best.p,
-                    "threshold": scores.threshold,
-                    "accepted": False,
-                    "why": "best remaining candidate is not significant",
-                }
-            )
+            steps.append(_untested(best, scores, "best remaining candidate is not significant"))
             break
         say(f"testing {best.label}")
         new, new_res, step = try_candidate(
@@ -229,18 +220,20 @@ def _note_cap(model, res, pool, split, alpha, max_causes, steps, say) -> None:
     scores = score_candidates(model, res, pool, split, alpha, False, progress=say)
     if not scores.scored or scores.ranked[0].p >= scores.threshold:
         return
-    best = scores.ranked[0]
-    steps.append(
-        {
-            "candidate": best.label,
-            "score_F": best.F,
-            "score_p": best.p,
-            "threshold": scores.threshold,
-            "accepted": False,
-            "capped": max_causes,
-            "why": f"not tested: the search stopped at max_causes = {max_causes}",
-        }
-    )
+    why = f"not tested: the search stopped at max_causes = {max_causes}"
+    steps.append({**_untested(scores.ranked[0], scores, why), "capped": max_causes})
+
+
+def _untested(best, scores, why: str) -> dict:
+    """The step record of a scored candidate that was not refitted."""
+    return {
+        "candidate": best.label,
+        "score_F": best.F,
+        "score_p": best.p,
+        "threshold": scores.threshold,
+        "accepted": False,
+        "why": why,
+    }
 
 
 def _cap_warnings(steps: list[dict]) -> list[dict]:
