@@ -216,9 +216,9 @@ def design_quality(
     std = torch.where(involved, math.inf, std)
     sv = torch.linalg.svdvals(flat / flat.norm(dim=0).clamp_min(1e-300))
     rms = math.nan
-    if box is not None:
-        rms = noise_mm * math.sqrt(max(float(torch.trace(box @ cov)), 0.0))
-        rms = math.inf if bool(involved.any()) else rms
+    if box is not None:  # inf where a parameter is not identifiable, as its std
+        trace = float(torch.trace(box @ cov))
+        rms = math.inf if bool(involved.any()) else noise_mm * math.sqrt(max(trace, 0.0))
     return DesignQuality(
         std=std,
         condition=float(sv[0] / sv[-1].clamp_min(1e-300)),

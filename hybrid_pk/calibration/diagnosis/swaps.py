@@ -92,7 +92,7 @@ def _drop_split_duplicates(model, res, pairs, split, steps, say):
         labels = [e.label for e in model.effects]
         if not set(pair) <= set(labels) or len(labels) < 3:
             continue
-        current = _scores(model, split, res)[1]
+        current = holdout_score(model, split.test, split.cond_hold, res)
         best = None  # (hold-out score, dropped, kept, model)
         for drop, keep in (pair, pair[::-1]):
             say(f"testing whether {drop} only splits {keep}'s signature")
