@@ -72,3 +72,38 @@ def test_search_stopped_at_its_limit_says_so():
     assert capped.to_json()["warnings"] == capped.warnings
     roomy = diagnose(robot, data, max_causes=8, seed=1)
     assert not [w for w in roomy.warnings if "stopped at its limit" in w["why"]], where
+
+
+def test_a_tilt_that_only_carries_an_offset_gives_way_to_the_offset():
+    """On the RX160 the joint_5 origin lies on the joint_4 axis, so a joint_4 offset is
+    exactly the z component of a joint_5 axis tilt. When the search has chosen the tilt
+    (two parameters), the swap pass must trade it for the offset (one parameter, the
+    same fit): the same cause count, fewer parameters."""
+    from hybrid_pk.calibration.diagnosis.split import split_campaign
+    from hybrid_pk.calibration.diagnosis.swaps import prefer_fewer_causes
+    from hybrid_pk.calibration.fit import fit
+    from hybrid_pk.effects import ExtendedModel, conditions_from_data
+
+    rng = run_rng("offset-not-tilt")
+    robot = hpk.Robot.from_urdf("rx160")
+    robot.requires_grad_(False)
+    truth = float(rng.choice([-1, 1]) * rng.uniform(0.5e-3, 2e-3))
+    effects = [
+        make_effect(robot, "joint_offset:joint_4", truth),
+        make_effect(robot, "joint_offset:joint_2", float(rng.uniform(-2e-3, 2e-3))),
+    ]
+    data, _ = simulate_campaign(robot, 300, effects, noise_mm=0.05, noise_deg=0.005,
+                                seed=int(rng.integers(1_000_000)))  # fmt: skip
+    split = split_campaign(data, conditions_from_data(data), 0.2, 0)
+    chosen = ["joint_offset:joint_2", "axis_misalignment:joint_5"]
+    model = ExtendedModel(robot, effects=[make_effect(robot, c) for c in chosen])
+    res = fit(model, split.train, cond=split.cond_fit)
+    steps = [{"candidate": c, "accepted": True, "threshold": 1e-3} for c in chosen]
+    pair = [("axis_misalignment:joint_5", "joint_offset:joint_4")]
+    model, _ = prefer_fewer_causes(model, res, pair, split, 1e-3, steps, lambda _m: None)
+    where = f"run seed {RUN_SEED}: offset {truth:.4g} rad"
+    labels = [e.label for e in model.effects]
+    assert sorted(labels) == ["joint_offset:joint_2", "joint_offset:joint_4"], where
+    assert abs(float(model.effect("joint_offset:joint_4").value) / truth - 1) < 0.05, where
+    assert steps[-1]["replaces"] == "axis_misalignment:joint_5", where
+    assert "fewer parameters" in steps[-1]["why"], where

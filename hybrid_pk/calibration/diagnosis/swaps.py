@@ -5,8 +5,10 @@ second one to finish what a near-duplicate does alone: on the RX160 a joint_2 of
 plus a joint_3 origin moved perpendicular to the upper arm is, to first order, exactly
 a joint_3 offset. Each chosen cause with a near-duplicate (``near_duplicates``) is
 therefore swapped for it, refitted and followed by backward elimination; the swap stays
-when the data then need fewer causes and fit no worse (BIC and hold-out score, both
-models' residuals under the same noise weights).
+when the data then need fewer causes, or the alternative has fewer parameters (a
+joint_4 offset against a joint_5 axis tilt whose third component is that offset), and
+fit no worse (BIC and hold-out score, both models' residuals under the same noise
+weights).
 
 When both of a near-duplicate pair end up chosen (the second added once the first had
 taken part of its signature), they split one effect between them: their values trade
@@ -69,12 +71,14 @@ def prefer_fewer_causes(
         chosen_step = next(s for s in steps if s["candidate"] == chosen and s.get("accepted"))
         step = {"candidate": alternative, "replaces": chosen, "accepted": True}
         step.update(_evidence(trial, trial_res, alternative, split, chosen_step["threshold"]))
+        simpler = "fewer causes" if removed else "fewer parameters"
         step["why"] = (
-            f"{alternative} alone does what {chosen} needed {', '.join(sorted(removed))} "
-            "for: fewer causes, the same fit"
-        )
+            f"{alternative} alone does what {chosen} needed {', '.join(sorted(removed))} for"
+            if removed
+            else f"{alternative} does what {chosen} does with fewer parameters"
+        ) + f": {simpler}, the same fit"
         chosen_step["accepted"] = False
-        chosen_step["why"] = f"replaced by {alternative} (fewer causes, the same fit)"
+        chosen_step["why"] = f"replaced by {alternative} ({simpler}, the same fit)"
         steps.append(step)
         steps.extend(removals)
         model, res = trial, trial_res
@@ -137,8 +141,8 @@ def _scores(model: ExtendedModel, split: Split, res: FitResult) -> tuple[float, 
 def _swapped(model, res, current, chosen, alternative, split, alpha, say):
     """``(BIC change, alternative, model, fit, removed, removal steps)`` of ``model``
     with ``alternative`` in place of ``chosen`` after backward elimination, or None when
-    that is implausible, removes nothing, or fits worse than ``current`` (``model``'s
-    :func:`_scores`)."""
+    that is implausible, leaves neither fewer causes nor fewer parameters, or fits worse
+    than ``current`` (``model``'s :func:`_scores`)."""
     say(f"trying {alternative} in place of {chosen}")
     trial = with_effects(without_effect(model, chosen), [make_effect(model.robot, alternative)])
     sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
@@ -152,8 +156,8 @@ def _swapped(model, res, current, chosen, alternative, split, alpha, say):
     trial, trial_res, removed = eliminate(
         trial, trial_res, split, alpha, alternative, removals, say
     )
-    if not removed:
-        return None
+    if not removed and trial_res.n_params >= res.n_params:
+        return None  # neither fewer causes nor fewer parameters
     (ssr_cur, hold_cur), (ssr_new, hold_new) = current, _scores(trial, split, res)
     m = res.n_obs  # BIC of the trial minus the current model's
     d_bic = m * math.log(max(ssr_new, 1e-300) / max(ssr_cur, 1e-300))
