@@ -167,7 +167,7 @@ def _campaign(
 
 
 def _value_error(found, truth, kind: str) -> float:
-    if kind == "joint_eccentricity":
+    if kind == "joint_eccentricity" or kind.startswith("cyclic_error_"):
         truth = math.hypot(*truth)
     f, t = np.asarray(found, dtype=float), np.asarray(truth, dtype=float)
     return float(np.linalg.norm(f - t) / np.linalg.norm(t))

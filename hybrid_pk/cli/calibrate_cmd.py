@@ -75,7 +75,8 @@ Fit base/tool frames and physical error effects to measured poses; write one MOD
                                  tool was re-mounted or the tracker moved)
 
 Effects and units: joint_offset [rad], joint_compliance [rad/Nm], gear_ratio [1],
-joint_eccentricity [rad], backlash [rad, full play], link_length [m, vector],
+joint_eccentricity [rad], cyclic_error_<n> [rad, n = 2..36 cycles per turn], backlash
+[rad, full play], link_length [m, vector],
 axis_misalignment [rad, rotation vector], thermal_expansion [1/K, not per joint],
 tilt_compliance [rad/Nm about the two axes perpendicular to the joint], column_bending
 [rad/Nm/m, prismatic joints]. Compliance and deflection use --gravity (the mounting).

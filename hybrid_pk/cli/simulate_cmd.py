@@ -42,6 +42,7 @@ nominal model with the true frames, as in the paper's Table I).
                           (rad/Nm), gear_ratio:joint_1=1e-4 (1), backlash:joint_4=2e-4 (rad,
                           full play)
   kind:joint=v1,v2[,v3]   joint_eccentricity:joint_2=3e-4,-2e-4 (a, b [rad]),
+                          cyclic_error_17:joint_2=2e-4,1e-4 (a, b [rad], 17 per turn),
                           link_length:joint_3=0,0,5e-4 ([m]), axis_misalignment:joint_5=1e-3,0,0
                           ([rad] rotation vector)
   kind=value              thermal_expansion=1.2e-5 (1/K)

@@ -20,6 +20,7 @@ origin in front of it, ``joint_index`` being its index along the chain.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import ClassVar
 
 import torch
@@ -29,7 +30,14 @@ from hybrid_pk.effects.conditions import Conditions
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.robot import KinematicParams, Robot
 
-__all__ = ["EFFECTS", "Effect", "effect_joint_names", "make_effect"]
+__all__ = [
+    "EFFECTS",
+    "Effect",
+    "effect_joint_names",
+    "known_kinds",
+    "make_effect",
+    "register_family",
+]
 
 
 class Effect(nn.Module):
@@ -95,7 +103,47 @@ class Effect(nn.Module):
         return f"{self.label}, value={self.report_value()} {self.unit}"
 
 
-EFFECTS: dict[str, type[Effect]] = {}
+class _Registry(dict):
+    """Effect kinds by name: the registered ones, and the members of each family
+    (``cyclic_error_<n>``, one kind per order ``n``) built on demand. Iterating lists
+    the registered kinds only."""
+
+    families: ClassVar[dict[str, Callable[[str], type[Effect] | None]]] = {}
+
+    def _member(self, kind: object) -> type[Effect] | None:
+        if not isinstance(kind, str):
+            return None
+        for prefix, build in self.families.items():
+            if kind.startswith(prefix):
+                return build(kind)
+        return None
+
+    def __missing__(self, kind: str) -> type[Effect]:
+        cls = self._member(kind)
+        if cls is None:
+            raise KeyError(kind)
+        return cls
+
+    def __contains__(self, kind: object) -> bool:
+        return dict.__contains__(self, kind) or self._member(kind) is not None
+
+
+EFFECTS: dict[str, type[Effect]] = _Registry()
+
+
+def register_family(prefix: str, build: Callable[[str], type[Effect] | None], shown: str) -> None:
+    """Kinds ``prefix...`` are made by ``build(kind)`` (None: not a member); ``shown``
+    names the family in lists of known effects."""
+    _Registry.families[prefix] = build
+    _FAMILY_NAMES[prefix] = shown
+
+
+_FAMILY_NAMES: dict[str, str] = {}
+
+
+def known_kinds() -> str:
+    """The effect kinds for an error message: registered ones and families."""
+    return ", ".join(sorted(EFFECTS) + sorted(_FAMILY_NAMES.values()))
 
 
 def effect_joint_names(robot: Robot, cls: type[Effect]) -> list[str]:
@@ -112,7 +160,7 @@ def make_effect(robot: Robot, spec: str, value=None) -> Effect:
     """Effect from ``"kind:joint"`` or ``"kind"`` (e.g. ``"joint_offset:joint_2"``)."""
     kind, _, joint = spec.partition(":")
     if kind not in EFFECTS:
-        raise HybridPKError(f"unknown effect {kind!r}; known effects: {', '.join(sorted(EFFECTS))}")
+        raise HybridPKError(f"unknown effect {kind!r}; known effects: {known_kinds()}")
     cls = EFFECTS[kind]
     if cls.per_joint and not joint:
         raise HybridPKError(f"effect {kind} is per joint: write {kind}:JOINT")

@@ -52,6 +52,7 @@ from hybrid_pk.calibration.diagnosis.structural import off_frames
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data, make_effect
 from hybrid_pk.effects.geometric import REFERENCE_TEMPERATURE
+from hybrid_pk.effects.joint import CYCLIC_PREFIX, JointEccentricity
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.plots import binned_median
 from hybrid_pk.report.evidence_deflection import DEFLECTION_EFFECTS, deflection_evidence
@@ -229,7 +230,7 @@ def cause_evidence(
 
 def _evidence(cause, label: str, data, model, view: ResidualView) -> Evidence:
     title = f"{label} = {_value_text(cause)}"
-    if cause.effect in JOINT_EFFECTS:
+    if cause.effect in JOINT_EFFECTS or cause.effect.startswith(CYCLIC_PREFIX):
         return _joint_evidence(cause, label, title, data, model, view)
     if cause.effect == "thermal_expansion":
         return _thermal_evidence(cause, label, title, data, view)
@@ -266,7 +267,7 @@ def _joint_evidence(cause, label, title, data, model, res: ResidualView) -> Evid
         points = float(_wls(np.stack([x, np.ones_like(x)], 1), y, w)[0]) * 1e-3
         law = "θ_true - θ = c · τ_gravity: a line through the origin, slope c"
         value = float(v)
-    elif cause.effect in ("joint_offset", "gear_ratio", "joint_eccentricity"):
+    elif cause.effect in ("joint_offset", "gear_ratio") or isinstance(effect, JointEccentricity):
         x = np.degrees(theta)
         x_label = f"{cause.joint} angle θ [deg]"
         curve_x = np.linspace(x.min(), x.max(), 200)
@@ -282,12 +283,17 @@ def _joint_evidence(cause, label, title, data, model, res: ResidualView) -> Evid
             law = "θ_true - θ = s · θ: a line through the origin, slope s"
             value = float(v)
         else:
-            a, b = float(v[0]), float(v[1])
-            curve_y = 1e3 * (a * np.sin(th) + b * np.cos(th))
-            basis = np.stack([np.sin(theta), np.cos(theta), np.ones_like(theta)], 1)
+            a, b, n = float(v[0]), float(v[1]), effect.order
+            curve_y = 1e3 * (a * np.sin(n * th) + b * np.cos(n * th))
+            basis = np.stack([np.sin(n * theta), np.cos(n * theta), np.ones_like(theta)], 1)
             ca, cb, _ = _wls(basis, y, w) * 1e-3
             points = math.hypot(ca, cb)
-            law = "θ_true - θ = a sin θ + b cos θ: a sinusoid, amplitude √(a² + b²)"
+            nth = "θ" if n == 1 else f"{n}θ"
+            law = (
+                f"θ_true - θ = a sin {nth} + b cos {nth}: a sinusoid"
+                + ("" if n == 1 else f" of {n} cycles per turn")
+                + ", amplitude √(a² + b²)"
+            )
             value = math.hypot(a, b)
     else:  # backlash
         categorical = True

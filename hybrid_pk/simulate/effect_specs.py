@@ -35,6 +35,7 @@ from hybrid_pk.effects import (
     make_effect,
 )
 from hybrid_pk.effects import approach_direction as _approach_direction
+from hybrid_pk.effects.base import known_kinds
 from hybrid_pk.effects.limits import effect_limit
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import transform
@@ -168,7 +169,7 @@ def _random_count(item: str, arg: str) -> int:
 
 
 def _known() -> str:
-    return f"known effects: {', '.join(sorted(EFFECTS))}; presets: {', '.join(PRESETS)}"
+    return f"known effects: {known_kinds()}; presets: {', '.join(PRESETS)}"
 
 
 def _parse_item(robot: Robot, item: str) -> Effect:

@@ -11,6 +11,7 @@ from torch import Tensor
 
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.effects import Effect, ExtendedModel
+from hybrid_pk.effects.joint import JointEccentricity
 from hybrid_pk.evaluation.metrics import error_stats
 
 __all__ = [
@@ -133,7 +134,7 @@ def report_value(e: Effect, std: Tensor) -> tuple:
         basis = e.basis.to(torch.float64)
         w_std = ((std[:, None] * basis) ** 2).sum(0).sqrt()  # ignores the u-v covariance
         return e.report_value(), [float(x) for x in w_std], None
-    if e.kind == "joint_eccentricity":
+    if isinstance(e, JointEccentricity):  # and cyclic_error_<n>
         amp = float(v.norm())
         # std of the amplitude by first-order propagation
         grad = (v / max(amp, 1e-300)).numpy()

@@ -21,6 +21,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from hybrid_pk.calibration.diagnosis.ambiguity import correlated_groups, near_duplicates
+from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic
 from hybrid_pk.calibration.diagnosis.elimination import eliminate
 from hybrid_pk.calibration.diagnosis.gains import measure_causes
 from hybrid_pk.calibration.diagnosis.plausibility import plausibility_warnings
@@ -168,10 +169,11 @@ def _select(
     first_step = True
     rejected_in_a_row = 0
     pairs: list[tuple[str, str]] = []  # (chosen, near-duplicate) for the swaps after
+    pool, screened = screen_cyclic(model, split, pool, res.weights)
     while pool and len(model.effects) < max_causes:
         say(f"scoring {len(pool)} candidate effects (step {len(steps) + 1})")
         scores = score_candidates(
-            model, res, pool, split, alpha, name_equivalents=first_step, progress=say
+            model, res, pool, split, alpha, first_step, progress=say, screened=screened
         )
         unobservable += scores.unobservable
         ambiguous += scores.equivalent
@@ -208,16 +210,20 @@ def _select(
         model, res, removed = eliminate(model, res, split, alpha, best.label, steps, say)
         pool = [c for c in pool if c not in removed]
     if pool and len(model.effects) >= max_causes:
-        _note_cap(model, res, pool, split, alpha, max_causes, steps, say)
+        _note_cap(model, res, pool, split, alpha, (max_causes, screened), steps, say)
     model, res = prefer_fewer_causes(model, res, pairs, split, alpha, steps, say)
     return model, res, steps, ambiguous, unobservable
 
 
-def _note_cap(model, res, pool, split, alpha, max_causes, steps, say) -> None:
+def _note_cap(model, res, pool, split, alpha, limits, steps, say) -> None:
     """Record (``"capped"`` step) the best remaining candidate when the search stopped
-    at ``max_causes`` with it still significant: the data carry more than was named."""
+    at ``max_causes`` with it still significant: the data carry more than was named.
+    ``limits``: ``(max_causes, screened)``."""
+    max_causes, screened = limits
     say(f"{max_causes} causes named (the limit): is the next candidate still significant?")
-    scores = score_candidates(model, res, pool, split, alpha, False, progress=say)
+    scores = score_candidates(
+        model, res, pool, split, alpha, False, progress=say, screened=screened
+    )
     if not scores.scored or scores.ranked[0].p >= scores.threshold:
         return
     why = f"not tested: the search stopped at max_causes = {max_causes}"

@@ -34,6 +34,7 @@ from hybrid_pk.calibration.fit import FitResult, fit, reestimated_noise
 from hybrid_pk.calibration.problem import Problem, param_blocks
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import EFFECTS, ExtendedModel, effect_joint_names, make_effect
+from hybrid_pk.effects.joint import CYCLIC_PREFIX, MAX_CYCLIC_ORDER
 from hybrid_pk.robot import Robot
 
 __all__ = [
@@ -75,6 +76,21 @@ def candidate_labels(robot: Robot, data: MeasuredData) -> list[str]:
         spread = float(data.temperature.max() - data.temperature.min())
         if spread >= MIN_TEMPERATURE_SPREAD:
             labels.append("thermal_expansion")
+    return labels + cyclic_candidates(robot, data)
+
+
+def cyclic_candidates(robot: Robot, data: MeasuredData) -> list[str]:
+    """``cyclic_error_<n>:JOINT`` for every revolute joint and every order whose
+    period the data's range of that joint covers at least once (n = 2 ..
+    :data:`MAX_CYCLIC_ORDER`). Each order is a candidate of its own, so the search's
+    Bonferroni level counts every order it tried."""
+    labels = []
+    span = (data.q.max(0).values - data.q.min(0).values).tolist() if data.n else []
+    for i, joint in enumerate(robot.joint_names):
+        if robot.joint_types[i] == "prismatic" or not span:
+            continue
+        lowest = max(2, math.ceil(2 * math.pi / max(span[i], 1e-9)))
+        labels += [f"{CYCLIC_PREFIX}{n}:{joint}" for n in range(lowest, MAX_CYCLIC_ORDER + 1)]
     return labels
 
 
@@ -108,7 +124,7 @@ class Scores:
         scored: the candidates with an identifiable signature, in pool order.
         ranked: the same, best first (significant ones first, then by BIC gain).
         m, n_current: residual count and the current model's parameter count.
-        threshold: Bonferroni level ``alpha / len(scored)``.
+        threshold: Bonferroni level ``alpha / (len(scored) + screened)``.
         unobservable: candidates without any signature in this data.
         equivalent: ambiguity entries of candidates that a frame or effect absorbs.
         R: ``(n + 1, n + 1)`` triangular factor of ``[J r]`` of the current model and
@@ -142,8 +158,12 @@ def score_candidates(
     alpha: float,
     name_equivalents: bool,
     progress: Callable[[str], None] | None = None,
+    screened: int = 0,
 ) -> Scores:
     """Score every candidate of ``pool`` against ``model`` from one Jacobian.
+
+    ``screened``: candidates set aside before scoring (:func:`.screen_cyclic`); they
+    count in the Bonferroni level.
 
     Candidates with no signature are ``unobservable``; those inside the current
     columns are dropped (and, with ``name_equivalents``, reported as equivalent to
@@ -191,7 +211,7 @@ def score_candidates(
         if score is not None:
             out.scored.append(score)
     if out.scored:
-        out.threshold = alpha / len(out.scored)
+        out.threshold = alpha / (len(out.scored) + screened)
     return out
 
 
