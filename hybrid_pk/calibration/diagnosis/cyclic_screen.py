@@ -25,6 +25,7 @@ __all__ = ["SCREEN_KEEP", "screen_cyclic"]
 SCREEN_KEEP = 2  # orders per joint that go on to the score test
 _STEP = 1e-6  # [rad] finite-difference step of the joint's point Jacobian
 _MIN_LEVER = 0.2  # rows whose |J_j| is below this fraction of the median are left out
+_MIN_ROWS = 8  # fewer informative rows than this: the joint's orders are not scored
 
 
 def screen_cyclic(
@@ -56,6 +57,8 @@ def screen_cyclic(
             J = (model(data.q + dq, cond)[:, :3, 3] - p0) / _STEP  # (n, 3) [m/rad]
             w = (J * J).sum(-1)
             rows = w > _MIN_LEVER**2 * w.median()
+            if int(rows.sum()) < _MIN_ROWS:
+                continue  # the joint barely moves the point: no order to rank
             e = (J * r).sum(-1)[rows] / w[rows]  # equivalent angle error [rad]
             w_rows = w[rows] if weights is None else w[rows] * weights[rows].to(w.dtype)
             ranked = sorted(ns, key=lambda n: -_explained(e, w_rows, data.q[rows, j], n))
