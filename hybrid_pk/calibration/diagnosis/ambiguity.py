@@ -1,11 +1,13 @@
 """Ambiguity: effects that the data cannot tell apart from a frame or from each other.
 
-Three kinds, each an entry ``{"effects": [a, b], "why": ...}`` of the diagnosis:
+Four kinds, each an entry ``{"effects": [a, b], "why": ...}`` of the diagnosis:
 
 - a candidate whose signature lies inside what the fitted frames explain (no data of
   this kind can separate them);
 - a chosen cause whose correction another candidate could make nearly as well;
-- estimates whose correlation is close to +-1.
+- estimates whose correlation is close to +-1;
+- a cyclic joint error whose neighbouring order would explain nearly as much
+  (:func:`.cyclic_screen.unresolved_orders`).
 """
 
 from __future__ import annotations

@@ -8,6 +8,10 @@ best (``e = J_j · r / |J_j|²``, rows where the joint moves the point at all), 
 weighted periodogram of ``e`` against that joint's angle ranks the orders. The best
 :data:`SCREEN_KEEP` orders per joint go on as candidates; the others count in the
 Bonferroni level of every step all the same (they were looked at).
+
+After the search, the same periodogram of what the model leaves without a chosen
+cyclic error tells whether a neighbouring order would do nearly as well (a joint range
+of a few radians resolves the order only to a cycle or so): :func:`unresolved_orders`.
 """
 
 from __future__ import annotations
@@ -18,14 +22,16 @@ import torch
 
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.effects import ExtendedModel
-from hybrid_pk.effects.joint import CYCLIC_PREFIX
+from hybrid_pk.effects.joint import CYCLIC_PREFIX, MAX_CYCLIC_ORDER
 
-__all__ = ["SCREEN_KEEP", "screen_cyclic"]
+__all__ = ["ORDER_SHARE", "SCREEN_KEEP", "screen_cyclic", "unresolved_orders"]
 
 SCREEN_KEEP = 2  # orders per joint that go on to the score test
 _STEP = 1e-6  # [rad] finite-difference step of the joint's point Jacobian
 _MIN_LEVER = 0.2  # rows whose |J_j| is below this fraction of the median are left out
 _MIN_ROWS = 8  # fewer informative rows than this: the joint's orders are not scored
+NEIGHBOURS = 3  # orders on either side of a chosen one that are compared with it
+ORDER_SHARE = 0.9  # a neighbour explaining this share of the chosen order's part is listed
 
 
 def screen_cyclic(
@@ -51,20 +57,64 @@ def screen_cyclic(
         r = data.position.to(p0.dtype) - p0
         kept = set()
         for joint, ns in orders.items():
-            j = names.index(joint)
-            dq = torch.zeros_like(data.q)
-            dq[:, j] = _STEP
-            J = (model(data.q + dq, cond)[:, :3, 3] - p0) / _STEP  # (n, 3) [m/rad]
-            w = (J * J).sum(-1)
-            rows = w > _MIN_LEVER**2 * w.median()
-            if int(rows.sum()) < _MIN_ROWS:
+            got = _angle_error(model, split, names.index(joint), p0, r, weights)
+            if got is None:
                 continue  # the joint barely moves the point: no order to rank
-            e = (J * r).sum(-1)[rows] / w[rows]  # equivalent angle error [rad]
-            w_rows = w[rows] if weights is None else w[rows] * weights[rows].to(w.dtype)
-            ranked = sorted(ns, key=lambda n: -_explained(e, w_rows, data.q[rows, j], n))
+            ranked = sorted(ns, key=lambda n: -_explained(*got, n))
             kept |= {f"{CYCLIC_PREFIX}{n}:{joint}" for n in ranked[:SCREEN_KEEP]}
     out = [c for c in pool if not c.startswith(CYCLIC_PREFIX) or c in kept]
     return out, len(pool) - len(out)
+
+
+def unresolved_orders(
+    model: ExtendedModel, split: Split, weights: torch.Tensor | None = None
+) -> list[dict]:
+    """Ambiguity entries for each chosen ``cyclic_error_<n>`` against the neighbouring
+    orders (within :data:`NEIGHBOURS`) that explain at least :data:`ORDER_SHARE` of
+    what order ``n`` explains of the angle error the model leaves without that cause."""
+    data, cond = split.train, split.cond_fit
+    out = []
+    for e in [x for x in model.effects if x.kind.startswith(CYCLIC_PREFIX)]:
+        saved = e.value.detach().clone()
+        with torch.no_grad():
+            e.value.zero_()
+            p0 = model(data.q, cond)[:, :3, 3]
+            r = data.position.to(p0.dtype) - p0
+            got = _angle_error(model, split, e.joint_index, p0, r, weights)
+            e.value.copy_(saved)
+        if got is None:
+            continue
+        own = _explained(*got, e.order)
+        lo, hi = max(2, e.order - NEIGHBOURS), min(MAX_CYCLIC_ORDER, e.order + NEIGHBOURS)
+        for m in [m for m in range(lo, hi + 1) if m != e.order]:
+            share = _explained(*got, m) / max(own, 1e-300)
+            if share >= ORDER_SHARE:
+                out.append(
+                    {
+                        "effects": [e.label, f"{CYCLIC_PREFIX}{m}:{e.joint}"],
+                        "why": f"{m} cycles per turn explain {100 * share:.0f} % of what "
+                        f"{e.order} explain of {e.joint}'s angle error: the order is not "
+                        "resolved by these rows",
+                    }
+                )
+    return out
+
+
+def _angle_error(model, split, j, p0, r, weights):
+    """``(e, w, theta)`` of the rows where joint ``j`` moves the point: the angle error
+    [rad] that best explains each row's position residual ``r``, its weight ``|J_j|²``
+    (times the robust row weight) and the joint angle; None for too few such rows."""
+    data, cond = split.train, split.cond_fit
+    dq = torch.zeros_like(data.q)
+    dq[:, j] = _STEP
+    J = (model(data.q + dq, cond)[:, :3, 3] - p0) / _STEP  # (n, 3) [m/rad]
+    w = (J * J).sum(-1)
+    rows = w > _MIN_LEVER**2 * w.median()
+    if int(rows.sum()) < _MIN_ROWS:
+        return None
+    e = (J * r).sum(-1)[rows] / w[rows]
+    w_rows = w[rows] if weights is None else w[rows] * weights[rows].to(w.dtype)
+    return e, w_rows, data.q[rows, j]
 
 
 def _explained(e: torch.Tensor, w: torch.Tensor, theta: torch.Tensor, n: int) -> float:

@@ -21,7 +21,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from hybrid_pk.calibration.diagnosis.ambiguity import correlated_groups, near_duplicates
-from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic
+from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic, unresolved_orders
 from hybrid_pk.calibration.diagnosis.elimination import eliminate
 from hybrid_pk.calibration.diagnosis.gains import measure_causes
 from hybrid_pk.calibration.diagnosis.plausibility import plausibility_warnings
@@ -122,6 +122,7 @@ def diagnose(
     sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
     causes, structural = structural_check(model, causes, flagged, split, nominal_model, sigmas, say)
     ambiguous += correlated_groups(res)
+    ambiguous += unresolved_orders(model, split, res.weights)
     return Diagnosis(
         outliers=_outliers(model, data, frames_per_file, res),
         robust=_robust_json(res, data, split),
