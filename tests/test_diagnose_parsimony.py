@@ -82,6 +82,7 @@ def test_a_tilt_that_only_carries_an_offset_gives_way_to_the_offset():
     from hybrid_pk.calibration.diagnosis.split import split_campaign
     from hybrid_pk.calibration.diagnosis.swaps import prefer_fewer_causes
     from hybrid_pk.calibration.fit import fit
+    from hybrid_pk.calibration.known_frames import initialise_with_priors
     from hybrid_pk.effects import ExtendedModel, conditions_from_data
 
     rng = run_rng("offset-not-tilt")
@@ -97,6 +98,7 @@ def test_a_tilt_that_only_carries_an_offset_gives_way_to_the_offset():
     split = split_campaign(data, conditions_from_data(data), 0.2, 0)
     chosen = ["joint_offset:joint_2", "axis_misalignment:joint_5"]
     model = ExtendedModel(robot, effects=[make_effect(robot, c) for c in chosen])
+    initialise_with_priors(model, split.train, split.cond_fit, None)  # as diagnose does
     res = fit(model, split.train, cond=split.cond_fit)
     steps = [{"candidate": c, "accepted": True, "threshold": 1e-3} for c in chosen]
     pair = [("axis_misalignment:joint_5", "joint_offset:joint_4")]
