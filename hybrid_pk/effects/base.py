@@ -108,12 +108,13 @@ class _Registry(dict):
     (``cyclic_error_<n>``, one kind per order ``n``) built on demand. Iterating lists
     the registered kinds only."""
 
-    families: ClassVar[dict[str, Callable[[str], type[Effect] | None]]] = {}
+    # prefix -> (build(kind): the member's class or None, the family's name in lists)
+    families: ClassVar[dict[str, tuple[Callable[[str], type[Effect] | None], str]]] = {}
 
     def _member(self, kind: object) -> type[Effect] | None:
         if not isinstance(kind, str):
             return None
-        for prefix, build in self.families.items():
+        for prefix, (build, _) in self.families.items():
             if kind.startswith(prefix):
                 return build(kind)
         return None
@@ -134,16 +135,12 @@ EFFECTS: dict[str, type[Effect]] = _Registry()
 def register_family(prefix: str, build: Callable[[str], type[Effect] | None], shown: str) -> None:
     """Kinds ``prefix...`` are made by ``build(kind)`` (None: not a member); ``shown``
     names the family in lists of known effects."""
-    _Registry.families[prefix] = build
-    _FAMILY_NAMES[prefix] = shown
-
-
-_FAMILY_NAMES: dict[str, str] = {}
+    _Registry.families[prefix] = (build, shown)
 
 
 def known_kinds() -> str:
     """The effect kinds for an error message: registered ones and families."""
-    return ", ".join(sorted(EFFECTS) + sorted(_FAMILY_NAMES.values()))
+    return ", ".join(sorted(EFFECTS) + sorted(shown for _, shown in _Registry.families.values()))
 
 
 def effect_joint_names(robot: Robot, cls: type[Effect]) -> list[str]:

@@ -48,6 +48,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from hybrid_pk.calibration.diagnosis.statistics import equivalent_angle_error
 from hybrid_pk.calibration.diagnosis.structural import off_frames
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data, make_effect
@@ -245,9 +246,8 @@ def _joint_evidence(cause, label, title, data, model, res: ResidualView) -> Evid
     robot = model.robot
     j = robot.joint_names.index(cause.joint)
     Jj = res.J_point[:, :, j]
-    w_all = (Jj * Jj).sum(-1)
-    e_all = (Jj * res.r_root).sum(-1) / w_all.clamp_min(1e-300)  # [rad]
-    keep = (w_all > (MIN_LEVER_FRACTION**2) * w_all.median()).numpy()
+    e_all, w_all, keep = equivalent_angle_error(Jj, res.r_root, MIN_LEVER_FRACTION)  # [rad]
+    keep = keep.numpy()
     rows = np.flatnonzero(keep)
     y = 1e3 * e_all.numpy()[rows]  # [mrad]
     w = w_all.numpy()[rows]

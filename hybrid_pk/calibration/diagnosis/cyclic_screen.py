@@ -21,6 +21,7 @@ from collections import defaultdict
 import torch
 
 from hybrid_pk.calibration.diagnosis.split import Split
+from hybrid_pk.calibration.diagnosis.statistics import equivalent_angle_error
 from hybrid_pk.effects import ExtendedModel
 from hybrid_pk.effects.joint import CYCLIC_PREFIX, MAX_CYCLIC_ORDER
 
@@ -108,13 +109,11 @@ def _angle_error(model, split, j, p0, r, weights):
     dq = torch.zeros_like(data.q)
     dq[:, j] = _STEP
     J = (model(data.q + dq, cond)[:, :3, 3] - p0) / _STEP  # (n, 3) [m/rad]
-    w = (J * J).sum(-1)
-    rows = w > _MIN_LEVER**2 * w.median()
+    e, w, rows = equivalent_angle_error(J, r, _MIN_LEVER)
     if int(rows.sum()) < _MIN_ROWS:
         return None
-    e = (J * r).sum(-1)[rows] / w[rows]
     w_rows = w[rows] if weights is None else w[rows] * weights[rows].to(w.dtype)
-    return e, w_rows, data.q[rows, j]
+    return e[rows], w_rows, data.q[rows, j]
 
 
 def _explained(e: torch.Tensor, w: torch.Tensor, theta: torch.Tensor, n: int) -> float:

@@ -24,6 +24,16 @@ __all__ = [
 ]
 
 
+def equivalent_angle_error(J: Tensor, r: Tensor, min_lever: float) -> tuple[Tensor, Tensor, Tensor]:
+    """Per row, the angle error of one joint that best explains the residual ``r (N, 3)``
+    from that joint's point Jacobian ``J (N, 3)``: ``e = J · r / |J|²`` (units of ``r``
+    over those of ``J``), its weight ``|J|²``, and the rows where ``|J|`` is at least
+    ``min_lever`` times its median (the others carry no information on the joint)."""
+    w = (J * J).sum(-1)
+    e = (J * r).sum(-1) / w.clamp_min(1e-300)
+    return e, w, w > min_lever**2 * w.median()
+
+
 def f_survival(F: float, d1: int, d2: int) -> float:
     """Survival function of the F distribution (scipy imported on first use: slow)."""
     from scipy import stats
