@@ -25,6 +25,7 @@ from hybrid_pk.cli.main import main
 from hybrid_pk.data import MeasuredData, read_table_for, write_table
 from hybrid_pk.data.ipa import convert_ipa
 from hybrid_pk.effects import ExtendedModel, conditions_from_data
+from hybrid_pk.effects.joint import CYCLIC_PREFIX
 from hybrid_pk.simulate import simulate_campaign
 from tests.helpers import RUN_SEED, run_rng
 
@@ -206,16 +207,26 @@ def _label(c) -> str:
 def _same_findings(a, b, floor_mm: float) -> None:
     """Every cause that gains at least ``floor_mm`` on the hold-out rows in one
     diagnosis is named by the other, or the other names a cause that either diagnosis
-    lists as ambiguous with it (e.g. the same joint's cyclic error at a neighbouring
-    order: on Series B's 2.5 rad of shoulder lift the robust fit names 18 cycles per
-    turn and lists 17 as explaining as much; least squares names 17). Causes below the
-    floor (Series B's noise, 0.010 mm per axis) are marginal on real data with
-    unmodelled structure: the two fits may rank them differently."""
+    lists as ambiguous with it, or, for a periodic error of a joint (eccentricity,
+    ``cyclic_error_<n>``), a periodic error of the same joint. Series B's 1,495 rows
+    carry several weak periodic errors per joint (0.01-0.03 mm each); which orders the
+    two weightings pick among them differs (robust 8, least squares 4 cycles per turn
+    of the shoulder lift; 6 and 21 of the shoulder pan): the finding both make is the
+    joint whose transmission errs periodically. Causes below the floor (Series B's
+    noise, 0.010 mm per axis) are marginal on real data with unmodelled structure: the
+    two fits may rank them differently."""
     pairs = {frozenset(x["effects"]) for d in (a, b) for x in d.ambiguous}
     for one, other in ((a, b), (b, a)):
         named = {_label(c) for c in other.causes}
+        periodic = {c.joint for c in other.causes if _periodic(c)}
         for c in one.causes:
             if c.position_gain_mm < floor_mm or _label(c) in named:
                 continue
+            if _periodic(c) and c.joint in periodic:
+                continue
             stand_ins = [n for n in named if frozenset((_label(c), n)) in pairs]
             assert stand_ins, (_label(c), c.position_gain_mm, sorted(named), pairs)
+
+
+def _periodic(c) -> bool:
+    return c.effect == "joint_eccentricity" or c.effect.startswith(CYCLIC_PREFIX)

@@ -2,12 +2,17 @@
 
 Every order ``n`` of ``cyclic_error_<n>`` on every revolute joint is a candidate (some
 two hundred on a six-axis arm). Scoring them all at every step would multiply the
-Jacobian the search builds by ten. Instead, once the frames are fitted, the position
-residual of each fit row is read as the angle error of each joint that would explain it
-best (``e = J_j · r / |J_j|²``, rows where the joint moves the point at all), and the
-weighted periodogram of ``e`` against that joint's angle ranks the orders. The best
-:data:`SCREEN_KEEP` orders per joint go on as candidates; the others count in the
-Bonferroni level of every step all the same (they were looked at).
+Jacobian the search builds by ten. Instead, at every step of the search, the position
+residual the current model leaves on each fit row is read as the angle error of each
+joint that would explain it best (``e = J_j · r / |J_j|²``, rows where the joint moves
+the point at all), and the weighted periodogram of ``e`` against that joint's angle
+ranks the orders. The best :data:`SCREEN_KEEP` peaks per joint and the orders next
+to each (a range of a few radians resolves the order only to a cycle or so, and the
+proxy ``e`` may rank a neighbour first that the full fit does not) go on to that
+step's score test; the others count in its Bonferroni level all the same (they were
+looked at). Ranking anew at every step matters: before a large error (a misaligned wrist axis)
+is explained, it leaks into every joint's ``e`` and hides a smaller periodic error
+(the UR10's 17 cycles per turn of the shoulder pan ranked first only after 8 causes).
 
 After the search, the same periodogram of what the model leaves without a chosen
 cyclic error tells whether a neighbouring order would do nearly as well (a joint range
@@ -27,7 +32,7 @@ from hybrid_pk.effects.joint import CYCLIC_PREFIX, MAX_CYCLIC_ORDER
 
 __all__ = ["ORDER_SHARE", "SCREEN_KEEP", "screen_cyclic", "unresolved_orders"]
 
-SCREEN_KEEP = 2  # orders per joint that go on to the score test
+SCREEN_KEEP = 2  # peaks per joint whose orders (and the orders next to them) are scored
 _STEP = 1e-6  # [rad] finite-difference step of the joint's point Jacobian
 _MIN_LEVER = 0.2  # rows whose |J_j| is below this fraction of the median are left out
 _MIN_ROWS = 8  # fewer informative rows than this: the joint's orders are not scored
@@ -62,7 +67,8 @@ def screen_cyclic(
             if got is None:
                 continue  # the joint barely moves the point: no order to rank
             ranked = sorted(ns, key=lambda n: -_explained(*got, n))
-            kept |= {f"{CYCLIC_PREFIX}{n}:{joint}" for n in ranked[:SCREEN_KEEP]}
+            near = {m for n in ranked[:SCREEN_KEEP] for m in (n - 1, n, n + 1)}
+            kept |= {f"{CYCLIC_PREFIX}{n}:{joint}" for n in ns if n in near}
     out = [c for c in pool if not c.startswith(CYCLIC_PREFIX) or c in kept]
     return out, len(pool) - len(out)
 

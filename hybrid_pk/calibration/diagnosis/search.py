@@ -170,8 +170,11 @@ def _select(
     first_step = True
     rejected_in_a_row = 0
     pairs: list[tuple[str, str]] = []  # (chosen, near-duplicate) for the swaps after
-    pool, screened = screen_cyclic(model, split, pool, res.weights)
-    while pool and len(model.effects) < max_causes:
+    remaining = list(pool)  # every candidate still open, all cyclic orders included
+    while remaining and len(model.effects) < max_causes:
+        # The cyclic orders are ranked anew on what the current model leaves: a large
+        # error explained by an earlier cause hides a joint's periodic error at first.
+        pool, screened = screen_cyclic(model, split, remaining, res.weights)
         say(f"scoring {len(pool)} candidate effects (step {len(steps) + 1})")
         scores = score_candidates(
             model, res, pool, split, alpha, first_step, progress=say, screened=screened
@@ -179,7 +182,8 @@ def _select(
         unobservable += scores.unobservable
         ambiguous += scores.equivalent
         first_step = False
-        pool = [s.label for s in scores.scored]
+        kept = {s.label for s in scores.scored}
+        remaining = [c for c in remaining if c in kept or c not in pool]
         if not scores.scored:
             break
         best = scores.ranked[0]
@@ -191,7 +195,7 @@ def _select(
             model, res, best, scores, split, progress=_prefixed(say, f"testing {best.label}")
         )
         steps.append(step)
-        pool = [c for c in pool if c != best.label]
+        remaining = [c for c in remaining if c != best.label]
         implausible = implausibility(new.effect(best.label), new.robot, split.train)
         if step["accepted"] and implausible is not None:
             step["accepted"] = False
@@ -209,8 +213,9 @@ def _select(
         pairs += [(best.label, d["effects"][1]) for d in duplicates]
         model, res = new, new_res
         model, res, removed = eliminate(model, res, split, alpha, best.label, steps, say)
-        pool = [c for c in pool if c not in removed]
-    if pool and len(model.effects) >= max_causes:
+        remaining = [c for c in remaining if c not in removed]
+    if remaining and len(model.effects) >= max_causes:
+        pool, screened = screen_cyclic(model, split, remaining, res.weights)
         _note_cap(model, res, pool, split, alpha, (max_causes, screened), steps, say)
     model, res = prefer_fewer_causes(model, res, pairs, split, alpha, steps, say)
     return model, res, steps, ambiguous, unobservable
