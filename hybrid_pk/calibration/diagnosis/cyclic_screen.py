@@ -10,9 +10,11 @@ ranks the orders. The best :data:`SCREEN_KEEP` peaks per joint and the orders ne
 to each (a range of a few radians resolves the order only to a cycle or so, and the
 proxy ``e`` may rank a neighbour first that the full fit does not) go on to that
 step's score test; the others count in its Bonferroni level all the same (they were
-looked at). Ranking anew at every step matters: before a large error (a misaligned wrist axis)
-is explained, it leaks into every joint's ``e`` and hides a smaller periodic error
-(the UR10's 17 cycles per turn of the shoulder pan ranked first only after 8 causes).
+looked at). Ranking anew at every step matters: before a large error (a misaligned
+wrist axis) is explained, it leaks into every joint's ``e`` and hides a smaller
+periodic error (the UR10's 17 cycles per turn of the shoulder pan were scored, and
+named, only at step 7 of the search; a screen of the frames-only residual never scored
+them).
 
 After the search, the same periodogram of what the model leaves without a chosen
 cyclic error tells whether a neighbouring order would do nearly as well (a joint range
