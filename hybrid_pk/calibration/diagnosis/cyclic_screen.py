@@ -12,8 +12,8 @@ proxy ``e`` may rank a neighbour first that the full fit does not) go on to that
 step's score test; the others count in its Bonferroni level all the same (they were
 looked at). Ranking anew at every step matters: before a large error (a misaligned
 wrist axis) is explained, it leaks into every joint's ``e`` and hides a smaller
-periodic error (the UR10's 17 cycles per turn of the shoulder pan were scored, and
-named, only at step 7 of the search; a screen of the frames-only residual never scored
+periodic error (the UR10's 17 cycles per turn of the shoulder pan are named at step 7
+of the search; with one screen of the frames-only residual the search never tested
 them).
 
 After the search, the same periodogram of what the model leaves without a chosen
