@@ -149,3 +149,14 @@ def check_gradients(
             where = f"check_gradients: input {i} (shape {tuple(args[i].shape)})"
             assert g is not None, f"{where} is not used by fn or is detached inside it"
             assert bool((g != 0).any()), f"{where} gets an all-zero gradient"
+
+
+def is_periodic(kind: str) -> bool:
+    """Is effect ``kind`` a periodic joint-angle error (an eccentricity or a cyclic error
+    of some order)? Those fit each other's shapes closely, so tests that compare two
+    diagnoses, or a found amplitude with the truth, treat them alike. (A classification
+    of the library's own effect classes, not a computed quantity.)"""
+    from hybrid_pk.effects import EFFECTS
+    from hybrid_pk.effects.joint import JointEccentricity
+
+    return issubclass(EFFECTS[kind], JointEccentricity)

@@ -18,7 +18,7 @@ from hybrid_pk.calibration.diagnosis.search import diagnose
 from hybrid_pk.calibration.diagnosis.structural import implausibility
 from hybrid_pk.effects import EFFECTS, ExtendedModel, make_effect
 from hybrid_pk.simulate import simulate_campaign
-from tests.helpers import RUN_SEED, run_rng
+from tests.helpers import RUN_SEED, is_periodic, run_rng
 
 pytestmark = pytest.mark.slow
 
@@ -167,7 +167,7 @@ def _campaign(
 
 
 def _value_error(found, truth, kind: str) -> float:
-    if kind == "joint_eccentricity" or kind.startswith("cyclic_error_"):
+    if is_periodic(kind):
         truth = math.hypot(*truth)
     f, t = np.asarray(found, dtype=float), np.asarray(truth, dtype=float)
     return float(np.linalg.norm(f - t) / np.linalg.norm(t))

@@ -25,9 +25,8 @@ from hybrid_pk.cli.main import main
 from hybrid_pk.data import MeasuredData, read_table_for, write_table
 from hybrid_pk.data.ipa import convert_ipa
 from hybrid_pk.effects import ExtendedModel, conditions_from_data
-from hybrid_pk.effects.joint import CYCLIC_PREFIX
 from hybrid_pk.simulate import simulate_campaign
-from tests.helpers import RUN_SEED, run_rng
+from tests.helpers import RUN_SEED, is_periodic, run_rng
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -218,15 +217,11 @@ def _same_findings(a, b, floor_mm: float) -> None:
     pairs = {frozenset(x["effects"]) for d in (a, b) for x in d.ambiguous}
     for one, other in ((a, b), (b, a)):
         named = {_label(c) for c in other.causes}
-        periodic = {c.joint for c in other.causes if _periodic(c)}
+        periodic = {c.joint for c in other.causes if is_periodic(c.effect)}
         for c in one.causes:
             if c.position_gain_mm < floor_mm or _label(c) in named:
                 continue
-            if _periodic(c) and c.joint in periodic:
+            if is_periodic(c.effect) and c.joint in periodic:
                 continue
             stand_ins = [n for n in named if frozenset((_label(c), n)) in pairs]
             assert stand_ins, (_label(c), c.position_gain_mm, sorted(named), pairs)
-
-
-def _periodic(c) -> bool:
-    return c.effect == "joint_eccentricity" or c.effect.startswith(CYCLIC_PREFIX)
