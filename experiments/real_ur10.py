@@ -18,9 +18,11 @@ equivalent shell command is printed before each). Steps:
    - ``joint`` (on request): the rows above the ``1 - --holdout`` quantile of
      ``--range-joint``.
 
-3. ``hybrid-pk diagnose`` on the fit rows of the region split, once (or
-   ``--diagnosis FILE`` from an earlier run); every split's extended model fits its
-   causes (``calibrate --effects diagnosis.json``).
+3. ``hybrid-pk diagnose`` on each split's own fit rows (``--diagnose-on each``, the
+   default: which causes a split's models carry is chosen without its held-out rows,
+   as for a user whose robot later works elsewhere), or once on the region split's fit
+   rows for all (``--diagnose-on region``), or ``--diagnosis FILE`` of an earlier run;
+   the split's extended model fits those causes (``calibrate --effects diagnosis.json``).
 4. Per split: ``calibrate --effects none`` (nominal + frames) and ``--effects
    DIAGNOSIS`` (extended).
 5. ``hybrid-pk train`` twice on the extended model: ``--preset joints`` (the paper's
@@ -33,7 +35,7 @@ equivalent shell command is printed before each). Steps:
 Model files already in OUT are kept (``--evaluate-only``: fit nothing). Writes
 ``OUT/results.json`` and ``OUT/results.md``. Run from the repository root::
 
-    nice -n 10 python experiments/real_ur10.py --out /tmp/ur10_real              # ~10 min
+    nice -n 10 python experiments/real_ur10.py --out /tmp/ur10_real              # ~15 min
     python experiments/real_ur10.py --out /tmp/ur10_quick --epochs 40 --splits region
 """
 
@@ -96,6 +98,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--splits", default="pan,region,random", help=f"from {', '.join(SPLITS)}")
     p.add_argument("--window", type=int, default=100, help="rows per held-out subset")
     p.add_argument("--diagnosis", type=Path, help="diagnosis JSON of an earlier run (reused)")
+    p.add_argument(
+        "--diagnose-on",
+        choices=("each", "region"),
+        default="each",
+        help="diagnose each split's own fit rows (default), or the region split's for all",
+    )
     p.add_argument(
         "--effects",
         help="effects of the extended models as calibrate --effects LIST (no diagnosis)",
@@ -258,23 +266,31 @@ def evaluate_split(split_dir: Path, hold_files: list[Path], robot: Robot, args, 
     return res
 
 
-def diagnose_once(out: Path, splits: dict, args, log: dict, results: dict) -> Path | str:
-    """What every extended model fits: ``--effects``, the diagnosis JSON ``--diagnosis``,
-    one already in OUT, or a new diagnosis of the region split's fit rows."""
+def diagnosis_for(out: Path, name: str, args, log: dict, results: dict) -> Path | str:
+    """What split ``name``'s extended model fits: ``--effects``, the diagnosis JSON
+    ``--diagnosis``, or a diagnosis (made here unless already in OUT) of the split's own
+    fit rows (``--diagnose-on each``) or of the region split's (``region``)."""
     if args.effects:
         return args.effects
     if args.diagnosis:
+        results["diagnosis"] = json.loads(args.diagnosis.read_text())
+        results["diagnosis_rows"] = f"{args.diagnosis}, given with --diagnosis"
         return args.diagnosis.resolve()
-    target = out / "diagnosis.json"
+    source = name if args.diagnose_on == "each" else "region"
+    target = out / source / "diagnosis.json"
     if not target.exists():
         if args.evaluate_only:
             raise SystemExit(f"--evaluate-only: no {target}")
-        fit_files = split_files(out / "region")[0] if (out / "region").exists() else None
-        if fit_files is None or not fit_files[0].exists():
-            raise SystemExit("the diagnosis needs the region split's fit rows: add region")
+        fit_files = split_files(out / source)[0]
+        if not fit_files[0].exists():
+            raise SystemExit(f"the diagnosis needs the {source} split's fit rows: add {source}")
         run(["diagnose", *fit_files, "--robot", "ur10", "--frames-per-file", "--seed",
-             args.seed, "--json", target, "--report", out / "report"], log)  # fmt: skip
-    results["diagnosis"] = json.loads(target.read_text())
+             args.seed, "--json", target, "--report", out / source / "report"], log)  # fmt: skip
+    diagnosis = json.loads(target.read_text())
+    if args.diagnose_on == "each":
+        results["splits"][name]["diagnosis"] = diagnosis
+    else:
+        results["diagnosis"] = diagnosis
     return target
 
 
@@ -308,9 +324,11 @@ def main(argv=None) -> int:
             write_split(out / name, series, split)
         results["splits"][name] = {"rules": {k: s.rule for k, s in split.items()}}
         print(f"split {name}: " + "; ".join(s.rule for s in split.values()), flush=True)
-    effects = diagnose_once(out, splits, args, log, results)
-    for name in splits:
+    if args.diagnose_on == "region" and "region" not in splits and not args.diagnosis:
+        raise SystemExit("--diagnose-on region needs the region split: add it to --splits")
+    for name in sorted(splits, key=lambda n: n != "region"):  # region first: its diagnosis
         fit_files, hold_files = split_files(out / name)
+        effects = diagnosis_for(out, name, args, log, results)
         if not args.evaluate_only:
             fit_split(out / name, fit_files, effects, args, log)
         results["splits"][name].update(evaluate_split(out / name, hold_files, robot, args, log))

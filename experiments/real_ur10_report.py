@@ -62,10 +62,10 @@ def _split_lines(name: str, res: dict, models) -> list[str]:
     return lines
 
 
-def _diagnosis_lines(diag: dict) -> list[str]:
+def _diagnosis_lines(diag: dict, rows: str = "fit rows of the region split") -> list[str]:
     lines = [
         "",
-        "## Diagnosis (fit rows of the region split)",
+        f"## Diagnosis ({rows})",
         "",
         f"`hybrid-pk diagnose` on {diag['n_samples']} rows ({diag['n_holdout']} of them its "
         "own random hold-out); hold-out mean position error "
@@ -103,6 +103,9 @@ def write_markdown(results: dict, models, path: Path) -> None:
     for name, res in results["splits"].items():
         if "evaluate" in res:
             lines += _split_lines(name, res, models)
+        if res.get("diagnosis"):
+            lines += _diagnosis_lines(res["diagnosis"], f"fit rows of the {name} split")
     if results.get("diagnosis"):
-        lines += _diagnosis_lines(results["diagnosis"])
+        rows = results.get("diagnosis_rows", "fit rows of the region split")
+        lines += _diagnosis_lines(results["diagnosis"], rows)
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")

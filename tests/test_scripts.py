@@ -62,3 +62,25 @@ def test_real_ur10_runs_every_split_on_thin_data_and_keeps_its_models(tmp_path):
     stamp = (out / "pan" / "hybrid.pt").stat().st_mtime_ns
     assert real_ur10.main([*argv, "--evaluate-only"]) == 0
     assert (out / "pan" / "hybrid.pt").stat().st_mtime_ns == stamp
+
+
+def test_real_ur10_diagnoses_each_split_on_its_own_fit_rows_only(tmp_path):
+    """The default --diagnose-on each: the pan split's causes are chosen on its fit rows
+    alone (none of its held-out rows, where joint 1 was never turned), so its extended
+    model carries nothing learned there; --diagnose-on region diagnoses once for all."""
+    from experiments import real_ur10
+
+    out = tmp_path / "ur10"
+    argv = ["--out", str(out), "--thin", "15", "--epochs", "1", "--splits", "pan"]
+    assert real_ur10.main(argv) == 0
+    results = json.loads((out / "results.json").read_text())
+    pan = results["splits"]["pan"]
+    fit_rows = sum(
+        len(real_ur10.read_rows([f], real_ur10.Robot.from_urdf("ur10")).q)
+        for f in real_ur10.split_files(out / "pan")[0]
+    )
+    assert pan["diagnosis"]["n_samples"] == fit_rows  # the fit rows, no held-out row
+    assert (out / "pan" / "diagnosis.json").exists() and "diagnosis" not in results
+    assert "## Diagnosis (fit rows of the pan split)" in (out / "results.md").read_text()
+    with pytest.raises(SystemExit, match="region"):
+        real_ur10.main([*argv, "--diagnose-on", "region"])  # needs the region split
