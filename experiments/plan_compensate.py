@@ -26,8 +26,11 @@ compensate``, called in-process; each command is printed before it runs):
 
 Writes ``OUT/results.json`` and ``OUT/results.md``. Run from the repository root::
 
-    python experiments/plan_compensate.py --out /tmp/plan_compensate          # ~10 min
+    python experiments/plan_compensate.py --out /tmp/plan_compensate          # ~1 min
     python experiments/plan_compensate.py --out /tmp/pc --seeds 1 --candidates 300 --test 200
+
+``--position-only`` measures points only (a tracker with a plain reflector): every
+campaign, the plan and the repeats.
 """
 
 from __future__ import annotations
@@ -147,12 +150,14 @@ def seed_run(args, robot, work: Path, diag: Path, effects_file: Path, seed: int)
     # the campaign's own seed (tracker, tool, noise), unrelated to the plan's seed K
     campaign_seed = str(CAMPAIGN_SEED + seed)
     common += ["--noise-deg", str(args.noise_deg), "--no-temperature", "--seed", campaign_seed]
+    points = ["--position-only"] if args.position_only else []
+    common += points
     d = work / f"seed{seed}"
     d.mkdir(parents=True, exist_ok=True)
     run("plan", "rx160", "--n", str(args.n), "--effects", str(diag), "--candidates",
         str(args.candidates), "--criterion", args.criterion, "--noise-mm", str(args.noise_mm),
         "--noise-deg", str(args.noise_deg), "--seed", str(seed), "--out", str(d / "poses.csv"),
-        "--json", str(d / "plan.json"))  # fmt: skip
+        "--json", str(d / "plan.json"), *points)  # fmt: skip
     run(
         "simulate",
         "rx160",
@@ -219,7 +224,7 @@ def repeat_spread(args, robot, work: Path, diag_labels: list[str], effects_file:
     for k in range(args.spread):
         data, _ = simulate_campaign(
             robot, None, effects, poses=q, noise_mm=args.noise_mm, noise_deg=args.noise_deg,
-            temperature_range=None, seed=50_000 + k,
+            temperature_range=None, seed=50_000 + k, position_only=args.position_only,
         )  # fmt: skip
         model = ExtendedModel(robot, [make_effect(robot, label) for label in diag_labels])
         cond = conditions_from_data(data)
@@ -245,7 +250,9 @@ def report(
         f"# Planned vs random poses, and compensation (virtual RX160, {len(results)} seed(s))",
         "",
         f"hidden effects: {', '.join(hidden)}; diagnosed on the pilot: {', '.join(diag_labels)}",
-        f"{args.n} poses per campaign, noise {args.noise_mm} mm / {args.noise_deg} deg, "
+        f"{args.n} poses per campaign"
+        + (", points only" if args.position_only else "")
+        + f", noise {args.noise_mm} mm / {args.noise_deg} deg, "
         f"plan: {args.candidates} candidates, criterion {args.criterion}; test: "
         f"{args.test} random rows against the noise-free truth",
         "",
@@ -326,6 +333,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--noise-mm", type=float, default=0.02)
     p.add_argument("--noise-deg", type=float, default=0.002)
     p.add_argument("--spread", type=int, default=20, help="repeats of the first plan (0: none)")
+    p.add_argument(
+        "--position-only",
+        action="store_true",
+        help="the instrument measures points only (a tracker with a plain reflector)",
+    )
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     work = args.out
@@ -336,7 +348,8 @@ def main(argv: list[str] | None = None) -> int:
     pilot = work / "pilot.csv"
     run("simulate", "rx160", "--n", str(args.n), "--effects", "random:2", "--noise-mm",
         str(args.noise_mm), "--noise-deg", str(args.noise_deg), "--no-temperature", "--seed",
-        str(args.effects_seed), "--out", str(pilot))  # fmt: skip
+        str(args.effects_seed), "--out", str(pilot),
+        *(["--position-only"] if args.position_only else []))  # fmt: skip
     effects_file = Path(f"{pilot}.truth.json")
     hidden = [f"{e['effect']}:{e['joint']}" if "joint" in e else e["effect"]
               for e in json.loads(effects_file.read_text())["effects"]]  # fmt: skip

@@ -80,7 +80,8 @@ def test_real_ur10_diagnoses_each_split_on_its_own_fit_rows_only(tmp_path):
         for f in real_ur10.split_files(out / "pan")[0]
     )
     assert pan["diagnosis"]["n_samples"] == fit_rows  # the fit rows, no held-out row
-    assert (out / "pan" / "diagnosis.json").exists() and "diagnosis" not in results
+    assert (out / "pan" / "diagnosis.json").exists()
+    assert "diagnosis" not in results
     assert "## Diagnosis (fit rows of the pan split)" in (out / "results.md").read_text()
     with pytest.raises(SystemExit, match="region"):
         real_ur10.main([*argv, "--diagnose-on", "region"])  # needs the region split
