@@ -31,6 +31,7 @@ from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.statistics import equivalent_angle_error
 from hybrid_pk.effects import ExtendedModel
 from hybrid_pk.effects.joint import CYCLIC_PREFIX, MAX_CYCLIC_ORDER
+from hybrid_pk.geometry import so3_log
 
 __all__ = ["ORDER_SHARE", "SCREEN_KEEP", "screen_cyclic", "unresolved_orders"]
 
@@ -80,19 +81,32 @@ def unresolved_orders(
 ) -> list[dict]:
     """Ambiguity entries for each chosen ``cyclic_error_<n>`` against the neighbouring
     orders (within :data:`NEIGHBOURS`) that explain at least :data:`ORDER_SHARE` of
-    what order ``n`` explains of the angle error the model leaves without that cause."""
+    what order ``n`` explains of the angle error the model leaves without that cause.
+
+    The angle error is read from the position residual (as the screen reads it) or, for
+    full poses, from the rotation residual about the joint's axis, whichever the chosen
+    order explains the larger share of: a wrist-3 error may barely move the measured
+    point and be chosen for what it does to the orientation."""
     data, cond = split.train, split.cond_fit
     out = []
     for e in [x for x in model.effects if x.kind.startswith(CYCLIC_PREFIX)]:
         saved = e.value.detach().clone()
         with torch.no_grad():
             e.value.zero_()
-            p0 = model(data.q, cond)[:, :3, 3]
+            T0 = model(data.q, cond)
+            p0 = T0[:, :3, 3]
             r = data.position.to(p0.dtype) - p0
-            got = _angle_error(model, split, e.joint_index, p0, r, weights)
+            channels = {"position": _angle_error(model, split, e.joint_index, p0, r, weights)}
+            if not split.position_only:
+                channels["orientation"] = _rotation_angle_error(
+                    model, split, e.joint_index, T0, weights
+                )
             e.value.copy_(saved)
-        if got is None:
+        shares = {k: _share(g, e.order) for k, g in channels.items() if g is not None}
+        if not shares:
             continue
+        channel = max(shares, key=shares.get)
+        got = channels[channel]
         own = _explained(*got, e.order)
         lo, hi = max(2, e.order - NEIGHBOURS), min(MAX_CYCLIC_ORDER, e.order + NEIGHBOURS)
         for m in [m for m in range(lo, hi + 1) if m != e.order]:
@@ -102,11 +116,36 @@ def unresolved_orders(
                     {
                         "effects": [e.label, f"{CYCLIC_PREFIX}{m}:{e.joint}"],
                         "why": f"{m} cycles per turn explain {100 * share:.0f} % of what "
-                        f"{e.order} explain of {e.joint}'s angle error: the order is not "
-                        "resolved by these rows",
+                        f"{e.order} explain of {e.joint}'s angle error (read from the "
+                        f"{channel}): the order is not resolved by these rows",
                     }
                 )
     return out
+
+
+def _share(got, n: int) -> float:
+    """Share of the weighted variance of the angle error that order ``n`` explains."""
+    e, w, theta = got
+    total = float((w * (e - (w * e).sum() / w.sum()) ** 2).sum())
+    return _explained(e, w, theta, n) / max(total, 1e-300)
+
+
+def _rotation_angle_error(model, split, j, T0, weights):
+    """``(e, w, theta)``: the angle error [rad] of joint ``j`` read from the rotation
+    residual ``log(R_meas R_modelᵀ)`` about the joint's axis (a revolute joint turns the
+    measured frame by its full angle on every row), weight 1 (times the robust row
+    weight), the joint angle; None for too few rows."""
+    data, cond = split.train, split.cond_fit
+    dq = torch.zeros_like(data.q)
+    dq[:, j] = _STEP
+    R0 = T0[:, :3, :3]
+    axis = so3_log(model(data.q + dq, cond)[:, :3, :3] @ R0.transpose(-1, -2)) / _STEP
+    rot = so3_log(data.T_measured()[:, :3, :3].to(R0.dtype) @ R0.transpose(-1, -2))
+    e, w, rows = equivalent_angle_error(axis, rot, _MIN_LEVER)
+    if int(rows.sum()) < _MIN_ROWS:
+        return None
+    w_rows = w[rows] if weights is None else w[rows] * weights[rows].to(w.dtype)
+    return e[rows], w_rows, data.q[rows, j]
 
 
 def _angle_error(model, split, j, p0, r, weights):
