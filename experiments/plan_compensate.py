@@ -77,6 +77,11 @@ def run(*argv: str) -> None:
 _PROGRESS = ("plan", "compensate")
 
 
+def _points(args) -> list[str]:
+    """``--position-only`` for every command when the campaign measures points only."""
+    return ["--position-only"] if args.position_only else []
+
+
 def true_model(robot: Robot, truth_file: Path) -> ExtendedModel:
     truth = json.loads(truth_file.read_text())
     model = ExtendedModel(
@@ -150,14 +155,13 @@ def seed_run(args, robot, work: Path, diag: Path, effects_file: Path, seed: int)
     # the campaign's own seed (tracker, tool, noise), unrelated to the plan's seed K
     campaign_seed = str(CAMPAIGN_SEED + seed)
     common += ["--noise-deg", str(args.noise_deg), "--no-temperature", "--seed", campaign_seed]
-    points = ["--position-only"] if args.position_only else []
-    common += points
+    common += _points(args)
     d = work / f"seed{seed}"
     d.mkdir(parents=True, exist_ok=True)
     run("plan", "rx160", "--n", str(args.n), "--effects", str(diag), "--candidates",
         str(args.candidates), "--criterion", args.criterion, "--noise-mm", str(args.noise_mm),
         "--noise-deg", str(args.noise_deg), "--seed", str(seed), "--out", str(d / "poses.csv"),
-        "--json", str(d / "plan.json"), *points)  # fmt: skip
+        "--json", str(d / "plan.json"), *_points(args))  # fmt: skip
     run(
         "simulate",
         "rx160",
@@ -349,7 +353,7 @@ def main(argv: list[str] | None = None) -> int:
     run("simulate", "rx160", "--n", str(args.n), "--effects", "random:2", "--noise-mm",
         str(args.noise_mm), "--noise-deg", str(args.noise_deg), "--no-temperature", "--seed",
         str(args.effects_seed), "--out", str(pilot),
-        *(["--position-only"] if args.position_only else []))  # fmt: skip
+        *_points(args))  # fmt: skip
     effects_file = Path(f"{pilot}.truth.json")
     hidden = [f"{e['effect']}:{e['joint']}" if "joint" in e else e["effect"]
               for e in json.loads(effects_file.read_text())["effects"]]  # fmt: skip

@@ -62,11 +62,11 @@ def screen_cyclic(
     data, cond = split.train, split.cond_fit
     names = model.robot.joint_names
     with torch.no_grad():
-        p0 = model(data.q, cond)[:, :3, 3]
-        r = data.position.to(p0.dtype) - p0
+        T0 = model(data.q, cond)
+        r = data.position.to(T0.dtype) - T0[:, :3, 3]
         kept = set()
         for joint, ns in orders.items():
-            got = _angle_error(model, split, names.index(joint), p0, r, weights)
+            got = _angle_error(model, split, names.index(joint), T0, r, weights)
             if got is None:
                 continue  # the joint barely moves the point: no order to rank
             ranked = sorted(ns, key=lambda n: -_explained(*got, n))
@@ -94,12 +94,13 @@ def unresolved_orders(
         with torch.no_grad():
             e.value.zero_()
             T0 = model(data.q, cond)
-            p0 = T0[:, :3, 3]
-            r = data.position.to(p0.dtype) - p0
-            channels = {"position": _angle_error(model, split, e.joint_index, p0, r, weights)}
+            r = data.position.to(T0.dtype) - T0[:, :3, 3]
+            channels = {"position": _angle_error(model, split, e.joint_index, T0, r, weights)}
             if not split.position_only:
-                channels["orientation"] = _rotation_angle_error(
-                    model, split, e.joint_index, T0, weights
+                R0 = T0[:, :3, :3]
+                rot = so3_log(data.T_measured()[:, :3, :3].to(R0.dtype) @ R0.transpose(-1, -2))
+                channels["orientation"] = _angle_error(
+                    model, split, e.joint_index, T0, rot, weights, "orientation"
                 )
             e.value.copy_(saved)
         shares = {k: _share(g, e.order) for k, g in channels.items() if g is not None}
@@ -130,32 +131,22 @@ def _share(got, n: int) -> float:
     return _explained(e, w, theta, n) / max(total, 1e-300)
 
 
-def _rotation_angle_error(model, split, j, T0, weights):
-    """``(e, w, theta)``: the angle error [rad] of joint ``j`` read from the rotation
-    residual ``log(R_meas R_modelᵀ)`` about the joint's axis (a revolute joint turns the
-    measured frame by its full angle on every row), weight 1 (times the robust row
-    weight), the joint angle; None for too few rows."""
+def _angle_error(model, split, j, T0, r, weights, reading: str = "position"):
+    """``(e, w, theta)`` of the rows where joint ``j`` moves the measured pose: the angle
+    error [rad] that best explains each row's residual ``r (n, 3)``, its weight
+    ``|J_j|²`` (times the robust row weight) and the joint angle; None for too few such
+    rows. ``T0``: the model's poses at the fit rows; ``reading``: ``position`` (``r`` the
+    position residual [m], ``J_j`` the point's motion) or ``orientation`` (``r`` the
+    rotation vector of ``R_meas R_modelᵀ``, ``J_j`` the joint's axis: a revolute joint
+    turns the measured frame by its full angle on every row)."""
     data, cond = split.train, split.cond_fit
     dq = torch.zeros_like(data.q)
     dq[:, j] = _STEP
-    R0 = T0[:, :3, :3]
-    axis = so3_log(model(data.q + dq, cond)[:, :3, :3] @ R0.transpose(-1, -2)) / _STEP
-    rot = so3_log(data.T_measured()[:, :3, :3].to(R0.dtype) @ R0.transpose(-1, -2))
-    e, w, rows = equivalent_angle_error(axis, rot, _MIN_LEVER)
-    if int(rows.sum()) < _MIN_ROWS:
-        return None
-    w_rows = w[rows] if weights is None else w[rows] * weights[rows].to(w.dtype)
-    return e[rows], w_rows, data.q[rows, j]
-
-
-def _angle_error(model, split, j, p0, r, weights):
-    """``(e, w, theta)`` of the rows where joint ``j`` moves the point: the angle error
-    [rad] that best explains each row's position residual ``r``, its weight ``|J_j|²``
-    (times the robust row weight) and the joint angle; None for too few such rows."""
-    data, cond = split.train, split.cond_fit
-    dq = torch.zeros_like(data.q)
-    dq[:, j] = _STEP
-    J = (model(data.q + dq, cond)[:, :3, 3] - p0) / _STEP  # (n, 3) [m/rad]
+    T1 = model(data.q + dq, cond)
+    if reading == "position":
+        J = (T1[:, :3, 3] - T0[:, :3, 3]) / _STEP  # (n, 3) [m/rad]
+    else:
+        J = so3_log(T1[:, :3, :3] @ T0[:, :3, :3].transpose(-1, -2)) / _STEP
     e, w, rows = equivalent_angle_error(J, r, _MIN_LEVER)
     if int(rows.sum()) < _MIN_ROWS:
         return None
