@@ -51,6 +51,9 @@ corrects, after the last the base model) and '/' (refines the stage before it). 
 networks apply where their inputs are covered by the training rows (--trust coverage,
 their default: distance to the training inputs, the base model beyond
 --coverage-ratio x the radius of the validation rows, a smooth blend between).
+Where a refine stage is off (outside its joint box), the stage it refines is shrunk
+axis by axis, c^3 / (c^2 + s^2), by the spread s^2 of its training targets among rows
+its inputs cannot tell apart (--no-spread: keep all of it).
 
 Presets: fast (ours: posture networks in link 1's frame refined by networks on every
 joint, then local deformation networks: --inputs frame1+q2-4+torque/joints,local+q1,
@@ -141,6 +144,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="R",
         help="--trust coverage: networks off beyond R x the full-trust radius (default 2)",
     )
+    p.add_argument(
+        "--no-spread",
+        dest="spread",
+        action="store_false",
+        default=None,
+        help="keep a refined stage's full correction where its refine stage is off (default: "
+        "shrink it by the spread of its training targets)",
+    )
     p.add_argument("--logdir", metavar="DIR", help="TensorBoard logs and checkpoints")
     add_seed(p, what="seed of the split, the initialisation and the shuffling")
     p.add_argument("--strategy", default="auto", help="Lightning strategy: auto or ddp")
@@ -170,6 +181,7 @@ def _overrides(args: argparse.Namespace) -> tuple[dict, dict, dict]:
         ("coverage_ratio", args.coverage_ratio),
         ("refine_net", args.refine_net),
         ("local_net", args.local_net),
+        ("spread", args.spread),
     ):
         if value is not None:
             model[key] = value

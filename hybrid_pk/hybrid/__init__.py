@@ -8,6 +8,8 @@
   the joints after it, gravity direction and static wrench there);
 - :mod:`~hybrid_pk.hybrid.coverage`: where the networks apply (distance to the
   training data in their input space), the physics as fall-back;
+- :mod:`~hybrid_pk.hybrid.spread`: how much of a posture stage's correction to keep
+  where the networks refining it (which read every joint) are off;
 - :mod:`~hybrid_pk.hybrid.hybrid_fk`: :class:`HybridFK`, base model + two networks;
 - :mod:`~hybrid_pk.hybrid.networks_state`: their model-file entry;
 - :mod:`~hybrid_pk.hybrid.losses`: training targets and the paper's losses.

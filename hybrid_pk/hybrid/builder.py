@@ -23,11 +23,14 @@ from torch import Tensor
 
 from hybrid_pk.effects import ExtendedModel
 from hybrid_pk.errors import HybridPKError
+from hybrid_pk.geometry import so3_log
 from hybrid_pk.hybrid.coverage import Coverage
 from hybrid_pk.hybrid.features import PhysicsFeatures
 from hybrid_pk.hybrid.hybrid_fk import HybridFK
 from hybrid_pk.hybrid.inputs import InputBox, parse_inputs
 from hybrid_pk.hybrid.local import LocalFeatures, LocalSpec
+from hybrid_pk.hybrid.losses import ResidualTargets
+from hybrid_pk.hybrid.spread import TargetSpread
 from hybrid_pk.hybrid.stage import NetworkInputs, ResidualStage, check_stages
 from hybrid_pk.robot import Robot
 
@@ -37,6 +40,7 @@ __all__ = [
     "HybridSettings",
     "build_hybrid",
     "fit_coverages",
+    "fit_spreads",
     "parse_stages",
 ]
 
@@ -63,6 +67,8 @@ class HybridSettings:
         local_coverage_quantile, local_coverage_ratio: coverage of local stages (their
             structure carries the loads to the flange: wider).
         zero_init: start every network at zero output.
+        spread: shrink a refined stage's correction where its refine stage is off, by
+            the spread of its training targets (:mod:`~hybrid_pk.hybrid.spread`).
     """
 
     position_net: str | None = "mlp"
@@ -77,6 +83,7 @@ class HybridSettings:
     local_coverage_quantile: float = 0.99
     local_coverage_ratio: float = 2.0
     zero_init: bool = True
+    spread: bool = True
 
 
 def parse_stages(text: str) -> list[tuple[str, str]]:
@@ -180,3 +187,21 @@ def fit_coverages(
             ),
             i,
         )
+
+
+def fit_spreads(
+    hybrid: HybridFK,
+    train: list[tuple[Tensor, dict]],
+    targets: ResidualTargets,
+    settings: HybridSettings,
+) -> None:
+    """Give every cascade stage that a refine stage follows the spread of its training
+    ``targets`` among rows of nearly equal inputs (``train``: ``hybrid.encode_all`` of
+    the training rows), unless ``settings.spread`` is off."""
+    if not settings.spread:
+        return
+    rotation = None if targets.rotation is None else so3_log(targets.rotation)
+    stages = hybrid.stages
+    for i, stage in enumerate(stages[:-1]):
+        if stage.role == "cascade" and stages[i + 1].role == "refine":
+            stage.spread = TargetSpread.from_targets(train[i][0], targets.position, rotation)

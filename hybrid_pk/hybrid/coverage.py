@@ -21,7 +21,15 @@ from torch import Tensor, nn
 
 from hybrid_pk.hybrid.features import cpu_copies
 
-__all__ = ["DEFAULT_NEIGHBOURS", "DEFAULT_QUANTILE", "DEFAULT_RATIO", "Coverage", "smoothstep"]
+__all__ = [
+    "DEFAULT_NEIGHBOURS",
+    "DEFAULT_QUANTILE",
+    "DEFAULT_RATIO",
+    "MAX_REFERENCE",
+    "Coverage",
+    "nearest",
+    "smoothstep",
+]
 
 DEFAULT_NEIGHBOURS = 5
 DEFAULT_QUANTILE = 0.99
@@ -37,22 +45,30 @@ def smoothstep(t: Tensor) -> Tensor:
     return 1 - t * t * (3 - 2 * t)
 
 
+def nearest(u: Tensor, reference: Tensor, k: int) -> tuple[Tensor, Tensor]:
+    """Squared distances ``(n, k)`` (ascending) and indices ``(n, k)`` of the ``k``
+    nearest rows of ``reference (M, F)`` to each row of ``u (n, F)``, in chunks."""
+    ref = reference.to(u.dtype)
+    k = min(k, ref.shape[0])
+    values, indices = [], []
+    for start in range(0, u.shape[0], _CHUNK):
+        x = u[start : start + _CHUNK]
+        d2 = (x * x).sum(-1, keepdim=True) - 2 * x @ ref.T + (ref * ref).sum(-1)
+        near = d2.clamp_min(0).topk(k, dim=-1, largest=False)
+        values.append(near.values)
+        indices.append(near.indices)
+    if not values:
+        return u.new_zeros(0, k), torch.zeros(0, k, dtype=torch.long, device=u.device)
+    return torch.cat(values), torch.cat(indices)
+
+
 def _knn_distance(u: Tensor, reference: Tensor, neighbours: int, leave_one_out: bool) -> Tensor:
     """``(*B,)`` mean distance of ``u (*B, F)`` to its nearest rows of ``reference (M, F)``."""
     batch = u.shape[:-1]
-    flat = u.reshape(-1, u.shape[-1])
-    ref = reference.to(u.dtype)
-    k = min(neighbours + int(leave_one_out), ref.shape[0])
-    out = []
-    for start in range(0, flat.shape[0], _CHUNK):
-        x = flat[start : start + _CHUNK]
-        d2 = (x * x).sum(-1, keepdim=True) - 2 * x @ ref.T + (ref * ref).sum(-1)
-        near = d2.clamp_min(0).topk(k, dim=-1, largest=False).values
-        if leave_one_out:
-            near = near[:, 1:]
-        out.append((near + _EPS).sqrt().mean(-1))
-    d = torch.cat(out) if out else flat.new_zeros(0)
-    return d.reshape(batch)
+    d2, _ = nearest(u.reshape(-1, u.shape[-1]), reference, neighbours + int(leave_one_out))
+    if leave_one_out:
+        d2 = d2[:, 1:]
+    return (d2 + _EPS).sqrt().mean(-1).reshape(batch)
 
 
 class Coverage(nn.Module):

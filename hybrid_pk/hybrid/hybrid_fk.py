@@ -46,6 +46,7 @@ from hybrid_pk.hybrid.stage import (
     ResidualStage,
     check_stages,
     combine_stages,
+    refine_trust,
 )
 
 __all__ = [
@@ -226,10 +227,13 @@ class HybridFK(nn.Module):
     def predict_all(
         self, encoded: list[tuple[Tensor, dict]], weights: list[Tensor | None]
     ) -> tuple[Tensor, Tensor]:
-        """Sum of the stages' corrections from encoded inputs and effective weights."""
+        """Sum of the stages' corrections from encoded inputs and effective weights; a
+        stage with a spread is shrunk where its refine stage is off."""
         dp = dw = None
-        for stage, (u, geo), w in zip(self.stages, encoded, weights, strict=True):
+        for i, (stage, (u, geo), w) in enumerate(zip(self.stages, encoded, weights, strict=True)):
             p, r = stage.predict(u, geo, w)
+            if stage.spread is not None:
+                p, r = stage.spread.apply(p, r, refine_trust(weights, i))
             dp, dw = (p, r) if dp is None else (dp + p, dw + r)
         return dp, dw
 
@@ -264,7 +268,7 @@ class HybridFK(nn.Module):
     @classmethod
     def from_state(cls, base: ExtendedModel, state: dict, source: str = "model file") -> HybridFK:
         """Rebuild from :meth:`state` on ``base`` (the model file's extended model), in
-        eval mode; reads networks format versions 1 and 2.
+        eval mode; reads networks format versions 1 to 3.
 
         Raises:
             ModelFileError: not a networks entry, a newer version, or networks made for
@@ -272,4 +276,6 @@ class HybridFK(nn.Module):
         """
         first, *more = stages_from_state(base.robot, state, source)
         model = cls(base, first.inputs, first.position, first.orientation, first.coverage, more)
+        model.stages[0].spread = first.spread
+        check_stages(list(model.stages))
         return model.eval()

@@ -15,13 +15,15 @@ Format (``format: hybrid_pk.residual_networks``)::
                   () or (dof,) tensors, "neighbours": int} or None,
      "position" / "orientation": {"arch": str, "scale": (3,) tensor,
                                   "dtype": str, "state_dict": {...}} or None,
+     "spread": {"position", "orientation": (3,) tensors} or None,
      "stages": [{"role": "cascade" or "refine", "input", "features", "coverage",
-                 "position", "orientation"}, ...],     the stages after the first
+                 "spread", "position", "orientation"}, ...],  the stages after the first
      "training": {...}}
 
 Version 1 (hybrid_pk before issue 13) has only ``input``; it is still written for the
 paper's inputs without a coverage in one stage, so older installations read such
-files. Version 2 adds ``features``, ``coverage`` and ``stages``.
+files. Version 2 adds ``features``, ``coverage`` and ``stages``; version 3 ``spread``
+(written only when a stage has one: an older reader would silently drop the shrink).
 """
 
 from __future__ import annotations
@@ -37,13 +39,14 @@ from hybrid_pk.hybrid.features import PhysicsFeatures
 from hybrid_pk.hybrid.inputs import InputBox
 from hybrid_pk.hybrid.local import LocalFeatures, LocalHead
 from hybrid_pk.hybrid.nets import ResidualHead
+from hybrid_pk.hybrid.spread import TargetSpread
 from hybrid_pk.hybrid.stage import ResidualStage
 from hybrid_pk.robot import Robot
 
 __all__ = ["NETWORKS_FORMAT", "NETWORKS_VERSION", "networks_state", "stages_from_state"]
 
 NETWORKS_FORMAT = "hybrid_pk.residual_networks"
-NETWORKS_VERSION = 2
+NETWORKS_VERSION = 3
 
 
 def _head_state(h: ResidualHead | LocalHead | None) -> dict | None:
@@ -66,6 +69,7 @@ def _stage_state(stage: ResidualStage) -> dict:
         "input": None if box is None else box.state(),
         "features": None if box is not None else stage.inputs.state(),
         "coverage": None if stage.coverage is None else stage.coverage.state(),
+        "spread": None if stage.spread is None else stage.spread.state(),
         "position": _head_state(stage.position),
         "orientation": _head_state(stage.orientation),
     }
@@ -84,9 +88,10 @@ def networks_state(
     """
     first = _stage_state(stages[0])
     plain = first["input"] is not None and first["coverage"] is None and len(stages) == 1
+    spread = any(stage.spread is not None for stage in stages)
     state = {
         "format": NETWORKS_FORMAT,
-        "version": 1 if plain else NETWORKS_VERSION,
+        "version": 1 if plain else 3 if spread else 2,
         "joint_names": list(joint_names),
         "frame": "flange origin, joint-1 axes",
         "input": first["input"],
@@ -97,6 +102,8 @@ def networks_state(
     if not plain:
         state["features"] = first["features"]
         state["coverage"] = first["coverage"]
+        if spread:
+            state["spread"] = first["spread"]
         state["stages"] = [_stage_state(stage) for stage in stages[1:]]
     return state
 
@@ -153,7 +160,7 @@ def _stage_from_state(robot: Robot, entry: dict, source: str) -> ResidualStage:
         inputs, n_inputs = LocalFeatures.from_state(features, robot), 0
     else:
         raise ModelFileError(f"{source}: unknown network inputs {features.get('kind')!r}")
-    cov = entry.get("coverage")
+    cov, spread = entry.get("coverage"), entry.get("spread")
     heads = {
         k: _head(entry.get(k), inputs, n_inputs, k, source) for k in ("position", "orientation")
     }
@@ -163,11 +170,12 @@ def _stage_from_state(robot: Robot, entry: dict, source: str) -> ResidualStage:
         heads["orientation"],
         None if cov is None else Coverage.from_state(cov),
         entry.get("role", "cascade"),
+        None if spread is None else TargetSpread.from_state(spread),
     )
 
 
 def stages_from_state(robot: Robot, state: dict, source: str = "model file") -> list[ResidualStage]:
-    """The stages of a ``networks`` entry (format 1 or 2) for ``robot``.
+    """The stages of a ``networks`` entry (format 1, 2 or 3) for ``robot``.
 
     Raises:
         ModelFileError: not a networks entry, a newer version, networks made for other

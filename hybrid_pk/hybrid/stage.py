@@ -17,6 +17,11 @@ cascade stage being refined::
     cascade:  dp += predict(u, r w)      g = r w      r = r (1 - w)
     refine:   dp += predict(u, g w)
     local:    dp += predict(u, r w_j)    r = 0        (per joint j)
+
+A cascade stage refined by the next one may carry a
+:class:`~hybrid_pk.hybrid.spread.TargetSpread`: where the refine stage is not trusted,
+its correction is shrunk by how much of it the training rows confirm
+(:mod:`~hybrid_pk.hybrid.spread`).
 """
 
 from __future__ import annotations
@@ -29,9 +34,18 @@ from hybrid_pk.hybrid.features import PhysicsFeatures
 from hybrid_pk.hybrid.inputs import InputBox
 from hybrid_pk.hybrid.local import LOCAL_FEATURES, LocalFeatures, LocalHead
 from hybrid_pk.hybrid.nets import ResidualHead
+from hybrid_pk.hybrid.spread import TargetSpread
 from hybrid_pk.robot import Robot
 
-__all__ = ["ROLES", "Head", "NetworkInputs", "ResidualStage", "check_stages", "combine_stages"]
+__all__ = [
+    "ROLES",
+    "Head",
+    "NetworkInputs",
+    "ResidualStage",
+    "check_stages",
+    "combine_stages",
+    "refine_trust",
+]
 
 ROLES = ("cascade", "refine")
 NetworkInputs = InputBox | PhysicsFeatures | LocalFeatures
@@ -48,6 +62,8 @@ class ResidualStage(nn.Module):
         coverage: trust from the distance to the training inputs; None: the joint box
             of an :class:`InputBox`, or full trust otherwise.
         role: ``cascade`` or ``refine`` (see the module docstring).
+        spread: shrinks this cascade stage's correction where the refine stage after it
+            is not trusted; None: never shrunk.
     """
 
     def __init__(
@@ -57,6 +73,7 @@ class ResidualStage(nn.Module):
         orientation: Head | None,
         coverage: Coverage | None = None,
         role: str = "cascade",
+        spread: TargetSpread | None = None,
     ) -> None:
         super().__init__()
         if role not in ROLES:
@@ -66,6 +83,7 @@ class ResidualStage(nn.Module):
         self.orientation = orientation
         self.coverage = coverage
         self.role = role
+        self.spread = spread
 
     @classmethod
     def build(
@@ -170,6 +188,9 @@ def check_stages(stages: list[ResidualStage]) -> None:
             raise ValueError("a refine stage must follow a stage with one weight per row")
         if stage.grouped and stage.role == "cascade" and i != len(stages) - 1:
             raise ValueError("local networks (one weight per joint) must be the last stage")
+        refined = i + 1 < len(stages) and stages[i + 1].role == "refine"
+        if stage.spread is not None and not refined:
+            raise ValueError("a spread shrinks a stage where its refine stage is off: none follows")
 
 
 def combine_stages(stages: list[ResidualStage], weights: list[Tensor]) -> list[Tensor]:
@@ -191,3 +212,11 @@ def combine_stages(stages: list[ResidualStage], weights: list[Tensor]) -> list[T
             out.append(r * w)
             rest, gate = r * (1 - w), r * w
     return out
+
+
+def refine_trust(weights: list[Tensor], i: int) -> Tensor:
+    """Own trust of the refine stage ``i + 1`` from the effective ``weights``: its weight
+    is the gate of stage ``i`` (that stage's weight) times its own trust."""
+    gate, refined = weights[i], weights[i + 1]
+    on = gate > 0
+    return torch.where(on, refined / torch.where(on, gate, torch.ones_like(gate)), 0 * gate)

@@ -31,6 +31,7 @@ from hybrid_pk.hybrid.builder import (
     HybridSettings,
     build_hybrid,
     fit_coverages,
+    fit_spreads,
     parse_stages,
 )
 from hybrid_pk.hybrid.hybrid_fk import HybridFK
@@ -82,6 +83,8 @@ class HybridLitModule(L.LightningModule):
         local_net: architecture of each joint's network in local stages.
         local_coverage_quantile, local_coverage_ratio: the same for local stages.
         zero_init: zero output layers (training starts from the base model).
+        spread: shrink a refined stage's correction where its refine stage is off, by
+            the spread of its training targets (:mod:`~hybrid_pk.hybrid.spread`).
         histogram_every: log error histograms every this many validation epochs (0: off).
     """
 
@@ -105,6 +108,7 @@ class HybridLitModule(L.LightningModule):
         local_coverage_quantile: float = 0.99,
         local_coverage_ratio: float = 2.0,
         zero_init: bool = True,
+        spread: bool = True,
         histogram_every: int = 5,
     ) -> None:
         super().__init__()
@@ -172,6 +176,7 @@ class HybridLitModule(L.LightningModule):
             local_coverage_quantile=hp.local_coverage_quantile,
             local_coverage_ratio=hp.local_coverage_ratio,
             zero_init=hp.zero_init,
+            spread=hp.spread,
         )
 
     @torch.no_grad()
@@ -185,6 +190,7 @@ class HybridLitModule(L.LightningModule):
             for p, r in (("train", dm.train_targets), ("val", dm.val_targets))
         }
         fit_coverages(hybrid, encoded["train"], encoded["val"], settings)
+        fit_spreads(hybrid, encoded["train"], dm.train_targets, settings)
         columns: dict[str, dict[str, Tensor]] = {"train": {}, "val": {}}
         for part, stages in encoded.items():
             for i, (u, geo) in enumerate(stages):
