@@ -16,6 +16,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from hybrid_pk.hybrid.builder import HybridSettings
+
 # Leading batch shapes every batched function is tested with (jaxlie style).
 BATCH_SHAPES: list[tuple[int, ...]] = [(), (1,), (3, 2)]
 
@@ -160,3 +162,20 @@ def is_periodic(kind: str) -> bool:
     from hybrid_pk.effects.joint import JointEccentricity
 
     return issubclass(EFFECTS[kind], JointEccentricity)
+
+
+# Tiny networks for tests of how hybrid stages combine (not of what they learn).
+SMALL_STAGES = HybridSettings(
+    position_net="mlp:8x2",
+    orientation_net="mlp:8x2",
+    refine_net="mlp:8x2",
+    local_net="mlp:4x1",
+    zero_init=False,
+)
+
+
+def middle_q(robot, n: int, seed: int, share: float = 1 / 3) -> Tensor:
+    """``n`` joint vectors of ``robot`` from the middle ``share`` of each joint's range."""
+    lo, hi = robot.joint_limits
+    mid = (lo + hi) / 2
+    return mid + (robot.sample_q(n, torch.Generator().manual_seed(seed)) - mid) * share

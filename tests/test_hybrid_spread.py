@@ -7,28 +7,15 @@ import torch
 
 from hybrid_pk import Robot
 from hybrid_pk.effects import Conditions, ExtendedModel
-from hybrid_pk.hybrid.builder import DEFAULT_INPUTS, HybridSettings, build_hybrid, fit_coverages
+from hybrid_pk.hybrid.builder import DEFAULT_INPUTS, build_hybrid, fit_coverages
 from hybrid_pk.hybrid.spread import TargetSpread, shrink
 from hybrid_pk.hybrid.stage import check_stages, refine_trust
 from hybrid_pk.io.hybrid_file import load_hybrid, save_hybrid
 from hybrid_pk.simulate import simulate_campaign
 from hybrid_pk.training import train_hybrid
+from tests.helpers import SMALL_STAGES, middle_q
 
 F64 = torch.float64
-SMALL = HybridSettings(
-    position_net="mlp:8x2",
-    orientation_net="mlp:8x2",
-    refine_net="mlp:8x2",
-    local_net="mlp:4x1",
-    zero_init=False,
-)
-
-
-@pytest.fixture(scope="module")
-def ur10() -> Robot:
-    r = Robot.from_urdf("ur10")
-    r.requires_grad_(False)
-    return r
 
 
 def test_shrink_keeps_what_the_spread_dwarfs_and_halves_what_it_matches():
@@ -68,22 +55,16 @@ def test_the_spread_is_what_rows_of_equal_inputs_disagree_by():
 
 def _with_spread(robot: Robot, q: torch.Tensor):
     torch.manual_seed(0)
-    hybrid = build_hybrid(ExtendedModel(robot), DEFAULT_INPUTS, SMALL, q).double().eval()
-    fit_coverages(hybrid, hybrid.encode_all(q), hybrid.encode_all(q[:50]), SMALL)
+    hybrid = build_hybrid(ExtendedModel(robot), DEFAULT_INPUTS, SMALL_STAGES, q).double().eval()
+    fit_coverages(hybrid, hybrid.encode_all(q), hybrid.encode_all(q[:50]), SMALL_STAGES)
     hybrid.stages[0].spread = TargetSpread(
         torch.full((3,), 1e-8, dtype=F64), torch.full((3,), 1e-8, dtype=F64)
     )
     return hybrid
 
 
-def _q(robot: Robot, n: int, seed: int, share: float) -> torch.Tensor:
-    lo, hi = robot.joint_limits
-    mid = (lo + hi) / 2
-    return mid + (robot.sample_q(n, torch.Generator().manual_seed(seed)) - mid) * share
-
-
 def test_the_shrink_acts_only_where_the_refine_stage_is_off(ur10):
-    q = _q(ur10, 300, 1, 0.3)
+    q = middle_q(ur10, 300, 1, 0.3)
     hybrid = _with_spread(ur10, q)
     with torch.no_grad():
         trusted = refine_trust(hybrid.weights(q), 0) == 1
@@ -119,8 +100,8 @@ def test_the_shrink_acts_only_where_the_refine_stage_is_off(ur10):
         assert float((s2 - c).abs().max()) > 0
 
 
-def test_a_model_with_a_spread_round_trips_and_passes_gradients_to_q(ur10, tmp_path):
-    q = _q(ur10, 300, 2, 0.3)
+def test_a_model_with_a_spread_round_trips_and_passes_gradients_tomiddle_q(ur10, tmp_path):
+    q = middle_q(ur10, 300, 2, 0.3)
     hybrid = _with_spread(ur10, q)
     restored = load_hybrid(save_hybrid(tmp_path / "spread.pt", hybrid))
     assert restored.state()["version"] == 3
@@ -134,8 +115,8 @@ def test_a_model_with_a_spread_round_trips_and_passes_gradients_to_q(ur10, tmp_p
 
 
 def test_a_spread_needs_a_refine_stage_after_it(ur10):
-    q = _q(ur10, 200, 3, 0.3)
-    hybrid = build_hybrid(ExtendedModel(ur10), "frame1+q2-4+torque", SMALL, q)
+    q = middle_q(ur10, 200, 3, 0.3)
+    hybrid = build_hybrid(ExtendedModel(ur10), "frame1+q2-4+torque", SMALL_STAGES, q)
     hybrid.stages[0].spread = TargetSpread(torch.zeros(3), torch.zeros(3))
     with pytest.raises(ValueError, match="refine stage"):
         check_stages(list(hybrid.stages))

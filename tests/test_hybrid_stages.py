@@ -3,9 +3,6 @@ holds where joint 1 was never trained (issue 13)."""
 
 from __future__ import annotations
 
-import os
-import time
-
 import pytest
 import torch
 
@@ -16,7 +13,6 @@ from hybrid_pk.evaluation.metrics import row_errors
 from hybrid_pk.hybrid import HybridFK
 from hybrid_pk.hybrid.builder import (
     DEFAULT_INPUTS,
-    HybridSettings,
     build_hybrid,
     fit_coverages,
     parse_stages,
@@ -25,23 +21,9 @@ from hybrid_pk.hybrid.stage import combine_stages
 from hybrid_pk.io.hybrid_file import load_hybrid, save_hybrid
 from hybrid_pk.simulate import simulate_campaign
 from hybrid_pk.training import train_hybrid
+from tests.helpers import RUN_SEED, SMALL_STAGES, middle_q
 
 F64 = torch.float64
-RUN_SEED = int(os.environ.get("HYBRID_PK_TEST_SEED", time.time_ns() % 1_000_003))
-SMALL = HybridSettings(
-    position_net="mlp:8x2",
-    orientation_net="mlp:8x2",
-    refine_net="mlp:8x2",
-    local_net="mlp:4x1",
-    zero_init=False,
-)
-
-
-@pytest.fixture(scope="module")
-def ur10() -> Robot:
-    r = Robot.from_urdf("ur10")
-    r.requires_grad_(False)
-    return r
 
 
 def _fitted(robot: Robot, inputs: str, q: torch.Tensor) -> HybridFK:
@@ -49,16 +31,9 @@ def _fitted(robot: Robot, inputs: str, q: torch.Tensor) -> HybridFK:
     training rows, the rest the validation rows)."""
     torch.manual_seed(0)
     n = 3 * len(q) // 4
-    hybrid = build_hybrid(ExtendedModel(robot), inputs, SMALL, q[:n]).double().eval()
-    fit_coverages(hybrid, hybrid.encode_all(q[:n]), hybrid.encode_all(q[n:]), SMALL)
+    hybrid = build_hybrid(ExtendedModel(robot), inputs, SMALL_STAGES, q[:n]).double().eval()
+    fit_coverages(hybrid, hybrid.encode_all(q[:n]), hybrid.encode_all(q[n:]), SMALL_STAGES)
     return hybrid
-
-
-def _middle(robot: Robot, n: int, seed: int, share: float = 1 / 3) -> torch.Tensor:
-    """``n`` joint vectors from the middle ``share`` of each joint's range."""
-    lo, hi = robot.joint_limits
-    mid = (lo + hi) / 2
-    return mid + (robot.sample_q(n, torch.Generator().manual_seed(seed)) - mid) * share
 
 
 def test_inputs_strings_name_the_stages_and_bad_ones_say_how():
@@ -79,7 +54,7 @@ def test_inputs_strings_name_the_stages_and_bad_ones_say_how():
 
 
 def test_cascade_weights_hand_the_rest_to_the_next_stage_and_refinements_ride_along(ur10):
-    hybrid = _fitted(ur10, DEFAULT_INPUTS, _middle(ur10, 200, 1))
+    hybrid = _fitted(ur10, DEFAULT_INPUTS, middle_q(ur10, 200, 1))
     first = torch.tensor([1.0, 0.0, 0.25], dtype=F64)
     refine = torch.tensor([0.5, 1.0, 1.0], dtype=F64)
     local = torch.full((3, ur10.dof), 0.8, dtype=F64)
@@ -90,7 +65,7 @@ def test_cascade_weights_hand_the_rest_to_the_next_stage_and_refinements_ride_al
 
 
 def test_rows_no_stage_covers_are_the_base_model_exactly(ur10):
-    q_train = _middle(ur10, 200, 2, share=0.1)  # a narrow band of every joint
+    q_train = middle_q(ur10, 200, 2, share=0.1)  # a narrow band of every joint
     hybrid = _fitted(ur10, DEFAULT_INPUTS, q_train)
     far = q_train[:50] + torch.pi  # every joint on the far side of its circle
     with torch.no_grad():
@@ -103,7 +78,7 @@ def test_rows_no_stage_covers_are_the_base_model_exactly(ur10):
 
 
 def test_a_model_file_of_three_stages_round_trips_bit_for_bit(ur10, tmp_path):
-    hybrid = _fitted(ur10, DEFAULT_INPUTS, _middle(ur10, 200, 4))
+    hybrid = _fitted(ur10, DEFAULT_INPUTS, middle_q(ur10, 200, 4))
     restored = load_hybrid(save_hybrid(tmp_path / "stages.pt", hybrid))
     assert restored.input_label == DEFAULT_INPUTS
     assert [s.role for s in restored.stages] == ["cascade", "refine", "cascade"]

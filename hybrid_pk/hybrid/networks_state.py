@@ -91,7 +91,7 @@ def networks_state(
     spread = any(stage.spread is not None for stage in stages)
     state = {
         "format": NETWORKS_FORMAT,
-        "version": 1 if plain else 3 if spread else 2,
+        "version": 1 if plain else NETWORKS_VERSION if spread else 2,
         "joint_names": list(joint_names),
         "frame": "flange origin, joint-1 axes",
         "input": first["input"],
