@@ -187,6 +187,7 @@ def _run_new(args: argparse.Namespace) -> int:
                 frames=priors,
                 robust=robust,
                 gravity=gravity,
+                min_gain_mm=args.min_gain_mm,
             )
             labels = [c.effect if c.joint is None else f"{c.effect}:{c.joint}" for c in diag.causes]
         bar.stage("fitting frames to the nominal robot")

@@ -175,6 +175,7 @@ def run(args: argparse.Namespace) -> int:
             data,
             candidates=candidates,
             **flag_values(args, "holdout", "seed", "alpha", "max_causes", "frames_per_file"),
+            min_gain_mm=args.min_gain_mm,
             frames=frame_priors(args),
             robust=robust_loss(args),
             progress=progress.stage,
