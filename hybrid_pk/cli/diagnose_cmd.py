@@ -124,6 +124,8 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
             gain = f"gain {c.position_gain_mm:.4g} mm"
             if c.orientation_gain_deg is not None:
                 gain += f", {c.orientation_gain_deg:.3g} deg"
+            if c.blocked_holdout_gain_mm is not None:
+                gain += f"; blocked hold-out {c.blocked_holdout_gain_mm:.3g} mm"
             lines.append(f"  {c.effect}{where} = {_value(c.value, c.std, c.unit)}  ({gain})")
     elif getattr(diagnosis, "structural", None) and diagnosis.structural["structurally_wrong"]:
         lines.append("causes: withheld, the URDF looks structurally wrong (see structural)")
