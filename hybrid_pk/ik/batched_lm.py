@@ -117,7 +117,7 @@ class _Batch:
             per = per & ~per
         else:
             per = per & revolute.to(per.device)[:, None]
-        self.any_periodic = bool(per.any())
+        self.any_periodic, self.all_periodic = bool(per.any()), bool(per.all())
         kept = q0.new_zeros(_BOX if self.shared else _BOX + 3 * n, P)
         kept[_MU], kept[_NU] = s.damping_init, 2.0
         kept[_IDX] = torch.arange(P, dtype=q0.dtype, device=q0.device)
@@ -187,12 +187,12 @@ def _projected_step(b: _Batch) -> tuple[Tensor, Tensor, Tensor]:
     # Joints on a bound that the descent direction pushes outward are held there
     # (projected LM): their rows and columns of the normal equations become the
     # identity, so the other joints do not move as if the held ones had.
-    held = ((q <= lo) & (g < 0)) | ((q >= hi) & (g > 0))
-    if b.any_periodic:
-        held &= ~per
     n = q.shape[0]
     diag = G.view(-1, G.shape[-1])[:: n + 2]  # (n, A) view of the diagonal
-    if bool(held.any()):
+    held = None if b.all_periodic else ((q <= lo) & (g < 0)) | ((q >= hi) & (g > 0))
+    if held is not None and b.any_periodic:
+        held &= ~per
+    if held is not None and bool(held.any()):
         free = (~held).to(q.dtype)
         G.mul_(free[:, None])  # rows, right-hand side included
         G[:, :-1].mul_(free[None])  # columns

@@ -325,9 +325,10 @@ def aligned_pose(C: AlignedChain, qt: Tensor, revolute: Tensor, all_revolute: bo
 
 
 # Batch size from which aligned_fk beats the balanced product of Robot.fk: below it the
-# per-joint loop's ~10 operations per joint cost more than log2(n) batched 4x4 matmuls
-# (bench/fk_layouts.py measures both).
-ALIGNED_MIN_BATCH = 256
+# per-joint loop's ~10 operations per joint cost more than log2(n) batched 4x4 matmuls.
+# bench/fk_layouts.py (ur10, rx160, float32/64, one thread): tree/align 0.6-0.8 at
+# 256-512 configurations, 1.4-1.6 at 1000.
+ALIGNED_MIN_BATCH = 1000
 
 
 def aligned_fk(C: AlignedChain, q: Tensor, revolute: Tensor, all_revolute: bool) -> Tensor:

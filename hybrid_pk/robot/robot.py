@@ -238,7 +238,7 @@ class Robot(nn.Module):
 
     def fk(self, q: Tensor, params: KinematicParams | None = None) -> Tensor:
         """Pose of the end link in the root frame (:class:`~hybrid_pk.robot.chain.AlignedFK`
-        without derivatives, from a few hundred configurations on).
+        without derivatives, from a thousand configurations on).
 
         Args:
             q: ``(*B, dof)`` joint values [rad or m].
