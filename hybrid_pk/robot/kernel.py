@@ -20,7 +20,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from hybrid_pk.robot.chain import aligned_chain, aligned_frames
+from hybrid_pk.robot.chain import AlignedChain, aligned_chain, aligned_frames
 from hybrid_pk.robot.robot import Robot
 
 __all__ = ["ChainKernel"]
@@ -42,7 +42,10 @@ class ChainKernel:
     def __init__(self, robot: Robot, base: Tensor | None = None, tool: Tensor | None = None):
         f64 = torch.float64
         with torch.no_grad():
-            self._C = aligned_chain(robot.chain_terms(f64), base, tool)
+            C = aligned_chain(robot.chain_terms(f64), base, tool)
+        # float32 constants rounded from the float64 ones (the IK's first, coarse phase)
+        cast = AlignedChain(C.first.float(), tuple(r.float() for r in C.rows), C.e3.float())
+        self._C = {f64: C, torch.float32: cast}
         self.dof = robot.dof
         self.revolute = robot.chain_revolute.clone()
         self._all_revolute = bool(self.revolute.all())
@@ -55,15 +58,15 @@ class ChainKernel:
             )
 
     def soa(self, qt: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Batch-last evaluation at ``qt (dof, M)`` [rad or m].
+        """Batch-last evaluation at ``qt (dof, M)`` [rad or m], float64 or float32.
 
         Returns:
             ``R (3, 3, M)``, ``p (3, M)`` [m] of the pose and ``J (6, dof, M)``.
         """
         if self._mimic is not None:
             src, mul, off = self._mimic
-            qt = torch.addcmul(off, qt[src], mul)  # (n_chain, M)
-        P = aligned_frames(self._C, qt, self.revolute, self._all_revolute)
+            qt = torch.addcmul(off.to(qt.dtype), qt[src], mul.to(qt.dtype))  # (n_chain, M)
+        P = aligned_frames(self._C[qt.dtype], qt, self.revolute, self._all_revolute)
         n, M = qt.shape
         z, o = P[:n, 2], P[:n, 3]  # (n, 3, M)
         w = (P[n, 3] - o).unbind(1)  # end point relative to each joint origin
@@ -80,7 +83,7 @@ class ChainKernel:
             J[3:] = torch.where(rev, J[3:], 0.0)
         if self._mimic is not None:
             src, mul, _ = self._mimic
-            J = J.new_zeros(6, self.dof, M).index_add_(1, src, J * mul)
+            J = J.new_zeros(6, self.dof, M).index_add_(1, src, J * mul.to(J.dtype))
         return P[n, :3].transpose(0, 1), P[n, 3], J
 
     def __call__(self, q: Tensor) -> tuple[Tensor, Tensor]:
