@@ -26,20 +26,27 @@ __all__ = ["LeftOut", "left_out", "summary_lines"]
 
 @dataclass(frozen=True)
 class LeftOut:
-    """One thing an export cannot carry: its name, value and size [mm] at the points."""
+    """One thing an export cannot carry: its name, value and size at the points."""
 
     what: str
     value: str
-    rms_mm: float
-    max_mm: float
+    size_mm: tuple[float, float]  # position: rms, max over the points
+    turn_mrad: float  # orientation: max over the points
 
     def line(self) -> str:
-        return f"{self.what} = {self.value}: {self.rms_mm:.4g} mm rms, {self.max_mm:.4g} mm max"
+        rms, peak = self.size_mm
+        return (
+            f"{self.what} = {self.value}: {rms:.4g} mm rms, {peak:.4g} mm max, "
+            f"{self.turn_mrad:.4g} mrad max"
+        )
 
 
-def _size(a: Tensor, b: Tensor) -> tuple[float, float]:
+def _size(a: Tensor, b: Tensor) -> tuple[tuple[float, float], float]:
+    """``((rms, max) [mm] of the position difference, max angle [mrad] between them)``."""
     d = (a[..., :3, 3] - b[..., :3, 3]).norm(dim=-1) * 1000.0
-    return float(d.pow(2).mean().sqrt()), float(d.max())
+    R = a[..., :3, :3].transpose(-1, -2) @ b[..., :3, :3]
+    cos = ((R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1.0, 1.0)
+    return (float(d.pow(2).mean().sqrt()), float(d.max())), float(cos.acos().max()) * 1000.0
 
 
 def _value(e) -> str:

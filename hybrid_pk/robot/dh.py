@@ -159,14 +159,14 @@ def _stored(text: str, name: str) -> Path:
     """A file holding ``text`` (the robot's FK reads a URDF file), named by its hash."""
     user = os.getuid() if hasattr(os, "getuid") else 0  # one folder per user
     folder = Path(tempfile.gettempdir()) / f"hybrid_pk_dh_{user}"
-    folder.mkdir(parents=True, exist_ok=True)
     digest = hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
     path = folder / f"{Path(name).name or 'robot'}-{digest}.urdf"
-    if not path.is_file() or path.read_text(encoding="utf-8") != text:
-        fd, tmp = tempfile.mkstemp(dir=folder, suffix=".urdf")
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, path)
+    if path.is_file() and path.read_text(encoding="utf-8") == text:
+        return path
+    folder.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f"{path.name}.{os.getpid()}.part")  # never a half-written URDF
+    partial.write_text(text, encoding="utf-8")
+    os.replace(partial, path)
     return path
 
 
