@@ -191,13 +191,14 @@ def _row(row: dict, where: str, i: int, inertial: bool) -> tuple:
             column="type",
         )
     values = [_number(row, k, where, i, 0.0 if k == "beta" else None) for k in _ROW_KEYS]
-    bounds = []
-    for key, inf in (("lower", -math.inf), ("upper", math.inf)):
-        bounds.append(_number(row, key, where, i, inf if kind == "continuous" else None))
-    for key, value in (*zip(_ROW_KEYS, values, strict=True), ("lower", bounds[0])):
-        _check_units(key, value, kind, where, i)
-    _check_units("upper", bounds[1], kind, where, i)
-    if kind != "continuous" and not bounds[0] < bounds[1]:
+    bounds = [-math.inf, math.inf]  # a continuous joint has none (URDF ignores them too)
+    if kind != "continuous":
+        bounds = [_number(row, key, where, i) for key in ("lower", "upper")]
+    checked = (*_ROW_KEYS, "lower", "upper")
+    for key, value in zip(checked, (*values, *bounds), strict=True):
+        if math.isfinite(value):
+            _check_units(key, value, kind, where, i)
+    if not bounds[0] < bounds[1]:
         raise DataError(
             f"lower limit {bounds[0]:g} is not below upper limit {bounds[1]:g}",
             file=where,
@@ -271,6 +272,7 @@ def read_dh_table(
             "the axis convention is not given: pass convention='dh' or 'mdh' "
             "(--convention dh|mdh), or write 'convention:' in the YAML file",
             file=where,
+            column="convention",
         )
     conv = str(convention or stated).lower()
     if stated is not None and str(stated).lower() != conv:
@@ -283,12 +285,17 @@ def read_dh_table(
         raise DataError("the DH table has no rows", file=where)
     keys = set().union(*(r.keys() for r in records if isinstance(r, Mapping)))
     for i, r in enumerate(records, start=1):
-        missing = [c for c in DH_COLUMNS if not isinstance(r, Mapping) or c not in r]
-        if missing and isinstance(r, Mapping):
+        if not isinstance(r, Mapping):
+            continue  # _row says so
+        optional = ("lower", "upper") if str(r.get("type", "")).strip() == "continuous" else ()
+        missing = [c for c in DH_COLUMNS if c not in r and c not in optional]
+        if missing:
+            header = missing[0] not in keys  # absent from the CSV header / every row
             raise DataError(
-                f"missing column (a DH table needs {', '.join(DH_COLUMNS)})",
+                f"missing column{' in the header' if header else ''} (a DH table needs "
+                f"{', '.join(DH_COLUMNS)})",
                 file=where,
-                row=None if missing[0] not in keys else i,
+                row=None if header else i,
                 column=missing[0],
             )
     inertial = any(k in keys for k in INERTIA_COLUMNS)
