@@ -176,3 +176,23 @@ def test_round_trip_exact(tmp_path, convention, values_dh, values_mdh):
         ).max()
         < 1e-12
     )
+
+
+@pytest.mark.parametrize(
+    ("values_dh", "values_mdh"), [(UR5_DH, UR5_MDH), (UR10_DH, UR10_MDH), (RX160_DH, RX160_MDH)]
+)
+def test_dh_robot_exports_the_published_mdh_table(values_dh, values_mdh):
+    """A robot built from its DH table exports the same maker's MDH table: the two
+    conventions hold the same numbers, regrouped. (The other way, MDH -> DH, the offset
+    along a pair of parallel axes may land one row earlier: where between two parallel
+    axes the normal sits is a free choice, and an MDH-built robot's frames put it
+    elsewhere than the DH table did.)"""
+    robot = Robot.from_dh(_table(values_dh, "dh"), "dh")
+    out = model_dh_table(ExtendedModel(robot), "mdh")
+    rows = _table(values_mdh, "mdh")
+    want = np.array([[r[k] for k in ("a", "alpha", "d", "theta")] for r in rows])
+    diff = out.rows[:, :4] - want
+    diff[:, [1, 3]] = (diff[:, [1, 3]] + PI) % (2 * PI) - PI
+    assert np.abs(diff).max() < 1e-12
+    assert np.abs(out.base - np.eye(4)).max() < 1e-12
+    assert np.abs(out.flange - np.eye(4)).max() < 1e-12

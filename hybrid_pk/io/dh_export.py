@@ -20,9 +20,10 @@ perpendicular to it, ``a`` along ``x`` to line ``k+1``, then ``Rx(alpha) Ry(beta
   normal to line ``k``, ``beta`` tilts about ``y``.
 
 The free choices (the sign of ``x``, ``f`` on parallel lines, ``x`` on coincident ones)
-follow the model's own joint frames: frame ``k`` of the table (``mdh``: on joint ``k``,
-``dh``: on joint ``k+1``) is taken as close as possible to that URDF joint's frame, so
-a robot built by ``Robot.from_dh`` exports its own table back. MDH frame ``k`` is the
+follow the model's own frames: frame 0 as close as possible to the root, frame ``n`` to
+the end link, frame ``k`` in between to the URDF frame of the joint it would be
+(``mdh``: joint ``k``, ``dh``: joint ``k+1``), so a robot built by ``Robot.from_dh``
+exports its own table back. MDH frame ``k`` is the
 normal's frame at ``f``, DH frame ``k`` the same frame moved by ``Tx(a) Rx(alpha)
 Ry(beta)`` onto line ``k+1``; ``theta_i, d_i`` go from DH frame ``i-1`` to MDH frame
 ``i``, both on line ``i``. The DH and MDH tables hold the same numbers, grouped apart.
@@ -145,7 +146,11 @@ def model_dh_table(model: ExtendedModel, convention: str) -> DHTable:
     joint_frames = [root, *frames[:n], end]  # reference frame on line k (joint k's)
     M, G, normals = [], [], []
     for k in range(n + 1):
-        ref = joint_frames[k] if convention == "mdh" else joint_frames[k + 1]
+        # The root frames the first normal and the end link the last (frame 0 at the
+        # base, frame n at the flange, as makers' tables have them); in between, the
+        # joint whose URDF frame the convention's frame k would be.
+        inner = joint_frames[k] if convention == "mdh" else joint_frames[k + 1]
+        ref = root if k == 0 else end if k == n else inner
         f, x, nrm = _normal(*lines[k], *lines[k + 1], ref[:3, 3], ref[:3, 0])
         M.append(_frame(f, x, lines[k][1]))
         G.append(M[-1] @ trans("x", nrm[0]) @ rot("x", nrm[1]) @ rot("y", nrm[2]))
