@@ -165,3 +165,48 @@ def test_random_geometry_exports_and_summary(name, tmp_path):
             moved = (full - model.with_effects(others)(q, cond))[:, :3, 3].norm(dim=-1) * 1000
             assert item.size_mm[1] == pytest.approx(float(moved.max()), rel=1e-9)
             assert max(item.size_mm[1], item.turn_mrad) > 0
+
+
+def test_ur_yaml_of_the_ur10(tmp_path, ur10):
+    """UR's own DH table gives the kinematics ur_description derives from it (shoulder
+    up d1; upper_arm roll pi/2; forearm x a2; wrist_1 x a3, z d4; wrist_2 y -d5, roll
+    pi/2; wrist_3 y d6, roll pi/2, pitch pi, yaw pi), compared as transforms; the
+    shipped ur10 (root base_link) with --ur-root base_link rebuilds its own FK after
+    base_link_inertia = base_link Rz(pi)."""
+    from tests.dh_reader import pose
+    from tests.test_dh import UR10_DH, _table
+
+    robot = Robot.from_dh(_table(UR10_DH, "dh"), "dh")
+    path, note = write_ur_calibration(ExtendedModel(robot), tmp_path / "dh.yaml")
+    assert note is None
+    d1, a2, a3, d4, d5, d6 = 0.1273, -0.612, -0.5723, 0.163941, 0.1157, 0.0922
+    pi = np.pi
+    want = [
+        pose((0, 0, d1), (0, 0, 0)),
+        pose((0, 0, 0), (pi / 2, 0, 0)),
+        pose((a2, 0, 0), (0, 0, 0)),
+        pose((a3, 0, d4), (0, 0, 0)),
+        pose((0, -d5, 0), (pi / 2, 0, 0)),
+        pose((0, d6, 0), (pi / 2, pi, pi)),
+    ]
+    qq = robot.sample_q(50, torch.Generator().manual_seed(4)).numpy()
+    got = ur_pose(path, qq)
+    expect = np.broadcast_to(np.eye(4), (50, 4, 4)).copy()
+    for i, E in enumerate(want):
+        expect = expect @ E @ _rz(qq[:, i])
+    assert np.abs(got - expect).max() < 1e-12
+    shipped, note = write_ur_calibration(ExtendedModel(ur10), tmp_path / "s.yaml", root="base_link")
+    q = ur10.sample_q(200, torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        fk = ur10.fk(q).numpy()
+    inertia_in_base = pose((0, 0, 0), (0, 0, pi))  # base_link -> base_link_inertia
+    assert np.abs(inertia_in_base @ ur_pose(shipped, q.numpy()) - fk).max() < 1e-9
+    assert note is not None  # its 12-digit pi/2 tilts tool0 by 5e-12 rad: said, not hidden
+
+
+def _rz(angle: np.ndarray) -> np.ndarray:
+    T = np.zeros((len(angle), 4, 4))
+    c, s = np.cos(angle), np.sin(angle)
+    T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -s, s, c
+    T[:, 2, 2] = T[:, 3, 3] = 1
+    return T

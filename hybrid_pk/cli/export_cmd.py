@@ -14,7 +14,7 @@ from hybrid_pk.effects import Conditions, conditions_from_data
 from hybrid_pk.io.dh_export import model_dh_table, write_dh_yaml
 from hybrid_pk.io.export_summary import left_out, summary_lines
 from hybrid_pk.io.model_file import LoadedModel, load_model
-from hybrid_pk.io.ur_calibration import write_ur_calibration
+from hybrid_pk.io.ur_calibration import UR_ROOTS, write_ur_calibration
 from hybrid_pk.io.urdf_export import export_urdf
 
 NAME = "export"
@@ -30,7 +30,7 @@ values) in one of these formats:
   mdh             modified (Craig) DH, same file: Rx(alpha) Tx(a) Ry(beta) Rz(theta) Tz(d)
   urdf            the corrected URDF (joint offsets folded into the joint origins)
   ur-calibration  Universal Robots' kinematics YAML (ur_description): per joint
-                  x y z [m] roll pitch yaw [rad] and a hash; the root is base_link_inertia
+                  x y z [m] roll pitch yaw [rad] and a hash (--ur-root: the model's root)
 
 beta is Hayati's parameter, non-zero only between consecutive axes within 45 degrees of
 parallel (where plain DH is singular). Effects a geometric file cannot carry
@@ -49,6 +49,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_model(p)
     p.add_argument("--format", required=True, choices=_FORMATS, help="output format")
     add_out(p, metavar="FILE", help="output file (.yaml for dh, mdh and ur-calibration)")
+    p.add_argument(
+        "--ur-root",
+        choices=UR_ROOTS,
+        default=UR_ROOTS[0],
+        help="ur-calibration: what MODEL's root link is in UR's description: "
+        "base_link_inertia (the controller's base frame, DH frame 0: a robot imported from "
+        "UR's DH table) or base_link (turned by pi about z: ur_description's URDFs, the "
+        "shipped ur10) (default: %(default)s)",
+    )
     p.add_argument(
         "--data",
         nargs="+",
@@ -81,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
     if args.format in ("dh", "mdh"):
         write_dh_yaml(model_dh_table(model, args.format), args.out, header=lines)
     elif args.format == "ur-calibration":
-        _, note = write_ur_calibration(model, args.out, header=lines)
+        _, note = write_ur_calibration(model, args.out, header=lines, root=args.ur_root)
         lines += [note] if note else []
     else:
         export_urdf(model, args.out, fold_joint_offsets=True)

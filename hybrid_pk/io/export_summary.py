@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.effects import Conditions
+from hybrid_pk.geometry import so3_log
 from hybrid_pk.io.dh_export import geometric_model
 from hybrid_pk.io.hybrid_file import forward_model
 from hybrid_pk.io.model_file import LoadedModel
@@ -44,9 +45,8 @@ class LeftOut:
 def _size(a: Tensor, b: Tensor) -> tuple[tuple[float, float], float]:
     """``((rms, max) [mm] of the position difference, max angle [mrad] between them)``."""
     d = (a[..., :3, 3] - b[..., :3, 3]).norm(dim=-1) * 1000.0
-    R = a[..., :3, :3].transpose(-1, -2) @ b[..., :3, :3]
-    cos = ((R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1.0, 1.0)
-    return (float(d.pow(2).mean().sqrt()), float(d.max())), float(cos.acos().max()) * 1000.0
+    angle = so3_log(a[..., :3, :3].transpose(-1, -2) @ b[..., :3, :3]).norm(dim=-1)
+    return (float(d.pow(2).mean().sqrt()), float(d.max())), float(angle.max()) * 1000.0
 
 
 def _value(e) -> str:
