@@ -210,3 +210,39 @@ def _rz(angle: np.ndarray) -> np.ndarray:
     T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -s, s, c
     T[:, 2, 2] = T[:, 3, 3] = 1
     return T
+
+
+def test_networks_listed_with_their_size(tmp_path, rx160, capsys):
+    """A model file with residual networks: the export lists them with the size of
+    their correction at the points (never silently dropped)."""
+    from hybrid_pk.hybrid import HybridFK, InputBox
+    from hybrid_pk.io import save_hybrid
+
+    base = ExtendedModel(rx160, [make_effect(rx160, "joint_offset:joint_2", 1e-3)])
+    q = rx160.sample_q(64, torch.Generator().manual_seed(1))
+    torch.manual_seed(0)
+    scale = torch.full((3,), 1e-3, dtype=torch.float64)
+    hybrid = HybridFK.build(base, InputBox.from_data(q, None, fade=0.2), "mlp:8x2", None, scale)
+    path = save_hybrid(tmp_path / "hybrid.pt", hybrid.eval())
+    items = left_out(load_model(path), q, Conditions())
+    assert [i.what for i in items] == ["residual networks", "total"]
+    with torch.no_grad():
+        moved = (hybrid(q) - base(q))[:, :3, 3].norm(dim=-1).max() * 1000
+    assert items[0].size_mm[1] == pytest.approx(float(moved), rel=1e-9)
+    out = tmp_path / "t.yaml"
+    argv = ["export", str(path), "--format", "mdh", "--data", str(_table_of(rx160, q, tmp_path))]
+    assert main([*argv, "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "residual networks" in printed
+    assert "the 64 measured points" in printed
+
+
+def _table_of(robot: Robot, q: torch.Tensor, tmp_path: Path) -> Path:
+    """A pose table at joint values ``q`` (the nominal flange: only ``q`` is read)."""
+    with torch.no_grad():
+        p = robot.fk(q)[:, :3, 3].numpy()
+    frame = pd.DataFrame(q.numpy(), columns=robot.joint_names)
+    frame[["x", "y", "z"]] = p
+    path = tmp_path / "points.csv"
+    frame.to_csv(path, index=False)
+    return path
