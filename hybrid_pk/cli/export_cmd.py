@@ -35,7 +35,7 @@ values) in one of these formats:
 beta is Hayati's parameter, non-zero only between consecutive axes within 45 degrees of
 parallel (where plain DH is singular). Effects a geometric file cannot carry
 (compliance, deflection, backlash, gear ratio, eccentricity, cyclic errors, residual
-networks) are listed with their size [mm] at the measured points: those of --data, else
+networks) are listed with their size [mm, mrad] at the measured points: those of --data, else
 the data files the model was calibrated on, else 1000 configurations drawn within the
 joint limits. 'hybrid-pk import dh' and Robot.from_dh read the dh / mdh files back.
 """
