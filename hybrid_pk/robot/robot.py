@@ -238,8 +238,7 @@ class Robot(nn.Module):
         return q
 
     def fk(self, q: Tensor, params: KinematicParams | None = None) -> Tensor:
-        """Pose of the end link in the root frame (:class:`~hybrid_pk.robot.chain.AlignedFK`
-        without derivatives, from a thousand configurations on).
+        """Pose of the end link in the root frame (without derivatives: robot.chain.AlignedFK).
 
         Args:
             q: ``(*B, dof)`` joint values [rad or m].
