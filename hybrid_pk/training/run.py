@@ -31,6 +31,7 @@ from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.hybrid.hybrid_fk import HybridFK
 from hybrid_pk.hybrid.nets import parse_arch
+from hybrid_pk.threads import requested_threads
 from hybrid_pk.training.datamodule import HybridDataModule
 from hybrid_pk.training.lightning_module import HybridLitModule
 from hybrid_pk.training.presets import preset
@@ -227,7 +228,8 @@ def train_hybrid(
             chatter is silenced (:func:`quiet_lightning`): the caller draws the display.
         strategy: ``"auto"`` or ``"ddp"`` (with ``devices`` processes).
         devices: number of processes.
-        threads: torch threads during the fit; None: one for networks up to
+        threads: torch threads during the fit; None: the count fixed by ``--threads`` /
+            ``HYBRID_PK_THREADS``, else one for networks up to
             :data:`SINGLE_THREAD_WIDTH` wide, torch's setting for wider ones.
     """
     settings = preset(preset_name)
@@ -252,7 +254,8 @@ def train_hybrid(
     )
     previous = torch.get_num_threads()
     archs = [settings["model"]["position_net"], settings["model"]["orientation_net"]]
-    threads = threads or auto_threads(archs)
+    fixed = requested_threads()  # --threads / HYBRID_PK_THREADS (hybrid_pk.threads)
+    threads = threads or (fixed if isinstance(fixed, int) else None) or auto_threads(archs)
     start = time.perf_counter()
     try:
         if threads:

@@ -48,6 +48,7 @@ from hybrid_pk.calibration.robust import OUTLIER_K, down_weighted, list_outliers
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import ExtendedModel, Gravity, conditions_from_data, make_effect
 from hybrid_pk.robot import Robot
+from hybrid_pk.threads import sized_by_data
 
 __all__ = ["Cause", "Diagnosis", "candidate_labels", "diagnose", "plausibility_warnings"]
 
@@ -55,6 +56,7 @@ __all__ = ["Cause", "Diagnosis", "candidate_labels", "diagnose", "plausibility_w
 MAX_REJECTED_IN_A_ROW = 2
 
 
+@sized_by_data
 def diagnose(
     robot: Robot,
     data: MeasuredData,
