@@ -7,7 +7,9 @@ The policy, in the order it is decided:
 2. else the cores this process may use (:func:`usable_cores`: its CPU affinity and its
    cgroup's CPU quota), and no more than the work can use: one thread per
    ``ROWS_PER_THREAD`` measured rows (:func:`threads_for`), so a 1,000-row campaign
-   runs on one thread and the 13,406 UR10 rows on every usable core;
+   runs on one thread and the 13,406 UR10 rows on every usable core; never more than
+   torch's setting when the call began (``OMP_NUM_THREADS=1`` or
+   ``torch.set_num_threads(1)`` keep one thread);
 3. inter-op threads: one (nothing here forks torch work in parallel);
 4. OpenMP threads that wait for work sleep instead of spinning (``OMP_WAIT_POLICY=
    PASSIVE``, set by :func:`quiet_waiting` before torch loads OpenMP, unless the user
@@ -33,6 +35,7 @@ from pathlib import Path
 __all__ = [
     "ENV",
     "ROWS_PER_THREAD",
+    "cgroup_quota",
     "configure",
     "parse_threads",
     "quiet_waiting",
@@ -59,7 +62,7 @@ def quiet_waiting() -> None:
         os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
-def _cgroup_quota(root: Path = Path("/sys/fs/cgroup")) -> float | None:
+def cgroup_quota(root: Path = Path("/sys/fs/cgroup")) -> float | None:
     """CPUs the cgroup quota allows (cgroup v2 ``cpu.max``, v1 ``cfs_quota_us``)."""
     try:
         quota, period = (root / "cpu.max").read_text().split()[:2]
@@ -81,7 +84,7 @@ def usable_cores() -> int:
         cores = len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
         cores = os.cpu_count() or 1
-    quota = _cgroup_quota()
+    quota = cgroup_quota()
     if quota is not None:
         cores = min(cores, max(1, math.ceil(quota)))
     return max(1, cores)
@@ -145,7 +148,8 @@ def configure(threads: str | int | None = None) -> int | str:
         torch.set_num_interop_threads(1)
     except RuntimeError:  # already started (torch allows setting it once)
         pass
-    n = choice if isinstance(choice, int) else threads_for(None)
+    # auto never raises torch's setting (OMP_NUM_THREADS=1 keeps one thread)
+    n = choice if isinstance(choice, int) else min(threads_for(None), torch.get_num_threads())
     _set(n)
     return n
 
@@ -153,8 +157,9 @@ def configure(threads: str | int | None = None) -> int | str:
 @contextmanager
 def work_threads(rows: int | None) -> Iterator[int]:
     """Intra-op threads for a library call on ``rows`` rows, restored after: the
-    user's fixed count if any, else :func:`threads_for` ``(rows)``. Calls nested in
-    one that already sized the threads keep its choice."""
+    user's fixed count if any, else :func:`threads_for` ``(rows)`` but never more than
+    the caller's torch setting. Calls nested in one that already sized the threads
+    keep its choice."""
     import torch
 
     previous = torch.get_num_threads()
@@ -162,7 +167,7 @@ def work_threads(rows: int | None) -> Iterator[int]:
     if _state["depth"] or choice == _TORCH:
         yield previous
         return
-    n = choice if isinstance(choice, int) else threads_for(rows)
+    n = choice if isinstance(choice, int) else min(threads_for(rows), previous)
     _state["depth"] += 1
     try:
         if n != previous:

@@ -95,8 +95,8 @@ def add_threads(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="N",
         help="torch threads: N, auto (the cores this process may use, one per 2,048 rows "
-        "of the work) or torch (torch's own default); waiting threads sleep instead of "
-        f"spinning (default: ${THREADS_ENV}, else auto)",
+        "of the work, at most OMP_NUM_THREADS) or torch (torch's own default); waiting "
+        f"threads sleep instead of spinning (default: ${THREADS_ENV}, else auto)",
     )
 
 
