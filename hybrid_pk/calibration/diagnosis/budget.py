@@ -46,9 +46,10 @@ class Budget:
         main = self.main_s if self.main_s is not None else time.perf_counter() - self.start
         return self.share * main
 
-    def spent(self) -> bool:
-        """True when the optional stages together used up the budget."""
-        used = sum(self._stages.values())
+    def spent(self, next_s: float = 0.0) -> bool:
+        """True when the optional stages together used up the budget, or would with
+        a next step of ``next_s`` seconds (e.g. the longest such step so far)."""
+        used = next_s + sum(self._stages.values())
         if self._current is not None:
             used += time.perf_counter() - self._current
         return used >= self.seconds

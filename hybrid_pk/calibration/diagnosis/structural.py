@@ -27,6 +27,7 @@ named with the size of the correction and the error it would leave.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 
 import torch
@@ -276,9 +277,9 @@ def locate_structural_error(
     ``STRUCTURAL_FRACTION`` of it). Only when none does, each joint is refitted from
     quarter and half turns about its perpendicular axes (a large rotation is out of
     reach of a fit that starts at zero), the joints whose plain correction left the
-    least first. With a ``budget`` the search stops when it is spent (the plain fits
-    of the hinted joints, or of the first joint without hints, are always made) and
-    records what it left undone.
+    least first. With a ``budget`` the search stops before a fit that would overrun it
+    (one as long as the slowest so far; the plain fits of the hinted joints, or of the
+    first joint without hints, are always made) and records what it left undone.
 
     Returns:
         ``{"joint", "rotation_deg", "rotation_axis", "translation_mm",
@@ -293,17 +294,20 @@ def locate_structural_error(
     joints += [j for j in chain if j not in joints]
     tasks = [(j, None) for j in joints]  # (joint, start) fits, in order
     floor = [j for j in joints if j in hint] or joints[:1]  # fitted whatever the budget
-    best, plain, k = None, {}, 0
+    best, plain, k, longest = None, {}, 0, 0.0  # longest: the slowest fit so far [s]
     while k < len(tasks):
         joint, start = tasks[k]
-        if budget is not None and budget.spent() and (start is not None or joint not in floor):
+        spent = budget is not None and budget.spent(longest)
+        if spent and (start is not None or joint not in floor):
             left = sorted({j for j, s in tasks[k:] if s is None})
             turns = sorted({j for j, s in tasks[k:] if s is not None})
             budget.cut("structural search", [*left, *(f"{j} (turned starts)" for j in turns)])
             break
         if start is None or start is _TURNS[0]:
             say(f"looking for a structural error at {joint}")
+        t0 = time.perf_counter()
         model, after = _fit_correction(nominal, joint, split, sigmas, start)
+        longest = max(longest, time.perf_counter() - t0)
         plain.setdefault(joint, after)
         if best is None or after < best[1]:
             best = (joint, after, model)
