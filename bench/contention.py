@@ -167,7 +167,7 @@ def _diagnose_cmd(case: dict, out: Path) -> list[str]:
 
 
 def _run_together(cmds: list[list[str]], env: dict, limit: float) -> list[float]:
-    """Start ``cmds`` together; each one's wall time (``inf`` when stopped at ``limit``)."""
+    """Start ``cmds`` together; each one's wall time (``limit`` when stopped there)."""
     start = time.perf_counter()
     procs = [subprocess.Popen(c, env=env, stdout=subprocess.DEVNULL,
                               stderr=subprocess.PIPE, text=True) for c in cmds]  # fmt: skip
@@ -183,7 +183,7 @@ def _run_together(cmds: list[list[str]], env: dict, limit: float) -> list[float]
             elif times[k] is None and now > limit:
                 p.kill()
                 p.wait()
-                times[k] = float("inf")
+                times[k] = limit
     return times
 
 
@@ -260,8 +260,31 @@ def structural_share(case: dict, work: Path) -> dict:
     }
 
 
-def _fmt(times: list[float]) -> str:
-    return " / ".join("stopped" if t == float("inf") else f"{t:.1f}" for t in times)
+def policy_rows(name, case, policy, scenarios, work: Path, limit: float) -> list[dict]:
+    """Each scenario of one campaign under one policy, alone first; printed as it goes."""
+    rows, base = [], None
+    for scenario in ["alone", *[s for s in scenarios if s != "alone"]]:
+        times = run_scenario(case, scenario, policy, work, limit)
+        base = base or times[0]
+        row = {"case": name, "rows": case["rows"], "policy": policy, "scenario": scenario,
+               "seconds": times, "ratio": max(times) / base, "limit": limit,
+               "alone_stopped": base >= limit, "load": os.getloadavg()[0]}  # fmt: skip
+        rows.append(row)
+        print(f"{name:<5} {policy:<6} {scenario:<6} {_fmt(times, limit):>15} s  "
+              f"{_ratio(row):>7} alone  (load {row['load']:.1f})", flush=True)  # fmt: skip
+    return rows
+
+
+def _fmt(times: list[float], limit: float) -> str:
+    """Seconds, ``>limit`` for a run stopped at ``limit``."""
+    return " / ".join(f">{t:.0f}" if t >= limit else f"{t:.1f}" for t in times)
+
+
+def _ratio(r: dict) -> str:
+    """Ratio to alone; ``>`` when the run was stopped, ``?`` when alone was."""
+    if r["alone_stopped"]:
+        return "?"
+    return (">" if max(r["seconds"]) >= r["limit"] else "") + f"{r['ratio']:.2f}x"
 
 
 def main() -> None:
@@ -295,19 +318,9 @@ def main() -> None:
             alone = None
             for policy in ("policy", "torch") if name in old else ("policy",):
                 limit = 3600.0 if policy == "policy" else max(60.0, args.old_limit * alone)
-                base = None
-                for scenario in ["alone", *[s for s in scenarios if s != "alone"]]:
-                    times = run_scenario(case, scenario, policy, work, limit)
-                    if scenario == "alone":
-                        base = times[0]
-                        alone = alone or base
-                    ratio = max(times) / base
-                    row = {"case": name, "rows": case["rows"], "policy": policy,
-                           "scenario": scenario, "seconds": times, "ratio": ratio,
-                           "load": os.getloadavg()[0]}  # fmt: skip
-                    results.append(row)
-                    print(f"{name:<5} {policy:<6} {scenario:<6} {_fmt(times):>15} s  "
-                          f"{ratio:5.2f}x alone  (load {row['load']:.1f})", flush=True)  # fmt: skip
+                rows = policy_rows(name, case, policy, scenarios, work, limit)
+                alone = alone or rows[0]["seconds"][0]
+                results += rows
             if name == "ur10":
                 fit_s = plain_fit_seconds(case, work / "diag_policy.json")
                 results.append({"case": name, "plain_fit_s": fit_s, "ratio": alone / fit_s})
@@ -328,8 +341,13 @@ def _summary(results: list[dict], load0, seconds: float) -> None:
         for s in SCENARIOS:
             r = next((x for x in results if (x.get("case"), x.get("policy"), x.get("scenario"))
                       == (case, policy, s)), None)  # fmt: skip
-            cells.append("–" if r is None else f"{_fmt(r['seconds'])} s ({r['ratio']:.2f}x)")
+            cells.append("–" if r is None else f"{_fmt(r['seconds'], r['limit'])} s ({_ratio(r)})")
         print(f"| {case} {rows} rows | {policy} | {' | '.join(cells)} |")
+    for case in dict.fromkeys(r["case"] for r in results if r.get("policy") == "torch"):
+        pair = [next(x for x in results if (x.get("case"), x.get("policy"), x.get("scenario"))
+                     == (case, p, "alone")) for p in ("policy", "torch")]  # fmt: skip
+        print(f"{case} alone: torch's threads {_fmt(pair[1]['seconds'], pair[1]['limit'])} s, "
+              f"the policy {pair[0]['seconds'][0]:.1f} s")  # fmt: skip
     print(f"\nload {load0[0]:.1f} before, {os.getloadavg()[0]:.1f} after; bench {seconds:.0f} s")
     t = TARGETS
     for r in (x for x in results if x["case"] == "wrong"):
