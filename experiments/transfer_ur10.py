@@ -78,6 +78,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     )
     p.add_argument("--epochs", type=int, help="training epochs (default: train's own default)")
     p.add_argument("--no-hybrid", action="store_true", help="no training: physics models only")
+    p.add_argument(
+        "--effects",
+        help="effects of the extended model as calibrate --effects LIST (no diagnosis)",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of row choices, diagnosis, training")
     return p.parse_args(argv)
 
@@ -135,7 +139,9 @@ def direction_files(out: Path, series: dict, fit: str, judge: str, args) -> dict
 def fit_models(d: Path, files: dict, args, log: dict) -> list[str]:
     """Diagnosis and the models of the fit series; a model file already there is kept."""
     diagnosis = d / "diagnosis.json"
-    if not diagnosis.exists():
+    if args.effects:
+        diagnosis = args.effects
+    elif not diagnosis.exists():
         run(["diagnose", files["fit"], "--robot", "ur10", "--seed", args.seed,
              "--json", diagnosis, "--report", d / "diagnosis_report"], log)  # fmt: skip
     calibrate = ["calibrate", files["fit"], "--robot", "ur10", "--no-urdf"]
@@ -176,7 +182,9 @@ def direction(out: Path, series: dict, robot: Robot, name: str, args, log: dict)
         "fit_rows": read_rows(files["fit"], robot).n,
         "refit_rows": args.refit_rows,
         "judged_rows": evaluated[keys[0]]["n"],
-        "causes": diagnosis_labels(str(d / "diagnosis.json")),
+        "causes": args.effects.split(",")
+        if args.effects
+        else diagnosis_labels(str(d / "diagnosis.json")),
         "models": {k: evaluated[k]["position_mm"] for k in keys},
     }
 
@@ -234,6 +242,7 @@ def main(argv=None) -> int:
         sources = [args.data / SERIES[k][0] for k in SERIES]
         run(["import", "ipa", *sources, "--out", out / "series", "--format", "parquet"], log)
     series = {k: read_rows(f, robot) for k, f in series_files.items()}
+    results["rows_of"] = {k: d.n for k, d in series.items()}
     for name in (s.strip() for s in args.directions.split(",") if s.strip()):
         if name not in ("A->B", "B->A"):
             raise SystemExit(f"unknown direction {name!r}: A->B or B->A")
