@@ -74,7 +74,9 @@ def test_diagnose_and_calibrate_report_the_check(rx160, tmp_path, capsys):
         files.append(write_table(tmp_path / f"setup_{k}.csv", rows))
     diag = tmp_path / "diag.json"
     common = ["--robot", "rx160", "--frames-per-file", "--refit-rows", "30"]
-    assert main(["diagnose", *map(str, files), *common, "--json", str(diag)]) == 0
+    report = ["--report", str(tmp_path / "report")]
+    assert main(["diagnose", *map(str, files), *common, "--json", str(diag), *report]) == 0
+    assert "## Transfer: leave one file out" in (tmp_path / "report" / "report.md").read_text()
     out = capsys.readouterr().out
     assert "transfer (leave one file out" in out
     assert "setup_1.csv" in out
