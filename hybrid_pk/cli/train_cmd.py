@@ -56,7 +56,7 @@ axis by axis, c^3 / (c^2 + s^2), by the spread s^2 of its training targets among
 its inputs cannot tell apart (--no-spread: keep all of it).
 
 Presets: fast (ours: posture networks in link 1's frame refined by networks on every
-joint, then local deformation networks: --inputs frame1+q2-4+torque/joints,local+q1,
+joint, then local deformation networks: --inputs frame1+qarm+torque/joints,local+q1,
 Adam + one-cycle, batch 256, 150 epochs, MSE), joints (ours before: 3 x 256 SiLU MLPs
 on every joint, --inputs joints) and paper (D4w / Rw, Adagrad lr 0.005, batch 128,
 <= 300 epochs, early stopping, mean-distance / mean-angle losses, limits
@@ -120,7 +120,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="SPEC",
         help="network stages: joints (the paper's), frameK[+qI-J][+gravity][+torque|+full] "
         "or local[+q1], joined by ',' (fall-back) and '/' (refinement), e.g. "
-        "frame1+q2-4+torque/joints,local+q1 (default: preset)",
+        "frame1+qarm+torque/joints,local+q1 (default: preset)",
     )
     p.add_argument(
         "--trust",

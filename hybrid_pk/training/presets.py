@@ -68,7 +68,7 @@ PRESETS: dict[str, dict[str, dict]] = {
     # UR10 hold-out splits (experiments/real_ur10.py) better than "joints" on all three.
     "fast": _ours(
         {
-            "inputs": "frame1+q2-4+torque/joints,local+q1",
+            "inputs": "frame1+qarm+torque/joints,local+q1",
             "position_net": "mlp:128x3",
             "orientation_net": "mlp:128x3",
             "refine_net": "mlp",
