@@ -11,7 +11,7 @@ import torch
 
 from hybrid_pk import Robot
 from hybrid_pk.effects import ExtendedModel, conditions_from_data
-from hybrid_pk.hybrid.blocked_trust import decide
+from hybrid_pk.hybrid.blocked_trust import MODES, beats, decide
 from hybrid_pk.hybrid.builder import DEFAULT_INPUTS, build_hybrid
 from hybrid_pk.hybrid.features import FeatureSpec
 from hybrid_pk.hybrid.hybrid_fk import HybridFK
@@ -132,22 +132,28 @@ def test_the_decision_is_stored_and_read_back(ur10, tmp_path):
         assert torch.equal(restored.corrections(q)[0], result.hybrid.corrections(q)[0])
 
 
-def test_decide_frees_a_stage_only_on_a_gain_on_every_family_of_blocks():
-    gains = {  # per stage and mode: the gain on (joint 1's ends, the other joint's ends)
+def test_decide_frees_a_stage_only_on_a_clear_gain_on_every_family_of_blocks():
+    noise = torch.randn(400, generator=torch.Generator().manual_seed(0), dtype=F64) * 0.05
+    gains = {  # per stage and mode: the mean gain on (joint 1's ends, the other joint's)
         0: {"gated": (0, 0), "free": (0.1, 0.1), "shrunk": (0.2, 0.05)},
         1: {"gated": (0, 0), "free": (-0.1, 0.1), "shrunk": (0.2, 0.2)},
-        2: {"gated": (0, 0), "free": (0.3, -0.01)},
+        2: {"gated": (0, 0), "free": (0.3, 0.001)},
     }
 
-    def score(modes):
+    def score(modes):  # each row's own noise, fresh for every choice of modes
         total = [sum(gains[i][m][f] for i, m in modes.items()) for f in (0, 1)]
-        return {"joint 1": 1 - total[0], "lift": 1 - total[1]}, {"position_mm": 0.0}
+        seed = sum(MODES.index(m) * 3**i for i, m in modes.items())
+        e = torch.randn(400, generator=torch.Generator().manual_seed(seed), dtype=F64) * 0.05
+        rows = {"joint 1": 1 - total[0] + e[:200], "lift": 1 - total[1] + e[200:]}
+        return rows, {"position_mm": 0.0}
 
     out = decide([0, 1, 2], {0, 1}, score)
-    assert out[0]["mode"] == "shrunk"  # free beats gated on both, shrunk lower still
+    assert out[0]["mode"] == "shrunk"  # free beats gated on both, shrunk beats free
     assert out[1]["mode"] == "gated"  # a loss on one family: the invariance fails there,
     assert "shrunk" not in out[1]  # and no shrink frees it
-    assert out[2]["mode"] == "gated"
+    assert out[2]["mode"] == "gated"  # a gain within the noise on one family
+    assert beats(torch.zeros(200, dtype=F64) + noise[:200], 0.1 + noise[:200])
+    assert not beats(noise[:200], noise[200:])
 
 
 def test_the_blocks_are_end_quarters_of_joint_1_and_of_the_joint_that_moves_the_point_most(ur10):

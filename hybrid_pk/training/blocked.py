@@ -163,14 +163,16 @@ def _scorer(probes: list[tuple[HybridFK, list[tuple[str, ResidualTargets]]]]) ->
     physics = _pooled([(f, _physics_errors(t, zero[id(t)])) for f, t in rows])
 
     @torch.no_grad()
-    def score(modes: dict[int, str]) -> tuple[dict[str, float], dict[str, float]]:
+    def score(modes: dict[int, str]) -> tuple[dict[str, Tensor], dict[str, float]]:
         errors = [(_family(label), _errors(h, t, modes)) for h, held in probes for label, t in held]
-        means = _pooled(errors)
-        families = {
-            f: sum(v / max(physics[f][k], 1e-12) for k, v in m.items() if k != "rows")
-            for f, m in means.items()
-        }
-        return families, _named(means["all"])
+        families = {}
+        for family in sorted({f for f, _ in errors}):
+            parts = [e for f, e in errors if f == family]
+            base = physics[family]
+            families[family] = sum(
+                torch.cat([p[k] for p in parts]) / max(base[k], 1e-12) for k in parts[0]
+            )
+        return families, _named(_pooled(errors)["all"])
 
     score.physics = _named(physics["all"])
     return score
