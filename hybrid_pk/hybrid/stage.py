@@ -167,7 +167,7 @@ class ResidualStage(nn.Module):
 
     def weight(self, q: Tensor, u: Tensor, gated: bool = True) -> Tensor:
         """Trust at ``q`` with inputs ``u``: ``(*B,)``, or ``(*B, dof)`` when grouped;
-        ``gated=False`` leaves out the :attr:`gate`."""
+        ``gated=False`` leaves out the :attr:`gate` (the blocked hold-out's probes)."""
         if self.box is not None:  # the paper's inputs: never beyond the joint box
             box = self.box.trust(q)
             return box if self.coverage is None else box * self.coverage.trust(u)

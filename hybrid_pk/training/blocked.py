@@ -206,9 +206,10 @@ def blocked_check(
     labels: list[str],
 ) -> dict[int, dict]:
     """Decide the mode of each stage of ``hybrid`` with a gate from the ``probes``
-    (probe model, its left-out rows) and apply it: ``free`` lifts the gate, anything
-    but ``shrunk`` drops the spread. Returns ``{stage: record}`` (also kept as each
-    stage's :attr:`~hybrid_pk.hybrid.stage.ResidualStage.blocked`)."""
+    (probe model, its left-out rows) and apply it: ``free`` frees the gate (joint 1's
+    trained range stays), anything but ``shrunk`` drops the spread. Returns ``{stage:
+    record}`` (also kept as each stage's
+    :attr:`~hybrid_pk.hybrid.stage.ResidualStage.blocked`)."""
     probed = [i for i, stage in enumerate(hybrid.stages) if stage.gate is not None]
     spread = {i for i in probed if hybrid.stages[i].spread is not None}
     score = _scorer(probes)
@@ -217,8 +218,7 @@ def blocked_check(
         stage = hybrid.stages[i]
         stage.blocked = {**record, "physics": score.physics, "blocks": list(labels)}
         out[i] = stage.blocked
-        if record["mode"] != "gated":
-            stage.gate = None
+        stage.gate.free = record["mode"] != "gated"
         if record["mode"] != "shrunk":
             stage.spread = None
     return out
