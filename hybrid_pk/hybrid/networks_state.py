@@ -2,7 +2,7 @@
 
 Format (``format: hybrid_pk.residual_networks``)::
 
-    {"format": ..., "version": 1 or 2, "joint_names": [...],
+    {"format": ..., "version": 1 to 4, "joint_names": [...],
      "frame": "flange origin, joint-1 axes",
      "input": {"lower", "upper", "trust_lower", "trust_upper": (dof,) tensors,
                "fade": float}                     the paper's inputs (InputBox), or None
