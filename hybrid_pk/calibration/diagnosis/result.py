@@ -98,6 +98,7 @@ class Diagnosis:
     structural: dict | None = None
     frames: dict | None = None
     carry_over: dict | None = None
+    budget: dict | None = None
 
     def to_json(self) -> dict:
         return {
@@ -118,6 +119,7 @@ class Diagnosis:
             "frames": self.frames,
             "gravity": gravity_json(self.model),
             "carry_over": self.carry_over,
+            "budget": self.budget,
         }
 
 

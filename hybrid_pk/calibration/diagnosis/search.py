@@ -22,6 +22,7 @@ from collections.abc import Callable
 
 from hybrid_pk.calibration.diagnosis.ambiguity import correlated_groups, near_duplicates
 from hybrid_pk.calibration.diagnosis.blocked import make_folds
+from hybrid_pk.calibration.diagnosis.budget import Budget
 from hybrid_pk.calibration.diagnosis.carryover import Carry, weakest
 from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic
 from hybrid_pk.calibration.diagnosis.elimination import eliminate
@@ -51,6 +52,7 @@ from hybrid_pk.calibration.robust import OUTLIER_K, down_weighted, list_outliers
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import ExtendedModel, Gravity, conditions_from_data, make_effect
 from hybrid_pk.robot import Robot
+from hybrid_pk.threads import sized_by_data
 
 __all__ = ["Cause", "Diagnosis", "candidate_labels", "diagnose", "plausibility_warnings"]
 
@@ -58,6 +60,7 @@ __all__ = ["Cause", "Diagnosis", "candidate_labels", "diagnose", "plausibility_w
 MAX_REJECTED_IN_A_ROW = 2
 
 
+@sized_by_data
 def diagnose(
     robot: Robot,
     data: MeasuredData,
@@ -97,6 +100,7 @@ def diagnose(
     """
     say = progress or (lambda _msg: None)
     robot.requires_grad_(False)
+    budget = Budget()  # the optional stages' share of the main search's time
     split = split_campaign(data, conditions_from_data(data, frames_per_file), holdout, seed)
 
     say("fitting base and tool frames to the nominal model")
@@ -112,16 +116,11 @@ def diagnose(
     nominal_model = with_effects(model)
     nominal = stats_json(*model_errors(model, split.test, split.cond_hold))
 
-    pool = candidates if candidates is not None else candidate_labels(robot, data)
-    pool = [
-        c
-        for c in pool
-        if make_effect(robot, c).needs != "temperature" or data.temperature is not None
-    ]
+    pool = _pool(robot, data, candidates)
     flagged: list[dict] = []
     carry = Carry(make_folds(model, split, seed), min_gain_mm)
     model, res, steps, ambiguous, unobservable = _select(
-        model, res, pool, split, (alpha, carry), max_causes, say, flagged
+        model, res, pool, split, (alpha, carry, budget), max_causes, say, flagged
     )
     model, res, blocked_gains, unresolved = settle(model, res, split, carry, steps, say)
 
@@ -131,7 +130,10 @@ def diagnose(
         model, res, split, steps, alpha, errors, progress=say, blocked=blocked_gains
     )
     sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
-    causes, structural = structural_check(model, causes, flagged, split, nominal_model, sigmas, say)
+    with budget.stage("structural search"):
+        causes, structural = structural_check(
+            model, causes, flagged, split, nominal_model, sigmas, say, budget
+        )
     ambiguous += correlated_groups(res) + unresolved
     return Diagnosis(
         outliers=_outliers(model, data, frames_per_file, res),
@@ -140,8 +142,10 @@ def diagnose(
         frames=frame_json,
         warnings=plausibility_warnings(causes, data)
         + _cap_warnings(steps)
-        + range_warnings(causes, robot),
+        + range_warnings(causes, robot)
+        + budget.warnings(),
         carry_over=carry.rule(res),
+        budget=budget.to_json(),
         robot=robot.name,
         n_samples=data.n,
         n_holdout=split.test.n,
@@ -159,27 +163,39 @@ def diagnose(
     )
 
 
+def _pool(robot: Robot, data: MeasuredData, candidates: list[str] | None) -> list[str]:
+    """The candidates to consider (default :func:`candidate_labels`), those needing a
+    temperature only when the data have one."""
+    pool = candidates if candidates is not None else candidate_labels(robot, data)
+    return [
+        c
+        for c in pool
+        if make_effect(robot, c).needs != "temperature" or data.temperature is not None
+    ]
+
+
 def _select(
     model: ExtendedModel,
     res: FitResult,
     pool: list[str],
     split: Split,
-    tests: tuple[float, Carry],
+    tests: tuple[float, Carry, Budget],
     max_causes: int,
     say: Callable[[str], None],
     flagged: list[dict],
 ) -> tuple[ExtendedModel, FitResult, list[dict], list[dict], list[str]]:
     """Forward selection with backward elimination after each accepted cause.
 
-    ``tests``: ``(alpha, carry)``, the F-tests' level and the blocked hold-out's
-    blocks and margin. A candidate whose refit value is not a small physical
+    ``tests``: ``(alpha, carry, budget)``, the F-tests' level, the blocked hold-out's
+    blocks and margin, and the time budget of the optional stages (the capped-search
+    check and the swaps, after the loop). A candidate whose refit value is not a small physical
     correction is set aside and appended to ``flagged`` (its :func:`implausibility`
     entry).
 
     Returns the final model and fit, the step records, the ambiguity entries found
     on the way and the candidates without any signature in this data.
     """
-    alpha, carry = tests
+    alpha, carry, budget = tests
     ambiguous: list[dict] = []
     steps: list[dict] = []
     unobservable: list[str] = []
@@ -236,12 +252,18 @@ def _select(
         model, res, removed = eliminate(model, res, split, alpha, best.label, steps, say)
         model, res, dropped = _eliminate_blocked(model, res, scores, before, split, steps, say)
         remaining = [c for c in remaining if c not in removed | dropped]
+    budget.main_done()
     if remaining and len(model.effects) >= max_causes:
-        pool, screened = screen_cyclic(
-            model, split, remaining, res.weights, carry.folds, carry.margin(res)
+        with budget.stage("capped-search check"):  # one scoring step: done whatever the budget
+            pool, screened = screen_cyclic(
+                model, split, remaining, res.weights, carry.folds, carry.margin(res)
+            )
+            limits = (max_causes, screened)
+            _note_cap(model, res, pool, split, (alpha, carry), limits, steps, say)
+    with budget.stage("swaps"):
+        model, res = prefer_fewer_causes(
+            model, res, pairs, split, (alpha, carry), steps, say, budget
         )
-        _note_cap(model, res, pool, split, (alpha, carry), (max_causes, screened), steps, say)
-    model, res = prefer_fewer_causes(model, res, pairs, split, (alpha, carry), steps, say)
     return model, res, steps, ambiguous, unobservable
 
 
