@@ -14,7 +14,14 @@ import math
 import torch
 from torch import Tensor
 
-__all__ = ["PRISMATIC_TOL", "REVOLUTE_TOL", "distinct_mask", "joint_difference", "same_solution"]
+__all__ = [
+    "PRISMATIC_TOL",
+    "REVOLUTE_TOL",
+    "distinct_mask",
+    "joint_difference",
+    "same_cell_best",
+    "same_solution",
+]
 
 REVOLUTE_TOL = 1e-3  # [rad]
 PRISMATIC_TOL = 1e-6  # [m]
@@ -100,3 +107,45 @@ def _distinct_block(q, candidate, score, revolute, revolute_tol, prismatic_tol) 
     out = torch.zeros_like(candidate)
     out.scatter_(1, order, kept)
     return out
+
+
+def same_cell_best(
+    q: Tensor,
+    group: Tensor,
+    candidate: Tensor,
+    score: Tensor,
+    revolute: Tensor,
+    revolute_cell: float,
+    prismatic_cell: float,
+) -> Tensor:
+    """A cheap merge of near-equal candidates, without the greedy visit's rounds.
+
+    Joint space is cut into cells (revolute joints taken modulo ``2 pi``); of the
+    candidates of one group (target) in one cell, the lowest score is kept. Two merged
+    candidates differ by less than a cell in every joint; two equal ones on either side
+    of a cell border are both kept.
+
+    Args:
+        q: ``(P, dof)`` [rad or m].
+        group: ``(P,)`` long, e.g. the target of each candidate.
+        candidate: ``(P,)`` bool.
+        score: ``(P,)`` lower is better.
+        revolute: ``(dof,)`` bool.
+        revolute_cell: [rad] cell width of revolute joints.
+        prismatic_cell: [m] cell width of prismatic joints.
+
+    Returns:
+        ``(P,)`` bool, a subset of ``candidate`` (ties in score all kept).
+    """
+    idx = candidate.nonzero()[:, 0]
+    qc = q.index_select(0, idx)
+    rev = revolute.to(qc.device)
+    width = torch.where(rev, revolute_cell, prismatic_cell).to(qc.dtype)
+    cell = torch.floor(torch.where(rev, torch.remainder(qc, _TWO_PI), qc) / width).long()
+    key = torch.cat([group.index_select(0, idx)[:, None], cell], 1)
+    _, which = torch.unique(key, dim=0, return_inverse=True)
+    sc = score.index_select(0, idx)
+    best = sc.new_full((len(idx),), torch.inf).scatter_reduce_(0, which, sc, "amin")
+    keep = torch.zeros_like(candidate)
+    keep[idx] = sc <= best.index_select(0, which)
+    return keep
