@@ -135,17 +135,30 @@ def same_cell_best(
         prismatic_cell: [m] cell width of prismatic joints.
 
     Returns:
-        ``(P,)`` bool, a subset of ``candidate`` (ties in score all kept).
+        ``(P,)`` bool, a subset of ``candidate`` (of equal scores the first kept).
     """
     idx = candidate.nonzero()[:, 0]
     qc = q.index_select(0, idx)
     rev = revolute.to(qc.device)
     width = torch.where(rev, revolute_cell, prismatic_cell).to(qc.dtype)
     cell = torch.floor(torch.where(rev, torch.remainder(qc, _TWO_PI), qc) / width).long()
-    key = torch.cat([group.index_select(0, idx)[:, None], cell], 1)
-    _, which = torch.unique(key, dim=0, return_inverse=True)
-    sc = score.index_select(0, idx)
-    best = sc.new_full((len(idx),), torch.inf).scatter_reduce_(0, which, sc, "amin")
+    cell = torch.cat([group.index_select(0, idx)[:, None], cell], 1)
+    # One int64 per cell (a wrapping hash, far cheaper than unique rows); a member
+    # whose cell differs from its representative's (a collision) is kept.
+    _, which = torch.unique(cell @ _hash_weights(cell.shape[1], cell.device), return_inverse=True)
+    order = torch.argsort(score.index_select(0, idx), stable=True)
+    rank = torch.empty_like(order)
+    rank[order] = torch.arange(len(order), device=order.device)
+    best = rank.new_full((len(order),), len(order)).scatter_reduce_(0, which, rank, "amin")
+    rep = order.index_select(0, best.index_select(0, which))
+    drop = (rep != torch.arange(len(rep), device=rep.device)) & (cell == cell[rep]).all(1)
     keep = torch.zeros_like(candidate)
-    keep[idx] = sc <= best.index_select(0, which)
+    keep[idx] = ~drop
     return keep
+
+
+def _hash_weights(k: int, device: torch.device) -> Tensor:
+    """``(k,)`` int64 odd multipliers (fixed, from a seeded generator) of the cell hash."""
+    gen = torch.Generator().manual_seed(k)
+    w = torch.randint(-(2**62), 2**62, (k,), generator=gen, dtype=torch.int64)
+    return (w | 1).to(device)
