@@ -83,11 +83,11 @@ def normal_equations(J: Tensor, e: Tensor) -> Tensor:
     return G
 
 
-# Problems up to which the batched Cholesky is cheaper than the elimination: its cost
-# grows by a LAPACK call per matrix (~0.3 us at n = 6), the elimination's is ~65 tensor
-# calls whatever the batch (timed at 50, 400 and 3200 problems, one thread: equal cost
-# between 300 and 400).
-_CHOLESKY_MAX = 256
+# Problems up to which the batched Cholesky is cheaper than the elimination: it costs
+# ~45 us plus a LAPACK call per matrix (~0.45 us at n = 6), the elimination ~110 us
+# (~65 tensor calls) whatever the batch (one quiet thread, 10 to 400 problems: equal
+# between 100 and 200).
+_CHOLESKY_MAX = 128
 
 
 def _cholesky(G: Tensor) -> tuple[Tensor, Tensor]:
