@@ -16,13 +16,12 @@ from pathlib import Path
 
 import torch
 
-from hybrid_pk.calibration.fit import FitResult, fit
-from hybrid_pk.calibration.frames import FramePriors
-from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.data import DataWarning, MeasuredData, read_table_for
-from hybrid_pk.effects import Conditions, ExtendedModel
+from hybrid_pk.effects import ExtendedModel
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import ErrorStats, error_stats
+from hybrid_pk.pipelines.calibrate import FRAME_LABELS as FRAME_LABELS
+from hybrid_pk.pipelines.calibrate import refit_frames as fit_frames
 from hybrid_pk.robot import Robot
 
 __all__ = [
@@ -42,13 +41,6 @@ __all__ = [
     "with_frame_sets",
     "write_json",
 ]
-
-# Parameter blocks of the frames, by --refit choice (labels of calibration.fit).
-FRAME_LABELS = {
-    "base": ("base_frame.translation", "base_frame.rotation"),
-    "tool": ("tool_frame.translation", "tool_frame.rotation"),
-}
-FRAME_LABELS["frames"] = FRAME_LABELS["base"] + FRAME_LABELS["tool"]
 
 
 def mounting_lines(model: ExtendedModel) -> list[str]:
@@ -206,25 +198,6 @@ def frame_sets_for(args: argparse.Namespace, model_sets: int) -> int:
             f"{args.model} has one base/tool frame set; --frames-per-file needs --fit-frames"
         )
     return model_sets
-
-
-def fit_frames(
-    model: ExtendedModel,
-    data: MeasuredData,
-    cond: Conditions,
-    which: str = "frames",
-    priors: FramePriors | None = None,
-    robust: str | None = None,
-) -> FitResult:
-    """Register then least-squares fit only the ``which`` frame(s); effects stay fixed.
-
-    Args:
-        which: ``"base"``, ``"tool"`` or ``"frames"`` (both).
-        priors: known frames (``--tool``, ``--base``) and the prior of the fit.
-        robust: robust loss (``--robust``), or None.
-    """
-    initialise_with_priors(model, data, cond, priors, which=which)
-    return fit(model, data, free=list(FRAME_LABELS[which]), cond=cond, frames=priors, robust=robust)
 
 
 def stats_line(label: str, stats: ErrorStats | torch.Tensor, digits: int = 4) -> str:
