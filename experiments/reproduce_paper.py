@@ -57,7 +57,7 @@ from hybrid_pk.effects import Effect, ExtendedModel, conditions_from_data, make_
 from hybrid_pk.evaluation.metrics import error_stats, pose_error
 from hybrid_pk.hybrid import build_net, count_parameters
 from hybrid_pk.pipelines import calibrate, refit_frames
-from hybrid_pk.pipelines.calibrate import cause_labels
+from hybrid_pk.pipelines.calibration import cause_labels
 from hybrid_pk.simulate import simulate_campaign
 from hybrid_pk.simulate.effect_specs import paper_effects
 from hybrid_pk.simulate.unmodelled import HardeningCompliance, rms_gravity_torques

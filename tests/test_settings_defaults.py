@@ -13,7 +13,7 @@ import pytest
 from hybrid_pk.calibration.diagnosis import diagnose
 from hybrid_pk.cli.main import build_parser
 from hybrid_pk.hybrid.builder import HybridSettings
-from hybrid_pk.pipelines.calibrate import calibrate
+from hybrid_pk.pipelines.calibration import calibrate
 from hybrid_pk.training.lightning_module import HybridLitModule
 from hybrid_pk.training.presets import PRESETS
 

@@ -55,7 +55,7 @@ from hybrid_pk.effects.vocabulary import vocabulary_units
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import error_stats
 from hybrid_pk.io.model_file import save_model
-from hybrid_pk.pipelines.calibrate import calibrate
+from hybrid_pk.pipelines.calibration import calibrate
 
 _DESCRIPTION = """\
 Fit base/tool frames and physical error effects to measured poses; write one MODEL file

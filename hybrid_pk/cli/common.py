@@ -20,8 +20,8 @@ from hybrid_pk.data import DataWarning, MeasuredData, read_table_for
 from hybrid_pk.effects import ExtendedModel
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import ErrorStats, error_stats
-from hybrid_pk.pipelines.calibrate import FRAME_LABELS as FRAME_LABELS
-from hybrid_pk.pipelines.calibrate import refit_frames as fit_frames
+from hybrid_pk.pipelines.calibration import FRAME_LABELS as FRAME_LABELS
+from hybrid_pk.pipelines.calibration import refit_frames as fit_frames
 from hybrid_pk.robot import Robot
 
 __all__ = [

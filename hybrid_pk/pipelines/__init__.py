@@ -1,12 +1,12 @@
 """Pipelines: whole jobs built from the layers below, returning typed results: the
-calibration workflow (:mod:`~hybrid_pk.pipelines.calibrate`) and the demo. The CLI
+calibration workflow (:mod:`~hybrid_pk.pipelines.calibration`) and the demo. The CLI
 parses, calls these and prints; the experiments and the demo call the same functions.
 """
 
-from hybrid_pk.pipelines.calibrate import CalibrationResult as CalibrationResult
-from hybrid_pk.pipelines.calibrate import calibrate as calibrate
-from hybrid_pk.pipelines.calibrate import diagnose_and_calibrate as diagnose_and_calibrate
-from hybrid_pk.pipelines.calibrate import refit_frames as refit_frames
+from hybrid_pk.pipelines.calibration import CalibrationResult as CalibrationResult
+from hybrid_pk.pipelines.calibration import calibrate as calibrate
+from hybrid_pk.pipelines.calibration import diagnose_and_calibrate as diagnose_and_calibrate
+from hybrid_pk.pipelines.calibration import refit_frames as refit_frames
 
 __all__ = [
     "CalibrationResult",

@@ -31,7 +31,7 @@ from hybrid_pk.effects import Conditions, Effect, ExtendedModel, conditions_from
 from hybrid_pk.ik import solve_ik_two_stage
 from hybrid_pk.io.hybrid_file import save_hybrid
 from hybrid_pk.io.model_file import save_model
-from hybrid_pk.pipelines.calibrate import calibrate, cause_labels
+from hybrid_pk.pipelines.calibration import calibrate, cause_labels
 from hybrid_pk.pipelines.demo_report import write_demo_report
 from hybrid_pk.report.diagnosis_report import write_diagnosis_report
 from hybrid_pk.report.evaluation_report import write_evaluation_report
