@@ -1,14 +1,13 @@
 """`Robot`: the nominal geometric + static model of one serial arm.
 
-Dimension names used throughout the package: ``B`` any leading batch shape, ``dof``
-the robot's (independent) joints, ``n_chain`` the movable joints on the chain (more
-than ``dof`` when some are URDF mimic joints), ``n_params`` identified parameters.
+Dimension names used throughout the package: ``B`` any leading batch shape, ``dof`` the
+robot's (independent) joints, ``n_chain`` the movable joints on the chain (more than ``dof``
+when some are URDF mimic joints), ``n_params`` identified parameters.
 
-Mimic joints: the chain's joint values follow the robot's joints through the affine
-coupling ``q_chain = q @ A.T + b`` (:meth:`Robot.coupling`). Every public method takes
-and returns the robot's joints: ``fk(q)``, ``jacobian(q) = J_chain @ A`` and
-``gravity_torques(q) = A.T tau_chain`` (virtual work; a leader joint off the chain gets
-the torques of its mimic joints, plus those of its own link).
+Mimic joints: the chain's joint values follow the robot's joints through the affine coupling
+``q_chain = q @ A.T + b`` (:meth:`Robot.coupling`). Every public method takes and returns
+the robot's joints: ``fk(q)``, ``jacobian(q) = J_chain @ A`` and ``gravity_torques(q) =
+A.T tau_chain`` (virtual work; a leader off the chain gets its mimic joints' torques too).
 """
 
 from __future__ import annotations
@@ -30,6 +29,7 @@ from hybrid_pk.robot.chain import (
     product,
 )
 from hybrid_pk.robot.chain_spec import BranchBody, ChainSpec, load_chain_spec
+from hybrid_pk.robot.dh import from_dh
 
 __all__ = ["STANDARD_GRAVITY", "Robot"]
 
@@ -93,11 +93,12 @@ class Robot(nn.Module):
         Args:
             urdf: URDF file or shipped robot name.
             end_link: link whose pose :meth:`fk` returns; default the single leaf link.
-            dtype: floating dtype of parameters and buffers. float64 by default so
-                that the URDF's figures keep every digit; :meth:`fk` computes in the
-                dtype of ``q`` (a float32 ``q`` gets float32 math from a cached cast).
+            dtype: of parameters and buffers; float64 (default) keeps the URDF's every digit.
+                :meth:`fk` computes in the dtype of ``q`` (float32: from a cached cast).
         """
         return cls(load_chain_spec(urdf, end_link), dtype=dtype)
+
+    from_dh = classmethod(from_dh)  # a DH / modified-DH table: hybrid_pk.robot.dh
 
     # ------------------------------------------------------------------ description
     @property
