@@ -22,6 +22,7 @@ from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import ErrorStats, error_stats
 from hybrid_pk.pipelines.calibration import FRAME_LABELS as FRAME_LABELS
 from hybrid_pk.pipelines.calibration import refit_frames as fit_frames
+from hybrid_pk.pipelines.refit import with_frame_sets as with_frame_sets
 from hybrid_pk.robot import Robot
 
 __all__ = [
@@ -144,35 +145,6 @@ def frame_set_index(value: int | None, sets: int, model: str) -> int:
     if not 0 <= value < sets:
         raise HybridPKError(f"--frame-set {value}: {model} has sets 0..{sets - 1}")
     return value
-
-
-def with_frame_sets(model: ExtendedModel, sets: int, keep: str | None = None) -> ExtendedModel:
-    """``model`` with ``sets`` base/tool frame sets (same robot and effect modules).
-
-    Args:
-        model: source model (returned unchanged if it already has ``sets`` sets).
-        sets: frame sets wanted (1, or one per DATA file).
-        keep: ``"base"`` or ``"tool"``: that frame keeps its values (a single set is
-            repeated); the other starts at identity. None: both start at identity.
-
-    Raises:
-        HybridPKError: if a kept frame has several sets that cannot map to ``sets``.
-    """
-    if model.base.sets == sets:
-        return model
-    kept = {}
-    if keep is not None:
-        frame = getattr(model, keep)
-        if frame.sets != 1:
-            raise HybridPKError(
-                f"the model has {frame.sets} {keep} frames (one per file of its "
-                f"calibration) but this re-fit has {sets} frame set(s); give as many DATA "
-                f"files with --frames-per-file, or --refit frames"
-            )
-        kept[keep] = frame.matrix().detach()
-    return ExtendedModel(
-        model.robot, list(model.effects), frame_sets=sets, gravity=model.gravity, **kept
-    )
 
 
 def frame_sets_for(args: argparse.Namespace, model_sets: int) -> int:
