@@ -4,6 +4,11 @@ Data flow: robot model -> measured data -> error effects -> diagnosis/calibratio
 -> residual networks -> IK -> reports.
 """
 
+# isort: off
+# First: waiting OpenMP threads sleep (set before torch loads OpenMP; hybrid_pk.threads).
+import hybrid_pk.threads  # noqa: F401
+# isort: on
+
 from hybrid_pk.calibration.diagnosis import Diagnosis as Diagnosis
 from hybrid_pk.calibration.diagnosis import diagnose as diagnose
 from hybrid_pk.calibration.fit import FitResult as FitResult

@@ -104,7 +104,7 @@ def test_a_model_with_a_spread_round_trips_and_passes_gradients_tomiddle_q(ur10,
     q = middle_q(ur10, 300, 2, 0.3)
     hybrid = _with_spread(ur10, q)
     restored = load_hybrid(save_hybrid(tmp_path / "spread.pt", hybrid))
-    assert restored.state()["version"] == 3
+    assert restored.state()["version"] == 3  # a spread without a gate: format 3 still
     assert restored.stages[0].spread is not None
     probe = q[:20].clone()
     probe[:10, 0] += 4.0  # half of them where the shrink acts
@@ -127,20 +127,25 @@ def test_training_the_default_stages_measures_the_spread_unless_told_not_to(ur10
         ur10, 240, "joint_compliance:elbow_joint=2e-5", noise_mm=0.01, known_frames=True,
         temperature_range=None, seed=7,
     )  # fmt: skip
-    spreads = {}
-    for spread in (True, False):
+    spreads, records = {}, {}
+    for spread, blocked in ((True, False), (False, False), (True, True)):
         result = train_hybrid(
             data,
             ExtendedModel(ur10),
             model={"inputs": DEFAULT_INPUTS, "position_net": "mlp:8x2",
-                   "orientation_net": "mlp:8x2", "refine_net": "mlp:8x2", "spread": spread},
+                   "orientation_net": "mlp:8x2", "refine_net": "mlp:8x2", "spread": spread,
+                   "blocked": blocked},
             max_epochs=2,
             progress=False,
             seed=0,
         )  # fmt: skip
-        spreads[spread] = result.hybrid.stages[0].spread
-    assert spreads[False] is None
-    measured = spreads[True]
+        spreads[spread, blocked] = result.hybrid.stages[0].spread
+        records[spread, blocked] = result.hybrid.stages[0].blocked
+    assert spreads[False, False] is None
+    assert records[True, False] is None  # no blocked test: the spread as measured
+    # the blocked test keeps the shrink only where it freed the stage and the shrink won
+    assert (spreads[True, True] is not None) == (records[True, True]["mode"] == "shrunk")
+    measured = spreads[True, False]
     assert measured is not None
     # an elbow sag of up to ~0.6 mm that differs between rows of nearly equal inputs
     assert 0 < float(measured.position.max()) < (1e-3) ** 2

@@ -38,7 +38,7 @@ def _fitted(robot: Robot, inputs: str, q: torch.Tensor) -> HybridFK:
 
 def test_inputs_strings_name_the_stages_and_bad_ones_say_how():
     assert parse_stages(DEFAULT_INPUTS) == [
-        ("frame1+q2-4+torque", "cascade"),
+        ("frame1+qarm+torque", "cascade"),
         ("joints", "refine"),
         ("local+q1", "cascade"),
     ]
@@ -80,7 +80,8 @@ def test_rows_no_stage_covers_are_the_base_model_exactly(ur10):
 def test_a_model_file_of_three_stages_round_trips_bit_for_bit(ur10, tmp_path):
     hybrid = _fitted(ur10, DEFAULT_INPUTS, middle_q(ur10, 200, 4))
     restored = load_hybrid(save_hybrid(tmp_path / "stages.pt", hybrid))
-    assert restored.input_label == DEFAULT_INPUTS
+    # qarm resolved on the training rows: the UR10's joints 2-5 (wrist 3 turns the tool)
+    assert restored.input_label == DEFAULT_INPUTS.replace("qarm", "q2-5")
     assert [s.role for s in restored.stages] == ["cascade", "refine", "cascade"]
     q = ur10.sample_q(500, torch.Generator().manual_seed(5))
     with torch.no_grad():
@@ -88,10 +89,14 @@ def test_a_model_file_of_three_stages_round_trips_bit_for_bit(ur10, tmp_path):
 
 
 @pytest.mark.slow
-def test_the_default_hybrid_corrects_where_joint_1_was_never_trained(ur10):
+def test_the_default_hybrid_is_the_physics_where_joint_1_was_never_trained(ur10):
     """A hidden gravity-driven effect (compliance of a random joint behind joint 1, random
-    size): trained on rows with q1 below its median, the default stages still correct
-    the rows above it, where the paper's joint-box networks fall back to the base."""
+    size): trained on rows with q1 below its median, the default stages learn it (the
+    validation rows gain) but do not carry it to the rows above it, as the paper's
+    joint-box networks do not: blocked hold-out inside joint 1's trained range cannot
+    tell an error that turns with joint 1 from one that does not (issue 27,
+    tests/test_hybrid_blocked.py), so even a freed stage keeps joint 1's range. Before
+    issue 27 the default stages corrected these rows (< 0.8 x the base model)."""
     gen = torch.Generator().manual_seed(RUN_SEED)
     # shoulder lift carries ~100 Nm, the elbow ~30 Nm: sizes for 0.2 .. 1 mm of sag
     joint, lo = (("shoulder_lift_joint", 5e-6), ("elbow_joint", 2e-5))[
@@ -110,7 +115,7 @@ def test_the_default_hybrid_corrects_where_joint_1_was_never_trained(ur10):
     low = data.q[:, 0] < data.q[:, 0].median()
     train, test = data.subset(torch.nonzero(low)[:, 0]), data.subset(torch.nonzero(~low)[:, 0])
     base = ExtendedModel(ur10)
-    errors = {}
+    errors, gains = {}, {}
     for inputs in ("joints", DEFAULT_INPUTS):
         result = train_hybrid(
             train,
@@ -125,11 +130,13 @@ def test_the_default_hybrid_corrects_where_joint_1_was_never_trained(ur10):
             progress=False,
             seed=RUN_SEED,
         )
+        gains[inputs] = result.best["position_mm"] / result.base["position_mm"]
         with torch.no_grad():
             errors[inputs] = row_errors(result.hybrid(test.q, conditions_from_data(test)), test)[0]
     with torch.no_grad():
         errors["base"] = row_errors(base(test.q, conditions_from_data(test)), test)[0]
     where = f"seed {RUN_SEED}: {joint} = {size:.3g} rad/Nm"
     assert float(errors["base"].mean()) > 0.1, where  # the effect is there
+    assert gains[DEFAULT_INPUTS] < 0.8, where  # learned where trained
     torch.testing.assert_close(errors["joints"], errors["base"])  # outside the box
-    assert float(errors[DEFAULT_INPUTS].mean()) < 0.8 * float(errors["base"].mean()), where
+    torch.testing.assert_close(errors[DEFAULT_INPUTS], errors["base"])  # beyond joint 1

@@ -85,3 +85,24 @@ def test_real_ur10_diagnoses_each_split_on_its_own_fit_rows_only(tmp_path):
     assert "## Diagnosis (fit rows of the pan split)" in (out / "results.md").read_text()
     with pytest.raises(SystemExit, match="region"):
         real_ur10.main([*argv, "--diagnose-on", "region"])  # needs the region split
+
+
+def test_transfer_ur10_carries_each_series_to_the_other(tmp_path):
+    """experiments/transfer_ur10.py on 400 rows of each fit series, one epoch, named
+    effects (no diagnosis): both directions, frames re-fitted on 50 rows of the other
+    series, judged on the rest of it."""
+    from experiments import transfer_ur10
+
+    out = tmp_path / "transfer"
+    argv = ["--out", str(out), "--rows", "400", "--epochs", "1"]
+    argv += ["--effects", "link_length:elbow_joint,link_length:wrist_1_joint"]
+    assert transfer_ur10.main(argv) == 0
+    results = json.loads((out / "results.json").read_text())
+    judged = {"A->B": results["rows_of"]["B"] - 50, "B->A": results["rows_of"]["A"] - 50}
+    for name, res in results["directions"].items():
+        assert res["judged_rows"] == judged[name]
+        assert res["fit_rows"] == 400
+        assert set(res["models"]) == {k for k, _ in transfer_ur10.MODELS}
+        # the link lengths carry over: they beat nominal + frames on the other series
+        assert res["models"]["extended"]["mean"] < res["models"]["nominal_frames"]["mean"]
+    assert "## B->A" in (out / "results.md").read_text()

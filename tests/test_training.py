@@ -154,6 +154,13 @@ def test_cli_train_writes_a_model_that_evaluate_reads(files, rx160, campaign, tm
     assert hybrid.orientation is None
     assert loaded.networks["position"]["arch"] == "mlp:32x2"
     assert loaded.metadata["training"]["epochs"] == 15
+    # the default stages on physics inputs were probed on blocked hold-out: the decision
+    # printed, in the metadata and with each stage in the networks
+    assert "blocked hold-out (" in captured.out
+    blocked = loaded.metadata["training"]["blocked"]
+    assert blocked
+    assert {r["mode"] for r in blocked.values()} <= {"gated", "free", "shrunk"}
+    assert [s.blocked for s in hybrid.stages if s.blocked] == list(blocked.values())
     cond = conditions_from_data(campaign)
     err = pose_error(campaign.T_measured(), predict_poses(loaded, campaign, cond))
     assert (

@@ -47,6 +47,7 @@ from hybrid_pk.cli.options import (
     add_seed,
 )
 from hybrid_pk.cli.progress import progress
+from hybrid_pk.cli.transfer_check import add_refit_rows, transfer_check
 from hybrid_pk.effects import (
     make_effect,
     parse_gravity,
@@ -115,7 +116,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "to compare models; the final fit uses all rows (default: 0.2)",
     )
     add_urdf_options(p)
-    add_seed(p, what="seed of the diagnosis hold-out split")
+    add_seed(p, what="seed of the diagnosis hold-out split and of the --refit-rows rows")
+    add_refit_rows(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -146,7 +148,7 @@ def _run_new(args: argparse.Namespace) -> int:
     sets = len(args.data) if args.frames_per_file else 1
     priors, robust = frame_priors(args), robust_loss(args)
 
-    with progress("calibrate", total=5 if auto else 4) as bar:
+    with progress("calibrate", total=6 if auto else 5) as bar:
         bar.stage("reading data")
         n_effect_params = sum(make_effect(robot, lb).value.numel() for lb in labels)
         data = read_data(
@@ -161,6 +163,10 @@ def _run_new(args: argparse.Namespace) -> int:
             gravity=gravity, stage=bar.stage, progress=bar,
         )  # fmt: skip
         model, res, res0, diag = result.model, result.fit, result.nominal_fit, result.diagnosis
+        bar.stage("leave one file out")
+        transfer = transfer_check(
+            args, robot, data, result.labels, gravity=gravity, start=model, progress=bar
+        )
         bar.stage("writing")
         effects = effect_rows(model, res)
         metadata = {
@@ -182,12 +188,15 @@ def _run_new(args: argparse.Namespace) -> int:
             "frames": None if res.frame_report is None else res.frame_report.to_json(),
             "robust": robust_summary(data, res),
             "diagnosis": None if diag is None else diag.to_json(),
+            "transfer": None if transfer is None else transfer.to_json(),
         }
         save_model(args.out, model, metadata=metadata)
         urdf = urdf_target(args, refit=False)
         export_model_urdf(model, args, urdf)
 
     _print_summary(robot, data, diag, effects, model, res0, res)
+    for line in [] if transfer is None else transfer.lines():
+        print(line)
     print(f"wrote {args.out}" + (f" and {urdf}" if urdf else ""))
     return 0
 

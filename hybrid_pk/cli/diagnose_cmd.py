@@ -19,6 +19,7 @@ from hybrid_pk.cli.options import (
     add_seed,
 )
 from hybrid_pk.cli.progress import Progress
+from hybrid_pk.cli.transfer_check import add_refit_rows, append_to_report, transfer_check
 from hybrid_pk.errors import HybridPKError
 
 _DESCRIPTION = """\
@@ -73,6 +74,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--max-causes", type=int, default=8, metavar="N", help="stop after N causes (default: 8)"
     )
+    add_refit_rows(p)
 
 
 def _finite(obj):
@@ -180,18 +182,26 @@ def run(args: argparse.Namespace) -> int:
             progress=progress.stage,
             gravity=gravity,
         )
+        labels = [c.effect + (f":{c.joint}" if c.joint else "") for c in result.causes]
+        transfer = transfer_check(
+            args, robot, data, labels, gravity=gravity, start=result.model, progress=progress.stage
+        )
         if args.report:
             progress.stage("writing the report")
             from hybrid_pk.report import write_diagnosis_report
 
             report = write_diagnosis_report(result, data, robot, args.report, progress)
+            if transfer is not None:
+                append_to_report(report, transfer)
     finally:
         progress.close()
     seconds = progress.elapsed()
 
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(_finite(result.to_json()), indent=2) + "\n", encoding="utf-8")
-    print("\n".join(summary_lines(result, seconds)))
+    doc = result.to_json() | {"transfer": None if transfer is None else transfer.to_json()}
+    out.write_text(json.dumps(_finite(doc), indent=2) + "\n", encoding="utf-8")
+    lines = summary_lines(result, seconds) + ([] if transfer is None else transfer.lines())
+    print("\n".join(lines))
     print(f"wrote {out}" + (f" and {report}" if args.report else ""))
     return 0

@@ -20,6 +20,7 @@ from collections.abc import Sequence
 
 from hybrid_pk.cli.options import command_parser
 from hybrid_pk.errors import HybridPKError
+from hybrid_pk.threads import configure as configure_threads
 
 # Sub-command modules, in the order `--help` lists them.
 _COMMANDS = (
@@ -60,6 +61,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        configure_threads(getattr(args, "threads", None))
         return int(args.func(args) or 0)
     except (HybridPKError, OSError, ValueError) as exc:
         if args.debug:

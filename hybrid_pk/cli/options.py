@@ -6,7 +6,7 @@ its own flags. A new flag that more than one command takes belongs here; one tha
 only a single command takes stays in that command's module.
 
 Groups:
-    the command itself: :func:`command_parser`
+    the command itself: :func:`command_parser` (with :func:`add_threads`, every command)
     robot and model: :func:`add_robot`, :func:`add_end_link`, :func:`add_model`
     data: :func:`add_data` (DATA..., --frames-per-file, --skip-bad-rows)
     fits: :func:`add_fit_options` (every command that diagnoses or calibrates: the
@@ -24,6 +24,8 @@ import argparse
 from hybrid_pk.calibration.frames import MAX_TOOL_TRANSLATION_M
 from hybrid_pk.calibration.robust import ROBUST_LOSSES
 from hybrid_pk.robot import shipped_robots
+from hybrid_pk.threads import ENV as THREADS_ENV
+from hybrid_pk.threads import parse_threads
 
 __all__ = [
     "APPROACH_HELP",
@@ -47,6 +49,7 @@ __all__ = [
     "add_robot",
     "add_robust",
     "add_seed",
+    "add_threads",
     "command_parser",
     "fraction",
 ]
@@ -64,12 +67,36 @@ APPROACH_HELP = (
 
 def command_parser(subparsers, name: str, *, help: str, description: str):
     """The parser of sub-command ``name``: ``help`` in the command list, ``description``
-    (units, formats) kept as written in ``NAME --help``."""
-    return subparsers.add_parser(
+    (units, formats) kept as written in ``NAME --help``; every command takes
+    ``--threads`` (:func:`add_threads`)."""
+    parser = subparsers.add_parser(
         name,
         help=help,
         description=description,
         formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_threads(parser)
+    return parser
+
+
+def _threads(text: str) -> int | str | None:
+    """``argparse`` type of ``--threads``."""
+    try:
+        return parse_threads(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def add_threads(parser: argparse.ArgumentParser) -> None:
+    """``--threads N|auto|torch``: torch's threads (:mod:`hybrid_pk.threads`)."""
+    parser.add_argument(
+        "--threads",
+        type=_threads,
+        default=None,
+        metavar="N",
+        help="torch threads: N, auto (the cores this process may use, one per 2,048 rows "
+        "of the work, at most OMP_NUM_THREADS) or torch (torch's own default); waiting "
+        f"threads sleep instead of spinning (default: ${THREADS_ENV}, else auto)",
     )
 
 

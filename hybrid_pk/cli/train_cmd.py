@@ -52,12 +52,20 @@ corrects, after the last the base model) and '/' (refines the stage before it). 
 networks apply where their inputs are covered by the training rows (--trust coverage,
 their default: distance to the training inputs, the base model beyond
 --coverage-ratio x the radius of the validation rows, a smooth blend between).
-Where a refine stage is off (outside its joint box), the stage it refines is shrunk
-axis by axis, c^3 / (c^2 + s^2), by the spread s^2 of its training targets among rows
-its inputs cannot tell apart (--no-spread: keep all of it).
+A stage on physics inputs is used away from its training joints only if it earns it:
+probe fits of the same networks on blocked hold-out of the training rows (the end
+quarters of joint 1 and of the joint that moves the flange point most, each file when
+several) must show it beating the physics on each of these families of blocks; else
+it stays gated to its training joints (joint box and coverage, the physics beyond).
+For a freed stage refined by networks on every joint, the same test decides whether
+its correction is shrunk where those are off, axis by axis, c^3 / (c^2 + s^2), by the
+spread s^2 of its training targets among rows its inputs cannot tell apart. The
+decision of each stage is in MODEL2 and printed (--no-blocked: no probe fits, every
+such stage gated; --no-spread: never shrunk). qarm in frameK+qarm: the joints after K
+up to the last one whose axis does not pass through the flange point.
 
 Presets: fast (ours: posture networks in link 1's frame refined by networks on every
-joint, then local deformation networks: --inputs frame1+q2-4+torque/joints,local+q1,
+joint, then local deformation networks: --inputs frame1+qarm+torque/joints,local+q1,
 Adam + one-cycle, batch 256, 150 epochs, MSE), joints (ours before: 3 x 256 SiLU MLPs
 on every joint, --inputs joints) and paper (D4w / Rw, Adagrad lr 0.005, batch 128,
 <= 300 epochs, early stopping, mean-distance / mean-angle losses, limits
@@ -124,7 +132,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="SPEC",
         help="network stages: joints (the paper's), frameK[+qI-J][+gravity][+torque|+full] "
         "or local[+q1], joined by ',' (fall-back) and '/' (refinement), e.g. "
-        "frame1+q2-4+torque/joints,local+q1 (default: preset)",
+        "frame1+qarm+torque/joints,local+q1 (default: preset)",
     )
     p.add_argument(
         "--trust",
@@ -158,6 +166,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="keep a refined stage's full correction where its refine stage is off (default: "
         "shrink it by the spread of its training targets)",
     )
+    p.add_argument(
+        "--no-blocked",
+        dest="blocked",
+        action="store_false",
+        default=None,
+        help="no probe fits on blocked hold-out: every stage on physics inputs stays gated to "
+        "its training joints (default: freed where the blocked hold-out shows it carries over)",
+    )
     p.add_argument("--logdir", metavar="DIR", help="TensorBoard logs and checkpoints")
     add_seed(p, what="seed of the split, the initialisation and the shuffling")
     p.add_argument("--strategy", default="auto", help="Lightning strategy: auto or ddp")
@@ -176,21 +192,12 @@ def _overrides(args: argparse.Namespace) -> tuple[dict, dict, dict]:
     if args.config:
         cfg = settings_from_config(args.config)
         model, data, trainer = cfg["model"], cfg["data"], cfg["trainer"]
-    for key, value in (
-        ("position_net", args.position_net),
-        ("orientation_net", args.orientation_net),
-        ("lr", args.lr),
-        ("input_range", args.input_range),
-        ("fade", args.fade),
-        ("inputs", args.inputs),
-        ("trust", args.trust),
-        ("coverage_ratio", args.coverage_ratio),
-        ("refine_net", args.refine_net),
-        ("local_net", args.local_net),
-        ("spread", args.spread),
-    ):
-        if value is not None:
-            model[key] = value
+    for key in (  # flags named as the module's arguments
+        "position_net", "orientation_net", "lr", "input_range", "fade", "inputs", "trust",
+        "coverage_ratio", "refine_net", "local_net", "spread", "blocked",
+    ):  # fmt: skip
+        if getattr(args, key) is not None:
+            model[key] = getattr(args, key)
     if args.fade is not None and not 0 <= args.fade <= 10:
         raise HybridPKError(f"--fade must be between 0 and 10, got {args.fade}")
     if args.coverage_ratio is not None and not args.coverage_ratio > 1:
@@ -248,6 +255,7 @@ def _metadata(args, loaded, data, result) -> dict:
         "seconds": round(result.seconds, 3),
         "validation_base": result.base,
         "validation_hybrid": result.best,
+        "blocked": result.blocked,
         "logdir": result.logdir,
     }
     return metadata
@@ -338,6 +346,27 @@ def _print_summary(args, robot, data, result) -> None:
         print(f"networks trusted inside the training box (fading out beyond it): {box}")
     else:
         print(f"networks ({hybrid.input_label}) applied everywhere (--trust none)")
+    _print_blocked(result.blocked)
     if result.logdir:
         print(f"TensorBoard logs: tensorboard --logdir {result.logdir}")
     print(f"wrote {args.out}")
+
+
+def _print_blocked(blocked: dict) -> None:
+    """One line per probed stage: its mode and its blocked hold-out errors."""
+    if not blocked:
+        return
+    first = next(iter(blocked.values()))
+    physics = first["physics"]
+    print(
+        f"blocked hold-out ({physics['rows']} rows: {', '.join(first['blocks'])}), "
+        f"physics {physics['position_mm']:.4g} mm:"
+    )
+    for name, record in blocked.items():
+        tried = ", ".join(
+            f"{m} {record[m]['position_mm']:.4g} mm"
+            for m in ("gated", "free", "shrunk")
+            if m in record
+        )
+        where = "used beyond its training joints" if record["mode"] != "gated" else "gated"
+        print(f"  {name.split(':', 1)[1]}: {record['mode']} ({where}); {tried}")

@@ -3,8 +3,10 @@
 The inputs string names the stages (:mod:`~hybrid_pk.hybrid.stage`)::
 
     joints                                   the paper's networks on every joint
-    frame1+q2-4+torque                       one stage of physics inputs
-    frame1+q2-4+torque/joints,local+q1       cascade: posture networks refined by
+    frame1+qarm+torque                       one stage of physics inputs (qarm: the
+                                             joints that move the flange point,
+                                             :mod:`~hybrid_pk.hybrid.posture`)
+    frame1+qarm+torque/joints,local+q1       cascade: posture networks refined by
                                              networks on every joint, then local
                                              deformation networks, then the physics
 
@@ -24,12 +26,14 @@ from torch import Tensor
 from hybrid_pk.effects import ExtendedModel
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import so3_log
+from hybrid_pk.hybrid.blocked_trust import JointGate
 from hybrid_pk.hybrid.coverage import Coverage
 from hybrid_pk.hybrid.features import PhysicsFeatures
 from hybrid_pk.hybrid.hybrid_fk import HybridFK
 from hybrid_pk.hybrid.inputs import InputBox, parse_inputs
 from hybrid_pk.hybrid.local import LocalFeatures, LocalSpec
 from hybrid_pk.hybrid.losses import ResidualTargets
+from hybrid_pk.hybrid.posture import resolve_arm
 from hybrid_pk.hybrid.spread import TargetSpread
 from hybrid_pk.hybrid.stage import NetworkInputs, ResidualStage, check_stages
 from hybrid_pk.robot import Robot
@@ -41,12 +45,13 @@ __all__ = [
     "build_hybrid",
     "check_trust",
     "fit_coverages",
+    "fit_gates",
     "fit_spreads",
     "parse_stages",
 ]
 
 TRUSTS = ("auto", "box", "coverage", "none")
-DEFAULT_INPUTS = "frame1+q2-4+torque/joints,local+q1"
+DEFAULT_INPUTS = "frame1+qarm+torque/joints,local+q1"
 
 
 @dataclass(frozen=True)
@@ -69,7 +74,11 @@ class HybridSettings:
             structure carries the loads to the flange: wider).
         zero_init: start every network at zero output.
         spread: shrink a refined stage's correction where its refine stage is off, by
-            the spread of its training targets (:mod:`~hybrid_pk.hybrid.spread`).
+            the spread of its training targets (:mod:`~hybrid_pk.hybrid.spread`), if
+            the blocked hold-out keeps it (``blocked``).
+        blocked: test each stage on physics inputs on blocked hold-out of its training
+            rows before it is used away from them (:mod:`~hybrid_pk.hybrid.blocked_trust`);
+            off: every such stage stays gated to its training joints.
     """
 
     position_net: str | None = "mlp"
@@ -85,6 +94,9 @@ class HybridSettings:
     local_coverage_ratio: float = 2.0
     zero_init: bool = True
     spread: bool = True
+    # issue 27: what extrapolates is measured, not assumed (off: gated, never worse
+    # than the physics away from the training rows, and no probe fits to pay for)
+    blocked: bool = True
 
 
 def parse_stages(text: str) -> list[tuple[str, str]]:
@@ -107,7 +119,7 @@ def parse_stages(text: str) -> list[tuple[str, str]]:
         if local and (i != len(out) - 1 or role != "cascade"):
             raise HybridPKError(
                 f"network inputs {text!r}: local networks must be the last stage (they have "
-                "one weight per joint), e.g. frame1+q2-4+torque/joints,local+q1"
+                "one weight per joint), e.g. frame1+qarm+torque/joints,local+q1"
             )
     return out
 
@@ -136,8 +148,9 @@ def _inputs(spec: str, settings: HybridSettings, robot: Robot, q: Tensor) -> Net
             return InputBox(box.lower, box.upper, -inf, inf, 1.0)
         return InputBox.from_data(q, limits, settings.fade)
     parsed = parse_inputs(spec)  # build_hybrid's check_trust left no box to non-joints
-    kind = LocalFeatures if isinstance(parsed, LocalSpec) else PhysicsFeatures
-    return kind(parsed, robot).fit_standardisation(robot, q)
+    if isinstance(parsed, LocalSpec):
+        return LocalFeatures(parsed, robot).fit_standardisation(robot, q)
+    return PhysicsFeatures(resolve_arm(parsed, robot, q), robot).fit_standardisation(robot, q)
 
 
 def build_hybrid(
@@ -198,6 +211,24 @@ def fit_coverages(
             ),
             i,
         )
+
+
+def fit_gates(hybrid: HybridFK, q_train: Tensor, q_val: Tensor, settings: HybridSettings) -> None:
+    """Gate every stage on physics inputs to its training joints ``q_train`` (radius set
+    by the validation joints ``q_val``, with the stage's coverage quantile and ratio),
+    unless the settings trust the networks everywhere (``none``). A stage on every joint
+    needs none: its own trust is a joint-space coverage already."""
+    if settings.trust == "none":
+        return
+    for stage in hybrid.stages:
+        if stage.box is None:
+            local = stage.grouped
+            stage.gate = JointGate.fit(
+                q_train,
+                q_val,
+                settings.local_coverage_quantile if local else settings.coverage_quantile,
+                settings.local_coverage_ratio if local else settings.coverage_ratio,
+            )
 
 
 def fit_spreads(

@@ -71,15 +71,24 @@ class FeatureSpec:
             e.g. ``(2, 4)`` for the arm's posture without the wrist, whose angles mostly
             move the tool (the base model's geometry) and little load; None: every
             joint after ``k``. The load terms always cover every joint after ``k``.
+        arm: ``qarm``: the angle joints are chosen on the training rows by
+            :func:`~hybrid_pk.hybrid.posture.resolve_arm` (the joints that move the
+            flange point), which sets ``angles``; unresolved specs build no inputs.
     """
 
     frame: int = 1
     gravity: bool = True
     wrench: str = "none"
     angles: tuple[int, int] | None = None
+    arm: bool = False
 
     def angle_joints(self, dof: int) -> range:
         """0-based joints whose angles are inputs."""
+        if self.arm:
+            raise HybridPKError(
+                f"network inputs {self.label}: qarm is chosen on the training rows "
+                "(hybrid_pk.hybrid.posture.resolve_arm) before the inputs are built"
+            )
         if self.angles is None:
             return range(self.frame, dof)
         return range(self.angles[0] - 1, self.angles[1])
@@ -112,6 +121,7 @@ class FeatureSpec:
     def label(self) -> str:
         """Short name, e.g. ``frame1+gravity+torque``."""
         parts = [f"frame{self.frame}"]
+        parts += ["qarm"] if self.arm else []
         parts += [] if self.angles is None else [f"q{self.angles[0]}-{self.angles[1]}"]
         parts += ["gravity"] if self.gravity else []
         parts += [] if self.wrench == "none" else [self.wrench]
@@ -127,23 +137,24 @@ class FeatureSpec:
         parts = [p.strip() for p in text.split("+") if p.strip()]
         if not parts or not parts[0].startswith("frame") or not parts[0][5:].isdigit():
             raise HybridPKError(
-                f"network inputs {text!r}: expected frameK[+qI-J][+gravity][+torque|+full], "
-                "e.g. frame1+q2-4+torque"
+                f"network inputs {text!r}: expected frameK[+qI-J|+qarm][+gravity]"
+                "[+torque|+full], e.g. frame1+qarm+torque"
             )
-        angles = [p for p in parts[1:] if _ANGLES.fullmatch(p)]
+        angles = [p for p in parts[1:] if _ANGLES.fullmatch(p) or p == "qarm"]
         rest = set(parts[1:]) - set(angles[:1])
         unknown = rest - {"gravity", "torque", "full"}
         if unknown or {"torque", "full"} <= rest:
             raise HybridPKError(
                 f"network inputs {text!r}: unknown or clashing part(s) "
-                f"{sorted(unknown) or ['torque', 'full']}; parts: qI-J, gravity, torque or full"
+                f"{sorted(unknown) or ['torque', 'full']}; parts: qI-J or qarm, gravity, torque "
+                "or full"
             )
         wrench = "full" if "full" in rest else "torque" if "torque" in rest else "none"
         span = None
-        if angles:
+        if angles and angles[0] != "qarm":
             first, last = _ANGLES.fullmatch(angles[0]).groups()
             span = (int(first), int(last))
-        return cls(int(parts[0][5:]), "gravity" in rest, wrench, span)
+        return cls(int(parts[0][5:]), "gravity" in rest, wrench, span, angles[:1] == ["qarm"])
 
 
 def cpu_copies(obj, *names: str) -> dict[str, Tensor]:

@@ -268,7 +268,7 @@ class HybridFK(nn.Module):
     @classmethod
     def from_state(cls, base: ExtendedModel, state: dict, source: str = "model file") -> HybridFK:
         """Rebuild from :meth:`state` on ``base`` (the model file's extended model), in
-        eval mode; reads networks format versions 1 to 3.
+        eval mode; reads networks format versions 1 to 4.
 
         Raises:
             ModelFileError: not a networks entry, a newer version, or networks made for
@@ -277,5 +277,6 @@ class HybridFK(nn.Module):
         first, *more = stages_from_state(base.robot, state, source)
         model = cls(base, first.inputs, first.position, first.orientation, first.coverage, more)
         model.stages[0].spread = first.spread
+        model.stages[0].gate, model.stages[0].blocked = first.gate, first.blocked
         check_stages(list(model.stages))
         return model.eval()

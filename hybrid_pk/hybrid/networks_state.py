@@ -2,7 +2,7 @@
 
 Format (``format: hybrid_pk.residual_networks``)::
 
-    {"format": ..., "version": 1 or 2, "joint_names": [...],
+    {"format": ..., "version": 1 to 4, "joint_names": [...],
      "frame": "flange origin, joint-1 axes",
      "input": {"lower", "upper", "trust_lower", "trust_upper": (dof,) tensors,
                "fade": float}                     the paper's inputs (InputBox), or None
@@ -16,14 +16,21 @@ Format (``format: hybrid_pk.residual_networks``)::
      "position" / "orientation": {"arch": str, "scale": (3,) tensor,
                                   "dtype": str, "state_dict": {...}} or None,
      "spread": {"position", "orientation": (3,) tensors} or None,
+     "gate": {"input": {...as above}, "coverage": {...as above}} or None,
+     "blocked": {"mode": "gated" | "free" | "shrunk", "physics", "gated", "free",
+                 "shrunk": {"position_mm", "orientation_deg", "rows"}, "blocks": [...]}
+                or None,
      "stages": [{"role": "cascade" or "refine", "input", "features", "coverage",
-                 "spread", "position", "orientation"}, ...],  the stages after the first
+                 "spread", "gate", "blocked", "position", "orientation"}, ...],
+                                                   the stages after the first
      "training": {...}}
 
 Version 1 (hybrid_pk before issue 13) has only ``input``; it is still written for the
 paper's inputs without a coverage in one stage, so older installations read such
 files. Version 2 adds ``features``, ``coverage`` and ``stages``; version 3 ``spread``
-(written only when a stage has one: an older reader would silently drop the shrink).
+(written only when a stage has one: an older reader would silently drop the shrink);
+version 4 ``gate`` and ``blocked`` (issue 27: a stage's trust in joint space and the
+blocked hold-out test that set or lifted it; written only when a stage has one).
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ from collections.abc import Sequence
 import torch
 
 from hybrid_pk.errors import ModelFileError
+from hybrid_pk.hybrid.blocked_trust import JointGate
 from hybrid_pk.hybrid.coverage import Coverage
 from hybrid_pk.hybrid.features import PhysicsFeatures
 from hybrid_pk.hybrid.inputs import InputBox
@@ -46,7 +54,7 @@ from hybrid_pk.robot import Robot
 __all__ = ["NETWORKS_FORMAT", "NETWORKS_VERSION", "networks_state", "stages_from_state"]
 
 NETWORKS_FORMAT = "hybrid_pk.residual_networks"
-NETWORKS_VERSION = 3
+NETWORKS_VERSION = 4
 
 
 def _head_state(h: ResidualHead | LocalHead | None) -> dict | None:
@@ -70,6 +78,8 @@ def _stage_state(stage: ResidualStage) -> dict:
         "features": None if box is not None else stage.inputs.state(),
         "coverage": None if stage.coverage is None else stage.coverage.state(),
         "spread": None if stage.spread is None else stage.spread.state(),
+        "gate": None if stage.gate is None else stage.gate.state(),
+        "blocked": None if stage.blocked is None else dict(stage.blocked),
         "position": _head_state(stage.position),
         "orientation": _head_state(stage.orientation),
     }
@@ -89,9 +99,10 @@ def networks_state(
     first = _stage_state(stages[0])
     plain = first["input"] is not None and first["coverage"] is None and len(stages) == 1
     spread = any(stage.spread is not None for stage in stages)
+    gated = any(stage.gate is not None or stage.blocked is not None for stage in stages)
     state = {
         "format": NETWORKS_FORMAT,
-        "version": 1 if plain else NETWORKS_VERSION if spread else 2,
+        "version": 1 if plain else 4 if gated else 3 if spread else 2,
         "joint_names": list(joint_names),
         "frame": "flange origin, joint-1 axes",
         "input": first["input"],
@@ -102,8 +113,10 @@ def networks_state(
     if not plain:
         state["features"] = first["features"]
         state["coverage"] = first["coverage"]
-        if spread:
+        if spread or gated:
             state["spread"] = first["spread"]
+        if gated:
+            state["gate"], state["blocked"] = first["gate"], first["blocked"]
         state["stages"] = [_stage_state(stage) for stage in stages[1:]]
     return state
 
@@ -160,7 +173,7 @@ def _stage_from_state(robot: Robot, entry: dict, source: str) -> ResidualStage:
         inputs, n_inputs = LocalFeatures.from_state(features, robot), 0
     else:
         raise ModelFileError(f"{source}: unknown network inputs {features.get('kind')!r}")
-    cov, spread = entry.get("coverage"), entry.get("spread")
+    cov, spread, gate = entry.get("coverage"), entry.get("spread"), entry.get("gate")
     heads = {
         k: _head(entry.get(k), inputs, n_inputs, k, source) for k in ("position", "orientation")
     }
@@ -171,11 +184,13 @@ def _stage_from_state(robot: Robot, entry: dict, source: str) -> ResidualStage:
         None if cov is None else Coverage.from_state(cov),
         entry.get("role", "cascade"),
         None if spread is None else TargetSpread.from_state(spread),
+        None if gate is None else JointGate.from_state(gate),
+        entry.get("blocked"),
     )
 
 
 def stages_from_state(robot: Robot, state: dict, source: str = "model file") -> list[ResidualStage]:
-    """The stages of a ``networks`` entry (format 1, 2 or 3) for ``robot``.
+    """The stages of a ``networks`` entry (format 1 to 4) for ``robot``.
 
     Raises:
         ModelFileError: not a networks entry, a newer version, networks made for other

@@ -29,6 +29,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from hybrid_pk.hybrid.blocked_trust import JointGate
 from hybrid_pk.hybrid.coverage import Coverage
 from hybrid_pk.hybrid.features import PhysicsFeatures
 from hybrid_pk.hybrid.inputs import InputBox
@@ -64,6 +65,10 @@ class ResidualStage(nn.Module):
         role: ``cascade`` or ``refine`` (see the module docstring).
         spread: shrinks this cascade stage's correction where the refine stage after it
             is not trusted; None: never shrunk.
+        gate: trust in joint space (the stage off away from its training joints:
+            :mod:`~hybrid_pk.hybrid.blocked_trust`); None: its own trust alone.
+        blocked: record of the blocked hold-out test that set or lifted the gate
+            (plain data), or None.
     """
 
     def __init__(
@@ -74,6 +79,8 @@ class ResidualStage(nn.Module):
         coverage: Coverage | None = None,
         role: str = "cascade",
         spread: TargetSpread | None = None,
+        gate: JointGate | None = None,
+        blocked: dict | None = None,
     ) -> None:
         super().__init__()
         if role not in ROLES:
@@ -84,6 +91,8 @@ class ResidualStage(nn.Module):
         self.coverage = coverage
         self.role = role
         self.spread = spread
+        self.gate = gate
+        self.blocked = blocked
 
     @classmethod
     def build(
@@ -156,14 +165,20 @@ class ResidualStage(nn.Module):
         """Network inputs at ``q (*B, dof)`` and their output geometry."""
         return self.inputs.encode(robot, q)
 
-    def weight(self, q: Tensor, u: Tensor) -> Tensor:
-        """Trust at ``q`` with inputs ``u``: ``(*B,)``, or ``(*B, dof)`` when grouped."""
+    def weight(self, q: Tensor, u: Tensor, gated: bool = True) -> Tensor:
+        """Trust at ``q`` with inputs ``u``: ``(*B,)``, or ``(*B, dof)`` when grouped;
+        ``gated=False`` leaves out the :attr:`gate` (the blocked hold-out's probes)."""
         if self.box is not None:  # the paper's inputs: never beyond the joint box
             box = self.box.trust(q)
             return box if self.coverage is None else box * self.coverage.trust(u)
+        batch = u.shape[:-1]
+        w = torch.ones(batch, dtype=u.dtype, device=u.device)
         if self.coverage is not None:
-            return self.coverage.trust(u)
-        return torch.ones(u.shape[:-1], dtype=u.dtype, device=u.device)
+            w = self.coverage.trust(u)
+        if self.gate is not None and gated:
+            g = self.gate.trust(q).to(w.dtype)
+            w = w * (g[..., None] if self.grouped else g)
+        return w
 
     def predict(
         self, u: Tensor, geo: dict[str, Tensor], w: Tensor | None = None

@@ -57,6 +57,7 @@ from hybrid_pk.effects.joint import GearRatio, JointEccentricity, JointOffset
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.plots import binned_median
 from hybrid_pk.report.evidence_deflection import deflection_evidence
+from hybrid_pk.report.evidence_periodic import gain_text, phase_folded
 
 __all__ = [
     "Evidence",
@@ -224,7 +225,9 @@ def cause_evidence(
     if nominal_model is not None:
         nominal = _evidence(cause, label, data, model, residual_view(nominal_model, data))
         evidence = replace(evidence, nominal_points_value=nominal.points_value)
-    return evidence
+    gain = gain_text(cause)
+    evidence = replace(evidence, title=evidence.title + (f"; {gain}" if gain else ""))
+    return phase_folded(evidence, model.effect(label), data)
 
 
 def _evidence(cause, label: str, data, model, view: ResidualView) -> Evidence:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from hybrid_pk.calibration.diagnosis.budget import OPTIONAL_SHARE
 from hybrid_pk.report.markdown import fmt, markdown_table
 
 __all__ = ["frames_section", "robust_section", "structural_section"]
@@ -40,6 +41,13 @@ def structural_section(diagnosis) -> list[str]:
             f"at **{loc['joint']}**: rotation {fmt(loc['rotation_deg'])}° about ({axis}), "
             f"translation {fmt(loc['translation_mm'])} mm; hold-out mean position error "
             f"{fmt(loc['holdout_mean_mm_before'])} mm → {fmt(loc['holdout_mean_mm_after'])} mm.",
+            "",
+        ]
+    cut = structural.get("budget_cut")
+    if cut:
+        lines += [
+            f"The search stopped on its time budget ({100 * OPTIONAL_SHARE:g} % of the main "
+            f"search's time, shared by the optional stages) before: {', '.join(cut['not_done'])}.",
             "",
         ]
     withheld = structural.get("withheld_causes") or []

@@ -41,7 +41,7 @@ def evidence_plot(evidence, path: str | Path) -> Path:
     direction) a strip plot with box plots per level.
     """
     ev = evidence
-    fig = new_figure(7.0, 4.6)
+    fig = new_figure(7.0, 5.2)  # room for the legend below the axes
     ax = fig.subplots()
     idx = thin(ev.x.size)
     law_label = f"diagnosed law: {ev.law}"
@@ -97,7 +97,8 @@ def evidence_plot(evidence, path: str | Path) -> Path:
         fontsize="small",
         bbox={"facecolor": "white", "alpha": 0.8, "lw": 0},
     )
-    ax.legend(fontsize="small", loc="best")
+    # Below the axes: inside, the long law label covered the fitted-law text or points.
+    ax.legend(fontsize="small", loc="upper center", bbox_to_anchor=(0.5, -0.14))
     _clip_y(ax, ev.y, ev.curve_y)
     return save_figure(fig, path)
 

@@ -41,13 +41,15 @@ class HardeningCompliance(Effect):
     """Extra deflection of a hardening joint spring: ``theta - c tau0 tanh(tau / tau0)``
     with ``tau`` the holding torque at the commanded joints [Nm] (value ``c`` [rad/Nm],
     knee ``tau0`` [Nm]). Near zero torque the joint is ``c`` more compliant; far from
-    it the extra deflection saturates at ``c tau0``.
+    it the extra deflection saturates at ``c tau0``. ``gravity``: the root-frame vector
+    [m/s²] of the robot's mounting (default upright).
     """
 
     kind, unit, stage, scale = "hardening_compliance", "rad/Nm", "joint", 1e-6
 
-    def __init__(self, robot: Robot, joint: str, value: float, tau0: float) -> None:
+    def __init__(self, robot: Robot, joint: str, value: float, tau0: float, gravity=None) -> None:
         super().__init__(robot, joint, value)
+        self.gravity = None if gravity is None else tuple(float(g) for g in gravity)
         if not tau0 > 0:
             raise ValueError(f"tau0 must be positive [Nm], got {tau0}")
         self.tau0 = float(tau0)
@@ -55,7 +57,8 @@ class HardeningCompliance(Effect):
 
     def apply_q(self, q: Tensor, cond: Conditions) -> Tensor:
         payload = 0.0 if cond.payload is None else cond.payload
-        tau = self._robot[0].gravity_torques(q, payload=payload)[..., self.joint_index]
+        g = {} if self.gravity is None else {"gravity": self.gravity}
+        tau = self._robot[0].gravity_torques(q, payload=payload, **g)[..., self.joint_index]
         return _on_joint(q, self.joint_index, -self.value * self.tau0 * torch.tanh(tau / self.tau0))
 
     def extra_repr(self) -> str:

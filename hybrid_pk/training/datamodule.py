@@ -83,6 +83,8 @@ class HybridDataModule(L.LightningDataModule):
         self.train_targets: ResidualTargets | None = None
         self.val_targets: ResidualTargets | None = None
         self.extra: dict[str, dict[str, Tensor]] = {"train": {}, "val": {}}
+        # file index of the training / validation rows when they come from several files
+        self.files: tuple[Tensor | None, Tensor | None] = (None, None)
 
     @classmethod
     def from_measured(
@@ -110,8 +112,11 @@ class HybridDataModule(L.LightningDataModule):
         targets = residual_targets(base, data, cond)
         perm = torch.randperm(data.n, generator=torch.Generator().manual_seed(self.seed))
         self.base = base
-        self.val_targets = targets.subset(perm[:n_val].sort().values)
-        self.train_targets = targets.subset(perm[n_val:].sort().values)
+        val, train = perm[:n_val].sort().values, perm[n_val:].sort().values
+        self.val_targets = targets.subset(val)
+        self.train_targets = targets.subset(train)
+        if len(data.sources) > 1:
+            self.files = (data.file_index[train], data.file_index[val])
 
     def setup(self, stage: str | None = None) -> None:
         if self.train_targets is not None:

@@ -33,6 +33,7 @@ from hybrid_pk.hybrid.builder import (
     build_hybrid,
     check_trust,
     fit_coverages,
+    fit_gates,
     fit_spreads,
 )
 from hybrid_pk.hybrid.hybrid_fk import HybridFK
@@ -88,6 +89,10 @@ class HybridLitModule(L.LightningModule):
         zero_init: zero output layers (training starts from the base model).
         spread: shrink a refined stage's correction where its refine stage is off, by
             the spread of its training targets (:mod:`~hybrid_pk.hybrid.spread`).
+        blocked: stages on physics inputs are gated to their training joints unless
+            blocked hold-out says they carry over (probe fits run by
+            :func:`~hybrid_pk.training.train_hybrid`;
+            :mod:`~hybrid_pk.hybrid.blocked_trust`).
         histogram_every: log error histograms every this many validation epochs (0: off).
     """
 
@@ -112,6 +117,7 @@ class HybridLitModule(L.LightningModule):
         local_coverage_ratio: float = _DEFAULTS.local_coverage_ratio,
         zero_init: bool = _DEFAULTS.zero_init,
         spread: bool = _DEFAULTS.spread,
+        blocked: bool = _DEFAULTS.blocked,
         histogram_every: int = 5,
     ) -> None:
         super().__init__()
@@ -179,6 +185,7 @@ class HybridLitModule(L.LightningModule):
             local_coverage_ratio=hp.local_coverage_ratio,
             zero_init=hp.zero_init,
             spread=hp.spread,
+            blocked=hp.blocked,
         )
 
     @torch.no_grad()
@@ -192,6 +199,7 @@ class HybridLitModule(L.LightningModule):
             for p, r in (("train", dm.train_targets), ("val", dm.val_targets))
         }
         fit_coverages(hybrid, encoded["train"], encoded["val"], settings)
+        fit_gates(hybrid, dm.train_targets.q, dm.val_targets.q, settings)
         fit_spreads(hybrid, encoded["train"], dm.train_targets, settings)
         columns: dict[str, dict[str, Tensor]] = {"train": {}, "val": {}}
         for part, stages in encoded.items():

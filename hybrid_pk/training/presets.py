@@ -61,14 +61,15 @@ PRESETS: dict[str, dict[str, dict]] = {
         "trainer": {"max_epochs": 300, "patience": 10},
     },
     # Ours (issue 13): networks whose frames and inputs the physics chooses, in a cascade
-    # of fall-backs: posture networks in link 1's frame (joints 2-4 and the gravity
-    # torques) refined by networks on every joint where both are covered, then local
-    # deformation networks (one per joint: its angle and static wrench), then the base
-    # model. Small smooth MLPs starting at the base model, Adam + one-cycle. On the real
-    # UR10 hold-out splits (experiments/real_ur10.py) better than "joints" on all three.
+    # of fall-backs: posture networks in link 1's frame (qarm: the joints after it that
+    # move the flange point, and the gravity torques) refined by networks on every joint
+    # where both are covered, then local deformation networks (one per joint: its angle
+    # and static wrench), then the base model; the posture and local stages used away
+    # from their training joints only where blocked hold-out frees them (issue 27).
+    # Small smooth MLPs starting at the base model, Adam + one-cycle.
     "fast": _ours(
         {
-            "inputs": "frame1+q2-4+torque/joints,local+q1",
+            "inputs": "frame1+qarm+torque/joints,local+q1",
             "position_net": "mlp:128x3",
             "orientation_net": "mlp:128x3",
             "refine_net": "mlp",

@@ -31,6 +31,8 @@ from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.hybrid.hybrid_fk import HybridFK
 from hybrid_pk.hybrid.nets import parse_arch
+from hybrid_pk.threads import requested_threads
+from hybrid_pk.training.blocked import blocked_blocks, blocked_check, fold_rows, probe_folds
 from hybrid_pk.training.datamodule import HybridDataModule
 from hybrid_pk.training.lightning_module import HybridLitModule
 from hybrid_pk.training.presets import preset
@@ -41,6 +43,7 @@ __all__ = [
     "ProgressBar",
     "TrainResult",
     "auto_threads",
+    "blocked_hold_out",
     "make_trainer",
     "quiet_lightning",
     "train_hybrid",
@@ -125,6 +128,9 @@ class TrainResult:
         logdir: TensorBoard folder of this run, or None.
         is_global_zero: False in the extra processes of a multi-process (DDP) run.
         settings: the preset with the overrides applied.
+        blocked: the blocked hold-out test of each stage with a joint-space gate
+            (``"<index>:<label>"`` -> record, see
+            :func:`~hybrid_pk.training.blocked.blocked_check`); empty when not run.
     """
 
     hybrid: HybridFK
@@ -135,6 +141,7 @@ class TrainResult:
     logdir: str | None
     is_global_zero: bool
     settings: dict = field(default_factory=dict)
+    blocked: dict = field(default_factory=dict)
 
 
 def make_trainer(
@@ -227,7 +234,8 @@ def train_hybrid(
             chatter is silenced (:func:`quiet_lightning`): the caller draws the display.
         strategy: ``"auto"`` or ``"ddp"`` (with ``devices`` processes).
         devices: number of processes.
-        threads: torch threads during the fit; None: one for networks up to
+        threads: torch threads during the fit; None: the count fixed by ``--threads`` /
+            ``HYBRID_PK_THREADS``, else one for networks up to
             :data:`SINGLE_THREAD_WIDTH` wide, torch's setting for wider ones.
     """
     settings = preset(preset_name)
@@ -252,16 +260,21 @@ def train_hybrid(
     )
     previous = torch.get_num_threads()
     archs = [settings["model"]["position_net"], settings["model"]["orientation_net"]]
-    threads = threads or auto_threads(archs)
+    fixed = requested_threads()  # --threads / HYBRID_PK_THREADS (hybrid_pk.threads)
+    threads = threads or (fixed if isinstance(fixed, int) else None) or auto_threads(archs)
     start = time.perf_counter()
     try:
         if threads:
             torch.set_num_threads(threads)
         trainer.fit(module, datamodule=dm)
+        hybrid = module.hybrid.eval()
+        blocked = {}
+        if settings["model"].get("blocked", True) and trainer.world_size == 1:
+            blocked = blocked_hold_out(hybrid, dm, settings, seed, progress)
     finally:
         torch.set_num_threads(previous)
     seconds = time.perf_counter() - start
-    hybrid = module.hybrid.eval()
+    hybrid = hybrid.eval()
     return TrainResult(
         hybrid=hybrid,
         best=module.best_metrics(),
@@ -271,4 +284,39 @@ def train_hybrid(
         logdir=None if trainer.logger is None else trainer.logger.log_dir,
         is_global_zero=trainer.is_global_zero,
         settings=settings,
+        blocked=blocked,
     )
+
+
+def blocked_hold_out(
+    hybrid: HybridFK,
+    dm: HybridDataModule,
+    settings: dict,
+    seed: int,
+    progress: bool | Callable[[str], None] = False,
+) -> dict:
+    """Probe fits on blocked hold-out of ``dm``'s rows (:mod:`~hybrid_pk.training.blocked`),
+    each with ``settings`` (a preset with overrides), that lift or keep the gate of each
+    of ``hybrid``'s gated stages. Returns ``{"<index>:<label>": record}``."""
+    if not any(stage.gate is not None for stage in hybrid.stages):
+        return {}
+    blocks = blocked_blocks(hybrid.base.robot, dm.train_targets.q, dm.files[0])
+    folds = probe_folds(blocks)
+    probes = []
+    for k, fold in enumerate(folds):
+        fit, check, held = fold_rows(dm.train_targets, dm.val_targets, fold, dm.files)
+        if fit.n < 2 or check.n < 1 or not held:
+            continue
+        if callable(progress):
+            progress(f"blocked hold-out {k + 1}/{len(folds)}: {', '.join(b.label for b in fold)}")
+        L.seed_everything(seed, workers=True, verbose=False)
+        probe = HybridDataModule(batch_size=dm.batch_size, val_batch_size=dm.val_batch_size)
+        probe.base, probe.train_targets, probe.val_targets = dm.base, fit, check
+        module = HybridLitModule(**{**settings["model"], "blocked": False, "histogram_every": 0})
+        trainer = make_trainer(progress=False, **settings["trainer"])
+        trainer.fit(module, datamodule=probe)
+        probes.append((module.hybrid.eval(), held))
+    if not probes:
+        return {}
+    decisions = blocked_check(hybrid, probes, [b.label for b in blocks])
+    return {f"{i}:{hybrid.stages[i].label}": record for i, record in decisions.items()}

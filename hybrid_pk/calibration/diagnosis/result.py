@@ -81,6 +81,7 @@ class Diagnosis:
     robust: dict | None = None
     structural: dict | None = None
     frames: dict | None = None
+    budget: dict | None = None
 
     def to_json(self) -> dict:
         return {
@@ -100,6 +101,7 @@ class Diagnosis:
             "structural": self.structural,
             "frames": self.frames,
             "gravity": gravity_json(self.model),
+            "budget": self.budget,
         }
 
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from hybrid_pk.calibration.diagnosis.ambiguity import correlated_groups, near_duplicates
+from hybrid_pk.calibration.diagnosis.budget import Budget
 from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic, unresolved_orders
 from hybrid_pk.calibration.diagnosis.elimination import eliminate
 from hybrid_pk.calibration.diagnosis.gains import measure_causes
@@ -48,6 +49,7 @@ from hybrid_pk.calibration.robust import OUTLIER_K, down_weighted, list_outliers
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import ExtendedModel, Gravity, conditions_from_data, make_effect
 from hybrid_pk.robot import Robot
+from hybrid_pk.threads import sized_by_data
 
 __all__ = ["Cause", "Diagnosis", "candidate_labels", "diagnose", "plausibility_warnings"]
 
@@ -55,6 +57,7 @@ __all__ = ["Cause", "Diagnosis", "candidate_labels", "diagnose", "plausibility_w
 MAX_REJECTED_IN_A_ROW = 2
 
 
+@sized_by_data
 def diagnose(
     robot: Robot,
     data: MeasuredData,
@@ -90,6 +93,7 @@ def diagnose(
     """
     say = progress or (lambda _msg: None)
     robot.requires_grad_(False)
+    budget = Budget()  # the optional stages' share of the main search's time
     split = split_campaign(data, conditions_from_data(data, frames_per_file), holdout, seed)
 
     say("fitting base and tool frames to the nominal model")
@@ -113,14 +117,17 @@ def diagnose(
     ]
     flagged: list[dict] = []
     model, res, steps, ambiguous, unobservable = _select(
-        model, res, pool, split, alpha, max_causes, say, flagged
+        model, res, pool, split, alpha, max_causes, say, flagged, budget
     )
 
     say("measuring each cause's gain")
     errors = model_errors(model, split.test, split.cond_hold)
     causes = measure_causes(model, res, split, steps, alpha, errors, progress=say)
     sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
-    causes, structural = structural_check(model, causes, flagged, split, nominal_model, sigmas, say)
+    with budget.stage("structural search"):
+        causes, structural = structural_check(
+            model, causes, flagged, split, nominal_model, sigmas, say, budget
+        )
     ambiguous += correlated_groups(res)
     ambiguous += unresolved_orders(model, split, res.weights)
     return Diagnosis(
@@ -128,7 +135,8 @@ def diagnose(
         robust=_robust_json(res, data, split),
         structural=structural,
         frames=frame_json,
-        warnings=plausibility_warnings(causes, data) + _cap_warnings(steps),
+        warnings=plausibility_warnings(causes, data) + _cap_warnings(steps) + budget.warnings(),
+        budget=budget.to_json(),
         robot=robot.name,
         n_samples=data.n,
         n_holdout=split.test.n,
@@ -155,11 +163,14 @@ def _select(
     max_causes: int,
     say: Callable[[str], None],
     flagged: list[dict],
+    budget: Budget,
 ) -> tuple[ExtendedModel, FitResult, list[dict], list[dict], list[str]]:
     """Forward selection with backward elimination after each accepted cause.
 
     A candidate whose refit value is not a small physical correction is set aside and
-    appended to ``flagged`` (its :func:`implausibility` entry).
+    appended to ``flagged`` (its :func:`implausibility` entry). The main search ends
+    with the loop: the capped-search check and the swaps are optional stages of
+    ``budget``.
 
     Returns the final model and fit, the step records, the ambiguity entries found
     on the way and the candidates without any signature in this data.
@@ -214,10 +225,13 @@ def _select(
         model, res = new, new_res
         model, res, removed = eliminate(model, res, split, alpha, best.label, steps, say)
         remaining = [c for c in remaining if c not in removed]
+    budget.main_done()
     if remaining and len(model.effects) >= max_causes:
-        pool, screened = screen_cyclic(model, split, remaining, res.weights)
-        _note_cap(model, res, pool, split, alpha, (max_causes, screened), steps, say)
-    model, res = prefer_fewer_causes(model, res, pairs, split, alpha, steps, say)
+        with budget.stage("capped-search check"):  # one scoring step: done whatever the budget
+            pool, screened = screen_cyclic(model, split, remaining, res.weights)
+            _note_cap(model, res, pool, split, alpha, (max_causes, screened), steps, say)
+    with budget.stage("swaps"):
+        model, res = prefer_fewer_causes(model, res, pairs, split, alpha, steps, say, budget)
     return model, res, steps, ambiguous, unobservable
 
 

@@ -27,11 +27,13 @@ named with the size of the correction and the error it would leave.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 
 import torch
 from torch import Tensor
 
+from hybrid_pk.calibration.diagnosis.budget import Budget
 from hybrid_pk.calibration.fit import fit, model_errors
 from hybrid_pk.calibration.problem import Problem, param_blocks
 from hybrid_pk.data.measured import MeasuredData
@@ -266,6 +268,7 @@ def locate_structural_error(
     sigmas: tuple[float, float | None],
     hint: list[str] = (),
     say: Callable[[str], None] | None = None,
+    budget: Budget | None = None,
 ) -> dict | None:
     """Where the URDF looks wrong: the joint whose full origin correction (fitted without
     limits on the fit rows) leaves the smallest mean hold-out error.
@@ -274,7 +277,10 @@ def locate_structural_error(
     stops at the first correction that explains the error (leaves less than
     ``STRUCTURAL_FRACTION`` of it). Only when none does, each joint is refitted from
     quarter and half turns about its perpendicular axes (a large rotation is out of
-    reach of a fit that starts at zero).
+    reach of a fit that starts at zero), the joints whose plain correction left the
+    least first. With a ``budget`` the search stops before a fit that would overrun it
+    (one as long as the slowest so far; the plain fits of the hinted joints, or of the
+    first joint without hints, are always made) and records what it left undone.
 
     Returns:
         ``{"joint", "rotation_deg", "rotation_axis", "translation_mm",
@@ -287,18 +293,31 @@ def locate_structural_error(
     chain = effect_joint_names(robot, LinkLength)[1:]  # origin 0: the base's
     joints = [j for j in chain if j in hint]
     joints += [j for j in chain if j not in joints]
-    best = None
-    for turns in ((None,), _TURNS):
-        for joint in joints:
-            say(f"looking for a structural error at {joint}")
-            for start in turns:
-                model, after = _fit_correction(nominal, joint, split, sigmas, start)
-                if best is None or after < best[1]:
-                    best = (joint, after, model)
-            if best[1] < STRUCTURAL_FRACTION * before:
-                break
-        if best is None or best[1] < STRUCTURAL_FRACTION * before:
+    tasks = [(j, None) for j in joints]  # (joint, start) fits, in order
+    floor = [j for j in joints if j in hint] or joints[:1]  # fitted whatever the budget
+    best, plain, k, longest = None, {}, 0, 0.0  # longest: the slowest fit so far [s]
+    while k < len(tasks):
+        joint, start = tasks[k]
+        spent = budget is not None and budget.spent(longest)
+        if spent and (start is not None or joint not in floor):
+            left = sorted({j for j, s in tasks[k:] if s is None})
+            turns = sorted({j for j, s in tasks[k:] if s is not None})
+            budget.cut("structural search", [*left, *(f"{j} (turned starts)" for j in turns)])
             break
+        if start is None or start is _TURNS[0]:
+            say(f"looking for a structural error at {joint}")
+        t0 = time.perf_counter()
+        model, after = _fit_correction(nominal, joint, split, sigmas, start)
+        longest = max(longest, time.perf_counter() - t0)
+        plain.setdefault(joint, after)
+        if best is None or after < best[1]:
+            best = (joint, after, model)
+        k += 1
+        joint_done = k == len(tasks) or tasks[k][0] != joint or tasks[k][1] is None
+        if joint_done and best[1] < STRUCTURAL_FRACTION * before:  # the best of a joint's starts
+            break
+        if k == len(joints):  # no plain correction explains it: the turned starts
+            tasks += [(j, t) for j in sorted(joints, key=plain.get) for t in _TURNS]
     if best is None:
         return None
     joint, after, model = best
@@ -336,6 +355,7 @@ def structural_check(
     nominal: ExtendedModel,
     sigmas: tuple[float, float | None],
     say: Callable[[str], None] | None = None,
+    budget: Budget | None = None,
 ) -> tuple[list, dict | None]:
     """Keep only plausible causes; say where the URDF looks wrong when it does.
 
@@ -347,6 +367,8 @@ def structural_check(
         split: the diagnosis's fit / hold-out rows.
         nominal: the nominal model with frames fitted to the fit rows.
         sigmas: noise levels ``(position mm, rotation rad)`` of the structural fits.
+        budget: the optional stages' time budget (:mod:`.budget`); the structural
+            search stops when it is spent (``budget_cut`` says what it left undone).
 
     Returns:
         ``(causes, structural)``: the causes that stay plain causes, and the
@@ -377,7 +399,9 @@ def structural_check(
     if not findings and before < GROSS_ERROR_MM:
         return causes, None
     hint = [f["cause"].partition(":")[2] for f in findings]
-    location = locate_structural_error(nominal, split, sigmas, hint, say)
+    cuts = len(budget.cuts) if budget is not None else 0
+    location = locate_structural_error(nominal, split, sigmas, hint, say, budget)
+    cut = budget.cuts[-1] if budget is not None and len(budget.cuts) > cuts else None
     explained = (
         location is not None
         and location["holdout_mean_mm_after"] < STRUCTURAL_FRACTION * before
@@ -389,6 +413,7 @@ def structural_check(
         "location": location,
         "structurally_wrong": explained,
         "withheld_causes": [c.to_json() for c in keep] if explained else [],
+        "budget_cut": cut,
     }
     if explained:
         structural["message"] = (
@@ -397,9 +422,10 @@ def structural_check(
         )
         return [], structural
     names = ", ".join(f["cause"] for f in findings) or "no single cause"
+    searched = "" if cut is None else " of those searched before its time budget ran out"
     structural["message"] = (
         f"{names}: not a small correction of the URDF (see findings); no origin "
-        "correction at one joint explains the errors either, so the URDF may be wrong "
-        "in more than one place or an unmodelled effect is at work"
+        f"correction at one joint{searched} explains the errors either, so the URDF may "
+        "be wrong in more than one place or an unmodelled effect is at work"
     )
     return keep, structural

@@ -44,6 +44,7 @@ def prefer_fewer_causes(
     alpha: float,
     steps: list[dict],
     say: Callable[[str], None],
+    budget=None,
 ) -> tuple[ExtendedModel, FitResult]:
     """Swap chosen causes for near-duplicates where that leaves fewer causes.
 
@@ -51,11 +52,17 @@ def prefer_fewer_causes(
         pairs: ``(chosen, alternative)`` labels, as ``near_duplicates`` found them.
         steps: the search's step records; an accepted swap appends its own and the
             removals that followed it.
+        budget: the optional stages' :class:`~.budget.Budget`: the swaps of the first
+            cause are tried, the rest only while it lasts.
 
     Returns the (possibly) simpler model and its fit.
     """
     model, res = _drop_split_duplicates(model, res, pairs, split, steps, say)
-    for chosen in dict.fromkeys(c for c, _ in pairs):
+    chosen_causes = list(dict.fromkeys(c for c, _ in pairs))
+    for k, chosen in enumerate(chosen_causes):
+        if k and budget is not None and budget.spent():
+            budget.cut("swaps", [f"swaps of {c}" for c in chosen_causes[k:]])
+            break
         labels = [e.label for e in model.effects]
         if chosen not in labels or len(labels) < 2:
             continue
