@@ -52,12 +52,12 @@ from torch import Tensor
 
 from hybrid_pk import Robot
 from hybrid_pk.calibration.diagnosis.search import diagnose
-from hybrid_pk.calibration.fit import fit, initialise_frames
-from hybrid_pk.cli.common import fit_frames
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import Effect, ExtendedModel, conditions_from_data, make_effect
 from hybrid_pk.evaluation.metrics import error_stats, pose_error
 from hybrid_pk.hybrid import build_net, count_parameters
+from hybrid_pk.pipelines import calibrate, refit_frames
+from hybrid_pk.pipelines.calibration import cause_labels
 from hybrid_pk.simulate import simulate_campaign
 from hybrid_pk.simulate.effect_specs import paper_effects
 from hybrid_pk.simulate.unmodelled import HardeningCompliance, rms_gravity_torques
@@ -154,23 +154,18 @@ def evaluate(model, data: MeasuredData) -> dict:
 def frames_only(robot: Robot, data: MeasuredData) -> ExtendedModel:
     """The paper's mathematical model: the robot as it is, base and tool frames fitted."""
     model = ExtendedModel(robot)
-    fit_frames(model, data, conditions_from_data(data))
+    refit_frames(model, data, conditions_from_data(data))
     return model
 
 
 def diagnosed_effects(robot: Robot, data: MeasuredData, seed: int) -> list[str]:
     """``calibrate --effects auto``'s choice: the causes the diagnosis names."""
-    diag = diagnose(robot, data, seed=seed)
-    return [c.effect if c.joint is None else f"{c.effect}:{c.joint}" for c in diag.causes]
+    return cause_labels(diagnose(robot, data, seed=seed))
 
 
 def calibrated(robot: Robot, data: MeasuredData, labels: list[str]) -> ExtendedModel:
-    """Frames + the ``labels`` effects fitted to ``data`` (as ``calibrate`` does)."""
-    model = ExtendedModel(robot, [make_effect(robot, lb) for lb in labels])
-    cond = conditions_from_data(data)
-    initialise_frames(model, data, cond)
-    fit(model, data, cond=cond, covariance=False)
-    return model
+    """Frames + the ``labels`` effects fitted to ``data`` (``calibrate``'s workflow)."""
+    return calibrate(robot, data, labels).model
 
 
 def epochs_for(archs: tuple[str, str], rows: int, flops: float, cap: int, dof: int) -> int:

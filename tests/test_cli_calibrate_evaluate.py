@@ -18,7 +18,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-import hybrid_pk.cli.calibrate_cmd as calibrate_cmd
+import hybrid_pk.pipelines.calibration as calibration_pipeline
 from hybrid_pk import Robot
 from hybrid_pk.cli.main import main
 from hybrid_pk.data import MeasuredData, write_table
@@ -287,7 +287,7 @@ def test_effects_auto_fits_the_diagnosed_causes(campaign, capsys, tmp_path, monk
             to_json=lambda: {"robot": robot.name, "causes": [{"effect": "joint_offset"}]},
         )
 
-    monkeypatch.setattr(calibrate_cmd, "diagnose", fake_diagnose)
+    monkeypatch.setattr(calibration_pipeline, "diagnose", fake_diagnose)
     out_model = tmp_path / "auto.pt"
     rc, out, err = _run(
         capsys, "calibrate", campaign["a"], "--robot", "rx160", "--out", out_model,

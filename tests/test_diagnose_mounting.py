@@ -147,10 +147,9 @@ def test_tilt_of_a_mount_is_read_from_the_fitted_base_frame():
         candidates=[effect.label, "joint_offset:elbow_joint"],
     )
     found = torch.tensor(diag.to_json()["gravity"]["root_frame"][0], dtype=torch.float64)
-    expected = torch.tensor(truth["gravity"], dtype=found.dtype)
-    # the cosine of two equal directions may round to 1 + eps: arccos would give NaN
-    cosine = ((found @ expected) / (found.norm() * expected.norm())).clamp(-1.0, 1.0)
-    angle = float(torch.arccos(cosine))
+    expected = torch.tensor(truth["gravity"], dtype=torch.float64)
+    # atan2(|a x b|, a . b): arccos of a rounded cosine above 1 is nan for equal vectors
+    angle = float(torch.atan2(torch.linalg.cross(found, expected).norm(), found @ expected))
     assert angle < 1e-3, f"{mount}: gravity found {found.tolist()}, truth {expected.tolist()}"
 
 

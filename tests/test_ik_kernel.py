@@ -14,7 +14,7 @@ import torch
 import hybrid_pk as hpk
 from hybrid_pk.evaluation.metrics import pose_error
 from hybrid_pk.ik import IKOptions, as_ik_model, batched_levenberg_marquardt
-from hybrid_pk.ik.dedup import distinct_mask, same_solution
+from hybrid_pk.ik.dedup import distinct_mask, joint_difference, same_cell_best, same_solution
 from hybrid_pk.ik.lm_algebra import eliminate, normal_equations
 from hybrid_pk.ik.two_precision import solve_two_precisions
 from hybrid_pk.robot.chain import ALIGNED_MIN_BATCH, local_transforms, product
@@ -76,9 +76,10 @@ def test_fk_follows_parameter_changes_and_keeps_gradients():
     assert bool(torch.isfinite(q.grad).all())
 
 
-def test_elimination_solves_damped_normal_equations():
-    rng = _torch_rng("elimination")
-    A, n = 500, 6
+@pytest.mark.parametrize("A", [500, 40])  # the elimination, then LAPACK's Cholesky
+def test_elimination_solves_damped_normal_equations(A):
+    rng = _torch_rng(f"elimination {A}")
+    n = 6
     J = torch.randn(6, n, A, generator=rng, dtype=F64)
     e = torch.randn(6, A, generator=rng, dtype=F64)
     G = normal_equations(J, e)
@@ -91,6 +92,12 @@ def test_elimination_solves_damped_normal_equations():
     G = normal_equations(J, e)
     G[2, 2] = -1.0  # not positive definite
     assert not bool(eliminate(G)[1].any())
+    G = normal_equations(J, e)
+    G.view(-1, A)[:: n + 2] += 1e-3
+    G[:, :, 3] = torch.nan  # one problem's system is NaN: only its step fails
+    ok = eliminate(G)[1]
+    assert not bool(ok[3])
+    assert int(ok.sum()) == A - 1
 
 
 def _greedy(q, candidate, score, revolute):
@@ -121,6 +128,34 @@ def test_round_wise_dedup_equals_the_greedy_definition(spread):
     score = torch.rand(N, K, generator=rng, dtype=F64)
     keep = distinct_mask(q, candidate, score, revolute)
     assert torch.equal(keep, _greedy(q, candidate, score, revolute))
+
+
+def test_same_cell_merge_keeps_the_best_of_each_cell():
+    """Clusters at float32 accuracy (1e-5 rad, 1e-8 m) around a few roots per target: every dropped
+    candidate has a kept one of its own target within a cell, with a score no worse;
+    targets never merge; most of each cluster merges."""
+    rng = _torch_rng("same cell")
+    N, K, dof = 5, 64, 6
+    revolute = torch.tensor([True] * 5 + [False])
+    roots = 3 * torch.randn(N, 4, dof, generator=rng, dtype=F64)
+    roots[1:] = roots[0]  # every target the same roots: only the group keeps them apart
+    pick = torch.randint(0, 4, (N, K), generator=rng)
+    q = torch.take_along_dim(roots, pick[..., None], 1)
+    noise = torch.tensor([1e-5] * 5 + [1e-8], dtype=F64)  # [rad], [m]
+    q = q + noise * torch.randn(N, K, dof, generator=rng, dtype=F64)
+    q[..., :5] += 2 * math.pi * torch.randint(-1, 2, (N, K, 5), generator=rng)
+    q, group = q.reshape(-1, dof), torch.arange(N).repeat_interleave(K)
+    candidate = torch.rand(N * K, generator=rng) > 0.2
+    score = torch.rand(N * K, generator=rng, dtype=F64)
+    cell_r, cell_p = 5e-4, 5e-7
+    keep = same_cell_best(q, group, candidate, score, revolute, cell_r, cell_p)
+    assert not bool((keep & ~candidate).any())
+    for i in (candidate & ~keep).nonzero()[:, 0]:
+        d = joint_difference(q[keep], q[i], revolute).abs()
+        near = (d[:, :5] < cell_r).all(-1) & (d[:, 5] < cell_p) & (group[keep] == group[i])
+        assert bool((near & (score[keep] <= score[i])).any())
+    assert int(keep.sum()) <= N * 4 * 4  # a cluster straddles few cell borders
+    assert int(keep.sum()) >= len(torch.unique(group[candidate] * 4 + pick.view(-1)[candidate]))
 
 
 def test_two_precisions_finish_in_float64():

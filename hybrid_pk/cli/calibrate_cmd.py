@@ -11,9 +11,6 @@ from __future__ import annotations
 import argparse
 import textwrap
 
-from hybrid_pk.calibration.diagnosis import diagnose
-from hybrid_pk.calibration.fit import fit
-from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.cli.calibrate_output import (
     add_urdf_options,
     condition_warning,
@@ -27,7 +24,6 @@ from hybrid_pk.cli.calibrate_output import (
 from hybrid_pk.cli.calibrate_refit import run_refit
 from hybrid_pk.cli.common import (
     FRAME_LABELS,
-    fit_frames,
     frame_parameter_count,
     load_robot,
     mounting_lines,
@@ -53,9 +49,6 @@ from hybrid_pk.cli.options import (
 from hybrid_pk.cli.progress import progress
 from hybrid_pk.cli.transfer_check import add_refit_rows, transfer_check
 from hybrid_pk.effects import (
-    Effect,
-    ExtendedModel,
-    conditions_from_data,
     make_effect,
     parse_gravity,
 )
@@ -63,6 +56,7 @@ from hybrid_pk.effects.vocabulary import vocabulary_units
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import error_stats
 from hybrid_pk.io.model_file import save_model
+from hybrid_pk.pipelines.calibration import calibrate
 
 _DESCRIPTION = """\
 Fit base/tool frames and physical error effects to measured poses; write one MODEL file
@@ -146,16 +140,6 @@ def _requested_labels(robot, spec: str) -> tuple[str, list[str]]:
     return spec, labels
 
 
-def _start_effects(robot, labels: list[str], diag_model: ExtendedModel | None) -> list[Effect]:
-    effects = []
-    for label in labels:
-        value = None
-        if diag_model is not None:
-            value = diag_model.effect(label).value.detach().clone()
-        effects.append(make_effect(robot, label, value))
-    return effects
-
-
 def _run_new(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot, args.end_link)
     gravity = parse_gravity(args.gravity)
@@ -164,7 +148,6 @@ def _run_new(args: argparse.Namespace) -> int:
     sets = len(args.data) if args.frames_per_file else 1
     priors, robust = frame_priors(args), robust_loss(args)
 
-    diag = None
     with progress("calibrate", total=6 if auto else 5) as bar:
         bar.stage("reading data")
         n_effect_params = sum(make_effect(robot, lb).value.numel() for lb in labels)
@@ -174,42 +157,15 @@ def _run_new(args: argparse.Namespace) -> int:
             n_params=frame_parameter_count(sets, False) + n_effect_params,
             skip_bad_rows=args.skip_bad_rows,
         )
-        cond = conditions_from_data(data, args.frames_per_file)
-        if auto:
-            bar.stage("diagnosing effects")
-            diag = diagnose(
-                robot,
-                data,
-                holdout=args.holdout,
-                seed=args.seed,
-                frames_per_file=args.frames_per_file,
-                progress=bar,
-                frames=priors,
-                robust=robust,
-                gravity=gravity,
-                min_gain_mm=args.min_gain_mm,
-            )
-            labels = [c.effect if c.joint is None else f"{c.effect}:{c.joint}" for c in diag.causes]
-        bar.stage("fitting frames to the nominal robot")
-        res0 = fit_frames(
-            ExtendedModel(robot, frame_sets=sets, gravity=gravity),
-            data,
-            cond,
-            priors=priors,
-            robust=robust,
-        )
-        bar.stage("fitting frames and effects")
-        model = ExtendedModel(
-            robot,
-            _start_effects(robot, labels, diag.model if diag else None),
-            frame_sets=sets,
-            gravity=gravity,
-        )
-        initialise_with_priors(model, data, cond, priors)
-        res = fit(model, data, cond=cond, frames=priors, robust=robust, weights=res0.weights)
+        result = calibrate(
+            robot, data, None if auto else labels, frames_per_file=args.frames_per_file,
+            holdout=args.holdout, seed=args.seed, priors=priors, robust=robust,
+            gravity=gravity, stage=bar.stage, progress=bar, min_gain_mm=args.min_gain_mm,
+        )  # fmt: skip
+        model, res, res0, diag = result.model, result.fit, result.nominal_fit, result.diagnosis
         bar.stage("leave one file out")
         transfer = transfer_check(
-            args, robot, data, labels, gravity=gravity, start=model, progress=bar
+            args, robot, data, result.labels, gravity=gravity, start=model, progress=bar
         )
         bar.stage("writing")
         effects = effect_rows(model, res)

@@ -4,9 +4,6 @@ keep everything of MODEL (effects, networks) and re-fit only its frame(s)."""
 from __future__ import annotations
 
 import argparse
-import dataclasses
-
-import torch
 
 from hybrid_pk.cli.calibrate_output import (
     error_summary,
@@ -15,20 +12,16 @@ from hybrid_pk.cli.calibrate_output import (
     urdf_target,
 )
 from hybrid_pk.cli.common import (
-    fit_frames,
     frame_parameter_count,
     read_data,
     stats_line,
-    with_frame_sets,
 )
 from hybrid_pk.cli.fit_settings import fit_lines, frame_priors, robust_loss, robust_summary
 from hybrid_pk.cli.progress import progress
 from hybrid_pk.data import MeasuredData
-from hybrid_pk.effects import Conditions, conditions_from_data
-from hybrid_pk.errors import HybridPKError, ModelFileError
-from hybrid_pk.evaluation.metrics import row_errors
-from hybrid_pk.io.hybrid_file import predict_poses
+from hybrid_pk.errors import HybridPKError
 from hybrid_pk.io.model_file import LoadedModel, load_model, model_robot, save_model
+from hybrid_pk.pipelines.refit import refit
 
 __all__ = ["run_refit"]
 
@@ -59,13 +52,13 @@ def run_refit(args: argparse.Namespace) -> int:
             n_params=frame_parameter_count(sets, False) // (1 if which == "frames" else 2),
             skip_bad_rows=args.skip_bad_rows,
         )
-        cond = conditions_from_data(data, sets > 1)
-        before = _errors(loaded, data, cond) if loaded.model.base.sets == sets else None
-        keep = {"base": "tool", "tool": "base", "frames": None}[which]
-        model = with_frame_sets(loaded.model, sets, keep=keep)
         bar.stage(f"re-fitting the {which} frame(s)")
         priors = frame_priors(args, loaded.model if loaded.frames_fitted else None)
-        res = fit_frames(model, data, cond, which, priors=priors, robust=robust_loss(args))
+        result = refit(
+            loaded, data, which, frames_per_file=args.frames_per_file, priors=priors,
+            robust=robust_loss(args),
+        )  # fmt: skip
+        model, res, before, after = result.model, result.fit, result.before, result.after
         bar.stage("writing")
         save_model(
             args.out, model, networks=loaded.networks, metadata=_metadata(args, loaded, data, res)
@@ -81,7 +74,6 @@ def run_refit(args: argparse.Namespace) -> int:
     )
     for line in frame_lines(model) + fit_lines(data, res):
         print(line)
-    after = _errors(dataclasses.replace(loaded, model=model, frames_fitted=True), data, cond)
     for i, (name, unit) in enumerate((("position", "mm"), ("orientation", "deg"))):
         if after[i] is None:
             continue
@@ -113,15 +105,3 @@ def _metadata(args, loaded: LoadedModel, data: MeasuredData, res) -> dict:
     if args.refit != "base":  # the tool's orientation is known only from orientation data
         metadata["orientation_fitted"] = data.quat is not None
     return metadata
-
-
-def _errors(loaded: LoadedModel, data: MeasuredData, cond: Conditions):
-    """Position [mm] and orientation [deg] errors per row, and a note if the residual
-    networks could not be evaluated by this installation (extended model alone)."""
-    try:
-        T, note = predict_poses(loaded, data, cond), ""
-    except ModelFileError as exc:
-        with torch.no_grad():
-            T = loaded.model(data.q, cond)
-        note = f"note: errors of the extended model only: {exc}"
-    return (*row_errors(T, data), note)

@@ -16,13 +16,13 @@ from pathlib import Path
 
 import torch
 
-from hybrid_pk.calibration.fit import FitResult, fit
-from hybrid_pk.calibration.frames import FramePriors
-from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.data import DataWarning, MeasuredData, read_table_for
-from hybrid_pk.effects import Conditions, ExtendedModel
+from hybrid_pk.effects import ExtendedModel
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import ErrorStats, error_stats
+from hybrid_pk.pipelines.calibration import FRAME_LABELS as FRAME_LABELS
+from hybrid_pk.pipelines.calibration import refit_frames as fit_frames
+from hybrid_pk.pipelines.refit import with_frame_sets as with_frame_sets
 from hybrid_pk.robot import Robot
 
 __all__ = [
@@ -42,13 +42,6 @@ __all__ = [
     "with_frame_sets",
     "write_json",
 ]
-
-# Parameter blocks of the frames, by --refit choice (labels of calibration.fit).
-FRAME_LABELS = {
-    "base": ("base_frame.translation", "base_frame.rotation"),
-    "tool": ("tool_frame.translation", "tool_frame.rotation"),
-}
-FRAME_LABELS["frames"] = FRAME_LABELS["base"] + FRAME_LABELS["tool"]
 
 
 def mounting_lines(model: ExtendedModel) -> list[str]:
@@ -154,35 +147,6 @@ def frame_set_index(value: int | None, sets: int, model: str) -> int:
     return value
 
 
-def with_frame_sets(model: ExtendedModel, sets: int, keep: str | None = None) -> ExtendedModel:
-    """``model`` with ``sets`` base/tool frame sets (same robot and effect modules).
-
-    Args:
-        model: source model (returned unchanged if it already has ``sets`` sets).
-        sets: frame sets wanted (1, or one per DATA file).
-        keep: ``"base"`` or ``"tool"``: that frame keeps its values (a single set is
-            repeated); the other starts at identity. None: both start at identity.
-
-    Raises:
-        HybridPKError: if a kept frame has several sets that cannot map to ``sets``.
-    """
-    if model.base.sets == sets:
-        return model
-    kept = {}
-    if keep is not None:
-        frame = getattr(model, keep)
-        if frame.sets != 1:
-            raise HybridPKError(
-                f"the model has {frame.sets} {keep} frames (one per file of its "
-                f"calibration) but this re-fit has {sets} frame set(s); give as many DATA "
-                f"files with --frames-per-file, or --refit frames"
-            )
-        kept[keep] = frame.matrix().detach()
-    return ExtendedModel(
-        model.robot, list(model.effects), frame_sets=sets, gravity=model.gravity, **kept
-    )
-
-
 def frame_sets_for(args: argparse.Namespace, model_sets: int) -> int:
     """Base/tool frame sets of a command that reads MODEL and DATA (evaluate, train).
 
@@ -206,25 +170,6 @@ def frame_sets_for(args: argparse.Namespace, model_sets: int) -> int:
             f"{args.model} has one base/tool frame set; --frames-per-file needs --fit-frames"
         )
     return model_sets
-
-
-def fit_frames(
-    model: ExtendedModel,
-    data: MeasuredData,
-    cond: Conditions,
-    which: str = "frames",
-    priors: FramePriors | None = None,
-    robust: str | None = None,
-) -> FitResult:
-    """Register then least-squares fit only the ``which`` frame(s); effects stay fixed.
-
-    Args:
-        which: ``"base"``, ``"tool"`` or ``"frames"`` (both).
-        priors: known frames (``--tool``, ``--base``) and the prior of the fit.
-        robust: robust loss (``--robust``), or None.
-    """
-    initialise_with_priors(model, data, cond, priors, which=which)
-    return fit(model, data, free=list(FRAME_LABELS[which]), cond=cond, frames=priors, robust=robust)
 
 
 def stats_line(label: str, stats: ErrorStats | torch.Tensor, digits: int = 4) -> str:

@@ -24,6 +24,7 @@ from hybrid_pk.cli.options import (
 from hybrid_pk.cli.progress import progress
 from hybrid_pk.effects import conditions_from_data
 from hybrid_pk.errors import HybridPKError
+from hybrid_pk.hybrid.builder import HybridSettings
 from hybrid_pk.hybrid.nets import parse_arch
 from hybrid_pk.io.model_file import NOMINAL_PREFIX, load_model, model_robot
 
@@ -83,6 +84,9 @@ HELP = "train the residual networks of a hybrid model (Lightning, TensorBoard)"
 DESCRIPTION = _DESCRIPTION
 
 
+_S = HybridSettings()  # the defaults the help states are the settings' own
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The flags of ``hybrid-pk train``."""
     add_data(p)
@@ -121,7 +125,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=float,
         metavar="F",
         help="fade-out width outside the training joint box, fraction of its size per "
-        "joint (default 0: no correction outside the box)",
+        f"joint (default {_S.fade:g}: no correction outside the box)",
     )
     p.add_argument(
         "--inputs",
@@ -134,23 +138,25 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--trust",
         choices=("auto", "box", "coverage", "none"),
         help="where the networks apply: joint box, coverage of their inputs, everywhere "
-        "(default auto: box for joints, coverage for frameK inputs)",
+        f"(default {_S.trust}: box for joints, coverage for frameK inputs)",
     )
     p.add_argument(
         "--refine-net",
         metavar="ARCH",
-        help="architecture of the refining stages' networks ('/' in --inputs; default: mlp)",
+        help=f"architecture of the refining stages' networks ('/' in --inputs; default: "
+        f"{_S.refine_net})",
     )
     p.add_argument(
         "--local-net",
         metavar="ARCH",
-        help="architecture of each joint's network in local stages (default: mlp:32x2)",
+        help=f"architecture of each joint's network in local stages (default: {_S.local_net})",
     )
     p.add_argument(
         "--coverage-ratio",
         type=float,
         metavar="R",
-        help="--trust coverage: networks off beyond R x the full-trust radius (default 2)",
+        help="--trust coverage: networks off beyond R x the full-trust radius "
+        f"(default {_S.coverage_ratio:g})",
     )
     p.add_argument(
         "--no-spread",
@@ -197,11 +203,9 @@ def _overrides(args: argparse.Namespace) -> tuple[dict, dict, dict]:
     if args.coverage_ratio is not None and not args.coverage_ratio > 1:
         raise HybridPKError(f"--coverage-ratio must be > 1, got {args.coverage_ratio}")
     if model.get("inputs", "joints") != "joints":
-        from hybrid_pk.hybrid.builder import parse_stages
+        from hybrid_pk.hybrid.builder import check_trust
 
-        parse_stages(model["inputs"])  # HybridPKError naming the forms
-        if model.get("trust") == "box":
-            raise HybridPKError("--trust box needs --inputs joints; use --trust coverage")
+        check_trust(model.get("trust", "auto"), model["inputs"])  # naming the forms
     for key in ("position_net", "orientation_net", "refine_net", "local_net"):  # before data
         if model.get(key, "none") != "none":
             parse_arch(model[key])

@@ -20,10 +20,10 @@ __all__ = [
     "effect_limit",
 ]
 
-MAX_ROTATION_DEG = 5.0
-MAX_BACKLASH_DEG = 1.0
-MAX_TRANSLATION_M = 0.05
-MAX_GEAR_RATIO = 0.01
+MAX_ROTATION_DEG = 5.0  # [deg] a joint zero or origin off by more is a wrong URDF, not a tolerance
+MAX_BACKLASH_DEG = 1.0  # [deg] worn gearboxes play arcminutes; a degree is a loose coupling
+MAX_TRANSLATION_M = 0.05  # [m] machining and assembly errors are sub-mm; 5 cm is a wrong link
+MAX_GEAR_RATIO = 0.01  # 1 % is an encoder scaling mistake, far beyond a gear's tolerance
 MAX_COMPLIANCE = 1e-4  # [rad/Nm]; industrial joints are 1e-7 .. 1e-5
 
 

@@ -43,6 +43,7 @@ __all__ = [
     "TRUSTS",
     "HybridSettings",
     "build_hybrid",
+    "check_trust",
     "fit_coverages",
     "fit_gates",
     "fit_spreads",
@@ -123,6 +124,21 @@ def parse_stages(text: str) -> list[tuple[str, str]]:
     return out
 
 
+def check_trust(trust: str, inputs: str) -> list[tuple[str, str]]:
+    """The stages of ``inputs`` (:func:`parse_stages`), checked against ``trust``: the
+    joint box (``box``) is the trust region of the ``joints`` inputs alone.
+
+    Raises:
+        HybridPKError: ``box`` with other inputs, or inputs that do not parse.
+    """
+    plan = parse_stages(inputs)
+    if trust == "box" and [spec for spec, _ in plan] != ["joints"]:
+        raise HybridPKError(
+            f"trust 'box' needs the joints inputs alone, not {inputs!r}; use trust coverage"
+        )
+    return plan
+
+
 def _inputs(spec: str, settings: HybridSettings, robot: Robot, q: Tensor) -> NetworkInputs:
     limits = robot.joint_limits if settings.input_range == "limits" else None
     if spec == "joints":
@@ -131,9 +147,7 @@ def _inputs(spec: str, settings: HybridSettings, robot: Robot, q: Tensor) -> Net
             inf = torch.full_like(box.trust_lower, math.inf)
             return InputBox(box.lower, box.upper, -inf, inf, 1.0)
         return InputBox.from_data(q, limits, settings.fade)
-    if settings.trust == "box":
-        raise HybridPKError(f"trust 'box' needs the joints inputs alone; with {spec!r}: coverage")
-    parsed = parse_inputs(spec)
+    parsed = parse_inputs(spec)  # build_hybrid's check_trust left no box to non-joints
     if isinstance(parsed, LocalSpec):
         return LocalFeatures(parsed, robot).fit_standardisation(robot, q)
     return PhysicsFeatures(resolve_arm(parsed, robot, q), robot).fit_standardisation(robot, q)
@@ -154,10 +168,7 @@ def build_hybrid(
         position_scale, orientation_scale: ``(3,)`` output units [m], [rad]; None
             orientation scale and ``settings.orientation_net``: no orientation networks.
     """
-    plan = parse_stages(inputs)
-    alone = len(plan) == 1
-    if settings.trust == "box" and not (alone and plan[0][0] == "joints"):
-        raise HybridPKError(f"trust 'box' needs the joints inputs alone, not {inputs!r}")
+    plan = check_trust(settings.trust, inputs)
     stages = []
     for spec, role in plan:
         feats = _inputs(spec, settings, base.robot, q)

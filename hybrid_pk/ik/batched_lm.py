@@ -227,10 +227,7 @@ def _accept(b: _Batch, trial: Tensor, ok: Tensor, predicted: Tensor) -> None:
     mu, nu = k[_MU], k[_NU]
     torch.where(accept, mu * shrink, mu * nu, out=mu).clamp_(1e-12, b.s.damping_max)
     nu.mul_(2).masked_fill_(accept, 2.0)
-    rejected = (~accept).nonzero()[:, 0]
-    if rejected.numel():
-        trial.index_copy_(1, rejected, b.ev.index_select(1, rejected))
-    b.ev = trial
+    b.ev = torch.where(accept, trial, b.ev)  # one pass, no count of the rejected
 
 
 def _leaving(b: _Batch, it: int) -> Tensor:

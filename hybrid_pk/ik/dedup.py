@@ -14,7 +14,14 @@ import math
 import torch
 from torch import Tensor
 
-__all__ = ["PRISMATIC_TOL", "REVOLUTE_TOL", "distinct_mask", "joint_difference", "same_solution"]
+__all__ = [
+    "PRISMATIC_TOL",
+    "REVOLUTE_TOL",
+    "distinct_mask",
+    "joint_difference",
+    "same_cell_best",
+    "same_solution",
+]
 
 REVOLUTE_TOL = 1e-3  # [rad]
 PRISMATIC_TOL = 1e-6  # [m]
@@ -100,3 +107,58 @@ def _distinct_block(q, candidate, score, revolute, revolute_tol, prismatic_tol) 
     out = torch.zeros_like(candidate)
     out.scatter_(1, order, kept)
     return out
+
+
+def same_cell_best(
+    q: Tensor,
+    group: Tensor,
+    candidate: Tensor,
+    score: Tensor,
+    revolute: Tensor,
+    revolute_cell: float,
+    prismatic_cell: float,
+) -> Tensor:
+    """A cheap merge of near-equal candidates, without the greedy visit's rounds.
+
+    Joint space is cut into cells (revolute joints taken modulo ``2 pi``); of the
+    candidates of one group (target) in one cell, the lowest score is kept. Two merged
+    candidates differ by less than a cell in every joint; two equal ones on either side
+    of a cell border are both kept.
+
+    Args:
+        q: ``(P, dof)`` [rad or m].
+        group: ``(P,)`` long, e.g. the target of each candidate.
+        candidate: ``(P,)`` bool.
+        score: ``(P,)`` lower is better.
+        revolute: ``(dof,)`` bool.
+        revolute_cell: [rad] cell width of revolute joints.
+        prismatic_cell: [m] cell width of prismatic joints.
+
+    Returns:
+        ``(P,)`` bool, a subset of ``candidate`` (of equal scores the first kept).
+    """
+    idx = candidate.nonzero()[:, 0]
+    qc = q.index_select(0, idx)
+    rev = revolute.to(qc.device)
+    width = torch.where(rev, revolute_cell, prismatic_cell).to(qc.dtype)
+    cell = torch.floor(torch.where(rev, torch.remainder(qc, _TWO_PI), qc) / width).long()
+    cell = torch.cat([group.index_select(0, idx)[:, None], cell], 1)
+    # One int64 per cell (a wrapping hash, far cheaper than unique rows); a member
+    # whose cell differs from its representative's (a collision) is kept.
+    _, which = torch.unique(cell @ _hash_weights(cell.shape[1], cell.device), return_inverse=True)
+    order = torch.argsort(score.index_select(0, idx), stable=True)
+    rank = torch.empty_like(order)
+    rank[order] = torch.arange(len(order), device=order.device)
+    best = rank.new_full((len(order),), len(order)).scatter_reduce_(0, which, rank, "amin")
+    rep = order.index_select(0, best.index_select(0, which))
+    drop = (rep != torch.arange(len(rep), device=rep.device)) & (cell == cell[rep]).all(1)
+    keep = torch.zeros_like(candidate)
+    keep[idx] = ~drop
+    return keep
+
+
+def _hash_weights(k: int, device: torch.device) -> Tensor:
+    """``(k,)`` int64 odd multipliers (fixed, from a seeded generator) of the cell hash."""
+    gen = torch.Generator().manual_seed(k)
+    w = torch.randint(-(2**62), 2**62, (k,), generator=gen, dtype=torch.int64)
+    return (w | 1).to(device)

@@ -179,9 +179,19 @@ def solve_and_check(
     """
     T_target = T_all[rows]
     # The chain kernel evaluates in float32 too: the coarse iterations in float32.
-    lm = batched_levenberg_marquardt if ikm.batch_last is None else solve_two_precisions
+    # Starts that arrived at one solution agree to float32's handover accuracy (~1e-5
+    # rad); cells of half the distinctness tolerance merge only candidates the final
+    # reduction would call the same (they differ by less than a cell).
+    merge = (options.revolute_tol / 2, options.prismatic_tol / 2)
     with torch.no_grad():
-        out = lm(ikm.evaluate, q0, rows, T_target, *bounds, settings, ikm.revolute)
+        if ikm.batch_last is None:
+            out = batched_levenberg_marquardt(
+                ikm.evaluate, q0, rows, T_target, *bounds, settings, ikm.revolute
+            )
+        else:
+            out = solve_two_precisions(
+                ikm.evaluate, q0, rows, T_target, *bounds, settings, ikm.revolute, merge
+            )
     ok, pos, ori = check_solutions(ikm, out.q, rows, T_target, position_only, options)
     return out, ok, pos, ori
 

@@ -7,7 +7,11 @@ kernel (``IKModel.batch_last``, which evaluates in either precision) the problem
 first solved in float32 down to a handover tolerance a hundred times float32's
 resolution, and those that reach it are finished in float64 with the caller's
 tolerances (two or three Gauss-Newton steps); the others are returned as the float32
-phase left them (they had stalled, as they would have in float64).
+phase left them (they had stalled, as they would have in float64). Many starts of one
+target arrive at the same solution: given ``merge`` cells, only the best of each
+target's arrivals in one cell of joint space is finished in float64 (the others are
+returned as they arrived; the reduction to distinct solutions then drops them in
+favour of the finished one, the same solution).
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.ik.batched_lm import LMOutput, LMSettings, batched_levenberg_marquardt
+from hybrid_pk.ik.dedup import same_cell_best
 
 __all__ = ["solve_two_precisions"]
 
@@ -27,10 +32,22 @@ _MARGIN = 100.0
 
 
 def solve_two_precisions(
-    evaluate, q0: Tensor, rows: Tensor, T_target: Tensor, lower, upper, s: LMSettings, revolute
+    evaluate,
+    q0: Tensor,
+    rows: Tensor,
+    T_target: Tensor,
+    lower,
+    upper,
+    s: LMSettings,
+    revolute,
+    merge: tuple[float, float] | None = None,
 ) -> LMOutput:
     """:func:`batched_levenberg_marquardt` (same arguments, ``evaluate`` accepting
-    float32 and float64), float32 first and float64 from the handover tolerance."""
+    float32 and float64), float32 first and float64 from the handover tolerance.
+
+    ``merge``: ``(revolute, prismatic)`` cell widths [rad, m] of
+    :func:`~hybrid_pk.ik.dedup.same_cell_best` (needs ``revolute``); of a target's
+    arrivals in one cell only the best is finished."""
     eps = torch.finfo(torch.float32).eps * _MARGIN
     reach = 1.0 + float(T_target[:, :3, 3].norm(dim=-1).max()) if len(T_target) else 1.0
     loose_p, loose_r = max(eps * reach, s.accept_position), max(eps, s.accept_rotation)
@@ -50,7 +67,11 @@ def solve_two_precisions(
     q = first.q.to(q0.dtype)
     pos, rot = first.position_error.to(q0.dtype), first.rotation_error.to(q0.dtype)
     it = first.iterations.clone()
-    go = ((first.position_error <= loose_p) & (first.rotation_error <= loose_r)).nonzero()[:, 0]
+    arrived = (first.position_error <= loose_p) & (first.rotation_error <= loose_r)
+    if merge is not None and revolute is not None and bool(arrived.any()):
+        score = first.position_error + s.rotation_weight * first.rotation_error
+        arrived = same_cell_best(first.q, rows, arrived, score, revolute, *merge)
+    go = arrived.nonzero()[:, 0]
     spent = int(first.iterations.max()) if len(go) else 0
     left = max(s.stall_window, s.max_iterations - spent)
     bounds = [b if b.ndim == 1 else b[go] for b in (lower, upper)]

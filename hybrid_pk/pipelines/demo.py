@@ -25,13 +25,13 @@ from pathlib import Path
 import torch
 
 from hybrid_pk.calibration.diagnosis import Diagnosis, diagnose
-from hybrid_pk.calibration.fit import fit, initialise_frames
 from hybrid_pk.data import MeasuredData, write_table
 from hybrid_pk.data.table import write_frame
-from hybrid_pk.effects import Conditions, Effect, ExtendedModel, conditions_from_data, make_effect
+from hybrid_pk.effects import Conditions, Effect, ExtendedModel, conditions_from_data
 from hybrid_pk.ik import solve_ik_two_stage
 from hybrid_pk.io.hybrid_file import save_hybrid
 from hybrid_pk.io.model_file import save_model
+from hybrid_pk.pipelines.calibration import calibrate, cause_labels
 from hybrid_pk.pipelines.demo_report import write_demo_report
 from hybrid_pk.report.diagnosis_report import write_diagnosis_report
 from hybrid_pk.report.evaluation_report import write_evaluation_report
@@ -258,17 +258,12 @@ def _diagnose(out: Path, robot: Robot, split: _Split, seed: int, say):
 def _calibrate(out: Path, robot: Robot, diag: Diagnosis, split: _Split, say):
     """The extended model of the named causes and the nominal model, frames and
     effects fitted on the calibration rows."""
-    labels = [c.effect if c.joint is None else f"{c.effect}:{c.joint}" for c in diag.causes]
-    model = ExtendedModel(robot, [make_effect(robot, label) for label in labels])
-    say(f"frames + {len(labels)} effect(s): {', '.join(labels) or 'none'}")
-    initialise_frames(model, split.calib, split.cond)
-    fit(model, split.calib, cond=split.cond)
+    labels = cause_labels(diag)
+    say(f"frames + {len(labels)} effect(s): {', '.join(labels) or 'none'}; nominal: frames only")
+    result = calibrate(robot, split.calib, labels)  # the workflow hybrid-pk calibrate runs
+    model, nominal = result.model, result.nominal
     model.requires_grad_(False)
     save_model(out / "model.pt", model, metadata={"source": "hybrid-pk demo"})
-    say("nominal model: frames only (the baseline)")
-    nominal = ExtendedModel(robot)
-    initialise_frames(nominal, split.calib, split.cond)
-    fit(nominal, split.calib, cond=split.cond)
     nominal.requires_grad_(False)
     return model, nominal
 

@@ -25,18 +25,18 @@ import lightning as L
 import torch
 from torch import Tensor
 
+from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import error_stats
 from hybrid_pk.hybrid.builder import (
     TRUSTS,
     HybridSettings,
     build_hybrid,
+    check_trust,
     fit_coverages,
     fit_gates,
     fit_spreads,
-    parse_stages,
 )
 from hybrid_pk.hybrid.hybrid_fk import HybridFK
-from hybrid_pk.hybrid.inputs import DEFAULT_FADE
 from hybrid_pk.hybrid.losses import (
     LOSSES,
     corrected_orientation_errors_deg,
@@ -51,6 +51,9 @@ __all__ = ["OPTIMIZERS", "SCHEDULERS", "HybridLitModule"]
 OPTIMIZERS = ("adagrad", "adam", "adamw")
 SCHEDULERS = ("none", "cosine", "onecycle")
 _KEYS = {"position": "position_mm", "orientation": "orientation_deg"}
+
+
+_DEFAULTS = HybridSettings()  # one source of the network settings' defaults
 
 
 class HybridLitModule(L.LightningModule):
@@ -95,26 +98,26 @@ class HybridLitModule(L.LightningModule):
 
     def __init__(
         self,
-        position_net: str = "mlp",
-        orientation_net: str = "mlp",
+        position_net: str = _DEFAULTS.position_net,
+        orientation_net: str = _DEFAULTS.orientation_net,
         optimizer: str = "adam",
         lr: float = 3e-3,
         weight_decay: float = 0.0,
         scheduler: str = "onecycle",
         loss: str = "mse",
-        input_range: str = "data",
-        fade: float = DEFAULT_FADE,
+        input_range: str = _DEFAULTS.input_range,
+        fade: float = _DEFAULTS.fade,
         inputs: str = "joints",
-        trust: str = "auto",
-        coverage_quantile: float = 0.9,
-        coverage_ratio: float = 1.5,
-        refine_net: str = "mlp",
-        local_net: str = "mlp:32x2",
-        local_coverage_quantile: float = 0.99,
-        local_coverage_ratio: float = 2.0,
-        zero_init: bool = True,
-        spread: bool = True,
-        blocked: bool = True,
+        trust: str = _DEFAULTS.trust,
+        coverage_quantile: float = _DEFAULTS.coverage_quantile,
+        coverage_ratio: float = _DEFAULTS.coverage_ratio,
+        refine_net: str = _DEFAULTS.refine_net,
+        local_net: str = _DEFAULTS.local_net,
+        local_coverage_quantile: float = _DEFAULTS.local_coverage_quantile,
+        local_coverage_ratio: float = _DEFAULTS.local_coverage_ratio,
+        zero_init: bool = _DEFAULTS.zero_init,
+        spread: bool = _DEFAULTS.spread,
+        blocked: bool = _DEFAULTS.blocked,
         histogram_every: int = 5,
     ) -> None:
         super().__init__()
@@ -130,11 +133,10 @@ class HybridLitModule(L.LightningModule):
         for arch in (position_net, orientation_net, refine_net, local_net):
             if arch != "none":
                 parse_arch(arch)  # fail before any data is read
-        if trust == "box" and inputs != "joints":
-            raise ValueError(
-                f"trust 'box' needs the joints inputs alone; with {inputs!r}: coverage"
-            )
-        parse_stages(inputs)
+        try:
+            check_trust(trust, inputs)  # parses the stages too
+        except HybridPKError as exc:
+            raise ValueError(str(exc)) from None
         self.save_hyperparameters()
         self.hybrid: HybridFK | None = None
         self._val: dict[str, list[Tensor]] = {}

@@ -1,0 +1,152 @@
+"""The calibration workflow, one place for the CLI, the demo and the experiments:
+(diagnose ->) fit the frames of the nominal robot -> fit frames and effects.
+
+    result = calibrate(robot, data)                      # diagnose, then fit the causes
+    result = calibrate(robot, data, labels)              # fit these kind:joint effects
+    refit_frames(model, data, cond, "tool")              # re-fit one frame, effects kept
+
+``calibrate`` returns a :class:`CalibrationResult` (the fitted model, the nominal model
+with its frames fitted, both fits, the diagnosis when one ran); writing the model file
+and the URDF is the caller's (``hybrid-pk calibrate`` does both).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+from hybrid_pk.calibration.diagnosis import Diagnosis, diagnose
+from hybrid_pk.calibration.fit import FitResult, fit
+from hybrid_pk.calibration.frames import FramePriors
+from hybrid_pk.calibration.known_frames import initialise_with_priors
+from hybrid_pk.data import MeasuredData
+from hybrid_pk.effects import Conditions, Effect, ExtendedModel, conditions_from_data, make_effect
+from hybrid_pk.effects.gravity import Gravity
+from hybrid_pk.robot import Robot
+
+__all__ = [
+    "FRAME_LABELS",
+    "CalibrationResult",
+    "calibrate",
+    "cause_labels",
+    "diagnose_and_calibrate",
+    "refit_frames",
+]
+
+# Parameter blocks of the frames, by --refit choice (labels of calibration.fit).
+FRAME_LABELS = {
+    "base": ("base_frame.translation", "base_frame.rotation"),
+    "tool": ("tool_frame.translation", "tool_frame.rotation"),
+}
+FRAME_LABELS["frames"] = FRAME_LABELS["base"] + FRAME_LABELS["tool"]
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """What :func:`calibrate` returns.
+
+    Attributes:
+        model: frames and effects fitted on all rows.
+        nominal: the nominal robot with its frames fitted (the baseline).
+        fit: the fit of ``model``; ``nominal_fit`` that of ``nominal``.
+        labels: the fitted effects (``kind:joint``).
+        diagnosis: the diagnosis that chose them, or None when they were given.
+        conditions: the rows' operating conditions the fits used.
+    """
+
+    model: ExtendedModel
+    nominal: ExtendedModel
+    fit: FitResult
+    nominal_fit: FitResult
+    labels: list[str]
+    diagnosis: Diagnosis | None
+    conditions: Conditions
+
+
+def refit_frames(
+    model: ExtendedModel,
+    data: MeasuredData,
+    cond: Conditions,
+    which: str = "frames",
+    priors: FramePriors | None = None,
+    robust: str | None = None,
+) -> FitResult:
+    """Register then least-squares fit only the ``which`` frame(s); effects stay fixed.
+
+    Args:
+        which: ``"base"``, ``"tool"`` or ``"frames"`` (both).
+        priors: known frames (``--tool``, ``--base``) and the prior of the fit.
+        robust: robust loss (``--robust``), or None.
+    """
+    initialise_with_priors(model, data, cond, priors, which=which)
+    return fit(model, data, free=list(FRAME_LABELS[which]), cond=cond, frames=priors, robust=robust)
+
+
+def cause_labels(diag: Diagnosis) -> list[str]:
+    """The diagnosed causes as effect labels (``kind:joint`` or ``kind``)."""
+    return [c.effect if c.joint is None else f"{c.effect}:{c.joint}" for c in diag.causes]
+
+
+def calibrate(
+    robot: Robot,
+    data: MeasuredData,
+    labels: Sequence[str] | None = None,
+    *,
+    frames_per_file: bool = False,
+    holdout: float = 0.2,
+    seed: int = 0,
+    priors: FramePriors | None = None,
+    robust: str | None = None,
+    gravity: Gravity | None = None,
+    stage: Callable[[str], None] | None = None,
+    progress: Callable[[str], None] | None = None,
+    min_gain_mm: float | None = None,
+) -> CalibrationResult:
+    """Fit base/tool frames and physical effects to ``data``.
+
+    Args:
+        labels: the effects to fit; None diagnoses them first (``--effects auto``), the
+            fit then starts at the diagnosed values.
+        frames_per_file: each file of ``data`` gets its own base and tool frames.
+        holdout, seed: the diagnosis' hold-out fraction and split seed.
+        priors, robust, gravity: known frames, robust loss, mounting (as ``diagnose``).
+        stage: told the name of each step; ``progress``: the diagnosis' messages.
+        min_gain_mm: the diagnosis' practical margin on the blocked hold-out (None: its
+            default from the noise estimate).
+    """
+    stage = stage or (lambda _m: None)
+    sets = len(data.sources) if frames_per_file else 1
+    cond = conditions_from_data(data, frames_per_file)
+    diag = None
+    if labels is None:
+        stage("diagnosing effects")
+        diag = diagnose(
+            robot, data, holdout=holdout, seed=seed, frames_per_file=frames_per_file,
+            progress=progress, frames=priors, robust=robust, gravity=gravity,
+            min_gain_mm=min_gain_mm,
+        )  # fmt: skip
+        labels = cause_labels(diag)
+    stage("fitting frames to the nominal robot")
+    nominal = ExtendedModel(robot, frame_sets=sets, gravity=gravity)
+    res0 = refit_frames(nominal, data, cond, priors=priors, robust=robust)
+    stage("fitting frames and effects")
+    start = _start_effects(robot, list(labels), diag.model if diag else None)
+    model = ExtendedModel(robot, start, frame_sets=sets, gravity=gravity)
+    initialise_with_priors(model, data, cond, priors)
+    res = fit(model, data, cond=cond, frames=priors, robust=robust, weights=res0.weights)
+    return CalibrationResult(model, nominal, res, res0, list(labels), diag, cond)
+
+
+def diagnose_and_calibrate(robot: Robot, data: MeasuredData, **options) -> CalibrationResult:
+    """:func:`calibrate` of the effects the diagnosis names (``--effects auto``)."""
+    return calibrate(robot, data, None, **options)
+
+
+def _start_effects(robot, labels: list[str], diag_model: ExtendedModel | None) -> list[Effect]:
+    effects = []
+    for label in labels:
+        value = None
+        if diag_model is not None:
+            value = diag_model.effect(label).value.detach().clone()
+        effects.append(make_effect(robot, label, value))
+    return effects
