@@ -80,6 +80,7 @@ class Diagnosis:
     robust: dict | None = None
     structural: dict | None = None
     frames: dict | None = None
+    detectable: dict | None = None
 
     def to_json(self) -> dict:
         return {
@@ -99,6 +100,7 @@ class Diagnosis:
             "structural": self.structural,
             "frames": self.frames,
             "gravity": gravity_json(self.model),
+            "detectable": self.detectable,
         }
 
 

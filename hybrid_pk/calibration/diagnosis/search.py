@@ -25,6 +25,12 @@ from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic, unresol
 from hybrid_pk.calibration.diagnosis.elimination import eliminate
 from hybrid_pk.calibration.diagnosis.gains import measure_causes
 from hybrid_pk.calibration.diagnosis.plausibility import plausibility_warnings
+from hybrid_pk.calibration.diagnosis.power import (
+    check_determined,
+    detectable_json,
+    detection_limits,
+    frame_parameters,
+)
 from hybrid_pk.calibration.diagnosis.result import (
     Cause,
     Diagnosis,
@@ -96,6 +102,7 @@ def diagnose(
     model = ExtendedModel(
         robot, frame_sets=len(data.sources) if frames_per_file else 1, gravity=gravity
     )
+    check_determined(split, frame_parameters(model, split, frames))
     initialise_with_priors(model, split.train, split.cond_fit, frames)
     res = fit(
         model, split.train, cond=split.cond_fit, progress=_prefixed(say, "frames"),
@@ -116,6 +123,8 @@ def diagnose(
         model, res, pool, split, alpha, max_causes, say, flagged
     )
 
+    say("detection limits of the candidates not named")
+    detectable = detection_limits(model, res, pool, split, alpha, progress=say)
     say("measuring each cause's gain")
     errors = model_errors(model, split.test, split.cond_hold)
     causes = measure_causes(model, res, split, steps, alpha, errors, progress=say)
@@ -128,6 +137,7 @@ def diagnose(
         robust=_robust_json(res, data, split),
         structural=structural,
         frames=frame_json,
+        detectable=detectable_json(model, detectable),
         warnings=plausibility_warnings(causes, data) + _cap_warnings(steps),
         robot=robot.name,
         n_samples=data.n,
