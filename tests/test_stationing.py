@@ -13,8 +13,11 @@ import torch
 from hybrid_pk.calibration.fit import fit, model_errors
 from hybrid_pk.calibration.frames import FramePriors, FrameSpec
 from hybrid_pk.calibration.known_frames import initialise_with_priors
+from hybrid_pk.cli.main import main
+from hybrid_pk.data import write_table
 from hybrid_pk.effects import ExtendedModel, conditions_from_data
 from hybrid_pk.geometry import so3_exp, transform
+from hybrid_pk.io.model_file import load_model
 from tests.degenerate import measure, wrist_configs
 from tests.helpers import run_rng
 
@@ -64,3 +67,22 @@ def test_the_tool_stays_at_the_end_link_whatever_the_base(rx160, stationing, giv
     err = model_errors(model, other)[0]
     # within the campaign's noise: the rms 3-D error of a row is sqrt(3) x the noise
     assert float(err.pow(2).mean().sqrt()) < math.sqrt(3) * NOISE_MM, float(err.max())
+
+
+def test_calibrate_keeps_the_tool_at_the_end_link_with_or_without_tool(
+    rx160, stationing, tmp_path, capsys
+):
+    """The CLI: ``calibrate --effects none`` with and without ``--tool 0,0,0``."""
+    cal, other = stationing
+    write_table(tmp_path / "station.csv", cal)
+    models = []
+    for extra in ([], ["--tool", "0,0,0"]):
+        out = tmp_path / f"m{len(extra)}.pt"
+        argv = ["calibrate", tmp_path / "station.csv", "--robot", "rx160", "--effects", "none"]
+        rc = main([str(a) for a in [*argv, *extra, "--no-urdf", "--out", out]])
+        assert rc == 0, capsys.readouterr().err
+        models.append(load_model(out).model)
+    for model in models:
+        assert 1e3 * float(model.tool.matrix()[0, :3, 3].norm()) < 1.0
+        err = model_errors(model, other)[0]
+        assert float(err.pow(2).mean().sqrt()) < math.sqrt(3) * NOISE_MM

@@ -31,7 +31,7 @@ def detectable_section(diagnosis) -> list[str]:
         if w is None or d["value"] > w["value"]:
             worst[d["family"]] = d
     rows = [
-        [f, d["joint"] or "-", f"{d['value']:.3g} {d['unit']}", d["mm_rms"], d["mm_rms_left"]]
+        [f, d["joint"] or "-", f"{d['value']:.3g} {d['unit']}", d["mm_rms"]]
         for f, d in sorted(worst.items(), key=lambda kv: -kv[1]["mm_rms"])
     ]
     lines = ["## What these data cannot show", ""]
@@ -42,13 +42,12 @@ def detectable_section(diagnosis) -> list[str]:
         f"The smallest effect of each kind not named that this campaign would have "
         f"detected with {100 * det['power']:.0f} % power at the diagnosis' level (the "
         "largest over the joints: smaller effects of that kind may hide at some joint); "
-        "mm: the rms change of the measured point it makes, and what is left of it once "
-        "the frames and named causes absorb what they can.",
+        "mm: the rms change of the measured point such an effect makes.",
         "",
         markdown_table(
             rows,
-            ["effect", "worst joint", "detectable from", "point [mm rms]", "left [mm rms]"],
-            ["l", "l", "r", "r", "r"],
+            ["effect", "worst joint", "detectable from", "point [mm rms]"],
+            ["l", "l", "r", "r"],
         ),
         "",
         det["summary"] + ".",

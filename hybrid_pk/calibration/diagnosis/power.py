@@ -10,10 +10,8 @@ detects it with 80 % power once ``lambda`` reaches ``lambda_80`` (noncentral F).
 smallest such ``theta`` along the candidate's worst identifiable direction is
 ``sqrt(lambda_80 / g_min)`` (``g_min`` the smallest eigenvalue of ``G``): any effect
 of that size or more, whatever its direction, is detected with >= 80 % probability.
-``mm_rms`` is the rms change of the measured point such an effect makes (over the
-``N`` fit rows, in position-noise units times ``sigma_pos``: full poses count their
-orientation rows too), ``mm_rms_left`` what is left of it once the frames and named
-causes have absorbed what they can (``sigma_pos sqrt(lambda_80 / N)``).
+``mm_rms`` is the rms change of the measured point such an effect makes over the
+fit rows (plain position Jacobian, before the frames absorb any of it).
 """
 
 from __future__ import annotations
@@ -25,8 +23,9 @@ import torch
 
 from hybrid_pk.calibration.diagnosis.selection import RANK_TOLERANCE, score_candidates
 from hybrid_pk.calibration.diagnosis.split import Split
+from hybrid_pk.calibration.diagnosis.variants import with_effects
 from hybrid_pk.calibration.fit import FitResult
-from hybrid_pk.calibration.problem import param_blocks
+from hybrid_pk.calibration.problem import Problem, param_blocks
 from hybrid_pk.effects import ExtendedModel, make_effect
 from hybrid_pk.effects.joint import CYCLIC_PREFIX
 from hybrid_pk.effects.limits import effect_limit
@@ -90,7 +89,8 @@ def detection_limits(
 
     Returns one entry per candidate with an identifiable signature: ``effect``,
     ``joint``, ``family``, ``value`` (the smallest detectable size, in ``unit``),
-    ``mm_rms``, ``alpha`` (the level per candidate) and ``power``.
+    ``mm_rms`` (the rms motion of the point it makes [mm]), ``alpha`` (the level per
+    candidate) and ``power``.
     """
     chosen = {e.label for e in model.effects}
     pool = [c for c in pool if c not in chosen]
@@ -100,8 +100,7 @@ def detection_limits(
     if not scores.scored:
         return []
     level = scores.threshold
-    n_rows = split.train.n
-    columns = _candidate_columns(scores)
+    columns = _position_columns(model, [sc.label for sc in scores.scored], split)
     out = []
     for sc in scores.scored:
         _, S, Vt = torch.linalg.svd(sc.signature, full_matrices=False)
@@ -110,7 +109,8 @@ def detection_limits(
         lam = noncentrality(level, sc.k, d2)
         theta = math.sqrt(lam) / float(S[k - 1]) * Vt[k - 1]  # worst direction, scaled
         effect = make_effect(model.robot, sc.label)
-        moved = float((columns[sc.label] @ theta).norm())  # noise units, before absorbing
+        J_pos, n_sub = columns[sc.label]
+        moved = float((J_pos @ theta).norm()) / math.sqrt(n_sub)  # rms point motion [mm]
         name, _, joint = sc.label.partition(":")
         out.append(
             {
@@ -119,8 +119,7 @@ def detection_limits(
                 "family": family_of(sc.label),
                 "value": float(theta.norm()) * effect.scale,
                 "unit": effect.unit,
-                "mm_rms": res.sigma_pos_mm * moved / math.sqrt(max(n_rows, 1)),
-                "mm_rms_left": res.sigma_pos_mm * math.sqrt(lam / max(n_rows, 1)),
+                "mm_rms": moved,
                 "alpha": level,
                 "power": POWER,
             }
@@ -128,13 +127,25 @@ def detection_limits(
     return out
 
 
-def _candidate_columns(scores) -> dict[str, torch.Tensor]:
-    """Each scored candidate's own columns of the scores' factor (not projected)."""
+# Rows of the plain position Jacobian used for the mm at the measured point (an even
+# subset: an rms over the workspace, not a sum).
+MM_ROWS = 400
+
+
+def _position_columns(model: ExtendedModel, labels: list[str], split: Split) -> dict:
+    """Each candidate's position columns [mm per scaled unit] on an even subset of the
+    fit rows (the plain motion of the point, no noise weights)."""
+    step = max(1, -(-split.train.n // MM_ROWS))
+    rows = torch.arange(0, split.train.n, step)
+    sub, cond = split.train.subset(rows), split.cond_fit.subset(rows)
+    trial = with_effects(model, [make_effect(model.robot, c) for c in labels])
+    blocks = param_blocks(trial, labels, split.position_only)
+    _, J = Problem(trial, sub, cond, blocks, 1.0, 1e-3).jacobian(
+        torch.zeros(sum(b.size for b in blocks), dtype=torch.float64)
+    )
     out, start = {}, 0
-    labels = {sc.label for sc in scores.scored}
-    for b in scores.blocks:
-        if start >= scores.n_current and b.label in labels:
-            out[b.label] = scores.R[:, start : start + b.size]
+    for b in blocks:
+        out[b.label] = (J[: 3 * sub.n, start : start + b.size], sub.n)
         start += b.size
     return out
 
