@@ -7,6 +7,7 @@
 - ``rx160``, ``ur10``: the shipped robots with their parameters frozen
   (``requires_grad_(False)``), one per test module so a test that edits one cannot leak
   into another module.
+- the seed sweep (``@pytest.mark.sweep``) is left out unless ``-m sweep`` asks for it.
 - ``pin``: pinocchio, the FK / Jacobian / gravity oracle. Only a test that asks for it is
   skipped where pinocchio is not installed (a module-level ``importorskip`` would
   silently skip the module's gradient tests too).
@@ -26,6 +27,16 @@ from tests.helpers import RUN_SEED
 
 def pytest_report_header(config: pytest.Config) -> str:
     return f"hidden-effect tests: HYBRID_PK_TEST_SEED={RUN_SEED} (set it to replay this run)"
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """The seed sweep (``@pytest.mark.sweep``) runs only when asked for: ``-m sweep``."""
+    if "sweep" in (config.option.markexpr or ""):
+        return
+    sweep = [item for item in items if item.get_closest_marker("sweep")]
+    if sweep:
+        config.hook.pytest_deselected(items=sweep)
+        items[:] = [item for item in items if not item.get_closest_marker("sweep")]
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 import os
-import time
 from collections.abc import Callable
 
 import numpy as np
@@ -21,10 +20,13 @@ from hybrid_pk.hybrid.builder import HybridSettings
 # Leading batch shapes every batched function is tested with (jaxlie style).
 BATCH_SHAPES: list[tuple[int, ...]] = [(), (1,), (3, 2)]
 
-# Hidden-effect tests draw the effect, joint and magnitude from this seed, which changes
-# every run; ``HYBRID_PK_TEST_SEED=N`` replays run N (pytest's header prints it, and every
-# failure message of those tests names it).
-RUN_SEED: int = int(os.environ.get("HYBRID_PK_TEST_SEED", time.time_ns() % 1_000_003))
+# Hidden-effect tests draw the effect, joint and magnitude from this seed. It is pinned,
+# so that a failure in CI is the same failure on every rerun and gets investigated, not
+# redrawn; ``HYBRID_PK_TEST_SEED=N`` runs draw N (pytest's header prints the seed, and every
+# failure message of those tests names it). New draws are the sweep's job:
+# ``python -m pytest -m sweep`` (tests/test_seed_sweep.py).
+PINNED_SEED = 12345  # an arbitrary fixed draw, chosen before any run of it was seen
+RUN_SEED: int = int(os.environ.get("HYBRID_PK_TEST_SEED", PINNED_SEED))
 
 
 def run_rng(salt: str) -> np.random.Generator:

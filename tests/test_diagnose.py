@@ -1,7 +1,7 @@
-"""Diagnosis must find hidden effects: kind, joint and value drawn at random per run.
+"""Diagnosis must find hidden effects: kind, joint and value drawn at random from a seed.
 
-The seed changes every run (set ``HYBRID_PK_TEST_SEED`` to replay one); every
-failure message names it. Campaigns: 2,000–4,000 rows, noise 0.01–0.03 mm, effect
+The seed is pinned (``HYBRID_PK_TEST_SEED`` runs another; ``-m sweep`` runs fresh ones);
+every failure message names it. Campaigns: 2,000–4,000 rows, noise 0.01–0.03 mm, effect
 sized to 0.15–0.9 mm mean error on the campaign itself, unknown base and tool frames.
 """
 

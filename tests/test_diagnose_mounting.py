@@ -1,7 +1,7 @@
 """Hidden effects on robots that do not stand upright, and deflection beyond the axis.
 
-Same rules as ``test_diagnose.py`` (random robot, joint, size, mount; the seed changes
-every run, ``HYBRID_PK_TEST_SEED`` replays one): the simulated tracker stands level,
+Same rules as ``test_diagnose.py`` (random robot, joint, size, mount from the pinned
+seed, ``HYBRID_PK_TEST_SEED`` runs another): the simulated tracker stands level,
 the robot's base is turned against gravity by 5-180 degrees, and the diagnosis is told
 only ``--gravity level-tracker``. It must name the effects with their values.
 """

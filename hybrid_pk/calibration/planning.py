@@ -43,7 +43,7 @@ from torch import Tensor
 
 from hybrid_pk.calibration.problem import Problem, param_blocks
 from hybrid_pk.data.measured import MeasuredData
-from hybrid_pk.effects import Conditions, ExtendedModel, approach_direction, make_effect
+from hybrid_pk.effects import EFFECTS, Conditions, ExtendedModel, approach_direction, make_effect
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import matrix_to_quat
 from hybrid_pk.robot import Robot
@@ -63,11 +63,6 @@ __all__ = [
 ]
 
 F64 = torch.float64
-# Effects whose information the choice of poses does not control.
-UNPLANNABLE = {
-    "thermal_expansion": "its information comes from the temperature spread over the "
-    "campaign, not from the poses",
-}
 CRITERIA = {
     "d": "D-optimal: largest determinant of the information",
     "a": "A-optimal: smallest sum of the variances, each relative to random poses'",
@@ -400,11 +395,11 @@ def plan_poses(
         raise HybridPKError(f"unknown criterion {criterion!r}; choose one of {', '.join(CRITERIA)}")
     if n < 1 or candidates < n:
         raise HybridPKError(f"need 1 <= N <= candidates, got N={n}, candidates={candidates}")
+    # Effects whose information the choice of poses does not control (their class says why).
     kinds = [e.partition(":")[0] for e in effects]
-    left_out = tuple(
-        (e, UNPLANNABLE[k]) for e, k in zip(effects, kinds, strict=True) if k in UNPLANNABLE
-    )
-    kept = [e for e, k in zip(effects, kinds, strict=True) if k not in UNPLANNABLE]
+    why = [EFFECTS[k].unplannable if k in EFFECTS else None for k in kinds]
+    left_out = tuple((e, w) for e, w in zip(effects, why, strict=True) if w)
+    kept = [e for e, w in zip(effects, why, strict=True) if not w]
     model = ExtendedModel(robot, [make_effect(robot, e) for e in kept], tool=tool)
     model.requires_grad_(False)
     blocks = param_blocks(model, None, position_only)

@@ -49,8 +49,8 @@ def param_blocks(
     """The parameter blocks of ``model`` to fit: frames first, then every effect.
 
     Args:
-        free: labels (``"joint_offset:joint_2"``, ``"base_frame.rotation"``) or module
-            paths of the blocks to keep; ``None`` keeps all.
+        free: labels (an effect's ``label``, ``kind:joint``, or ``"base_frame.rotation"``)
+            or module paths of the blocks to keep; ``None`` keeps all.
         position_only: drop the tool rotation (unobservable from points).
     """
     blocks = []

@@ -9,6 +9,7 @@ Two forms (contract section 3)::
 from __future__ import annotations
 
 import argparse
+import textwrap
 
 from hybrid_pk.calibration.diagnosis import diagnose
 from hybrid_pk.calibration.fit import fit
@@ -57,6 +58,7 @@ from hybrid_pk.effects import (
     make_effect,
     parse_gravity,
 )
+from hybrid_pk.effects.vocabulary import vocabulary_units
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import error_stats
 from hybrid_pk.io.model_file import save_model
@@ -74,12 +76,7 @@ Fit base/tool frames and physical error effects to measured poses; write one MOD
                                  only the tool frame, the base frame, or both (after a
                                  tool was re-mounted or the tracker moved)
 
-Effects and units: joint_offset [rad], joint_compliance [rad/Nm], gear_ratio [1],
-joint_eccentricity [rad], cyclic_error_<n> [rad, n = 2..36 cycles per turn], backlash
-[rad, full play], link_length [m, vector],
-axis_misalignment [rad, rotation vector], thermal_expansion [1/K, not per joint],
-tilt_compliance [rad/Nm about the two axes perpendicular to the joint], column_bending
-[rad/Nm/m, prismatic joints]. Compliance and deflection use --gravity (the mounting).
+{units}
 The frames are always estimated: base = measurement frame <- robot root, tool =
 flange -> measured point. Errors are reported in mm (position) and deg (orientation).
 """
@@ -87,7 +84,8 @@ flange -> measured point. Errors are reported in mm (position) and deg (orientat
 
 NAME = "calibrate"
 HELP = "fit frames + physical effects to measured poses; write a MODEL file"
-DESCRIPTION = _DESCRIPTION
+_UNITS = f"Effects and units: {vocabulary_units()}. Compliance and deflection use --gravity."
+DESCRIPTION = _DESCRIPTION.replace("{units}", textwrap.fill(_UNITS, 88))
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

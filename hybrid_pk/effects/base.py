@@ -4,10 +4,16 @@ An effect is a small ``nn.Module`` with one learnable ``value`` (the number of t
 contract's vocabulary, in its unit). It acts in one of two places:
 
 - ``stage = "joint"``: maps commanded joint values to true ones, ``apply_q``;
-- ``stage = "geometry"``: perturbs the kinematic parameters, ``apply_params``.
+- ``stage = "geometry"``: perturbs the kinematic parameters, ``apply_params``;
+- ``stage = "compliance"``: a joint spring, solved as a fixed point by the model (it
+  needs gravity torques at the deflected configuration), so it only exposes its
+  coefficient;
+- ``stage = "deflection"``: bends an origin under the static wrench the model computes
+  once per forward pass (``apply_deflection``).
 
-Compliance is a joint effect solved as a fixed point by the model (it needs gravity
-torques at the deflected configuration), so it only exposes its coefficient.
+Each class also describes itself to the rest of the library (limits, candidate
+selection, plausibility, planning, evidence plots, simulation, IK conditions, help
+texts read these class attributes, never the kind's name): see :class:`Effect`.
 
 The same modules serve simulation (set ``value``) and identification (fit it).
 
@@ -21,7 +27,7 @@ origin in front of it, ``joint_index`` being its index along the chain.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 import torch
 from torch import Tensor, nn
@@ -33,35 +39,103 @@ from hybrid_pk.robot import KinematicParams, Robot
 __all__ = [
     "EFFECTS",
     "Effect",
+    "EvidenceVariable",
+    "JointRule",
+    "Stage",
     "effect_joint_names",
+    "effect_joint_types",
+    "family_members",
     "known_kinds",
     "make_effect",
     "register_family",
 ]
 
 
+Stage = Literal["joint", "compliance", "geometry", "deflection"]
+# The joints an effect may sit on: revolute ones only, prismatic ones only, any, or
+# none (one value for the whole robot).
+JointRule = Literal["revolute", "prismatic", "any", "none"]
+# What an evidence plot puts on its x axis: the joint's angle, the gravity torque on the
+# joint, the static moment at the joint, the row's temperature, or the approach
+# direction the acquisition order gives.
+EvidenceVariable = Literal["joint_angle", "torque", "moment", "temperature", "row_order", "pose"]
+
+
 class Effect(nn.Module):
     """One physical error source with a single learnable ``value``.
 
-    Class attributes:
+    Class attributes (what the rest of the library asks an effect):
         kind: vocabulary name (contract section 4).
         unit: unit of ``value``.
-        stage: ``"joint"`` or ``"geometry"``.
+        stage: where it acts, one of ``"joint"`` (commanded -> true joint value,
+            :meth:`apply_q`), ``"compliance"`` (a joint spring the model solves as a
+            fixed point), ``"geometry"`` (the kinematic parameters, :meth:`apply_params`)
+            or ``"deflection"`` (an origin bent by the static wrench).
         scale: typical magnitude of ``value``; identification works in ``value / scale``
             so that mm-, mrad- and µrad/Nm-sized parameters are equally conditioned.
-        needs: which :class:`Conditions` field it reads, if any.
+        needs: which :class:`Conditions` field it reads, if any (``"direction"``,
+            ``"temperature"``, ``"payload"``).
         joint_set: ``"robot"`` (named by one of ``robot.joint_names``) or ``"chain"``
             (one of ``robot.chain_joint_names``: geometric effects on an origin).
+        joints: the joints it may sit on (:data:`JointRule`); ``"none"`` for an effect
+            that is not per joint.
+        positive: its physical sign rule: True where a negative value is not physical
+            (play, compliance), so simulation draws it >= 0 and the diagnosis warns.
+        limit: largest credible norm of ``value`` [its unit] (None: depends on the loads
+            or the data); :func:`~hybrid_pk.effects.limits.effect_limit` adapts it to a
+            prismatic joint.
+        unplannable: None when the choice of poses controls its information; otherwise
+            why not (pose planning leaves it out and says so).
+        evidence: the variable its evidence plot shows it against (:data:`EvidenceVariable`).
+        simulate_random: drawn by ``simulate --effects random[:K]``.
+        first_joint_is_frame: on the first joint it is a base-frame error (simulation
+            does not draw it there; the diagnosis does not test geometric ones there).
+        needs_torque: only observable on a joint that gravity loads (simulation draws it
+            on such joints only).
+        law: its law in words, as evidence plots show it.
+        equation: its model in one line (the contract's vocabulary table).
+        description: its model with what the user needs to know (the README's table).
     """
 
     kind: ClassVar[str]
     unit: ClassVar[str]
-    stage: ClassVar[str]
+    stage: ClassVar[Stage]
     scale: ClassVar[float]
     shape: ClassVar[tuple[int, ...]] = ()
     needs: ClassVar[str | None] = None
     per_joint: ClassVar[bool] = True
     joint_set: ClassVar[str] = "robot"
+    joints: ClassVar[JointRule] = "any"
+    positive: ClassVar[bool] = False
+    limit: ClassVar[float | None] = None
+    unplannable: ClassVar[str | None] = None
+    evidence: ClassVar[EvidenceVariable] = "joint_angle"
+    simulate_random: ClassVar[bool] = False
+    first_joint_is_frame: ClassVar[bool] = False
+    needs_torque: ClassVar[bool] = False
+    law: ClassVar[str] = ""
+    equation: ClassVar[str] = ""
+    description: ClassVar[str] = ""
+
+    @classmethod
+    def implausible(cls, value: float | list[float]) -> list[str]:
+        """Why a fitted ``value`` (as reported) is not physically credible; empty where
+        it is. The base rule: a ``positive`` effect below zero."""
+        if cls.positive and min(value if isinstance(value, list) else [value]) < 0:
+            return [
+                f"negative {cls.kind} ({value:.3g} {cls.unit}) is not physical: "
+                "it likely absorbs another, unmodelled error"
+            ]
+        return []
+
+    @classmethod
+    def allowed_on(cls, joint_type: str) -> bool:
+        """Whether it may sit on a joint of type ``joint_type`` (``"revolute"``, ...)."""
+        if cls.joints == "any":
+            return True
+        if cls.joints == "prismatic":
+            return joint_type == "prismatic"
+        return cls.joints == "revolute" and joint_type != "prismatic"
 
     def __init__(self, robot: Robot, joint: str | None = None, value=None) -> None:
         super().__init__()
@@ -108,13 +182,16 @@ class _Registry(dict):
     (``cyclic_error_<n>``, one kind per order ``n``) built on demand. Iterating lists
     the registered kinds only."""
 
-    # prefix -> (build(kind): the member's class or None, the family's name in lists)
-    families: ClassVar[dict[str, tuple[Callable[[str], type[Effect] | None], str]]] = {}
+    # prefix -> (build(kind): the member's class or None, the family's name in lists,
+    # the class its members derive from)
+    families: ClassVar[
+        dict[str, tuple[Callable[[str], type[Effect] | None], str, type[Effect] | None]]
+    ] = {}
 
     def _member(self, kind: object) -> type[Effect] | None:
         if not isinstance(kind, str):
             return None
-        for prefix, (build, _) in self.families.items():
+        for prefix, (build, _, _) in self.families.items():
             if kind.startswith(prefix):
                 return build(kind)
         return None
@@ -132,20 +209,36 @@ class _Registry(dict):
 EFFECTS: dict[str, type[Effect]] = _Registry()
 
 
-def register_family(prefix: str, build: Callable[[str], type[Effect] | None], shown: str) -> None:
+def register_family(
+    prefix: str,
+    build: Callable[[str], type[Effect] | None],
+    shown: str,
+    common: type[Effect] | None = None,
+) -> None:
     """Kinds ``prefix...`` are made by ``build(kind)`` (None: not a member); ``shown``
-    names the family in lists of known effects."""
-    _Registry.families[prefix] = (build, shown)
+    names the family in lists of known effects; ``common`` is the class every member
+    derives from (it describes the family: unit, law, ...)."""
+    _Registry.families[prefix] = (build, shown, common)
+
+
+def family_members() -> list[tuple[str, type[Effect]]]:
+    """``(prefix<n>, common class)`` of every family of kinds that states its class."""
+    return [(f"{p}<n>", c) for p, (_, _, c) in _Registry.families.items() if c is not None]
 
 
 def known_kinds() -> str:
     """The effect kinds for an error message: registered ones and families."""
-    return ", ".join(sorted(EFFECTS) + sorted(shown for _, shown in _Registry.families.values()))
+    return ", ".join(sorted(EFFECTS) + sorted(f[1] for f in _Registry.families.values()))
 
 
 def effect_joint_names(robot: Robot, cls: type[Effect]) -> list[str]:
     """The joints an effect of class ``cls`` may name on ``robot`` (in index order)."""
     return robot.chain_joint_names if cls.joint_set == "chain" else robot.joint_names
+
+
+def effect_joint_types(robot: Robot, cls: type[Effect]) -> list[str]:
+    """The types of :func:`effect_joint_names` (``"revolute"``, ``"prismatic"``, ...)."""
+    return robot.chain_joint_types if cls.joint_set == "chain" else robot.joint_types
 
 
 def register(cls: type[Effect]) -> type[Effect]:

@@ -34,6 +34,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.effects.base import Effect, register
+from hybrid_pk.effects.limits import MAX_COMPLIANCE
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import so3_exp
 from hybrid_pk.robot import KinematicParams
@@ -83,12 +84,22 @@ class DeflectionEffect(Effect):
 
     stage, shape, scale = "deflection", (2,), 1e-6
     joint_set = "chain"  # a physical joint of the chain (each mimic segment bends)
+    positive, evidence = True, "moment"  # a load cannot bend a structure towards itself
 
     def __init__(self, robot, joint: str | None = None, value=None) -> None:
         super().__init__(robot, joint, value)
         axis = torch.as_tensor(robot.spec.axes[self.joint_index], dtype=robot.dtype)
         self.register_buffer("axis_unit", axis / axis.norm())
         self.register_buffer("basis", perpendicular_basis(axis))  # (2, 3)
+
+    @classmethod
+    def implausible(cls, value: float | list[float]) -> list[str]:
+        if min(value) >= 0:
+            return []
+        return [
+            f"negative {cls.kind} ({', '.join(f'{v:.3g}' for v in value)} {cls.unit}): a load "
+            "cannot bend a structure towards itself; it likely absorbs another, unmodelled error"
+        ]
 
     def _bend(self, moment: Tensor, value: Tensor | None) -> Tensor:
         """``-(c1 m1 e1 + c2 m2 e2)`` for moments ``(*B, 3)`` in the joint frame."""
@@ -128,7 +139,14 @@ class TiltCompliance(DeflectionEffect):
     Value ``(c1, c2)`` [rad/Nm] about ``e1, e2`` (:func:`perpendicular_basis`).
     """
 
-    kind, unit = "tilt_compliance", "rad/Nm"
+    kind, unit, limit = "tilt_compliance", "rad/Nm", MAX_COMPLIANCE
+    equation = "w = −(c₁M₁e₁ + c₂M₂e₂): tilt about the two axes perpendicular to the joint"
+    description = (
+        "the joint's bearings and the link after it tilt about the two axes e1, e2 "
+        "perpendicular to the joint axis: w = −(c₁M₁e₁ + c₂M₂e₂), M the holding moment of "
+        "the static gravity + payload wrench (`Robot.static_wrenches`); value [c₁, c₂] "
+        "(e1, e2 = x, y of the joint frame for an axis along z)"
+    )
 
     def rotation(self, wrench: Tensor, q: Tensor, value: Tensor | None = None):
         w = self._bend(wrench[..., 3:], value)
@@ -145,7 +163,13 @@ class ColumnBending(DeflectionEffect):
     extension.
     """
 
-    kind, unit = "column_bending", "rad/Nm/m"
+    kind, unit, joints = "column_bending", "rad/Nm/m", "prismatic"  # grows with extension
+    equation = "w = −q(b₁M₁e₁ + b₂M₂e₂): a column extended by q bends, prismatic joints"
+    description = (
+        "prismatic joints: a column extended by q bends like a beam of free length q, "
+        "w = −q(b₁M₁e₁ + b₂M₂e₂), moment and pivot at mid-extension; with the same joint's "
+        "`tilt_compliance` the tilt is (c + b·q)·M"
+    )
 
     def __init__(self, robot, joint: str | None = None, value=None) -> None:
         super().__init__(robot, joint, value)

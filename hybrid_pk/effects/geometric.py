@@ -14,10 +14,13 @@ candidates.
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from hybrid_pk.effects.base import Effect, register
 from hybrid_pk.effects.conditions import Conditions
+from hybrid_pk.effects.limits import MAX_ROTATION_DEG, MAX_TRANSLATION_M
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import so3_exp
 from hybrid_pk.robot import KinematicParams
@@ -36,7 +39,10 @@ def _onehot_rows(n: int, index: int, like: torch.Tensor) -> torch.Tensor:
 @register
 class LinkLength(Effect):
     kind, unit, stage, scale, shape = "link_length", "m", "geometry", 1e-3, (3,)
-    joint_set = "chain"
+    joint_set, limit, evidence = "chain", MAX_TRANSLATION_M, "pose"
+    simulate_random = first_joint_is_frame = True  # origin 0 is the base frame's
+    equation = "error vector of a fixed joint-origin translation"
+    description = "translation error of the origin in front of the joint (vector)"
 
     def apply_params(self, params: KinematicParams, cond: Conditions) -> KinematicParams:
         xyz = params.origin_xyz
@@ -54,7 +60,13 @@ class AxisMisalignment(Effect):
     """
 
     kind, unit, stage, scale, shape = "axis_misalignment", "rad", "geometry", 1e-3, (2,)
-    joint_set = "chain"
+    joint_set, limit, evidence = "chain", math.radians(MAX_ROTATION_DEG), "pose"
+    simulate_random = first_joint_is_frame = True  # origin 0 is the base frame's
+    equation = "small rotation vector of a fixed joint-origin rotation"
+    description = (
+        "rotation error of that origin, perpendicular to the joint axis (a rotation about "
+        "the axis *is* a joint offset)"
+    )
 
     def __init__(self, robot, joint: str | None = None, value=None) -> None:
         super().__init__(robot, joint, None)
@@ -100,10 +112,30 @@ class AxisMisalignment(Effect):
         return params._replace(origin_rot=R @ (eye + e * (dR - eye)))
 
 
+# Largest credible linear expansion coefficient [1/K]: structural metals are 1e-5..2.5e-5,
+# polymers reach ~1e-4.
+MAX_CREDIBLE_EXPANSION = 5e-5
+
+
 @register
 class ThermalExpansion(Effect):
     kind, unit, stage, scale, needs = "thermal_expansion", "1/K", "geometry", 1e-5, "temperature"
-    per_joint = False
+    per_joint, joints, evidence = False, "none", "temperature"
+    equation = "link translations × (1 + α (T − T_ref)), T_ref = 20 °C"
+    description = "all link translations × (1 + α(T − 20 °C))"
+    unplannable = (
+        "its information comes from the temperature spread over the campaign, not from the poses"
+    )
+
+    @classmethod
+    def implausible(cls, value: float | list[float]) -> list[str]:
+        alpha = float(value)  # type: ignore[arg-type]
+        if 0 <= alpha <= MAX_CREDIBLE_EXPANSION:
+            return []
+        return [
+            f"alpha = {alpha:.3g} 1/K is outside any structural material "
+            f"(0 .. {MAX_CREDIBLE_EXPANSION:.0e})"
+        ]
 
     def apply_params(self, params: KinematicParams, cond: Conditions) -> KinematicParams:
         if cond.temperature is None:

@@ -17,6 +17,7 @@ arm sags under its weight, as a real spring-loaded gearbox does.
 from __future__ import annotations
 
 import functools
+import math
 from typing import ClassVar
 
 import torch
@@ -24,6 +25,12 @@ from torch import Tensor
 
 from hybrid_pk.effects.base import Effect, register, register_family
 from hybrid_pk.effects.conditions import Conditions
+from hybrid_pk.effects.limits import (
+    MAX_BACKLASH_DEG,
+    MAX_COMPLIANCE,
+    MAX_GEAR_RATIO,
+    MAX_ROTATION_DEG,
+)
 from hybrid_pk.errors import HybridPKError
 
 __all__ = [
@@ -48,6 +55,10 @@ def _add_to_joint(q: Tensor, index: int, delta: Tensor) -> Tensor:
 @register
 class JointOffset(Effect):
     kind, unit, stage, scale = "joint_offset", "rad", "joint", 1e-3
+    limit = math.radians(MAX_ROTATION_DEG)
+    simulate_random = first_joint_is_frame = True  # a first-joint offset is a base yaw
+    law = "θ_true - θ = δ: a flat line"
+    equation = description = "θ_true = θ + δ"
 
     def apply_q(self, q: Tensor, cond: Conditions) -> Tensor:
         return _add_to_joint(q, self.joint_index, self.value.to(q.dtype).expand(q.shape[:-1]))
@@ -56,6 +67,9 @@ class JointOffset(Effect):
 @register
 class GearRatio(Effect):
     kind, unit, stage, scale = "gear_ratio", "1", "joint", 1e-4
+    joints, limit, simulate_random = "revolute", MAX_GEAR_RATIO, True
+    law = "θ_true - θ = s · θ: a line through the origin, slope s"
+    equation, description = "θ_true = θ · (1 + s)", "θ_true = θ(1 + s)"
 
     def apply_q(self, q: Tensor, cond: Conditions) -> Tensor:
         return _add_to_joint(q, self.joint_index, q[..., self.joint_index] * self.value)
@@ -67,11 +81,17 @@ class JointEccentricity(Effect):
 
     kind, unit, stage, scale, shape = "joint_eccentricity", "rad", "joint", 1e-3, (2,)
     order: ClassVar[int] = 1  # cycles per revolution of the joint
+    joints, limit, simulate_random = "revolute", math.radians(MAX_ROTATION_DEG), True
+    equation = "θ_true = θ + a sin θ + b cos θ; value: amplitude √(a² + b²)"
+    description = "θ_true = θ + a sin θ + b cos θ (value √(a²+b²); `components` [a, b])"
 
     def apply_q(self, q: Tensor, cond: Conditions) -> Tensor:
         th = self.order * q[..., self.joint_index]
         a, b = self.value.to(q.dtype).unbind(-1)
         return _add_to_joint(q, self.joint_index, a * torch.sin(th) + b * torch.cos(th))
+
+
+MAX_CYCLIC_ORDER = 36  # a period of 10 degrees; the diagnosis tests every order up to it
 
 
 class CyclicError(JointEccentricity):
@@ -84,9 +104,22 @@ class CyclicError(JointEccentricity):
     """
 
     scale = 1e-4
+    simulate_random = False
+    equation = (
+        f"θ_true = θ + a sin nθ + b cos nθ, n = 2 … {MAX_CYCLIC_ORDER} (one kind per "
+        "order); value: amplitude √(a² + b²)"
+    )
+    description = (
+        f"θ_true = θ + a sin nθ + b cos nθ, n = 2 … {MAX_CYCLIC_ORDER} cycles per turn of "
+        "the joint: a multi-pole output encoder's or a gear stage's periodic error, an "
+        "out-of-round bearing (n = 2); value √(a²+b²), `components` [a, b]. At every step "
+        "the diagnosis ranks the orders of each revolute joint by a periodogram of the "
+        "angle error the current model leaves and tests the two best peaks with the orders "
+        "next to them (every order counts in the Bonferroni level); a neighbouring order "
+        "that explains ≥ 90 % as much is listed under `ambiguous`"
+    )
 
 
-MAX_CYCLIC_ORDER = 36  # a period of 10 degrees; the diagnosis tests every order up to it
 CYCLIC_PREFIX = "cyclic_error_"
 
 
@@ -106,7 +139,9 @@ def cyclic_error_kind(kind: str) -> type[CyclicError] | None:
     return _cyclic_class(order) if 2 <= order <= MAX_CYCLIC_ORDER else None
 
 
-register_family(CYCLIC_PREFIX, cyclic_error_kind, f"{CYCLIC_PREFIX}<n> (n = 2..{MAX_CYCLIC_ORDER})")
+register_family(
+    CYCLIC_PREFIX, cyclic_error_kind, f"{CYCLIC_PREFIX}<n> (n = 2..{MAX_CYCLIC_ORDER})", CyclicError
+)
 
 
 @register
@@ -122,6 +157,17 @@ class Backlash(Effect):
     """
 
     kind, unit, stage, scale, needs = "backlash", "rad", "joint", 1e-3, "direction"
+    joints, positive, limit = "revolute", True, math.radians(MAX_BACKLASH_DEG)
+    evidence, simulate_random = "row_order", True
+    law = "θ_true - θ = ± b/2 by approach direction: two levels, b apart"
+    equation = "θ_true = θ + (b / 2) · sign(approach direction); b the full play"
+    description = (
+        "θ_true = θ + (b/2)·sign(approach direction), direction from row order; an IK "
+        'target has no row order: `solve_ik*(…, approach=+1 / -1 / {"joint_3": -1})` and '
+        "`hybrid-pk ik --approach + / - / joint_3=-` solve for the side the robot will come "
+        "from, and without it the mid-play model (direction 0, at most b/2 from either "
+        "side) is solved and a note says so"
+    )
 
     def apply_q(self, q: Tensor, cond: Conditions) -> Tensor:
         if cond.direction is None:
@@ -141,3 +187,11 @@ class JointCompliance(Effect):
     as a fixed point (torques depend on the deflected configuration)."""
 
     kind, unit, stage, scale = "joint_compliance", "rad/Nm", "compliance", 1e-6
+    joints, positive, limit, evidence = "revolute", True, MAX_COMPLIANCE, "torque"
+    simulate_random = needs_torque = True
+    law = "θ_true - θ = c · τ_gravity: a line through the origin, slope c"
+    equation = "θ_true = θ + c · τ_gravity(θ_true, payload)"
+    description = (
+        "θ_true = θ + c·τ_gravity(θ_true, payload) — τ_gravity is the torque gravity exerts "
+        "(minus the holding torque `Robot.gravity_torques`), so c > 0 sags"
+    )

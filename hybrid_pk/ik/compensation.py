@@ -41,6 +41,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.effects import Conditions, ExtendedModel, approach_direction
+from hybrid_pk.effects.joint import Backlash
 from hybrid_pk.evaluation.metrics import pose_error
 from hybrid_pk.ik.batched_lm import batched_levenberg_marquardt
 from hybrid_pk.ik.conditions import Approach, resolve_conditions
@@ -146,7 +147,7 @@ def program_conditions(
     joints = [e.joint for e in effects if e.needs == "direction"]
     if not joints or (cond is not None and cond.direction is not None):
         return cond, []
-    note = f"backlash on {', '.join(joints)}: approach direction from the program order"
+    note = f"{Backlash.kind} on {', '.join(joints)}: approach direction from the program order"
     return replace(cond or Conditions(), direction=approach_direction(q_nominal)), [note]
 
 

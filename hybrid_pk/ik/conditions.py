@@ -30,6 +30,7 @@ from torch import Tensor
 
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.effects.geometric import REFERENCE_TEMPERATURE
+from hybrid_pk.effects.joint import Backlash
 from hybrid_pk.errors import HybridPKError
 
 __all__ = ["FIXES", "Approach", "IKAssumption", "parse_approach", "resolve_conditions"]
@@ -44,6 +45,9 @@ FIXES = {
     "temperature": "pass cond=Conditions(temperature=...) [°C] per target",
     "payload": "pass cond=Conditions(payload=...) [kg] per target",
 }
+
+
+_STATED = f"{Backlash.kind} approach as stated"  # a note, not an assumption: no warning
 
 
 class IKAssumption(UserWarning):
@@ -123,9 +127,9 @@ def _describe(direction: Tensor, model: ExtendedModel, joints: list[str], fix: s
         how = side[values.pop()] if len(values) == 1 else "per target"
         parts.append(f"{joint} {how}")
     if fix is None:
-        return f"backlash approach as stated: {', '.join(parts)}"
+        return f"{_STATED}: {', '.join(parts)}"
     return (
-        f"backlash on {', '.join(joints)} without an approach direction: solved for the "
+        f"{Backlash.kind} on {', '.join(joints)} without an approach direction: solved for the "
         f"mid-play model (half-way between both approaches); {fix}"
     )
 
@@ -184,7 +188,7 @@ def resolve_conditions(
         out = replace(out, payload=torch.zeros(n_targets, dtype=torch.float64))
         notes.append(f"joint compliance without a payload: solved at 0 kg; {fix['payload']}")
     for note in notes:
-        if not note.startswith("backlash approach as stated"):
+        if not note.startswith(_STATED):
             warnings.warn(note, IKAssumption, stacklevel=3)
     return (out if notes else cond), notes
 

@@ -34,6 +34,7 @@ from torch import Tensor
 
 from hybrid_pk.effects import Conditions, Effect, ExtendedModel
 from hybrid_pk.effects.geometric import REFERENCE_TEMPERATURE
+from hybrid_pk.effects.joint import JointOffset
 from hybrid_pk.errors import HybridPKError, RobotModelError
 from hybrid_pk.geometry import matrix_to_rpy, rpy_to_matrix, so3_exp, transform
 
@@ -123,7 +124,7 @@ def _corrected_origins(model: ExtendedModel, fold_offsets: bool) -> list[Tensor]
     if fold_offsets:
         spec = robot.spec
         for e in model.effects:
-            if e.kind != "joint_offset":
+            if e.kind != JointOffset.kind:
                 continue
             for i in range(n):  # every chain joint that follows this robot joint
                 if int(spec.source[i]) == e.joint_index:
@@ -179,8 +180,8 @@ def corrected_urdf(
         changed.append(joint.get("name"))
 
     geometric = [e for e in model.effects if e.stage == "geometry"]
-    offsets = [e for e in model.effects if e.kind == "joint_offset"]
-    other = [e for e in model.effects if e.stage != "geometry" and e.kind != "joint_offset"]
+    offsets = [e for e in model.effects if e.kind == JointOffset.kind]
+    other = [e for e in model.effects if e.stage != "geometry" and e.kind != JointOffset.kind]
     how = (
         "folded into the joint origin: the URDF reads commanded joint values"
         if fold_joint_offsets

@@ -53,10 +53,10 @@ from hybrid_pk.calibration.diagnosis.structural import off_frames
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data, make_effect
 from hybrid_pk.effects.geometric import REFERENCE_TEMPERATURE
-from hybrid_pk.effects.joint import CYCLIC_PREFIX, JointEccentricity
+from hybrid_pk.effects.joint import GearRatio, JointEccentricity, JointOffset
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.plots import binned_median
-from hybrid_pk.report.evidence_deflection import DEFLECTION_EFFECTS, deflection_evidence
+from hybrid_pk.report.evidence_deflection import deflection_evidence
 
 __all__ = [
     "Evidence",
@@ -69,8 +69,6 @@ __all__ = [
 
 # Rows whose |J_j| is below this fraction of the median carry no information on joint j.
 MIN_LEVER_FRACTION = 0.2
-JOINT_EFFECTS = ("joint_offset", "gear_ratio", "joint_eccentricity", "backlash", "joint_compliance")
-GEOMETRIC_EFFECTS = ("link_length", "axis_misalignment")
 
 
 @dataclass(frozen=True)
@@ -231,13 +229,14 @@ def cause_evidence(
 
 def _evidence(cause, label: str, data, model, view: ResidualView) -> Evidence:
     title = f"{label} = {_value_text(cause)}"
-    if cause.effect in JOINT_EFFECTS or cause.effect.startswith(CYCLIC_PREFIX):
+    effect = model.effect(label)  # its class says where it acts and what shows it
+    if effect.stage in ("joint", "compliance"):
         return _joint_evidence(cause, label, title, data, model, view)
-    if cause.effect == "thermal_expansion":
+    if effect.evidence == "temperature":
         return _thermal_evidence(cause, label, title, data, view)
-    if cause.effect in GEOMETRIC_EFFECTS:
+    if effect.stage == "geometry":
         return _geometric_evidence(cause, label, title, data, model, view)
-    if cause.effect in DEFLECTION_EFFECTS:
+    if effect.stage == "deflection":
         return Evidence(**deflection_evidence(cause, label, title, data, model, view, _frames))
     raise HybridPKError(f"no evidence plot for effect {cause.effect!r}")
 
@@ -256,7 +255,7 @@ def _joint_evidence(cause, label, title, data, model, res: ResidualView) -> Evid
     effect = model.effect(label)
     v = effect.value.detach().to(torch.float64).numpy()
     categorical = False
-    if cause.effect == "joint_compliance":
+    if effect.evidence == "torque":
         payload = 0.0 if data.payload is None else data.payload
         with torch.no_grad():
             tau = -robot.gravity_torques(data.q, payload=payload)[:, j].numpy()
@@ -265,23 +264,21 @@ def _joint_evidence(cause, label, title, data, model, res: ResidualView) -> Evid
         curve_x = np.linspace(x.min(), x.max(), 100)
         curve_y = 1e3 * float(v) * curve_x
         points = float(_wls(np.stack([x, np.ones_like(x)], 1), y, w)[0]) * 1e-3
-        law = "θ_true - θ = c · τ_gravity: a line through the origin, slope c"
+        law = effect.law
         value = float(v)
-    elif cause.effect in ("joint_offset", "gear_ratio") or isinstance(effect, JointEccentricity):
+    elif isinstance(effect, (JointOffset, GearRatio, JointEccentricity)):
         x = np.degrees(theta)
         x_label = f"{cause.joint} angle θ [deg]"
         curve_x = np.linspace(x.min(), x.max(), 200)
         th = np.radians(curve_x)
-        if cause.effect == "joint_offset":
+        if isinstance(effect, JointOffset):
             curve_y = np.full_like(curve_x, 1e3 * float(v))
             points = float(np.average(y, weights=w)) * 1e-3
-            law = "θ_true - θ = δ: a flat line"
-            value = float(v)
-        elif cause.effect == "gear_ratio":
+            law, value = effect.law, float(v)
+        elif isinstance(effect, GearRatio):
             curve_y = 1e3 * float(v) * th
             points = float(_wls(np.stack([theta, np.ones_like(theta)], 1), y, w)[0]) * 1e-3
-            law = "θ_true - θ = s · θ: a line through the origin, slope s"
-            value = float(v)
+            law, value = effect.law, float(v)
         else:
             a, b, n = float(v[0]), float(v[1]), effect.order
             curve_y = 1e3 * (a * np.sin(n * th) + b * np.cos(n * th))
@@ -295,7 +292,7 @@ def _joint_evidence(cause, label, title, data, model, res: ResidualView) -> Evid
                 + ", amplitude √(a² + b²)"
             )
             value = math.hypot(a, b)
-    else:  # backlash
+    elif effect.evidence == "row_order":  # backlash
         categorical = True
         direction = res.cond.direction[:, j].numpy()
         rows = rows[direction[rows] != 0]  # unknown direction (first row of a file)
@@ -312,8 +309,12 @@ def _joint_evidence(cause, label, title, data, model, res: ResidualView) -> Evid
             points *= 1e-3
         else:
             points = math.nan
-        law = "θ_true - θ = ± b/2 by approach direction: two levels, b apart"
+        law = effect.law
         value = float(v)
+    else:  # any other joint-space law: the effect's own response, against its variable
+        x, x_label, curve_x, curve_y, points, law, value = _law_evidence(
+            effect, data, res, rows, y, w
+        )
     return _points_evidence(
         cause,
         label,
@@ -327,9 +328,32 @@ def _joint_evidence(cause, label, title, data, model, res: ResidualView) -> Evid
     )
 
 
+def _law_evidence(effect, data, res: ResidualView, rows, y, w) -> tuple:
+    """Evidence of a joint-space effect from its own law: ``x`` its evidence variable
+    (the joint's angle or the row's temperature), the curve its angle change on each
+    row, the points' value the diagnosed one scaled by the fit of ``y`` to that change."""
+    j, index = effect.joint_index, torch.from_numpy(rows)
+    with torch.no_grad():
+        q = data.q[index]
+        delta = (effect.apply_q(q, res.cond.subset(index)) - q)[:, j].double().numpy()
+    if effect.evidence == "temperature":
+        if data.temperature is None:
+            raise HybridPKError(f"{effect.kind} evidence needs the temperature column")
+        x, x_label = data.temperature[index].numpy(), "temperature [°C]"
+    elif effect.evidence == "joint_angle":
+        x, x_label = np.degrees(q[:, j].numpy()), f"{effect.joint} angle θ [deg]"
+    else:
+        raise HybridPKError(f"no evidence plot for effect {effect.kind!r}")
+    order = np.argsort(x, kind="stable")
+    value = effect.magnitude()
+    fit = _wls(np.stack([1e3 * delta, np.ones_like(delta)], 1), y, w)[0] if rows.size else math.nan
+    law = effect.law or f"θ_true - θ = the {effect.kind} law, against {effect.evidence}"
+    return x, x_label, x[order], 1e3 * delta[order], float(fit) * value, law, value
+
+
 def _thermal_evidence(cause, label, title, data, res: ResidualView) -> Evidence:
     if data.temperature is None:
-        raise HybridPKError("thermal_expansion evidence needs the temperature column")
+        raise HybridPKError(f"{cause.effect} evidence needs the temperature column")
     p = res.p_end
     w = (p * p).sum(-1)
     strain = ((p * res.r_root).sum(-1) / w.clamp_min(1e-300)).numpy()

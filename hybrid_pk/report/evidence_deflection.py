@@ -21,9 +21,8 @@ import torch
 
 from hybrid_pk.evaluation.plots import binned_median
 
-__all__ = ["DEFLECTION_EFFECTS", "MIN_LEVER_FRACTION", "deflection_evidence"]
+__all__ = ["MIN_LEVER_FRACTION", "deflection_evidence"]
 
-DEFLECTION_EFFECTS = ("tilt_compliance", "column_bending")
 MIN_LEVER_FRACTION = 0.2
 
 
@@ -73,7 +72,7 @@ def deflection_evidence(cause, label, title, data, model, res, frames) -> dict:
     curve_x = np.array([-span, span])
     mx, my = binned_median(x, y)
     joint = cause.joint
-    per = " x extension" if cause.effect == "column_bending" else ""
+    per = " x extension" if model.effect(label).joints == "prismatic" else ""
     return {
         "label": label,
         "title": title,

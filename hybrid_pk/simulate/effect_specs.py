@@ -36,6 +36,7 @@ from hybrid_pk.effects import (
 )
 from hybrid_pk.effects import approach_direction as _approach_direction
 from hybrid_pk.effects.base import known_kinds
+from hybrid_pk.effects.joint import JointCompliance
 from hybrid_pk.effects.limits import effect_limit
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import transform
@@ -74,18 +75,10 @@ _PAPER_RATIOS = (1.0, 1.5, 16.0)
 
 RANDOM_TARGET_MM = (0.2, 1.0)  # [mm] mean position error drawn for each random effect
 RANDOM_K_DEFAULT = 2
-# thermal_expansion is left out of random draws: its error depends on the campaign's
-# temperature drift, and realistic coefficients (1e-5/K) give < 0.1 mm over 8 K.
-_RANDOM_KINDS = (
-    "joint_offset",
-    "gear_ratio",
-    "joint_eccentricity",
-    "backlash",
-    "joint_compliance",
-    "link_length",
-    "axis_misalignment",
-)
-_POSITIVE_KINDS = ("backlash", "joint_compliance")  # play and compliance are >= 0
+# Random draws take the kinds whose class says ``simulate_random`` (thermal expansion is
+# left out: its error depends on the campaign's temperature drift, and realistic
+# coefficients (1e-5/K) give < 0.1 mm over 8 K); a class's ``positive`` sign rule
+# (play, compliance >= 0) holds for the drawn and the given values.
 _CALIBRATION_SAMPLES = 512
 _CALIBRATION_SEED = 12345  # the sample that measures an effect's error, fixed per robot
 _TYPICAL_TOOL_M = 0.125  # [m] tool length used to measure an effect's error (50-200 mm)
@@ -211,7 +204,7 @@ def _make(robot: Robot, kind: str, joint: str | None, values: list[float], where
         raise HybridPKError(f"{where}: {kind} takes {what} [{cls.unit}], got {len(values)}")
     if not all(math.isfinite(v) for v in values):
         raise HybridPKError(f"{where}: values must be finite, got {values}")
-    if kind in _POSITIVE_KINDS and values[0] < 0:
+    if cls.positive and n == 1 and values[0] < 0:
         raise HybridPKError(f"{where}: {kind} must be >= 0, got {values[0]}")
     try:
         return make_effect(robot, spec, values[0] if len(values) == 1 else values)
@@ -318,13 +311,14 @@ def paper_effects(robot: Robot) -> list[Effect]:
     """
     if robot.name in PAPER_COMPLIANCE:
         values = PAPER_COMPLIANCE[robot.name]
-        return [make_effect(robot, f"joint_compliance:{j}", c) for j, c in values.items()]
+        return [make_effect(robot, f"{JointCompliance.kind}:{j}", c) for j, c in values.items()]
     tau = _mean_abs_torque(robot, PAPER_PAYLOAD)
     top = sorted(int(i) for i in tau.argsort(descending=True)[: min(3, robot.dof)])
     by_load = sorted(top, key=lambda i: -float(tau[i]))
     ratio = {i: _PAPER_RATIOS[k] for k, i in enumerate(by_load)}
     unit = [
-        make_effect(robot, f"joint_compliance:{robot.joint_names[i]}", 1e-6 * ratio[i]) for i in top
+        make_effect(robot, f"{JointCompliance.kind}:{robot.joint_names[i]}", 1e-6 * ratio[i])
+        for i in top
     ]
     scale = PAPER_TARGET_MM / _mean_error_mm(robot, unit, PAPER_PAYLOAD)
     return [make_effect(robot, e.label, float(e.value.detach()) * scale) for e in unit]
@@ -342,19 +336,23 @@ def _random_candidates(
     """
     tau = _mean_abs_torque(robot, payload, gravity)
     out = []
-    for kind in _RANDOM_KINDS:
-        names = effect_joint_names(robot, EFFECTS[kind])
-        for i, joint in enumerate(names):
-            if kind == "joint_offset" and i == 0:
+    for cls in _random_classes():
+        for i, joint in enumerate(effect_joint_names(robot, cls)):
+            if cls.first_joint_is_frame and i == 0:
                 continue
-            if EFFECTS[kind].stage != "geometry" and i == robot.dof - 1:
+            if cls.stage != "geometry" and i == robot.dof - 1:
                 continue
-            if kind in ("link_length", "axis_misalignment") and i == 0:
+            if cls.needs_torque and float(tau[i]) < _MIN_TORQUE_NM:
                 continue
-            if kind == "joint_compliance" and float(tau[i]) < _MIN_TORQUE_NM:
-                continue
-            out.append((kind, joint))
+            out.append((cls.kind, joint))
     return out
+
+
+def _random_classes() -> list[type[Effect]]:
+    """The kinds random draws take: joint-space ones, then geometric ones, each in the
+    order their module registers them."""
+    drawn = [cls for cls in EFFECTS.values() if cls.simulate_random]
+    return sorted(drawn, key=lambda cls: cls.stage == "geometry")
 
 
 def random_effects(
@@ -395,7 +393,7 @@ def random_effects(
         n = math.prod(cls.shape)
         direction = torch.randn(n, generator=gen, dtype=torch.float64)
         direction = direction / direction.norm()
-        if kind in _POSITIVE_KINDS:
+        if cls.positive:
             direction = direction.abs()
         target = lo + (hi - lo) * float(torch.rand((), generator=gen, dtype=torch.float64))
         probe = (direction * cls.scale).tolist()

@@ -6,12 +6,10 @@ import torch
 
 from hybrid_pk.calibration.diagnosis.result import Cause
 from hybrid_pk.data.measured import MeasuredData
+from hybrid_pk.effects import EFFECTS
+from hybrid_pk.effects.geometric import MAX_CREDIBLE_EXPANSION
 
 __all__ = ["MAX_CREDIBLE_EXPANSION", "plausibility_warnings"]
-
-# Largest credible linear expansion coefficient [1/K]: structural metals are 1e-5..2.5e-5,
-# polymers reach ~1e-4.
-MAX_CREDIBLE_EXPANSION = 5e-5
 
 
 def plausibility_warnings(causes: list[Cause], data: MeasuredData) -> list[dict]:
@@ -24,38 +22,18 @@ def plausibility_warnings(causes: list[Cause], data: MeasuredData) -> list[dict]
     out = []
     for c in causes:
         label = c.effect if c.joint is None else f"{c.effect}:{c.joint}"
-        if c.effect in ("tilt_compliance", "column_bending") and min(c.value) < 0:
-            out.append(
-                {
-                    "cause": label,
-                    "why": f"negative {c.effect} ({', '.join(f'{v:.3g}' for v in c.value)} "
-                    f"{c.unit}): a load cannot bend a structure towards itself; it likely "
-                    "absorbs another, unmodelled error",
-                }
-            )
-        if c.effect in ("joint_compliance", "backlash") and float(c.value) < 0:
-            out.append(
-                {
-                    "cause": label,
-                    "why": f"negative {c.effect} ({c.value:.3g} {c.unit}) is not physical: "
-                    "it likely absorbs another, unmodelled error",
-                }
-            )
-        if c.effect != "thermal_expansion":
-            continue
-        reasons = _expansion_reasons(float(c.value), data)
+        cls = EFFECTS[c.effect]
+        reasons = cls.implausible(c.value)
+        if cls.needs == "temperature":
+            reasons += _temperature_reasons(data)
         if reasons:
             out.append({"cause": label, "why": "; ".join(reasons)})
     return out
 
 
-def _expansion_reasons(alpha: float, data: MeasuredData) -> list[str]:
+def _temperature_reasons(data: MeasuredData) -> list[str]:
+    """A temperature that differs mostly between the files may tell them apart."""
     reasons = []
-    if alpha < 0 or abs(alpha) > MAX_CREDIBLE_EXPANSION:
-        reasons.append(
-            f"alpha = {alpha:.3g} 1/K is outside any structural material "
-            f"(0 .. {MAX_CREDIBLE_EXPANSION:.0e})"
-        )
     if data.temperature is not None and len(data.sources) > 1:
         t, f = data.temperature, data.file_index
         files = range(len(data.sources))

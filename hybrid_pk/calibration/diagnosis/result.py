@@ -11,6 +11,7 @@ from torch import Tensor
 
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.effects import Effect, ExtendedModel
+from hybrid_pk.effects.geometric import AxisMisalignment
 from hybrid_pk.effects.joint import JointEccentricity
 from hybrid_pk.evaluation.metrics import error_stats
 
@@ -132,7 +133,7 @@ def report_value(e: Effect, std: Tensor) -> tuple:
     an eccentricity is reported by its amplitude (``components`` = its two terms).
     """
     v = e.value.detach().to(torch.float64)
-    if e.kind == "axis_misalignment":  # internal (u, v) on a basis -> rotation vector
+    if isinstance(e, AxisMisalignment):  # internal (u, v) on a basis -> rotation vector
         basis = e.basis.to(torch.float64)
         w_std = ((std[:, None] * basis) ** 2).sum(0).sqrt()  # ignores the u-v covariance
         return e.report_value(), [float(x) for x in w_std], None

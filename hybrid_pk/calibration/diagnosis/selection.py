@@ -34,6 +34,7 @@ from hybrid_pk.calibration.fit import FitResult, fit, reestimated_noise
 from hybrid_pk.calibration.problem import Problem, param_blocks
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import EFFECTS, ExtendedModel, effect_joint_names, make_effect
+from hybrid_pk.effects.base import Effect, effect_joint_types
 from hybrid_pk.effects.joint import CYCLIC_PREFIX, MAX_CYCLIC_ORDER
 from hybrid_pk.robot import Robot
 
@@ -60,23 +61,25 @@ def candidate_labels(robot: Robot, data: MeasuredData) -> list[str]:
     """Every effect of the vocabulary that this data could reveal."""
     labels = []
     for kind, cls in EFFECTS.items():
-        if not cls.per_joint:
+        if not cls.per_joint or not _observable(cls, data):
             continue
+        types = effect_joint_types(robot, cls)
         for i, joint in enumerate(effect_joint_names(robot, cls)):
             if cls.stage == "geometry" and i == 0:
                 continue  # origin 0 is the base frame's business
-            if kind in ("gear_ratio", "joint_eccentricity", "backlash", "joint_compliance") and (
-                robot.joint_types[i] == "prismatic"
-            ):
-                continue
-            if kind == "column_bending" and robot.chain_joint_types[i] != "prismatic":
-                continue  # a column's bending grows with its extension
-            labels.append(f"{kind}:{joint}")
-    if data.temperature is not None:
-        spread = float(data.temperature.max() - data.temperature.min())
-        if spread >= MIN_TEMPERATURE_SPREAD:
-            labels.append("thermal_expansion")
+            if cls.allowed_on(types[i]):  # e.g. a column's bending grows with its extension
+                labels.append(f"{kind}:{joint}")
+    labels += [k for k, cls in EFFECTS.items() if not cls.per_joint and _observable(cls, data)]
     return labels + cyclic_candidates(robot, data)
+
+
+def _observable(cls: type[Effect], data: MeasuredData) -> bool:
+    """Whether the data vary the condition an effect of ``cls`` needs (a temperature)."""
+    if cls.needs != "temperature":
+        return True
+    if data.temperature is None:
+        return False
+    return float(data.temperature.max() - data.temperature.min()) >= MIN_TEMPERATURE_SPREAD
 
 
 def cyclic_candidates(robot: Robot, data: MeasuredData) -> list[str]:

@@ -36,13 +36,14 @@ from hybrid_pk.calibration.fit import fit, model_errors
 from hybrid_pk.calibration.problem import Problem, param_blocks
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import (
-    EFFECTS,
     Conditions,
     Effect,
     ExtendedModel,
     effect_joint_names,
     make_effect,
 )
+from hybrid_pk.effects.geometric import AxisMisalignment, LinkLength
+from hybrid_pk.effects.joint import JointOffset
 from hybrid_pk.effects.limits import (
     MAX_BACKLASH_DEG,
     MAX_COMPLIANCE,
@@ -98,16 +99,16 @@ def implausibility(effect: Effect, robot: Robot, data: MeasuredData | None = Non
     Returns:
         ``{"cause", "value", "limit", "unit", "why"}`` when beyond the limits.
     """
-    kind, unit = effect.kind, effect.unit
+    unit = effect.unit
     size = float(effect.value.detach().norm())
-    if kind == "joint_compliance":
+    if effect.stage == "compliance":
         return _compliance_check(effect, robot, data)
-    if kind in ("tilt_compliance", "column_bending"):
+    if effect.stage == "deflection":
         return _deflection_check(effect, robot, data)
     limit = effect_limit(effect, robot)
     if limit is None or size <= limit:
         return None
-    if kind == "gear_ratio":
+    if unit == "1":  # a gear ratio error
         what, shown, limit_text = "gear ratio error", f"{100 * size:.3g} %", f"{100 * limit:g} %"
     elif limit == MAX_TRANSLATION_M:  # a length: unit m, or a prismatic joint's shift
         what, shown, limit_text = "translation", f"{1e3 * size:.4g} mm", f"{1e3 * limit:g} mm"
@@ -146,7 +147,7 @@ def _deflection_check(effect: Effect, robot: Robot, data: MeasuredData | None) -
     extension, times the longest extension of the data)."""
     c = float(effect.value.detach().abs().max())
     what = f"a compliance of {c:.3g} {effect.unit}"
-    if effect.kind == "column_bending":
+    if effect.joints == "prismatic":  # a column's bending is per metre of extension
         reach = 1.0
         if data is not None:
             with torch.no_grad():
@@ -221,18 +222,18 @@ def _origin_correction(model: ExtendedModel, joint: str) -> dict:
     """Rotation [deg] (and axis in the joint frame) and translation [mm] of the origin
     correction held by the joint's offset, misalignment and link-length effects."""
     robot = model.robot
-    misalignment = model.effect(f"axis_misalignment:{joint}")
+    misalignment = model.effect(f"{AxisMisalignment.kind}:{joint}")
     axis = torch.as_tensor(robot.spec.axes[misalignment.joint_index], dtype=torch.float64)
     R = so3_exp(misalignment.rotation_vector().detach().double())
     offset, prismatic = 0.0, False
-    if f"joint_offset:{joint}" in [e.label for e in model.effects]:
+    if f"{JointOffset.kind}:{joint}" in [e.label for e in model.effects]:
         j = robot.joint_names.index(joint)
         prismatic = robot.joint_types[j] == "prismatic"
-        offset = float(model.effect(f"joint_offset:{joint}").value.detach())
+        offset = float(model.effect(f"{JointOffset.kind}:{joint}").value.detach())
         if not prismatic:
             R = R @ so3_exp(axis * offset)
     rotvec = so3_log(R)
-    dp = model.effect(f"link_length:{joint}").value.detach().double()
+    dp = model.effect(f"{LinkLength.kind}:{joint}").value.detach().double()
     angle = math.degrees(float(rotvec.norm()))
     unit = rotvec / rotvec.norm().clamp_min(1e-300)
     mm = 1e3 * float(dp.norm()) + (1e3 * abs(offset) if prismatic else 0.0)
@@ -244,9 +245,9 @@ def _fit_correction(nominal: ExtendedModel, joint: str, split, sigmas, start: Te
     on the fit rows from ``start`` (a misalignment on its basis, or zero). Returns the
     model and its mean hold-out position error [mm]."""
     robot = nominal.robot
-    labels = [f"axis_misalignment:{joint}", f"link_length:{joint}"]
+    labels = [f"{AxisMisalignment.kind}:{joint}", f"{LinkLength.kind}:{joint}"]
     if joint in robot.joint_names:  # an independent joint (not a mimic) has an offset
-        labels.append(f"joint_offset:{joint}")
+        labels.append(f"{JointOffset.kind}:{joint}")
     effects = [make_effect(robot, lb) for lb in labels]
     if start is not None:
         with torch.no_grad():
@@ -283,7 +284,7 @@ def locate_structural_error(
     say = say or (lambda _m: None)
     robot = nominal.robot
     before = float(model_errors(nominal, split.test, split.cond_hold)[0].mean())
-    chain = effect_joint_names(robot, EFFECTS["link_length"])[1:]  # origin 0: the base's
+    chain = effect_joint_names(robot, LinkLength)[1:]  # origin 0: the base's
     joints = [j for j in chain if j in hint]
     joints += [j for j in chain if j not in joints]
     best = None
