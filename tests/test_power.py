@@ -16,6 +16,7 @@ from tests.helpers import RUN_SEED, run_rng
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 NOISE_MM = 0.05
+NOISE_DEG = 0.005  # a tracker's orientation noise (a perfect one makes limits of 1e-9 rad)
 
 
 def test_the_noncentrality_gives_the_stated_power():
@@ -44,7 +45,9 @@ def test_the_limit_predicts_what_the_diagnosis_finds(rx160):
     comes with the limits."""
     rng = run_rng("power-limit")
     seed = int(rng.integers(1000))
-    clean, _ = simulate_campaign(rx160, 120, "none", noise_mm=NOISE_MM, seed=seed)
+    clean, _ = simulate_campaign(
+        rx160, 120, "none", noise_mm=NOISE_MM, noise_deg=NOISE_DEG, seed=seed
+    )
     diag = diagnose(rx160, clean, max_causes=3)
     assert diag.detectable["summary"].startswith("nothing above: ")
     limits = _limits(diag)
@@ -54,7 +57,9 @@ def test_the_limit_predicts_what_the_diagnosis_finds(rx160):
     for factor, named in ((2.0, True), (0.25, False)):
         value = sign * factor * limits[label]["value"]
         effect = make_effect(rx160, label, value)
-        data, _ = simulate_campaign(rx160, 120, [effect], noise_mm=NOISE_MM, seed=seed)
+        data, _ = simulate_campaign(
+            rx160, 120, [effect], noise_mm=NOISE_MM, noise_deg=NOISE_DEG, seed=seed
+        )
         found = diagnose(rx160, data, max_causes=3)
         labels = [c.effect if c.joint is None else f"{c.effect}:{c.joint}" for c in found.causes]
         assert (label in labels) == named, (RUN_SEED, label, factor, value, labels)
