@@ -11,6 +11,7 @@ import torch
 
 from hybrid_pk.calibration.diagnosis.unseen import mark_unseen, seeable_split, seen_error
 from hybrid_pk.calibration.fit import fit, initialise_frames, model_errors
+from hybrid_pk.cli.main import main
 from hybrid_pk.effects import ExtendedModel, conditions_from_data, make_effect
 from hybrid_pk.pipelines.demo_report import found_table
 from hybrid_pk.simulate import simulate_campaign
@@ -81,3 +82,15 @@ def test_the_demo_table_marks_the_unseen_part(rx160, campaign):
     assert "(along joint_6's axis: absorbed by the tool frame)" in row[3]
     assert "within 1 %" in row[3]
     assert seen_error(entry, cause.value) == pytest.approx(0.01, rel=1e-6)
+
+
+def test_simulate_notes_the_part_no_data_can_see(tmp_path, capsys):
+    rc = main(
+        ["simulate", "rx160", "--n", "60", "--effects", "link_length:joint_6=4.5e-4,3.6e-4,-5e-4",
+         "--noise-mm", "0.02", "--out", str(tmp_path / "c.csv")]
+    )  # fmt: skip
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "note: link_length:joint_6 (along joint_6's axis: absorbed by the tool frame)" in out, (
+        out
+    )

@@ -80,6 +80,7 @@ def seeable_split(
     _, J = Problem(trial, sub, cond_sub, blocks, 1.0, 1e-3).jacobian(
         torch.zeros(sum(b.size for b in blocks), dtype=torch.float64)
     )
+    J = J.detach()
     cols, start = {}, 0
     for b in blocks:
         cols[b.name] = J[:, start : start + b.size]
