@@ -21,6 +21,7 @@ from collections.abc import Callable
 
 import torch
 
+from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic
 from hybrid_pk.calibration.diagnosis.selection import RANK_TOLERANCE, score_candidates
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.variants import with_effects
@@ -96,7 +97,11 @@ def detection_limits(
     pool = [c for c in pool if c not in chosen]
     if not pool:
         return []
-    scores = score_candidates(model, res, pool, split, alpha, False, progress=progress)
+    # as the search does: the best cyclic orders per joint are scored, the others count
+    pool, screened = screen_cyclic(model, split, pool, res.weights)
+    scores = score_candidates(
+        model, res, pool, split, alpha, False, progress=progress, screened=screened
+    )
     if not scores.scored:
         return []
     level = scores.threshold
@@ -143,6 +148,7 @@ def _position_columns(model: ExtendedModel, labels: list[str], split: Split) -> 
     _, J = Problem(trial, sub, cond, blocks, 1.0, 1e-3).jacobian(
         torch.zeros(sum(b.size for b in blocks), dtype=torch.float64)
     )
+    J = J.detach()
     out, start = {}, 0
     for b in blocks:
         out[b.label] = (J[: 3 * sub.n, start : start + b.size], sub.n)
@@ -183,7 +189,7 @@ def beyond_credible(model: ExtendedModel, detectable: list[dict]) -> list[str]:
     return out
 
 
-def detectable_json(model: ExtendedModel, detectable: list[dict]) -> dict:
+def detectable_json(model: ExtendedModel, detectable: list[dict], sigma_pos_mm: float) -> dict:
     """The ``detectable`` field of the diagnosis JSON."""
     blind = beyond_credible(model, detectable)
     return {
@@ -191,19 +197,24 @@ def detectable_json(model: ExtendedModel, detectable: list[dict]) -> dict:
         "limits": detectable,
         "beyond_credible": blind,
         "summary": nothing_above(detectable),
-        "little_power": little_power(blind, detectable),
+        "little_power": little_power(detectable, sigma_pos_mm, blind),
     }
 
 
-def little_power(blind: list[str], detectable: list[dict]) -> str | None:
-    """A sentence when some candidates could not be detected at any credible size."""
-    if not blind:
+def little_power(detectable: list[dict], sigma_pos_mm: float, blind: list[str]) -> str | None:
+    """A sentence when the campaign has little power: the typical (median) candidate
+    must move the measured point by more than the position noise itself to be detected,
+    i.e. an error as large as the noise can hide in these data. None otherwise."""
+    if not detectable:
         return None
-    shown = ", ".join(blind[:4]) + (f" and {len(blind) - 4} more" if len(blind) > 4 else "")
+    typical = float(torch.tensor([d["mm_rms"] for d in detectable]).median())
+    if typical <= sigma_pos_mm:
+        return None
+    also = f"; {len(blind)} would be missed at any credible size" if blind else ""
     return (
-        f"little power: {len(blind)} of {len(detectable)} candidate effects would be "
-        f"missed even at their largest credible size ({shown}); a cause of these kinds "
-        "cannot be ruled out: measure more poses"
+        f"little power: a typical candidate effect must move the measured point by "
+        f"{typical:.2g} mm (rms) to be detected, {typical / sigma_pos_mm:.2g} times the "
+        f"position noise{also}; a cause below that cannot be ruled out: measure more poses"
     )
 
 

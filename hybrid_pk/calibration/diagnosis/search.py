@@ -137,7 +137,7 @@ def diagnose(
         robust=_robust_json(res, data, split),
         structural=structural,
         frames=frame_json,
-        detectable=detectable_json(model, detectable),
+        detectable=detectable_json(model, detectable, res.sigma_pos_mm),
         warnings=plausibility_warnings(causes, data) + _cap_warnings(steps),
         robot=robot.name,
         n_samples=data.n,
