@@ -3,11 +3,12 @@
 Both layouts evaluate the same chain constants (``Robot.chain_terms``). Timed in
 interleaved rounds on the same joint values (median reported):
 
-- pose only: ``Robot.fk`` (batch first, balanced tree of 4×4 products) vs a
-  batch-last pose loop (3×3 blocks as ``(3, 3, M)`` tensors, one joint after another);
+- pose only: the balanced tree of 4×4 products (``Robot.fk`` with derivatives, and
+  below ``ALIGNED_MIN_BATCH`` configurations) vs the z-aligned batch-last chain
+  (``chain.aligned_fk``: ``Robot.fk`` without derivatives from ``ALIGNED_MIN_BATCH`` on);
 - pose + Jacobian: batch-first frames (one 4×4 product per joint, then ``z × (p - o)``)
-  vs ``pose_jacobian_batch_last`` (what ``Robot.jacobian`` and the IK kernel use),
-  and pytorch-kinematics' ``SerialChain.jacobian`` as the peer.
+  vs ``pose_jacobian_batch_last`` (``Robot.jacobian``) and the z-aligned IK kernel
+  (``ChainKernel``, float64), and pytorch-kinematics' ``SerialChain.jacobian`` as the peer.
 
 The library uses the faster layout of each job; the ratios > 1 say by how much.
 
@@ -25,8 +26,15 @@ from collections.abc import Callable
 import torch
 
 import hybrid_pk as hpk
-from hybrid_pk.geometry.batch_last import compose, rotate
-from hybrid_pk.robot.chain import batch_last_terms, pose_jacobian_batch_last
+from hybrid_pk.robot.chain import (
+    AlignedFK,
+    aligned_fk,
+    batch_last_terms,
+    local_transforms,
+    pose_jacobian_batch_last,
+    product,
+)
+from hybrid_pk.robot.kernel import ChainKernel
 from tests.oracles.pk_chain import pk_chain
 
 
@@ -41,20 +49,15 @@ def _time(fn: Callable[[], object], budget_s: float) -> float:
             return elapsed / n
 
 
-def _pose_batch_last(robot: hpk.Robot, q: torch.Tensor) -> torch.Tensor:
-    """The pose alone in batch-last layout (the alternative to ``Robot.fk``)."""
-    C = batch_last_terms(robot.chain_terms(q.dtype))
-    qt = q.T
-    R_loc = torch.addcmul(torch.addcmul(C.R[0], torch.sin(qt), C.R[1]), 1 - torch.cos(qt), C.R[2])
-    R, p = R_loc[:, :, 0], C.t[:, 0].expand(3, qt.shape[1])
-    for i in range(1, qt.shape[0]):
-        p = p + rotate(R, C.t[:, i])
-        R = compose(R, R_loc[:, :, i])
-    T = q.new_zeros(q.shape[0], 4, 4)
-    T[:, :3, :3] = compose(R, C.R_tip).permute(2, 0, 1)
-    T[:, :3, 3] = (p + rotate(R, C.t_tip)).T
-    T[:, 3, 3] = 1
-    return T
+def _pose_tree(robot: hpk.Robot, q: torch.Tensor) -> torch.Tensor:
+    """``Robot.fk``'s balanced product of the local transforms."""
+    terms = robot._terms(None, q.dtype, fold_tip=True)
+    return product(local_transforms(q, terms, robot.chain_revolute))
+
+
+def _pose_aligned(robot: hpk.Robot, aligned: AlignedFK, q: torch.Tensor) -> torch.Tensor:
+    C = aligned.constants(robot.chain_terms(torch.float64), q.dtype)
+    return aligned_fk(C, q, robot.chain_revolute, aligned.all_revolute)
 
 
 def _jacobian_batch_first(robot: hpk.Robot, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -92,22 +95,26 @@ def main() -> None:
         f"robot {robot.name} ({robot.dof} dof), {args.dtype}, torch {torch.__version__}, "
         f"{torch.get_num_threads()} threads, no autograd; median of {args.rounds} rounds [us]"
     )
-    header = f"{'batch':>7} {'fk tree':>9} {'fk last':>9} {'last/tree':>9}   "
-    header += f"{'J first':>9} {'J last':>9} {'J pk':>9} {'first/last':>10} {'pk/last':>8}"
+    aligned, kernel = AlignedFK(robot.chain_revolute), ChainKernel(robot)
+    header = f"{'batch':>7} {'fk tree':>9} {'fk align':>9} {'tree/align':>10}   "
+    header += f"{'J first':>9} {'J last':>9} {'J kernel':>9} {'J pk':>9} {'first/last':>10} "
+    header += f"{'last/kernel':>11} {'pk/kernel':>9}"
     print(header)
     print("-" * len(header))
     for batch in args.batches:
         q = robot.sample_q(batch, torch.Generator().manual_seed(0)).to(dtype)
+        qt64 = q.double().T.contiguous()
         jobs = {
-            "fk tree": lambda q=q: robot.fk(q),
-            "fk last": lambda q=q: _pose_batch_last(robot, q),
+            "fk tree": lambda q=q: _pose_tree(robot, q),
+            "fk align": lambda q=q: _pose_aligned(robot, aligned, q),
             "J first": lambda q=q: _jacobian_batch_first(robot, q),
             "J last": lambda q=q: _jacobian_batch_last(robot, q),
+            "J kernel": lambda qt=qt64: kernel.soa(qt),
             "J pk": lambda q=q: chain.jacobian(q),
         }
         with torch.no_grad():
-            T_last = _pose_batch_last(robot, q)
-            assert float((T_last - robot.fk(q)).abs().max()) < 1e-4
+            T_tree = _pose_tree(robot, q)
+            assert float((_pose_aligned(robot, aligned, q) - T_tree).abs().max()) < 1e-4
             J_first = _jacobian_batch_first(robot, q)[1]
             J_last = _jacobian_batch_last(robot, q)[2].permute(2, 0, 1)
             assert float((J_first - J_last).abs().max()) < 1e-4
@@ -117,13 +124,15 @@ def main() -> None:
                     rows[k].append(_time(fn, args.budget) * 1e6)
         med = {k: statistics.median(v) for k, v in rows.items()}
         print(
-            f"{batch:>7} {med['fk tree']:>9.1f} {med['fk last']:>9.1f} "
-            f"{med['fk last'] / med['fk tree']:>9.2f}   {med['J first']:>9.1f} "
-            f"{med['J last']:>9.1f} {med['J pk']:>9.1f} {med['J first'] / med['J last']:>10.2f} "
-            f"{med['J pk'] / med['J last']:>8.2f}"
+            f"{batch:>7} {med['fk tree']:>9.1f} {med['fk align']:>9.1f} "
+            f"{med['fk tree'] / med['fk align']:>10.2f}   {med['J first']:>9.1f} "
+            f"{med['J last']:>9.1f} {med['J kernel']:>9.1f} {med['J pk']:>9.1f} "
+            f"{med['J first'] / med['J last']:>10.2f} {med['J last'] / med['J kernel']:>11.2f} "
+            f"{med['J pk'] / med['J kernel']:>9.2f}"
         )
-    print("last/tree > 1: the tree is faster for the pose; first/last > 1: batch last is")
-    print("faster for the Jacobian; pk/last > 1: faster than pytorch-kinematics' jacobian.")
+    print("tree/align > 1: the aligned chain is faster for the pose; first/last > 1: batch")
+    print("last is faster for the Jacobian; last/kernel, pk/kernel > 1: the IK kernel is faster")
+    print("(the kernel works in float64 whatever --dtype).")
 
 
 if __name__ == "__main__":

@@ -1,8 +1,9 @@
 """``hybrid-pk import FORMAT SRC... --out DST``: convert other formats to the pose table.
 
 Formats: ``ipa`` (the published UR10 laser-tracker files), ``columns`` (any export, by
-a column map: :mod:`hybrid_pk.data.mapping`) and ``streams`` (a robot joint stream and
-a tracker stream with an unknown time offset: :mod:`hybrid_pk.data.streams`).
+a column map: :mod:`hybrid_pk.data.mapping`), ``streams`` (a robot joint stream and
+a tracker stream with an unknown time offset: :mod:`hybrid_pk.data.streams`) and ``dh``
+(a robot's DH table -> URDF: :mod:`hybrid_pk.cli.import_dh`).
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from hybrid_pk.cli import import_dh
 from hybrid_pk.cli.options import add_out, add_robot, command_parser
 from hybrid_pk.data.ipa import EULER_SEQUENCES, MEASUREMENT_CONVENTION, convert_ipa
 from hybrid_pk.errors import DataError
@@ -56,6 +58,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
             _STREAMS_HELP,
             _streams_options,
         ),
+        ("dh", import_dh.TEXT, import_dh.HELP, import_dh.add_options),
     ):
         add_options(command_parser(formats, name, help=text, description=description))
 

@@ -32,6 +32,7 @@ _COMMANDS = (
     "hybrid_pk.cli.ik_cmd",
     "hybrid_pk.cli.compensate_cmd",
     "hybrid_pk.cli.import_cmd",
+    "hybrid_pk.cli.export_cmd",
     "hybrid_pk.cli.demo_cmd",
 )
 

@@ -5,9 +5,9 @@ all in one batch:
 
 - residual ``e = [p_target - p, w · log(R_target R^T)]`` [m], with ``w`` the rotation
   weight [m/rad] (position only: the first three entries);
-- step ``(J^T J + lambda I) dq = J^T e`` solved by a Cholesky factorisation (a
-  pivoted LU for small batches) that reports failure instead of raising (the step is
-  then rejected and the damping raised), never by an undamped inverse;
+- step ``(J^T J + lambda I) dq = J^T e`` solved by elimination (a Cholesky
+  factorisation in effect) that reports failure instead of raising (the step is then
+  rejected and the damping raised), never by an undamped inverse;
   ``lambda = mu · |e|`` (+ a tiny floor) shrinks with the error, so the last
   iterations are Gauss–Newton steps (quadratic convergence) while far from a solution
   and near singular configurations the step stays damped;
@@ -19,8 +19,11 @@ all in one batch:
   when it stalls (too little decrease of the cost over a window, or damping
   exhausted). The batch is compacted, so finished problems cost nothing.
 
-Everything runs batch-last (``hybrid_pk.geometry.batch_last``): ``q (dof, A)``, ``J (6, dof, A)``
-for the ``A`` problems still active.
+Everything runs batch-last (``hybrid_pk.geometry.batch_last``) for the ``A`` problems
+still active, and the state of a problem is one column of two packed tensors (what an
+evaluation gives, what the iteration keeps), so that accepting steps and compacting
+the batch are a few operations whatever the number of quantities
+(:mod:`~hybrid_pk.ik.lm_algebra` has the arithmetic).
 """
 
 from __future__ import annotations
@@ -33,8 +36,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from hybrid_pk.geometry import so3_log
-from hybrid_pk.geometry.batch_last import compose, solve_spd
+from hybrid_pk.ik.lm_algebra import eliminate, normal_equations, pose_residual
 
 __all__ = ["LMOutput", "LMSettings", "batched_levenberg_marquardt"]
 
@@ -92,154 +94,162 @@ class LMOutput(NamedTuple):
     evaluations: int
 
 
-def _rotation_error(E: Tensor) -> tuple[Tensor, Tensor]:
-    """Rotation vector ``(3, A)`` [rad] and angle ``(A,)`` of rotations ``E (3, 3, A)``.
-
-    The closed form for every column, then :func:`so3_log` only where the angle is
-    near pi (where the closed form loses the axis).
-    """
-    vee = torch.stack([E[2, 1] - E[1, 2], E[0, 2] - E[2, 0], E[1, 0] - E[0, 1]])  # 2 sin(t) a
-    s = vee.norm(dim=0) / 2
-    c = (E[0, 0] + E[1, 1] + E[2, 2] - 1) / 2
-    theta = torch.atan2(s, c)
-    small = s < 1e-4
-    scale = torch.where(small, 0.5 + theta * theta / 12, theta / (2 * torch.where(small, 1.0, s)))
-    w = scale * vee
-    far = c < -0.9
-    if bool(far.any()):
-        w[:, far] = so3_log(E[:, :, far].permute(2, 0, 1)).T
-    return w, theta
+# Rows of the kept block: damping mu and its growth nu, iterations spent near, cost at
+# the last progress check, problem index, target rotation (9) and position (3), then
+# per-problem boxes (lower, upper, periodic; n each) when the problems have their own.
+_MU, _NU, _NEAR, _CHECK, _IDX, _RT, _PT, _BOX = 0, 1, 2, 3, 4, 5, 14, 17
 
 
-def _residual(
-    R: Tensor, p: Tensor, R_t: Tensor, p_t: Tensor, s: LMSettings
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Weighted residual ``(6 | 3, A)``, position error ``(A,)`` [m], rotation error [rad]."""
-    dp = p_t - p
-    pos = dp.norm(dim=0)
-    if s.position_only:
-        return dp, pos, torch.zeros_like(pos)
-    dr, angle = _rotation_error(compose(R_t, R.transpose(0, 1)))  # R_t R^T
-    return torch.cat([dp, s.rotation_weight * dr]), pos, angle
-
-
-def _weighted(J: Tensor, s: LMSettings) -> Tensor:
-    """Rows of ``J (6, dof, A)`` as the residual weighs them."""
-    if s.position_only:
-        return J[:3]
-    return torch.cat([J[:3], s.rotation_weight * J[3:]])
-
-
-class _Active:
-    """The problems still in the batch; every tensor is batch-last (last dim ``A``)."""
-
-    BATCHED = (
-        *("idx", "rows", "R_t", "p_t", "q", "J", "e"),
-        *("cost", "pos", "rot", "mu", "nu", "near_count", "checkpoint"),
-    )
+class _Batch:
+    """The problems still active. ``ev (K, A)``: rows ``q (n)``, weighted Jacobian
+    ``(m n)``, weighted residual ``(m)``, cost, position and rotation error (what one
+    evaluation gives); ``kept (_BOX [+ 3 n], A)``: the rest."""
 
     def __init__(self, evaluate, q0, rows, T_target, lower, upper, revolute, s: LMSettings):
-        f64 = {"dtype": q0.dtype, "device": q0.device}
-        P = q0.shape[0]
+        P, n = q0.shape
+        self.evaluate, self.s, self.n, self.rows_all = evaluate, s, n, rows
+        self.m = 3 if s.position_only else 6
         self.shared = lower.ndim == 1 and upper.ndim == 1
         lo, hi = (lower[:, None], upper[:, None]) if self.shared else (lower.T, upper.T)
-        self.lo, self.hi = lo.to(**f64).contiguous(), hi.to(**f64).contiguous()  # (dof, 1|P)
-        per = self.hi - self.lo >= _TWO_PI
-        self.per = per & revolute.to(per.device)[:, None] if revolute is not None else per & ~per
-        self.any_periodic = bool(self.per.any())
-        self.idx = torch.arange(P, device=q0.device)
-        self.rows = rows
-        self.q = torch.minimum(torch.maximum(q0.T, self.lo), self.hi).contiguous()  # (dof, A)
-        self.R_t = T_target[:, :3, :3].permute(1, 2, 0).contiguous()
-        self.p_t = T_target[:, :3, 3].T.contiguous()
-        self.J, self.e, self.pos, self.rot, self.cost = _evaluate(evaluate, self.q, self, s)
-        self.mu = torch.full((P,), s.damping_init, **f64)
-        self.nu = torch.full((P,), 2.0, **f64)
-        self.near_count = torch.zeros(P, dtype=torch.long, device=q0.device)
-        self.checkpoint = self.cost
+        lo, hi = lo.to(q0), hi.to(q0)
+        per = hi - lo >= _TWO_PI
+        if revolute is None:
+            per = per & ~per
+        else:
+            per = per & revolute.to(per.device)[:, None]
+        self.any_periodic, self.all_periodic = bool(per.any()), bool(per.all())
+        kept = q0.new_zeros(_BOX if self.shared else _BOX + 3 * n, P)
+        kept[_MU], kept[_NU] = s.damping_init, 2.0
+        kept[_IDX] = torch.arange(P, dtype=q0.dtype, device=q0.device)
+        kept[_RT:_PT] = T_target[:, :3, :3].reshape(P, 9).T
+        kept[_PT:_BOX] = T_target[:, :3, 3].T
+        if self.shared:
+            self.box = (lo.contiguous(), hi.contiguous(), per)
+        else:
+            kept[_BOX:] = torch.cat([lo, hi, per.to(q0.dtype)])
+        self.kept, self.rows = kept, rows
+        q = torch.minimum(torch.maximum(q0.T, lo), hi)
+        self.ev = self.trial(q)
+        self.kept[_CHECK] = self.ev[self.n + self.m * self.n + self.m]
+
+    @property
+    def size(self) -> int:
+        return self.ev.shape[1]
+
+    def field(self, name: str) -> Tensor:
+        """``q``, ``J``, ``e``, ``cost``, ``pos`` or ``rot`` of the active problems."""
+        n, m = self.n, self.m
+        e0 = n + m * n
+        at = {"q": (0, n), "J": (n, e0), "e": (e0, e0 + m)}
+        if name in at:
+            a, b = at[name]
+            out = self.ev[a:b]
+            return out.view(m, n, -1) if name == "J" else out
+        return self.ev[e0 + m + ("cost", "pos", "rot").index(name)]
+
+    def bounds(self) -> tuple[Tensor, Tensor, Tensor]:
+        """``lower``, ``upper`` ``(n, 1 | A)`` and ``periodic`` (bool) of the box."""
+        if self.shared:
+            return self.box
+        n, b = self.n, self.kept[_BOX:]
+        return b[:n], b[n : 2 * n], b[2 * n :] > 0.5
+
+    def trial(self, q: Tensor) -> Tensor:
+        """The evaluated block ``(K, A)`` at ``q (n, A)``."""
+        R, p, J = self.evaluate(q, self.rows)
+        k = self.kept
+        R_t = k[_RT:_PT].view(3, 3, -1)
+        dp, dr, cost, pos, rot = pose_residual(
+            R, p, R_t, k[_PT:_BOX], self.s.rotation_weight, self.s.position_only
+        )
+        A, n = q.shape[1], self.n
+        if self.s.position_only:
+            parts = [q, J[:3].reshape(3 * n, A), dp]
+        else:
+            Jr = (J[3:] * self.s.rotation_weight).reshape(3 * n, A)
+            parts = [q, J[:3].reshape(3 * n, A), Jr, dp, dr]
+        return torch.cat([*parts, cost, pos, rot])
 
     def keep(self, stay: Tensor) -> None:
         """Compact the batch to the problems ``stay`` (indices into the active ones)."""
-        names = self.BATCHED if self.shared else (*self.BATCHED, "lo", "hi", "per")
-        for name in names:
-            setattr(self, name, getattr(self, name)[..., stay])
+        self.ev = self.ev.index_select(1, stay)
+        self.kept = self.kept.index_select(1, stay)
+        self.rows = self.rows_all.index_select(0, self.kept[_IDX].long())
 
 
-def _evaluate(evaluate, q: Tensor, a: _Active, s: LMSettings) -> tuple[Tensor, ...]:
-    """Weighted Jacobian, residual, position / rotation error and cost at ``q (dof, A)``."""
-    R, p, J = evaluate(q, a.rows)
-    e, pos, rot = _residual(R, p, a.R_t, a.p_t, s)
-    return _weighted(J, s), e, pos, rot, (e * e).sum(0)
-
-
-def _leaving(a: _Active, it: int, s: LMSettings) -> Tensor:
-    """``(A,)`` bool, the problems that leave the batch, decided on the accepted state."""
-    near = (a.pos <= s.accept_position) & (a.rot <= s.accept_rotation)
-    a.near_count += near.long()
-    leave = (a.near_count > s.polish_iterations) | (a.mu >= s.damping_max)
-    tight_p, tight_r = s.tight_factor * s.accept_position, s.tight_factor * s.accept_rotation
-    leave |= (a.pos <= tight_p) & (a.rot <= tight_r)
-    if it > 0 and it % s.stall_window == 0:
-        keep = (a.pos <= s.keep_position) & (a.rot <= s.keep_rotation)
-        leave |= (a.cost > s.stall_ratio * a.checkpoint) & ~keep
-        a.checkpoint = a.cost
-    if it >= s.max_iterations:
-        leave = torch.ones_like(leave)
-    return leave
-
-
-def _projected_step(a: _Active) -> tuple[Tensor, Tensor, Tensor]:
-    """Damped Gauss-Newton trial point projected into the box: ``q_try (dof, A)``,
-    ``ok (A,)`` (the factorisation worked) and the predicted cost decrease ``(A,)``."""
-    J, e, q, lo, hi, per = a.J, a.e, a.q, a.lo, a.hi, a.per
-    g = (J * e[:, None, :]).sum(0)  # J^T e, (dof, A)
-    A = J[0, :, None] * J[0, None, :]  # J^T J, (dof, dof, A)
-    for k in range(1, J.shape[0]):
-        A = torch.addcmul(A, J[k, :, None], J[k, None, :])
+def _projected_step(b: _Batch) -> tuple[Tensor, Tensor, Tensor]:
+    """Damped Gauss-Newton trial point projected into the box: ``q_try (n, A)``,
+    ``ok (A,)`` (the elimination worked) and the predicted cost decrease ``(A,)``."""
+    q, J, e, cost = b.field("q"), b.field("J"), b.field("e"), b.field("cost")
+    lo, hi, per = b.bounds()
+    G = normal_equations(J, e)
+    g = G[:, -1]
     # Joints on a bound that the descent direction pushes outward are held there
     # (projected LM): their rows and columns of the normal equations become the
     # identity, so the other joints do not move as if the held ones had.
-    held = ~per & (((q <= lo) & (g < 0)) | ((q >= hi) & (g > 0)))
-    diag = A.diagonal(0, 0, 1)  # (A, dof) view
-    if bool(held.any()):
+    n = q.shape[0]
+    diag = G.view(-1, G.shape[-1])[:: n + 2]  # (n, A) view of the diagonal
+    held = None if b.all_periodic else ((q <= lo) & (g < 0)) | ((q >= hi) & (g > 0))
+    if held is not None and b.any_periodic:
+        held &= ~per
+    if held is not None and bool(held.any()):
         free = (~held).to(q.dtype)
-        A = A * free[:, None] * free[None, :]
-        diag = A.diagonal(0, 0, 1)
-        diag += (1 - free).T
-        g = g * free
-    scale = diag.amax(-1).clamp_min(1.0)
-    lam = a.mu * a.cost.sqrt() + 1e-14 * scale
-    diag += lam[:, None]
-    dq, ok = solve_spd(A, g)
-    dq = torch.where(ok, dq, 0.0)
+        G.mul_(free[:, None])  # rows, right-hand side included
+        G[:, :-1].mul_(free[None])  # columns
+        diag += 1 - free
+    k = b.kept
+    lam = torch.add(k[_MU] * cost.sqrt(), diag.amax(0).clamp_min(1.0), alpha=1e-14)
+    diag += lam
+    dq, ok = eliminate(G)
     q_new = q + dq
-    q_try = torch.minimum(torch.maximum(q_new, lo), hi)
-    step = q_try - q
-    if a.any_periodic:
+    q_try = torch.clamp(q_new, lo, hi)
+    if b.any_periodic:
         # A periodic joint leaving its box re-enters 2 pi further: same pose, no clamp.
         out = per & (q_new != q_try)
         if bool(out.any()):
-            step = torch.where(out, dq, step)
             q_try = torch.where(out, lo + torch.remainder(q_new - lo, _TWO_PI), q_try)
-    e_lin = e - (J * step[None]).sum(1)
-    return q_try, ok, a.cost - (e_lin * e_lin).sum(0)
+            dq = torch.where(out, dq, q_try - q)
+        else:
+            dq = q_try - q
+    else:
+        dq = q_try - q
+    e_lin = e - (J * dq[None]).sum(1)
+    return q_try, ok, cost - (e_lin * e_lin).sum(0)
 
 
-def _accept(a: _Active, q_try: Tensor, trial: tuple, ok: Tensor, predicted: Tensor, s) -> None:
+def _accept(b: _Batch, trial: Tensor, ok: Tensor, predicted: Tensor) -> None:
     """Take the trial point where the cost went down; Nielsen's damping update."""
-    J_try, e_try, pos_try, rot_try, cost_try = trial
-    finite = torch.isfinite(cost_try + J_try.sum((0, 1)))  # NaN/inf anywhere
-    accept = ok & finite & (cost_try < a.cost) & (predicted > 0)
-    rho = (a.cost - cost_try) / predicted.clamp_min(torch.finfo(a.q.dtype).tiny)
-    shrink = torch.clamp(1 - (2 * rho - 1) ** 3, min=1 / 3)
-    a.mu = torch.where(accept, a.mu * shrink, a.mu * a.nu).clamp(1e-12, s.damping_max)
-    a.nu = torch.where(accept, 2.0, a.nu * 2)
-    a.q = torch.where(accept, q_try, a.q)
-    a.J = torch.where(accept, J_try, a.J)
-    a.e = torch.where(accept, e_try, a.e)
-    a.cost = torch.where(accept, cost_try, a.cost)
-    a.pos = torch.where(accept, pos_try, a.pos)
-    a.rot = torch.where(accept, rot_try, a.rot)
+    cost, k = b.field("cost"), b.kept
+    cost_try = trial[trial.shape[0] - 3]
+    accept = ok & (cost_try < cost) & (predicted > 0)  # NaN compares False
+    rho = (cost - cost_try) / predicted.clamp_min(torch.finfo(cost.dtype).tiny)
+    shrink = (1 - (2 * rho - 1) ** 3).clamp_min_(1 / 3)
+    mu, nu = k[_MU], k[_NU]
+    torch.where(accept, mu * shrink, mu * nu, out=mu).clamp_(1e-12, b.s.damping_max)
+    nu.mul_(2).masked_fill_(accept, 2.0)
+    rejected = (~accept).nonzero()[:, 0]
+    if rejected.numel():
+        trial.index_copy_(1, rejected, b.ev.index_select(1, rejected))
+    b.ev = trial
+
+
+def _leaving(b: _Batch, it: int) -> Tensor:
+    """``(A,)`` bool, the problems that leave the batch, decided on the accepted state."""
+    s, k = b.s, b.kept
+    pos, rot = b.field("pos"), b.field("rot")
+    near_count = k[_NEAR]
+    near_count += (pos <= s.accept_position) & (rot <= s.accept_rotation)
+    leave = (near_count > s.polish_iterations) | (k[_MU] >= s.damping_max)
+    tight_p, tight_r = s.tight_factor * s.accept_position, s.tight_factor * s.accept_rotation
+    leave |= (pos <= tight_p) & (rot <= tight_r)
+    if it > 0 and it % s.stall_window == 0:
+        keep = (pos <= s.keep_position) & (rot <= s.keep_rotation)
+        cost = b.field("cost")
+        leave |= (cost > s.stall_ratio * k[_CHECK]) & ~keep
+        k[_CHECK] = cost
+    if it >= s.max_iterations:
+        leave = torch.ones_like(leave)
+    return leave
 
 
 def batched_levenberg_marquardt(
@@ -273,27 +283,29 @@ def batched_levenberg_marquardt(
     Returns:
         :class:`LMOutput`; every ``q`` is inside the box and finite.
     """
-    s, P = settings, q0.shape[0]
+    P, n = q0.shape
     if P == 0:
         empty = q0.new_zeros(0)
         return LMOutput(q0.clone(), empty, empty, empty.long(), 0)
-    q_out = q0.clone()  # outputs, filled as problems leave the batch
-    pos_out, rot_out = q0.new_full((P,), torch.inf), q0.new_full((P,), torch.inf)
-    it_out = torch.zeros(P, dtype=torch.long, device=q0.device)
-    a = _Active(evaluate, q0, rows, T_target, lower, upper, revolute, s)
+    T_target = T_target.to(q0)
+    # outputs, filled as problems leave the batch: q (n), position, rotation, iterations
+    out = torch.cat([q0.T, q0.new_full((2, P), torch.inf), q0.new_zeros(1, P)])
+    b = _Batch(evaluate, q0, rows, T_target, lower, upper, revolute, settings)
     evaluations, it = P, 0
     while True:
-        leave = _leaving(a, it, s)
+        leave = _leaving(b, it)
         if bool(leave.any()):
-            gone = a.idx[leave]
-            q_out[gone], pos_out[gone], rot_out[gone] = a.q[:, leave].T, a.pos[leave], a.rot[leave]
-            it_out[gone] = it
-            a.keep((~leave).nonzero()[:, 0])
-        if a.idx.numel() == 0:
+            gone = leave.nonzero()[:, 0]
+            at = b.kept[_IDX].index_select(0, gone).long()
+            done = b.ev.index_select(1, gone)
+            e0 = n + b.m * n + b.m
+            out[:n, at], out[n : n + 2, at], out[n + 2, at] = done[:n], done[e0 + 1 :], it
+            b.keep((~leave).nonzero()[:, 0])
+        if b.size == 0:
             break
         it += 1
-        q_try, ok, predicted = _projected_step(a)
-        trial = _evaluate(evaluate, q_try, a, s)
-        evaluations += a.idx.numel()
-        _accept(a, q_try, trial, ok, predicted, s)
-    return LMOutput(q_out, pos_out, rot_out, it_out, evaluations)
+        q_try, ok, predicted = _projected_step(b)
+        trial = b.trial(q_try)
+        evaluations += b.size
+        _accept(b, trial, ok, predicted)
+    return LMOutput(out[:n].T.contiguous(), out[n], out[n + 1], out[n + 2].long(), evaluations)

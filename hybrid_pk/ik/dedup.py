@@ -79,32 +79,24 @@ def distinct_mask(
 
 
 def _distinct_block(q, candidate, score, revolute, revolute_tol, prismatic_tol) -> Tensor:
-    n, k, dof = q.shape
+    n = q.shape[0]
     # Best first; non-candidates last.
     key = torch.where(candidate, score, torch.inf)
     order = torch.argsort(key, dim=1, stable=True)
     qs = torch.take_along_dim(q, order[..., None], dim=1)
-    cand = torch.take_along_dim(candidate, order, dim=1)
-    # Greedy: each candidate is compared with the (few) solutions kept so far.
-    reps = qs.new_zeros(n, k, dof)
-    n_reps = torch.zeros(n, dtype=torch.long, device=q.device)
-    slots = torch.arange(k, device=q.device)
-    kept = torch.zeros_like(cand)
-    r_max = 0
-    for i in range(k):
-        c = cand[:, i]
-        if not bool(c.any()):
-            break  # candidates are sorted first
-        if r_max:
-            same = same_solution(
-                qs[:, i, None, :], reps[:, :r_max], revolute, revolute_tol, prismatic_tol
-            )
-            c = c & ~(same & (slots[:r_max] < n_reps[:, None])).any(-1)
-        kept[:, i] = c
-        rows = c.nonzero()[:, 0]
-        reps[rows, n_reps[rows]] = qs[rows, i]
-        n_reps += c.long()
-        r_max = int(n_reps.max())
+    left = torch.take_along_dim(candidate, order, dim=1)
+    # The greedy visit of the module docstring, one kept solution per target per round:
+    # the first candidate left is kept (every one before it was the same as one kept),
+    # then every candidate the same as it leaves. Rounds: the most distinct solutions of
+    # one target, not the number of candidates.
+    kept = torch.zeros_like(left)
+    rows = torch.arange(n, device=q.device)
+    while bool(left.any()):
+        first = left.to(torch.uint8).argmax(1)  # the first True of each row
+        has = left[rows, first]
+        kept[rows[has], first[has]] = True
+        rep = qs[rows, first]
+        left &= ~same_solution(qs, rep[:, None], revolute, revolute_tol, prismatic_tol)
     out = torch.zeros_like(candidate)
     out.scatter_(1, order, kept)
     return out

@@ -1,11 +1,13 @@
 """`solve_ik`: every distinct IK solution of a batch of targets on one model.
 
 Targets × seeds are solved as one batch by
-:func:`~hybrid_pk.ik.batched_lm.batched_levenberg_marquardt` (float64, joint limits by
-projection, per-problem damping and early exit). Every candidate is then checked by a
-fresh forward evaluation of the model against the tolerances and the joint limits, and
-the survivors are reduced to distinct solutions (contract section 6). A target none of
-whose seeds passes is a failure: the solver never returns a solution it has not verified.
+:func:`~hybrid_pk.ik.batched_lm.batched_levenberg_marquardt` (joint limits by
+projection, per-problem damping and early exit; float32 down to near a solution and
+float64 to finish where the model has the chain kernel,
+:mod:`~hybrid_pk.ik.two_precision`). Every candidate is then checked by a fresh forward
+evaluation of the model against the tolerances and the joint limits, and the survivors
+are reduced to distinct solutions (contract section 6). A target none of whose seeds
+passes is a failure: the solver never returns a solution it has not verified.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from hybrid_pk.ik.dedup import PRISMATIC_TOL, REVOLUTE_TOL, distinct_mask
 from hybrid_pk.ik.forward_model import IKModel, as_ik_model
 from hybrid_pk.ik.result import IKResult
 from hybrid_pk.ik.seeds import quasi_random_seeds, seed_box
+from hybrid_pk.ik.two_precision import solve_two_precisions
 
 __all__ = [
     "IKOptions",
@@ -175,10 +178,10 @@ def solve_and_check(
         ``(out, ok, pos, ori)``: the LM result and the checks of ``out.q``.
     """
     T_target = T_all[rows]
+    # The chain kernel evaluates in float32 too: the coarse iterations in float32.
+    lm = batched_levenberg_marquardt if ikm.batch_last is None else solve_two_precisions
     with torch.no_grad():
-        out = batched_levenberg_marquardt(
-            ikm.evaluate, q0, rows, T_target, *bounds, settings, ikm.revolute
-        )
+        out = lm(ikm.evaluate, q0, rows, T_target, *bounds, settings, ikm.revolute)
     ok, pos, ori = check_solutions(ikm, out.q, rows, T_target, position_only, options)
     return out, ok, pos, ori
 

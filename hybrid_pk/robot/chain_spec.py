@@ -159,7 +159,8 @@ class _Tree:
         try:
             model = yourdfpy.URDF.load(str(path), load_meshes=False, build_scene_graph=False)
         except Exception as exc:  # yourdfpy raises bare lxml/ValueErrors
-            raise RobotModelError(f"{path}: cannot parse URDF: {exc}") from exc
+            reason = f"an element lacks its attribute {exc}" if isinstance(exc, KeyError) else exc
+            raise RobotModelError(f"{path}: cannot parse URDF: {reason}") from exc
         self.path, self.model = path, model
         self.joint_to = {j.child: j for j in model.robot.joints}
         self.joints_from: dict[str, list[yourdfpy.Joint]] = {}
@@ -186,6 +187,8 @@ class _Tree:
 
     def path_joints(self, end_link: str) -> list[yourdfpy.Joint]:
         """Joints from the root to ``end_link``, in chain order (pytorch-kinematics' path)."""
+        if end_link == self.root:
+            raise RobotModelError(f"{self.path}: {end_link!r} is the root link: no joint moves it")
         try:
             chain = pk.build_serial_chain_from_urdf(self.path.read_bytes(), end_link, self.root)
         except Exception as exc:  # pk raises bare KeyErrors/ValueErrors
@@ -245,6 +248,7 @@ def _joint_limits(joint: yourdfpy.Joint) -> tuple[float, float]:
     if not lim.lower < lim.upper:
         raise RobotModelError(
             f"joint {joint.name!r}: lower limit {lim.lower} is not below upper limit {lim.upper}"
+            + (" (0 and 0 are URDF's defaults: write the joint's range)" if lim.upper == 0 else "")
         )
     return float(lim.lower), float(lim.upper)
 
@@ -299,7 +303,10 @@ def load_chain_spec(urdf: str | Path, end_link: str | None = None) -> ChainSpec:
     branches, branch_links = _branches(tree, segments, on_chain, leaders)
     counted = set(branch_links).union(*segments)
     mass, moment = (np.array(v) for v in zip(*(_mass(tree, s) for s in segments), strict=True))
-    limits = np.array([_joint_limits(j) for j in independent]).reshape(-1, 2)
+    try:
+        limits = np.array([_joint_limits(j) for j in independent]).reshape(-1, 2)
+    except RobotModelError as exc:  # name the file, as every other URDF error does
+        raise RobotModelError(f"{tree.path}: {exc}") from exc
     return ChainSpec(
         name=tree.model.robot.name,
         urdf_path=str(tree.path),

@@ -1,11 +1,18 @@
 """Pose and geometric Jacobian of a serial chain for the IK inner loop.
 
 A snapshot of the robot's chain constants (``Robot.chain_terms``, the same as
-:meth:`Robot.fk`'s), with optional base and tool frames folded into the first and last
-origin, kept contiguous in float64 in the batch-last layout of
-:func:`~hybrid_pk.robot.chain.pose_jacobian_batch_last`, the one implementation of pose
-plus Jacobian that :meth:`Robot.jacobian` uses too. Build a new kernel after changing
-the robot's parameters. No gradients flow through it.
+:meth:`Robot.fk`'s), with optional base and tool frames folded into the first origin
+and the tip, in the z-aligned form of :func:`~hybrid_pk.robot.chain.aligned_chain`: every
+joint frame turned so that its axis is its z axis. Then the frame ``P_i`` of each joint
+holds the joint's axis and origin as two of its columns, so the Jacobian columns
+``[z_i x (p - o_i); z_i]`` (prismatic ``[z_i; 0]``) read them without further
+products, and the whole evaluation is a few dozen tensor operations, batch-last: on a
+CPU each costs a few microseconds of dispatch whatever its size, which sets the speed
+of the IK's late iterations.
+
+:func:`~hybrid_pk.robot.chain.pose_jacobian_batch_last` (``Robot.jacobian``, per-sample
+and differentiable parameters) is the reference the tests compare this one with.
+Build a new kernel after changing the robot's parameters. No gradients flow through it.
 """
 
 from __future__ import annotations
@@ -13,7 +20,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from hybrid_pk.robot.chain import BatchLastTerms, batch_last_terms, pose_jacobian_batch_last
+from hybrid_pk.robot.chain import AlignedChain, aligned_chain, aligned_frames
 from hybrid_pk.robot.robot import Robot
 
 __all__ = ["ChainKernel"]
@@ -35,19 +42,13 @@ class ChainKernel:
     def __init__(self, robot: Robot, base: Tensor | None = None, tool: Tensor | None = None):
         f64 = torch.float64
         with torch.no_grad():
-            t = robot.chain_terms(f64)
-            M = torch.stack([t.M0, t.M1, t.M2])  # (3 terms, n, 4, 4)
-            tip = t.tip
-            if base is not None:  # the terms are linear: base @ (M0 + f1 M1 + f2 M2)
-                M = torch.cat([base.to(f64) @ M[:, :1], M[:, 1:]], 1)
-            if tool is not None:
-                tip = tip @ tool.to(f64)
-            t = t._replace(M0=M[0], M1=M[1], M2=M[2], tip=tip)
-            C = batch_last_terms(t)
+            C = aligned_chain(robot.chain_terms(f64), base, tool)
+        # float32 constants rounded from the float64 ones (the IK's first, coarse phase)
+        cast = AlignedChain(C.first.float(), tuple(r.float() for r in C.rows), C.e3.float())
+        self._C = {f64: C, torch.float32: cast}
         self.dof = robot.dof
         self.revolute = robot.chain_revolute.clone()
         self._all_revolute = bool(self.revolute.all())
-        self._C = BatchLastTerms(*(x.contiguous() for x in C))
         self._mimic = None
         if robot.has_mimic:
             self._mimic = (
@@ -57,17 +58,33 @@ class ChainKernel:
             )
 
     def soa(self, qt: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Batch-last evaluation at ``qt (dof, M)`` [rad or m].
+        """Batch-last evaluation at ``qt (dof, M)`` [rad or m], float64 or float32.
 
         Returns:
             ``R (3, 3, M)``, ``p (3, M)`` [m] of the pose and ``J (6, dof, M)``.
         """
-        if self._mimic is None:
-            return pose_jacobian_batch_last(self._C, qt, self.revolute, self._all_revolute)
-        src, mul, off = self._mimic
-        qt = torch.addcmul(off, qt[src], mul)  # (n_chain, M)
-        R, p, J = pose_jacobian_batch_last(self._C, qt, self.revolute, self._all_revolute)
-        return R, p, J.new_zeros(6, self.dof, J.shape[-1]).index_add_(1, src, J * mul)
+        if self._mimic is not None:
+            src, mul, off = self._mimic
+            qt = torch.addcmul(off.to(qt.dtype), qt[src], mul.to(qt.dtype))  # (n_chain, M)
+        P = aligned_frames(self._C[qt.dtype], qt, self.revolute, self._all_revolute)
+        n, M = qt.shape
+        z, o = P[:n, 2], P[:n, 3]  # (n, 3, M)
+        w = (P[n, 3] - o).unbind(1)  # end point relative to each joint origin
+        zs = z.unbind(1)
+        J = qt.new_empty(6, n, M)
+        rows = J.unbind(0)
+        for k in range(3):  # v = z x w, written out
+            i, j = (k + 1) % 3, (k + 2) % 3
+            torch.mul(zs[i], w[j], out=rows[k]).addcmul_(zs[j], w[i], value=-1)
+        J[3:] = z.transpose(0, 1)
+        if not self._all_revolute:
+            rev = self.revolute[:, None]
+            J[:3] = torch.where(rev, J[:3], J[3:])
+            J[3:] = torch.where(rev, J[3:], 0.0)
+        if self._mimic is not None:
+            src, mul, _ = self._mimic
+            J = J.new_zeros(6, self.dof, M).index_add_(1, src, J * mul.to(J.dtype))
+        return P[n, :3].transpose(0, 1), P[n, 3], J
 
     def __call__(self, q: Tensor) -> tuple[Tensor, Tensor]:
         """Pose ``(M, 4, 4)`` and Jacobian ``(M, 6, dof)`` at ``q (M, dof)`` [rad or m]."""

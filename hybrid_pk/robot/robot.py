@@ -1,14 +1,13 @@
 """`Robot`: the nominal geometric + static model of one serial arm.
 
-Dimension names used throughout the package: ``B`` any leading batch shape, ``dof``
-the robot's (independent) joints, ``n_chain`` the movable joints on the chain (more
-than ``dof`` when some are URDF mimic joints), ``n_params`` identified parameters.
+Dimension names used throughout the package: ``B`` any leading batch shape, ``dof`` the
+robot's (independent) joints, ``n_chain`` the movable joints on the chain (more than ``dof``
+when some are URDF mimic joints), ``n_params`` identified parameters.
 
-Mimic joints: the chain's joint values follow the robot's joints through the affine
-coupling ``q_chain = q @ A.T + b`` (:meth:`Robot.coupling`). Every public method takes
-and returns the robot's joints: ``fk(q)``, ``jacobian(q) = J_chain @ A`` and
-``gravity_torques(q) = A.T tau_chain`` (virtual work; a leader joint off the chain gets
-the torques of its mimic joints, plus those of its own link).
+Mimic joints: the chain's joint values follow the robot's joints through the affine coupling
+``q_chain = q @ A.T + b`` (:meth:`Robot.coupling`). Every public method takes and returns
+the robot's joints: ``fk(q)``, ``jacobian(q) = J_chain @ A`` and ``gravity_torques(q) =
+A.T tau_chain`` (virtual work; a leader off the chain gets its mimic joints' torques too).
 """
 
 from __future__ import annotations
@@ -21,6 +20,7 @@ from torch import Tensor, nn
 from hybrid_pk.errors import ShapeError
 from hybrid_pk.geometry import so3_exp
 from hybrid_pk.robot.chain import (
+    AlignedFK,
     ChainTerms,
     KinematicParams,
     batch_last_terms,
@@ -30,6 +30,7 @@ from hybrid_pk.robot.chain import (
     product,
 )
 from hybrid_pk.robot.chain_spec import BranchBody, ChainSpec, load_chain_spec
+from hybrid_pk.robot.dh import from_dh
 
 __all__ = ["STANDARD_GRAVITY", "Robot"]
 
@@ -76,6 +77,7 @@ class Robot(nn.Module):
         self._has_mimic = spec.has_mimic  # read on every call: not recomputed
         self._cache: dict[tuple, ChainTerms] = {}
         self._params_memo: dict[bool, tuple] = {}
+        self._no_grad_fk = AlignedFK(self.chain_revolute)  # fk's path without derivatives
 
     def __getstate__(self) -> dict:
         # Caches may hold tensors of a finished functorch transform: never pickle them.
@@ -93,11 +95,12 @@ class Robot(nn.Module):
         Args:
             urdf: URDF file or shipped robot name.
             end_link: link whose pose :meth:`fk` returns; default the single leaf link.
-            dtype: floating dtype of parameters and buffers. float64 by default so
-                that the URDF's figures keep every digit; :meth:`fk` computes in the
-                dtype of ``q`` (a float32 ``q`` gets float32 math from a cached cast).
+            dtype: of parameters and buffers; float64 (default) keeps the URDF's every digit.
+                :meth:`fk` computes in the dtype of ``q`` (float32: from a cached cast).
         """
         return cls(load_chain_spec(urdf, end_link), dtype=dtype)
+
+    from_dh = classmethod(from_dh)  # a DH / modified-DH table: hybrid_pk.robot.dh
 
     # ------------------------------------------------------------------ description
     @property
@@ -106,10 +109,8 @@ class Robot(nn.Module):
 
     @property
     def joint_names(self) -> list[str]:
-        """The robot's joints (the data's columns, IK's variables), in chain order.
-
-        A mimic joint's leader takes the place of its first mimic joint on the chain.
-        """
+        """The robot's joints (the data's columns, IK's variables), in chain order; a
+        mimic joint's leader takes the place of its first mimic joint on the chain."""
         return list(self.spec.joint_names)
 
     @property
@@ -201,11 +202,10 @@ class Robot(nn.Module):
         if params is not None and reverse_graph:
             return build(params)
         if params is not None:
-            # One-slot memo keyed on the params object: callers that pass the same
-            # parameters to several calls (fk plus gravity torques of a compliance
-            # fixed point) build the chain constants once. The entry holds the params
-            # object, so its id cannot be reused while it is cached. Not used when a
-            # reverse-mode graph is built (a second backward would find it freed).
+            # One-slot memo keyed on the params object (held, so its id is not reused):
+            # callers passing the same parameters to several calls (fk plus gravity torques
+            # of a compliance fixed point) build the constants once. Not with a reverse-mode
+            # graph (a second backward would find it freed).
             memo = self._params_memo.get(fold_tip)
             if memo is not None and memo[0] is params and memo[1] == dtype:
                 return memo[2]
@@ -217,8 +217,7 @@ class Robot(nn.Module):
             return build(self.kinematic_params())  # a cached graph can't be reused by backward
         # Without gradients to the parameters the constant matrices are cached; the key
         # changes whenever a parameter is modified in place (its _version counter).
-        key = (dtype, self.origin_xyz.device, fold_tip, *(p._version for p in own))
-        key += tuple(id(p) for p in own)
+        key = (dtype, self.origin_xyz.device, fold_tip, *(p._version for p in own), *map(id, own))
         if key not in self._cache:
             with torch.no_grad():
                 if len(self._cache) > 8:
@@ -239,7 +238,7 @@ class Robot(nn.Module):
         return q
 
     def fk(self, q: Tensor, params: KinematicParams | None = None) -> Tensor:
-        """Pose of the end link in the root frame.
+        """Pose of the end link in the root frame (without derivatives: robot.chain.AlignedFK).
 
         Args:
             q: ``(*B, dof)`` joint values [rad or m].
@@ -250,6 +249,8 @@ class Robot(nn.Module):
             ``(*B, 4, 4)`` homogeneous transforms ``T_root_end`` [m].
         """
         q = self.chain_q(self._check_q(q))
+        if params is None and (T := self._no_grad_fk(self, q)) is not None:
+            return T
         terms = self._terms(params, q.dtype, fold_tip=True)  # the tip costs no extra matmul
         return product(local_transforms(q, terms, self.chain_revolute))
 

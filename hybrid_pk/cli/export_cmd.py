@@ -1,0 +1,99 @@
+"""``hybrid-pk export MODEL --format dh|mdh|urdf|ur-calibration --out FILE``: the geometric
+part of a calibrated model for controllers and ROS."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import torch
+
+from hybrid_pk.cli.common import read_data
+from hybrid_pk.cli.options import add_model, add_out
+from hybrid_pk.effects import Conditions, conditions_from_data
+from hybrid_pk.io.dh_export import model_dh_table, write_dh_yaml
+from hybrid_pk.io.export_summary import left_out, summary_lines
+from hybrid_pk.io.model_file import LoadedModel, load_model
+from hybrid_pk.io.ur_calibration import UR_ROOTS, write_ur_calibration
+from hybrid_pk.io.urdf_export import export_urdf
+
+NAME = "export"
+HELP = "the calibrated geometry as a DH / modified-DH table, a URDF or UR's kinematics YAML"
+DESCRIPTION = """\
+Write the geometric part of MODEL (link lengths, axis misalignments, base and flange
+frames, joint offsets folded into the joint zero: the file reads commanded joint
+values) in one of these formats:
+
+  dh              DH table, YAML: rows name a alpha d theta beta type lower upper
+                  [m, rad], Rz(theta) Tz(d) Tx(a) Rx(alpha) Ry(beta); base (root ->
+                  frame 0) and flange (frame n -> end link) as {xyz [m], rpy [rad]}
+  mdh             modified (Craig) DH, same file: Rx(alpha) Tx(a) Ry(beta) Rz(theta) Tz(d)
+  urdf            the corrected URDF (joint offsets folded into the joint origins)
+  ur-calibration  Universal Robots' kinematics YAML (ur_description): per joint
+                  x y z [m] roll pitch yaw [rad] and a hash (--ur-root: the model's root)
+
+beta is Hayati's parameter, non-zero only between consecutive axes within 45 degrees of
+parallel (where plain DH is singular). Effects a geometric file cannot carry
+(compliance, deflection, backlash, gear ratio, eccentricity, cyclic errors, residual
+networks) are listed with their size [mm, mrad] at the measured points: those of --data, else
+the data files the model was calibrated on, else 1000 configurations drawn within the
+joint limits. 'hybrid-pk import dh' and Robot.from_dh read the dh / mdh files back.
+"""
+
+_FORMATS = ("dh", "mdh", "urdf", "ur-calibration")
+_RANDOM_POINTS = 1000  # enough for a stable rms and max of a smooth effect over the workspace
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of ``hybrid-pk export``."""
+    add_model(p)
+    p.add_argument("--format", required=True, choices=_FORMATS, help="output format")
+    add_out(p, metavar="FILE", help="output file (.yaml for dh, mdh and ur-calibration)")
+    p.add_argument(
+        "--ur-root",
+        choices=UR_ROOTS,
+        default=UR_ROOTS[0],
+        help="ur-calibration: what MODEL's root link is in UR's description: "
+        "base_link_inertia (the controller's base frame, DH frame 0: a robot imported from "
+        "UR's DH table) or base_link (turned by pi about z: ur_description's URDFs, the "
+        "shipped ur10) (default: %(default)s)",
+    )
+    p.add_argument(
+        "--data",
+        nargs="+",
+        metavar="DATA",
+        help="measured pose table(s) whose joint values are the points the summary sizes "
+        "the left-out effects at (default: the model's calibration data, when found)",
+    )
+
+
+def _points(args: argparse.Namespace, loaded: LoadedModel) -> tuple[torch.Tensor, Conditions, str]:
+    """Joint values, conditions and a description of the points to size effects at."""
+    robot = loaded.model.robot
+    paths = args.data or [p for p in loaded.metadata.get("data") or [] if Path(p).is_file()]
+    if paths:
+        data = read_data(paths, robot)
+        return data.q, conditions_from_data(data), f"the {data.n} measured points"
+    q = robot.sample_q(_RANDOM_POINTS, torch.Generator().manual_seed(0))
+    # Backlash needs an approach direction: +1 for every joint (half the play each way).
+    cond = Conditions(direction=torch.ones_like(q))
+    return q, cond, f"{_RANDOM_POINTS} configurations within the joint limits (no data found)"
+
+
+def run(args: argparse.Namespace) -> int:
+    loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
+    model = loaded.model
+    model.requires_grad_(False)
+    q, cond, where = _points(args, loaded)
+    lines = [f"hybrid_pk export of {loaded.source} ({args.format})"]
+    lines += summary_lines(left_out(loaded, q, cond), where)
+    if args.format in ("dh", "mdh"):
+        write_dh_yaml(model_dh_table(model, args.format), args.out, header=lines)
+    elif args.format == "ur-calibration":
+        _, note = write_ur_calibration(model, args.out, header=lines, root=args.ur_root)
+        lines += [note] if note else []
+    else:
+        export_urdf(model, args.out, fold_joint_offsets=True)
+    print("\n".join(lines))
+    print(f"wrote {args.out}")
+    return 0

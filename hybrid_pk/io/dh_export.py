@@ -1,0 +1,222 @@
+"""The geometric part of a model as a DH or modified-DH table (conventions:
+:mod:`hybrid_pk.robot.dh`), the same numbers that ``Robot.from_dh`` reads.
+
+What the table carries: the model's kinematic parameters with every geometric effect
+(link lengths, axis misalignments, thermal expansion at the reference temperature, so
+the identity) and the joint offsets folded into ``theta`` (``d`` for a prismatic joint):
+the table at commanded ``q`` gives ``fk(q + offsets)`` of the calibrated geometry,
+``base`` (root link -> frame 0) and ``flange`` (frame ``n`` -> end link) included.
+
+Construction. Each joint's axis is a line at the commanded zero; line 0 is the root's
+``z`` axis and line ``n+1`` the end link's ``z`` axis. Between consecutive lines ``k``
+and ``k+1`` the table needs one *normal*: a foot ``f`` on line ``k``, a unit ``x``
+perpendicular to it, ``a`` along ``x`` to line ``k+1``, then ``Rx(alpha) Ry(beta)`` turns
+``z`` onto line ``k+1``:
+
+- lines more than 45° apart: the common normal (``beta = 0``), plain DH;
+- closer to parallel: Hayati's normal (the common normal runs off to infinity there,
+  and the conditioning of plain DH falls below Hayati's at 45°): ``f`` is the foot of a
+  reference point, ``x`` points to where line ``k+1`` crosses the plane through ``f``
+  normal to line ``k``, ``beta`` tilts about ``y``.
+
+The free choices (the sign of ``x``, ``f`` on parallel lines, ``x`` on coincident ones)
+follow the model's own frames: frame 0 as close as possible to the root, frame ``n`` to
+the end link, frame ``k`` in between to the URDF frame of the joint it would be
+(``mdh``: joint ``k``, ``dh``: joint ``k+1``), so a robot built by ``Robot.from_dh``
+exports its own table back. MDH frame ``k`` is the
+normal's frame at ``f``, DH frame ``k`` the same frame moved by ``Tx(a) Rx(alpha)
+Ry(beta)`` onto line ``k+1``; ``theta_i, d_i`` go from DH frame ``i-1`` to MDH frame
+``i``, both on line ``i``. The DH and MDH tables hold the same numbers, grouped apart.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+from hybrid_pk.effects import Conditions, ExtendedModel
+from hybrid_pk.effects.geometric import REFERENCE_TEMPERATURE
+from hybrid_pk.effects.joint import JointOffset
+from hybrid_pk.errors import HybridPKError
+from hybrid_pk.geometry import matrix_to_rpy
+from hybrid_pk.robot.dh import rot, trans
+from hybrid_pk.robot.dh_table import CONVENTIONS, DHTable
+
+__all__ = ["frame_entry", "geometric_model", "model_dh_table", "write_dh_yaml", "zero_frames"]
+
+# Below this length [m] two lines count as crossing (a = 0): far below any machining
+# tolerance, far above the float64 rounding of metre-sized chains (1e-16 m).
+_COINCIDENT = 1e-12
+
+
+def geometric_model(model: ExtendedModel) -> ExtendedModel:
+    """The model with only what a geometric table carries: its geometric effects and
+    joint offsets (same robot and frames)."""
+    keep = [e for e in model.effects if e.stage == "geometry" or isinstance(e, JointOffset)]
+    return model.with_effects(keep)
+
+
+def zero_frames(model: ExtendedModel) -> tuple[np.ndarray, np.ndarray]:
+    """``(frames (n+1, 4, 4), axes (n, 3))`` at commanded zero of the geometric part:
+    frame ``i < n`` is chain joint ``i+1``'s frame, ``n`` the end link; axes unit, in the
+    root frame."""
+    model = geometric_model(model)  # joint offsets only: q0 is what they make of zero
+    robot = model.robot
+    if robot.has_mimic:
+        raise HybridPKError(
+            f"{robot.name}: a DH table has one row per joint; this chain has mimic joints "
+            f"({', '.join(robot.chain_joint_names)}): export it as a URDF"
+        )
+    temp = torch.tensor(REFERENCE_TEMPERATURE, dtype=robot.dtype)
+    with torch.no_grad():
+        params = model.kinematic_params(Conditions(temperature=temp))
+        params = type(params)(*(t.detach().to(torch.float64) for t in params))
+        q0 = torch.zeros(robot.dof, dtype=torch.float64)
+        q0 = model.kinematic_joint_values(q0)  # the joint offsets
+        frames = robot.link_frames(q0, params).numpy()
+    n = robot.chain_dof
+    local = params.axis.numpy()
+    local = local / np.linalg.norm(local, axis=-1, keepdims=True)
+    axes = np.einsum("nij,nj->ni", frames[:n, :3, :3], local)
+    return frames, axes
+
+
+def _normal(pA, zA, pB, zB, ref_point, ref_x) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """Normal from line A to line B: ``(foot f on A, unit x, (a, alpha, beta))``."""
+    c = np.cross(zA, zB)
+    s, cos = np.linalg.norm(c), float(zA @ zB)
+    if s > abs(cos):  # plain DH: the common normal
+        w = pA - pB
+        b, d, e = cos, float(zA @ w), float(zB @ w)
+        t = (b * e - d) / (1 - b * b)  # foot on A of the shortest segment between lines
+        f = pA + t * zA
+        x = c / s
+        if x @ ref_x < 0:
+            x = -x
+        g = pB + ((f - pB) @ zB) * zB  # foot on B: same a for either end of the segment
+        beta_free = False
+    else:  # Hayati: foot of the reference point, x towards line B in the plane normal to A
+        f = pA + ((ref_point - pA) @ zA) * zA
+        g = pB + (zA @ (f - pB)) / cos * zB
+        v = g - f
+        if np.linalg.norm(v) > _COINCIDENT:
+            x = v / np.linalg.norm(v)
+            if x @ ref_x < 0:
+                x = -x
+        else:
+            x = _perpendicular(zA, ref_x)
+        beta_free = True
+    a = float(x @ (g - f))
+    y = np.cross(zA, x)
+    beta = math.asin(max(-1.0, min(1.0, float(zB @ x)))) if beta_free else 0.0
+    alpha = math.atan2(-float(zB @ y), float(zB @ zA))
+    return f, x, (a, alpha, beta)
+
+
+def _perpendicular(z: np.ndarray, hint: np.ndarray) -> np.ndarray:
+    """Unit vector normal to ``z``, as close as possible to ``hint``."""
+    for h in (hint, np.array([1.0, 0, 0]), np.array([0, 1.0, 0])):
+        v = h - (h @ z) * z
+        if np.linalg.norm(v) > 1e-6:
+            return v / np.linalg.norm(v)
+    raise AssertionError("unreachable: x and y cannot both be parallel to z")
+
+
+def _frame(origin, x, z) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, np.cross(z, x), z, origin
+    return T
+
+
+def model_dh_table(model: ExtendedModel, convention: str) -> DHTable:
+    """The geometric part of ``model`` as a ``"dh"`` or ``"mdh"`` table (module docstring)."""
+    if convention not in CONVENTIONS:
+        raise HybridPKError(f"convention {convention!r}: give dh or mdh")
+    robot = model.robot
+    frames, axes = zero_frames(model)
+    n = robot.chain_dof
+    root, end = np.eye(4), frames[n]
+    points = [root[:3, 3], *frames[:n, :3, 3], end[:3, 3]]
+    lines = list(zip(points, [root[:3, 2], *axes, end[:3, 2]], strict=True))
+    joint_frames = [root, *frames[:n], end]  # reference frame on line k (joint k's)
+    M, G, normals = [], [], []
+    for k in range(n + 1):
+        # The root frames the first normal and the end link the last (frame 0 at the
+        # base, frame n at the flange, as makers' tables have them); in between, the
+        # joint whose URDF frame the convention's frame k would be.
+        inner = joint_frames[k] if convention == "mdh" else joint_frames[k + 1]
+        ref = root if k == 0 else end if k == n else inner
+        f, x, nrm = _normal(*lines[k], *lines[k + 1], ref[:3, 3], ref[:3, 0])
+        M.append(_frame(f, x, lines[k][1]))
+        G.append(M[-1] @ trans("x", nrm[0]) @ rot("x", nrm[1]) @ rot("y", nrm[2]))
+        normals.append(nrm)
+    rows = []
+    for i in range(1, n + 1):
+        step = np.linalg.solve(G[i - 1], M[i])  # Rz(theta) Tz(d) along line i
+        theta, d = math.atan2(step[1, 0], step[0, 0]), float(step[2, 3])
+        a, alpha, beta = normals[i] if convention == "dh" else normals[i - 1]
+        rows.append([a, alpha, d, theta, beta])
+    lower, upper = robot.joint_limits
+    if convention == "dh":
+        base, flange = G[0], np.linalg.solve(G[n], end)
+    else:
+        base, flange = M[0], np.linalg.solve(M[n], end)
+    return DHTable(
+        convention=convention,
+        rows=np.array(rows),
+        names=list(robot.chain_joint_names),
+        types=list(robot.chain_joint_types),
+        lower=lower.detach().to(torch.float64).numpy().copy(),
+        upper=upper.detach().to(torch.float64).numpy().copy(),
+        base=base,
+        flange=flange,
+        name=robot.name,
+    )
+
+
+def frame_entry(T: np.ndarray) -> dict:
+    """``{xyz: [m], rpy: [rad]}`` (URDF roll-pitch-yaw) of a ``(4, 4)`` transform."""
+    rpy = matrix_to_rpy(torch.as_tensor(T[:3, :3], dtype=torch.float64)).tolist()
+    return {"xyz": [_plain(v) for v in T[:3, 3]], "rpy": [_plain(v) for v in rpy]}
+
+
+def _plain(x: float) -> float:
+    return float(x) + 0.0  # a Python float, never -0.0
+
+
+def write_dh_yaml(table: DHTable, path: str | os.PathLike, header: list[str] = ()) -> Path:
+    """Write ``table`` as YAML that ``Robot.from_dh`` / ``hybrid-pk import dh`` read back.
+
+    Args:
+        header: comment lines written first (the export summary).
+    """
+    path = Path(path)
+    if path.suffix.lower() not in (".yaml", ".yml"):
+        raise HybridPKError(
+            f"{path}: a DH export is YAML (.yaml): the rows with the base and flange frames "
+            "that a calibrated chain needs beside them"
+        )
+    rows = []
+    for i, name in enumerate(table.names):
+        a, alpha, d, theta, beta = (_plain(v) for v in table.rows[i])
+        row = {"name": name, "a": a, "alpha": alpha, "d": d, "theta": theta, "beta": beta}
+        row.update(type=table.types[i], lower=_plain(table.lower[i]))
+        row["upper"] = _plain(table.upper[i])
+        rows.append(row)
+    doc = {
+        "convention": table.convention,
+        "name": table.name,
+        "base": frame_entry(table.base),
+        "flange": frame_entry(table.flange),
+        "joints": rows,
+    }
+    text = "".join(f"# {line}\n" if line else "#\n" for line in header)
+    text += yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text, encoding="utf-8")
+    return path

@@ -1,0 +1,88 @@
+"""What a geometric export leaves out, and how much it moves the measured points.
+
+A DH / modified-DH table, a URDF and UR's kinematics YAML carry the geometry: link
+lengths, axis misalignments, frames and joint offsets. Compliance, deflection, backlash,
+gear ratios, eccentricity and cyclic errors, and residual networks are not geometry:
+each is listed with its value and its size at the points, the distance [mm] the end
+point moves when that one effect is taken out of the full model (rms and max), and
+the total, full model against the exported geometry alone. ``hybrid-pk compensate`` (or
+the model file) is the way to carry them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from hybrid_pk.effects import Conditions
+from hybrid_pk.geometry import so3_log
+from hybrid_pk.io.dh_export import geometric_model
+from hybrid_pk.io.hybrid_file import forward_model
+from hybrid_pk.io.model_file import LoadedModel
+
+__all__ = ["LeftOut", "left_out", "summary_lines"]
+
+
+@dataclass(frozen=True)
+class LeftOut:
+    """One thing an export cannot carry: its name, value and size at the points."""
+
+    what: str
+    value: str
+    size_mm: tuple[float, float]  # position: rms, max over the points
+    turn_mrad: float  # orientation: max over the points
+
+    def line(self) -> str:
+        rms, peak = self.size_mm
+        return (
+            f"{self.what} = {self.value}: {rms:.4g} mm rms, {peak:.4g} mm max, "
+            f"{self.turn_mrad:.4g} mrad max"
+        )
+
+
+def _size(a: Tensor, b: Tensor) -> tuple[tuple[float, float], float]:
+    """``((rms, max) [mm] of the position difference, max angle [mrad] between them)``."""
+    d = (a[..., :3, 3] - b[..., :3, 3]).norm(dim=-1) * 1000.0
+    angle = so3_log(a[..., :3, :3].transpose(-1, -2) @ b[..., :3, :3]).norm(dim=-1)
+    return (float(d.pow(2).mean().sqrt()), float(d.max())), float(angle.max()) * 1000.0
+
+
+def _value(e) -> str:
+    v = e.report_value()
+    text = f"[{', '.join(f'{x:.4g}' for x in v)}]" if isinstance(v, list) else f"{v:.4g}"
+    return f"{text} {e.unit}"
+
+
+def left_out(loaded: LoadedModel, q: Tensor, cond: Conditions) -> list[LeftOut]:
+    """Effects (and networks) of ``loaded`` that a geometric export drops, each with its
+    size at joint values ``q (N, dof)`` under ``cond``; a last ``total`` entry when any."""
+    model = loaded.model
+    kept = {id(e) for e in geometric_model(model).effects}
+    out = []
+    with torch.no_grad():
+        full = model(q, cond)  # the measured point in the measurement frame
+        for e in model.effects:
+            if id(e) in kept:
+                continue
+            without = model.with_effects([x for x in model.effects if x is not e])
+            out.append(LeftOut(e.label, _value(e), *_size(full, without(q, cond))))
+        if loaded.has_networks:
+            hybrid = forward_model(loaded)(q, cond)
+            out.append(LeftOut("residual networks", "-", *_size(hybrid, full)))
+            full = hybrid
+        if out:
+            total = _size(full, geometric_model(model)(q, cond))
+            out.append(LeftOut("total", "all of the above", *total))
+    return out
+
+
+def summary_lines(items: list[LeftOut], where: str) -> list[str]:
+    """Summary lines of :func:`left_out`'s result; ``where`` names the points."""
+    if not items:
+        return ["every effect of the model is geometric: the export carries all of it"]
+    return [
+        f"not carried by a geometric table (size at {where}; hybrid-pk compensate carries them):",
+        *(f"  {item.line()}" for item in items),
+    ]

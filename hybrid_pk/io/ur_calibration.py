@@ -1,0 +1,117 @@
+"""The geometric part of a UR arm's model as the kinematics YAML that Universal Robots'
+ROS description and driver read (``ur_description``'s ``kinematics_params`` file).
+
+Format: under ``kinematics``, one entry per joint, ``shoulder, upper_arm, forearm,
+wrist_1, wrist_2, wrist_3``, each ``x y z`` [m] and ``roll pitch yaw`` [rad] (URDF
+fixed-axis ``Rz(yaw) Ry(pitch) Rx(roll)``): the origin of that joint in the frame of the
+link before it, the joint turning about its own ``z``; the first is relative to
+``base_link_inertia`` (the controller's base frame, DH frame 0; ``ur_description`` puts
+it at ``base_link · Rz(pi)``), and ``tool0`` is the frame of ``wrist_3_link``. So
+``T(q) = E_1 Rz(q_1) E_2 Rz(q_2) … E_6 Rz(q_6)``. A ``hash`` string identifies the
+calibration (``calib_`` and digits; here derived from the written numbers).
+
+Here ``E_i`` is row ``i`` of the model's modified-DH table
+(:mod:`hybrid_pk.io.dh_export`: ``Rx(alpha) Tx(a) Ry(beta) Rz(theta) Tz(d)``, the
+joint's motion after it), the table's base folded into ``shoulder``. The model's root
+link is taken as ``base_link_inertia`` (a robot built from UR's DH table), or as
+``base_link`` when asked (a model on one of ``ur_description``'s URDFs). The table's
+flange transform is folded into ``wrist_3`` as far as it commutes with the last joint's
+turn (a twist about and a shift along its axis); what remains (a flange off or tilted
+from the last axis) cannot be written in this format: it is returned, listed in the
+summary and written under the extra top-level key ``hybrid_pk_tool0``
+(``wrist_3_link -> tool0``), which UR's description does not read.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+from hybrid_pk.effects import ExtendedModel
+from hybrid_pk.errors import HybridPKError
+from hybrid_pk.geometry import so3_log
+from hybrid_pk.io.dh_export import frame_entry, model_dh_table
+from hybrid_pk.robot.dh import dh_row_parts, rot, trans
+
+__all__ = ["UR_JOINTS", "UR_ROOTS", "ur_kinematics", "write_ur_calibration"]
+
+# [m or rad] a residual below this is the float64 rounding of the construction, not a
+# flange off the last axis.
+_ROUNDING = 1e-12
+UR_ROOTS = ("base_link_inertia", "base_link")
+UR_JOINTS = ("shoulder", "upper_arm", "forearm", "wrist_1", "wrist_2", "wrist_3")
+
+
+def ur_kinematics(
+    model: ExtendedModel, root: str = "base_link_inertia"
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """``(E_1..E_6 as (4, 4), residual wrist_3_link -> end link (4, 4))``.
+
+    Args:
+        root: what the model's root link is in UR's description: ``base_link_inertia``
+            (the controller's base frame, DH frame 0: a robot built from UR's DH table)
+            or ``base_link`` (the ROS-Industrial base, turned by pi about ``z``: the
+            URDFs of ``ur_description``, such as the shipped ``ur10``).
+    """
+    if root not in UR_ROOTS:
+        raise HybridPKError(f"root {root!r}: give one of {', '.join(UR_ROOTS)}")
+    table = model_dh_table(model, "mdh")
+    joints = (table.names, table.types)
+    if table.n != len(UR_JOINTS) or any(t == "prismatic" for t in table.types):
+        raise HybridPKError(
+            f"{model.robot.name}: the UR calibration format holds 6 revolute joints; this "
+            f"chain has {', '.join(f'{n} ({t})' for n, t in zip(*joints, strict=True))}"
+        )
+    entries = [dh_row_parts("mdh", row, False)[0] for row in table.rows]
+    # ur_description: base_link_inertia = base_link · Rz(pi).
+    to_root = np.eye(4) if root == "base_link_inertia" else rot("z", -math.pi)
+    entries[0] = to_root @ table.base @ entries[0]
+    F = table.flange
+    twist = math.atan2(F[1, 0], F[0, 0]) if np.hypot(F[0, 2], F[1, 2]) < 1e-9 else 0.0
+    along = rot("z", twist) @ trans("z", float(F[2, 3]))  # commutes with Rz(q_6)
+    entries[-1] = entries[-1] @ along
+    return entries, np.linalg.solve(along, F)
+
+
+def _entry(T: np.ndarray) -> dict:
+    e = frame_entry(T)
+    return dict(zip(("x", "y", "z", "roll", "pitch", "yaw"), e["xyz"] + e["rpy"], strict=True))
+
+
+def write_ur_calibration(
+    model: ExtendedModel,
+    path: str | os.PathLike,
+    header: list[str] = (),
+    root: str = "base_link_inertia",
+) -> tuple[Path, str | None]:
+    """Write the UR kinematics YAML (``header``: comment lines first; ``root``: see
+    :func:`ur_kinematics`).
+
+    Returns:
+        The path, and a line saying what the format could not hold (None when nothing).
+    """
+    path = Path(path)
+    entries, residual = ur_kinematics(model, root)
+    kin = {name: _entry(T) for name, T in zip(UR_JOINTS, entries, strict=True)}
+    numbers = repr([list(v.values()) for v in kin.values()]).encode("utf-8")
+    kin["hash"] = f"calib_{int(hashlib.sha256(numbers).hexdigest()[:15], 16)}"
+    doc, note = {"kinematics": kin}, None
+    if np.abs(residual - np.eye(4)).max() > _ROUNDING:
+        doc["hybrid_pk_tool0"] = frame_entry(residual)
+        shift = np.linalg.norm(residual[:3, 3]) * 1000
+        tilt = float(so3_log(torch.as_tensor(residual[:3, :3])).norm())
+        note = (
+            f"tool0 is {shift:.4g} mm off / {tilt * 1000:.4g} mrad tilted from wrist_3's axis: "
+            "that transform is written under hybrid_pk_tool0, which UR's description does not read"
+        )
+    text = "".join(f"# {line}\n" if line else "#\n" for line in header)
+    text += yaml.safe_dump(doc, sort_keys=False, width=100)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text, encoding="utf-8")
+    return path, note

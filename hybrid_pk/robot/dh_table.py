@@ -1,0 +1,319 @@
+"""Denavit–Hartenberg tables: read and check a robot maker's DH / modified-DH table.
+
+A table has one row per joint, in chain order, with the columns (CSV header or YAML
+keys) ``name, a, alpha, d, theta, type, lower, upper``: lengths [m], angles [rad],
+``theta`` the joint's zero offset, ``type`` ``revolute``, ``continuous`` or
+``prismatic`` (limits [rad or m]; a continuous joint may leave them empty). Optional:
+
+- ``beta`` [rad]: Hayati's rotation about ``y``, for consecutive parallel axes (see
+  :mod:`hybrid_pk.robot.dh`); 0 when absent;
+- ``mass`` [kg], ``com_x, com_y, com_z`` [m] and ``ixx, ixy, ixz, iyy, iyz, izz``
+  [kg m²]: the link's inertial, in the table's frame ``i`` (the frame the row ends in
+  for ``dh``, the frame on joint ``i``'s axis for ``mdh``), the centre of mass as origin
+  of the inertia; what the statics and compliance effects read.
+
+A YAML file holds either a list of rows or a mapping with ``joints`` (the rows) and
+optionally ``convention`` (``dh`` or ``mdh``), ``name``, ``base`` and ``flange``
+(``{xyz: [m], rpy: [rad]}``, URDF roll-pitch-yaw).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import yaml
+
+from hybrid_pk.errors import DataError
+
+__all__ = [
+    "CONVENTIONS",
+    "DH_COLUMNS",
+    "INERTIA_COLUMNS",
+    "DHTable",
+    "pose_matrix",
+    "read_dh_table",
+]
+
+CONVENTIONS = ("dh", "mdh")
+DH_COLUMNS = ("name", "a", "alpha", "d", "theta", "type", "lower", "upper")
+INERTIA_COLUMNS = ("mass", "com_x", "com_y", "com_z", "ixx", "ixy", "ixz", "iyy", "iyz", "izz")
+_TYPES = ("revolute", "continuous", "prismatic")
+_ANGLES = ("alpha", "theta", "beta")
+# A DH angle is defined modulo one turn, so a table states it within [-2 pi, 2 pi]; a
+# larger figure is a degree value (90, 180). Joint limits may span two turns (UR arms
+# rotate +-2 pi, some wrists more): beyond two turns a limit is read as degrees.
+_MAX_ANGLE = 2 * math.pi * (1 + 1e-9)
+_MAX_LIMIT = 4 * math.pi * (1 + 1e-9)
+# No arm link is 100 m long: such a length is a millimetre figure.
+_MAX_LENGTH = 100.0
+
+
+@dataclass
+class DHTable:
+    """A checked DH or modified-DH table.
+
+    Attributes:
+        convention: ``"dh"`` (distal, ``Rz(theta) Tz(d) Tx(a) Rx(alpha) Ry(beta)``) or
+            ``"mdh"`` (Craig's proximal, ``Rx(alpha) Tx(a) Ry(beta) Rz(theta) Tz(d)``).
+        rows: ``(n, 5)`` float64 ``a, alpha, d, theta, beta`` per joint [m, rad].
+        names, types: per joint.
+        lower, upper: ``(n,)`` limits [rad or m], ``±inf`` for continuous joints.
+        inertial: ``(n, 10)`` ``mass, com (3), ixx ixy ixz iyy iyz izz`` or None.
+        base: ``(4, 4)`` robot root -> table frame 0; flange: ``(4, 4)`` table frame n ->
+            the flange (end link).
+        name: robot name; source: file the table came from (for messages).
+    """
+
+    convention: str
+    rows: np.ndarray
+    names: list[str]
+    types: list[str]
+    lower: np.ndarray
+    upper: np.ndarray
+    inertial: np.ndarray | None = None
+    base: np.ndarray = field(default_factory=lambda: np.eye(4))
+    flange: np.ndarray = field(default_factory=lambda: np.eye(4))
+    name: str = "dh_robot"
+    source: str = "<table>"
+
+    @property
+    def n(self) -> int:
+        return len(self.names)
+
+
+def pose_matrix(xyz: Sequence[float], rpy: Sequence[float]) -> np.ndarray:
+    """``(4, 4)`` from a translation [m] and URDF roll-pitch-yaw [rad] (``Rz Ry Rx``)."""
+    r, p, y = (float(v) for v in rpy)
+    cr, sr, cp, sp = math.cos(r), math.sin(r), math.cos(p), math.sin(p)
+    cy, sy = math.cos(y), math.sin(y)
+    T = np.eye(4)
+    T[:3, :3] = [
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ]
+    T[:3, 3] = [float(v) for v in xyz]
+    return T
+
+
+def _records(source, where: str) -> tuple[list[dict], dict]:
+    """Rows (dicts, file order) and the file-level keys of a table source."""
+    if isinstance(source, pd.DataFrame):
+        return source.to_dict("records"), {}
+    if isinstance(source, (str, os.PathLike)):
+        path = Path(source)
+        if not path.is_file():
+            raise DataError("DH table file not found", file=where)
+        if path.suffix.lower() in (".yaml", ".yml"):
+            try:
+                doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+            except yaml.YAMLError as exc:
+                reason = " ".join(str(exc).split())
+                raise DataError(f"not valid YAML ({reason})", file=where) from exc
+            return _records(doc, where)
+        try:
+            frame = pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
+        except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+            raise DataError(f"not a readable CSV table ({exc})", file=where) from exc
+        frame.columns = [str(c).strip() for c in frame.columns]
+        return frame.to_dict("records"), {}
+    if isinstance(source, Mapping):
+        rows = source.get("joints")
+        if not isinstance(rows, list):
+            raise DataError("a YAML DH table needs a list of rows: joints", file=where)
+        return rows, {k: v for k, v in source.items() if k != "joints"}
+    if isinstance(source, Sequence) and not isinstance(source, (str, bytes)):
+        return list(source), {}
+    raise DataError(f"cannot read a DH table from a {type(source).__name__}", file=where)
+
+
+def _number(row: dict, key: str, where: str, i: int, default: float | None = None) -> float:
+    raw = row.get(key)
+    if raw is None or (isinstance(raw, str) and not raw.strip()):
+        if default is not None:
+            return default
+        raise DataError("empty cell: a number is required", file=where, row=i, column=key)
+    try:
+        value = float(raw)
+    except (TypeError, ValueError):
+        raise DataError(f"not a number: {raw!r}", file=where, row=i, column=key) from None
+    if not math.isfinite(value) and key not in ("lower", "upper"):
+        raise DataError(f"not a finite number: {raw!r}", file=where, row=i, column=key)
+    return value
+
+
+def _check_units(key: str, value: float, kind: str, where: str, i: int) -> None:
+    if key in _ANGLES and abs(value) > _MAX_ANGLE:
+        raise DataError(
+            f"{value:g} is not an angle in radians (beyond one turn): the column is in "
+            f"radians, write {math.radians(value):.10g} for {value:g} degrees",
+            file=where,
+            row=i,
+            column=key,
+        )
+    if key in ("lower", "upper") and kind != "prismatic" and abs(value) > _MAX_LIMIT:
+        raise DataError(
+            f"{value:g} is not a joint limit in radians (beyond two turns): write "
+            f"{math.radians(value):.10g} for {value:g} degrees",
+            file=where,
+            row=i,
+            column=key,
+        )
+    if key in ("a", "d") and abs(value) > _MAX_LENGTH:
+        raise DataError(
+            f"{value:g} m is no link length: the column is in metres (write "
+            f"{value / 1000:g} for {value:g} mm)",
+            file=where,
+            row=i,
+            column=key,
+        )
+
+
+def _row(row: dict, where: str, i: int, inertial: bool) -> tuple:
+    """``(name, type, [a, alpha, d, theta, beta], lower, upper, inertial or None)``."""
+    if not isinstance(row, Mapping):
+        raise DataError(f"a row must map column names to values, found {row!r}", file=where, row=i)
+    name = str(row.get("name", "")).strip()
+    if not name:
+        raise DataError("empty joint name", file=where, row=i, column="name")
+    kind = str(row.get("type", "")).strip().lower()
+    if kind not in _TYPES:
+        raise DataError(
+            f"joint type {row.get('type')!r}: write one of {', '.join(_TYPES)}",
+            file=where,
+            row=i,
+            column="type",
+        )
+    values = [_number(row, k, where, i, 0.0 if k == "beta" else None) for k in _ROW_KEYS]
+    bounds = [-math.inf, math.inf]  # a continuous joint has none (URDF ignores them too)
+    if kind != "continuous":
+        bounds = [_number(row, key, where, i) for key in ("lower", "upper")]
+    checked = (*_ROW_KEYS, "lower", "upper")
+    for key, value in zip(checked, (*values, *bounds), strict=True):
+        if math.isfinite(value):
+            _check_units(key, value, kind, where, i)
+    if not bounds[0] < bounds[1]:
+        raise DataError(
+            f"lower limit {bounds[0]:g} is not below upper limit {bounds[1]:g}",
+            file=where,
+            row=i,
+            column="upper",
+        )
+    extra = None
+    if inertial:
+        extra = [_number(row, k, where, i, 0.0) for k in INERTIA_COLUMNS]
+        if extra[0] < 0:
+            raise DataError(f"negative mass {extra[0]:g} kg", file=where, row=i, column="mass")
+    return name, kind, values, *bounds, extra
+
+
+_ROW_KEYS = ("a", "alpha", "d", "theta", "beta")
+
+
+def _frame(value, key: str, where: str) -> np.ndarray:
+    if value is None:
+        return np.eye(4)
+    if isinstance(value, Mapping):
+        try:
+            xyz = [float(v) for v in value.get("xyz", (0, 0, 0))]
+            rpy = [float(v) for v in value.get("rpy", (0, 0, 0))]
+        except (TypeError, ValueError):
+            xyz = rpy = []
+        if len(xyz) == 3 and len(rpy) == 3:
+            return pose_matrix(xyz, rpy)
+    arr = np.asarray(value, dtype=np.float64) if not isinstance(value, Mapping) else None
+    if arr is not None and arr.shape == (4, 4):
+        return arr.copy()
+    raise DataError(
+        f"{key} must be {{xyz: [x, y, z] (m), rpy: [roll, pitch, yaw] (rad)}} or a 4x4 matrix",
+        file=where,
+        column=key,
+    )
+
+
+def read_dh_table(
+    source,
+    convention: str | None = None,
+    *,
+    name: str | None = None,
+    base=None,
+    flange=None,
+) -> DHTable:
+    """Read and check a DH table.
+
+    Args:
+        source: a ``.csv`` / ``.yaml`` file, a list of row mappings, a YAML-like mapping
+            with ``joints``, a pandas DataFrame, or a :class:`DHTable` (returned checked).
+        convention: ``"dh"`` or ``"mdh"``; required unless the YAML file states it (and
+            must then agree with it).
+        name: robot name (default the file's ``name``, else the file stem).
+        base, flange: ``(4, 4)`` or ``{xyz, rpy}``, replacing the file's.
+
+    Raises:
+        DataError: naming the file, row (1-based, in table order) and column.
+    """
+    if isinstance(source, DHTable):
+        return source
+    where = os.fspath(source) if isinstance(source, (str, os.PathLike)) else "<table>"
+    records, head = _records(source, where)
+    stated = head.get("convention")
+    if stated is not None and str(stated).lower() not in CONVENTIONS:
+        raise DataError(f"convention {stated!r}: write dh or mdh", file=where, column="convention")
+    if convention is not None and str(convention).lower() not in CONVENTIONS:
+        raise DataError(f"convention {convention!r}: give dh or mdh", file=where)
+    if convention is None and stated is None:
+        raise DataError(
+            "the axis convention is not given: pass convention='dh' or 'mdh' "
+            "(--convention dh|mdh), or write 'convention:' in the YAML file",
+            file=where,
+            column="convention",
+        )
+    conv = str(convention or stated).lower()
+    if stated is not None and str(stated).lower() != conv:
+        raise DataError(
+            f"the file states convention {stated!r}, but {convention!r} was given",
+            file=where,
+            column="convention",
+        )
+    if not records:
+        raise DataError("the DH table has no rows", file=where)
+    keys = set().union(*(r.keys() for r in records if isinstance(r, Mapping)))
+    for i, r in enumerate(records, start=1):
+        if not isinstance(r, Mapping):
+            continue  # _row says so
+        optional = ("lower", "upper") if str(r.get("type", "")).strip() == "continuous" else ()
+        missing = [c for c in DH_COLUMNS if c not in r and c not in optional]
+        if missing:
+            header = missing[0] not in keys  # absent from the CSV header / every row
+            raise DataError(
+                f"missing column{' in the header' if header else ''} (a DH table needs "
+                f"{', '.join(DH_COLUMNS)})",
+                file=where,
+                row=None if header else i,
+                column=missing[0],
+            )
+    inertial = any(k in keys for k in INERTIA_COLUMNS)
+    parsed = [_row(r, where, i, inertial) for i, r in enumerate(records, start=1)]
+    names = [p[0] for p in parsed]
+    for i, n in enumerate(names[1:], start=2):
+        if n in names[: i - 1]:
+            raise DataError(f"joint name {n!r} appears twice", file=where, row=i, column="name")
+    return DHTable(
+        convention=conv,
+        rows=np.array([p[2] for p in parsed], dtype=np.float64),
+        names=names,
+        types=[p[1] for p in parsed],
+        lower=np.array([p[3] for p in parsed]),
+        upper=np.array([p[4] for p in parsed]),
+        inertial=np.array([p[5] for p in parsed]) if inertial else None,
+        base=_frame(base if base is not None else head.get("base"), "base", where),
+        flange=_frame(flange if flange is not None else head.get("flange"), "flange", where),
+        name=str(name or head.get("name") or (Path(where).stem if where != "<table>" else "dh")),
+        source=where,
+    )

@@ -1,0 +1,148 @@
+"""The fast paths under IK and FK: the z-aligned chain (``Robot.fk`` without derivatives
+from ``ALIGNED_MIN_BATCH`` configurations on, the IK kernel), the batched LM's
+elimination, its two-precision run and the round-wise deduplication, each against a
+plain reference."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+import hybrid_pk as hpk
+from hybrid_pk.evaluation.metrics import pose_error
+from hybrid_pk.ik import IKOptions, as_ik_model, batched_levenberg_marquardt
+from hybrid_pk.ik.dedup import distinct_mask, same_solution
+from hybrid_pk.ik.lm_algebra import eliminate, normal_equations
+from hybrid_pk.ik.two_precision import solve_two_precisions
+from hybrid_pk.robot.chain import ALIGNED_MIN_BATCH, local_transforms, product
+from tests.helpers import run_rng
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+F64 = torch.float64
+ARM7 = Path(__file__).resolve().parent / "data" / "arm7_generic.urdf"
+ROBOTS = {
+    "ur10": ("ur10", None),
+    "rx160": ("rx160", None),
+    "arm7 (prismatic joint)": (ARM7, "tool0"),
+    "column_arm (mimic joints)": ("column_arm", "tool0"),
+}
+
+
+def _torch_rng(salt: str) -> torch.Generator:
+    return torch.Generator().manual_seed(int(run_rng(salt).integers(2**31)))
+
+
+def _product_fk(robot: hpk.Robot, q: torch.Tensor) -> torch.Tensor:
+    """The balanced product of ``Robot.fk``'s derivative path."""
+    terms = robot._terms(None, q.dtype, fold_tip=True)
+    return product(local_transforms(robot.chain_q(q), terms, robot.chain_revolute))
+
+
+@pytest.mark.parametrize("name", ROBOTS)
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_fk_without_gradients_equals_the_product(name, dtype):
+    urdf, end = ROBOTS[name]
+    robot = hpk.Robot.from_urdf(urdf, end_link=end)
+    q = robot.sample_q(ALIGNED_MIN_BATCH + 7, torch.Generator().manual_seed(3)).to(dtype)
+    q = q.reshape(1, -1, robot.dof)  # a leading batch shape too
+    with torch.no_grad():
+        T = robot.fk(q)
+        T_ref = _product_fk(robot, q)
+    assert T.dtype == dtype
+    assert T.shape == (1, q.shape[1], 4, 4)
+    tol = 1e-12 if dtype == F64 else 2e-6  # float32: its rounding over a ~1 m chain
+    assert float((T - T_ref).abs().max()) <= tol
+    T_grad = robot.fk(q)  # parameters require grad: the derivative path
+    assert T_grad.requires_grad
+    assert float((T_grad.detach() - T_ref).abs().max()) <= tol
+
+
+def test_fk_follows_parameter_changes_and_keeps_gradients():
+    robot = hpk.Robot.from_urdf("rx160")
+    q = robot.sample_q(ALIGNED_MIN_BATCH, torch.Generator().manual_seed(4))
+    with torch.no_grad():
+        before = robot.fk(q)
+        robot.origin_xyz[2, 0] += 0.01  # a link 10 mm longer
+        after = robot.fk(q)
+        assert float((after - _product_fk(robot, q)).abs().max()) <= 1e-12
+    assert float((after - before).abs().max()) > 1e-3
+    q.requires_grad_(True)
+    robot.fk(q).sum().backward()  # q requires grad: the path with derivatives
+    assert q.grad is not None
+    assert bool(torch.isfinite(q.grad).all())
+
+
+def test_elimination_solves_damped_normal_equations():
+    rng = _torch_rng("elimination")
+    A, n = 500, 6
+    J = torch.randn(6, n, A, generator=rng, dtype=F64)
+    e = torch.randn(6, A, generator=rng, dtype=F64)
+    G = normal_equations(J, e)
+    H = torch.einsum("rja,rka->ajk", J, J) + 1e-3 * torch.eye(n, dtype=F64)
+    G.view(-1, A)[:: n + 2] += 1e-3
+    x, ok = eliminate(G)
+    x_ref = torch.linalg.solve(H, torch.einsum("rja,ra->aj", J, e))
+    assert bool(ok.all())
+    assert float((x.T - x_ref).abs().max()) <= 1e-8 * float(x_ref.abs().max())
+    G = normal_equations(J, e)
+    G[2, 2] = -1.0  # not positive definite
+    assert not bool(eliminate(G)[1].any())
+
+
+def _greedy(q, candidate, score, revolute):
+    """The contract's definition, one candidate at a time (the reference)."""
+    keep = torch.zeros_like(candidate)
+    for i in range(q.shape[0]):
+        kept = []
+        for j in torch.argsort(torch.where(candidate[i], score[i], math.inf), stable=True):
+            if candidate[i, j] and not any(
+                bool(same_solution(q[i, j], q[i, k], revolute)) for k in kept
+            ):
+                kept.append(int(j))
+        keep[i, kept] = True
+    return keep
+
+
+@pytest.mark.parametrize("spread", [1e-9, 1e-3])
+def test_round_wise_dedup_equals_the_greedy_definition(spread):
+    rng = _torch_rng(f"dedup {spread}")
+    N, K, dof = 6, 40, 6
+    revolute = torch.tensor([True] * 5 + [False])
+    roots = 3 * torch.randn(N, 5, dof, generator=rng, dtype=F64)
+    pick = torch.randint(0, 5, (N, K), generator=rng)
+    q = torch.take_along_dim(roots, pick[..., None], 1)
+    q = q + spread * torch.randn(N, K, dof, generator=rng, dtype=F64)  # chains at 1e-3
+    q[..., :5] += 2 * math.pi * torch.randint(-1, 2, (N, K, 5), generator=rng)
+    candidate = torch.rand(N, K, generator=rng) > 0.2
+    score = torch.rand(N, K, generator=rng, dtype=F64)
+    keep = distinct_mask(q, candidate, score, revolute)
+    assert torch.equal(keep, _greedy(q, candidate, score, revolute))
+
+
+def test_two_precisions_finish_in_float64():
+    """float32 to the handover, float64 to the caller's tolerances: as many problems
+    arrive as with float64 throughout, and each within tolerance by a fresh FK."""
+    robot = hpk.Robot.from_urdf("rx160")
+    robot.requires_grad_(False)
+    ikm = as_ik_model(robot)
+    rng = _torch_rng("two precisions")
+    q_true = robot.sample_q(256, rng)
+    q0 = q_true + 0.5 * torch.randn(q_true.shape, generator=rng, dtype=F64)
+    q0 = torch.clamp(q0, ikm.lower, ikm.upper)
+    with torch.no_grad():
+        T = robot.fk(q_true)
+    s = IKOptions().lm_settings(position_only=False)
+    args = (ikm.evaluate, q0, torch.arange(256), T, ikm.lower, ikm.upper, s, ikm.revolute)
+    with torch.no_grad():
+        out, ref = solve_two_precisions(*args), batched_levenberg_marquardt(*args)
+        err = pose_error(T, robot.fk(out.q))
+    assert out.q.dtype == F64
+    arrived = (err.position_mm <= 1e-3) & (err.orientation_deg <= 1e-3)
+    ref_arrived = (ref.position_error <= s.keep_position) & (ref.rotation_error <= s.keep_rotation)
+    assert int(arrived.sum()) >= int(ref_arrived.sum()) - 3  # a different path may miss a few
+    assert int(arrived.sum()) >= 200  # started within 0.5 rad: most arrive
+    assert torch.allclose(out.position_error[arrived] * 1e3, err.position_mm[arrived], atol=1e-9)
