@@ -112,6 +112,12 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
         f"{diagnosis.n_holdout} hold-out{took}",
         f"{'hold-out error':<{_LABEL_WIDTH}}{'mean':>10}{'rms':>10}{'p95':>10}{'max':>10}",
     ]
+    detectable = getattr(diagnosis, "detectable", None) or {}
+    if detectable.get("little_power"):  # said before any result
+        lines[1:1] = [
+            f"warning: {detectable['little_power']}",
+            f"detection limits (80 % power): {detectable['summary']}",
+        ]
     for key, name in (("position_mm", "position [mm]"), ("orientation_deg", "orientation [deg]")):
         for model in ("nominal", "extended"):
             stats = getattr(diagnosis, model).get(key)
@@ -129,10 +135,15 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
             if c.blocked_holdout_gain_mm is not None:
                 gain += f"; blocked hold-out {c.blocked_holdout_gain_mm:.3g} mm"
             lines.append(f"  {c.effect}{where} = {_value(c.value, c.std, c.unit)}  ({gain})")
+        if detectable:
+            lines.append(f"other candidates (80 % power): {detectable['summary']}")
     elif getattr(diagnosis, "structural", None) and diagnosis.structural["structurally_wrong"]:
         lines.append("causes: withheld, the URDF looks structurally wrong (see structural)")
     else:
-        lines.append("causes: none beyond measurement noise")
+        none = "causes: none beyond measurement noise"
+        if detectable:
+            none = f"causes: none detected (80 % power): {detectable['summary']}"
+        lines.append(none)
     if diagnosis.ambiguous:
         lines.append(f"ambiguous ({len(diagnosis.ambiguous)}):")
         lines += [f"  {' ~ '.join(a['effects'])}" for a in diagnosis.ambiguous]

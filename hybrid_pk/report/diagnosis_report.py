@@ -23,6 +23,7 @@ from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.plots import error_histograms
 from hybrid_pk.report.evidence import Evidence, cause_evidence, cause_label
 from hybrid_pk.report.findings import frames_section, robust_section, structural_section
+from hybrid_pk.report.limits import detectable_section, outlier_plot
 from hybrid_pk.report.markdown import fmt, image, markdown_table, stats_table, value_with_std
 from hybrid_pk.report.plots import evidence_plot, residual_scan
 from hybrid_pk.robot import Robot
@@ -356,6 +357,9 @@ def write_diagnosis_report(
         lines += ["Withheld: the URDF looks structurally wrong (see above).", ""]
     else:
         lines += ["None: no effect beyond measurement noise is statistically supported.", ""]
+        det = getattr(diagnosis, "detectable", None)
+        if det:  # 'none' never comes without what the data could have shown
+            lines += [f"With {100 * det['power']:.0f} % power: {det['summary']}.", ""]
     if diagnosis.ambiguous:
         lines += [
             f"Ambiguities: {len(diagnosis.ambiguous)} group(s), see "
@@ -367,7 +371,9 @@ def write_diagnosis_report(
         progress("plots of what is left")
     lines += _what_is_left(diagnosis, data, robot, out, ext)
     lines += _identifiability(diagnosis)
+    lines += detectable_section(diagnosis)
     lines += frames_section(diagnosis) + robust_section(diagnosis)
+    lines += outlier_plot(diagnosis, data, out)
     lines += _selection_log(diagnosis)
     path = out / "report.md"
     path.write_text("\n".join(lines).rstrip() + "\n", encoding="utf-8")

@@ -99,6 +99,7 @@ class Diagnosis:
     frames: dict | None = None
     carry_over: dict | None = None
     budget: dict | None = None
+    detectable: dict | None = None
 
     def to_json(self) -> dict:
         return {
@@ -120,6 +121,7 @@ class Diagnosis:
             "gravity": gravity_json(self.model),
             "carry_over": self.carry_over,
             "budget": self.budget,
+            "detectable": self.detectable,
         }
 
 

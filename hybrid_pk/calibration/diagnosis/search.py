@@ -28,6 +28,12 @@ from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic
 from hybrid_pk.calibration.diagnosis.elimination import eliminate
 from hybrid_pk.calibration.diagnosis.gains import measure_causes, range_warnings
 from hybrid_pk.calibration.diagnosis.plausibility import plausibility_warnings
+from hybrid_pk.calibration.diagnosis.power import (
+    check_determined,
+    detectable_json,
+    detection_limits,
+    frame_parameters,
+)
 from hybrid_pk.calibration.diagnosis.result import (
     Cause,
     Diagnosis,
@@ -107,11 +113,7 @@ def diagnose(
     model = ExtendedModel(
         robot, frame_sets=len(data.sources) if frames_per_file else 1, gravity=gravity
     )
-    initialise_with_priors(model, split.train, split.cond_fit, frames)
-    res = fit(
-        model, split.train, cond=split.cond_fit, progress=_prefixed(say, "frames"),
-        frames=frames, robust=robust,
-    )  # fmt: skip
+    res = _fit_frames(model, split, frames, robust, say)
     frame_json = None if res.frame_report is None else res.frame_report.to_json()
     nominal_model = with_effects(model)
     nominal = stats_json(*model_errors(model, split.test, split.cond_hold))
@@ -124,6 +126,8 @@ def diagnose(
     )
     model, res, blocked_gains, unresolved = settle(model, res, split, carry, steps, say)
 
+    say("detection limits of the candidates not named")
+    detectable = detection_limits(model, res, pool, split, alpha, progress=say)
     say("measuring each cause's gain")
     errors = model_errors(model, split.test, split.cond_hold)
     causes = measure_causes(
@@ -140,12 +144,10 @@ def diagnose(
         robust=_robust_json(res, data, split),
         structural=structural,
         frames=frame_json,
-        warnings=plausibility_warnings(causes, data)
-        + _cap_warnings(steps)
-        + range_warnings(causes, robot)
-        + budget.warnings(),
+        warnings=_warnings(causes, data, steps, robot, budget),
         carry_over=carry.rule(res),
         budget=budget.to_json(),
+        detectable=detectable_json(model, detectable, res.sigma_pos_mm),
         robot=robot.name,
         n_samples=data.n,
         n_holdout=split.test.n,
@@ -160,6 +162,26 @@ def diagnose(
         fit_rows=split.fit_rows,
         holdout_rows=split.holdout_rows,
         steps=steps,
+    )
+
+
+def _fit_frames(model: ExtendedModel, split, frames, robust, say) -> FitResult:
+    """The frames of the nominal model, after refusing a campaign too small for them."""
+    check_determined(split, frame_parameters(model, split, frames))
+    initialise_with_priors(model, split.train, split.cond_fit, frames)
+    return fit(
+        model, split.train, cond=split.cond_fit, progress=_prefixed(say, "frames"),
+        frames=frames, robust=robust,
+    )  # fmt: skip
+
+
+def _warnings(causes, data: MeasuredData, steps, robot: Robot, budget: Budget) -> list[str]:
+    """Every warning of the diagnosis: plausibility, the cap, ranges, budget cuts."""
+    return (
+        plausibility_warnings(causes, data)
+        + _cap_warnings(steps)
+        + range_warnings(causes, robot)
+        + budget.warnings()
     )
 
 
