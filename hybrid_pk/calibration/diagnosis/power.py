@@ -21,6 +21,7 @@ from collections.abc import Callable
 
 import torch
 
+from hybrid_pk.calibration.diagnosis.carryover import Carry
 from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic
 from hybrid_pk.calibration.diagnosis.selection import RANK_TOLERANCE, score_candidates
 from hybrid_pk.calibration.diagnosis.split import Split
@@ -85,8 +86,12 @@ def detection_limits(
     split: Split,
     alpha: float,
     progress: Callable[[str], None] | None = None,
+    carry: Carry | None = None,
 ) -> list[dict]:
     """The detection limit of every candidate of ``pool`` not in the model.
+
+    ``carry``: the search's blocked hold-out; its blocks screen the cyclic orders as
+    the search does (without it every order is scored).
 
     Returns one entry per candidate with an identifiable signature: ``effect``,
     ``joint``, ``family``, ``value`` (the smallest detectable size, in ``unit``),
@@ -98,7 +103,8 @@ def detection_limits(
     if not pool:
         return []
     # as the search does: the best cyclic orders per joint are scored, the others count
-    pool, screened = screen_cyclic(model, split, pool, res.weights)
+    folds, margin = (None, 0.0) if carry is None else (carry.folds, carry.margin(res))
+    pool, screened = screen_cyclic(model, split, pool, res.weights, folds, margin)
     scores = score_candidates(
         model, res, pool, split, alpha, False, progress=progress, screened=screened
     )

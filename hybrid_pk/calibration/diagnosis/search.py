@@ -127,7 +127,7 @@ def diagnose(
     model, res, blocked_gains, unresolved = settle(model, res, split, carry, steps, say)
 
     say("detection limits of the candidates not named")
-    detectable = detection_limits(model, res, pool, split, alpha, progress=say)
+    detectable = detection_limits(model, res, pool, split, alpha, say, carry)
     say("measuring each cause's gain")
     errors = model_errors(model, split.test, split.cond_hold)
     causes = measure_causes(
