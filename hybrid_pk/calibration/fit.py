@@ -237,6 +237,16 @@ def fit(
     sig_p, sig_r, iterations, converged, weights = _solve_reweighted(
         problem_at, data, sigmas, fixed, max_iter, progress, robust, weights
     )
+    # The frame directions the data do not determine are found at this optimum (not at
+    # the start, whose error depends on the guess) and held with the tool at its prior's
+    # centre; the fit then moves only along those valleys.
+    held = held_prior(model, data, cond, blocks, prior)
+    if held is not prior:
+        prior, rows_extra = held, _joined(held, extra)
+        sig_p, sig_r, more, converged, weights = _solve_reweighted(
+            problem_at, data, (sig_p, sig_r), fixed, max_iter, progress, robust, weights
+        )
+        iterations += more
     # Residuals and Jacobian at the solution with the final weights.
     problem = problem_at(sig_p, sig_r, weights)
     pos, ori = model_errors(model, data, cond)
@@ -291,7 +301,6 @@ def _frame_setup(
     blocks = param_blocks(model, free, data.quat is None)
     blocks = tuple(b for b in blocks if b.label not in fixed_frames)
     prior = prior_residual(model, blocks, prior_centres(model, blocks, frames))
-    prior = held_prior(model, data, cond, blocks, prior)
     start = {"base": model.base.matrix().detach().clone()}
     if covariance:  # only the frame report (with the covariance) reads it
         start["rms_mm"] = float(model_errors(model, data, cond)[0].pow(2).mean().sqrt())

@@ -1,18 +1,20 @@
-"""Frame directions the data do not determine are held where the fit starts.
+"""Frame directions the data do not determine are held with the tool at its prior.
 
 Along a trade-off valley of the frames (the tool translation against the base's when
 the flange orientation barely varies) the Gaussian prior of
 :mod:`hybrid_pk.calibration.frames` only shrinks: with a prior of 0.1 m and data
 that carry a comparable information, the fit still walks half-way to wherever the
 unmodelled errors push it. Here such a direction is *held*: a residual row whose
-information dwarfs the data's keeps it at the fit's start, where the registration
-(:mod:`hybrid_pk.geometry.registration`) or a given ``--tool`` / ``--base`` put it,
-i.e. at the end link's origin unless a frame was given.
+information dwarfs the data's keeps the tool's part of it at the centre of the tool's
+prior (the end link's origin, or a given ``--tool``); the base follows the data to
+where that tool puts it. The directions are found at the optimum of the fit without
+the hold (:func:`hybrid_pk.calibration.fit.fit`), so neither they nor the held value
+depend on the start guess.
 
 Rule (the same as the registration's): after the other frame parameters have
 compensated what they can, a direction ``v`` moves the measured points by ``s``
 (rms per row, mm per mm or mrad per mrad). An unmodelled error as large as the rms
-error ``e`` the fit starts from, which no row count averages away when it is
+error ``e`` left at that optimum, which no row count averages away when it is
 systematic, moves the frame along ``v`` by ``e / s``. Where that exceeds the prior's
 std along ``v`` the data do not determine ``v``; it is held.
 """
@@ -67,14 +69,19 @@ class HeldPrior:
         return torch.cat([rp, r]), torch.cat([Ap, A])
 
 
-def _start_rows(model: ExtendedModel, blocks: tuple[ParamBlock, ...]) -> PriorRows:
-    """Rows ``theta_frame - (start - now) / scale``: the frame offsets from the start
-    in scaled units (identity on the frame columns)."""
+def _tool_rows(model: ExtendedModel, blocks: tuple[ParamBlock, ...], prior: PriorRows) -> PriorRows:
+    """Rows ``theta_frame - (centre - now) / scale``: the frame offsets from the
+    tool prior's centre (the end link's origin or the given ``--tool``) in scaled
+    units (identity on the frame columns). The base's rows are centred where it is
+    now; the hold weights give them no weight (:func:`held_prior`)."""
     centres = {}
     for b in blocks:
         if b.name not in _FRAME_BLOCKS:
             continue
         which, kind = b.name.split(".")
+        if which == "tool" and b.name in prior.centres:
+            centres[b.name] = Centre(prior.centres[b.name].value.clone(), b.scale)
+            continue
         T = getattr(model, which).matrix().detach()
         value = T[:, :3, 3] if kind == "dp" else T[:, :3, :3]
         centres[b.name] = Centre(value.clone(), b.scale)
@@ -123,6 +130,15 @@ def held_prior(
         start += b.size
     sens, V, H, e = _valleys(model, data, cond, blocks)
     P = prior.A[:, idx].T @ prior.A[:, idx]
+    # the tool's columns among the frame columns: a held valley is pinned by its tool
+    # part, so the base follows the data to wherever that tool puts it
+    tool_cols = torch.cat(
+        [
+            torch.full((b.size,), b.name.startswith("tool."), dtype=torch.bool)
+            for b in blocks
+            if b.name in _FRAME_BLOCKS
+        ]
+    )
     held, weights = [], []
     for k in range(V.shape[1]):
         v = V[:, k]
@@ -132,11 +148,17 @@ def held_prior(
         prior_std = 1.0 / math.sqrt(prior_info)  # scaled units: mm or mrad
         if e <= sens[k] * prior_std:
             continue
+        v_tool = torch.where(tool_cols, v, torch.zeros_like(v))
+        along = float(v_tool @ v)  # a step along v moves the tool row by this much
+        # a valley with (almost) no tool part cannot be pinned by the tool: the row
+        # would need more than HOLD_INFORMATION times the weight; the prior keeps it
+        if along * along * HOLD_INFORMATION < 1.0:
+            continue
         data_info = float(v @ H @ v) / max(e, 1e-12) ** 2
-        held.append(v)
+        held.append(v_tool / along)
         weights.append(math.sqrt(HOLD_INFORMATION * (data_info + prior_info)))
     if not held:
         return prior
     Vh = torch.stack(held, 1)
     W = torch.diag(torch.tensor(weights, dtype=Vh.dtype)) @ Vh.T
-    return HeldPrior(prior, _start_rows(model, blocks), W, Vh)
+    return HeldPrior(prior, _tool_rows(model, blocks, prior), W, Vh)
