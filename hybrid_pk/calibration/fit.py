@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from hybrid_pk.calibration.frame_hold import held_prior
+from hybrid_pk.calibration.frame_hold import held_prior, join_rows
 from hybrid_pk.calibration.frames import FramePriors, PriorRows, prior_centres, prior_residual
 from hybrid_pk.calibration.identifiability import FrameReport, frame_report
 from hybrid_pk.calibration.least_squares import levenberg_marquardt
@@ -215,7 +215,7 @@ def fit(
     cond = cond or conditions_from_data(data)
     position_only = data.quat is None
     blocks, prior, start = _frame_setup(model, data, cond, free, frames, covariance)
-    rows_extra = _joined(prior, extra)
+    rows_extra = join_rows(prior, extra)
     if robust is not None and weights is None:
         weights = torch.ones(data.n, dtype=model.robot.dtype)
 
@@ -237,12 +237,9 @@ def fit(
     sig_p, sig_r, iterations, converged, weights = _solve_reweighted(
         problem_at, data, sigmas, fixed, max_iter, progress, robust, weights
     )
-    # The frame directions the data do not determine are found at this optimum (not at
-    # the start, whose error depends on the guess) and held with the tool at its prior's
-    # centre; the fit then moves only along those valleys.
-    held = held_prior(model, data, cond, blocks, prior)
+    held = held_prior(model, data, cond, blocks, prior)  # at this optimum (frame_hold)
     if held is not prior:
-        prior, rows_extra = held, _joined(held, extra)
+        prior, rows_extra = held, join_rows(held, extra)
         sig_p, sig_r, more, converged, weights = _solve_reweighted(
             problem_at, data, (sig_p, sig_r), fixed, max_iter, progress, robust, weights
         )
@@ -305,18 +302,6 @@ def _frame_setup(
     if covariance:  # only the frame report (with the covariance) reads it
         start["rms_mm"] = float(model_errors(model, data, cond)[0].pow(2).mean().sqrt())
     return blocks, prior, start
-
-
-def _joined(a, b):
-    """Extra residual rows ``a`` then ``b`` (either may be None)."""
-    if a is None or b is None:
-        return a or b
-
-    def both(theta: Tensor) -> tuple[Tensor, Tensor]:
-        (ra, Ja), (rb, Jb) = a(theta), b(theta)
-        return torch.cat([ra, rb]), torch.cat([Ja, Jb])
-
-    return both
 
 
 def _solve_reweighted(

@@ -35,7 +35,7 @@ from hybrid_pk.effects import Conditions, ExtendedModel
 if TYPE_CHECKING:
     from hybrid_pk.calibration.problem import ParamBlock
 
-__all__ = ["HOLD_INFORMATION", "HeldPrior", "held_prior"]
+__all__ = ["HOLD_INFORMATION", "HeldPrior", "held_prior", "join_rows"]
 
 _FRAME_BLOCKS = ("base.dp", "base.rotvec", "tool.dp", "tool.rotvec")
 # Rows of the frame Jacobian used to find the valleys (an even subset of larger data):
@@ -162,3 +162,15 @@ def held_prior(
     Vh = torch.stack(held, 1)
     W = torch.diag(torch.tensor(weights, dtype=Vh.dtype)) @ Vh.T
     return HeldPrior(prior, _tool_rows(model, blocks, prior), W, Vh)
+
+
+def join_rows(a, b):
+    """Extra residual rows ``a`` then ``b`` (either may be None)."""
+    if a is None or b is None:
+        return a or b
+
+    def both(theta: Tensor) -> tuple[Tensor, Tensor]:
+        (ra, Ja), (rb, Jb) = a(theta), b(theta)
+        return torch.cat([ra, rb]), torch.cat([Ja, Jb])
+
+    return both
