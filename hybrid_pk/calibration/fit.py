@@ -237,7 +237,8 @@ def fit(
     sig_p, sig_r, iterations, converged, weights = _solve_reweighted(
         problem_at, data, sigmas, fixed, max_iter, progress, robust, weights
     )
-    held = held_prior(model, data, cond, blocks, prior)  # at this optimum (frame_hold)
+    given = frames is not None and frames.tool is not None  # held there, else at origin
+    held = held_prior(model, data, cond, blocks, prior, given)  # at this optimum
     if held is not prior:
         prior, rows_extra = held, join_rows(held, extra)
         sig_p, sig_r, more, converged, weights = _solve_reweighted(

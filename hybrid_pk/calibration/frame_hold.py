@@ -69,7 +69,9 @@ class HeldPrior:
         return torch.cat([rp, r]), torch.cat([Ap, A])
 
 
-def _tool_rows(model: ExtendedModel, blocks: tuple[ParamBlock, ...], prior: PriorRows) -> PriorRows:
+def _tool_rows(
+    model: ExtendedModel, blocks: tuple[ParamBlock, ...], prior: PriorRows, tool_given: bool
+) -> PriorRows:
     """Rows ``theta_frame - (centre - now) / scale``: the frame offsets from the
     tool prior's centre (the end link's origin or the given ``--tool``) in scaled
     units (identity on the frame columns). The base's rows are centred where it is
@@ -80,7 +82,10 @@ def _tool_rows(model: ExtendedModel, blocks: tuple[ParamBlock, ...], prior: Prio
             continue
         which, kind = b.name.split(".")
         if which == "tool" and b.name in prior.centres:
-            centres[b.name] = Centre(prior.centres[b.name].value.clone(), b.scale)
+            value = prior.centres[b.name].value.clone()
+            if kind == "dp" and not tool_given:  # the end link's origin, not a guess
+                value = torch.zeros_like(value)
+            centres[b.name] = Centre(value, b.scale)
             continue
         T = getattr(model, which).matrix().detach()
         value = T[:, :3, 3] if kind == "dp" else T[:, :3, :3]
@@ -113,6 +118,7 @@ def held_prior(
     cond: Conditions,
     blocks: tuple[ParamBlock, ...],
     prior: PriorRows | None,
+    tool_given: bool = False,
 ) -> PriorRows | HeldPrior | None:
     """``prior`` with hold rows for the frame directions the data do not determine
     (module docstring), or ``prior`` itself when there is none.
@@ -161,7 +167,7 @@ def held_prior(
         return prior
     Vh = torch.stack(held, 1)
     W = torch.diag(torch.tensor(weights, dtype=Vh.dtype)) @ Vh.T
-    return HeldPrior(prior, _tool_rows(model, blocks, prior), W, Vh)
+    return HeldPrior(prior, _tool_rows(model, blocks, prior, tool_given), W, Vh)
 
 
 def join_rows(a, b):
