@@ -3,15 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import os
 
-from hybrid_pk.cli.common import (
-    fit_frames,
-    frame_parameter_count,
-    frame_sets_for,
-    read_data,
-    with_frame_sets,
-)
+from hybrid_pk.cli.common import flag_values, frame_parameter_count, frame_sets_for, read_data
 from hybrid_pk.cli.options import (
     add_data,
     add_epochs,
@@ -22,11 +15,16 @@ from hybrid_pk.cli.options import (
     add_seed,
 )
 from hybrid_pk.cli.progress import progress
-from hybrid_pk.effects import conditions_from_data
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.hybrid.builder import HybridSettings
-from hybrid_pk.hybrid.nets import parse_arch
 from hybrid_pk.io.model_file import NOMINAL_PREFIX, load_model, model_robot
+from hybrid_pk.pipelines.training import (
+    MODULE_FLAGS,
+    base_for_training,
+    hybrid_overrides,
+    is_main_process,
+    train_job,
+)
 
 _DESCRIPTION = """\
 Train the two residual networks of the hybrid model (Ojer et al. 2024) on top of MODEL
@@ -184,47 +182,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_progress(p)
 
 
-def _overrides(args: argparse.Namespace) -> tuple[dict, dict, dict]:
-    """Module, datamodule and trainer overrides: the YAML first, then the flags."""
-    from hybrid_pk.training.presets import settings_from_config
-
-    model, data, trainer = ({}, {}, {})
-    if args.config:
-        cfg = settings_from_config(args.config)
-        model, data, trainer = cfg["model"], cfg["data"], cfg["trainer"]
-    for key in (  # flags named as the module's arguments
-        "position_net", "orientation_net", "lr", "input_range", "fade", "inputs", "trust",
-        "coverage_ratio", "refine_net", "local_net", "spread", "blocked",
-    ):  # fmt: skip
-        if getattr(args, key) is not None:
-            model[key] = getattr(args, key)
-    if args.fade is not None and not 0 <= args.fade <= 10:
-        raise HybridPKError(f"--fade must be between 0 and 10, got {args.fade}")
-    if args.coverage_ratio is not None and not args.coverage_ratio > 1:
-        raise HybridPKError(f"--coverage-ratio must be > 1, got {args.coverage_ratio}")
-    if model.get("inputs", "joints") != "joints":
-        from hybrid_pk.hybrid.builder import check_trust
-
-        check_trust(model.get("trust", "auto"), model["inputs"])  # naming the forms
-    for key in ("position_net", "orientation_net", "refine_net", "local_net"):  # before data
-        if model.get(key, "none") != "none":
-            parse_arch(model[key])
-    if args.batch_size is not None:
-        data["batch_size"] = args.batch_size
-    if args.val_fraction is not None:
-        data["val_fraction"] = args.val_fraction
-    if args.epochs is not None:
-        trainer["max_epochs"] = args.epochs
-    if args.patience is not None:
-        trainer["patience"] = args.patience or None
-    return model, data, trainer
-
-
-def _is_main_process() -> bool:
-    """False in the extra processes a DDP run starts (they re-run this command)."""
-    return all(int(os.environ.get(var, "0")) == 0 for var in ("LOCAL_RANK", "NODE_RANK"))
-
-
 def _prepare(args, loaded, robot, sets: int):
     """DATA read for the model's robot, its conditions, and the base model (frames
     fitted to DATA with --fit-frames)."""
@@ -232,82 +189,40 @@ def _prepare(args, loaded, robot, sets: int):
         bar.stage("reading data")
         n_params = frame_parameter_count(sets, False) if args.fit_frames else None
         data = read_data(args.data, robot, n_params=n_params, skip_bad_rows=args.skip_bad_rows)
-        cond = conditions_from_data(data, sets > 1)
-        base = loaded.model
         if args.fit_frames:
             bar.stage("fitting base and tool frames")
-            base = with_frame_sets(base, sets)
-            fit_frames(base, data, cond)
+        cond, base = base_for_training(loaded, data, sets, args.fit_frames)
     return data, cond, base
-
-
-def _metadata(args, loaded, data, result) -> dict:
-    """MODEL's metadata with this training's record."""
-    metadata = {k: v for k, v in loaded.metadata.items() if k != "created"}
-    metadata["training"] = {
-        "command": "train",
-        "base_model": args.model,
-        "data": list(data.sources),
-        "n_rows": data.n,
-        "preset": args.preset,
-        "seed": args.seed,
-        "epochs": result.epochs,
-        "seconds": round(result.seconds, 3),
-        "validation_base": result.base,
-        "validation_hybrid": result.best,
-        "blocked": result.blocked,
-        "logdir": result.logdir,
-    }
-    return metadata
 
 
 def run(args: argparse.Namespace) -> int:
     try:
-        from hybrid_pk.io.hybrid_file import save_hybrid
-        from hybrid_pk.training import quiet_lightning, train_hybrid
+        from hybrid_pk.training import quiet_lightning
     except ImportError as exc:
         raise HybridPKError(
             f"training needs Lightning (a dependency of hybrid_pk): pip install lightning ({exc})"
         ) from exc
     quiet_lightning()  # after the import: Lightning sets its logger up when imported
-    model_over, data_over, trainer_over = _overrides(args)
+    overrides = hybrid_overrides(
+        args.config, flag_values(args, *MODULE_FLAGS), batch_size=args.batch_size,
+        val_fraction=args.val_fraction, epochs=args.epochs, patience=args.patience,
+    )  # fmt: skip
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
     robot = model_robot(loaded)
     robot.requires_grad_(False)
     sets = frame_sets_for(args, loaded.model.base.sets)
-    main = _is_main_process()
-
     data, cond, base = _prepare(args, loaded, robot, sets)
-    if loaded.has_networks and main:
+    if loaded.has_networks and is_main_process():
         print(f"note: {args.model} already has residual networks; they are replaced")
-    result = train_hybrid(
-        data,
-        base,
-        cond,
-        preset_name=args.preset,
-        model=model_over,
-        datamodule=data_over,
-        max_epochs=trainer_over.get("max_epochs"),
-        patience=trainer_over.get("patience", "preset"),
-        seed=args.seed,
-        logdir=args.logdir,
-        progress=not args.no_progress,
-        strategy=args.strategy,
-        devices=args.devices,
-    )
-    if not result.is_global_zero:
+    job = train_job(
+        loaded, data, cond, base, model_label=args.model, out=args.out, preset=args.preset,
+        overrides=overrides, fit_frames=args.fit_frames, seed=args.seed, logdir=args.logdir,
+        progress=not args.no_progress, strategy=args.strategy, devices=args.devices,
+    )  # fmt: skip
+    if job.out is None:
         return 0
-    frames_fitted = loaded.frames_fitted or args.fit_frames
-    metadata = _metadata(args, loaded, data, result)
-    save_hybrid(
-        args.out,
-        result.hybrid,
-        metadata=metadata,
-        training={"settings": result.settings, "best": result.best},
-        frames_fitted=frames_fitted,
-    )
-    _print_summary(args, robot, data, result)
-    if not frames_fitted:
+    _print_summary(args, robot, data, job.result)
+    if not job.frames_fitted:
         print(
             "warning: base and tool frames are identity (nominal model without --fit-frames): "
             "the networks learned the frames too"
