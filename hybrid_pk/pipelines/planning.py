@@ -2,7 +2,7 @@
 (:func:`~hybrid_pk.calibration.planning.plan_poses`) written as a joint table, and the
 plan's JSON document (predicted 1-sigma per parameter beside random poses).
 
-    res = plan_to_file(robot, 60, ["joint_offset:joint_2"], "poses.csv")
+    res = plan_to_file(robot, 60, labels, "poses.csv")  # labels: effect:joint
 """
 
 from __future__ import annotations

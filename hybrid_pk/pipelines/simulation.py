@@ -2,7 +2,7 @@
 (:func:`~hybrid_pk.simulate.simulate_campaign`) written as a table plus its truth JSON,
 and what a calibration of it could tell about its frames.
 
-    res = simulate_to_files(robot, "sim.csv", 500, "joint_offset:2=0.001", noise_mm=0.05)
+    res = simulate_to_files(robot, "sim.csv", 500, effects, noise_mm=0.05)
 """
 
 from __future__ import annotations
