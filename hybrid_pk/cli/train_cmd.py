@@ -7,7 +7,6 @@ import argparse
 from hybrid_pk.cli.common import flag_values, frame_parameter_count, frame_sets_for, read_data
 from hybrid_pk.cli.options import (
     add_data,
-    add_epochs,
     add_fit_frames,
     add_model,
     add_out,
@@ -15,15 +14,15 @@ from hybrid_pk.cli.options import (
     add_seed,
 )
 from hybrid_pk.cli.progress import progress
+from hybrid_pk.cli.settings_flags import add_settings_flags, settings_names
 from hybrid_pk.errors import HybridPKError
-from hybrid_pk.hybrid.builder import HybridSettings
 from hybrid_pk.io.model_file import NOMINAL_PREFIX, load_model, model_robot
 from hybrid_pk.pipelines.training import (
-    MODULE_FLAGS,
+    TrainSettings,
     base_for_training,
-    hybrid_overrides,
     is_main_process,
     train_job,
+    training_sections,
 )
 
 _DESCRIPTION = """\
@@ -82,96 +81,13 @@ HELP = "train the residual networks of a hybrid model (Lightning, TensorBoard)"
 DESCRIPTION = _DESCRIPTION
 
 
-_S = HybridSettings()  # the defaults the help states are the settings' own
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    """The flags of ``hybrid-pk train``."""
+    """The flags of ``hybrid-pk train``: the training's from :class:`TrainSettings`."""
     add_data(p)
     add_model(p, flag=True, help="base model file, or nominal:ROBOT (with --fit-frames)")
     add_out(p, metavar="MODEL2", help="output model file (.pt)")
-    p.add_argument("--position-net", metavar="ARCH", help="position network (default: preset)")
-    p.add_argument(
-        "--orientation-net", metavar="ARCH", help="orientation network (default: preset)"
-    )
-    p.add_argument(
-        "--preset",
-        choices=("fast", "joints", "paper"),
-        default="fast",
-        help="fast (physics-chosen stages), joints (MLPs on every joint), paper (D4w / Rw); "
-        "default: fast",
-    )
+    add_settings_flags(p, TrainSettings)
     p.add_argument("--config", metavar="YAML", help="LightningCLI config over the preset")
-    add_epochs(p)
-    p.add_argument("--batch-size", type=int, metavar="N", help="training rows per step")
-    p.add_argument("--lr", type=float, metavar="LR", help="(peak) learning rate")
-    p.add_argument(
-        "--patience",
-        type=int,
-        metavar="N",
-        help="early stopping after N epochs without validation gain (0: off)",
-    )
-    p.add_argument(
-        "--val-fraction",
-        type=float,
-        metavar="F",
-        help="share of the rows held out for validation (default: preset)",
-    )
-    p.add_argument("--input-range", choices=("data", "limits"), help="input normalisation range")
-    p.add_argument(
-        "--fade",
-        type=float,
-        metavar="F",
-        help="fade-out width outside the training joint box, fraction of its size per "
-        f"joint (default {_S.fade:g}: no correction outside the box)",
-    )
-    p.add_argument(
-        "--inputs",
-        metavar="SPEC",
-        help="network stages: joints (the paper's), frameK[+qI-J][+gravity][+torque|+full] "
-        "or local[+q1], joined by ',' (fall-back) and '/' (refinement), e.g. "
-        "frame1+qarm+torque/joints,local+q1 (default: preset)",
-    )
-    p.add_argument(
-        "--trust",
-        choices=("auto", "box", "coverage", "none"),
-        help="where the networks apply: joint box, coverage of their inputs, everywhere "
-        f"(default {_S.trust}: box for joints, coverage for frameK inputs)",
-    )
-    p.add_argument(
-        "--refine-net",
-        metavar="ARCH",
-        help=f"architecture of the refining stages' networks ('/' in --inputs; default: "
-        f"{_S.refine_net})",
-    )
-    p.add_argument(
-        "--local-net",
-        metavar="ARCH",
-        help=f"architecture of each joint's network in local stages (default: {_S.local_net})",
-    )
-    p.add_argument(
-        "--coverage-ratio",
-        type=float,
-        metavar="R",
-        help="--trust coverage: networks off beyond R x the full-trust radius "
-        f"(default {_S.coverage_ratio:g})",
-    )
-    p.add_argument(
-        "--no-spread",
-        dest="spread",
-        action="store_false",
-        default=None,
-        help="keep a refined stage's full correction where its refine stage is off (default: "
-        "shrink it by the spread of its training targets)",
-    )
-    p.add_argument(
-        "--no-blocked",
-        dest="blocked",
-        action="store_false",
-        default=None,
-        help="no probe fits on blocked hold-out: every stage on physics inputs stays gated to "
-        "its training joints (default: freed where the blocked hold-out shows it carries over)",
-    )
     p.add_argument("--logdir", metavar="DIR", help="TensorBoard logs and checkpoints")
     add_seed(p, what="seed of the split, the initialisation and the shuffling")
     p.add_argument("--strategy", default="auto", help="Lightning strategy: auto or ddp")
@@ -203,10 +119,8 @@ def run(args: argparse.Namespace) -> int:
             f"training needs Lightning (a dependency of hybrid_pk): pip install lightning ({exc})"
         ) from exc
     quiet_lightning()  # after the import: Lightning sets its logger up when imported
-    overrides = hybrid_overrides(
-        args.config, flag_values(args, *MODULE_FLAGS), batch_size=args.batch_size,
-        val_fraction=args.val_fraction, epochs=args.epochs, patience=args.patience,
-    )  # fmt: skip
+    settings = TrainSettings.parse(flag_values(args, *settings_names(TrainSettings)))
+    training_sections(settings, args.config)  # checked before any data is read
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
     robot = model_robot(loaded)
     robot.requires_grad_(False)
@@ -215,8 +129,8 @@ def run(args: argparse.Namespace) -> int:
     if loaded.has_networks and is_main_process():
         print(f"note: {args.model} already has residual networks; they are replaced")
     job = train_job(
-        loaded, data, cond, base, model_label=args.model, out=args.out, preset=args.preset,
-        overrides=overrides, fit_frames=args.fit_frames, seed=args.seed, logdir=args.logdir,
+        loaded, data, cond, base, model_label=args.model, out=args.out, settings=settings,
+        config=args.config, fit_frames=args.fit_frames, seed=args.seed, logdir=args.logdir,
         progress=not args.no_progress, strategy=args.strategy, devices=args.devices,
     )  # fmt: skip
     if job.out is None:

@@ -2,7 +2,9 @@
 -> residual networks (:func:`~hybrid_pk.training.train_hybrid`) -> a model file with
 the training's record.
 
-    job = train_job(load_model("model.pt"), data, model_label="model.pt", out="hybrid.pt")
+    loaded = load_model("model.pt")
+    cond, base = base_for_training(loaded, data, sets=1, fit_frames=False)
+    job = train_job(loaded, data, cond, base, model_label="model.pt", out="hybrid.pt")
 """
 
 from __future__ import annotations
@@ -14,19 +16,19 @@ from pathlib import Path
 
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data
-from hybrid_pk.errors import HybridPKError
-from hybrid_pk.hybrid.nets import parse_arch
+from hybrid_pk.hybrid.train_settings import TrainSettings as TrainSettings
 from hybrid_pk.io.model_file import LoadedModel
 from hybrid_pk.pipelines.calibration import refit_frames
 from hybrid_pk.pipelines.refit import with_frame_sets
 
-__all__ = ["TrainJob", "base_for_training", "hybrid_overrides", "is_main_process", "train_job"]
-
-# the flags named as the Lightning module's arguments
-MODULE_FLAGS = (
-    "position_net", "orientation_net", "lr", "input_range", "fade", "inputs", "trust",
-    "coverage_ratio", "refine_net", "local_net", "spread", "blocked",
-)  # fmt: skip
+__all__ = [
+    "TrainJob",
+    "TrainSettings",
+    "base_for_training",
+    "is_main_process",
+    "train_job",
+    "training_sections",
+]
 
 
 @dataclass(frozen=True)
@@ -47,49 +49,14 @@ class TrainJob:
     out: Path | None
 
 
-def hybrid_overrides(
-    config: str | os.PathLike | None,
-    model_flags: dict,
-    *,
-    batch_size: int | None = None,
-    val_fraction: float | None = None,
-    epochs: int | None = None,
-    patience: int | None = None,
+def training_sections(
+    settings: TrainSettings, config: str | os.PathLike | None = None
 ) -> tuple[dict, dict, dict]:
-    """Module, datamodule and trainer overrides: the YAML ``config`` first, then the
-    given values (None: not given), checked before any data is read.
-
-    Raises:
-        HybridPKError: a fade, coverage ratio, trust or architecture out of its range.
-    """
+    """Module, datamodule and trainer overrides of ``settings`` over the LightningCLI
+    YAML ``config`` (:meth:`TrainSettings.sections`), checked before any data is read."""
     from hybrid_pk.training.presets import settings_from_config
 
-    model, data, trainer = ({}, {}, {})
-    if config:
-        cfg = settings_from_config(config)
-        model, data, trainer = cfg["model"], cfg["data"], cfg["trainer"]
-    model.update({k: v for k, v in model_flags.items() if v is not None})
-    fade, ratio = model_flags.get("fade"), model_flags.get("coverage_ratio")
-    if fade is not None and not 0 <= fade <= 10:  # 10 box sizes: the joints' whole range
-        raise HybridPKError(f"--fade must be between 0 and 10, got {fade}")
-    if ratio is not None and not ratio > 1:  # beyond the validation rows' own radius
-        raise HybridPKError(f"--coverage-ratio must be > 1, got {ratio}")
-    if model.get("inputs", "joints") != "joints":
-        from hybrid_pk.hybrid.builder import check_trust
-
-        check_trust(model.get("trust", "auto"), model["inputs"])  # naming the forms
-    for key in ("position_net", "orientation_net", "refine_net", "local_net"):
-        if model.get(key, "none") != "none":
-            parse_arch(model[key])
-    if batch_size is not None:
-        data["batch_size"] = batch_size
-    if val_fraction is not None:
-        data["val_fraction"] = val_fraction
-    if epochs is not None:
-        trainer["max_epochs"] = epochs
-    if patience is not None:
-        trainer["patience"] = patience or None
-    return model, data, trainer
+    return settings.sections(settings_from_config(config) if config else None)
 
 
 def is_main_process() -> bool:
@@ -118,8 +85,8 @@ def train_job(
     *,
     model_label: str,
     out: str | os.PathLike | None = None,
-    preset: str = "fast",
-    overrides: tuple[dict, dict, dict] = ({}, {}, {}),
+    settings: TrainSettings | None = None,
+    config: str | os.PathLike | None = None,
     fit_frames: bool = False,
     seed: int = 0,
     logdir: str | os.PathLike | None = None,
@@ -131,14 +98,17 @@ def train_job(
     ``out``: MODEL (``loaded``, named ``model_label`` in the record) plus the networks.
 
     Args:
-        overrides: module, datamodule and trainer overrides (:func:`hybrid_overrides`).
-        preset, seed, logdir, progress, strategy, devices: as in
+        settings: the preset and what differs from it (default: the ``fast`` preset);
+            ``config`` a LightningCLI YAML read first (:func:`training_sections`).
+        seed, logdir, progress, strategy, devices: as in
             :func:`~hybrid_pk.training.train_hybrid`.
     """
     from hybrid_pk.io.hybrid_file import save_hybrid
     from hybrid_pk.training import train_hybrid
 
-    model_over, data_over, trainer_over = overrides
+    settings = settings or TrainSettings()
+    preset = settings.preset
+    model_over, data_over, trainer_over = training_sections(settings, config)
     result = train_hybrid(
         data, base, cond, preset_name=preset, model=model_over, datamodule=data_over,
         max_epochs=trainer_over.get("max_epochs"), patience=trainer_over.get("patience", "preset"),
