@@ -116,7 +116,17 @@ def test_contract_train_flags_are_accepted():
     """The flag names docs/contract.md gives for train parse (aliases kept)."""
     text = (Path(__file__).resolve().parent.parent / "docs" / "contract.md").read_text()
     section = text[text.index("- `train`: ") :].split("\n- `", 1)[0]
-    flags = set(re.findall(r"`(--[a-z-]+)", section))
+    flags = set(re.findall(r"`(--[a-z_-]+)", section))
     known = {s for a in _options("train").values() for s in a.option_strings}
     assert len(flags) >= 8, flags
     assert flags <= known, sorted(flags - known)
+
+
+def test_our_presets_state_only_what_differs_from_the_defaults():
+    """fast and joints name what they choose; every other value is the module's default
+    (HybridSettings' for the networks): written once."""
+    module = _api_defaults(HybridLitModule.__init__)
+    for name in ("fast", "joints"):
+        for key, value in PRESETS[name]["model"].items():
+            defining = (name, key) == ("joints", "inputs")  # what names the preset
+            assert defining or value != module[key], f"preset {name} restates {key}={value!r}"
