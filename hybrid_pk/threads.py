@@ -109,10 +109,7 @@ def parse_threads(text: str | int | None) -> int | str | None:
         return None
     if word == _TORCH:
         return _TORCH
-    try:
-        n = int(word)
-    except ValueError:
-        n = 0
+    n = int(word) if word.isdecimal() else 0
     if n < 1:
         raise ValueError(f"threads: expected a count >= 1, 'auto' or 'torch', got {text!r}")
     return n

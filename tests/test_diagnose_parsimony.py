@@ -79,6 +79,8 @@ def test_a_tilt_that_only_carries_an_offset_gives_way_to_the_offset():
     exactly the z component of a joint_5 axis tilt. When the search has chosen the tilt
     (two parameters), the swap pass must trade it for the offset (one parameter, the
     same fit): the same cause count, fewer parameters."""
+    from hybrid_pk.calibration.diagnosis.blocked import make_folds
+    from hybrid_pk.calibration.diagnosis.carryover import Carry
     from hybrid_pk.calibration.diagnosis.split import split_campaign
     from hybrid_pk.calibration.diagnosis.swaps import prefer_fewer_causes
     from hybrid_pk.calibration.fit import fit
@@ -102,7 +104,8 @@ def test_a_tilt_that_only_carries_an_offset_gives_way_to_the_offset():
     res = fit(model, split.train, cond=split.cond_fit)
     steps = [{"candidate": c, "accepted": True, "threshold": 1e-3} for c in chosen]
     pair = [("axis_misalignment:joint_5", "joint_offset:joint_4")]
-    model, _ = prefer_fewer_causes(model, res, pair, split, 1e-3, steps, lambda _m: None)
+    carry = Carry(make_folds(model, split, 0))  # the blocks, the default margin
+    model, _ = prefer_fewer_causes(model, res, pair, split, (1e-3, carry), steps, lambda _m: None)
     where = f"run seed {RUN_SEED}: offset {truth:.4g} rad"
     labels = [e.label for e in model.effects]
     assert sorted(labels) == ["joint_offset:joint_2", "joint_offset:joint_4"], where

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from hybrid_pk.calibration.frame_hold import held_prior
 from hybrid_pk.calibration.frames import FramePriors, PriorRows, prior_centres, prior_residual
 from hybrid_pk.calibration.identifiability import FrameReport, frame_report
 from hybrid_pk.calibration.least_squares import levenberg_marquardt
@@ -290,6 +291,7 @@ def _frame_setup(
     blocks = param_blocks(model, free, data.quat is None)
     blocks = tuple(b for b in blocks if b.label not in fixed_frames)
     prior = prior_residual(model, blocks, prior_centres(model, blocks, frames))
+    prior = held_prior(model, data, cond, blocks, prior)
     start = {"base": model.base.matrix().detach().clone()}
     if covariance:  # only the frame report (with the covariance) reads it
         start["rms_mm"] = float(model_errors(model, data, cond)[0].pow(2).mean().sqrt())

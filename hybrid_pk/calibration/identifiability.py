@@ -165,8 +165,8 @@ def _held_at(which: str, part: str, T: Tensor, priors: FramePriors) -> str:
         centre = f"{spec.source} ± {1e3 * spec.std_m:.3g} mm"
     elif which == "tool":
         centre = (
-            f"its registration guess ± {priors.tool_std_m:g} m, which keeps what the data "
-            "do not determine at the flange origin"
+            f"the end link's origin ± {priors.tool_std_m:g} m, where what the data do not "
+            "determine is held"
         )
     else:
         return f"its registration guess: {which} translation {xyz}"

@@ -160,7 +160,7 @@ def _run_new(args: argparse.Namespace) -> int:
         result = calibrate(
             robot, data, None if auto else labels, frames_per_file=args.frames_per_file,
             holdout=args.holdout, seed=args.seed, priors=priors, robust=robust,
-            gravity=gravity, stage=bar.stage, progress=bar,
+            gravity=gravity, stage=bar.stage, progress=bar, min_gain_mm=args.min_gain_mm,
         )  # fmt: skip
         model, res, res0, diag = result.model, result.fit, result.nominal_fit, result.diagnosis
         bar.stage("leave one file out")

@@ -101,6 +101,8 @@ def print_summary(result: DemoResult) -> None:
     for e in result.truth["effects"]:
         c = found.get((e["effect"], e.get("joint")))
         got = "NOT FOUND" if c is None else f"found {c.value}"
+        if e.get("unseen"):
+            got += f" ({e['unseen']['words']})"
         print(f"    {e['effect']}:{e.get('joint')} = {e['value']}  ->  {got}")
     for e in result.truth["unmodelled"]:
         print(

@@ -112,6 +112,12 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
         f"{diagnosis.n_holdout} hold-out{took}",
         f"{'hold-out error':<{_LABEL_WIDTH}}{'mean':>10}{'rms':>10}{'p95':>10}{'max':>10}",
     ]
+    detectable = getattr(diagnosis, "detectable", None) or {}
+    if detectable.get("little_power"):  # said before any result
+        lines[1:1] = [
+            f"warning: {detectable['little_power']}",
+            f"detection limits (80 % power): {detectable['summary']}",
+        ]
     for key, name in (("position_mm", "position [mm]"), ("orientation_deg", "orientation [deg]")):
         for model in ("nominal", "extended"):
             stats = getattr(diagnosis, model).get(key)
@@ -126,11 +132,18 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
             gain = f"gain {c.position_gain_mm:.4g} mm"
             if c.orientation_gain_deg is not None:
                 gain += f", {c.orientation_gain_deg:.3g} deg"
+            if c.blocked_holdout_gain_mm is not None:
+                gain += f"; blocked hold-out {c.blocked_holdout_gain_mm:.3g} mm"
             lines.append(f"  {c.effect}{where} = {_value(c.value, c.std, c.unit)}  ({gain})")
+        if detectable:
+            lines.append(f"other candidates (80 % power): {detectable['summary']}")
     elif getattr(diagnosis, "structural", None) and diagnosis.structural["structurally_wrong"]:
         lines.append("causes: withheld, the URDF looks structurally wrong (see structural)")
     else:
-        lines.append("causes: none beyond measurement noise")
+        none = "causes: none beyond measurement noise"
+        if detectable:
+            none = f"causes: none detected (80 % power): {detectable['summary']}"
+        lines.append(none)
     if diagnosis.ambiguous:
         lines.append(f"ambiguous ({len(diagnosis.ambiguous)}):")
         lines += [f"  {' ~ '.join(a['effects'])}" for a in diagnosis.ambiguous]
@@ -177,6 +190,7 @@ def run(args: argparse.Namespace) -> int:
             data,
             candidates=candidates,
             **flag_values(args, "holdout", "seed", "alpha", "max_causes", "frames_per_file"),
+            min_gain_mm=args.min_gain_mm,
             frames=frame_priors(args),
             robust=robust_loss(args),
             progress=progress.stage,

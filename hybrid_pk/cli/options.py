@@ -100,6 +100,17 @@ def add_threads(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def non_negative_mm(text: str) -> float:
+    """``argparse`` type: a length [mm], zero or more."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a length in mm, got {text!r}") from None
+    if not value >= 0.0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a finite length >= 0 mm, got {value:g}")
+    return value
+
+
 def fraction(text: str) -> float:
     """``argparse`` type: a fraction of the rows, strictly between 0 and 1."""
     try:
@@ -198,10 +209,20 @@ def add_fit_options(parser: argparse.ArgumentParser, *, holdout_help: str) -> No
     """Options of every command that diagnoses effects (``diagnose``, ``calibrate``).
 
     ``--holdout F``: the fraction of rows the diagnosis keeps out of every fit to
-    compare models; the known frames (:func:`add_frame_options`), the robust loss
+    compare models; ``--min-gain-mm``: the practical margin on the blocked hold-out;
+    the known frames (:func:`add_frame_options`), the robust loss
     (:func:`add_robust`) and the mounting (:func:`add_gravity`) of its fits.
     """
     parser.add_argument("--holdout", type=fraction, default=0.2, metavar="F", help=holdout_help)
+    parser.add_argument(
+        "--min-gain-mm",
+        type=non_negative_mm,
+        metavar="MM",
+        help="practical margin: a cause is named only if it lowers the RMS error on "
+        "blocked hold-out rows (regions of joint space, whole files) by at least MM "
+        "(default: the noise estimate / 10, the standard error of an RMS error measured "
+        "on 50 check poses)",
+    )
     add_frame_options(parser)
     add_robust(parser)
     add_gravity(parser)

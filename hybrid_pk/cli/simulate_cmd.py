@@ -223,4 +223,25 @@ def run(args: argparse.Namespace) -> int:
         print("effects: none (nominal robot)")
     else:
         print(f"effects: {'; '.join(_describe(e) for e in truth['effects'])}")
+        for line in unseen_lines(robot, data, truth):
+            print(line)
     return 0
+
+
+def unseen_lines(robot, data, truth: dict) -> list[str]:
+    """``note:`` lines for the injected effects whose part no data can see (the frames
+    absorb it; a diagnosis reports ~0 there), judged with the true frames."""
+    from hybrid_pk.calibration.diagnosis.unseen import mark_unseen
+    from hybrid_pk.effects import ExtendedModel, conditions_from_data
+
+    if data.n < 3:
+        return []
+    frames = {k: torch.tensor(truth[f"{k}_frame"], dtype=torch.float64) for k in ("base", "tool")}
+    nominal = ExtendedModel(robot, **frames)
+    marked = mark_unseen(nominal, data, conditions_from_data(data), truth["effects"])
+    return [
+        f"note: {e['effect']}:{e.get('joint')} ({e['unseen']['words']}): no diagnosis of "
+        "these data can find that part"
+        for e in marked
+        if e.get("unseen")
+    ]

@@ -113,10 +113,12 @@ class CyclicError(JointEccentricity):
         f"θ_true = θ + a sin nθ + b cos nθ, n = 2 … {MAX_CYCLIC_ORDER} cycles per turn of "
         "the joint: a multi-pole output encoder's or a gear stage's periodic error, an "
         "out-of-round bearing (n = 2); value √(a²+b²), `components` [a, b]. At every step "
-        "the diagnosis ranks the orders of each revolute joint by a periodogram of the "
-        "angle error the current model leaves and tests the two best peaks with the orders "
-        "next to them (every order counts in the Bonferroni level); a neighbouring order "
-        "that explains ≥ 90 % as much is listed under `ambiguous`"
+        "the diagnosis fits each order's sinusoid to the angle error the current model "
+        "leaves, block by block of the blocked hold-out, and tests the orders that predict "
+        "the held-out blocks better by the practical margin (every order counts in the "
+        "Bonferroni level); an order that another order predicts the blocked hold-out as "
+        "well as (within the margin) is listed under `ambiguous` and never named; a named "
+        "one gives `fitted_range_rad`, and a warning when its joint moves beyond that range"
     )
 
 

@@ -46,19 +46,46 @@ def _pairs(n: int, generator: torch.Generator, count: int = 2000) -> tuple[Tenso
 
 
 # Ridge on the tool translation, relative to the mean information of the translations:
-# where the flange orientation hardly varies, base and tool translation trade off and
-# the guess keeps the tool at the flange instead of kilometres away (a well-determined
-# tool moves by ~1e-6 of its length, which the fit that follows removes).
+# it only keeps the solve regular where the flange orientation never varies at all.
 TOOL_RIDGE = 1e-6
+# Prior std of the tool translation around the end link's origin [m]: tracker targets
+# and tool points sit within a few decimetres of the flange.
+TOOL_STD_M = 0.1
 
 
-def _translations(A: Tensor, rhs: Tensor) -> Tensor:
-    """``(p_B, p_X)`` from ``A (N, 3, 6) x = rhs (N, 3)``, with a ridge on ``p_X``."""
+def _held_tool(A2: Tensor, n: int, residual_rms_m: float, tool_std_m: float) -> Tensor:
+    """``(3, k)``: the tool-translation directions the data determine (columns).
+
+    After the base translation has compensated what it can (Schur complement), a
+    direction ``u`` of the tool moves the points by ``s`` m per m (rms per row). An
+    unmodelled error as large as the residual rms ``e``, which no row count averages
+    away when it is systematic, moves the tool along ``u`` by ``e / s``; where that
+    exceeds the prior's ``tool_std_m`` the data do not determine ``u`` and the tool
+    stays at the end link's origin along it.
+    """
+    H = A2.T @ A2
+    S = H[3:, 3:] - H[:3, 3:].T @ torch.linalg.solve(H[:3, :3], H[:3, 3:])
+    lam, U = torch.linalg.eigh(S / n)
+    sens = lam.clamp_min(0).sqrt()
+    return U[:, sens * tool_std_m > residual_rms_m]
+
+
+def _translations(A: Tensor, rhs: Tensor, tool_std_m: float = TOOL_STD_M) -> Tensor:
+    """``(p_B, p_X)`` from ``A (N, 3, 6) x = rhs (N, 3)``; the tool translation's
+    directions the data do not determine (:func:`_held_tool`) stay at zero."""
+    n = A.shape[0]
     A2, b = A.reshape(-1, 6), rhs.reshape(-1)
     H = A2.T @ A2
     ridge = torch.zeros(6, dtype=H.dtype)
     ridge[3:] = TOOL_RIDGE * float(H.diagonal().mean())
-    return torch.linalg.solve(H + torch.diag(ridge), A2.T @ b)
+    sol = torch.linalg.solve(H + torch.diag(ridge), A2.T @ b)
+    rms = float((b - A2 @ sol).reshape(n, 3).pow(2).sum(1).mean().sqrt())
+    Q = _held_tool(A2, n, rms, tool_std_m)
+    if Q.shape[1] == 3:
+        return sol
+    M = torch.cat([A2[:, :3], A2[:, 3:] @ Q], 1)
+    part = torch.linalg.lstsq(M, b[:, None]).solution[:, 0]
+    return torch.cat([part[:3], Q @ part[3:]])
 
 
 # Below this largest relative flange rotation [rad] the hand-eye rotation is noise.

@@ -100,6 +100,7 @@ def calibrate(
     gravity: Gravity | None = None,
     stage: Callable[[str], None] | None = None,
     progress: Callable[[str], None] | None = None,
+    min_gain_mm: float | None = None,
 ) -> CalibrationResult:
     """Fit base/tool frames and physical effects to ``data``.
 
@@ -110,6 +111,8 @@ def calibrate(
         holdout, seed: the diagnosis' hold-out fraction and split seed.
         priors, robust, gravity: known frames, robust loss, mounting (as ``diagnose``).
         stage: told the name of each step; ``progress``: the diagnosis' messages.
+        min_gain_mm: the diagnosis' practical margin on the blocked hold-out (None: its
+            default from the noise estimate).
     """
     stage = stage or (lambda _m: None)
     sets = len(data.sources) if frames_per_file else 1
@@ -120,6 +123,7 @@ def calibrate(
         diag = diagnose(
             robot, data, holdout=holdout, seed=seed, frames_per_file=frames_per_file,
             progress=progress, frames=priors, robust=robust, gravity=gravity,
+            min_gain_mm=min_gain_mm,
         )  # fmt: skip
         labels = cause_labels(diag)
     stage("fitting frames to the nominal robot")

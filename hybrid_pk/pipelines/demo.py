@@ -25,6 +25,7 @@ from pathlib import Path
 import torch
 
 from hybrid_pk.calibration.diagnosis import Diagnosis, diagnose
+from hybrid_pk.calibration.diagnosis.unseen import mark_unseen
 from hybrid_pk.data import MeasuredData, write_table
 from hybrid_pk.data.table import write_frame
 from hybrid_pk.effects import Conditions, Effect, ExtendedModel, conditions_from_data
@@ -196,6 +197,7 @@ def run_demo(
     data, truth = _simulate(out, nominal_robot, n, hidden, sim)
     split = _Split(data)
     diag, diag_report = _diagnose(out, nominal_robot, split, seed, stages.start(1))
+    truth["effects"] = mark_unseen(diag.nominal_model, split.calib, split.cond, truth["effects"])
     model, nominal = _calibrate(out, nominal_robot, diag, split, stages.start(2))
     trained = _train(out, model, split, epochs, seed, stages.start(3))
     stages.start(4)

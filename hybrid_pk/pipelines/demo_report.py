@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from hybrid_pk.calibration.diagnosis.unseen import seen_error
 from hybrid_pk.report.markdown import fmt, image, markdown_table, stats_table
 
 __all__ = ["found_table", "run_time_line", "write_demo_report"]
@@ -28,6 +29,11 @@ def found_table(truth: dict, diag) -> list[list[object]]:
     for e in truth["effects"]:
         c = found.pop((e["effect"], e.get("joint")), None)
         named = "yes" if c else "no"
+        unseen = e.get("unseen")
+        if unseen is not None:  # only the part the data see is compared
+            err = None if c is None else seen_error(e, c.value)
+            within = "" if err is None else f", the part the data see within {100 * err:.2g} %"
+            named = f"{named}{within} ({unseen['words']})"
         rows.append(
             [f"{e['effect']}:{e.get('joint')}", e["value"], "-" if c is None else c.value, named]
         )

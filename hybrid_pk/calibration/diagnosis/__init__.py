@@ -9,7 +9,9 @@ The search (:func:`diagnose`, in :mod:`.search`) is built of named steps:
 - :mod:`.gains`: each cause's hold-out gain and evidence;
 - :mod:`.plausibility`: values that are significant but not physical;
 - :mod:`.result`: :class:`Cause`, :class:`Diagnosis` and their JSON;
-- :mod:`.statistics`, :mod:`.variants`: F-tests and the model variants compared.
+- :mod:`.statistics`, :mod:`.variants`: F-tests and the model variants compared;
+- :mod:`.power`: what the data cannot show (detection limits, too little data);
+- :mod:`.unseen`: the parts of an effect the frames absorb (marked in tables).
 """
 
 from hybrid_pk.calibration.diagnosis.plausibility import (

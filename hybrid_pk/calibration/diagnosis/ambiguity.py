@@ -7,7 +7,7 @@ Four kinds, each an entry ``{"effects": [a, b], "why": ...}`` of the diagnosis:
 - a chosen cause whose correction another candidate could make nearly as well;
 - estimates whose correlation is close to +-1;
 - a cyclic joint error whose neighbouring order would explain nearly as much
-  (:func:`.cyclic_screen.unresolved_orders`).
+  (:mod:`.settle`).
 """
 
 from __future__ import annotations

@@ -1,24 +1,25 @@
-"""Which orders of a cyclic joint error to test: a periodogram of each joint's angle error.
+"""Which orders of a cyclic joint error to test: a blocked periodogram of each joint's
+angle error.
 
 Every order ``n`` of ``cyclic_error_<n>`` on every revolute joint is a candidate (some
 two hundred on a six-axis arm). Scoring them all at every step would multiply the
 Jacobian the search builds by ten. Instead, at every step of the search, the position
 residual the current model leaves on each fit row is read as the angle error of each
 joint that would explain it best (``e = J_j · r / |J_j|²``, rows where the joint moves
-the point at all), and the weighted periodogram of ``e`` against that joint's angle
-ranks the orders. The best :data:`SCREEN_KEEP` peaks per joint and the orders next
-to each (a range of a few radians resolves the order only to a cycle or so, and the
-proxy ``e`` may rank a neighbour first that the full fit does not) go on to that
-step's score test; the others count in its Bonferroni level all the same (they were
-looked at). Ranking anew at every step matters: before a large error (a misaligned
-wrist axis) is explained, it leaks into every joint's ``e`` and hides a smaller
-periodic error (the UR10's 17 cycles per turn of the shoulder pan are named at step 7
-of the search; with one screen of the frames-only residual the search never tested
-them).
+the point at all), and for each order the sinusoid ``a sin(n q) + b cos(n q) + c`` of
+that angle error is fitted block by block (the blocks of the blocked hold-out,
+:mod:`.blocked`) and scored on the held-out block. An order goes on to that step's
+score test when it predicts the held-out blocks better than the constant alone by the
+practical margin (the displacement ``e |J_j|`` along the joint's motion, RMS in mm):
+that one-dimensional gain exceeds the gain the same order brings to the 3-D error (the
+error of the other directions adds to the RMS and does not change), so no order that
+could earn its place is screened out. The others count in the step's Bonferroni level
+all the same (they were looked at). Ranking anew at every step matters: before a large
+error (a misaligned wrist axis) is explained, it leaks into every joint's ``e`` and
+hides a smaller periodic error.
 
-After the search, the same periodogram of what the model leaves without a chosen
-cyclic error tells whether a neighbouring order would do nearly as well (a joint range
-of a few radians resolves the order only to a cycle or so): :func:`unresolved_orders`.
+Whether a chosen order is resolved (no other order predicts the held-out blocks nearly
+as well) is decided on the full model: :mod:`.cyclic_resolution`.
 """
 
 from __future__ import annotations
@@ -27,27 +28,31 @@ from collections import defaultdict
 
 import torch
 
+from hybrid_pk.calibration.diagnosis.blocked import Folds
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.statistics import equivalent_angle_error
 from hybrid_pk.effects import ExtendedModel
-from hybrid_pk.effects.joint import CYCLIC_PREFIX, MAX_CYCLIC_ORDER
-from hybrid_pk.geometry import so3_log
+from hybrid_pk.effects.joint import CYCLIC_PREFIX
 
-__all__ = ["ORDER_SHARE", "SCREEN_KEEP", "screen_cyclic", "unresolved_orders"]
+__all__ = ["angle_error", "blocked_order_gains", "screen_cyclic"]
 
-SCREEN_KEEP = 2  # peaks per joint whose orders (and the orders next to them) are scored
 _STEP = 1e-6  # [rad] finite-difference step of the joint's point Jacobian
 _MIN_LEVER = 0.2  # rows whose |J_j| is below this fraction of the median are left out
 _MIN_ROWS = 8  # fewer informative rows than this: the joint's orders are not scored
-NEIGHBOURS = 3  # orders on either side of a chosen one that are compared with it
-ORDER_SHARE = 0.9  # a neighbour explaining this share of the chosen order's part is listed
 
 
 def screen_cyclic(
-    model: ExtendedModel, split: Split, pool: list[str], weights: torch.Tensor | None = None
+    model: ExtendedModel,
+    split: Split,
+    pool: list[str],
+    weights: torch.Tensor | None = None,
+    folds: Folds | None = None,
+    margin: float = 0.0,
 ) -> tuple[list[str], int]:
-    """``pool`` with its cyclic candidates cut to the best orders per joint, and how
-    many were set aside (to add to the candidate count of the Bonferroni level).
+    """``pool`` with its cyclic candidates cut to the orders whose angle-error sinusoid
+    gains ``margin`` [mm] on the blocked hold-out (``folds``; without blocks every
+    order is kept), and how many were set aside (to add to the candidate count of the
+    Bonferroni level).
 
     ``weights``: ``(n_fit,)`` robust row weights of the fit (a gross row does not
     choose an order); None: every row alike.
@@ -57,7 +62,7 @@ def screen_cyclic(
         kind, _, joint = label.partition(":")
         if kind.startswith(CYCLIC_PREFIX):
             orders[joint].append(int(kind.removeprefix(CYCLIC_PREFIX)))
-    if not orders:
+    if not orders or folds is None:
         return pool, 0
     data, cond = split.train, split.cond_fit
     names = model.robot.joint_names
@@ -66,101 +71,58 @@ def screen_cyclic(
         r = data.position.to(T0.dtype) - T0[:, :3, 3]
         kept = set()
         for joint, ns in orders.items():
-            got = _angle_error(model, split, names.index(joint), T0, r, weights)
+            got = angle_error(model, split, names.index(joint), T0, r, weights)
             if got is None:
                 continue  # the joint barely moves the point: no order to rank
-            ranked = sorted(ns, key=lambda n: -_explained(*got, n))
-            near = {m for n in ranked[:SCREEN_KEEP] for m in (n - 1, n, n + 1)}
-            kept |= {f"{CYCLIC_PREFIX}{n}:{joint}" for n in ns if n in near}
+            gains = blocked_order_gains(*got, folds, ns)
+            kept |= {f"{CYCLIC_PREFIX}{n}:{joint}" for n, g in gains.items() if g >= margin}
     out = [c for c in pool if not c.startswith(CYCLIC_PREFIX) or c in kept]
     return out, len(pool) - len(out)
 
 
-def unresolved_orders(
-    model: ExtendedModel, split: Split, weights: torch.Tensor | None = None
-) -> list[dict]:
-    """Ambiguity entries for each chosen ``cyclic_error_<n>`` against the neighbouring
-    orders (within :data:`NEIGHBOURS`) that explain at least :data:`ORDER_SHARE` of
-    what order ``n`` explains of the angle error the model leaves without that cause.
+def blocked_order_gains(e, w, theta, rows, folds: Folds, ns: list[int]) -> dict[int, float]:
+    """Per order ``n``: the drop [mm] of the blocked RMS of ``e |J|`` when the sinusoid
+    of ``n`` cycles per turn is fitted per block besides the constant."""
+    cells = folds.cell[rows]
+    s = w.sqrt()
+    onehot = torch.nn.functional.one_hot(cells, folds.n_cells).to(e.dtype)
+    n_rows = sum(int((cells[:, None] == torch.tensor(f)).any(1).sum()) for f in folds.folds)
 
-    The angle error is read from the position residual (as the screen reads it) or, for
-    full poses, from the rotation residual about the joint's axis, whichever the chosen
-    order explains the larger share of: a wrist-3 error may barely move the measured
-    point and be chosen for what it does to the orientation."""
-    data, cond = split.train, split.cond_fit
-    out = []
-    for e in [x for x in model.effects if x.kind.startswith(CYCLIC_PREFIX)]:
-        saved = e.value.detach().clone()
-        with torch.no_grad():
-            e.value.zero_()
-            T0 = model(data.q, cond)
-            r = data.position.to(T0.dtype) - T0[:, :3, 3]
-            channels = {"position": _angle_error(model, split, e.joint_index, T0, r, weights)}
-            if not split.position_only:
-                R0 = T0[:, :3, :3]
-                rot = so3_log(data.T_measured()[:, :3, :3].to(R0.dtype) @ R0.transpose(-1, -2))
-                channels["orientation"] = _angle_error(
-                    model, split, e.joint_index, T0, rot, weights, "orientation"
-                )
-            e.value.copy_(saved)
-        shares = {k: _share(g, e.order) for k, g in channels.items() if g is not None}
-        if not shares:
-            continue
-        channel = max(shares, key=shares.get)
-        got = channels[channel]
-        own = _explained(*got, e.order)
-        lo, hi = max(2, e.order - NEIGHBOURS), min(MAX_CYCLIC_ORDER, e.order + NEIGHBOURS)
-        for m in [m for m in range(lo, hi + 1) if m != e.order]:
-            share = _explained(*got, m) / max(own, 1e-300)
-            if share >= ORDER_SHARE:
-                out.append(
-                    {
-                        "effects": [e.label, f"{CYCLIC_PREFIX}{m}:{e.joint}"],
-                        "why": f"{m} cycles per turn explain {100 * share:.0f} % of what "
-                        f"{e.order} explain of {e.joint}'s angle error (read from the "
-                        f"{channel}): the order is not resolved by these rows",
-                    }
-                )
+    def blocked_rms(A):  # A: (N, p) regressors; the Gram of [A*s, e*s] per cell
+        M = torch.cat([A, e[:, None]], 1) * s[:, None]
+        grams = torch.einsum("nc,ni,nj->cij", onehot, M, M)
+        total, ssr = grams.sum(0), 0.0
+        for f in folds.folds:
+            test = grams[list(f)].sum(0)
+            train = total - test
+            k = A.shape[1]
+            coef = torch.linalg.lstsq(train[:k, :k], train[:k, k:], driver="gelsd").solution
+            v = torch.cat([-coef[:, 0], coef.new_ones(1)])
+            ssr += float(v @ test @ v)
+        return 1000.0 * (max(ssr, 0.0) / max(n_rows, 1)) ** 0.5  # m -> mm
+
+    ones = torch.ones_like(theta)[:, None]
+    base = blocked_rms(ones)
+    out = {}
+    for n in ns:
+        A = torch.stack([torch.sin(n * theta), torch.cos(n * theta), ones[:, 0]], 1)
+        out[n] = base - blocked_rms(A)
     return out
 
 
-def _share(got, n: int) -> float:
-    """Share of the weighted variance of the angle error that order ``n`` explains."""
-    e, w, theta = got
-    total = float((w * (e - (w * e).sum() / w.sum()) ** 2).sum())
-    return _explained(e, w, theta, n) / max(total, 1e-300)
-
-
-def _angle_error(model, split, j, T0, r, weights, reading: str = "position"):
-    """``(e, w, theta)`` of the rows where joint ``j`` moves the measured pose: the angle
-    error [rad] that best explains each row's residual ``r (n, 3)``, its weight
-    ``|J_j|²`` (times the robust row weight) and the joint angle; None for too few such
-    rows. ``T0``: the model's poses at the fit rows; ``reading``: ``position`` (``r`` the
-    position residual [m], ``J_j`` the point's motion) or ``orientation`` (``r`` the
-    rotation vector of ``R_meas R_modelᵀ``, ``J_j`` the joint's axis: a revolute joint
-    turns the measured frame by its full angle on every row)."""
+def angle_error(model, split, j, T0, r, weights):
+    """``(e, w, theta, rows)`` of the rows where joint ``j`` moves the measured point:
+    the angle error [rad] that best explains each row's position residual ``r (n, 3)``
+    [m], its weight ``|J_j|²`` (times the robust row weight), the joint angle and the
+    mask of those fit rows; None for too few such rows. ``T0``: the model's poses at
+    the fit rows."""
     data, cond = split.train, split.cond_fit
     dq = torch.zeros_like(data.q)
     dq[:, j] = _STEP
     T1 = model(data.q + dq, cond)
-    if reading == "position":
-        J = (T1[:, :3, 3] - T0[:, :3, 3]) / _STEP  # (n, 3) [m/rad]
-    else:
-        J = so3_log(T1[:, :3, :3] @ T0[:, :3, :3].transpose(-1, -2)) / _STEP
+    J = (T1[:, :3, 3] - T0[:, :3, 3]) / _STEP  # (n, 3) [m/rad]
     e, w, rows = equivalent_angle_error(J, r, _MIN_LEVER)
     if int(rows.sum()) < _MIN_ROWS:
         return None
     w_rows = w[rows] if weights is None else w[rows] * weights[rows].to(w.dtype)
-    return e[rows], w_rows, data.q[rows, j]
-
-
-def _explained(e: torch.Tensor, w: torch.Tensor, theta: torch.Tensor, n: int) -> float:
-    """Weighted sum of squares of ``e`` that ``a sin(n theta) + b cos(n theta) + c``
-    explains beyond the constant ``c``."""
-    s = w.sqrt()
-    A = torch.stack([torch.sin(n * theta), torch.cos(n * theta), torch.ones_like(theta)], 1)
-    y = e * s
-    coef = torch.linalg.lstsq(A * s[:, None], y[:, None]).solution[:, 0]
-    fitted = (A @ coef) * s
-    mean = (y * s).sum() / (s * s).sum()
-    return float(((y - mean * s) ** 2).sum() - ((y - fitted) ** 2).sum())
+    return e[rows], w_rows, data.q[rows, j], rows

@@ -1,4 +1,11 @@
-"""Each chosen cause's hold-out gain (left out and refitted) and its evidence line."""
+"""Each chosen cause's gains (left out and refitted) and its evidence line.
+
+Three gains per cause, each the drop of the RMS error [mm] (rotation counted at the
+noise ratio ``sigma_pos / sigma_rot``, as in :mod:`.blocked`) that leaving it out
+costs: on the fit rows (in-sample), on the random hold-out rows, and on the blocked
+hold-out (regions of joint space, whole files). The first two are measured with the
+model refitted without the cause, the last one linearised per block.
+"""
 
 from __future__ import annotations
 
@@ -8,11 +15,14 @@ from torch import Tensor
 
 from hybrid_pk.calibration.diagnosis.result import Cause, report_value
 from hybrid_pk.calibration.diagnosis.split import Split
+from hybrid_pk.calibration.diagnosis.statistics import weighted_ssr
 from hybrid_pk.calibration.diagnosis.variants import refit_without
 from hybrid_pk.calibration.fit import FitResult, model_errors
 from hybrid_pk.effects import Effect, ExtendedModel
+from hybrid_pk.effects.joint import CYCLIC_PREFIX
+from hybrid_pk.robot import Robot
 
-__all__ = ["GAIN_REFIT_STEPS", "measure_causes"]
+__all__ = ["GAIN_REFIT_STEPS", "measure_causes", "range_warnings"]
 
 # LM steps of the refit without a cause, after its linearised removal: the first step
 # leaves ~1e-9 of the cost to gain (the linearised start is within ~1e-7 of it).
@@ -27,13 +37,15 @@ def measure_causes(
     alpha: float,
     errors: tuple[Tensor, Tensor | None],
     progress: Callable[[str], None] | None = None,
+    blocked: dict[str, dict] | None = None,
 ) -> list[Cause]:
     """The causes of ``model``, largest hold-out position gain first.
 
     A cause's gain is the hold-out mean error of the model refitted without it (its
     linearised removal and :data:`GAIN_REFIT_STEPS` LM steps) minus the full model's
     (``errors``: its per-row hold-out position [mm] and orientation [deg] errors); its
-    evidence quotes the step that accepted it.
+    evidence quotes the step that accepted it. ``blocked``: each cause's blocked gains
+    (:func:`.carryover.removal_gains`).
     """
     pos1, ori1 = errors
     causes = []
@@ -46,7 +58,12 @@ def measure_causes(
         )
         pos_r, ori_r = model_errors(reduced, split.test, split.cond_hold)
         step = next(s for s in steps if s["candidate"] == e.label and s.get("accepted"))
-        causes.append(_cause(e, res, step, alpha, (pos1, ori1), (pos_r, ori_r)))
+        cause = _cause(e, res, step, alpha, (pos1, ori1), (pos_r, ori_r))
+        _add_gains(cause, (model, reduced), res, split, (blocked or {}).get(e.label))
+        if e.kind.startswith(CYCLIC_PREFIX):
+            q = split.train.q[:, e.joint_index]
+            cause.fitted_range_rad = [float(q.min()), float(q.max())]
+        causes.append(cause)
     causes.sort(key=lambda c: c.position_gain_mm, reverse=True)
     return causes
 
@@ -81,3 +98,43 @@ def _cause(
         evidence=evidence,
         components=components,
     )
+
+
+def _add_gains(cause: Cause, models, res: FitResult, split: Split, blocked: dict | None):
+    """The cause's in-sample, random and blocked hold-out RMS gains [mm]."""
+    model, reduced = models
+    sig = res.sigma_pos_mm
+
+    def rms_drop(data, cond) -> float:
+        without = weighted_ssr(reduced, data, cond, res) / max(data.n, 1)
+        with_it = weighted_ssr(model, data, cond, res) / max(data.n, 1)
+        return sig * (max(without, 0.0) ** 0.5 - max(with_it, 0.0) ** 0.5)
+
+    cause.in_sample_gain_mm = rms_drop(split.train, split.cond_fit)
+    cause.random_holdout_gain_mm = rms_drop(split.test, split.cond_hold)
+    if blocked is not None:
+        cause.blocked_holdout_gain_mm = blocked["gain_mm"]
+        cause.blocked_position_gain_mm = blocked["position_mm"]
+        cause.blocked_orientation_gain_deg = blocked.get("orientation_deg")
+
+
+def range_warnings(causes: list[Cause], robot: Robot) -> list[dict]:
+    """A warning per cyclic cause whose joint can move beyond the range it was fitted
+    on: there the model extrapolates the periodic law."""
+    lower, upper = robot.joint_limits
+    out = []
+    for c in causes:
+        if c.fitted_range_rad is None:
+            continue
+        j = robot.joint_names.index(c.joint)
+        lo, hi = c.fitted_range_rad
+        if float(lower[j]) < lo or float(upper[j]) > hi:
+            out.append(
+                {
+                    "cause": f"{c.effect}:{c.joint}",
+                    "why": f"fitted on {c.joint} in [{lo:.3g}, {hi:.3g}] rad of its range "
+                    f"[{float(lower[j]):.3g}, {float(upper[j]):.3g}] rad: beyond the "
+                    "fitted range the model extrapolates the periodic law, unchecked",
+                }
+            )
+    return out

@@ -38,6 +38,12 @@ class Cause:
     orientation_gain_deg: float | None
     evidence: str
     components: list[float] | None = None
+    in_sample_gain_mm: float | None = None
+    random_holdout_gain_mm: float | None = None
+    blocked_holdout_gain_mm: float | None = None
+    blocked_position_gain_mm: float | None = None
+    blocked_orientation_gain_deg: float | None = None
+    fitted_range_rad: list[float] | None = None
 
     def to_json(self) -> dict:
         out = {
@@ -54,6 +60,16 @@ class Cause:
             del out["joint"]
         if self.components is not None:
             out["components"] = self.components
+        for key in (
+            "in_sample_gain_mm",
+            "random_holdout_gain_mm",
+            "blocked_holdout_gain_mm",
+            "blocked_position_gain_mm",
+            "blocked_orientation_gain_deg",
+            "fitted_range_rad",
+        ):
+            if getattr(self, key) is not None:
+                out[key] = getattr(self, key)
         return out
 
 
@@ -81,7 +97,9 @@ class Diagnosis:
     robust: dict | None = None
     structural: dict | None = None
     frames: dict | None = None
+    carry_over: dict | None = None
     budget: dict | None = None
+    detectable: dict | None = None
 
     def to_json(self) -> dict:
         return {
@@ -101,7 +119,9 @@ class Diagnosis:
             "structural": self.structural,
             "frames": self.frames,
             "gravity": gravity_json(self.model),
+            "carry_over": self.carry_over,
             "budget": self.budget,
+            "detectable": self.detectable,
         }
 
 

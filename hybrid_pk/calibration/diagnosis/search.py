@@ -21,11 +21,19 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from hybrid_pk.calibration.diagnosis.ambiguity import correlated_groups, near_duplicates
+from hybrid_pk.calibration.diagnosis.blocked import make_folds
 from hybrid_pk.calibration.diagnosis.budget import Budget
-from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic, unresolved_orders
+from hybrid_pk.calibration.diagnosis.carryover import Carry, weakest
+from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic
 from hybrid_pk.calibration.diagnosis.elimination import eliminate
-from hybrid_pk.calibration.diagnosis.gains import measure_causes
+from hybrid_pk.calibration.diagnosis.gains import measure_causes, range_warnings
 from hybrid_pk.calibration.diagnosis.plausibility import plausibility_warnings
+from hybrid_pk.calibration.diagnosis.power import (
+    check_determined,
+    detectable_json,
+    detection_limits,
+    frame_parameters,
+)
 from hybrid_pk.calibration.diagnosis.result import (
     Cause,
     Diagnosis,
@@ -37,11 +45,12 @@ from hybrid_pk.calibration.diagnosis.selection import (
     score_candidates,
     try_candidate,
 )
+from hybrid_pk.calibration.diagnosis.settle import entry_rivals, settle, unresolved_entry
 from hybrid_pk.calibration.diagnosis.split import Split, split_campaign
 from hybrid_pk.calibration.diagnosis.statistics import neighbour_structure, residual_vectors
 from hybrid_pk.calibration.diagnosis.structural import implausibility, structural_check
 from hybrid_pk.calibration.diagnosis.swaps import prefer_fewer_causes
-from hybrid_pk.calibration.diagnosis.variants import with_effects
+from hybrid_pk.calibration.diagnosis.variants import with_effects, without_effect
 from hybrid_pk.calibration.fit import FitResult, fit, model_errors
 from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.calibration.known_frames import initialise_with_priors
@@ -72,6 +81,7 @@ def diagnose(
     frames: FramePriors | None = None,
     robust: str | None = None,
     gravity: Gravity | None = None,
+    min_gain_mm: float | None = None,
 ) -> Diagnosis:
     """Name the physical causes of the nominal model's errors on ``data``.
 
@@ -90,6 +100,9 @@ def diagnose(
             errors (listed in ``robust``); None: least squares. Outliers beyond
             ``OUTLIER_K`` sigma are listed either way.
         gravity: the mounting (root-frame vector or levelled tracker); default upright.
+        min_gain_mm: the practical margin [mm] every cause must gain on the blocked
+            hold-out (:mod:`.blocked`); None: from the noise estimate
+            (:func:`.blocked.practical_margin`).
     """
     say = progress or (lambda _msg: None)
     robot.requires_grad_(False)
@@ -100,43 +113,41 @@ def diagnose(
     model = ExtendedModel(
         robot, frame_sets=len(data.sources) if frames_per_file else 1, gravity=gravity
     )
-    initialise_with_priors(model, split.train, split.cond_fit, frames)
-    res = fit(
-        model, split.train, cond=split.cond_fit, progress=_prefixed(say, "frames"),
-        frames=frames, robust=robust,
-    )  # fmt: skip
+    res = _fit_frames(model, split, frames, robust, say)
     frame_json = None if res.frame_report is None else res.frame_report.to_json()
     nominal_model = with_effects(model)
     nominal = stats_json(*model_errors(model, split.test, split.cond_hold))
 
-    pool = candidates if candidates is not None else candidate_labels(robot, data)
-    pool = [
-        c
-        for c in pool
-        if make_effect(robot, c).needs != "temperature" or data.temperature is not None
-    ]
+    pool = _pool(robot, data, candidates)
     flagged: list[dict] = []
+    carry = Carry(make_folds(model, split, seed), min_gain_mm)
     model, res, steps, ambiguous, unobservable = _select(
-        model, res, pool, split, alpha, max_causes, say, flagged, budget
+        model, res, pool, split, (alpha, carry, budget), max_causes, say, flagged
     )
+    model, res, blocked_gains, unresolved = settle(model, res, split, carry, steps, say)
 
+    say("detection limits of the candidates not named")
+    detectable = detection_limits(model, res, pool, split, alpha, say, carry)
     say("measuring each cause's gain")
     errors = model_errors(model, split.test, split.cond_hold)
-    causes = measure_causes(model, res, split, steps, alpha, errors, progress=say)
+    causes = measure_causes(
+        model, res, split, steps, alpha, errors, progress=say, blocked=blocked_gains
+    )
     sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
     with budget.stage("structural search"):
         causes, structural = structural_check(
             model, causes, flagged, split, nominal_model, sigmas, say, budget
         )
-    ambiguous += correlated_groups(res)
-    ambiguous += unresolved_orders(model, split, res.weights)
+    ambiguous += correlated_groups(res) + unresolved
     return Diagnosis(
         outliers=_outliers(model, data, frames_per_file, res),
         robust=_robust_json(res, data, split),
         structural=structural,
         frames=frame_json,
-        warnings=plausibility_warnings(causes, data) + _cap_warnings(steps) + budget.warnings(),
+        warnings=_warnings(causes, data, steps, robot, budget),
+        carry_over=carry.rule(res),
         budget=budget.to_json(),
+        detectable=detectable_json(model, detectable, res.sigma_pos_mm),
         robot=robot.name,
         n_samples=data.n,
         n_holdout=split.test.n,
@@ -154,27 +165,59 @@ def diagnose(
     )
 
 
+def _fit_frames(model: ExtendedModel, split, frames, robust, say) -> FitResult:
+    """The frames of the nominal model, after refusing a campaign too small for them."""
+    check_determined(split, frame_parameters(model, split, frames))
+    initialise_with_priors(model, split.train, split.cond_fit, frames)
+    return fit(
+        model, split.train, cond=split.cond_fit, progress=_prefixed(say, "frames"),
+        frames=frames, robust=robust,
+    )  # fmt: skip
+
+
+def _warnings(causes, data: MeasuredData, steps, robot: Robot, budget: Budget) -> list[str]:
+    """Every warning of the diagnosis: plausibility, the cap, ranges, budget cuts."""
+    return (
+        plausibility_warnings(causes, data)
+        + _cap_warnings(steps)
+        + range_warnings(causes, robot)
+        + budget.warnings()
+    )
+
+
+def _pool(robot: Robot, data: MeasuredData, candidates: list[str] | None) -> list[str]:
+    """The candidates to consider (default :func:`candidate_labels`), those needing a
+    temperature only when the data have one."""
+    pool = candidates if candidates is not None else candidate_labels(robot, data)
+    return [
+        c
+        for c in pool
+        if make_effect(robot, c).needs != "temperature" or data.temperature is not None
+    ]
+
+
 def _select(
     model: ExtendedModel,
     res: FitResult,
     pool: list[str],
     split: Split,
-    alpha: float,
+    tests: tuple[float, Carry, Budget],
     max_causes: int,
     say: Callable[[str], None],
     flagged: list[dict],
-    budget: Budget,
 ) -> tuple[ExtendedModel, FitResult, list[dict], list[dict], list[str]]:
     """Forward selection with backward elimination after each accepted cause.
 
-    A candidate whose refit value is not a small physical correction is set aside and
-    appended to ``flagged`` (its :func:`implausibility` entry). The main search ends
-    with the loop: the capped-search check and the swaps are optional stages of
-    ``budget``.
+    ``tests``: ``(alpha, carry, budget)``, the F-tests' level, the blocked hold-out's
+    blocks and margin, and the time budget of the optional stages (the capped-search
+    check and the swaps, after the loop). A candidate whose refit value is not a small physical
+    correction is set aside and appended to ``flagged`` (its :func:`implausibility`
+    entry).
 
     Returns the final model and fit, the step records, the ambiguity entries found
     on the way and the candidates without any signature in this data.
     """
+    alpha, carry, budget = tests
     ambiguous: list[dict] = []
     steps: list[dict] = []
     unobservable: list[str] = []
@@ -185,11 +228,14 @@ def _select(
     while remaining and len(model.effects) < max_causes:
         # The cyclic orders are ranked anew on what the current model leaves: a large
         # error explained by an earlier cause hides a joint's periodic error at first.
-        pool, screened = screen_cyclic(model, split, remaining, res.weights)
+        pool, screened = screen_cyclic(
+            model, split, remaining, res.weights, carry.folds, carry.margin(res)
+        )
         say(f"scoring {len(pool)} candidate effects (step {len(steps) + 1})")
         scores = score_candidates(
-            model, res, pool, split, alpha, first_step, progress=say, screened=screened
-        )
+            model, res, pool, split, alpha, first_step, progress=say, screened=screened,
+            carry=carry,
+        )  # fmt: skip
         unobservable += scores.unobservable
         ambiguous += scores.equivalent
         first_step = False
@@ -197,9 +243,10 @@ def _select(
         remaining = [c for c in remaining if c in kept or c not in pool]
         if not scores.scored:
             break
-        best = scores.ranked[0]
-        if best.p >= scores.threshold:
-            steps.append(_untested(best, scores, "best remaining candidate is not significant"))
+        best, aside = _first_resolved(scores, model, ambiguous)
+        remaining = [c for c in remaining if c not in aside]
+        if best is None:
+            steps.append(_untested(scores.ranked[0], scores, _why_stop(scores, aside)))
             break
         say(f"testing {best.label}")
         new, new_res, step = try_candidate(
@@ -222,29 +269,110 @@ def _select(
         duplicates = near_duplicates(best.label, best.fitted, scores.signatures)
         ambiguous += duplicates
         pairs += [(best.label, d["effects"][1]) for d in duplicates]
+        before = [e.label for e in model.effects] + [best.label]
         model, res = new, new_res
         model, res, removed = eliminate(model, res, split, alpha, best.label, steps, say)
-        remaining = [c for c in remaining if c not in removed]
+        model, res, dropped = _eliminate_blocked(model, res, scores, before, split, steps, say)
+        remaining = [c for c in remaining if c not in removed | dropped]
     budget.main_done()
     if remaining and len(model.effects) >= max_causes:
         with budget.stage("capped-search check"):  # one scoring step: done whatever the budget
-            pool, screened = screen_cyclic(model, split, remaining, res.weights)
-            _note_cap(model, res, pool, split, alpha, (max_causes, screened), steps, say)
+            pool, screened = screen_cyclic(
+                model, split, remaining, res.weights, carry.folds, carry.margin(res)
+            )
+            limits = (max_causes, screened)
+            _note_cap(model, res, pool, split, (alpha, carry), limits, steps, say)
     with budget.stage("swaps"):
-        model, res = prefer_fewer_causes(model, res, pairs, split, alpha, steps, say, budget)
+        model, res = prefer_fewer_causes(
+            model, res, pairs, split, (alpha, carry), steps, say, budget
+        )
     return model, res, steps, ambiguous, unobservable
 
 
-def _note_cap(model, res, pool, split, alpha, limits, steps, say) -> None:
-    """Record (``"capped"`` step) the best remaining candidate when the search stopped
-    at ``max_causes`` with it still significant: the data carry more than was named.
-    ``limits``: ``(max_causes, screened)``."""
-    max_causes, screened = limits
-    say(f"{max_causes} causes named (the limit): is the next candidate still significant?")
-    scores = score_candidates(
-        model, res, pool, split, alpha, False, progress=say, screened=screened
+def _first_resolved(scores, model, ambiguous):
+    """The best eligible candidate (:meth:`Scores.eligible`) that is not a cyclic order
+    another order predicts the blocked hold-out nearly as well as; and the candidates
+    set aside as unresolved (their ambiguity entries go into ``ambiguous``)."""
+    current = [e.label for e in model.effects]
+    aside: set[str] = set()
+    for sc in scores.ranked:
+        if not scores.eligible(sc):
+            break
+        if sc.label in aside:
+            continue
+        rivals = entry_rivals(scores, current, sc.label)
+        if not rivals:
+            return sc, aside
+        ambiguous += unresolved_entry(sc.label, rivals, scores.margin)
+        aside |= {sc.label, *rivals}
+    return None, aside
+
+
+def _why_stop(scores, aside: set[str]) -> str:
+    """Why the search stopped with candidates left (``aside``: unresolved orders)."""
+    best = scores.ranked[0]
+    if aside:
+        return (
+            "every significant candidate that gains the practical margin on the blocked "
+            "hold-out is a cyclic order that other orders predict as well (see ambiguous)"
+        )
+    if best.p >= scores.threshold:
+        return "best remaining candidate is not significant"
+    gain = max(scores.carry.get(s.label, 0.0) for s in scores.scored if s.p < scores.threshold)
+    return (
+        "no significant candidate gains the practical margin on the blocked hold-out "
+        f"(best {gain:.3g} mm < {scores.margin:.3g} mm)"
     )
-    if not scores.scored or scores.ranked[0].p >= scores.threshold:
+
+
+def _eliminate_blocked(model, res, scores, before, split, steps, say):
+    """Take out, one at a time, causes whose blocked gain (linearised at this step's
+    scoring point, ``before`` its effects and the newest) fell below the margin; the
+    newest (just measured) stays. Returns the model, its fit and the removed labels."""
+    dropped: set[str] = set()
+    if scores.blocked is None:
+        return model, res, dropped
+    newest = before[-1]
+    while len(model.effects) > 1:
+        labels = [e.label for e in model.effects]
+        gone = [x for x in before if x not in labels]
+        worst = weakest(scores.blocked, labels, scores.margin, newest, gone)
+        if worst is None:
+            break
+        label, gain = worst
+        say(f"removing {label}: it no longer carries over")
+        steps.append(
+            {
+                "candidate": label,
+                "removed": True,
+                "blocked_gain_mm": gain,
+                "min_gain_mm": scores.margin,
+                "accepted": False,
+                "why": "gains less than the practical margin on the blocked hold-out "
+                "once later causes were added",
+            }
+        )
+        model = without_effect(model, label)
+        sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
+        res = fit(
+            model, split.train, cond=split.cond_fit, initial_sigma=sigmas, progress=say,
+            **res.settings(),
+        )  # fmt: skip
+        dropped.add(label)
+    return model, res, dropped
+
+
+def _note_cap(model, res, pool, split, tests, limits, steps, say) -> None:
+    """Record (``"capped"`` step) the best remaining candidate when the search stopped
+    at ``max_causes`` with it still significant and gaining the margin: the data carry
+    more than was named. ``tests``: ``(alpha, carry)``; ``limits``:
+    ``(max_causes, screened)``."""
+    (alpha, carry), (max_causes, screened) = tests, limits
+    say(f"{max_causes} causes named (the limit): does the next candidate still carry over?")
+    scores = score_candidates(
+        model, res, pool, split, alpha, False, progress=say, screened=screened, carry=carry
+    )
+    if not scores.scored or not scores.eligible(scores.ranked[0]):
         return
     why = f"not tested: the search stopped at max_causes = {max_causes}"
     steps.append({**_untested(scores.ranked[0], scores, why), "capped": max_causes})
@@ -252,7 +380,7 @@ def _note_cap(model, res, pool, split, alpha, limits, steps, say) -> None:
 
 def _untested(best, scores, why: str) -> dict:
     """The step record of a scored candidate that was not refitted."""
-    return {
+    out = {
         "candidate": best.label,
         "score_F": best.F,
         "score_p": best.p,
@@ -260,6 +388,9 @@ def _untested(best, scores, why: str) -> dict:
         "accepted": False,
         "why": why,
     }
+    if scores.blocked is not None:
+        out.update({"blocked_gain_mm": scores.carry[best.label], "min_gain_mm": scores.margin})
+    return out
 
 
 def _cap_warnings(steps: list[dict]) -> list[dict]:
@@ -268,6 +399,7 @@ def _cap_warnings(steps: list[dict]) -> list[dict]:
         {
             "cause": s["candidate"],
             "why": f"still significant (score F {s['score_F']:.3g}, p {s['score_p']:.2g}) "
+            "and gaining the practical margin on the blocked hold-out "
             f"when the search stopped at its limit of {s['capped']} "
             f"cause{'s' if s['capped'] != 1 else ''}: the "
             "data carry more causes than were named; --max-causes N names more",

@@ -22,6 +22,8 @@ from hybrid_pk.calibration.diagnosis.ambiguity import (
     frame_of_equivalence,
     projector_residual,
 )
+from hybrid_pk.calibration.diagnosis.blocked import Blocked
+from hybrid_pk.calibration.diagnosis.carryover import Carry, linearise
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.statistics import (
     f_survival,
@@ -31,7 +33,6 @@ from hybrid_pk.calibration.diagnosis.statistics import (
 )
 from hybrid_pk.calibration.diagnosis.variants import shift_parameters, with_effects
 from hybrid_pk.calibration.fit import FitResult, fit, reestimated_noise
-from hybrid_pk.calibration.problem import Problem, param_blocks
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import EFFECTS, ExtendedModel, effect_joint_names, make_effect
 from hybrid_pk.effects.base import Effect, effect_joint_types
@@ -132,6 +133,8 @@ class Scores:
         equivalent: ambiguity entries of candidates that a frame or effect absorbs.
         R: ``(n + 1, n + 1)`` triangular factor of ``[J r]`` of the current model and
             every candidate (``blocks``), for the Gauss–Newton start of a refit.
+        blocked, margin, carry: the cell Grams of the blocked hold-out, the practical
+            margin [mm] and each candidate's blocked gain [mm] (empty without blocks).
     """
 
     scored: list[CandidateScore]
@@ -142,10 +145,18 @@ class Scores:
     equivalent: list[dict] = field(default_factory=list)
     R: Tensor | None = None
     blocks: tuple = ()
+    blocked: Blocked | None = None
+    margin: float = 0.0
+    carry: dict[str, float] = field(default_factory=dict)
 
     @property
     def ranked(self) -> list[CandidateScore]:
-        return sorted(self.scored, key=lambda sc: (sc.p >= self.threshold, sc.bic_gain))
+        """Significant candidates that carry over first (by BIC gain), then the rest."""
+        return sorted(self.scored, key=lambda sc: (not self.eligible(sc), sc.bic_gain))
+
+    def eligible(self, sc: CandidateScore) -> bool:
+        """Significant and, with blocks, gaining the practical margin on them."""
+        return sc.p < self.threshold and self.carry.get(sc.label, self.margin) >= self.margin
 
     @property
     def signatures(self) -> dict[str, Tensor]:
@@ -162,11 +173,13 @@ def score_candidates(
     name_equivalents: bool,
     progress: Callable[[str], None] | None = None,
     screened: int = 0,
+    carry: Carry | None = None,
 ) -> Scores:
     """Score every candidate of ``pool`` against ``model`` from one Jacobian.
 
     ``screened``: candidates set aside before scoring (:func:`.screen_cyclic`); they
-    count in the Bonferroni level.
+    count in the Bonferroni level. ``carry``: the blocks and margin of the blocked
+    hold-out; each scored candidate's blocked gain goes into ``Scores.carry``.
 
     Candidates with no signature are ``unobservable``; those inside the current
     columns are dropped (and, with ``name_equivalents``, reported as equivalent to
@@ -174,19 +187,10 @@ def score_candidates(
     """
     robot = model.robot
     trial = with_effects(model, [make_effect(robot, c) for c in pool])
-    fixed = set() if res.priors is None else set(res.priors.fixed_labels())
-    blocks = param_blocks(trial, None, split.position_only)
-    blocks = tuple(b for b in blocks if b.label not in fixed)
-    sig_r = res.sigma_rot_rad or 1.0
-    # robust fits: the rows weigh as in the fit (a gross row does not score a candidate)
-    weights = None if res.weights is None else res.weights.sqrt()
-    problem = Problem(
-        trial, split.train, split.cond_fit, blocks, res.sigma_pos_mm, sig_r,
-        row_weights=weights, progress=progress,
-    )  # fmt: skip
+    folds = None if carry is None else carry.folds
+    problem, blocks, R, blocked = linearise(trial, res, split, folds, progress)
     # [J r] = Q R: R's columns stand for J's and r's (same norms, inner products and
     # projections) with n + 1 rows instead of m.
-    R = problem.r_factor(torch.zeros_like(problem.x0))
     J, r = R[:, :-1], R[:, -1]
     current_blocks = blocks[: len(blocks) - len(pool)]
     n_cur = sum(b.size for b in current_blocks)
@@ -215,6 +219,12 @@ def score_candidates(
             out.scored.append(score)
     if out.scored:
         out.threshold = alpha / (len(out.scored) + screened)
+    if blocked is not None:
+        out.blocked, out.margin = blocked, carry.margin(res)
+        current = [e.label for e in model.effects]
+        base = blocked.of(current)
+        for sc in out.scored:
+            out.carry[sc.label] = blocked.gain_mm(base, blocked.of([*current, sc.label]))
     return out
 
 
@@ -280,6 +290,8 @@ def try_candidate(
         "score_p": score.p,
         "threshold": scores.threshold,
     }
+    if scores.blocked is not None:
+        step.update({"blocked_gain_mm": scores.carry[label], "min_gain_mm": scores.margin})
     new = with_effects(model, [make_effect(model.robot, label)])
     # (a robust fit's cost is its IRLS sum; its F-test compares robust costs)
     ssr_old = res.cost if res.cost is not None and res.robust is None else _ssr(model, split, res)
@@ -319,7 +331,9 @@ def try_candidate(
             "holdout_score_after": new_hold,
         }
     )
+    carries = scores.carry.get(label, scores.margin) >= scores.margin
     step["accepted"] = p_fit < scores.threshold and d_bic < 0 and new_hold < current_hold
+    step["accepted"] = step["accepted"] and carries
     if not step["accepted"]:
         step["why"] = "refit not significant, BIC not lower, or hold-out not better"
     return new, new_res, step

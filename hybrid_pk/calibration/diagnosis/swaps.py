@@ -7,17 +7,18 @@ a joint_3 offset. Each chosen cause with a near-duplicate (``near_duplicates``) 
 therefore swapped for it, refitted and followed by backward elimination; the swap stays
 when the data then need fewer causes, or the alternative has fewer parameters (a
 joint_4 offset against a joint_5 axis tilt whose third component is that offset), and
-fit no worse (BIC and hold-out score, both models' residuals under the same noise
-weights).
+fit no worse (BIC, both models' residuals under the same noise weights, and the blocked
+hold-out: the current model may not predict it better by the practical margin).
 
 When both of a near-duplicate pair end up chosen (the second added once the first had
 taken part of its signature), they split one effect between them: their values trade
 off along a direction the data barely see. The one of the two whose removal the
-hold-out rows miss least is then dropped, if they predict no worse without it (within
-1 %). The in-sample F-test is not asked here: on thousands of rows at a noise of
-hundredths of a millimetre, a direction that nearly repeats another is significant on
-almost any leftover error that no cause of the vocabulary describes (an unmodelled
-spring, say), and it buys that small gain at the price of the other cause's value.
+blocked hold-out (:mod:`.blocked`) misses least is then dropped, if it gains less than
+the practical margin there. The in-sample F-test is not asked here: on thousands of
+rows at a noise of hundredths of a millimetre, a direction that nearly repeats another
+is significant on almost any leftover error that no cause of the vocabulary describes
+(an unmodelled spring, say), and it buys that small gain at the price of the other
+cause's value.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
+from hybrid_pk.calibration.diagnosis.carryover import Carry, linearise, weakest
 from hybrid_pk.calibration.diagnosis.elimination import eliminate
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.statistics import f_survival, holdout_score, weighted_ssr
@@ -41,7 +43,7 @@ def prefer_fewer_causes(
     res: FitResult,
     pairs: list[tuple[str, str]],
     split: Split,
-    alpha: float,
+    tests: tuple[float, Carry],
     steps: list[dict],
     say: Callable[[str], None],
     budget=None,
@@ -50,6 +52,8 @@ def prefer_fewer_causes(
 
     Args:
         pairs: ``(chosen, alternative)`` labels, as ``near_duplicates`` found them.
+        tests: ``(alpha, carry)``: the F-tests' level, the blocked hold-out's blocks
+            and margin.
         steps: the search's step records; an accepted swap appends its own and the
             removals that followed it.
         budget: the optional stages' :class:`~.budget.Budget`: the swaps of the first
@@ -57,7 +61,8 @@ def prefer_fewer_causes(
 
     Returns the (possibly) simpler model and its fit.
     """
-    model, res = _drop_split_duplicates(model, res, pairs, split, steps, say)
+    alpha, carry = tests
+    model, res = _drop_split_duplicates(model, res, pairs, split, carry, steps, say)
     chosen_causes = list(dict.fromkeys(c for c, _ in pairs))
     for k, chosen in enumerate(chosen_causes):
         if k and budget is not None and budget.spent():
@@ -66,10 +71,12 @@ def prefer_fewer_causes(
         labels = [e.label for e in model.effects]
         if chosen not in labels or len(labels) < 2:
             continue
-        current = _scores(model, split, res)  # what every swap of this cause must match
+        # what every swap of this cause must match
+        current = (weighted_ssr(model, split.train, split.cond_fit, res),
+                   _blocked(model, res, split, carry, say))  # fmt: skip
         best = None  # (d_bic, alternative, model, fit, removed, removal steps)
         for alternative in [a for c, a in pairs if c == chosen and a not in labels]:
-            trial = _swapped(model, res, current, chosen, alternative, split, alpha, say)
+            trial = _swapped(model, res, current, (chosen, alternative), split, (alpha, carry), say)
             if trial is not None and (best is None or trial[0] < best[0]):
                 best = trial
         if best is None:
@@ -92,64 +99,64 @@ def prefer_fewer_causes(
     return model, res
 
 
-HOLDOUT_TOLERANCE = 1.01  # "no worse": the hold-out score may rise by 1 %
+def _blocked(model, res, split, carry, say):
+    """``(blocked score, Blocked)`` of ``model`` (its own parameters re-fitted per
+    block) under ``res``'s noise weights; None without blocks."""
+    if carry.folds is None:
+        return None
+    blocked = linearise(model, res, split, carry.folds, say)[3]
+    return blocked.of([e.label for e in model.effects]), blocked
 
 
-def _drop_split_duplicates(model, res, pairs, split, steps, say):
-    """Drop one cause of each near-duplicate pair of which both were chosen (the one
-    whose removal the hold-out rows miss least), where the hold-out score stays within
-    :data:`HOLDOUT_TOLERANCE` without it."""
+def _drop_split_duplicates(model, res, pairs, split, carry, steps, say):
+    """Drop one cause of each near-duplicate pair of which both were chosen: the one
+    whose removal the blocked hold-out misses least, when that gains less than the
+    practical margin."""
     for pair in pairs:
         labels = [e.label for e in model.effects]
-        if not set(pair) <= set(labels) or len(labels) < 3:
+        if not set(pair) <= set(labels) or len(labels) < 3 or carry.folds is None:
             continue
-        current = holdout_score(model, split.test, split.cond_hold, res)
-        best = None  # (hold-out score, dropped, kept, model)
-        for drop, keep in (pair, pair[::-1]):
-            say(f"testing whether {drop} only splits {keep}'s signature")
-            reduced = refit_without(model, drop, split.train, split.cond_fit, res, say)
-            hold = holdout_score(reduced, split.test, split.cond_hold, res)
-            if best is None or hold < best[0]:
-                best = (hold, drop, keep, reduced)
-        hold, drop, keep, reduced = best
-        if hold > current * HOLDOUT_TOLERANCE:
+        say(f"testing whether one of {' and '.join(pair)} only splits the other's signature")
+        blocked = linearise(model, res, split, carry.folds, say)[3]
+        margin = carry.margin(res)
+        worst = weakest(blocked, labels, margin, keep=None, only=pair)
+        if worst is None:
             continue
+        drop, gain = worst
+        keep = pair[1] if drop == pair[0] else pair[0]
         steps.append(
             {
                 "candidate": drop,
                 "removed": True,
-                "holdout_score_before": current,
-                "holdout_score_after": hold,
+                "blocked_gain_mm": gain,
+                "min_gain_mm": margin,
                 "accepted": False,
-                "why": f"near-duplicate of {keep}: the two split one signature, and the "
-                f"hold-out rows predict no worse without {drop}",
+                "why": f"near-duplicate of {keep}: the two split one signature, and "
+                f"{drop} gains {gain:.3g} mm on the blocked hold-out, less than the "
+                f"practical margin {margin:.3g} mm",
             }
         )
         for s in steps[:-1]:
             if s["candidate"] == drop and s.get("accepted"):
                 s["accepted"] = False
                 s["why"] = f"dropped later: it split {keep}'s signature (see below)"
+        model = without_effect(model, drop)
         sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
         res = fit(
-            reduced, split.train, cond=split.cond_fit, initial_sigma=sigmas, progress=say,
+            model, split.train, cond=split.cond_fit, initial_sigma=sigmas, progress=say,
             **res.settings(),
         )  # fmt: skip
-        model = reduced
     return model, res
 
 
-def _scores(model: ExtendedModel, split: Split, res: FitResult) -> tuple[float, float]:
-    """``(weighted SSR on the fit rows, hold-out score)`` of ``model`` under ``res``'s
-    noise weights."""
-    ssr = weighted_ssr(model, split.train, split.cond_fit, res)
-    return ssr, holdout_score(model, split.test, split.cond_hold, res)
-
-
-def _swapped(model, res, current, chosen, alternative, split, alpha, say):
+def _swapped(model, res, current, swap, split, tests, say):
     """``(BIC change, alternative, model, fit, removed, removal steps)`` of ``model``
-    with ``alternative`` in place of ``chosen`` after backward elimination, or None when
-    that is implausible, leaves neither fewer causes nor fewer parameters, or fits worse
-    than ``current`` (``model``'s :func:`_scores`)."""
+    with ``alternative`` in place of ``chosen`` (``swap``) after backward elimination,
+    or None when that is implausible, leaves neither fewer causes nor fewer
+    parameters, or fits worse than ``current`` (``model``'s weighted SSR and blocked
+    score): a higher BIC, or a blocked hold-out the current model predicts better by
+    the practical margin."""
+    (chosen, alternative), (alpha, carry) = swap, tests
     say(f"trying {alternative} in place of {chosen}")
     trial = with_effects(without_effect(model, chosen), [make_effect(model.robot, alternative)])
     sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
@@ -165,12 +172,18 @@ def _swapped(model, res, current, chosen, alternative, split, alpha, say):
     )
     if not removed and trial_res.n_params >= res.n_params:
         return None  # neither fewer causes nor fewer parameters
-    (ssr_cur, hold_cur), (ssr_new, hold_new) = current, _scores(trial, split, res)
+    ssr_cur, blocked_cur = current
+    ssr_new = weighted_ssr(trial, split.train, split.cond_fit, res)
     m = res.n_obs  # BIC of the trial minus the current model's
     d_bic = m * math.log(max(ssr_new, 1e-300) / max(ssr_cur, 1e-300))
     d_bic += (trial_res.n_params - res.n_params) * math.log(m)
-    if d_bic > 0 or hold_new > hold_cur * HOLDOUT_TOLERANCE:
+    if d_bic > 0:
         return None
+    if blocked_cur is not None:
+        score_new = _blocked(trial, res, split, carry, say)[0]
+        score_cur, blocked = blocked_cur
+        if blocked.gain_mm(score_new, score_cur) >= carry.margin(res):
+            return None  # the current causes carry over better by the margin
     return d_bic, alternative, trial, trial_res, removed, removals
 
 

@@ -1,0 +1,301 @@
+"""Blocked hold-out: what a model predicts for rows unlike the ones it was fitted on.
+
+Random hold-out rows lie between fit rows: they measure interpolation. The diagnosis
+also scores every model on *blocked* hold-out data: the fit rows are cut into
+contiguous regions of joint space (k-means of the joints that move the measured point
+most, in metres of that motion) and, with several files, into whole files (set-ups).
+Each block is predicted by the model fitted on the other blocks. With frames per
+file, a held-out file's own frames are re-fitted on its rows (a new set-up is
+re-stationed), everything else comes from the other files.
+
+The fits per block are linearised at the current fit: one Jacobian of every parameter
+(and candidate) on the fit rows, reduced to one Gram matrix of ``[J r]`` per cell
+(region x file), gives every block's refit and prediction by a small solve, for any
+subset of the parameters and for any effect set to zero (a cause removed).
+
+A gain is the drop of the RMS error in mm: the position error, with the rotation error
+(pose data) counted at the campaign's noise ratio ``sigma_pos / sigma_rot`` (the
+weighting every fit uses), so that one unit of rotation noise counts as one of position.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from hybrid_pk.calibration.diagnosis.split import Split
+from hybrid_pk.calibration.problem import ParamBlock, Problem
+from hybrid_pk.effects import ExtendedModel
+
+__all__ = [
+    "CHECK_ROWS",
+    "REGION_BLOCKS",
+    "Blocked",
+    "BlockedScore",
+    "Folds",
+    "cell_factors",
+    "make_folds",
+    "practical_margin",
+]
+
+# Regions of joint space held out in turn: each a fifth of the workspace, far enough
+# from the others that a cause must extrapolate, and still holding a fifth of the rows.
+REGION_BLOCKS = 5
+# A region needs this many rows (4 x a six-parameter frame pair): fewer, fewer regions.
+MIN_BLOCK_ROWS = 24
+# Joints whose median lever (point motion per radian) is at least this share of the
+# largest one's move the point comparably: regions are cut along them.
+LEVER_SHARE = 0.5
+# The default practical margin is the standard error sigma / sqrt(2 n) of an RMS error
+# measured on a check of this many poses (the rows a re-stationed set-up re-fits its
+# frames on): a smaller gain is one no check of the model could confirm.
+CHECK_ROWS = 50
+# k-means iterations (Lloyd); the blocks only need to be contiguous, not optimal.
+KMEANS_ITERATIONS = 25
+# A frame column the training rows of a block see less than this share of (relative to
+# all rows) belongs to the held-out file alone: re-fitted on the held-out rows.
+UNSEEN_SHARE = 1e-9
+
+
+def practical_margin(sigma_pos_mm: float, override: float | None = None) -> float:
+    """The smallest blocked hold-out gain [mm] a cause must bring: ``override`` (the
+    ``--min-gain-mm`` option) or ``sigma / sqrt(2 CHECK_ROWS)`` (see :data:`CHECK_ROWS`)."""
+    if override is not None:
+        return float(override)
+    return float(sigma_pos_mm) / math.sqrt(2 * CHECK_ROWS)
+
+
+@dataclass(frozen=True)
+class Folds:
+    """Cells of the fit rows and the folds (sets of cells) held out in turn.
+
+    Attributes:
+        cell: ``(n_fit,)`` cell of each fit row (``file * regions + region``).
+        n_cells: number of cells.
+        folds: the cells of each held-out block.
+        description: what the blocks are (JSON).
+    """
+
+    cell: Tensor
+    n_cells: int
+    folds: tuple[tuple[int, ...], ...]
+    description: dict
+
+
+def make_folds(model: ExtendedModel, split: Split, seed: int) -> Folds | None:
+    """Regions of joint space and, with several files, whole files; None when the fit
+    rows are too few for two regions and come from one file."""
+    data = split.train
+    files = data.file_index if len(data.sources) > 1 else torch.zeros(data.n, dtype=torch.long)
+    n_files = int(files.max()) + 1 if data.n else 1
+    k = min(REGION_BLOCKS, data.n // MIN_BLOCK_ROWS)
+    joints, region = [], torch.zeros(data.n, dtype=torch.long)
+    if k >= 2:
+        joints, x = _lever_coordinates(model, split)
+        region = _kmeans(x, k, seed)
+    else:
+        k = 1
+    folds = [tuple(f * k + r for f in range(n_files)) for r in range(k)] if k >= 2 else []
+    if n_files > 1:
+        folds += [tuple(f * k + r for r in range(k)) for f in range(n_files)]
+    if not folds:
+        return None
+    names = model.robot.joint_names
+    description = {
+        "regions": k if k >= 2 else 0,
+        "region_joints": [names[j] for j in joints],
+        "files": n_files if n_files > 1 else 0,
+        "linearised": True,
+    }
+    return Folds(files * k + region, n_files * k, tuple(folds), description)
+
+
+@torch.no_grad()
+def _lever_coordinates(model: ExtendedModel, split: Split) -> tuple[list[int], Tensor]:
+    """The joints that move the measured point most (:data:`LEVER_SHARE`) and each fit
+    row's coordinates along them in metres (angle x median lever)."""
+    data, cond = split.train, split.cond_fit
+    p0 = model(data.q, cond)[:, :3, 3]
+    step = 1e-6  # [rad or m] finite-difference step of the point Jacobian
+    levers = []
+    for j in range(data.q.shape[1]):
+        dq = torch.zeros_like(data.q)
+        dq[:, j] = step
+        p1 = model(data.q + dq, cond)[:, :3, 3]
+        levers.append(float(((p1 - p0) / step).norm(dim=-1).median()))
+    top = max(levers)
+    joints = [j for j, v in enumerate(levers) if v >= LEVER_SHARE * top and v > 0]
+    x = torch.stack([data.q[:, j] * levers[j] for j in joints], 1)
+    return joints, x
+
+
+def _kmeans(x: Tensor, k: int, seed: int) -> Tensor:
+    """Cluster index of each row of ``x``: k-means++ start (seeded), Lloyd iterations."""
+    g = torch.Generator().manual_seed(seed)
+    n = x.shape[0]
+    centres = [x[int(torch.randint(n, (1,), generator=g))]]
+    for _ in range(1, k):
+        d = torch.cdist(x, torch.stack(centres)).min(1).values ** 2
+        centres.append(x[int(torch.multinomial(d / d.sum().clamp_min(1e-300), 1, generator=g))])
+    c = torch.stack(centres)
+    for _ in range(KMEANS_ITERATIONS):
+        label = torch.cdist(x, c).argmin(1)
+        c = torch.stack([x[label == i].mean(0) if (label == i).any() else c[i] for i in range(k)])
+    label = torch.cdist(x, c).argmin(1)
+    # empty clusters are dropped: relabel to consecutive indices
+    _, label = torch.unique(label, return_inverse=True)
+    return label
+
+
+def cell_factors(problem: Problem, folds: Folds | None) -> tuple[Tensor, Tensor | None, tuple]:
+    """The triangular factor ``R`` of ``[J r]`` on all rows (as :meth:`Problem.r_factor`)
+    and, with ``folds``, the Gram matrices of ``[J r]`` per cell: ``(pos, rot)``, each
+    ``(n_cells, n + 1, n + 1)`` (``rot`` None for position-only data)."""
+    R, start = None, 0
+    per_row = 3 if problem.R_meas is None else 6
+    grams: tuple = ()
+    if folds is not None:
+        size = problem.x0.numel() + 1
+        zeros = torch.zeros(folds.n_cells, size, size, dtype=problem.x0.dtype)
+        grams = (zeros, None if per_row == 3 else zeros.clone())
+    for r_c, J_c in problem.linearised_chunks(torch.zeros_like(problem.x0)):
+        M = torch.cat([J_c, r_c[:, None]], 1)
+        n_c = M.shape[0] // per_row
+        if folds is not None:
+            cells = folds.cell[start : start + n_c].repeat_interleave(3)
+            for channel, part in enumerate((M[: 3 * n_c], M[3 * n_c :])):
+                if grams[channel] is None:
+                    continue
+                for c in cells.unique().tolist():
+                    sub = part[cells == c]
+                    grams[channel][c] += sub.T @ sub
+        start += n_c
+        R = torch.linalg.qr(M if R is None else torch.cat([R, M], 0), mode="r").R
+    return R, grams[0] if grams else None, grams[1] if grams else None
+
+
+@dataclass(frozen=True)
+class BlockedScore:
+    """Blocked hold-out sums of squares (noise-normalised) and the rows they cover."""
+
+    total: float
+    position: float
+    rotation: float | None
+    rows: int
+
+
+@dataclass
+class Blocked:
+    """Cell Gram matrices of one linearisation and the folds they are scored on.
+
+    Attributes:
+        pos, rot: ``(n_cells, n + 1, n + 1)`` Grams of ``[J r]`` (position, rotation).
+        folds: the cells held out in turn.
+        frame_cols: ``(n,)`` which columns are frame parameters (re-fitted on a
+            held-out file that no training row sees).
+        blocks: the parameter blocks of the columns (frames first, then effects).
+        values: ``(n,)`` each column's current value in its scaled unit (setting an
+            effect to zero shifts its columns by ``-values``).
+        sigmas: ``(sigma_pos_mm, sigma_rot_rad)`` the residuals are normalised by.
+    """
+
+    pos: Tensor
+    rot: Tensor | None
+    folds: Folds
+    blocks: tuple[ParamBlock, ...]
+    values: Tensor
+    sigmas: tuple[float, float | None]
+
+    def __post_init__(self) -> None:
+        self.rows = torch.bincount(self.folds.cell, minlength=self.folds.n_cells)
+        self.frame_cols = self.columns(
+            [b.label for b in self.blocks if b.label.startswith(("base_frame", "tool_frame"))]
+        )
+
+    def columns(self, labels) -> Tensor:
+        """Bool ``(n,)``: the columns of the blocks ``labels``."""
+        out, start, wanted = torch.zeros(self.values.numel(), dtype=torch.bool), 0, set(labels)
+        for b in self.blocks:
+            if b.label in wanted:
+                out[start : start + b.size] = True
+            start += b.size
+        return out
+
+    def of(self, effects, removed=()) -> BlockedScore:
+        """Blocked score of the frames and ``effects`` (labels) re-fitted per block,
+        the effects ``removed`` set to zero, every other column held where it is."""
+        free = self.frame_cols | self.columns(effects)
+        gone = self.columns(removed)
+        return self.score(free, torch.where(gone, -self.values, torch.zeros_like(self.values)))
+
+    def score(self, free: Tensor, shift: Tensor | None = None) -> BlockedScore:
+        """Blocked score of the linearised model with the columns ``free`` (bool
+        ``(n,)``) re-fitted per block and the others held at ``shift`` (scaled offsets;
+        None: zero, the linearisation point)."""
+        n = free.numel()
+        idx = torch.nonzero(free).flatten()
+        T = torch.zeros(n + 1, idx.numel() + 1, dtype=self.pos.dtype)
+        T[idx, torch.arange(idx.numel())] = 1.0
+        T[n, -1] = 1.0
+        if shift is not None:
+            T[:n, -1] = torch.where(free, torch.zeros_like(shift), shift)
+        pos = T.T @ self.pos @ T
+        both = pos if self.rot is None else pos + T.T @ self.rot @ T
+        frames = self.frame_cols[idx]
+        total, total_pos, rows = 0.0, 0.0, 0
+        all_cells = both.sum(0)
+        for cells in self.folds.folds:
+            test = both[list(cells)].sum(0)
+            theta = _fold_fit(all_cells - test, test, frames, all_cells)
+            v = torch.cat([theta, theta.new_ones(1)])
+            total += float(v @ test @ v)
+            total_pos += float(v @ pos[list(cells)].sum(0) @ v)
+            rows += int(self.rows[list(cells)].sum())
+        rot = None if self.rot is None else total - total_pos
+        return BlockedScore(total, total_pos, rot, rows)
+
+    def gain_mm(self, without: BlockedScore, with_it: BlockedScore) -> float:
+        """Drop of the blocked RMS error [mm] (rotation at the noise ratio) from
+        ``without`` to ``with_it``."""
+        rms = lambda s: math.sqrt(max(s.total, 0.0) / max(s.rows, 1))  # noqa: E731
+        return self.sigmas[0] * (rms(without) - rms(with_it))
+
+    def parts(self, without: BlockedScore, with_it: BlockedScore) -> dict:
+        """The drop of the blocked RMS position error [mm] and rotation error [deg]."""
+        out = {"position_mm": self.sigmas[0] * _rms_drop(without.position, with_it.position,
+                                                          without.rows)}  # fmt: skip
+        if without.rotation is not None and self.sigmas[1] is not None:
+            drop = _rms_drop(without.rotation, with_it.rotation, without.rows)
+            out["orientation_deg"] = math.degrees(self.sigmas[1] * drop)
+        return out
+
+
+def _rms_drop(a: float, b: float, rows: int) -> float:
+    return math.sqrt(max(a, 0.0) / max(rows, 1)) - math.sqrt(max(b, 0.0) / max(rows, 1))
+
+
+def _fold_fit(train: Tensor, test: Tensor, frames: Tensor, all_rows: Tensor) -> Tensor:
+    """Scaled parameter offsets of one block: least squares on ``train`` (a Gram of
+    ``[J r]``); frame columns the training rows do not see are then fitted on ``test``
+    with the rest held."""
+    k = train.shape[0] - 1
+    seen_all = all_rows.diagonal()[:k].clamp_min(1e-300)
+    unseen = frames & (train.diagonal()[:k] <= UNSEEN_SHARE * seen_all)
+    theta = torch.zeros(k, dtype=train.dtype)
+    fit = ~unseen
+    if fit.any():
+        theta[fit] = _solve(train[:k, :k][fit][:, fit], train[:k, k][fit])
+    if unseen.any():
+        g = test[:k, k][unseen] + test[:k, :k][unseen][:, fit] @ theta[fit]
+        theta[unseen] = _solve(test[:k, :k][unseen][:, unseen], g)
+    return theta
+
+
+def _solve(H: Tensor, g: Tensor) -> Tensor:
+    """Minimum-norm ``-H^+ g`` of a Gram ``H``, equilibrated by its diagonal first."""
+    d = H.diagonal().clamp_min(1e-300).rsqrt()
+    y = torch.linalg.lstsq(H * d[:, None] * d[None, :], (g * d)[:, None], driver="gelsd")
+    return -d * y.solution[:, 0]

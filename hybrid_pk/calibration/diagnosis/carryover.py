@@ -1,0 +1,112 @@
+"""Selection by what carries over: blocked hold-out gains of causes and candidates.
+
+A cause enters, stays and keeps its place only if it improves the blocked hold-out
+(:mod:`.blocked`) by the practical margin (:func:`.blocked.practical_margin`); the
+significance tests of the search stay as a necessary condition.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from torch import Tensor
+
+from hybrid_pk.calibration.diagnosis.blocked import (
+    Blocked,
+    Folds,
+    cell_factors,
+    practical_margin,
+)
+from hybrid_pk.calibration.diagnosis.split import Split
+from hybrid_pk.calibration.fit import FitResult
+from hybrid_pk.calibration.problem import ParamBlock, Problem, param_blocks
+from hybrid_pk.effects import ExtendedModel
+
+__all__ = ["Carry", "linearise", "removal_gains", "weakest"]
+
+
+@dataclass(frozen=True)
+class Carry:
+    """The blocked hold-out settings of one diagnosis.
+
+    Attributes:
+        folds: the blocks (None: too few rows in one file; no blocked decision).
+        min_gain_mm: ``--min-gain-mm``, or None for the default rule.
+    """
+
+    folds: Folds | None
+    min_gain_mm: float | None = None
+
+    def margin(self, res: FitResult) -> float:
+        """The practical margin [mm] under ``res``'s noise estimate."""
+        return practical_margin(res.sigma_pos_mm, self.min_gain_mm)
+
+    def rule(self, res: FitResult) -> dict:
+        """The margin and how it was set (the diagnosis JSON's ``carry_over``)."""
+        return {
+            "min_gain_mm": self.margin(res),
+            "rule": "--min-gain-mm"
+            if self.min_gain_mm is not None
+            else "noise estimate sigma_pos / sqrt(2 x 50): the standard error of an RMS "
+            "error measured on a check of 50 poses",
+            "noise_position_mm": res.sigma_pos_mm,
+            "gain": "drop of the RMS error [mm] on rows held out in blocks (regions of "
+            "joint space, whole files), rotation counted at the noise ratio "
+            "sigma_pos / sigma_rot; each block predicted by a linearised refit on the others",
+            "blocks": None if self.folds is None else self.folds.description,
+        }
+
+
+def linearise(
+    trial: ExtendedModel,
+    res: FitResult,
+    split: Split,
+    folds: Folds | None,
+    progress: Callable[[str], None] | None = None,
+) -> tuple[Problem, tuple[ParamBlock, ...], Tensor, Blocked | None]:
+    """One Jacobian of every free parameter of ``trial`` on the fit rows: the problem,
+    its blocks, the factor ``R`` of ``[J r]`` and the cell Grams of the blocked score."""
+    fixed = set() if res.priors is None else set(res.priors.fixed_labels())
+    blocks = param_blocks(trial, None, split.position_only)
+    blocks = tuple(b for b in blocks if b.label not in fixed)
+    sig_r = res.sigma_rot_rad or 1.0
+    # robust fits: the rows weigh as in the fit (a gross row does not score a candidate)
+    weights = None if res.weights is None else res.weights.sqrt()
+    problem = Problem(
+        trial, split.train, split.cond_fit, blocks, res.sigma_pos_mm, sig_r,
+        row_weights=weights, progress=progress,
+    )  # fmt: skip
+    R, pos, rot = cell_factors(problem, folds)
+    blocked = None
+    if folds is not None:
+        values = problem.x0 / problem.scale
+        sigmas = (res.sigma_pos_mm, None if split.position_only else res.sigma_rot_rad)
+        blocked = Blocked(pos, rot, folds, blocks, values, sigmas)
+    return problem, blocks, R, blocked
+
+
+def removal_gains(blocked: Blocked, effects: list[str], gone=()) -> dict[str, dict]:
+    """Per effect of ``effects``: the blocked gain [mm] of keeping it (the model without
+    it, re-fitted per block, against the model with all), with its position [mm] and
+    orientation [deg] parts. ``gone``: effects of the linearisation that the model no
+    longer has (set to zero)."""
+    full = blocked.of(effects, gone)
+    out = {}
+    for label in effects:
+        rest = [e for e in effects if e != label]
+        without = blocked.of(rest, [label, *gone])
+        out[label] = {"gain_mm": blocked.gain_mm(without, full), **blocked.parts(without, full)}
+    return out
+
+
+def weakest(blocked: Blocked, effects: list[str], margin: float, keep=None, gone=(), only=None):
+    """``(label, gain)`` of the effect (not ``keep``; among ``only`` when given) with
+    the smallest blocked gain of keeping it, when that is below ``margin``; None when
+    every one carries over."""
+    gains = removal_gains(blocked, effects, gone)
+    gains = {k: v["gain_mm"] for k, v in gains.items() if k != keep and (only is None or k in only)}
+    if not gains:
+        return None
+    label = min(gains, key=gains.get)
+    return (label, gains[label]) if gains[label] < margin else None

@@ -1,0 +1,152 @@
+"""After the search: every cause keeps its place only if it carries over.
+
+On the final model (one Jacobian of its parameters and of every other order of each
+chosen cyclic error), each cause's blocked hold-out gain is measured by leaving it out
+(the rest re-fitted per block). A cyclic error another order predicts the held-out
+blocks nearly as well as (within the practical margin) is not resolved by the data:
+it is listed as ambiguous and taken out. Then a cause that gains less than the margin
+is taken out. One at a time, the weakest first, the model refitted after each, until
+every cause carries over.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from hybrid_pk.calibration.diagnosis.blocked import Blocked
+from hybrid_pk.calibration.diagnosis.carryover import Carry, linearise, removal_gains
+from hybrid_pk.calibration.diagnosis.selection import Scores, cyclic_candidates
+from hybrid_pk.calibration.diagnosis.split import Split
+from hybrid_pk.calibration.diagnosis.variants import with_effects, without_effect
+from hybrid_pk.calibration.fit import FitResult, fit
+from hybrid_pk.effects import ExtendedModel, make_effect
+from hybrid_pk.effects.joint import CYCLIC_PREFIX
+
+__all__ = ["entry_rivals", "settle", "unresolved_entry"]
+
+
+def _is_cyclic(label: str) -> bool:
+    return label.startswith(CYCLIC_PREFIX)
+
+
+def _joint(label: str) -> str:
+    return label.partition(":")[2]
+
+
+def rival_advantages(blocked: Blocked, effects: list[str], label: str, alternatives):
+    """``{alternative: advantage [mm]}``: how much better ``label`` (one of ``effects``,
+    at the linearisation point or zero) predicts the held-out blocks than each
+    ``alternative`` order in its place."""
+    removed = [label] if label in effects else []
+    rest = [e for e in effects if e != label]
+    with_it = blocked.of([*rest, label])
+    return {
+        alt: blocked.gain_mm(blocked.of([*rest, alt], removed), with_it) for alt in alternatives
+    }
+
+
+def entry_rivals(scores: Scores, effects: list[str], label: str) -> dict[str, float]:
+    """The other scored orders of ``label``'s joint that predict the held-out blocks
+    within the margin of ``label`` (empty: resolved, or not a cyclic error)."""
+    if scores.blocked is None or not _is_cyclic(label):
+        return {}
+    alts = [
+        s.label
+        for s in scores.scored
+        if _is_cyclic(s.label) and s.label != label and _joint(s.label) == _joint(label)
+    ]
+    adv = rival_advantages(scores.blocked, effects, label, alts)
+    return {a: v for a, v in adv.items() if v < scores.margin}
+
+
+def unresolved_entry(label: str, rivals: dict[str, float], margin: float) -> list[dict]:
+    """Ambiguity entries of a cyclic order that ``rivals`` predict nearly as well."""
+    return [
+        {
+            "effects": [label, alt],
+            "why": f"{alt} predicts the blocked hold-out within {adv:.3g} mm of {label} "
+            f"(less than the {margin:.3g} mm margin): the order is not resolved by these "
+            "rows, so neither is named",
+        }
+        for alt, adv in sorted(rivals.items(), key=lambda kv: kv[1])
+    ]
+
+
+def settle(
+    model: ExtendedModel,
+    res: FitResult,
+    split: Split,
+    carry: Carry,
+    steps: list[dict],
+    say: Callable[[str], None],
+) -> tuple[ExtendedModel, FitResult, dict[str, dict], list[dict]]:
+    """Take out unresolved cyclic errors and causes below the margin (see the module).
+
+    Returns the model, its fit, each remaining cause's blocked gains (by label:
+    ``gain_mm``, ``position_mm``, ``orientation_deg``) and the ambiguity entries."""
+    ambiguous: list[dict] = []
+    while model.effects and carry.folds is not None:
+        labels = [e.label for e in model.effects]
+        alts = {
+            lbl: [c for c in cyclic_candidates(model.robot, split.train)
+                  if _joint(c) == _joint(lbl) and c not in labels]
+            for lbl in labels if _is_cyclic(lbl)
+        }  # fmt: skip
+        extra = sorted({a for v in alts.values() for a in v})
+        trial = with_effects(model, [make_effect(model.robot, a) for a in extra])
+        say("blocked hold-out gain of each cause")
+        blocked = linearise(trial, res, split, carry.folds, say)[3]
+        gains = removal_gains(blocked, labels)
+        margin = carry.margin(res)
+        drop, why = _to_drop(blocked, labels, alts, gains, margin, ambiguous)
+        if drop is None:
+            return model, res, gains, ambiguous
+        say(f"taking out {drop}: {why}")
+        _record(steps, drop, why, gains[drop]["gain_mm"], margin)
+        model = without_effect(model, drop)
+        sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
+        res = fit(
+            model, split.train, cond=split.cond_fit, initial_sigma=sigmas, progress=say,
+            **res.settings(),
+        )  # fmt: skip
+    return model, res, {}, ambiguous
+
+
+def _to_drop(blocked, labels, alts, gains, margin, ambiguous):
+    """The cause to take out and why (None: every one carries over); an unresolved
+    cyclic error's ambiguity entries go into ``ambiguous``."""
+    worst = None  # (advantage, label, rivals)
+    for label, others in alts.items():
+        adv = rival_advantages(blocked, labels, label, others)
+        rivals = {a: v for a, v in adv.items() if v < margin}
+        if rivals and (worst is None or min(rivals.values()) < worst[0]):
+            worst = (min(rivals.values()), label, rivals)
+    if worst is not None:
+        _, label, rivals = worst
+        ambiguous += unresolved_entry(label, rivals, margin)
+        return label, f"order not resolved: {', '.join(sorted(rivals))} predict as well"
+    label = min(gains, key=lambda k: gains[k]["gain_mm"])
+    if gains[label]["gain_mm"] >= margin:
+        return None, ""
+    return label, (
+        f"gains {gains[label]['gain_mm']:.3g} mm on the blocked hold-out, less than the "
+        f"practical margin {margin:.3g} mm"
+    )
+
+
+def _record(steps: list[dict], label: str, why: str, gain: float, margin: float) -> None:
+    """Log the removal and mark the step that accepted ``label`` as undone."""
+    for s in steps:
+        if s["candidate"] == label and s.get("accepted"):
+            s["accepted"] = False
+            s["why"] = f"taken out after the search: {why}"
+    steps.append(
+        {
+            "candidate": label,
+            "removed": True,
+            "blocked_gain_mm": gain,
+            "min_gain_mm": margin,
+            "accepted": False,
+            "why": f"does not carry over: {why}",
+        }
+    )

@@ -1,0 +1,146 @@
+"""Frame directions the data do not determine are held where the fit starts.
+
+Along a trade-off valley of the frames (the tool translation against the base's when
+the flange orientation barely varies) the Gaussian prior of
+:mod:`hybrid_pk.calibration.frames` only shrinks: with a prior of 0.1 m and data
+that carry a comparable information, the fit still walks half-way to wherever the
+unmodelled errors push it. Here such a direction is *held*: a residual row whose
+information dwarfs the data's keeps it at the fit's start, where the registration
+(:mod:`hybrid_pk.geometry.registration`) or a given ``--tool`` / ``--base`` put it,
+i.e. at the end link's origin unless a frame was given.
+
+Rule (the same as the registration's): after the other frame parameters have
+compensated what they can, a direction ``v`` moves the measured points by ``s``
+(rms per row, mm per mm or mrad per mrad). An unmodelled error as large as the rms
+error ``e`` the fit starts from, which no row count averages away when it is
+systematic, moves the frame along ``v`` by ``e / s``. Where that exceeds the prior's
+std along ``v`` the data do not determine ``v``; it is held.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import torch
+from torch import Tensor
+
+from hybrid_pk.calibration.frames import Centre, PriorRows
+from hybrid_pk.calibration.problem import Problem
+from hybrid_pk.data.measured import MeasuredData
+from hybrid_pk.effects import Conditions, ExtendedModel
+
+if TYPE_CHECKING:
+    from hybrid_pk.calibration.problem import ParamBlock
+
+__all__ = ["HOLD_INFORMATION", "HeldPrior", "held_prior"]
+
+_FRAME_BLOCKS = ("base.dp", "base.rotvec", "tool.dp", "tool.rotvec")
+# Rows of the frame Jacobian used to find the valleys (an even subset of larger data):
+# the valleys are a property of the poses' spread, not of their count.
+MAX_ROWS = 2000
+# A held direction's row carries this many times the information of the data (at the
+# start's error level) and the prior along it: the fit moves it by < 1e-6 of where
+# they alone would take it, while the problem stays smooth for LM.
+HOLD_INFORMATION = 1e6
+
+
+class HeldPrior:
+    """The frame prior's rows followed by the hold rows (``Problem(extra=...)``).
+
+    Attributes:
+        A: ``(k, n)`` constant rows of both.
+        held: ``(n_frame, h)`` the held directions (scaled frame parameters).
+    """
+
+    def __init__(self, prior: PriorRows | None, start: PriorRows, W: Tensor, held: Tensor):
+        self.prior, self.start, self.W, self.held = prior, start, W, held
+        A_hold = W @ start.A
+        self.A = A_hold if prior is None else torch.cat([prior.A, A_hold])
+
+    def __call__(self, theta: Tensor) -> tuple[Tensor, Tensor]:
+        r0, A0 = self.start(theta)
+        r, A = self.W @ r0, self.W @ A0
+        if self.prior is None:
+            return r, A
+        rp, Ap = self.prior(theta)
+        return torch.cat([rp, r]), torch.cat([Ap, A])
+
+
+def _start_rows(model: ExtendedModel, blocks: tuple[ParamBlock, ...]) -> PriorRows:
+    """Rows ``theta_frame - (start - now) / scale``: the frame offsets from the start
+    in scaled units (identity on the frame columns)."""
+    centres = {}
+    for b in blocks:
+        if b.name not in _FRAME_BLOCKS:
+            continue
+        which, kind = b.name.split(".")
+        T = getattr(model, which).matrix().detach()
+        value = T[:, :3, 3] if kind == "dp" else T[:, :3, :3]
+        centres[b.name] = Centre(value.clone(), b.scale)
+    return PriorRows(model, blocks, centres)
+
+
+def _valleys(
+    model: ExtendedModel, data: MeasuredData, cond: Conditions, blocks: tuple[ParamBlock, ...]
+) -> tuple[Tensor, Tensor, Tensor, float]:
+    """``(sens, V, H, e)``: rms point motion per row and unit of each eigenvector
+    (columns of ``V``) of the frame columns' information, the information ``H`` of all
+    rows per unit error [1/mm² per scaled unit²] and the rms position error ``e`` [mm]
+    the frames cannot remove (a linear step of the frames from the start)."""
+    step = max(1, math.ceil(data.n / MAX_ROWS))
+    rows = torch.arange(0, data.n, step)
+    sub, cond_sub = data.subset(rows), cond.subset(rows)
+    frame_blocks = tuple(b for b in blocks if b.name in _FRAME_BLOCKS)
+    problem = Problem(model, sub, cond_sub, frame_blocks, 1.0, 1e-3)  # mm and mrad
+    r, J = problem.jacobian(torch.zeros_like(problem.x0))
+    n_sub = sub.n
+    H = J.T @ J
+    lam, V = torch.linalg.eigh(H / n_sub)
+    # what the frames cannot explain (to first order) is the unmodelled error
+    step_ = torch.linalg.lstsq(J, r[:, None]).solution[:, 0]
+    left = (r - J @ step_)[: 3 * n_sub]
+    e = float(left.pow(2).sum().div(n_sub).sqrt())  # rms 3-D position error [mm]
+    return lam.clamp_min(0).sqrt(), V, H * (data.n / n_sub), e
+
+
+def held_prior(
+    model: ExtendedModel,
+    data: MeasuredData,
+    cond: Conditions,
+    blocks: tuple[ParamBlock, ...],
+    prior: PriorRows | None,
+) -> PriorRows | HeldPrior | None:
+    """``prior`` with hold rows for the frame directions the data do not determine
+    (module docstring), or ``prior`` itself when there is none.
+
+    Without a prior (every std infinite) nothing is held: a plain least-squares fit.
+    """
+    names = [b.name for b in blocks if b.name in _FRAME_BLOCKS]
+    if prior is None or not names or data.n < 2:
+        return prior
+    idx = []
+    start = 0
+    for b in blocks:
+        if b.name in _FRAME_BLOCKS:
+            idx.extend(range(start, start + b.size))
+        start += b.size
+    sens, V, H, e = _valleys(model, data, cond, blocks)
+    P = prior.A[:, idx].T @ prior.A[:, idx]
+    held, weights = [], []
+    for k in range(V.shape[1]):
+        v = V[:, k]
+        prior_info = float(v @ P @ v)
+        if prior_info <= 0:
+            continue
+        prior_std = 1.0 / math.sqrt(prior_info)  # scaled units: mm or mrad
+        if e <= sens[k] * prior_std:
+            continue
+        data_info = float(v @ H @ v) / max(e, 1e-12) ** 2
+        held.append(v)
+        weights.append(math.sqrt(HOLD_INFORMATION * (data_info + prior_info)))
+    if not held:
+        return prior
+    Vh = torch.stack(held, 1)
+    W = torch.diag(torch.tensor(weights, dtype=Vh.dtype)) @ Vh.T
+    return HeldPrior(prior, _start_rows(model, blocks), W, Vh)

@@ -1,0 +1,106 @@
+"""What the data cannot show (issue 28): detection limits of the candidates not named,
+'none' always with them, and campaigns too small to determine frames plus one effect."""
+
+from __future__ import annotations
+
+import pytest
+
+from hybrid_pk.calibration.diagnosis import diagnose
+from hybrid_pk.calibration.diagnosis.power import noncentrality
+from hybrid_pk.cli.main import main
+from hybrid_pk.data import write_table
+from hybrid_pk.effects import make_effect
+from hybrid_pk.simulate import simulate_campaign
+from tests.helpers import RUN_SEED, run_rng
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+NOISE_MM = 0.05
+NOISE_DEG = 0.005  # a tracker's orientation noise (a perfect one makes limits of 1e-9 rad)
+
+
+def test_the_noncentrality_gives_the_stated_power():
+    """Monte Carlo of the noncentral F (numpy's generator, not scipy's formulas)."""
+    rng = run_rng("power-ncf")
+    for d1, d2, alpha in ((1, 30, 1e-3), (3, 300, 1e-4), (2, 10**6, 1e-5)):
+        lam = noncentrality(alpha, d1, d2)
+        from scipy import stats
+
+        crit = stats.f.isf(alpha, d1, d2)
+        draws = rng.noncentral_f(d1, d2, lam, size=40_000)
+        power = float((draws > crit).mean())
+        assert abs(power - 0.8) < 0.015, (d1, d2, alpha, power)
+
+
+def _limits(diag) -> dict[str, dict]:
+    return {
+        (d["effect"] if d["joint"] is None else f"{d['effect']}:{d['joint']}"): d
+        for d in diag.detectable["limits"]
+    }
+
+
+@pytest.mark.slow
+def test_the_limit_predicts_what_the_diagnosis_finds(rx160):
+    """An effect twice its detection limit is named, one a quarter of it is not; 'none'
+    comes with the limits."""
+    rng = run_rng("power-limit")
+    seed = int(rng.integers(1000))
+    clean, _ = simulate_campaign(
+        rx160, 120, "none", noise_mm=NOISE_MM, noise_deg=NOISE_DEG, seed=seed
+    )
+    diag = diagnose(rx160, clean, max_causes=3)
+    assert diag.detectable["summary"].startswith("nothing above: ")
+    limits = _limits(diag)
+    pool = [k for k in limits if k.split(":")[0] in ("joint_offset", "gear_ratio")]
+    label = str(rng.choice(pool))
+    sign = float(rng.choice([-1.0, 1.0]))
+    for factor, named in ((2.0, True), (0.25, False)):
+        value = sign * factor * limits[label]["value"]
+        effect = make_effect(rx160, label, value)
+        data, _ = simulate_campaign(
+            rx160, 120, [effect], noise_mm=NOISE_MM, noise_deg=NOISE_DEG, seed=seed
+        )
+        found = diagnose(rx160, data, max_causes=3)
+        labels = [c.effect if c.joint is None else f"{c.effect}:{c.joint}" for c in found.causes]
+        assert (label in labels) == named, (RUN_SEED, label, factor, value, labels)
+
+
+def test_too_few_rows_are_refused_with_the_counts(rx160, tmp_path, capsys):
+    data, _ = simulate_campaign(rx160, 3, "none", noise_mm=NOISE_MM, position_only=True, seed=1)
+    write_table(tmp_path / "three.csv", data)
+    rc = main(
+        [
+            "diagnose",
+            str(tmp_path / "three.csv"),
+            "--robot",
+            "rx160",
+            "--json",
+            str(tmp_path / "d.json"),
+        ]
+    )
+    err = capsys.readouterr().err
+    assert rc != 0
+    assert "3 rows (2 fit, 1 hold-out) give 6 fit residuals" in err
+    assert "9 frame parameters" in err
+
+
+@pytest.mark.slow
+def test_five_full_poses_are_headed_by_their_detection_limits(rx160, tmp_path, capsys):
+    """The 5-row RX160 full-pose case: never a bare 'none'."""
+    data, _ = simulate_campaign(rx160, 5, "random", noise_mm=NOISE_MM, seed=1)
+    write_table(tmp_path / "five.csv", data)
+    rc = main(
+        [
+            "diagnose",
+            str(tmp_path / "five.csv"),
+            "--robot",
+            "rx160",
+            "--json",
+            str(tmp_path / "d.json"),
+        ]
+    )
+    out = capsys.readouterr().out.splitlines()
+    assert rc == 0
+    assert out[1].startswith("warning: little power: ")
+    assert out[2].startswith("detection limits (80 % power): nothing above: ")
+    assert "causes: none beyond measurement noise" not in out
