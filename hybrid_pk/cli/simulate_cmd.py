@@ -15,7 +15,7 @@ from hybrid_pk.cli.options import (
 from hybrid_pk.data.joint_table import read_joint_table
 from hybrid_pk.effects import parse_gravity
 from hybrid_pk.errors import HybridPKError
-from hybrid_pk.pipelines.simulation import simulate_to_files, table_path
+from hybrid_pk.pipelines.simulation import simulate_to_files, table_path, unseen_lines
 from hybrid_pk.robot import Robot
 from hybrid_pk.simulate import TRAJECTORIES, is_hidden_spec
 
@@ -226,22 +226,3 @@ def run(args: argparse.Namespace) -> int:
         for line in unseen_lines(robot, data, truth):
             print(line)
     return 0
-
-
-def unseen_lines(robot, data, truth: dict) -> list[str]:
-    """``note:`` lines for the injected effects whose part no data can see (the frames
-    absorb it; a diagnosis reports ~0 there), judged with the true frames."""
-    from hybrid_pk.calibration.diagnosis.unseen import mark_unseen
-    from hybrid_pk.effects import ExtendedModel, conditions_from_data
-
-    if data.n < 3:
-        return []
-    frames = {k: torch.tensor(truth[f"{k}_frame"], dtype=torch.float64) for k in ("base", "tool")}
-    nominal = ExtendedModel(robot, **frames)
-    marked = mark_unseen(nominal, data, conditions_from_data(data), truth["effects"])
-    return [
-        f"note: {e['effect']}:{e.get('joint')} ({e['unseen']['words']}): no diagnosis of "
-        "these data can find that part"
-        for e in marked
-        if e.get("unseen")
-    ]

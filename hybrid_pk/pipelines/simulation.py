@@ -20,7 +20,7 @@ from hybrid_pk.calibration.fit import fit
 from hybrid_pk.calibration.frames import MAX_TOOL_TRANSLATION_M, FrameSpec
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.data.table import write_table
-from hybrid_pk.effects import ExtendedModel
+from hybrid_pk.effects import ExtendedModel, conditions_from_data
 from hybrid_pk.errors import DataError
 from hybrid_pk.pipelines.calibration import FRAME_LABELS
 from hybrid_pk.robot import Robot
@@ -32,6 +32,7 @@ __all__ = [
     "simulate_to_files",
     "table_path",
     "truth_path",
+    "unseen_lines",
 ]
 
 TABLE_SUFFIXES = (".csv", ".parquet", ".pq")
@@ -123,3 +124,21 @@ def campaign_frame_lines(robot: Robot, data, truth: dict, tool_spec) -> list[str
     for d in res.frame_report.directions:
         lines.append(f"note: in this campaign the {d['summary']}")
     return lines
+
+
+def unseen_lines(robot, data, truth: dict) -> list[str]:
+    """``note:`` lines for the injected effects whose part no data can see (the frames
+    absorb it; a diagnosis reports ~0 there), judged with the true frames."""
+    from hybrid_pk.calibration.diagnosis.unseen import mark_unseen
+
+    if data.n < 3:
+        return []
+    frames = {k: torch.tensor(truth[f"{k}_frame"], dtype=torch.float64) for k in ("base", "tool")}
+    nominal = ExtendedModel(robot, **frames)
+    marked = mark_unseen(nominal, data, conditions_from_data(data), truth["effects"])
+    return [
+        f"note: {e['effect']}:{e.get('joint')} ({e['unseen']['words']}): no diagnosis of "
+        "these data can find that part"
+        for e in marked
+        if e.get("unseen")
+    ]
