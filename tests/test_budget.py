@@ -38,6 +38,12 @@ def test_budget_is_a_share_of_the_main_search():
     assert "swaps of joint_offset:joint_2" in budget.warnings()[0]["why"]
 
 
+# joint_4's origin lies on joint_3's axis (zero translation in the RX160 URDF) and
+# turning joint_4's origin about joint_3's y axis commutes with q3: an offset at
+# joint_3 is exactly a structural turn at joint_4, so either joint is the right answer.
+SAME_ERROR = {"joint_3": {"joint_3", "joint_4"}}
+
+
 def _nominal_fit(robot, data):
     split = split_campaign(data, conditions_from_data(data), 0.2, 0)
     model = ExtendedModel(robot)
@@ -61,7 +67,7 @@ def test_a_spent_budget_stops_the_structural_search_after_the_hinted_joint(rx160
     nominal, split, sigmas = _nominal_fit(rx160, data)
 
     full = locate_structural_error(nominal, split, sigmas, hint=[hint])
-    assert full["joint"] == wrong, why
+    assert full["joint"] in SAME_ERROR.get(wrong, {wrong}), why
 
     budget = Budget(share=0.0)
     budget.main_done()

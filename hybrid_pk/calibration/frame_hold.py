@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.calibration.frames import Centre, PriorRows
-from hybrid_pk.calibration.problem import Problem
+from hybrid_pk.calibration.problem import subset_jacobian
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
 
@@ -88,12 +88,8 @@ def _valleys(
     (columns of ``V``) of the frame columns' information, the information ``H`` of all
     rows per unit error [1/mm² per scaled unit²] and the rms position error ``e`` [mm]
     the frames cannot remove (a linear step of the frames from the start)."""
-    step = max(1, math.ceil(data.n / MAX_ROWS))
-    rows = torch.arange(0, data.n, step)
-    sub, cond_sub = data.subset(rows), cond.subset(rows)
     frame_blocks = tuple(b for b in blocks if b.name in _FRAME_BLOCKS)
-    problem = Problem(model, sub, cond_sub, frame_blocks, 1.0, 1e-3)  # mm and mrad
-    r, J = problem.jacobian(torch.zeros_like(problem.x0))
+    r, J, sub, _ = subset_jacobian(model, data, cond, frame_blocks, MAX_ROWS)
     n_sub = sub.n
     H = J.T @ J
     lam, V = torch.linalg.eigh(H / n_sub)

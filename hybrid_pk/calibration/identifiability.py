@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.calibration.frames import FramePriors, PriorRows
-from hybrid_pk.calibration.problem import Problem
+from hybrid_pk.calibration.problem import subset_jacobian
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.geometry import nearest_rotation, so3_log
@@ -223,12 +223,8 @@ def _frame_information(
     """Information of the frame columns on at most ``MAX_ROWS`` rows (an even subset):
     ``(H_pos, H_rot, R_flange, n)`` with ``H`` in mm² (or mrad²) per scaled unit² summed
     over the ``n`` rows used, and their flange orientations ``(n, 3, 3)``."""
-    step = max(1, math.ceil(data.n / MAX_ROWS))
-    rows = torch.arange(0, data.n, step)
-    sub, cond_sub = data.subset(rows), cond.subset(rows)
     frame_blocks = tuple(b for b in blocks if b.name in _PARTS)
-    problem = Problem(model, sub, cond_sub, frame_blocks, 1.0, 1e-3)  # mm and mrad
-    _, J = problem.jacobian(torch.zeros_like(problem.x0))
+    _, J, sub, cond_sub = subset_jacobian(model, data, cond, frame_blocks, MAX_ROWS)
     n_pos = 3 * sub.n
     Jp, Jr = J[:n_pos], J[n_pos:]
     with torch.no_grad():

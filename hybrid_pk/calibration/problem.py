@@ -281,3 +281,21 @@ class Problem:
         """Store ``theta`` into the model's parameters."""
         for name, v in self.unpack(theta).items():
             self.params[name].copy_(v)
+
+
+def subset_jacobian(
+    model: ExtendedModel,
+    data: MeasuredData,
+    cond: Conditions,
+    blocks: tuple,
+    max_rows: int,
+) -> tuple[Tensor, Tensor, MeasuredData, Conditions]:
+    """``(r, J, sub, cond_sub)``: residual and Jacobian [mm and mrad per scaled unit]
+    of ``blocks`` at their start, on an even subset ``sub`` (conditions ``cond_sub``)
+    of at most ``max_rows`` rows."""
+    step = max(1, -(-data.n // max_rows))
+    rows = torch.arange(0, data.n, step)
+    sub, cond_sub = data.subset(rows), cond.subset(rows)
+    problem = Problem(model, sub, cond_sub, blocks, 1.0, 1e-3)  # mm and mrad
+    r, J = problem.jacobian(torch.zeros_like(problem.x0))
+    return r, J, sub, cond_sub
