@@ -7,12 +7,15 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import re
+from pathlib import Path
 
 import pytest
 
 from hybrid_pk.calibration.diagnosis import diagnose
 from hybrid_pk.cli.main import build_parser
+from hybrid_pk.errors import HybridPKError
 from hybrid_pk.hybrid.builder import HybridSettings
+from hybrid_pk.hybrid.train_settings import MODULE_FIELDS, TrainSettings
 from hybrid_pk.pipelines.calibration import calibrate
 from hybrid_pk.training.lightning_module import HybridLitModule
 from hybrid_pk.training.presets import PRESETS
@@ -77,3 +80,53 @@ def test_training_module_takes_the_settings_defaults():
     for f in dataclasses.fields(HybridSettings):
         if f.name in module:
             assert module[f.name] == f.default, f"HybridLitModule {f.name}: {module[f.name]!r}"
+
+
+def test_train_flags_are_the_train_settings_fields():
+    """train's training flags are derived from TrainSettings: one per field, its default
+    the field's, its choices the field's Literal; the YAML's name an alias."""
+    options = _options("train")
+    for f in dataclasses.fields(TrainSettings):
+        action = options[f.name]
+        assert action.default == f.default, f"train --{f.name}: {action.default!r}"
+        if "_" in f.name and not f.metadata.get("switch"):
+            assert f"--{f.name}" in action.option_strings, action.option_strings
+    preset = options["preset"]
+    assert set(preset.choices) == set(PRESETS), preset.choices
+    module = _api_defaults(HybridLitModule.__init__)
+    assert set(MODULE_FIELDS) <= set(module), set(MODULE_FIELDS) - set(module)
+    assert set(MODULE_FIELDS) <= {f.name for f in dataclasses.fields(TrainSettings)}
+
+
+def test_train_settings_parse_checks_types_choices_and_ranges():
+    settings = TrainSettings.parse({"preset": "joints", "fade": 0.25, "epochs": 3, "lr": None})
+    model, data, trainer = settings.sections()
+    assert (settings.preset, model, data, trainer) == (
+        "joints",
+        {"fade": 0.25},
+        {},
+        {"max_epochs": 3},
+    )
+    for bad in ({"trust": "boxes"}, {"epochs": "three"}, {"fade": 11.0}, {"coverage_ratio": 1.0}):
+        with pytest.raises(HybridPKError):
+            TrainSettings.parse(bad)
+
+
+def test_contract_train_flags_are_accepted():
+    """The flag names docs/contract.md gives for train parse (aliases kept)."""
+    text = (Path(__file__).resolve().parent.parent / "docs" / "contract.md").read_text()
+    section = text[text.index("- `train`: ") :].split("\n- `", 1)[0]
+    flags = set(re.findall(r"`(--[a-z_-]+)", section))
+    known = {s for a in _options("train").values() for s in a.option_strings}
+    assert len(flags) >= 8, flags
+    assert flags <= known, sorted(flags - known)
+
+
+def test_our_presets_state_only_what_differs_from_the_defaults():
+    """fast and joints name what they choose; every other value is the module's default
+    (HybridSettings' for the networks): written once."""
+    module = _api_defaults(HybridLitModule.__init__)
+    for name in ("fast", "joints"):
+        for key, value in PRESETS[name]["model"].items():
+            defining = (name, key) == ("joints", "inputs")  # what names the preset
+            assert defining or value != module[key], f"preset {name} restates {key}={value!r}"

@@ -4,11 +4,7 @@ the calibrated (or hybrid) model, for a controller that runs its nominal model."
 from __future__ import annotations
 
 import argparse
-import warnings
 from collections import Counter
-
-import pandas as pd
-import torch
 
 from hybrid_pk.cli.common import data_notes, load_frozen_model
 from hybrid_pk.cli.options import (
@@ -19,16 +15,11 @@ from hybrid_pk.cli.options import (
     add_progress,
 )
 from hybrid_pk.cli.progress import progress
-from hybrid_pk.data import read_table_for
-from hybrid_pk.data.joint_table import has_joint_columns, read_joint_table, write_joint_table
-from hybrid_pk.effects import Conditions
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.ik import IKOptions
-from hybrid_pk.ik.compensation import COMPENSATION_BOX, STATUSES, Compensation, compensate
-from hybrid_pk.ik.conditions import IKAssumption, parse_approach
-from hybrid_pk.io.hybrid_file import forward_model
-
-F64 = torch.float64
+from hybrid_pk.ik.compensation import COMPENSATION_BOX, STATUSES, Compensation
+from hybrid_pk.ik.conditions import parse_approach
+from hybrid_pk.pipelines.compensation import compensate_program, read_program
 
 _DESCRIPTION = f"""\
 Correct a robot program for the real robot: for each PROGRAM row, the joint values
@@ -90,42 +81,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_progress(p)
 
 
-def _read_program(path: str, robot):
-    """``(q_nominal or None, targets or None, payload, temperature, kind)``."""
-    if has_joint_columns(path, robot.joint_names):
-        q, rest = read_joint_table(path, robot)
-        unused = [c for c in rest.columns if c not in ("payload", "temperature")]
-        if unused:
-            print(f"note: {path}: joint targets used; columns {', '.join(unused)} are not")
-        extra = {
-            c: torch.as_tensor(pd.to_numeric(rest[c], errors="raise").to_numpy(), dtype=F64)
-            for c in ("payload", "temperature")
-            if c in rest.columns
-        }
-        return q, None, extra.get("payload"), extra.get("temperature"), "joint targets"
-    with data_notes():
-        data = read_table_for([path], robot, n_params=1, require_joints=False)
-    if not data.has_orientation:
-        raise HybridPKError(
-            f"{path}: a pose program needs the flange orientation qw qx qy qz besides x y z "
-            "(or give the joint targets, one column per joint)"
-        )
-    return None, data.T_measured(), data.payload, data.temperature, "flange poses"
-
-
-def _frame(comp: Compensation) -> pd.DataFrame:
-    return pd.DataFrame(
-        {
-            "residual_mm": comp.residual_mm.numpy(),
-            "residual_deg": comp.residual_deg.numpy(),
-            "status": list(comp.status),
-            "nominal_mm": comp.nominal_mm.numpy(),
-            "nominal_deg": comp.nominal_deg.numpy(),
-            "note": list(comp.note),
-        }
-    )
-
-
 def _summary(comp: Compensation, args, robot, kind: str) -> list[str]:
     n = len(comp.status)
     counts = Counter(comp.status)
@@ -155,27 +110,21 @@ def _summary(comp: Compensation, args, robot, kind: str) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     if args.box <= 0 or args.tol_mm <= 0 or args.tol_deg <= 0:
         raise HybridPKError("--box, --tol-mm and --tol-deg must be positive")
-    loaded, model, robot, k = load_frozen_model(args)
-    q_nom, targets, payload, temperature, kind = _read_program(args.program, robot)
-    n = (q_nom if q_nom is not None else targets).shape[0]
-    group = torch.full((n,), k, dtype=torch.long) if model.base.sets > 1 else None
-    cond = Conditions(payload=payload, temperature=temperature, group=group)
-    real = forward_model(loaded)
-    real.requires_grad_(False)
-    with torch.no_grad():
-        base, tool = model.base.matrix()[k], model.tool.matrix()[k]
+    loaded, _model, robot, k = load_frozen_model(args)
+    with data_notes():
+        program = read_program(args.program, robot)
+    for line in program.notes:
+        print(f"note: {line}")
     options = IKOptions(tol_mm=args.tol_mm, tol_deg=args.tol_deg)
-    with progress("compensate", enabled=not args.no_progress) as bar, warnings.catch_warnings():
-        warnings.simplefilter("ignore", IKAssumption)  # printed below as notes
-        bar.stage(f"solving {n} row(s) on the model")
-        comp = compensate(
-            real, robot, base=base, tool=tool, q_nominal=q_nom, targets=targets, cond=cond,
-            box=args.box, options=options, approach=parse_approach(args.approach),
+    with progress("compensate", enabled=not args.no_progress) as bar:
+        bar.stage(f"solving {program.n} row(s) on the model")
+        comp = compensate_program(
+            loaded, program, frame_set=k, box=args.box, options=options,
+            approach=parse_approach(args.approach), out=args.out,
         )  # fmt: skip
     for line in comp.assumed:
         print(f"note: {line}")
-    write_joint_table(args.out, comp.q, robot.joint_names, _frame(comp))
-    for line in _summary(comp, args, robot, kind):
+    for line in _summary(comp, args, robot, program.kind):
         print(line)
     print(f"wrote {args.out}")
     return 0

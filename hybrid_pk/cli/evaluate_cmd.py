@@ -3,18 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
-from pathlib import Path
-
-import torch
 
 from hybrid_pk.cli.common import (
-    fit_frames,
     frame_parameter_count,
     frame_sets_for,
     read_data,
     stats_line,
-    with_frame_sets,
     write_json,
 )
 from hybrid_pk.cli.fit_settings import fit_lines, frame_priors, robust_loss
@@ -28,12 +22,9 @@ from hybrid_pk.cli.options import (
     add_robust,
 )
 from hybrid_pk.cli.progress import progress
-from hybrid_pk.effects import ExtendedModel, conditions_from_data
 from hybrid_pk.errors import HybridPKError
-from hybrid_pk.evaluation.metrics import evaluate_json, row_errors
-from hybrid_pk.io.hybrid_file import predict_poses
 from hybrid_pk.io.model_file import NOMINAL_PREFIX, load_model, model_robot
-from hybrid_pk.report.evaluation_report import write_evaluation_report
+from hybrid_pk.pipelines.evaluation import evaluate_model
 
 _DESCRIPTION = """\
 Errors of MODEL on DATA: position error = distance of measured and predicted point
@@ -89,32 +80,22 @@ def run(args: argparse.Namespace) -> int:
         bar.stage("reading data")
         n_params = frame_parameter_count(sets, False) if args.fit_frames else None
         data = read_data(args.data, robot, n_params=n_params, skip_bad_rows=args.skip_bad_rows)
-        cond = conditions_from_data(data, sets > 1)
-        notes = []
-        if args.fit_frames:
-            bar.stage("fitting base and tool frames")
-            priors = frame_priors(args, loaded.model if loaded.frames_fitted else None)
-            model = with_frame_sets(loaded.model, sets)
-            res = fit_frames(model, data, cond, priors=priors, robust=robust_loss(args))
-            notes = fit_lines(data, res)
-            loaded = dataclasses.replace(loaded, model=model, frames_fitted=True)
-        bar.stage("predicting")
-        T = predict_poses(loaded, data, cond)
-        position, orientation = row_errors(T, data)
-        result = evaluate_json(data.n, position, orientation)
+        res = evaluate_model(
+            loaded, data, model_label=args.model, sets=sets, fit_frames=args.fit_frames,
+            priors=frame_priors(args, loaded.model if loaded.frames_fitted else None)
+            if args.fit_frames else None,
+            robust=robust_loss(args), report=args.report, stage=bar.stage,
+        )  # fmt: skip
         if args.json:
-            write_json(args.json, result)
-        if args.report:
-            bar.stage("writing the report")
-            report = _report(args, loaded, robot, data, cond, sets, T)
+            write_json(args.json, res.summary)
 
-    _print_summary(args, loaded, robot, data, position, orientation)
-    for line in notes:
+    _print_summary(args, res.loaded, robot, data, res.position, res.orientation)
+    for line in fit_lines(data, res.frame_fit) if res.frame_fit is not None else []:
         print(line)
     if args.json:
         print(f"wrote {args.json}")
-    if args.report:
-        print(f"wrote {report}")
+    if res.report:
+        print(f"wrote {res.report}")
     return 0
 
 
@@ -152,21 +133,3 @@ def _print_summary(args, loaded, robot, data, position, orientation) -> None:
         print(stats_line("orientation error [deg]", orientation))
     else:
         print("orientation error [deg]: none (position-only data)")
-
-
-def _report(args, loaded, robot, data, cond, sets: int, T) -> Path:
-    """The report of MODEL on DATA beside the nominal URDF with frames fitted to DATA."""
-    predictions = {}
-    if not args.model.startswith(NOMINAL_PREFIX) or not args.fit_frames:
-        baseline = ExtendedModel(robot, frame_sets=sets)
-        fit_frames(baseline, data, cond)
-        with torch.no_grad():
-            predictions["nominal + frames fitted to DATA"] = baseline(data.q, cond)
-    predictions[Path(args.model).name] = T
-    files = ", ".join(Path(s).name for s in data.sources)
-    intro = (
-        f"{args.model} ({robot.name}) on {data.n} rows of {files}. The baseline column is "
-        "the nominal URDF whose base and tool frames were fitted to these same rows: "
-        "what a user gets without calibration."
-    )
-    return write_evaluation_report(args.report, data, predictions, intro=intro)[0]

@@ -4,31 +4,18 @@ from __future__ import annotations
 
 import argparse
 import sys
-import warnings
 
-import pandas as pd
-import torch
 from tqdm import tqdm
 
 from hybrid_pk.cli.common import data_notes, load_frozen_model
 from hybrid_pk.cli.options import add_approach, add_frame_set, add_model, add_out, add_seed
 from hybrid_pk.data import read_table_for
 from hybrid_pk.data.table import write_frame
-from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.errors import HybridPKError
-from hybrid_pk.ik import (
-    IKAssumption,
-    IKOptions,
-    IKResult,
-    parse_approach,
-    resolve_conditions,
-    solve_ik,
-    solve_ik_two_stage,
-)
+from hybrid_pk.ik import IKOptions, parse_approach
 from hybrid_pk.ik.two_stage import DEFAULT_BOX
-from hybrid_pk.io.hybrid_file import load_hybrid
+from hybrid_pk.pipelines.solving import solve_targets
 
-CHUNK = 128  # targets per two-stage solve (the progress bar moves after each)
 # The fixes of assumed conditions, as flags and columns.
 _FIXES = {
     "approach": "--approach + / - / JOINT=+,JOINT=- states how the robot approaches",
@@ -119,89 +106,31 @@ def _read_targets(path: str, robot):
         return read_table_for([path], robot, n_params=1, require_joints=False)
 
 
-def _expensive(loaded, model: ExtendedModel):
-    """The accurate model when it is more than the kinematics plus frames, else None."""
-    if loaded.has_networks:
-        return load_hybrid(loaded)
-    return model if len(model.effects) else None
-
-
-def _conditions(args, data, models, k: int, sets: int) -> Conditions:
-    """Conditions of the targets: payload and temperature from TARGETS, the frame set,
-    and the backlash approach of --approach (else mid-play), said in a note."""
-    n = data.n
-    group = torch.full((n,), k, dtype=torch.long) if sets > 1 else None
-    cond = Conditions(payload=data.payload, temperature=data.temperature, group=group)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", IKAssumption)  # printed as notes below
-        cond, notes = resolve_conditions(
-            models, cond, n, parse_approach(args.approach), fixes=_FIXES
-        )
-    for note in notes:
-        print(f"note: {note}")
-    return cond
-
-
-def _solve(args, cheap, expensive, targets, cond, extra, robot) -> IKResult | list[IKResult]:
-    """All solutions; a two-stage solve goes by chunks of targets, so the bar moves."""
-    options = IKOptions(
-        tol_mm=args.tol_mm, tol_deg=args.tol_deg, max_iterations=args.max_iterations, seed=args.seed
-    )
-    common = {"seeds": args.seeds, "options": options}
-    n = targets.shape[0]
-    stages = "kinematic model" if expensive is None else "kinematic model, refined on full model"
-    with tqdm(
-        total=n, desc=f"ik ({stages})", unit="target", file=sys.stderr, leave=False, delay=0.5
-    ) as bar:
-        if expensive is None:
-            return solve_ik(cheap, targets, extra_seeds=extra, progress=bar.update, **common)
-        parts = []
-        for lo in range(0, n, CHUNK):
-            rows = torch.arange(lo, min(n, lo + CHUNK))
-            parts.append(
-                solve_ik_two_stage(
-                    cheap, expensive, targets[rows], box=args.box, cond=cond.subset(rows),
-                    robot=robot, extra_seeds=None if extra is None else extra[rows], **common,
-                )
-            )  # fmt: skip
-            bar.update(rows.numel())
-        return parts
-
-
-def _frame(results: IKResult | list[IKResult]):
-    """One solutions table; chunks' target indices offset to rows of TARGETS."""
-    if isinstance(results, IKResult):
-        return results.to_frame()
-    frames, offset = [], 0
-    for part in results:
-        frame = part.to_frame()
-        frame["target"] += offset
-        offset += part.counts.numel()
-        frames.append(frame)
-    return pd.concat(frames, ignore_index=True)
-
-
 def run(args: argparse.Namespace) -> int:
     if args.seeds < 1:
         raise HybridPKError(f"--seeds must be at least 1, got {args.seeds}")
     if args.tol_mm <= 0 or args.tol_deg <= 0:
         raise HybridPKError("--tol-mm and --tol-deg must be positive")
-    loaded, model, robot, k = load_frozen_model(args)
+    loaded, _model, robot, k = load_frozen_model(args)
     data = _read_targets(args.targets, robot)
-    targets = data.T_measured() if data.has_orientation else data.position
-    extra = data.q[:, None, :] if data.q.shape[1] == robot.dof else None
-    with torch.no_grad():
-        base, tool = model.base.matrix()[k], model.tool.matrix()[k]
-    cheap = ExtendedModel(robot, [], base=base, tool=tool)
-    expensive = _expensive(loaded, model)
-    cond = None
-    if expensive is not None:
-        cond = _conditions(args, data, [expensive], k, model.base.sets)
-    elif args.approach is not None:
-        raise HybridPKError(f"--approach: {args.model} has no backlash effect")
-    frame = _frame(_solve(args, cheap, expensive, targets, cond, extra, robot))
-    write_frame(args.out, frame)
-    _print_summary(args, loaded, robot, data, frame, expensive is not None)
+    options = IKOptions(
+        tol_mm=args.tol_mm, tol_deg=args.tol_deg, max_iterations=args.max_iterations, seed=args.seed
+    )
+
+    def started(n: int, two_stage: bool) -> None:
+        full = ", refined on full model" if two_stage else ""
+        bar.set_description(f"ik (kinematic model{full})", refresh=False)
+
+    with tqdm(total=data.n, unit="target", file=sys.stderr, leave=False, delay=0.5) as bar:
+        job = solve_targets(
+            loaded, data, frame_set=k, seeds=args.seeds, options=options, box=args.box,
+            approach=parse_approach(args.approach), fixes=_FIXES, progress=bar.update,
+            started=started,
+        )  # fmt: skip
+    for note in job.notes:
+        print(f"note: {note}")
+    write_frame(args.out, job.frame)
+    _print_summary(args, loaded, robot, data, job.frame, job.two_stage)
     return 0
 
 

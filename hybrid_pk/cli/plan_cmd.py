@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 
-from hybrid_pk.calibration.planning import CRITERIA, Plan, plan_poses
+from hybrid_pk.calibration.planning import CRITERIA, Plan
 from hybrid_pk.cli.common import flag_values, load_robot, read_json, write_json
 from hybrid_pk.cli.effect_lists import effect_labels
 from hybrid_pk.cli.options import (
@@ -18,9 +18,8 @@ from hybrid_pk.cli.options import (
     add_seed,
 )
 from hybrid_pk.cli.progress import progress
-from hybrid_pk.data.joint_table import write_joint_table
-from hybrid_pk.effects import make_effect
 from hybrid_pk.errors import HybridPKError
+from hybrid_pk.pipelines.planning import parameter_units, plan_to_file
 
 _DESCRIPTION = """\
 Choose N joint configurations to measure so that a calibration identifies the base and
@@ -130,10 +129,6 @@ def _row(name: str, unit: str, planned: float, random: float) -> str:
     return f"  {name:<32} {shown:<8} {cells[0]:>16} {cells[1]:>16} {ratio:>9}"
 
 
-def _units(plan: Plan) -> list[str]:
-    return [b.unit for b in plan.blocks for _ in range(b.size)]
-
-
 def _summary(plan: Plan, args: argparse.Namespace, labels: list[str]) -> list[str]:
     n = plan.q.shape[0]
     design = CRITERIA[args.criterion].split(":")[0]
@@ -152,7 +147,11 @@ def _summary(plan: Plan, args: argparse.Namespace, labels: list[str]) -> list[st
     header = f"{'planned':>16} {f'{n} random':>16} {'ratio':>9}"
     lines.append(f"  {'parameter':<32} {'unit':<8} {header}")
     for name, unit, a, b in zip(
-        plan.names, _units(plan), plan.planned.std.tolist(), plan.random.std.tolist(), strict=True
+        plan.names,
+        parameter_units(plan),
+        plan.planned.std.tolist(),
+        plan.random.std.tolist(),
+        strict=True,
     ):
         lines.append(_row(name, unit, a, b))
     c1, c2 = plan.planned.condition, plan.random.condition
@@ -175,60 +174,20 @@ def _summary(plan: Plan, args: argparse.Namespace, labels: list[str]) -> list[st
     return lines
 
 
-def _document(plan: Plan, args: argparse.Namespace, labels: list[str]) -> dict:
-    def finite(v: float) -> float | None:
-        return v if math.isfinite(v) else None
-
-    rows = zip(
-        plan.names, _units(plan), plan.planned.std.tolist(), plan.random.std.tolist(), strict=True
-    )
-    return {
-        "robot": args.robot,
-        "n": int(plan.q.shape[0]),
-        "candidates": plan.candidates,
-        "criterion": args.criterion,
-        "seed": args.seed,
-        "effects": labels,
-        "left_out": [{"effect": e, "reason": why} for e, why in plan.left_out],
-        "noise_mm": args.noise_mm,
-        "noise_deg": None if args.position_only else args.noise_deg,
-        "payload": args.payload,
-        "parameters": [
-            {"name": name, "unit": unit, "planned_std": finite(a), "random_std": finite(b)}
-            for name, unit, a, b in rows
-        ],
-        "condition": {"planned": plan.planned.condition, "random": plan.random.condition},
-        "position_rms_mm": {
-            "planned": finite(plan.planned.position_rms_mm),
-            "random": finite(plan.random.position_rms_mm),
-        },
-        "poses": args.out,
-    }
-
-
 def run(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot, args.end_link)
     spec = args.effects.strip()
     labels = [] if spec == "none" else effect_labels(spec)
-    for label in labels:  # unknown kinds / joints fail before any work
-        make_effect(robot, label)
     box = read_joint_box(args.joint_box) if args.joint_box else None
-    if args.noise_mm <= 0 or (not args.position_only and args.noise_deg <= 0):
-        raise HybridPKError("--noise-mm and --noise-deg must be positive")
     with progress("plan", total=2, enabled=not args.no_progress) as bar:
-        plan = plan_poses(
-            robot,
-            args.n,
-            effects=labels,
-            box=box,
-            progress=bar.report,
+        res = plan_to_file(
+            robot, args.n, labels, args.out, box=box, progress=bar.report,
             **flag_values(args, *_PLAN_FLAGS),
-        )
-    write_joint_table(args.out, plan.q, robot.joint_names)
-    for line in _summary(plan, args, labels):
+        )  # fmt: skip
+    for line in _summary(res.plan, args, labels):
         print(line)
     if args.json:
-        write_json(args.json, _document(plan, args, labels))
+        write_json(args.json, res.document(args.robot))
     print(f"wrote {args.out}" + (f" and {args.json}" if args.json else ""))
     print(f"measure them: hybrid-pk simulate {args.robot} --poses {args.out} ... (or on the robot)")
     return 0

@@ -3,16 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import json
-import math
-import warnings
-from pathlib import Path
 
-import torch
-
-from hybrid_pk.calibration.fit import fit
-from hybrid_pk.calibration.frames import MAX_TOOL_TRANSLATION_M, parse_frame_spec
-from hybrid_pk.cli.common import FRAME_LABELS
+from hybrid_pk.calibration.frames import parse_frame_spec
 from hybrid_pk.cli.options import (
     add_end_link,
     add_noise,
@@ -21,13 +13,11 @@ from hybrid_pk.cli.options import (
     add_seed,
 )
 from hybrid_pk.data.joint_table import read_joint_table
-from hybrid_pk.data.table import write_table
-from hybrid_pk.effects import ExtendedModel, parse_gravity
-from hybrid_pk.errors import DataError, HybridPKError
+from hybrid_pk.effects import parse_gravity
+from hybrid_pk.errors import HybridPKError
+from hybrid_pk.pipelines.simulation import simulate_to_files, table_path, unseen_lines
 from hybrid_pk.robot import Robot
-from hybrid_pk.simulate import TRAJECTORIES, is_hidden_spec, simulate_campaign
-
-_TABLE_SUFFIXES = (".csv", ".parquet", ".pq")
+from hybrid_pk.simulate import TRAJECTORIES, is_hidden_spec
 
 _DESCRIPTION = """\
 Simulate a measurement campaign: the robot with injected error effects, measured
@@ -161,11 +151,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
-def truth_path(out: str | Path) -> Path:
-    """``FILE.truth.json`` next to the table ``FILE``."""
-    return Path(f"{out}.truth.json")
-
-
 def _describe(entry: dict) -> str:
     """``kind:joint = value unit`` with 4 significant digits."""
     label = f"{entry['effect']}:{entry['joint']}" if "joint" in entry else entry["effect"]
@@ -183,51 +168,8 @@ def _mount(args: argparse.Namespace):
     return args.mount
 
 
-def _given_frames(frames: dict) -> dict:
-    """``base``/``tool`` of ``--base``/``--tool``: a transform, or a translation whose
-    rotation the campaign draws."""
-    out = {}
-    for name, spec in frames.items():
-        if spec is not None:
-            out[name] = spec.translation if spec.rotation is None else spec.matrix(torch.eye(4))
-    return out
-
-
-def campaign_frame_lines(robot: Robot, data, truth: dict, tool_spec) -> list[str]:
-    """What a calibration of this campaign could tell about its frames: a frames-only
-    fit from the true frames (at most 2000 rows), and the plausibility of the tool."""
-    base = torch.tensor(truth["base_frame"], dtype=torch.float64)
-    tool = torch.tensor(truth["tool_frame"], dtype=torch.float64)
-    lines = []
-    if tool_spec is not None and float(tool[:3, 3].norm()) > MAX_TOOL_TRANSLATION_M:
-        lines.append(
-            f"warning: --tool puts the measured point {float(tool[:3, 3].norm()):.3g} m "
-            f"from the flange, beyond what a tracker target can be "
-            f"({MAX_TOOL_TRANSLATION_M:g} m); calibrations will flag such a tool"
-        )
-    rows = data.subset(slice(0, None, max(1, data.n // 2000)))
-    if rows.n < 3:
-        return lines
-    model = ExtendedModel(robot, base=base, tool=tool)
-    noise = max(float(truth["noise_mm"]), 1e-3)
-    noise_rad = max(math.radians(float(truth["noise_deg"])), 1e-5)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        res = fit(
-            model, rows, free=list(FRAME_LABELS["frames"]), sigma_pos_mm=noise,
-            sigma_rot_rad=noise_rad, max_iter=5,
-        )  # fmt: skip
-    for d in res.frame_report.directions:
-        lines.append(f"note: in this campaign the {d['summary']}")
-    return lines
-
-
 def run(args: argparse.Namespace) -> int:
-    out = Path(args.out)
-    if out.suffix.lower() not in _TABLE_SUFFIXES:
-        raise DataError(
-            f"unsupported file type {out.suffix!r}; expected .csv, .parquet or .pq", file=str(out)
-        )
+    table_path(args.out)
     robot = Robot.from_urdf(args.robot, end_link=args.end_link)
     frames = {
         name: None
@@ -240,27 +182,15 @@ def run(args: argparse.Namespace) -> int:
         poses, _ = read_joint_table(args.poses, robot)
     elif args.n is None:
         raise HybridPKError("give --n N (rows of a --trajectory) or --poses POSES")
-    data, truth = simulate_campaign(
-        robot,
-        args.n,
-        args.effects,
-        poses=poses,
-        noise_mm=args.noise_mm,
-        noise_deg=args.noise_deg,
-        trajectory=args.trajectory,
-        payload=args.payload,
+    sim = simulate_to_files(
+        robot, args.out, args.n, args.effects, poses=poses, noise_mm=args.noise_mm,
+        noise_deg=args.noise_deg, trajectory=args.trajectory, payload=args.payload,
         payload_range=None if args.payload_range is None else tuple(args.payload_range),
         temperature_range=None if args.no_temperature else tuple(args.temperature_range),
-        position_only=args.position_only,
-        known_frames=args.known_frames,
-        mount=_mount(args),
-        seed=args.seed,
-        progress=True,
-        **_given_frames(frames),
-    )
-    truth_file = truth_path(out)
-    write_table(out, data)
-    truth_file.write_text(json.dumps(truth, indent=2) + "\n", encoding="utf-8")
+        position_only=args.position_only, known_frames=args.known_frames, mount=_mount(args),
+        seed=args.seed, progress=True, **frames,
+    )  # fmt: skip
+    data, truth, out, truth_file = sim.data, sim.truth, sim.table, sim.truth_file
 
     where = f"poses of {args.poses}" if poses is not None else f"trajectory {args.trajectory}"
     load = (
@@ -285,7 +215,7 @@ def run(args: argparse.Namespace) -> int:
         f"max {pos['max']:.3f} mm; orientation mean {rot['mean']:.4f} deg, "
         f"max {rot['max']:.4f} deg"
     )
-    for line in campaign_frame_lines(robot, data, truth, frames["tool"]):
+    for line in sim.frame_lines:
         print(line)
     if is_hidden_spec(args.effects):
         print(f"effects hidden; see {truth_file}")
@@ -296,22 +226,3 @@ def run(args: argparse.Namespace) -> int:
         for line in unseen_lines(robot, data, truth):
             print(line)
     return 0
-
-
-def unseen_lines(robot, data, truth: dict) -> list[str]:
-    """``note:`` lines for the injected effects whose part no data can see (the frames
-    absorb it; a diagnosis reports ~0 there), judged with the true frames."""
-    from hybrid_pk.calibration.diagnosis.unseen import mark_unseen
-    from hybrid_pk.effects import ExtendedModel, conditions_from_data
-
-    if data.n < 3:
-        return []
-    frames = {k: torch.tensor(truth[f"{k}_frame"], dtype=torch.float64) for k in ("base", "tool")}
-    nominal = ExtendedModel(robot, **frames)
-    marked = mark_unseen(nominal, data, conditions_from_data(data), truth["effects"])
-    return [
-        f"note: {e['effect']}:{e.get('joint')} ({e['unseen']['words']}): no diagnosis of "
-        "these data can find that part"
-        for e in marked
-        if e.get("unseen")
-    ]

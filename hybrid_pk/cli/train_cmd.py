@@ -3,18 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import os
 
-from hybrid_pk.cli.common import (
-    fit_frames,
-    frame_parameter_count,
-    frame_sets_for,
-    read_data,
-    with_frame_sets,
-)
+from hybrid_pk.cli.common import flag_values, frame_parameter_count, frame_sets_for, read_data
 from hybrid_pk.cli.options import (
     add_data,
-    add_epochs,
     add_fit_frames,
     add_model,
     add_out,
@@ -22,11 +14,16 @@ from hybrid_pk.cli.options import (
     add_seed,
 )
 from hybrid_pk.cli.progress import progress
-from hybrid_pk.effects import conditions_from_data
+from hybrid_pk.cli.settings_flags import add_settings_flags, settings_names
 from hybrid_pk.errors import HybridPKError
-from hybrid_pk.hybrid.builder import HybridSettings
-from hybrid_pk.hybrid.nets import parse_arch
 from hybrid_pk.io.model_file import NOMINAL_PREFIX, load_model, model_robot
+from hybrid_pk.pipelines.training import (
+    TrainSettings,
+    base_for_training,
+    is_main_process,
+    train_job,
+    training_sections,
+)
 
 _DESCRIPTION = """\
 Train the two residual networks of the hybrid model (Ojer et al. 2024) on top of MODEL
@@ -84,96 +81,13 @@ HELP = "train the residual networks of a hybrid model (Lightning, TensorBoard)"
 DESCRIPTION = _DESCRIPTION
 
 
-_S = HybridSettings()  # the defaults the help states are the settings' own
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    """The flags of ``hybrid-pk train``."""
+    """The flags of ``hybrid-pk train``: the training's from :class:`TrainSettings`."""
     add_data(p)
     add_model(p, flag=True, help="base model file, or nominal:ROBOT (with --fit-frames)")
     add_out(p, metavar="MODEL2", help="output model file (.pt)")
-    p.add_argument("--position-net", metavar="ARCH", help="position network (default: preset)")
-    p.add_argument(
-        "--orientation-net", metavar="ARCH", help="orientation network (default: preset)"
-    )
-    p.add_argument(
-        "--preset",
-        choices=("fast", "joints", "paper"),
-        default="fast",
-        help="fast (physics-chosen stages), joints (MLPs on every joint), paper (D4w / Rw); "
-        "default: fast",
-    )
+    add_settings_flags(p, TrainSettings)
     p.add_argument("--config", metavar="YAML", help="LightningCLI config over the preset")
-    add_epochs(p)
-    p.add_argument("--batch-size", type=int, metavar="N", help="training rows per step")
-    p.add_argument("--lr", type=float, metavar="LR", help="(peak) learning rate")
-    p.add_argument(
-        "--patience",
-        type=int,
-        metavar="N",
-        help="early stopping after N epochs without validation gain (0: off)",
-    )
-    p.add_argument(
-        "--val-fraction",
-        type=float,
-        metavar="F",
-        help="share of the rows held out for validation (default: preset)",
-    )
-    p.add_argument("--input-range", choices=("data", "limits"), help="input normalisation range")
-    p.add_argument(
-        "--fade",
-        type=float,
-        metavar="F",
-        help="fade-out width outside the training joint box, fraction of its size per "
-        f"joint (default {_S.fade:g}: no correction outside the box)",
-    )
-    p.add_argument(
-        "--inputs",
-        metavar="SPEC",
-        help="network stages: joints (the paper's), frameK[+qI-J][+gravity][+torque|+full] "
-        "or local[+q1], joined by ',' (fall-back) and '/' (refinement), e.g. "
-        "frame1+qarm+torque/joints,local+q1 (default: preset)",
-    )
-    p.add_argument(
-        "--trust",
-        choices=("auto", "box", "coverage", "none"),
-        help="where the networks apply: joint box, coverage of their inputs, everywhere "
-        f"(default {_S.trust}: box for joints, coverage for frameK inputs)",
-    )
-    p.add_argument(
-        "--refine-net",
-        metavar="ARCH",
-        help=f"architecture of the refining stages' networks ('/' in --inputs; default: "
-        f"{_S.refine_net})",
-    )
-    p.add_argument(
-        "--local-net",
-        metavar="ARCH",
-        help=f"architecture of each joint's network in local stages (default: {_S.local_net})",
-    )
-    p.add_argument(
-        "--coverage-ratio",
-        type=float,
-        metavar="R",
-        help="--trust coverage: networks off beyond R x the full-trust radius "
-        f"(default {_S.coverage_ratio:g})",
-    )
-    p.add_argument(
-        "--no-spread",
-        dest="spread",
-        action="store_false",
-        default=None,
-        help="keep a refined stage's full correction where its refine stage is off (default: "
-        "shrink it by the spread of its training targets)",
-    )
-    p.add_argument(
-        "--no-blocked",
-        dest="blocked",
-        action="store_false",
-        default=None,
-        help="no probe fits on blocked hold-out: every stage on physics inputs stays gated to "
-        "its training joints (default: freed where the blocked hold-out shows it carries over)",
-    )
     p.add_argument("--logdir", metavar="DIR", help="TensorBoard logs and checkpoints")
     add_seed(p, what="seed of the split, the initialisation and the shuffling")
     p.add_argument("--strategy", default="auto", help="Lightning strategy: auto or ddp")
@@ -184,47 +98,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_progress(p)
 
 
-def _overrides(args: argparse.Namespace) -> tuple[dict, dict, dict]:
-    """Module, datamodule and trainer overrides: the YAML first, then the flags."""
-    from hybrid_pk.training.presets import settings_from_config
-
-    model, data, trainer = ({}, {}, {})
-    if args.config:
-        cfg = settings_from_config(args.config)
-        model, data, trainer = cfg["model"], cfg["data"], cfg["trainer"]
-    for key in (  # flags named as the module's arguments
-        "position_net", "orientation_net", "lr", "input_range", "fade", "inputs", "trust",
-        "coverage_ratio", "refine_net", "local_net", "spread", "blocked",
-    ):  # fmt: skip
-        if getattr(args, key) is not None:
-            model[key] = getattr(args, key)
-    if args.fade is not None and not 0 <= args.fade <= 10:
-        raise HybridPKError(f"--fade must be between 0 and 10, got {args.fade}")
-    if args.coverage_ratio is not None and not args.coverage_ratio > 1:
-        raise HybridPKError(f"--coverage-ratio must be > 1, got {args.coverage_ratio}")
-    if model.get("inputs", "joints") != "joints":
-        from hybrid_pk.hybrid.builder import check_trust
-
-        check_trust(model.get("trust", "auto"), model["inputs"])  # naming the forms
-    for key in ("position_net", "orientation_net", "refine_net", "local_net"):  # before data
-        if model.get(key, "none") != "none":
-            parse_arch(model[key])
-    if args.batch_size is not None:
-        data["batch_size"] = args.batch_size
-    if args.val_fraction is not None:
-        data["val_fraction"] = args.val_fraction
-    if args.epochs is not None:
-        trainer["max_epochs"] = args.epochs
-    if args.patience is not None:
-        trainer["patience"] = args.patience or None
-    return model, data, trainer
-
-
-def _is_main_process() -> bool:
-    """False in the extra processes a DDP run starts (they re-run this command)."""
-    return all(int(os.environ.get(var, "0")) == 0 for var in ("LOCAL_RANK", "NODE_RANK"))
-
-
 def _prepare(args, loaded, robot, sets: int):
     """DATA read for the model's robot, its conditions, and the base model (frames
     fitted to DATA with --fit-frames)."""
@@ -232,82 +105,38 @@ def _prepare(args, loaded, robot, sets: int):
         bar.stage("reading data")
         n_params = frame_parameter_count(sets, False) if args.fit_frames else None
         data = read_data(args.data, robot, n_params=n_params, skip_bad_rows=args.skip_bad_rows)
-        cond = conditions_from_data(data, sets > 1)
-        base = loaded.model
         if args.fit_frames:
             bar.stage("fitting base and tool frames")
-            base = with_frame_sets(base, sets)
-            fit_frames(base, data, cond)
+        cond, base = base_for_training(loaded, data, sets, args.fit_frames)
     return data, cond, base
-
-
-def _metadata(args, loaded, data, result) -> dict:
-    """MODEL's metadata with this training's record."""
-    metadata = {k: v for k, v in loaded.metadata.items() if k != "created"}
-    metadata["training"] = {
-        "command": "train",
-        "base_model": args.model,
-        "data": list(data.sources),
-        "n_rows": data.n,
-        "preset": args.preset,
-        "seed": args.seed,
-        "epochs": result.epochs,
-        "seconds": round(result.seconds, 3),
-        "validation_base": result.base,
-        "validation_hybrid": result.best,
-        "blocked": result.blocked,
-        "logdir": result.logdir,
-    }
-    return metadata
 
 
 def run(args: argparse.Namespace) -> int:
     try:
-        from hybrid_pk.io.hybrid_file import save_hybrid
-        from hybrid_pk.training import quiet_lightning, train_hybrid
+        from hybrid_pk.training import quiet_lightning
     except ImportError as exc:
         raise HybridPKError(
             f"training needs Lightning (a dependency of hybrid_pk): pip install lightning ({exc})"
         ) from exc
     quiet_lightning()  # after the import: Lightning sets its logger up when imported
-    model_over, data_over, trainer_over = _overrides(args)
+    settings = TrainSettings.parse(flag_values(args, *settings_names(TrainSettings)))
+    training_sections(settings, args.config)  # checked before any data is read
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
     robot = model_robot(loaded)
     robot.requires_grad_(False)
     sets = frame_sets_for(args, loaded.model.base.sets)
-    main = _is_main_process()
-
     data, cond, base = _prepare(args, loaded, robot, sets)
-    if loaded.has_networks and main:
+    if loaded.has_networks and is_main_process():
         print(f"note: {args.model} already has residual networks; they are replaced")
-    result = train_hybrid(
-        data,
-        base,
-        cond,
-        preset_name=args.preset,
-        model=model_over,
-        datamodule=data_over,
-        max_epochs=trainer_over.get("max_epochs"),
-        patience=trainer_over.get("patience", "preset"),
-        seed=args.seed,
-        logdir=args.logdir,
-        progress=not args.no_progress,
-        strategy=args.strategy,
-        devices=args.devices,
-    )
-    if not result.is_global_zero:
+    job = train_job(
+        loaded, data, cond, base, model_label=args.model, out=args.out, settings=settings,
+        config=args.config, fit_frames=args.fit_frames, seed=args.seed, logdir=args.logdir,
+        progress=not args.no_progress, strategy=args.strategy, devices=args.devices,
+    )  # fmt: skip
+    if job.out is None:
         return 0
-    frames_fitted = loaded.frames_fitted or args.fit_frames
-    metadata = _metadata(args, loaded, data, result)
-    save_hybrid(
-        args.out,
-        result.hybrid,
-        metadata=metadata,
-        training={"settings": result.settings, "best": result.best},
-        frames_fitted=frames_fitted,
-    )
-    _print_summary(args, robot, data, result)
-    if not frames_fitted:
+    _print_summary(args, robot, data, job.result)
+    if not job.frames_fitted:
         print(
             "warning: base and tool frames are identity (nominal model without --fit-frames): "
             "the networks learned the frames too"

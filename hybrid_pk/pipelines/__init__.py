@@ -1,6 +1,9 @@
 """Pipelines: whole jobs built from the layers below, returning typed results: the
-calibration workflow (:mod:`~hybrid_pk.pipelines.calibration`) and the demo. The CLI
-parses, calls these and prints; the experiments and the demo call the same functions.
+calibration workflow (:mod:`~hybrid_pk.pipelines.calibration`), the re-fit of a saved
+model's frames (``refit``), hybrid training (``training``), evaluation (``evaluation``),
+simulation (``simulation``), planning (``planning``), compensation (``compensation``)
+and the demo. The CLI parses, calls these and prints; the experiments and the demo call
+the same functions.
 """
 
 from hybrid_pk.pipelines.calibration import CalibrationResult as CalibrationResult

@@ -6,7 +6,8 @@ Each preset has the three sections of a LightningCLI config: ``model`` (argument
 ``trainer`` (``max_epochs`` and ``patience`` of early stopping on ``val/score``;
 None: no early stopping, each network still keeps its best validation state).
 ``train/configs/{paper,fast,joints}.yaml`` spell the same values (a test keeps them
-equal).
+equal). Ours state only what differs from the module's defaults (one source of each);
+:func:`full_model_settings` fills in the rest for the record of a training.
 """
 
 from __future__ import annotations
@@ -16,24 +17,17 @@ from pathlib import Path
 
 from hybrid_pk.errors import HybridPKError
 
-__all__ = ["PRESETS", "preset", "settings_from_config"]
+__all__ = ["PRESETS", "full_model_settings", "preset", "settings_from_config"]
 
 
 def _ours(networks: dict) -> dict[str, dict]:
-    """One of our presets: the ``networks`` (inputs and architectures) with our common
-    schedule (Adam + one-cycle, MSE, inputs scaled to the data, zero-initialised
-    outputs), batches and epochs; fresh dicts on every call."""
-    schedule = {
-        "optimizer": "adam",
-        "lr": 0.003,
-        "weight_decay": 0.0,
-        "scheduler": "onecycle",
-        "loss": "mse",
-        "input_range": "data",
-        "zero_init": True,
-    }
+    """One of our presets: the ``networks`` (inputs and architectures) over the module's
+    own defaults (Adam + one-cycle, lr 0.003, MSE, inputs scaled to the data,
+    zero-initialised outputs; :class:`~hybrid_pk.training.HybridLitModule`, whose network
+    defaults are :class:`~hybrid_pk.hybrid.builder.HybridSettings`'), with our batches and
+    epochs; fresh dicts on every call."""
     return {
-        "model": {**networks, **schedule},
+        "model": dict(networks),
         "data": {"batch_size": 256, "val_fraction": 0.1},
         "trainer": {"max_epochs": 150, "patience": None},
     }
@@ -72,13 +66,11 @@ PRESETS: dict[str, dict[str, dict]] = {
             "inputs": "frame1+qarm+torque/joints,local+q1",
             "position_net": "mlp:128x3",
             "orientation_net": "mlp:128x3",
-            "refine_net": "mlp",
-            "local_net": "mlp:32x2",
         }
     ),
     # Ours before issue 13: the same schedule, MLPs on every joint (the paper's inputs),
     # the base model outside the training rows' joint box.
-    "joints": _ours({"inputs": "joints", "position_net": "mlp", "orientation_net": "mlp"}),
+    "joints": _ours({"inputs": "joints"}),
 }
 
 
@@ -87,6 +79,18 @@ def preset(name: str) -> dict[str, dict]:
     if name not in PRESETS:
         raise ValueError(f"unknown preset {name!r}; one of {', '.join(PRESETS)}")
     return copy.deepcopy(PRESETS[name])
+
+
+def full_model_settings(model: dict) -> dict:
+    """Every argument of :class:`~hybrid_pk.training.HybridLitModule`: its defaults,
+    then ``model``'s values."""
+    import inspect
+
+    from hybrid_pk.training.lightning_module import HybridLitModule
+
+    params = inspect.signature(HybridLitModule.__init__).parameters.values()
+    defaults = {p.name: p.default for p in params if p.default is not inspect.Parameter.empty}
+    return {**defaults, **model}
 
 
 def _init_args(section) -> dict:

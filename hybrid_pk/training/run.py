@@ -35,7 +35,7 @@ from hybrid_pk.threads import requested_threads
 from hybrid_pk.training.blocked import blocked_blocks, blocked_check, fold_rows, probe_folds
 from hybrid_pk.training.datamodule import HybridDataModule
 from hybrid_pk.training.lightning_module import HybridLitModule
-from hybrid_pk.training.presets import preset
+from hybrid_pk.training.presets import full_model_settings, preset
 
 __all__ = [
     "MONITOR",
@@ -239,7 +239,7 @@ def train_hybrid(
             :data:`SINGLE_THREAD_WIDTH` wide, torch's setting for wider ones.
     """
     settings = preset(preset_name)
-    settings["model"].update(model or {})
+    settings["model"] = full_model_settings({**settings["model"], **(model or {})})
     settings["data"].update(datamodule or {})
     if max_epochs is not None:
         settings["trainer"]["max_epochs"] = int(max_epochs)

@@ -1,0 +1,117 @@
+"""The compensate workflow: a robot program (joint targets or flange poses) read for
+the model's robot, the joints that put the calibrated (or hybrid) model at the nominal
+poses (:func:`~hybrid_pk.ik.compensation.compensate`), written as a joint table with
+each row's residual and status.
+
+    comp = compensate_program(load_model("model.pt"), read_program("prog.csv", robot))
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from dataclasses import dataclass, field
+
+import pandas as pd
+import torch
+from torch import Tensor
+
+from hybrid_pk.data import read_table_for
+from hybrid_pk.data.joint_table import has_joint_columns, read_joint_table, write_joint_table
+from hybrid_pk.effects import Conditions
+from hybrid_pk.errors import HybridPKError
+from hybrid_pk.ik import IKOptions
+from hybrid_pk.ik.compensation import COMPENSATION_BOX, Compensation, compensate
+from hybrid_pk.ik.conditions import Approach, IKAssumption
+from hybrid_pk.io.hybrid_file import forward_model
+from hybrid_pk.io.model_file import LoadedModel
+from hybrid_pk.robot import Robot
+
+__all__ = ["Program", "compensate_program", "compensation_frame", "read_program"]
+
+F64 = torch.float64
+
+
+@dataclass(frozen=True)
+class Program:
+    """A robot program: nominal joint targets or flange poses (one of them), the
+    rows' payload [kg] and temperature [degC] where given, ``kind`` for the messages
+    and ``notes`` (columns left unused)."""
+
+    q_nominal: Tensor | None
+    targets: Tensor | None
+    payload: Tensor | None = None
+    temperature: Tensor | None = None
+    kind: str = "joint targets"
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def n(self) -> int:
+        return (self.q_nominal if self.q_nominal is not None else self.targets).shape[0]
+
+
+def read_program(path: str, robot: Robot) -> Program:
+    """The program ``path``: joint targets (one column per joint) or flange poses."""
+    if has_joint_columns(path, robot.joint_names):
+        q, rest = read_joint_table(path, robot)
+        unused = [c for c in rest.columns if c not in ("payload", "temperature")]
+        notes = [f"{path}: joint targets used; columns {', '.join(unused)} are not"] * bool(unused)
+        extra = {
+            c: torch.as_tensor(pd.to_numeric(rest[c], errors="raise").to_numpy(), dtype=F64)
+            for c in ("payload", "temperature")
+            if c in rest.columns
+        }
+        return Program(q, None, extra.get("payload"), extra.get("temperature"), notes=notes)
+    data = read_table_for([path], robot, n_params=1, require_joints=False)
+    if not data.has_orientation:
+        raise HybridPKError(
+            f"{path}: a pose program needs the flange orientation qw qx qy qz besides x y z "
+            "(or give the joint targets, one column per joint)"
+        )
+    return Program(None, data.T_measured(), data.payload, data.temperature, "flange poses")
+
+
+def compensate_program(
+    loaded: LoadedModel,
+    program: Program,
+    *,
+    frame_set: int = 0,
+    box: float = COMPENSATION_BOX,
+    options: IKOptions | None = None,
+    approach: Approach = None,
+    out: str | os.PathLike | None = None,
+) -> Compensation:
+    """The joints that put MODEL (``loaded``, base/tool frame set ``frame_set``) at the
+    program's nominal poses; written to ``out`` (joints, residuals, status) if given.
+    The IK's assumptions are in the result's ``assumed``, not warned."""
+    model = loaded.model
+    robot = model.robot
+    group = torch.full((program.n,), frame_set, dtype=torch.long) if model.base.sets > 1 else None
+    cond = Conditions(payload=program.payload, temperature=program.temperature, group=group)
+    real = forward_model(loaded)
+    real.requires_grad_(False)
+    with torch.no_grad():
+        base, tool = model.base.matrix()[frame_set], model.tool.matrix()[frame_set]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IKAssumption)  # the caller reports comp.assumed
+        comp = compensate(
+            real, robot, base=base, tool=tool, q_nominal=program.q_nominal,
+            targets=program.targets, cond=cond, box=box, options=options, approach=approach,
+        )  # fmt: skip
+    if out is not None:
+        write_joint_table(out, comp.q, robot.joint_names, compensation_frame(comp))
+    return comp
+
+
+def compensation_frame(comp: Compensation) -> pd.DataFrame:
+    """The per-row columns written beside the corrected joints."""
+    return pd.DataFrame(
+        {
+            "residual_mm": comp.residual_mm.numpy(),
+            "residual_deg": comp.residual_deg.numpy(),
+            "status": list(comp.status),
+            "nominal_mm": comp.nominal_mm.numpy(),
+            "nominal_deg": comp.nominal_deg.numpy(),
+            "note": list(comp.note),
+        }
+    )
