@@ -14,9 +14,10 @@ depend on the start guess.
 Rule (the same as the registration's): after the other frame parameters have
 compensated what they can, a direction ``v`` moves the measured points by ``s``
 (rms per row, mm per mm or mrad per mrad). An unmodelled error as large as the rms
-error ``e`` left at that optimum, which no row count averages away when it is
-systematic, moves the frame along ``v`` by ``e / s``. Where that exceeds the prior's
-std along ``v`` the data do not determine ``v``; it is held.
+error ``e`` left at that optimum that no free column removes (to first order: an
+error the fitted effects explain is a modelled one), which no row count averages away
+when it is systematic, moves the frame along ``v`` by ``e / s``. Where that exceeds
+the prior's std along ``v`` the data do not determine ``v``; it is held.
 """
 
 from __future__ import annotations
@@ -99,15 +100,19 @@ def _valleys(
     """``(sens, V, H, e)``: rms point motion per row and unit of each eigenvector
     (columns of ``V``) of the frame columns' information, the information ``H`` of all
     rows per unit error [1/mm² per scaled unit²] and the rms position error ``e`` [mm]
-    the frames cannot remove (a linear step of the frames from the start)."""
-    frame_blocks = tuple(b for b in blocks if b.name in _FRAME_BLOCKS)
-    r, J, sub, _ = subset_jacobian(model, data, cond, frame_blocks, MAX_ROWS)
+    the fit cannot remove (a linear step of every free column from the start)."""
+    r, J_all, sub, _ = subset_jacobian(model, data, cond, blocks, MAX_ROWS)
+    is_frame = torch.cat(
+        [torch.full((b.size,), b.name in _FRAME_BLOCKS, dtype=torch.bool) for b in blocks]
+    )
+    J = J_all[:, is_frame]
     n_sub = sub.n
     H = J.T @ J
     lam, V = torch.linalg.eigh(H / n_sub)
-    # what the frames cannot explain (to first order) is the unmodelled error
-    step_ = torch.linalg.lstsq(J, r[:, None]).solution[:, 0]
-    left = (r - J @ step_)[: 3 * n_sub]
+    # what neither the frames nor the fit's effects explain (to first order) is the
+    # unmodelled error: an error the fitted effects remove does not move the frames
+    step_ = torch.linalg.lstsq(J_all, r[:, None]).solution[:, 0]
+    left = (r - J_all @ step_)[: 3 * n_sub]
     e = float(left.pow(2).sum().div(n_sub).sqrt())  # rms 3-D position error [mm]
     return lam.clamp_min(0).sqrt(), V, H * (data.n / n_sub), e
 

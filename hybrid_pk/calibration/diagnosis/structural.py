@@ -35,6 +35,7 @@ from torch import Tensor
 
 from hybrid_pk.calibration.diagnosis.budget import Budget
 from hybrid_pk.calibration.fit import fit, model_errors
+from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.calibration.problem import Problem, param_blocks
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import (
@@ -242,6 +243,11 @@ def _origin_correction(model: ExtendedModel, joint: str) -> dict:
     return {"rotation_deg": angle, "rotation_axis": [float(x) for x in unit], "translation_mm": mm}
 
 
+# The structural search fits without limits: no frame prior, so nothing held either
+# (its start is the nominal fit's frames, fitted to a structure that may be wrong).
+_PLAIN = FramePriors(tool_std_m=math.inf, base_std_m=math.inf, rotation_std_rad=math.inf)
+
+
 def _fit_correction(nominal: ExtendedModel, joint: str, split, sigmas, start: Tensor | None):
     """The nominal model plus a full origin correction of ``joint``, fitted (frames too)
     on the fit rows from ``start`` (a misalignment on its basis, or zero). Returns the
@@ -258,7 +264,8 @@ def _fit_correction(nominal: ExtendedModel, joint: str, split, sigmas, start: Te
     model.base.reset_to(nominal.base.matrix().detach())
     model.tool.reset_to(nominal.tool.matrix().detach())
     fit(model, split.train, cond=split.cond_fit, covariance=False, max_iter=40,
-        sigma_pos_mm=sigmas[0], sigma_rot_rad=sigmas[1])  # fmt: skip
+        sigma_pos_mm=sigmas[0], sigma_rot_rad=sigmas[1],
+        frames=_PLAIN)  # fmt: skip
     return model, float(model_errors(model, split.test, split.cond_hold)[0].mean())
 
 
