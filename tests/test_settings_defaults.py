@@ -7,11 +7,13 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import re
+import typing
 from pathlib import Path
 
 import pytest
 
 from hybrid_pk.calibration.diagnosis import diagnose
+from hybrid_pk.calibration.settings import DiagnosisSettings, FitSettings
 from hybrid_pk.cli.main import build_parser
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.hybrid.builder import HybridSettings
@@ -44,11 +46,64 @@ def _same(text: str, value) -> bool:
         return text == str(value)
 
 
+# The commands whose fit flags are derived from a settings dataclass, and which fields
+# they leave out (calibrate --effects auto diagnoses with the defaults of diagnose's own).
+FIT_COMMANDS = [
+    ("diagnose", DiagnosisSettings, ()),
+    ("calibrate", DiagnosisSettings, ("candidates", "alpha", "max_causes")),
+    ("evaluate", FitSettings, ("gravity",)),
+]
+
+
+@pytest.mark.parametrize(("command", "cls", "left_out"), FIT_COMMANDS)
+def test_fit_flags_are_the_settings_fields(command, cls, left_out):
+    """Every flagged field of the command's settings is a flag with the field's default,
+    choices and range check, its contract name and the YAML name as alias; the help
+    states that default; no field's flag is hand-written beside it."""
+    options = _options(command)
+    hints = typing.get_type_hints(cls)
+    fields = [f for f in dataclasses.fields(cls) if f.metadata.get("flag", True) is not False]
+    assert {f.name for f in fields} - set(left_out) <= set(options), sorted(options)
+    for f in fields:
+        if f.name in left_out:
+            assert f.name not in options, f"{command} --{f.name} is not its setting"
+            continue
+        action = options[f.name]
+        assert action.default == f.default, f"{command} --{f.name}: {action.default!r}"
+        assert f"--{f.name.replace('_', '-')}" in action.option_strings
+        if "_" in f.name:
+            assert f"--{f.name}" in action.option_strings, action.option_strings
+        if typing.get_origin(hints[f.name]) is typing.Literal:
+            assert tuple(action.choices) == typing.get_args(hints[f.name])
+        stated = re.search(r"\(default:? ([^)\s,:]+)", action.help or "")
+        if stated and f.default is not None:
+            assert _same(stated.group(1), f.default), f"{command} --{f.name}: {stated[0]}"
+
+
+def test_settings_check_ranges_from_the_api_and_the_flags(capsys):
+    with pytest.raises(HybridPKError, match="holdout"):
+        DiagnosisSettings(holdout=1.5)
+    with pytest.raises(HybridPKError, match="max-causes"):
+        DiagnosisSettings.parse({"max_causes": 0})
+    with pytest.raises(HybridPKError, match="robust"):
+        FitSettings.parse({"robust": "l1"})
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["diagnose", "d.csv", "--robot", "ur10", "--json", "x",
+                                   "--alpha", "2"])  # fmt: skip
+    assert "fraction of the rows in (0, 1)" in capsys.readouterr().err
+    settings = DiagnosisSettings.parse({"candidates": ["joint_offset:joint_2"], "seed": 3})
+    assert (settings.candidates, settings.seed, settings.holdout) == (
+        ["joint_offset:joint_2"],
+        3,
+        DiagnosisSettings().holdout,
+    )
+
+
 @pytest.mark.parametrize(("command", "func"), [("diagnose", diagnose), ("calibrate", calibrate)])
 def test_flag_defaults_are_the_functions(command, func):
     api = _api_defaults(func)
     shared = {d: a for d, a in _options(command).items() if d in api}
-    assert {"holdout", "seed", "frames_per_file"} <= set(shared), sorted(shared)
+    assert {"holdout", "seed"} <= set(shared), sorted(shared)
     for dest, action in shared.items():
         cli = None if action.default in NONE_WORDS else action.default
         assert cli == api[dest], f"{command} --{dest}: CLI {cli!r}, {func.__name__} {api[dest]!r}"

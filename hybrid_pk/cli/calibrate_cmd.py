@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import textwrap
 
+from hybrid_pk.calibration.settings import DiagnosisSettings
 from hybrid_pk.cli.calibrate_output import (
     add_urdf_options,
     condition_warning,
@@ -32,26 +33,15 @@ from hybrid_pk.cli.common import (
 from hybrid_pk.cli.effect_lists import effect_labels
 from hybrid_pk.cli.fit_settings import (
     fit_lines,
-    frame_priors,
     implausible_effect_lines,
-    robust_loss,
     robust_summary,
+    settings_of,
 )
-from hybrid_pk.cli.options import (
-    ROBOT_HELP,
-    add_data,
-    add_end_link,
-    add_fit_options,
-    add_out,
-    add_robot,
-    add_seed,
-)
+from hybrid_pk.cli.options import ROBOT_HELP, add_data, add_end_link, add_out, add_robot
 from hybrid_pk.cli.progress import progress
-from hybrid_pk.cli.transfer_check import add_refit_rows, transfer_check
-from hybrid_pk.effects import (
-    make_effect,
-    parse_gravity,
-)
+from hybrid_pk.cli.settings_flags import add_settings_flags
+from hybrid_pk.cli.transfer_check import transfer_check
+from hybrid_pk.effects import make_effect
 from hybrid_pk.effects.vocabulary import vocabulary_units
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import error_stats
@@ -76,6 +66,9 @@ The frames are always estimated: base = measurement frame <- robot root, tool =
 flange -> measured point. Errors are reported in mm (position) and deg (orientation).
 """
 
+
+# The diagnosis' own flags (diagnose's); calibrate --effects auto uses their defaults.
+_DIAGNOSE_ONLY = ("candidates", "alpha", "max_causes")
 
 NAME = "calibrate"
 HELP = "fit frames + physical effects to measured poses; write a MODEL file"
@@ -110,14 +103,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="with --model: re-fit only the tool frame, the base frame, or both [m, rad]",
     )
     add_out(p, metavar="MODEL", help="output model file (e.g. .pt)")
-    add_fit_options(
-        p,
-        holdout_help="fraction of rows (0 < F < 1) the diagnosis of --effects auto holds out "
-        "to compare models; the final fit uses all rows (default: 0.2)",
-    )
+    add_settings_flags(
+        p, DiagnosisSettings, skip=_DIAGNOSE_ONLY,
+        helps={
+            "holdout": "fraction of rows (0 < F < 1) the diagnosis of --effects auto holds "
+            "out to compare models; the final fit uses all rows (default: 0.2)",
+            "seed": "seed of the diagnosis hold-out split and of the --refit-rows rows "
+            "(default: 0)",
+        },
+    )  # fmt: skip
     add_urdf_options(p)
-    add_seed(p, what="seed of the diagnosis hold-out split and of the --refit-rows rows")
-    add_refit_rows(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -141,12 +136,13 @@ def _requested_labels(robot, spec: str) -> tuple[str, list[str]]:
 
 
 def _run_new(args: argparse.Namespace) -> int:
+    settings = settings_of(args, DiagnosisSettings)
     robot = load_robot(args.robot, args.end_link)
-    gravity = parse_gravity(args.gravity)
+    gravity = settings.mounting()
     spec, labels = _requested_labels(robot, (args.effects or "auto").strip())
     auto = spec == "auto"
     sets = len(args.data) if args.frames_per_file else 1
-    priors, robust = frame_priors(args), robust_loss(args)
+    priors, robust = settings.priors(), settings.loss()
 
     with progress("calibrate", total=6 if auto else 5) as bar:
         bar.stage("reading data")
@@ -159,14 +155,15 @@ def _run_new(args: argparse.Namespace) -> int:
         )
         result = calibrate(
             robot, data, None if auto else labels, frames_per_file=args.frames_per_file,
-            holdout=args.holdout, seed=args.seed, priors=priors, robust=robust,
-            gravity=gravity, stage=bar.stage, progress=bar, min_gain_mm=args.min_gain_mm,
+            holdout=settings.holdout, seed=settings.seed, priors=priors, robust=robust,
+            gravity=gravity, stage=bar.stage, progress=bar, min_gain_mm=settings.min_gain_mm,
         )  # fmt: skip
         model, res, res0, diag = result.model, result.fit, result.nominal_fit, result.diagnosis
         bar.stage("leave one file out")
         transfer = transfer_check(
-            args, robot, data, result.labels, gravity=gravity, start=model, progress=bar
-        )
+            settings, args.frames_per_file, robot, data, result.labels, gravity=gravity,
+            start=model, progress=bar,
+        )  # fmt: skip
         bar.stage("writing")
         effects = effect_rows(model, res)
         metadata = {

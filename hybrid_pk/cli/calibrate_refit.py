@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 
+from hybrid_pk.calibration.settings import FitSettings
 from hybrid_pk.cli.calibrate_output import (
     error_summary,
     export_model_urdf,
@@ -16,7 +17,7 @@ from hybrid_pk.cli.common import (
     read_data,
     stats_line,
 )
-from hybrid_pk.cli.fit_settings import fit_lines, frame_priors, robust_loss, robust_summary
+from hybrid_pk.cli.fit_settings import fit_lines, robust_summary, settings_of
 from hybrid_pk.cli.progress import progress
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.errors import HybridPKError
@@ -38,6 +39,7 @@ def run_refit(args: argparse.Namespace) -> int:
         raise HybridPKError(
             "--gravity cannot be combined with --refit: the model keeps its mounting"
         )
+    settings = settings_of(args, FitSettings)
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
     robot = model_robot(loaded)
     robot.requires_grad_(False)
@@ -53,10 +55,10 @@ def run_refit(args: argparse.Namespace) -> int:
             skip_bad_rows=args.skip_bad_rows,
         )
         bar.stage(f"re-fitting the {which} frame(s)")
-        priors = frame_priors(args, loaded.model if loaded.frames_fitted else None)
+        priors = settings.priors(loaded.model if loaded.frames_fitted else None)
         result = refit(
             loaded, data, which, frames_per_file=args.frames_per_file, priors=priors,
-            robust=robust_loss(args),
+            robust=settings.loss(),
         )  # fmt: skip
         model, res, before, after = result.model, result.fit, result.before, result.after
         bar.stage("writing")

@@ -7,20 +7,13 @@ import json
 import math
 from pathlib import Path
 
-from hybrid_pk.cli.common import flag_values, load_robot, mounting_lines, read_data
-from hybrid_pk.cli.fit_settings import diagnosis_notes, frame_priors, robust_loss
-from hybrid_pk.cli.options import (
-    add_data,
-    add_end_link,
-    add_fit_options,
-    add_json,
-    add_report,
-    add_robot,
-    add_seed,
-)
+from hybrid_pk.calibration.settings import DiagnosisSettings
+from hybrid_pk.cli.common import load_robot, mounting_lines, read_data
+from hybrid_pk.cli.fit_settings import diagnosis_notes, settings_of
+from hybrid_pk.cli.options import add_data, add_end_link, add_json, add_report, add_robot
 from hybrid_pk.cli.progress import Progress
-from hybrid_pk.cli.transfer_check import add_refit_rows, append_to_report, transfer_check
-from hybrid_pk.errors import HybridPKError
+from hybrid_pk.cli.settings_flags import add_settings_flags
+from hybrid_pk.cli.transfer_check import append_to_report, transfer_check
 
 _DESCRIPTION = """\
 Diagnose a robot from measured poses: fit base and tool frames to the nominal URDF,
@@ -50,31 +43,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_data(p)
     add_robot(p, required=True)
     add_end_link(p)
-    add_fit_options(
-        p,
-        holdout_help="fraction of the rows (0-1) kept out of every fit to compare the models "
-        "(default: 0.2)",
-    )
+    add_settings_flags(p, DiagnosisSettings)
     add_json(p, required=True, help="write the diagnosis JSON here")
     add_report(p, help="write DIR/report.md with plots (PNG) of the evidence for each cause")
-    add_seed(p, what="seed of the hold-out split")
-    p.add_argument(
-        "--candidates",
-        metavar="LIST",
-        help="comma-separated effects to consider, e.g. "
-        "joint_offset:joint_2,joint_compliance:joint_3 (default: every effect the data "
-        "could reveal)",
-    )
-    p.add_argument(
-        "--alpha",
-        type=float,
-        default=1e-3,
-        help="false-positive rate of the significance test per selection step (default: 1e-3)",
-    )
-    p.add_argument(
-        "--max-causes", type=int, default=8, metavar="N", help="stop after N causes (default: 8)"
-    )
-    add_refit_rows(p)
 
 
 def _finite(obj):
@@ -165,41 +136,30 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     from hybrid_pk.calibration.diagnosis import diagnose
-    from hybrid_pk.effects import make_effect, parse_gravity
+    from hybrid_pk.effects import make_effect
 
     for path in args.data:
         if not Path(path).is_file():
             raise FileNotFoundError(f"no such data file: {path}")
+    settings = settings_of(args, DiagnosisSettings)
     robot = load_robot(args.robot, args.end_link)
-    candidates = None
-    if args.candidates:
-        candidates = [c.strip() for c in args.candidates.split(",") if c.strip()]
-        for c in candidates:
-            make_effect(robot, c)  # unknown effect or joint: a clear error now
-    if args.max_causes < 1:
-        raise HybridPKError(f"--max-causes must be at least 1, got {args.max_causes}")
-    if not 0.0 < args.alpha < 1.0:
-        raise HybridPKError(f"--alpha must lie in (0, 1), got {args.alpha:g}")
-    gravity = parse_gravity(args.gravity)
+    for c in settings.candidates or []:
+        make_effect(robot, c)  # unknown effect or joint: a clear error now
+    gravity = settings.mounting()
     data = read_data(args.data, robot, skip_bad_rows=args.skip_bad_rows)
 
     progress = Progress("diagnose", delay=0.0)
     try:
+        keywords = settings.keywords() | {"gravity": gravity}
         result = diagnose(
-            robot,
-            data,
-            candidates=candidates,
-            **flag_values(args, "holdout", "seed", "alpha", "max_causes", "frames_per_file"),
-            min_gain_mm=args.min_gain_mm,
-            frames=frame_priors(args),
-            robust=robust_loss(args),
-            progress=progress.stage,
-            gravity=gravity,
-        )
+            robot, data, frames_per_file=args.frames_per_file, progress=progress.stage,
+            **keywords,
+        )  # fmt: skip
         labels = [c.effect + (f":{c.joint}" if c.joint else "") for c in result.causes]
         transfer = transfer_check(
-            args, robot, data, labels, gravity=gravity, start=result.model, progress=progress.stage
-        )
+            settings, args.frames_per_file, robot, data, labels, gravity=gravity,
+            start=result.model, progress=progress.stage,
+        )  # fmt: skip
         if args.report:
             progress.stage("writing the report")
             from hybrid_pk.report import write_diagnosis_report

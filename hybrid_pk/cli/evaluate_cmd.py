@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from hybrid_pk.calibration.settings import FitSettings
 from hybrid_pk.cli.common import (
     frame_parameter_count,
     frame_sets_for,
@@ -11,17 +12,16 @@ from hybrid_pk.cli.common import (
     stats_line,
     write_json,
 )
-from hybrid_pk.cli.fit_settings import fit_lines, frame_priors, robust_loss
+from hybrid_pk.cli.fit_settings import fit_lines, settings_of
 from hybrid_pk.cli.options import (
     add_data,
     add_fit_frames,
-    add_frame_options,
     add_json,
     add_model,
     add_report,
-    add_robust,
 )
 from hybrid_pk.cli.progress import progress
+from hybrid_pk.cli.settings_flags import add_settings_flags
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.io.model_file import NOMINAL_PREFIX, load_model, model_robot
 from hybrid_pk.pipelines.evaluation import evaluate_model
@@ -61,11 +61,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         p,
         help="first fit only the base and tool frames [m, rad] to DATA (effects and networks kept)",
     )
-    add_frame_options(p)
-    add_robust(p)
+    add_settings_flags(p, FitSettings, skip=("gravity",))  # the model keeps its mounting
 
 
 def run(args: argparse.Namespace) -> int:
+    settings = settings_of(args, FitSettings)
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
     robot = model_robot(loaded)
     robot.requires_grad_(False)
@@ -82,9 +82,9 @@ def run(args: argparse.Namespace) -> int:
         data = read_data(args.data, robot, n_params=n_params, skip_bad_rows=args.skip_bad_rows)
         res = evaluate_model(
             loaded, data, model_label=args.model, sets=sets, fit_frames=args.fit_frames,
-            priors=frame_priors(args, loaded.model if loaded.frames_fitted else None)
+            priors=settings.priors(loaded.model if loaded.frames_fitted else None)
             if args.fit_frames else None,
-            robust=robust_loss(args), report=args.report, stage=bar.stage,
+            robust=settings.loss(), report=args.report, stage=bar.stage,
         )  # fmt: skip
         if args.json:
             write_json(args.json, res.summary)

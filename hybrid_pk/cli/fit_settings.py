@@ -1,7 +1,6 @@
-"""What ``--tool``, ``--base``, ``--max-tool-offset`` and ``--robust`` (declared in
-:mod:`hybrid_pk.cli.options`) mean for a fit, and the lines that report what a fit could
-not determine, found implausible or down-weighted (calibrate, diagnose, evaluate
---fit-frames, simulate)."""
+"""The fit settings of a command's flags (:func:`settings_of`), and the lines that
+report what a fit could not determine, found implausible or down-weighted (calibrate,
+diagnose, evaluate --fit-frames, simulate)."""
 
 from __future__ import annotations
 
@@ -9,61 +8,30 @@ import argparse
 from pathlib import Path
 
 from hybrid_pk.calibration.diagnosis.structural import implausibility
-from hybrid_pk.calibration.frames import (
-    DEFAULT_TOOL_STD_M,
-    MAX_TOOL_TRANSLATION_M,
-    FramePriors,
-    FrameSpec,
-    parse_frame_spec,
-)
 from hybrid_pk.calibration.robust import (
     CUT_WEIGHT,
     OUTLIER_K,
-    check_robust,
     down_weighted,
     list_outliers,
 )
-from hybrid_pk.effects import ExtendedModel
-from hybrid_pk.errors import HybridPKError
+from hybrid_pk.cli.settings_flags import settings_names
 
 __all__ = [
     "diagnosis_notes",
     "fit_lines",
-    "frame_priors",
     "frame_report_lines",
     "implausible_effect_lines",
     "robust_lines",
-    "robust_loss",
     "robust_summary",
+    "settings_of",
 ]
 
 
-def frame_priors(args: argparse.Namespace, previous: ExtendedModel | None = None) -> FramePriors:
-    """The known frames of ``--tool``/``--base``; without ``--tool``, the tool of a
-    ``previous`` model (one frame set) is the centre of the tool's prior."""
-    tool = None if getattr(args, "tool", None) is None else parse_frame_spec(args.tool, "--tool")
-    base = None if getattr(args, "base", None) is None else parse_frame_spec(args.base, "--base")
-    if tool is None and previous is not None and previous.tool.sets == 1:
-        T = previous.tool.matrix()[0].detach()
-        tool = FrameSpec(
-            T[:3, 3].clone(), None, fixed=False, std_m=DEFAULT_TOOL_STD_M,
-            source="the model's tool frame",
-        )  # fmt: skip
-    limit = getattr(args, "max_tool_offset", MAX_TOOL_TRANSLATION_M)
-    if not limit > 0:
-        raise HybridPKError(f"--max-tool-offset must be a positive length [m], got {limit:g}")
-    priors = FramePriors(tool=tool, base=base, max_tool_m=limit)
-    if tool is not None and tool.fixed and float(tool.translation.norm()) > limit:
-        raise HybridPKError(
-            f"--tool {args.tool}: a tool {float(tool.translation.norm()):.3g} m from the "
-            f"flange is beyond --max-tool-offset ({limit:g} m); check the units (metres)"
-        )
-    return priors
-
-
-def robust_loss(args: argparse.Namespace) -> str | None:
-    """The ``--robust`` loss, or None for least squares."""
-    return check_robust(getattr(args, "robust", None))
+def settings_of(args: argparse.Namespace, cls):
+    """The settings ``cls`` (:mod:`hybrid_pk.calibration.settings`) that a command's
+    flags give (the fields it has flags for; the others keep their defaults)."""
+    names = [n for n in settings_names(cls) if hasattr(args, n)]
+    return cls.parse({n: getattr(args, n) for n in names})
 
 
 def frame_report_lines(result) -> list[str]:

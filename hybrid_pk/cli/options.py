@@ -9,9 +9,10 @@ Groups:
     the command itself: :func:`command_parser` (with :func:`add_threads`, every command)
     robot and model: :func:`add_robot`, :func:`add_end_link`, :func:`add_model`
     data: :func:`add_data` (DATA..., --frames-per-file, --skip-bad-rows)
-    fits: :func:`add_fit_options` (every command that diagnoses or calibrates: the
-        hold-out fraction, :func:`add_frame_options` and :func:`add_robust`),
-        :func:`add_fit_frames`
+    fits: :func:`add_fit_frames` (the fits' own flags are derived from
+        :class:`~hybrid_pk.calibration.settings.FitSettings` and
+        :class:`~hybrid_pk.calibration.settings.DiagnosisSettings`:
+        :func:`hybrid_pk.cli.settings_flags.add_settings_flags`)
     outputs: :func:`add_out`, :func:`add_json`, :func:`add_report`
     runs: :func:`add_seed`, :func:`add_epochs`, :func:`add_noise`, :func:`add_progress`
     solving for targets (ik, compensate): :func:`add_approach`, :func:`add_frame_set`
@@ -21,8 +22,6 @@ from __future__ import annotations
 
 import argparse
 
-from hybrid_pk.calibration.frames import MAX_TOOL_TRANSLATION_M
-from hybrid_pk.calibration.robust import ROBUST_LOSSES
 from hybrid_pk.robot import shipped_robots
 from hybrid_pk.threads import ENV as THREADS_ENV
 from hybrid_pk.threads import parse_threads
@@ -36,10 +35,7 @@ __all__ = [
     "add_end_link",
     "add_epochs",
     "add_fit_frames",
-    "add_fit_options",
-    "add_frame_options",
     "add_frame_set",
-    "add_gravity",
     "add_json",
     "add_model",
     "add_noise",
@@ -47,11 +43,9 @@ __all__ = [
     "add_progress",
     "add_report",
     "add_robot",
-    "add_robust",
     "add_seed",
     "add_threads",
     "command_parser",
-    "fraction",
 ]
 
 ROBOT_HELP = f"shipped robot name ({', '.join(shipped_robots())}) or URDF path"
@@ -98,30 +92,6 @@ def add_threads(parser: argparse.ArgumentParser) -> None:
         "of the work, at most OMP_NUM_THREADS) or torch (torch's own default); waiting "
         f"threads sleep instead of spinning (default: ${THREADS_ENV}, else auto)",
     )
-
-
-def non_negative_mm(text: str) -> float:
-    """``argparse`` type: a length [mm], zero or more."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a length in mm, got {text!r}") from None
-    if not value >= 0.0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"expected a finite length >= 0 mm, got {value:g}")
-    return value
-
-
-def fraction(text: str) -> float:
-    """``argparse`` type: a fraction of the rows, strictly between 0 and 1."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number in (0, 1), got {text!r}") from None
-    if not 0.0 < value < 1.0:
-        raise argparse.ArgumentTypeError(
-            f"expected a fraction of the rows in (0, 1), got {value:g} (e.g. 0.2 for 20 %)"
-        )
-    return value
 
 
 # ----------------------------------------------------------------------------- robot, model
@@ -203,93 +173,6 @@ def add_data(parser: argparse.ArgumentParser) -> None:
 
 
 # ----------------------------------------------------------------------------- fits
-
-
-def add_fit_options(parser: argparse.ArgumentParser, *, holdout_help: str) -> None:
-    """Options of every command that diagnoses effects (``diagnose``, ``calibrate``).
-
-    ``--holdout F``: the fraction of rows the diagnosis keeps out of every fit to
-    compare models; ``--min-gain-mm``: the practical margin on the blocked hold-out;
-    the known frames (:func:`add_frame_options`), the robust loss
-    (:func:`add_robust`) and the mounting (:func:`add_gravity`) of its fits.
-    """
-    parser.add_argument("--holdout", type=fraction, default=0.2, metavar="F", help=holdout_help)
-    parser.add_argument(
-        "--min-gain-mm",
-        type=non_negative_mm,
-        metavar="MM",
-        help="practical margin: a cause is named only if it lowers the RMS error on "
-        "blocked hold-out rows (regions of joint space, whole files) by at least MM "
-        "(default: the noise estimate / 10, the standard error of an RMS error measured "
-        "on 50 check poses)",
-    )
-    add_frame_options(parser)
-    add_robust(parser)
-    add_gravity(parser)
-
-
-def add_gravity(parser: argparse.ArgumentParser) -> None:
-    """``--gravity X,Y,Z|level-tracker``: the mounting, which compliance and deflection
-    follow."""
-    parser.add_argument(
-        "--gravity",
-        metavar="X,Y,Z|level-tracker",
-        help="how the robot is mounted, for compliance and deflection: gravity in the "
-        "robot's root frame [m/s^2] (ceiling: 0,0,9.81), or level-tracker: the "
-        "measurement frame is levelled (laser tracker, total station), so gravity is -z "
-        "there and its direction in the robot frame follows from the fitted base frame "
-        "(default: upright, 0,0,-9.81)",
-    )
-
-
-_FRAME_HELP = (
-    "{what} known from outside the data, X,Y,Z[,RX,RY,RZ] in metres and roll-pitch-yaw "
-    "radians ({frame}): fixed as given (only the translation with three values), or "
-    "after 'seed:' a start and prior that the data refine where they determine it"
-)
-
-
-def add_frame_options(parser: argparse.ArgumentParser) -> None:
-    """``--tool``, ``--base`` and ``--max-tool-offset``: frames known from outside the
-    data (fixed, or ``seed:`` values), and the plausibility limit of a fitted tool (every
-    command that fits frames: with :func:`add_fit_options`, and ``evaluate --fit-frames``)."""
-    parser.add_argument(
-        "--tool",
-        metavar="X,Y,Z[,RX,RY,RZ]",
-        help=_FRAME_HELP.format(
-            what="tool frame (the measured point on the flange, e.g. from the target's "
-            "mount drawing)",
-            frame="flange frame",
-        ),
-    )
-    parser.add_argument(
-        "--base",
-        metavar="X,Y,Z[,RX,RY,RZ]",
-        help=_FRAME_HELP.format(
-            what="base frame (the robot root in the measurement frame)",
-            frame="measurement frame",
-        ),
-    )
-    parser.add_argument(
-        "--max-tool-offset",
-        type=float,
-        default=MAX_TOOL_TRANSLATION_M,
-        metavar="M",
-        help="a fitted tool translation beyond M metres from the flange is reported as "
-        f"implausible (default: {MAX_TOOL_TRANSLATION_M:g})",
-    )
-
-
-def add_robust(parser: argparse.ArgumentParser) -> None:
-    """``--robust none|huber|cauchy``."""
-    parser.add_argument(
-        "--robust",
-        choices=("none", *ROBUST_LOSSES),
-        default="none",
-        help="down-weight rows with gross errors (a broken beam, a bad visit): huber "
-        "(bounded influence) or cauchy (a wild row has no pull); every down-weighted row "
-        "is reported (default: none, plain least squares)",
-    )
 
 
 def add_fit_frames(parser: argparse.ArgumentParser, *, help: str) -> None:

@@ -19,6 +19,7 @@ from hybrid_pk.calibration.diagnosis import Diagnosis, diagnose
 from hybrid_pk.calibration.fit import FitResult, fit
 from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.calibration.known_frames import initialise_with_priors
+from hybrid_pk.calibration.settings import DiagnosisSettings
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import Conditions, Effect, ExtendedModel, conditions_from_data, make_effect
 from hybrid_pk.effects.gravity import Gravity
@@ -34,6 +35,8 @@ __all__ = [
 ]
 
 # Parameter blocks of the frames, by --refit choice (labels of calibration.fit).
+# The keywords' defaults: the diagnosis settings' (one source of each default).
+_D = DiagnosisSettings()
 FRAME_LABELS = {
     "base": ("base_frame.translation", "base_frame.rotation"),
     "tool": ("tool_frame.translation", "tool_frame.rotation"),
@@ -93,8 +96,8 @@ def calibrate(
     labels: Sequence[str] | None = None,
     *,
     frames_per_file: bool = False,
-    holdout: float = 0.2,
-    seed: int = 0,
+    holdout: float = _D.holdout,
+    seed: int = _D.seed,
     priors: FramePriors | None = None,
     robust: str | None = None,
     gravity: Gravity | None = None,

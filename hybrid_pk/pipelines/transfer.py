@@ -25,6 +25,7 @@ import torch
 from hybrid_pk.calibration.fit import fit
 from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.calibration.known_frames import initialise_with_priors
+from hybrid_pk.calibration.settings import DiagnosisSettings
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import (
     Conditions,
@@ -38,10 +39,8 @@ from hybrid_pk.robot import Robot
 
 __all__ = ["DEFAULT_REFIT_ROWS", "FileTransfer", "TransferResult", "leave_one_file_out"]
 
-# Rows the frames are re-fitted on: 12 frame parameters (9 position-only) from 3 N
-# position equations leave a re-fit error of about sqrt(12 / 150) = 0.28 of the noise at
-# N = 50, well under the noise itself; and 50 rows are a few minutes' measuring.
-DEFAULT_REFIT_ROWS = 50
+# Rows the frames are re-fitted on (the reason is written at the settings' field).
+DEFAULT_REFIT_ROWS = DiagnosisSettings.refit_rows
 # The frame parameters of a re-fit (labels of calibration.fit).
 _FRAMES = (
     "base_frame.translation",

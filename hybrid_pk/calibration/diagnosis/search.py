@@ -55,6 +55,7 @@ from hybrid_pk.calibration.fit import FitResult, fit, model_errors
 from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.calibration.robust import OUTLIER_K, down_weighted, list_outliers
+from hybrid_pk.calibration.settings import DiagnosisSettings
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import ExtendedModel, Gravity, conditions_from_data, make_effect
 from hybrid_pk.robot import Robot
@@ -64,6 +65,8 @@ __all__ = ["Cause", "Diagnosis", "candidate_labels", "diagnose", "plausibility_w
 
 # A candidate whose refit fails is set aside; the search stops after this many in a row.
 MAX_REJECTED_IN_A_ROW = 2
+# The keywords' defaults: the settings' (one source of each default).
+_D = DiagnosisSettings()
 
 
 @sized_by_data
@@ -71,11 +74,11 @@ def diagnose(
     robot: Robot,
     data: MeasuredData,
     *,
-    holdout: float = 0.2,
-    seed: int = 0,
+    holdout: float = _D.holdout,
+    seed: int = _D.seed,
     candidates: list[str] | None = None,
-    alpha: float = 1e-3,
-    max_causes: int = 8,
+    alpha: float = _D.alpha,
+    max_causes: int = _D.max_causes,
     frames_per_file: bool = False,
     progress: Callable[[str], None] | None = None,
     frames: FramePriors | None = None,
