@@ -10,21 +10,24 @@ YAML or a dict is parsed into it by jsonargparse (:func:`parse_settings`).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import functools
 import math
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Iterator
+from contextvars import ContextVar
+from typing import Any, Generic, TypeVar
 
 from hybrid_pk.errors import HybridPKError
 
 __all__ = [
+    "Active",
     "Checked",
     "in_open_unit",
     "non_negative",
     "parse_settings",
     "positive",
     "setting",
-    "tuning",
 ]
 
 
@@ -44,12 +47,6 @@ def setting(
                                  else str(default)),
             "metavar": metavar, "check": check, "switch": switch, "flag": flag}  # fmt: skip
     return dataclasses.field(default=default, metadata=meta)
-
-
-def tuning(default: Any, reason: str) -> Any:
-    """A tuning constant: no flag, set through the settings object or its YAML;
-    ``reason`` says in one line why this value."""
-    return dataclasses.field(default=default, metadata={"reason": reason, "flag": False})
 
 
 def in_open_unit(value: float) -> str | None:
@@ -111,3 +108,40 @@ def parse_settings(cls, values: dict, *, base: dict | None = None):
         raise
     except Exception as exc:  # jsonargparse's ArgumentError names the key and type
         raise HybridPKError(" ".join(str(exc).split())) from None
+
+
+T = TypeVar("T")
+
+
+class Active(Generic[T]):
+    """The tuning of the job under way: a job sets it for its duration
+    (:meth:`using`, :meth:`tuned`) and the modules it calls read it (:meth:`get`), so a
+    tuning constant is neither hidden in a module nor passed through every call
+    between the job and the step that uses it. Outside a job: the defaults."""
+
+    def __init__(self, name: str, default: T) -> None:
+        self._var: ContextVar[T | None] = ContextVar(name, default=None)
+        self._default = default
+
+    def get(self) -> T:
+        """The tuning of the job under way (the defaults outside one)."""
+        return self._var.get() or self._default
+
+    @contextlib.contextmanager
+    def using(self, value: T | None) -> Iterator[T]:
+        """Within the block, :meth:`get` is ``value`` (None: the defaults)."""
+        token = self._var.set(value)
+        try:
+            yield self.get()
+        finally:
+            self._var.reset(token)
+
+    def tuned(self, func: Callable) -> Callable:
+        """Runs ``func`` under the tuning of its ``tuning`` keyword (:meth:`using`)."""
+
+        @functools.wraps(func)
+        def run(*args, **kwargs):
+            with self.using(kwargs.get("tuning")):
+                return func(*args, **kwargs)
+
+        return run

@@ -18,7 +18,9 @@ from hybrid_pk.cli.main import build_parser
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.hybrid.builder import HybridSettings
 from hybrid_pk.hybrid.train_settings import MODULE_FIELDS, TrainSettings
+from hybrid_pk.hybrid.tuning import HybridTuning
 from hybrid_pk.pipelines.calibration import calibrate
+from hybrid_pk.pipelines.training import train_settings, training_sections
 from hybrid_pk.training.lightning_module import HybridLitModule
 from hybrid_pk.training.presets import PRESETS
 
@@ -142,6 +144,9 @@ def test_train_flags_are_the_train_settings_fields():
     the field's, its choices the field's Literal; the YAML's name an alias."""
     options = _options("train")
     for f in dataclasses.fields(TrainSettings):
+        if f.metadata.get("flag", True) is False:
+            assert f.name not in options, f"train --{f.name}: a tuning, not a flag"
+            continue
         action = options[f.name]
         assert action.default == f.default, f"train --{f.name}: {action.default!r}"
         if "_" in f.name and not f.metadata.get("switch"):
@@ -185,3 +190,37 @@ def test_our_presets_state_only_what_differs_from_the_defaults():
         for key, value in PRESETS[name]["model"].items():
             defining = (name, key) == ("joints", "inputs")  # what names the preset
             assert defining or value != module[key], f"preset {name} restates {key}={value!r}"
+
+
+def test_train_config_yaml_is_parsed_into_the_settings_flag_over_yaml_over_default(tmp_path):
+    """train --config: the YAML's values are TrainSettings fields (checked by
+    jsonargparse), a flag wins over them, a field neither sets keeps its default."""
+    config = tmp_path / "run.yaml"
+    config.write_text(
+        "preset: joints\n"
+        "tuning: {freeing_z: 3.0}\n"
+        "trainer: {max_epochs: 7}\n"
+        "model: {fade: 0.2, trust: coverage, optimizer: adamw}\n"
+        "data: {batch_size: 64}\n"
+    )
+    settings = train_settings({"fade": 0.3, "epochs": None}, config)
+    assert (settings.fade, settings.trust, settings.epochs) == (0.3, "coverage", 7)
+    assert (settings.batch_size, settings.preset, settings.lr) == (64, "joints", None)
+    assert settings.tuning == HybridTuning(freeing_z=3.0)
+    assert settings.patience == 0  # the YAML has no EarlyStopping: off
+    model, data, trainer = training_sections(settings, config)
+    assert (model["optimizer"], model["fade"], data["batch_size"]) == ("adamw", 0.3, 64)
+    assert trainer == {"max_epochs": 7, "patience": None}
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("model: {fade: wide}\n")
+    with pytest.raises(HybridPKError, match="fade"):
+        train_settings({}, bad)
+
+
+@pytest.mark.parametrize("name", sorted(PRESETS))
+def test_shipped_train_configs_parse_into_the_settings(name):
+    config = Path(__file__).resolve().parent.parent / "train" / "configs" / f"{name}.yaml"
+    settings = train_settings({}, config)
+    model = PRESETS[name]["model"]
+    assert settings.inputs == model.get("inputs")
+    assert settings.batch_size == PRESETS[name]["data"]["batch_size"]

@@ -194,5 +194,5 @@ class DiagnosisSettings(FitSettings):
             "holdout": self.holdout, "seed": self.seed, "candidates": self.candidates,
             "alpha": self.alpha, "max_causes": self.max_causes, "frames": self.priors(),
             "robust": self.loss(), "gravity": self.mounting(),
-            "min_gain_mm": self.min_gain_mm,
+            "min_gain_mm": self.min_gain_mm, "tuning": self.tuning,
         }  # fmt: skip

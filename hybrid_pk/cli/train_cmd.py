@@ -22,6 +22,7 @@ from hybrid_pk.pipelines.training import (
     base_for_training,
     is_main_process,
     train_job,
+    train_settings,
     training_sections,
 )
 
@@ -87,7 +88,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_model(p, flag=True, help="base model file, or nominal:ROBOT (with --fit-frames)")
     add_out(p, metavar="MODEL2", help="output model file (.pt)")
     add_settings_flags(p, TrainSettings)
-    p.add_argument("--config", metavar="YAML", help="LightningCLI config over the preset")
+    p.add_argument(
+        "--config",
+        metavar="YAML",
+        help="LightningCLI config over the preset (its values under the flags'); a "
+        "top-level tuning: mapping sets the hybrid's tuning constants",
+    )
     p.add_argument("--logdir", metavar="DIR", help="TensorBoard logs and checkpoints")
     add_seed(p, what="seed of the split, the initialisation and the shuffling")
     p.add_argument("--strategy", default="auto", help="Lightning strategy: auto or ddp")
@@ -119,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
             f"training needs Lightning (a dependency of hybrid_pk): pip install lightning ({exc})"
         ) from exc
     quiet_lightning()  # after the import: Lightning sets its logger up when imported
-    settings = TrainSettings.parse(flag_values(args, *settings_names(TrainSettings)))
+    settings = train_settings(flag_values(args, *settings_names(TrainSettings)), args.config)
     training_sections(settings, args.config)  # checked before any data is read
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
     robot = model_robot(loaded)

@@ -35,8 +35,9 @@ from torch import Tensor, nn
 
 from hybrid_pk.hybrid.coverage import Coverage
 from hybrid_pk.hybrid.inputs import InputBox
+from hybrid_pk.hybrid.tuning import hybrid_tuning
 
-__all__ = ["GAIN_Z", "MODES", "JointGate", "beats", "decide"]
+__all__ = ["MODES", "JointGate", "beats", "decide"]
 
 MODES = ("gated", "free", "shrunk")
 
@@ -98,19 +99,15 @@ class JointGate(nn.Module):
 
 
 Scorer = Callable[[dict[int, str]], tuple[dict[str, Tensor], dict[str, float]]]
-# A gain counts when it is at least two standard errors of the mean paired difference:
-# chance shows that in about 1 of 40 sets of blocks (rows within a block are correlated,
-# so this is a lower bound on how often).
-GAIN_Z = 2.0
 
 
 def beats(candidate: Tensor, reference: Tensor) -> bool:
     """Whether per-row scores ``candidate (n,)`` are lower than ``reference (n,)`` (the
-    same rows) by at least :data:`GAIN_Z` standard errors of the mean difference."""
+    same rows) by at least the tuning's ``freeing_z`` standard errors of the mean difference."""
     d = (reference - candidate).to(torch.float64)
     if d.numel() < 2:
         return False
-    return bool(d.mean() > GAIN_Z * d.std() / d.numel() ** 0.5)
+    return bool(d.mean() > hybrid_tuning().freeing_z * d.std() / d.numel() ** 0.5)
 
 
 def decide(stages: list[int], spread: set[int], score: Scorer) -> dict[int, dict]:

@@ -20,21 +20,20 @@ import torch
 from torch import Tensor, nn
 
 from hybrid_pk.hybrid.features import cpu_copies
+from hybrid_pk.hybrid.tuning import hybrid_tuning
 
 __all__ = [
-    "DEFAULT_NEIGHBOURS",
     "DEFAULT_QUANTILE",
     "DEFAULT_RATIO",
-    "MAX_REFERENCE",
     "Coverage",
     "nearest",
     "smoothstep",
 ]
 
-DEFAULT_NEIGHBOURS = 5
+# Defaults of a direct call (the hybrid passes its HybridSettings' coverage): 99 % of
+# held-out rows of the training region trusted fully, the base model beyond twice that.
 DEFAULT_QUANTILE = 0.99
 DEFAULT_RATIO = 2.0
-MAX_REFERENCE = 4096  # reference rows kept (a seeded random sample of the training rows)
 _CHUNK = 2048  # query rows per distance matrix
 _EPS = 1e-12  # inside the square root: finite gradients at zero distance
 
@@ -94,7 +93,7 @@ class Coverage(nn.Module):
         reference: Tensor,
         radius_in: float | Tensor,
         radius_out: float | Tensor,
-        neighbours: int = DEFAULT_NEIGHBOURS,
+        neighbours: int | None = None,
     ) -> None:
         super().__init__()
         if reference.ndim not in (2, 3) or reference.shape[-2] < 1:
@@ -108,7 +107,8 @@ class Coverage(nn.Module):
         self.register_buffer("reference", reference.detach().to(torch.float64).clone())
         self.register_buffer("radius_in", r_in)
         self.register_buffer("radius_out", r_out)
-        self.neighbours = min(int(neighbours), reference.shape[-2])
+        k = hybrid_tuning().coverage_neighbours if neighbours is None else neighbours
+        self.neighbours = min(int(k), reference.shape[-2])
 
     @classmethod
     def from_inputs(
@@ -116,10 +116,10 @@ class Coverage(nn.Module):
         train: Tensor,
         calibration: Tensor | None = None,
         *,
-        neighbours: int = DEFAULT_NEIGHBOURS,
+        neighbours: int | None = None,
         quantile: float = DEFAULT_QUANTILE,
         ratio: float = DEFAULT_RATIO,
-        max_reference: int = MAX_REFERENCE,
+        max_reference: int | None = None,
         seed: int = 0,
     ) -> Coverage:
         """Coverage of the training inputs ``train (N, F)``.
@@ -130,15 +130,18 @@ class Coverage(nn.Module):
             calibration: inputs of held-out rows of the same region (validation rows)
                 whose distances set ``radius_in``; None: the training rows left out of
                 the reference sample, or (all in it) each row's distance to the others.
-            neighbours: ``k``.
+            neighbours: ``k`` (None: the tuning's ``coverage_neighbours``).
             quantile: share of the calibration rows within ``radius_in``.
             ratio: ``radius_out / radius_in``.
-            max_reference: at most this many reference rows.
+            max_reference: at most this many reference rows (None: the tuning's
+                ``coverage_reference``).
             seed: seed of the reference sample.
         """
         if not 0 < quantile <= 1 or ratio <= 1:
             raise ValueError(f"need 0 < quantile <= 1 and ratio > 1, got {quantile}, {ratio}")
         train = train.detach().to(torch.float64)
+        if max_reference is None:
+            max_reference = hybrid_tuning().coverage_reference
         gen = torch.Generator().manual_seed(seed)
         perm = torch.randperm(train.shape[0], generator=gen)
         ref, rest = train[perm[:max_reference]], train[perm[max_reference:]]

@@ -23,22 +23,19 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.hybrid.features import FeatureSpec
+from hybrid_pk.hybrid.tuning import hybrid_tuning
 from hybrid_pk.robot import Robot
 
-__all__ = ["ON_AXIS_M", "joint_levers", "moving_joints", "resolve_arm"]
-
-# A lever below 1 mm per rad is a joint whose axis passes through the flange point up to
-# the URDF's own rounding (a flange offset of an arm is at least centimetres).
-ON_AXIS_M = 1e-3
-_MAX_ROWS = 4096  # rows whose levers are averaged (a seeded sample): a mean, not a fit
+__all__ = ["joint_levers", "moving_joints", "resolve_arm"]
 
 
 def joint_levers(robot: Robot, q: Tensor) -> Tensor:
     """``(dof,)`` mean flange-point displacement per unit of each joint over rows
     ``q (N, dof)`` [m/rad, or m/m for prismatic joints]."""
     q = q.detach().to(torch.float64)
-    if q.shape[0] > _MAX_ROWS:
-        q = q[torch.randperm(q.shape[0], generator=torch.Generator().manual_seed(0))[:_MAX_ROWS]]
+    rows = hybrid_tuning().lever_rows
+    if q.shape[0] > rows:
+        q = q[torch.randperm(q.shape[0], generator=torch.Generator().manual_seed(0))[:rows]]
     with torch.no_grad():
         J = robot.jacobian(q)
     return J[..., :3, :].norm(dim=-2).mean(0)
@@ -49,12 +46,12 @@ def moving_joints(robot: Robot, q: Tensor, after: int = 1) -> list[int]:
     flange point most first; joints on the point's axis left out."""
     lever = joint_levers(robot, q)
     order = [int(j) for j in torch.argsort(lever, descending=True) if int(j) >= after]
-    return [j for j in order if float(lever[j]) > ON_AXIS_M]
+    return [j for j in order if float(lever[j]) > hybrid_tuning().on_axis_m]
 
 
 def resolve_arm(spec: FeatureSpec, robot: Robot, q: Tensor) -> FeatureSpec:
     """``spec`` with ``qarm`` replaced by the joints ``frame + 1 .. J`` (1-based), ``J``
-    the last joint after the frame with a lever above :data:`ON_AXIS_M` over the
+    the last joint after the frame with a lever above the tuning's ``on_axis_m`` over the
     training rows ``q``; every joint after the frame when none has one. A spec without
     ``qarm`` is returned as it is."""
     if not spec.arm:

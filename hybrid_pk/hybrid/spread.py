@@ -29,8 +29,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from hybrid_pk.hybrid.coverage import DEFAULT_NEIGHBOURS, MAX_REFERENCE, nearest
+from hybrid_pk.hybrid.coverage import nearest
 from hybrid_pk.hybrid.features import cpu_copies
+from hybrid_pk.hybrid.tuning import hybrid_tuning
 
 __all__ = ["TargetSpread", "shrink"]
 
@@ -71,8 +72,8 @@ class TargetSpread(nn.Module):
         position: Tensor,
         rotation: Tensor | None,
         *,
-        neighbours: int = DEFAULT_NEIGHBOURS,
-        max_reference: int = MAX_REFERENCE,
+        neighbours: int | None = None,
+        max_reference: int | None = None,
         seed: int = 0,
     ) -> TargetSpread:
         """Spread of the targets over each row's ``neighbours`` nearest rows in inputs.
@@ -81,10 +82,14 @@ class TargetSpread(nn.Module):
             u: ``(N, F)`` standardised inputs of the training rows.
             position: ``(N, 3)`` position targets [m] (the base model's residual).
             rotation: ``(N, 3)`` rotation targets [rad] (rotation vectors), or None.
-            neighbours: ``k``.
-            max_reference: rows used (a seeded random sample of the training rows).
+            neighbours: ``k`` (None: the tuning's ``coverage_neighbours``).
+            max_reference: rows used (a seeded random sample of the training rows; None:
+                the tuning's ``coverage_reference``).
             seed: seed of the sample.
         """
+        tuning = hybrid_tuning()
+        neighbours = tuning.coverage_neighbours if neighbours is None else neighbours
+        max_reference = tuning.coverage_reference if max_reference is None else max_reference
         gen = torch.Generator().manual_seed(seed)
         rows = torch.randperm(u.shape[0], generator=gen)[:max_reference]
         x = u.detach().to(torch.float64)[rows]

@@ -20,6 +20,8 @@ from typing import Literal
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.hybrid.builder import HybridSettings, check_trust
 from hybrid_pk.hybrid.nets import parse_arch
+from hybrid_pk.hybrid.tuning import HybridTuning
+from hybrid_pk.settings import parse_settings
 
 __all__ = ["MODULE_FIELDS", "TrainSettings", "field_help"]
 
@@ -136,25 +138,19 @@ class TrainSettings:
             switch="--no-blocked",
         ),
     )
+    # no flag: set through the API or the ``tuning`` mapping of a --config YAML
+    tuning: HybridTuning = field(default_factory=HybridTuning, metadata={"flag": False})
 
     @classmethod
-    def parse(cls, values: dict) -> TrainSettings:
-        """The settings of ``values`` (None: not given), types and choices checked by
-        jsonargparse against the fields; then the ranges (:meth:`check`).
+    def parse(cls, values: dict, base: dict | None = None) -> TrainSettings:
+        """The settings of ``values`` (None: not given) over ``base`` (a YAML's values:
+        flag > YAML > default), types and choices checked by jsonargparse against the
+        fields; then the ranges (:meth:`check`).
 
         Raises:
-            HybridPKError: a value of the wrong type, choice or range.
+            HybridPKError: a value of the wrong type, choice or range, an unknown key.
         """
-        from jsonargparse import ArgumentParser
-
-        parser = ArgumentParser(exit_on_error=False)
-        parser.add_class_arguments(cls, "settings")
-        given = {k: v for k, v in values.items() if v is not None}
-        try:
-            cfg = parser.parse_object({"settings": given})
-        except Exception as exc:  # jsonargparse's ArgumentError names the key and type
-            raise HybridPKError(" ".join(str(exc).split())) from None
-        settings = parser.instantiate(cfg).settings
+        settings = parse_settings(cls, values, base=base)
         settings.check()
         return settings
 

@@ -16,7 +16,9 @@ from pathlib import Path
 
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data
+from hybrid_pk.hybrid.train_settings import MODULE_FIELDS
 from hybrid_pk.hybrid.train_settings import TrainSettings as TrainSettings
+from hybrid_pk.hybrid.tuning import ACTIVE as HYBRID_TUNING
 from hybrid_pk.io.model_file import LoadedModel
 from hybrid_pk.pipelines.calibration import refit_frames
 from hybrid_pk.pipelines.refit import with_frame_sets
@@ -27,6 +29,7 @@ __all__ = [
     "base_for_training",
     "is_main_process",
     "train_job",
+    "train_settings",
     "training_sections",
 ]
 
@@ -47,6 +50,31 @@ class TrainJob:
     frames_fitted: bool
     metadata: dict
     out: Path | None
+
+
+def train_settings(flags: dict, config: str | os.PathLike | None = None) -> TrainSettings:
+    """The :class:`TrainSettings` of ``flags`` (None: not given) over the LightningCLI YAML
+    ``config``: flag > YAML > preset > default. The YAML's ``model`` keys that are fields,
+    ``data.batch_size`` / ``val_fraction``, ``trainer.max_epochs``, the patience of its
+    ``EarlyStopping`` (none: 0, off) and its top-level ``preset`` and ``tuning`` are
+    parsed into the fields, checked by jsonargparse like the flags.
+
+    Raises:
+        HybridPKError: the YAML cannot be read, or a value of the wrong type or range.
+    """
+    from hybrid_pk.training.presets import settings_from_config
+
+    base: dict = {}
+    if config:
+        sections = settings_from_config(config)
+        model, data, trainer = (sections[k] for k in ("model", "data", "trainer"))
+        base = {k: v for k, v in model.items() if k in MODULE_FIELDS}
+        base |= {k: data[k] for k in ("batch_size", "val_fraction") if k in data}
+        if "max_epochs" in trainer:
+            base["epochs"] = trainer["max_epochs"]
+        base["patience"] = trainer.get("patience") or 0
+        base |= sections.get("settings", {})
+    return TrainSettings.parse(flags, base=base)
 
 
 def training_sections(
@@ -109,11 +137,13 @@ def train_job(
     settings = settings or TrainSettings()
     preset = settings.preset
     model_over, data_over, trainer_over = training_sections(settings, config)
-    result = train_hybrid(
-        data, base, cond, preset_name=preset, model=model_over, datamodule=data_over,
-        max_epochs=trainer_over.get("max_epochs"), patience=trainer_over.get("patience", "preset"),
-        seed=seed, logdir=logdir, progress=progress, strategy=strategy, devices=devices,
-    )  # fmt: skip
+    with HYBRID_TUNING.using(settings.tuning):  # the modules read it while training
+        result = train_hybrid(
+            data, base, cond, preset_name=preset, model=model_over, datamodule=data_over,
+            max_epochs=trainer_over.get("max_epochs"),
+            patience=trainer_over.get("patience", "preset"), seed=seed, logdir=logdir,
+            progress=progress, strategy=strategy, devices=devices,
+        )  # fmt: skip
     frames_fitted = loaded.frames_fitted or fit_frames
     metadata = {k: v for k, v in loaded.metadata.items() if k != "created"}
     metadata["training"] = {

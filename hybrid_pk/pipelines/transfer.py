@@ -27,13 +27,7 @@ from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.calibration.settings import DiagnosisSettings
 from hybrid_pk.data import MeasuredData
-from hybrid_pk.effects import (
-    Conditions,
-    ExtendedModel,
-    Gravity,
-    conditions_from_data,
-    make_effect,
-)
+from hybrid_pk.effects import Conditions, ExtendedModel, Gravity, conditions_from_data, make_effect
 from hybrid_pk.evaluation.metrics import error_stats, row_errors
 from hybrid_pk.robot import Robot
 

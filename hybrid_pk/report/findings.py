@@ -6,7 +6,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from hybrid_pk.calibration.diagnosis.budget import OPTIONAL_SHARE
 from hybrid_pk.report.markdown import fmt, markdown_table
 
 __all__ = ["frames_section", "robust_section", "structural_section"]
@@ -45,8 +44,9 @@ def structural_section(diagnosis) -> list[str]:
         ]
     cut = structural.get("budget_cut")
     if cut:
+        share = diagnosis.budget["share"]  # the tuning's optional_share
         lines += [
-            f"The search stopped on its time budget ({100 * OPTIONAL_SHARE:g} % of the main "
+            f"The search stopped on its time budget ({100 * share:g} % of the main "
             f"search's time, shared by the optional stages) before: {', '.join(cut['not_done'])}.",
             "",
         ]

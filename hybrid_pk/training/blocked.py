@@ -32,21 +32,16 @@ from hybrid_pk.hybrid.losses import (
 )
 from hybrid_pk.hybrid.posture import moving_joints
 from hybrid_pk.hybrid.stage import combine_stages
+from hybrid_pk.hybrid.tuning import hybrid_tuning
 from hybrid_pk.robot import Robot
 
 __all__ = [
-    "QUARTER",
     "Block",
     "blocked_blocks",
     "blocked_check",
     "fold_rows",
     "probe_folds",
 ]
-
-# An end quarter: a region the rest of the rows does not surround (extrapolation, as to
-# another workspace), small enough that the probe still trains on most rows.
-QUARTER = 0.25
-_MIN_ROWS = 10  # a block with fewer rows says nothing about a region
 
 
 @dataclass(frozen=True)
@@ -71,15 +66,17 @@ def blocked_blocks(robot: Robot, q: Tensor, files: Tensor | None = None) -> list
     """The blocks of training rows ``q (N, dof)`` (``files``: their file indices)."""
     q = q.detach().to(torch.float64)
     n, out = q.shape[0], []
+    tuning = hybrid_tuning()
+    quarter = tuning.block_quarter
     for j in [0, *moving_joints(robot, q)[:1]]:
-        lo, hi = torch.quantile(q[:, j], QUARTER), torch.quantile(q[:, j], 1 - QUARTER)
+        lo, hi = torch.quantile(q[:, j], quarter), torch.quantile(q[:, j], 1 - quarter)
         name = robot.joint_names[j]
         for block in (
             Block(f"{name} low quarter", j, upper=float(lo)),
             Block(f"{name} high quarter", j, lower=float(hi)),
         ):
             rows = int(block.mask(q, files).sum())
-            if _MIN_ROWS <= rows <= n // 2:  # a joint that barely moves has no ends
+            if tuning.min_block_rows <= rows <= n // 2:  # a joint that barely moves has no ends
                 out.append(block)
     if files is not None and int(files.unique().numel()) > 1:
         out += [Block(f"file {int(f) + 1}", file=int(f)) for f in files.unique()]

@@ -105,7 +105,8 @@ def settings_from_config(path: str | Path) -> dict[str, dict]:
 
     ``data`` leaves out the file paths (``data``, ``model``); ``trainer`` keeps
     ``max_epochs`` and the ``patience`` of an ``EarlyStopping`` callback (None when the
-    config has none).
+    config has none); ``settings`` (if any) the top-level ``preset`` and ``tuning`` that
+    ``hybrid-pk train`` reads (:func:`hybrid_pk.pipelines.training.train_settings`).
 
     Raises:
         HybridPKError: the file cannot be read or is not a mapping.
@@ -128,4 +129,8 @@ def settings_from_config(path: str | Path) -> dict[str, dict]:
     for cb in raw.get("callbacks") or []:
         if isinstance(cb, dict) and str(cb.get("class_path", "")).endswith("EarlyStopping"):
             trainer["patience"] = int(cb.get("init_args", {}).get("patience", 3))
-    return {"model": model, "data": data, "trainer": trainer}
+    # hybrid-pk train's own keys: the preset the sections sit over, the hybrid's tuning
+    settings = {k: cfg[k] for k in ("preset", "tuning") if k in cfg}
+    return {"model": model, "data": data, "trainer": trainer} | (
+        {"settings": settings} if settings else {}
+    )

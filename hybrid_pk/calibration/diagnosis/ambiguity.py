@@ -19,10 +19,9 @@ from torch import Tensor
 
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.calibration.problem import ParamBlock
+from hybrid_pk.calibration.tuning import diagnosis_tuning
 
 __all__ = [
-    "AMBIGUITY_CORRELATION",
-    "AMBIGUITY_COSINE",
     "correlated_groups",
     "equivalent_to_frame",
     "explained_fraction",
@@ -30,11 +29,6 @@ __all__ = [
     "near_duplicates",
     "projector_residual",
 ]
-
-# Signatures more alike than this (|cosine| of the projected columns) are ambiguous.
-AMBIGUITY_COSINE = 0.98
-# Estimates correlated beyond this are reported as an ambiguous group.
-AMBIGUITY_CORRELATION = 0.95
 
 
 def projector_residual(Jc: Tensor, Q: Tensor) -> Tensor:
@@ -79,13 +73,13 @@ def equivalent_to_frame(label: str, other: str, frac: float) -> dict:
 
 def near_duplicates(label: str, fitted: Tensor, signatures: dict[str, Tensor]) -> list[dict]:
     """Entries for the candidates whose signature could make ``label``'s correction
-    ``fitted`` nearly as well (|cos| above :data:`AMBIGUITY_COSINE`)."""
+    ``fitted`` nearly as well (|cos| above the tuning's ``ambiguity_cosine``)."""
     out = []
     for other, Jo in signatures.items():
         if other == label:
             continue
         cos = explained_fraction(fitted, Jo)
-        if cos > AMBIGUITY_COSINE:
+        if cos > diagnosis_tuning().ambiguity_cosine:
             out.append(
                 {
                     "effects": [label, other],
@@ -100,7 +94,7 @@ def near_duplicates(label: str, fitted: Tensor, signatures: dict[str, Tensor]) -
 def correlated_groups(res: FitResult) -> list[dict]:
     """Entries for strongly correlated estimates (frames included, frame pairs not)."""
     out, seen = [], set()
-    for a, _, b, _, r in res.correlated_pairs(AMBIGUITY_CORRELATION):
+    for a, _, b, _, r in res.correlated_pairs(diagnosis_tuning().ambiguity_correlation):
         if (a, b) in seen or (a.endswith("_frame") and b.endswith("_frame")):
             continue
         seen.add((a, b))

@@ -28,11 +28,10 @@ from torch import Tensor
 
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.problem import ParamBlock, Problem
+from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.effects import ExtendedModel
 
 __all__ = [
-    "CHECK_ROWS",
-    "REGION_BLOCKS",
     "Blocked",
     "BlockedScore",
     "Folds",
@@ -41,20 +40,6 @@ __all__ = [
     "practical_margin",
 ]
 
-# Regions of joint space held out in turn: each a fifth of the workspace, far enough
-# from the others that a cause must extrapolate, and still holding a fifth of the rows.
-REGION_BLOCKS = 5
-# A region needs this many rows (4 x a six-parameter frame pair): fewer, fewer regions.
-MIN_BLOCK_ROWS = 24
-# Joints whose median lever (point motion per radian) is at least this share of the
-# largest one's move the point comparably: regions are cut along them.
-LEVER_SHARE = 0.5
-# The default practical margin is the standard error sigma / sqrt(2 n) of an RMS error
-# measured on a check of this many poses (the rows a re-stationed set-up re-fits its
-# frames on): a smaller gain is one no check of the model could confirm.
-CHECK_ROWS = 50
-# k-means iterations (Lloyd); the blocks only need to be contiguous, not optimal.
-KMEANS_ITERATIONS = 25
 # A frame column the training rows of a block see less than this share of (relative to
 # all rows) belongs to the held-out file alone: re-fitted on the held-out rows.
 UNSEEN_SHARE = 1e-9
@@ -62,10 +47,10 @@ UNSEEN_SHARE = 1e-9
 
 def practical_margin(sigma_pos_mm: float, override: float | None = None) -> float:
     """The smallest blocked hold-out gain [mm] a cause must bring: ``override`` (the
-    ``--min-gain-mm`` option) or ``sigma / sqrt(2 CHECK_ROWS)`` (see :data:`CHECK_ROWS`)."""
+    ``--min-gain-mm`` option) or ``sigma / sqrt(2 n)`` with n the tuning's ``check_rows``."""
     if override is not None:
         return float(override)
-    return float(sigma_pos_mm) / math.sqrt(2 * CHECK_ROWS)
+    return float(sigma_pos_mm) / math.sqrt(2 * diagnosis_tuning().check_rows)
 
 
 @dataclass(frozen=True)
@@ -91,7 +76,8 @@ def make_folds(model: ExtendedModel, split: Split, seed: int) -> Folds | None:
     data = split.train
     files = data.file_index if len(data.sources) > 1 else torch.zeros(data.n, dtype=torch.long)
     n_files = int(files.max()) + 1 if data.n else 1
-    k = min(REGION_BLOCKS, data.n // MIN_BLOCK_ROWS)
+    tuning = diagnosis_tuning()
+    k = min(tuning.region_blocks, data.n // tuning.min_block_rows)
     joints, region = [], torch.zeros(data.n, dtype=torch.long)
     if k >= 2:
         joints, x = _lever_coordinates(model, split)
@@ -115,8 +101,8 @@ def make_folds(model: ExtendedModel, split: Split, seed: int) -> Folds | None:
 
 @torch.no_grad()
 def _lever_coordinates(model: ExtendedModel, split: Split) -> tuple[list[int], Tensor]:
-    """The joints that move the measured point most (:data:`LEVER_SHARE`) and each fit
-    row's coordinates along them in metres (angle x median lever)."""
+    """The joints that move the measured point most (the tuning's ``lever_share``) and
+    each fit row's coordinates along them in metres (angle x median lever)."""
     data, cond = split.train, split.cond_fit
     p0 = model(data.q, cond)[:, :3, 3]
     step = 1e-6  # [rad or m] finite-difference step of the point Jacobian
@@ -127,7 +113,8 @@ def _lever_coordinates(model: ExtendedModel, split: Split) -> tuple[list[int], T
         p1 = model(data.q + dq, cond)[:, :3, 3]
         levers.append(float(((p1 - p0) / step).norm(dim=-1).median()))
     top = max(levers)
-    joints = [j for j, v in enumerate(levers) if v >= LEVER_SHARE * top and v > 0]
+    share = diagnosis_tuning().lever_share
+    joints = [j for j, v in enumerate(levers) if v >= share * top and v > 0]
     x = torch.stack([data.q[:, j] * levers[j] for j in joints], 1)
     return joints, x
 
@@ -141,7 +128,7 @@ def _kmeans(x: Tensor, k: int, seed: int) -> Tensor:
         d = torch.cdist(x, torch.stack(centres)).min(1).values ** 2
         centres.append(x[int(torch.multinomial(d / d.sum().clamp_min(1e-300), 1, generator=g))])
     c = torch.stack(centres)
-    for _ in range(KMEANS_ITERATIONS):
+    for _ in range(diagnosis_tuning().kmeans_iterations):
         label = torch.cdist(x, c).argmin(1)
         c = torch.stack([x[label == i].mean(0) if (label == i).any() else c[i] for i in range(k)])
     label = torch.cdist(x, c).argmin(1)

@@ -3,7 +3,8 @@
 The main search (frames, forward selection with elimination, each cause's gain) is
 the diagnosis; the stages after it that only add a finding (the swaps for fewer
 causes, the search for a structural error, the check of a search that stopped at
-its limit) get, together, ``OPTIONAL_SHARE`` of the main search's wall time. Measured
+its limit) get, together, a share of the main search's wall time (the tuning's
+``optional_share``). Measured
 in the same process, the budget scales with the machine's speed and load as the
 main search does. A stage that the budget cuts short says what it left undone
 (:meth:`Budget.cut`), and the diagnosis reports it (``budget`` in its JSON).
@@ -17,18 +18,16 @@ from __future__ import annotations
 
 import time
 
-__all__ = ["OPTIONAL_SHARE", "Budget"]
+from hybrid_pk.calibration.tuning import diagnosis_tuning
 
-# The optional stages together take at most a quarter of the main search's time: at
-# most a fifth of the whole diagnosis (issue 30's bound on the structural search).
-OPTIONAL_SHARE = 0.25
+__all__ = ["Budget"]
 
 
 class Budget:
     """Wall-time budget of the optional stages, started when the main search is."""
 
     def __init__(self, share: float | None = None) -> None:
-        self.share = OPTIONAL_SHARE if share is None else share
+        self.share = diagnosis_tuning().optional_share if share is None else share
         self.start = time.perf_counter()
         self.main_s: float | None = None
         self.cuts: list[dict] = []

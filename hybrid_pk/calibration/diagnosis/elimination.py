@@ -17,14 +17,10 @@ from hybrid_pk.calibration.diagnosis.variants import (
     without_effect,
 )
 from hybrid_pk.calibration.fit import FitResult, fit
+from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.effects import ExtendedModel
 
-__all__ = ["LINEARISED_MARGIN", "eliminate"]
-
-# A cause stays without a refit when its linearised removal F exceeds the critical F by
-# this factor: the refit's F differs from the linearised one by the model's nonlinearity
-# over the removal (well under 1 % for effects of this size), never by a factor of 3.
-LINEARISED_MARGIN = 3.0
+__all__ = ["eliminate"]
 
 
 def eliminate(
@@ -83,7 +79,7 @@ def _least_significant(
     among those with ``p >= threshold``; None when every cause is significant.
 
     A cause whose linearised removal statistic (Wald) exceeds the critical F by
-    :data:`LINEARISED_MARGIN` stays without a refit; the others are decided by the
+    the tuning's ``linearised_margin`` stays without a refit; the others are decided by the
     F-test of the refitted reduced model.
     """
     train, cond = split.train, split.cond_fit
@@ -97,7 +93,7 @@ def _least_significant(
         if res.normal_matrix is not None:
             increase, _ = linearised_removal(res, e.label)
             F_lin = (increase / k) / max(ssr_full / dof, 1e-300)
-            if F_lin > LINEARISED_MARGIN * f_critical(threshold, k, dof):
+            if F_lin > diagnosis_tuning().linearised_margin * f_critical(threshold, k, dof):
                 continue  # clearly significant: the refit could not change the decision
         say(f"testing whether {e.label} is still needed")
         reduced = refit_without(model, e.label, train, cond, res, say)

@@ -28,13 +28,13 @@ from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.variants import with_effects
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.calibration.problem import Problem, param_blocks
+from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.effects import ExtendedModel, make_effect
 from hybrid_pk.effects.joint import CYCLIC_PREFIX
 from hybrid_pk.effects.limits import effect_limit
 from hybrid_pk.errors import HybridPKError
 
 __all__ = [
-    "POWER",
     "beyond_credible",
     "check_determined",
     "detectable_json",
@@ -46,16 +46,14 @@ __all__ = [
     "nothing_above",
 ]
 
-# Probability of detection the limits are stated at (the usual design power).
-POWER = 0.8
 
-
-def noncentrality(alpha: float, d1: int, d2: int, power: float = POWER) -> float:
+def noncentrality(alpha: float, d1: int, d2: int, power: float | None = None) -> float:
     """``lambda`` at which the F-test of level ``alpha`` with ``(d1, d2)`` degrees of
     freedom rejects with probability ``power`` (noncentral F; chi-squared for large
     ``d2``, where the two agree)."""
     from scipy import optimize, stats
 
+    power = diagnosis_tuning().power if power is None else power
     if d2 > 1e5:  # F(d1, inf) = chi2(d1) / d1: the noncentral chi-squared
         crit = float(stats.chi2.isf(alpha, d1))
 
@@ -132,7 +130,7 @@ def detection_limits(
                 "unit": effect.unit,
                 "mm_rms": moved,
                 "alpha": level,
-                "power": POWER,
+                "power": diagnosis_tuning().power,
             }
         )
     return out
@@ -199,7 +197,7 @@ def detectable_json(model: ExtendedModel, detectable: list[dict], sigma_pos_mm: 
     """The ``detectable`` field of the diagnosis JSON."""
     blind = beyond_credible(model, detectable)
     return {
-        "power": POWER,
+        "power": diagnosis_tuning().power,
         "limits": detectable,
         "beyond_credible": blind,
         "summary": nothing_above(detectable),

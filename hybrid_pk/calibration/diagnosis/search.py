@@ -56,6 +56,7 @@ from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.calibration.robust import OUTLIER_K, down_weighted, list_outliers
 from hybrid_pk.calibration.settings import DiagnosisSettings
+from hybrid_pk.calibration.tuning import DiagnosisTuning, diagnosis_tuning, tuned
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import ExtendedModel, Gravity, conditions_from_data, make_effect
 from hybrid_pk.robot import Robot
@@ -63,13 +64,12 @@ from hybrid_pk.threads import sized_by_data
 
 __all__ = ["Cause", "Diagnosis", "candidate_labels", "diagnose", "plausibility_warnings"]
 
-# A candidate whose refit fails is set aside; the search stops after this many in a row.
-MAX_REJECTED_IN_A_ROW = 2
 # The keywords' defaults: the settings' (one source of each default).
 _D = DiagnosisSettings()
 
 
 @sized_by_data
+@tuned
 def diagnose(
     robot: Robot,
     data: MeasuredData,
@@ -85,6 +85,7 @@ def diagnose(
     robust: str | None = None,
     gravity: Gravity | None = None,
     min_gain_mm: float | None = None,
+    tuning: DiagnosisTuning | None = None,
 ) -> Diagnosis:
     """Name the physical causes of the nominal model's errors on ``data``.
 
@@ -106,6 +107,7 @@ def diagnose(
         min_gain_mm: the practical margin [mm] every cause must gain on the blocked
             hold-out (:mod:`.blocked`); None: from the noise estimate
             (:func:`.blocked.practical_margin`).
+        tuning: the diagnosis' tuning constants (default :class:`DiagnosisTuning`()).
     """
     say = progress or (lambda _msg: None)
     robot.requires_grad_(False)
@@ -264,7 +266,7 @@ def _select(
             flagged.append(implausible)
         if not step["accepted"]:
             rejected_in_a_row += 1
-            if rejected_in_a_row >= MAX_REJECTED_IN_A_ROW:
+            if rejected_in_a_row >= diagnosis_tuning().max_rejected_in_a_row:
                 break
             continue
         rejected_in_a_row = 0

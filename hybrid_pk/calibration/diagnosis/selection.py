@@ -33,6 +33,7 @@ from hybrid_pk.calibration.diagnosis.statistics import (
 )
 from hybrid_pk.calibration.diagnosis.variants import shift_parameters, with_effects
 from hybrid_pk.calibration.fit import FitResult, fit, reestimated_noise
+from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import EFFECTS, ExtendedModel, effect_joint_names, make_effect
 from hybrid_pk.effects.base import Effect, effect_joint_types
@@ -54,8 +55,6 @@ EQUIVALENCE_FRACTION = 1e-8
 # Singular values of a candidate's projected signature below this fraction of its own
 # norm are directions the current model already explains.
 RANK_TOLERANCE = 1e-4
-# Temperature must vary by at least this much [K] for thermal expansion to be tested.
-MIN_TEMPERATURE_SPREAD = 0.5
 
 
 def candidate_labels(robot: Robot, data: MeasuredData) -> list[str]:
@@ -80,7 +79,8 @@ def _observable(cls: type[Effect], data: MeasuredData) -> bool:
         return True
     if data.temperature is None:
         return False
-    return float(data.temperature.max() - data.temperature.min()) >= MIN_TEMPERATURE_SPREAD
+    spread = float(data.temperature.max() - data.temperature.min())
+    return spread >= diagnosis_tuning().min_temperature_spread
 
 
 def cyclic_candidates(robot: Robot, data: MeasuredData) -> list[str]:

@@ -13,7 +13,7 @@ when its value is beyond what the physics it names can be:
 - any other effect with a value of unit rad / m beyond the rotation / translation
   limit;
 
-or when its *signature is mostly the frames'*: more than ``MAX_FRAME_SHARE`` of the
+or when its *signature is mostly the frames'*: more than the tuning's ``max_frame_share`` of the
 displacement it makes is what a change of the base and tool frames makes too, so its
 value measures a trade-off with the frames, not a physical error.
 
@@ -37,6 +37,7 @@ from hybrid_pk.calibration.diagnosis.budget import Budget
 from hybrid_pk.calibration.fit import fit, model_errors
 from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.calibration.problem import Problem, param_blocks
+from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import (
     Conditions,
@@ -48,9 +49,7 @@ from hybrid_pk.effects import (
 from hybrid_pk.effects.geometric import AxisMisalignment, LinkLength
 from hybrid_pk.effects.joint import JointOffset
 from hybrid_pk.effects.limits import (
-    MAX_BACKLASH_DEG,
     MAX_COMPLIANCE,
-    MAX_GEAR_RATIO,
     MAX_ROTATION_DEG,
     MAX_TRANSLATION_M,
     effect_limit,
@@ -59,10 +58,6 @@ from hybrid_pk.geometry import so3_exp, so3_log
 from hybrid_pk.robot import Robot
 
 __all__ = [
-    "MAX_BACKLASH_DEG",
-    "MAX_COMPLIANCE",
-    "MAX_FRAME_SHARE",
-    "MAX_GEAR_RATIO",
     "MAX_ROTATION_DEG",
     "MAX_TRANSLATION_M",
     "displacement",
@@ -73,18 +68,8 @@ __all__ = [
     "structural_check",
 ]
 
-MAX_FRAME_SHARE = 0.98
 # Rows the frame share is computed on (an even subset of larger data).
 FRAME_SHARE_ROWS = 2000
-# The structural correction of a joint is fitted from these starting rotations too
-# (about the two axes perpendicular to the joint axis) when the plain start leaves
-# more than this fraction of the error.
-RESTART_FRACTION = 0.2
-# A nominal hold-out mean error beyond this [mm] is not what small corrections make.
-GROSS_ERROR_MM = 20.0
-# A structural correction that leaves less than this fraction of the nominal hold-out
-# error explains it.
-STRUCTURAL_FRACTION = 0.2
 
 
 def _finding(cause: str, value, limit: float | None, unit: str, why: str) -> dict:
@@ -281,9 +266,9 @@ def locate_structural_error(
     limits on the fit rows) leaves the smallest mean hold-out error.
 
     Joints named in ``hint`` (those of implausible causes) are tried first; the search
-    stops at the first correction that explains the error (leaves less than
-    ``STRUCTURAL_FRACTION`` of it). Only when none does, each joint is refitted from
-    quarter and half turns about its perpendicular axes (a large rotation is out of
+    stops at the first correction that explains the error (leaves less than the
+    tuning's ``structural_fraction`` of it). Only when none does, each joint is refitted
+    from quarter and half turns about its perpendicular axes (a large rotation is out of
     reach of a fit that starts at zero), the joints whose plain correction left the
     least first. With a ``budget`` the search stops before a fit that would overrun it
     (one as long as the slowest so far; the plain fits of the hinted joints, or of the
@@ -321,7 +306,8 @@ def locate_structural_error(
             best = (joint, after, model)
         k += 1
         joint_done = k == len(tasks) or tasks[k][0] != joint or tasks[k][1] is None
-        if joint_done and best[1] < STRUCTURAL_FRACTION * before:  # the best of a joint's starts
+        explained = best[1] < diagnosis_tuning().structural_fraction * before
+        if joint_done and explained:  # the best of a joint's starts
             break
         if k == len(joints):  # no plain correction explains it: the turned starts
             tasks += [(j, t) for j in sorted(joints, key=plain.get) for t in _TURNS]
@@ -381,8 +367,8 @@ def structural_check(
         ``(causes, structural)``: the causes that stay plain causes, and the
         ``"structural"`` section (None when every cause is a small correction and the
         nominal error is not gross). When a structural correction explains the errors
-        (it leaves less than ``STRUCTURAL_FRACTION`` of the hold-out error), no cause is
-        listed: those found were fitted on a wrong structure and are withheld.
+        (it leaves less than the tuning's ``structural_fraction`` of the hold-out
+        error), no cause is listed: those found were fitted on a wrong structure and are withheld.
     """
     robot = model.robot
     findings, keep = list(flagged), []
@@ -391,7 +377,7 @@ def structural_check(
         why = implausibility(model.effect(label), robot, split.train)
         if why is None:
             share, _, _ = frame_share(model, label, split.train, split.cond_fit)
-            if share > MAX_FRAME_SHARE:
+            if share > diagnosis_tuning().max_frame_share:
                 why = _finding(
                     label,
                     c.value,
@@ -403,7 +389,7 @@ def structural_check(
                 )
         (keep if why is None else findings).append(c if why is None else why)
     before = float(model_errors(nominal, split.test, split.cond_hold)[0].mean())
-    if not findings and before < GROSS_ERROR_MM:
+    if not findings and before < diagnosis_tuning().gross_error_mm:
         return causes, None
     hint = [f["cause"].partition(":")[2] for f in findings]
     cuts = len(budget.cuts) if budget is not None else 0
@@ -411,7 +397,7 @@ def structural_check(
     cut = budget.cuts[-1] if budget is not None and len(budget.cuts) > cuts else None
     explained = (
         location is not None
-        and location["holdout_mean_mm_after"] < STRUCTURAL_FRACTION * before
+        and location["holdout_mean_mm_after"] < diagnosis_tuning().structural_fraction * before
         and (location["rotation_deg"] > MAX_ROTATION_DEG
              or location["translation_mm"] > 1e3 * MAX_TRANSLATION_M)
     )  # fmt: skip
