@@ -157,6 +157,7 @@ def _run_new(args: argparse.Namespace) -> int:
             robot, data, None if auto else labels, frames_per_file=args.frames_per_file,
             holdout=settings.holdout, seed=settings.seed, priors=priors, robust=robust,
             gravity=gravity, stage=bar.stage, progress=bar, min_gain_mm=settings.min_gain_mm,
+            tuning=settings.tuning,
         )  # fmt: skip
         model, res, res0, diag = result.model, result.fit, result.nominal_fit, result.diagnosis
         bar.stage("leave one file out")

@@ -20,6 +20,7 @@ from hybrid_pk.calibration.fit import FitResult, fit
 from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.calibration.settings import DiagnosisSettings
+from hybrid_pk.calibration.tuning import DiagnosisTuning
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import Conditions, Effect, ExtendedModel, conditions_from_data, make_effect
 from hybrid_pk.effects.gravity import Gravity
@@ -104,6 +105,7 @@ def calibrate(
     stage: Callable[[str], None] | None = None,
     progress: Callable[[str], None] | None = None,
     min_gain_mm: float | None = None,
+    tuning: DiagnosisTuning | None = None,
 ) -> CalibrationResult:
     """Fit base/tool frames and physical effects to ``data``.
 
@@ -116,6 +118,7 @@ def calibrate(
         stage: told the name of each step; ``progress``: the diagnosis' messages.
         min_gain_mm: the diagnosis' practical margin on the blocked hold-out (None: its
             default from the noise estimate).
+        tuning: the diagnosis' tuning constants (default: ``DiagnosisTuning()``).
     """
     stage = stage or (lambda _m: None)
     sets = len(data.sources) if frames_per_file else 1
@@ -126,7 +129,7 @@ def calibrate(
         diag = diagnose(
             robot, data, holdout=holdout, seed=seed, frames_per_file=frames_per_file,
             progress=progress, frames=priors, robust=robust, gravity=gravity,
-            min_gain_mm=min_gain_mm,
+            min_gain_mm=min_gain_mm, tuning=tuning,
         )  # fmt: skip
         labels = cause_labels(diag)
     stage("fitting frames to the nominal robot")
