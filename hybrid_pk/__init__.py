@@ -13,6 +13,8 @@ from hybrid_pk.calibration.diagnosis import Diagnosis as Diagnosis
 from hybrid_pk.calibration.diagnosis import diagnose as diagnose
 from hybrid_pk.calibration.fit import FitResult as FitResult
 from hybrid_pk.calibration.fit import fit as fit
+from hybrid_pk.calibration.settings import DiagnosisSettings as DiagnosisSettings
+from hybrid_pk.calibration.settings import FitSettings as FitSettings
 from hybrid_pk.data import MeasuredData as MeasuredData
 from hybrid_pk.data import read_table as read_table
 from hybrid_pk.data import read_table_for as read_table_for
@@ -51,8 +53,10 @@ __all__ = [
     "Conditions",
     "DataError",
     "Diagnosis",
+    "DiagnosisSettings",
     "ExtendedModel",
     "FitResult",
+    "FitSettings",
     "Gravity",
     "HybridFK",
     "HybridPKError",

@@ -16,7 +16,10 @@
 - :mod:`~hybrid_pk.calibration.least_squares`: the Levenberg–Marquardt solver and the
   forward-mode Jacobian it uses by default;
 - :mod:`~hybrid_pk.calibration.diagnosis`: :func:`diagnose`, which effects the data
-  shows.
+  shows;
+- :mod:`~hybrid_pk.calibration.settings`: :class:`FitSettings` and
+  :class:`DiagnosisSettings` (the fit and diagnosis flags, typed, with their
+  defaults), :mod:`~hybrid_pk.calibration.tuning`: :class:`DiagnosisTuning`.
 """
 
 from hybrid_pk.calibration import fit as fit  # the module (see above)
@@ -33,11 +36,17 @@ from hybrid_pk.calibration.least_squares import levenberg_marquardt as levenberg
 from hybrid_pk.calibration.problem import ParamBlock as ParamBlock
 from hybrid_pk.calibration.problem import Problem as Problem
 from hybrid_pk.calibration.problem import param_blocks as param_blocks
+from hybrid_pk.calibration.settings import DiagnosisSettings as DiagnosisSettings
+from hybrid_pk.calibration.settings import FitSettings as FitSettings
+from hybrid_pk.calibration.tuning import DiagnosisTuning as DiagnosisTuning
 
 __all__ = [
     "Cause",
     "Diagnosis",
+    "DiagnosisSettings",
+    "DiagnosisTuning",
     "FitResult",
+    "FitSettings",
     "FramePriors",
     "FrameSpec",
     "LMResult",
