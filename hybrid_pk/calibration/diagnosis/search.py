@@ -64,8 +64,7 @@ from hybrid_pk.threads import sized_by_data
 
 __all__ = ["Cause", "Diagnosis", "candidate_labels", "diagnose", "plausibility_warnings"]
 
-# The keywords' defaults: the settings' (one source of each default).
-_D = DiagnosisSettings()
+_D = DiagnosisSettings()  # the keywords' defaults (one source of each default)
 
 
 @sized_by_data
