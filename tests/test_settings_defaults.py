@@ -92,7 +92,7 @@ def test_settings_check_ranges_from_the_api_and_the_flags(capsys):
     with pytest.raises(SystemExit):
         build_parser().parse_args(["diagnose", "d.csv", "--robot", "ur10", "--json", "x",
                                    "--alpha", "2"])  # fmt: skip
-    assert "fraction of the rows in (0, 1)" in capsys.readouterr().err
+    assert "expected a probability in (0, 1), got 2" in capsys.readouterr().err
     settings = DiagnosisSettings.parse({"candidates": ["joint_offset:joint_2"], "seed": 3})
     assert (settings.candidates, settings.seed, settings.holdout) == (
         ["joint_offset:joint_2"],

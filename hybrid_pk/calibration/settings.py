@@ -47,6 +47,10 @@ def _at_least_one(value: int) -> str | None:
     return None if value >= 1 else f"expected at least 1, got {value}"
 
 
+def _probability(value: float) -> str | None:
+    return None if 0.0 < value < 1.0 else f"expected a probability in (0, 1), got {value:g}"
+
+
 def _count(value: int) -> str | None:
     return None if value >= 0 else f"expected 0 or more, got {value}"
 
@@ -161,7 +165,7 @@ class DiagnosisSettings(FitSettings):
     alpha: float = setting(
         1e-3,
         "false-positive rate of the significance test per selection step (default: {default})",
-        check=in_open_unit,
+        check=_probability,
     )
     max_causes: int = setting(8, "stop after N causes (default: {default})", "N",
                                check=_at_least_one)  # fmt: skip
