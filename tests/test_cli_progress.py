@@ -45,3 +45,52 @@ def test_a_quick_command_prints_nothing():
     bar.close()
     assert stream.getvalue() == ""
     assert set(bar.seconds) == {"reading data", "predicting"}
+
+
+def _leaf_parsers(parser, words=()):
+    """``(command words, parser)`` of every command that runs (``import ipa``, not
+    ``import``)."""
+    import argparse
+
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    if not subs:
+        yield words, parser
+    for action in subs:
+        for name, sub in action.choices.items():
+            yield from _leaf_parsers(sub, (*words, name))
+
+
+def test_every_command_takes_no_progress():
+    from hybrid_pk.cli.main import build_parser
+
+    leaves = list(_leaf_parsers(build_parser()))
+    assert len(leaves) >= 14  # 10 commands + import's 4 formats
+    refused = [
+        " ".join(words)
+        for words, parser in leaves
+        if getattr(parser._option_string_actions.get("--no-progress"), "dest", None)
+        != "no_progress"
+    ]
+    assert not refused, f"--no-progress refused by: {refused}"
+
+
+def test_no_progress_silences_the_bars_a_command_opens(monkeypatch, capsys, tmp_path):
+    """calibrate opens its bar without being told about the flag: main's switch holds it."""
+    import hybrid_pk.cli.calibrate_cmd as calibrate_cmd
+    from hybrid_pk.cli.main import main
+    from hybrid_pk.cli.progress import progress
+
+    def run(args):
+        with progress("calibrate", 2, delay=0.0) as bar:
+            bar.stage("reading data")
+            bar.stage("fitting")
+        return 0
+
+    monkeypatch.setattr(calibrate_cmd, "run", run)
+    argv = ["calibrate", str(tmp_path / "d.csv"), "--robot", "rx160", "--out", "m.pt"]
+    assert main(argv) == 0
+    assert "calibrate [" in capsys.readouterr().err  # the bar shows by default
+    assert main([*argv, "--no-progress"]) == 0
+    assert capsys.readouterr().err == ""
+    assert main(argv) == 0  # the switch does not outlive the command
+    assert "fitting" in capsys.readouterr().err

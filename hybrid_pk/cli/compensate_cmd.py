@@ -12,7 +12,6 @@ from hybrid_pk.cli.options import (
     add_frame_set,
     add_model,
     add_out,
-    add_progress,
 )
 from hybrid_pk.cli.progress import progress
 from hybrid_pk.errors import HybridPKError
@@ -78,7 +77,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     add_frame_set(p)
     add_approach(p)
-    add_progress(p)
 
 
 def _summary(comp: Compensation, args, robot, kind: str) -> list[str]:

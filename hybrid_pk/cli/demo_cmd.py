@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 
-from hybrid_pk.cli.options import add_epochs, add_noise, add_out, add_progress, add_robot, add_seed
+from hybrid_pk.cli.options import add_epochs, add_noise, add_out, add_robot, add_seed
 from hybrid_pk.cli.progress import progress
 from hybrid_pk.pipelines.demo import (
     DEFAULT_ROBOT,
@@ -64,7 +64,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     add_epochs(p, default=100)
     add_seed(p, default=7, what="seed of the campaign, the diagnosis split and the training")
-    add_progress(p)
 
 
 def run(args: argparse.Namespace) -> int:

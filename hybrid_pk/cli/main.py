@@ -19,6 +19,7 @@ import sys
 from collections.abc import Sequence
 
 from hybrid_pk.cli.options import command_parser
+from hybrid_pk.cli.progress import shown
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.threads import configure as configure_threads
 
@@ -62,7 +63,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         configure_threads(getattr(args, "threads", None))
-        return int(args.func(args) or 0)
+        with shown(not getattr(args, "no_progress", False)):
+            return int(args.func(args) or 0)
     except (HybridPKError, OSError, ValueError) as exc:
         if args.debug:
             raise

@@ -6,7 +6,8 @@ its own flags. A new flag that more than one command takes belongs here; one tha
 only a single command takes stays in that command's module.
 
 Groups:
-    the command itself: :func:`command_parser` (with :func:`add_threads`, every command)
+    the command itself: :func:`command_parser` (with :func:`add_threads` and
+        :func:`add_progress`, every command)
     robot and model: :func:`add_robot`, :func:`add_end_link`, :func:`add_model`
     data: :func:`add_data` (DATA..., --frames-per-file, --skip-bad-rows)
     fits: :func:`add_fit_frames` (the fits' own flags are derived from
@@ -14,7 +15,7 @@ Groups:
         :class:`~hybrid_pk.calibration.settings.DiagnosisSettings`:
         :func:`hybrid_pk.cli.settings_flags.add_settings_flags`)
     outputs: :func:`add_out`, :func:`add_json`, :func:`add_report`
-    runs: :func:`add_seed`, :func:`add_epochs`, :func:`add_noise`, :func:`add_progress`
+    runs: :func:`add_seed`, :func:`add_epochs`, :func:`add_noise`
     solving for targets (ik, compensate): :func:`add_approach`, :func:`add_frame_set`
 """
 
@@ -62,7 +63,7 @@ APPROACH_HELP = (
 def command_parser(subparsers, name: str, *, help: str, description: str):
     """The parser of sub-command ``name``: ``help`` in the command list, ``description``
     (units, formats) kept as written in ``NAME --help``; every command takes
-    ``--threads`` (:func:`add_threads`)."""
+    ``--threads`` (:func:`add_threads`) and ``--no-progress`` (:func:`add_progress`)."""
     parser = subparsers.add_parser(
         name,
         help=help,
@@ -70,6 +71,7 @@ def command_parser(subparsers, name: str, *, help: str, description: str):
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_threads(parser)
+    add_progress(parser)
     return parser
 
 
@@ -249,7 +251,8 @@ def add_noise(parser: argparse.ArgumentParser, *, mm: float, deg: float) -> None
 
 
 def add_progress(parser: argparse.ArgumentParser) -> None:
-    """``--no-progress``: no progress bar on stderr (the summary is printed anyway)."""
+    """``--no-progress``: no progress bar on stderr (the summary is printed anyway);
+    :func:`hybrid_pk.cli.main.main` applies it to every bar the command opens."""
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
 
 

@@ -13,7 +13,6 @@ from hybrid_pk.cli.options import (
     add_json,
     add_noise,
     add_out,
-    add_progress,
     add_robot,
     add_seed,
 )
@@ -100,7 +99,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_seed(p, what="seed of the random candidates and of the random comparison poses")
     add_out(p, metavar="POSES", help="output joint table, .csv or .parquet")
     add_json(p, help="also write the prediction (std per parameter, condition) as JSON")
-    add_progress(p)
 
 
 def read_joint_box(path: str) -> dict[str, tuple[float, float]]:

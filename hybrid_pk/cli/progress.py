@@ -10,6 +10,9 @@ Lines of the first ``delay`` seconds are not printed: a quick command leaves onl
 summary. Off a terminal, inner steps are printed at most once a second: a step that
 comes sooner is printed a second after the previous line, with the time it came, unless
 a newer one replaced it by then (every stage start is printed at once).
+
+``--no-progress`` (every command) turns off every bar its command opens: ``main`` runs
+the command inside :func:`shown` ``(False)``.
 """
 
 from __future__ import annotations
@@ -22,7 +25,20 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import TextIO
 
-__all__ = ["Progress", "progress"]
+__all__ = ["Progress", "progress", "shown"]
+
+_SHOWN = [True]  # what a bar opened without ``enabled`` does; set by :func:`shown`
+
+
+@contextmanager
+def shown(on: bool) -> Iterator[None]:
+    """Within the block, bars opened without ``enabled`` show (``on``) or not."""
+    before = _SHOWN[0]
+    _SHOWN[0] = on
+    try:
+        yield
+    finally:
+        _SHOWN[0] = before
 
 
 class Progress:
@@ -33,7 +49,8 @@ class Progress:
         total: number of stages, if known.
         stream: where to write (default: ``sys.stderr`` at construction).
         delay: seconds before anything is shown.
-        enabled: False: nothing is shown (the stage times are still kept).
+        enabled: False: nothing is shown (the stage times are still kept); default:
+            shown unless inside ``shown(False)``.
 
     Attributes:
         seconds: wall time per finished stage [s], in order.
@@ -46,8 +63,9 @@ class Progress:
         *,
         stream: TextIO | None = None,
         delay: float = 0.5,
-        enabled: bool = True,
+        enabled: bool | None = None,
     ) -> None:
+        enabled = _SHOWN[0] if enabled is None else enabled
         self.name, self.total, self.delay, self.enabled = name, total, delay, enabled
         self.stream = sys.stderr if stream is None else stream
         self.start = time.monotonic()
@@ -178,7 +196,7 @@ class Progress:
 
 @contextmanager
 def progress(
-    name: str, total: int | None = None, *, delay: float = 0.5, enabled: bool = True
+    name: str, total: int | None = None, *, delay: float = 0.5, enabled: bool | None = None
 ) -> Iterator[Progress]:
     """A :class:`Progress` closed when the block ends (also on an error)."""
     bar = Progress(name, total, delay=delay, enabled=enabled)

@@ -10,7 +10,6 @@ from hybrid_pk.cli.options import (
     add_fit_frames,
     add_model,
     add_out,
-    add_progress,
     add_seed,
 )
 from hybrid_pk.cli.progress import progress
@@ -101,7 +100,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_fit_frames(
         p, help="first fit only the base and tool frames of MODEL to DATA (nominal:ROBOT)"
     )
-    add_progress(p)
 
 
 def _prepare(args, loaded, robot, sets: int):
