@@ -4,7 +4,7 @@ The residuals and their Jacobian are :class:`~hybrid_pk.calibration.problem.Prob
 position [mm] and small-angle rotation [rad] differences, each divided by its noise
 level so that mm and rad weigh by their evidence. Noise levels are estimated from the
 fit itself (a second, re-weighted pass), which also makes the parameter covariance
-``(J^T J)^-1`` meaningful.
+``(J^T J)^-1`` meaningful (computed from the SVD of ``J``: :mod:`.covariance`).
 
 Parameters are fitted in units of their ``scale`` (1 mm, 1 mrad, 1 µrad/Nm, …) so
 the normal equations are well conditioned.
@@ -18,6 +18,12 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from hybrid_pk.calibration.covariance import (
+    correlated_pairs,
+    parameter_names,
+    svd_covariance,
+    undetermined_groups,
+)
 from hybrid_pk.calibration.frame_hold import held_prior, join_rows
 from hybrid_pk.calibration.frames import FramePriors, PriorRows, prior_centres, prior_residual
 from hybrid_pk.calibration.identifiability import FrameReport, frame_report
@@ -56,6 +62,7 @@ class FitResult:
         x, std: ``(n,)`` values and 1-sigma standard deviations (physical units).
         corr: ``(n, n)`` correlation matrix of the estimates.
         singular_values: of the Jacobian with unit-norm columns (identifiability).
+        singular_vectors: ``(n, n)`` its right singular vectors, as rows.
         condition: ratio of largest to smallest singular value.
         sigma_pos_mm, sigma_rot_rad: per-coordinate noise estimated from residuals.
         position_mm, orientation_deg: per-sample errors after the fit.
@@ -91,6 +98,7 @@ class FitResult:
     weights: Tensor | None = None
     frame_report: FrameReport | None = None
     priors: FramePriors | None = None
+    singular_vectors: Tensor | None = None
 
     def settings(self) -> dict:
         """``fit()`` keyword arguments that refit under this fit's frame prior and
@@ -111,19 +119,16 @@ class FitResult:
         at ``|r| >= threshold`` or undetermined (NaN): ``(group_a, name_a, group_b,
         name_b, r)`` in parameter order, where a group is a block label up to its first
         ``.`` (``base_frame``) and a name adds the component (``link_length:joint_3[2]``)."""
-        names, groups = [], []
-        for b in self.blocks:
-            for k in range(b.size):
-                names.append(f"{b.label}[{k}]" if b.size > 1 else b.label)
-                groups.append(b.label.split(".")[0])
-        corr = self.corr
-        pairs = []
-        for i in range(corr.shape[0]):
-            for j in range(i + 1, corr.shape[0]):
-                r = float(corr[i, j])
-                if groups[i] != groups[j] and not abs(r) < threshold:
-                    pairs.append((groups[i], names[i], groups[j], names[j], r))
-        return pairs
+        return correlated_pairs(*parameter_names(self.blocks), self.corr, threshold)
+
+    def undetermined(self, max_condition: float) -> list[list[str]]:
+        """Names of the parameter groups these data cannot separate (a trade-off whose
+        singular value is below ``s_max / max_condition``; :mod:`.covariance`)."""
+        if self.singular_vectors is None:
+            return []
+        names = parameter_names(self.blocks)[0]
+        found = undetermined_groups(self.singular_values, self.singular_vectors, max_condition)
+        return [[names[i] for i in g] for g in found]
 
     def block_slice(self, label: str) -> slice:
         start = 0
@@ -393,19 +398,18 @@ def _covariance(problem: Problem, prior: PriorRows | None = None) -> dict:
     n_obs = problem.n_residuals
     s2 = float(z @ z) / max(n_obs - n_par, 1)
     normal = J.T @ J
-    cov_scaled = torch.linalg.pinv(normal) * s2
-    std = cov_scaled.diagonal().clamp_min(0).sqrt() * problem.scale
-    d = cov_scaled.diagonal().clamp_min(1e-300).sqrt()
-    corr = cov_scaled / (d[:, None] * d[None, :])
-    sv = torch.linalg.svdvals(J / J.norm(dim=0).clamp_min(1e-300))
+    svd = svd_covariance(J, n_obs, s2)
+    std = svd["cov"].diagonal().clamp_min(0).sqrt() * problem.scale
+    sv = svd["singular_values"]
     cost = float(z @ z)
     if prior is not None:  # the cost of the data alone (tests compare it with refits')
         r_prior = prior(torch.zeros_like(problem.x0))[0]
         cost -= float(r_prior @ r_prior)
     return {
         "std": std,
-        "corr": corr,
+        "corr": svd["corr"],
         "singular_values": sv,
+        "singular_vectors": svd["singular_vectors"],
         "condition": float(sv[0] / sv[-1].clamp_min(1e-300)),
         "n_obs": n_obs,
         "normal_matrix": normal,

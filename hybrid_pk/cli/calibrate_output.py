@@ -77,21 +77,27 @@ def error_summary(res: FitResult) -> dict:
 
 def condition_warning(res: FitResult, limit: int = 3) -> str | None:
     """The identifiability warning of an ill-conditioned fit, naming up to ``limit``
-    parameter pairs whose estimates are correlated at |r| >= 0.999; None if well posed."""
+    groups of parameters the data cannot separate (:meth:`FitResult.undetermined`) and
+    pairs whose estimates are correlated at |r| >= 0.999; None if well posed."""
     if res.condition < MAX_CONDITION:
         return None
+    groups = ["{" + ", ".join(g) + "}" for g in res.undetermined(MAX_CONDITION)]
     pairs = [f"{a} ~ {b} (r = {r:+.4f})" for _, a, _, b, r in res.correlated_pairs(0.999)]
-    which = (
-        "these trade off exactly: " + "; ".join(pairs[:limit])
-        if pairs
-        else "some parameter combination is not determined"
+    which = "; ".join(
+        part
+        for part in (
+            f"cannot separate: {'; '.join(groups[:limit])}" if groups else "",
+            f"these trade off exactly: {'; '.join(pairs[:limit])}" if pairs else "",
+        )
+        if part
     )
     return (
         f"warning: condition number {res.condition:.3g}: the rows cannot separate some "
-        f"parameters ({which}); their individual values and std are unreliable, their "
-        "sum is fine for prediction. Poses whose flange orientation never changes (only "
-        "ISO 9283 cube poses) cannot separate base and tool translation; components of "
-        "link lengths along parallel joint axes never separate"
+        f"parameters ({which or 'some parameter combination is not determined'}); their "
+        "individual values and std are unreliable, their sum is fine for prediction. "
+        "Poses whose flange orientation never changes (only ISO 9283 cube poses) cannot "
+        "separate base and tool translation; components of link lengths along parallel "
+        "joint axes never separate"
     )
 
 
