@@ -5,7 +5,8 @@ The convention (also in ``docs/code_blocks.md``):
 - Every fenced block tagged ``bash``, ``sh``, ``shell`` or ``python`` is code and runs.
   Untagged and ``text`` blocks (trees, output) are not code.
 - The blocks of one document run in order, in one fresh folder per document, so a
-  later block sees the files (and the shell variables) of the earlier ones. The folder
+  later block sees the files (and the shell variables: :func:`assigned_names`) of the
+  earlier ones. The folder
   stands where the repository root would: every top-level entry of the repository is
   linked into it (``train/``, ``experiments/``, ``bench/`` ...) and ``../shared`` is
   the shared data folder beside the repository.
@@ -55,13 +56,62 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["Block", "BlockFailure", "parse_blocks", "run_block_as_written", "run_document"]
+__all__ = [
+    "Block",
+    "BlockFailure",
+    "assigned_names",
+    "parse_blocks",
+    "run_block_as_written",
+    "run_document",
+]
 
 REPO = Path(__file__).resolve().parents[1]
 CODE_TAGS = {"bash": "bash", "sh": "bash", "shell": "bash", "python": "python"}
 DIRECTIVES = {"sub", "setup", "cd", "creates", "expect", "timeout", "skip", "long"}
 _FENCE = re.compile(r"^(?P<indent> *)(?P<fence>```+|~~~+)\s*(?P<tag>[\w+-]*)")
-_ASSIGNMENT = re.compile(r"^\s*(?:export\s+)?([A-Za-z_][A-Za-z0-9_]*)=", re.MULTILINE)
+_ASSIGNMENT = re.compile(r"(?:(?:export|declare|readonly|local)(?:\s+-\w+)*\s+)?([A-Za-z_]\w*)=")
+_CLOSE = {"(": ")", "{": "}"}
+
+
+def _word_end(line: str, i: int) -> int:
+    """Where the shell word starting at ``line[i]`` ends: quotes, ``$( )``, ``${ }``,
+    backquotes and backslashes are skipped over; an unquoted blank or ``;&|<>`` ends it."""
+    while i < len(line) and not line[i].isspace() and line[i] not in ";&|<>":
+        c = line[i]
+        if c == "\\":
+            i += 2
+        elif c in "'\"`":
+            i += 1
+            while i < len(line) and line[i] != c:
+                i += 2 if c != "'" and line[i] == "\\" else 1
+            i += 1
+        elif c == "$" and line[i + 1 : i + 2] in _CLOSE:
+            opening, depth, i = line[i + 1], 0, i + 1
+            while i < len(line):
+                depth += {opening: 1, _CLOSE[opening]: -1}.get(line[i], 0)
+                i += 1
+                if depth == 0:
+                    break
+        else:
+            i += 1
+    return i
+
+
+def assigned_names(code: str) -> list[str]:
+    """The shell variables a bash block sets: names of the lines (or ``;``-separated
+    parts) that are only assignments (``N=3000``, ``export OUT="a b"``, ``X=$(cmd)``).
+    ``VAR=value cmd`` sets VAR for that one command only, so it is not one of them."""
+    names: set[str] = set()
+    for line in code.splitlines():
+        for part in re.split(r"\s*(?:;|&&|\|\||\bthen\b|\bdo\b|\belse\b)\s*", line.strip()):
+            found, i = [], 0
+            while (m := _ASSIGNMENT.match(part, i)) is not None:
+                found.append(m[1])
+                i = _word_end(part, m.end())
+                i += len(part[i:]) - len(part[i:].lstrip())
+            if found and (i >= len(part) or part[i] == "#"):
+                names.update(found)
+    return sorted(names)
 
 
 class BlockFailure(AssertionError):
@@ -226,8 +276,9 @@ def _run_block(block: Block, work: Path, env: dict, state: Path) -> str:
         script.write_text(code, encoding="utf-8")
         output = _run([sys.executable, str(script)], cwd, env, timeout, what)
     else:
-        names = sorted(set(_ASSIGNMENT.findall(code)))
-        keep = f"\ndeclare -p {' '.join(names)} >> {shlex.quote(str(state))}\n" if names else ""
+        names = " ".join(assigned_names(code))  # one not set (a branch not taken) is skipped
+        keep = f"\n{{ declare -p {names} 2>/dev/null || true; }} >> {shlex.quote(str(state))}\n"
+        keep = keep if names else ""
         script = f"source {shlex.quote(str(state))}\n{code}{keep}"
         output = _run(["bash", "-e", "-o", "pipefail", "-c", script], cwd, env, timeout, what)
     for name in " ".join(block.get("creates")).split():
@@ -296,7 +347,9 @@ def run_block_as_written(
         root = Path(tmp)
         _workspace(root)
         plain = Block(block.doc, block.line, block.lang, block.code, {"timeout": [str(timeout)]})
-        return _run_block(plain, Path(folder).resolve(), _environment(root), root / "state.sh")
+        state = root / "shell_state.sh"
+        state.write_text("")  # no earlier block: nothing carried over
+        return _run_block(plain, Path(folder).resolve(), _environment(root), state)
 
 
 def main(argv: list[str] | None = None) -> int:

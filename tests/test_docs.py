@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.doc_blocks import REPO, BlockFailure, parse_blocks, run_document
+from tests.doc_blocks import REPO, BlockFailure, main, parse_blocks, run_document
 
 DOCUMENTS = [REPO / "README.md", *sorted((REPO / "experiments").glob("*.md"))]
 SHARED = REPO.parent / "shared" / "data"
@@ -86,6 +86,34 @@ def test_shell_variables_and_files_carry_over_and_directives_apply(tmp_path):
     )
     statuses = [status for _, status, _ in run_document(doc)]
     assert statuses == ["ran", "ran", "skipped"]
+
+
+def test_a_command_prefix_is_not_a_shell_variable(tmp_path):
+    """``VAR=value cmd`` sets VAR for that command only: the block still passes and VAR
+    does not carry over; real assignments (also quoted, ``$( )``, in a branch) do."""
+    doc = _write(
+        tmp_path,
+        '```bash\nA=1\nexport B="two words" C=$(echo "x y")\nHPK_DOC_PREFIX=5 true\n'
+        "if false; then E=5; fi\n```\n\n"
+        "<!-- test expect: [1|two words|x y|unset|unset] -->\n```bash\n"
+        'echo "[$A|$B|$C|${HPK_DOC_PREFIX-unset}|${E-unset}]"\n```\n',
+    )
+    assert [status for _, status, _ in run_document(doc)] == ["ran", "ran"]
+
+
+def test_one_block_runs_as_written(tmp_path, capsys):
+    """``python -m tests.doc_blocks DOC --block LINE --in DIR``: no earlier block, no
+    directive applied, in DIR."""
+    doc = _write(
+        tmp_path,
+        "```bash\nN=1\n```\n\n<!-- test sub: 3000 => 7 -->\n```bash\n"
+        'echo "n=${N-unset} 3000" > seen.txt\nOMP_NUM_THREADS=1 cat seen.txt\n```\n',
+    )
+    folder = tmp_path / "run"
+    folder.mkdir()
+    assert main([str(doc), "--block", "6", "--in", str(folder)]) == 0
+    assert capsys.readouterr().out == "n=unset 3000\n"
+    assert (folder / "seen.txt").exists()
 
 
 @pytest.mark.parametrize(
