@@ -13,7 +13,6 @@ model. Prints one JSON line per seed::
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import time
 
@@ -24,20 +23,7 @@ from hybrid_pk.calibration.fit import model_errors
 from hybrid_pk.calibration.robust import outlier_threshold
 from hybrid_pk.effects import conditions_from_data
 from hybrid_pk.robot import Robot
-from hybrid_pk.simulate import simulate_campaign
-
-F64 = torch.float64
-
-
-def displace(data, fraction: float, gen: torch.Generator, lo: float = 2.0, hi: float = 10.0):
-    """``data`` with ``fraction`` of its rows moved by ``lo``-``hi`` mm, and those rows."""
-    k = max(1, round(fraction * data.n))
-    bad = torch.randperm(data.n, generator=gen)[:k]
-    d = torch.randn(k, 3, generator=gen, dtype=F64)
-    size = lo + (hi - lo) * torch.rand(k, 1, generator=gen, dtype=F64)
-    position = data.position.clone()
-    position[bad] += 1e-3 * size * d / d.norm(dim=1, keepdim=True)
-    return dataclasses.replace(data, position=position), bad
+from hybrid_pk.simulate import displace_rows, simulate_campaign
 
 
 def main() -> None:
@@ -53,7 +39,7 @@ def main() -> None:
         data, truth = simulate_campaign(
             robot, args.n, "random:2", noise_mm=0.05, noise_deg=0.005, seed=seed, payload=20.0
         )
-        dirty, bad = displace(data, 0.02, torch.Generator().manual_seed(seed + 1))
+        dirty, bad = displace_rows(data, 0.02, torch.Generator().manual_seed(seed + 1))
         diag = diagnose(robot, dirty, robust=args.robust)
         truly = {int(data.rows[i]) for i in bad}
         listed = {o["row"] for o in diag.outliers}

@@ -3,7 +3,6 @@ row, and do not change what the diagnosis names."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import warnings
@@ -25,24 +24,12 @@ from hybrid_pk.cli.main import main
 from hybrid_pk.data import MeasuredData, read_table_for, write_table
 from hybrid_pk.data.ipa import convert_ipa
 from hybrid_pk.effects import ExtendedModel, conditions_from_data
-from hybrid_pk.simulate import simulate_campaign
+from hybrid_pk.simulate import displace_rows, simulate_campaign
 from tests.helpers import RUN_SEED, is_periodic, run_rng
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 F64 = torch.float64
-
-
-def _displace(data: MeasuredData, fraction: float, gen: torch.Generator, lo=2.0, hi=10.0):
-    """``data`` with ``fraction`` of its rows moved by ``lo``-``hi`` mm in random
-    directions, and the indices of those rows."""
-    k = max(1, round(fraction * data.n))
-    bad = torch.randperm(data.n, generator=gen)[:k]
-    d = torch.randn(k, 3, generator=gen, dtype=F64)
-    size = lo + (hi - lo) * torch.rand(k, 1, generator=gen, dtype=F64)
-    position = data.position.clone()
-    position[bad] += 1e-3 * size * d / d.norm(dim=1, keepdim=True)
-    return dataclasses.replace(data, position=position), bad
 
 
 def test_weights_costs_and_thresholds():
@@ -83,7 +70,7 @@ def test_outliers_are_listed_by_file_and_one_based_row():
 
 def test_a_robust_frame_fit_ignores_wild_rows(rx160):
     data, _ = simulate_campaign(rx160, 120, "none", noise_mm=0.05, noise_deg=0.005, seed=3)
-    dirty, bad = _displace(data, 0.03, torch.Generator().manual_seed(4), 5.0, 10.0)
+    dirty, bad = displace_rows(data, 0.03, torch.Generator().manual_seed(4), 5.0, 10.0)
     frames = ["base_frame.translation", "base_frame.rotation", "tool_frame.translation",
               "tool_frame.rotation"]  # fmt: skip
     results = {}
@@ -114,7 +101,7 @@ def test_gross_errors_change_neither_the_causes_nor_their_values(rx160):
     seed = int(rng.integers(1_000_000))
     data, truth = simulate_campaign(rx160, 300, "random:2", noise_mm=0.05, noise_deg=0.005,
                                     seed=seed, payload=20.0)  # fmt: skip
-    dirty, bad = _displace(data, 0.02, torch.Generator().manual_seed(seed + 1))
+    dirty, bad = displace_rows(data, 0.02, torch.Generator().manual_seed(seed + 1))
     clean = diagnose(rx160, data)
     robust = diagnose(rx160, dirty, robust="cauchy")
     why = f"HYBRID_PK_TEST_SEED={RUN_SEED}, campaign seed {seed}, truth {truth['effects']}"
@@ -138,7 +125,7 @@ def test_gross_errors_change_neither_the_causes_nor_their_values(rx160):
 def test_cli_diagnose_lists_outliers_and_what_was_down_weighted(rx160, tmp_path, capsys):
     data, _ = simulate_campaign(rx160, 150, "joint_offset:joint_3=1e-3", noise_mm=0.05,
                                 noise_deg=0.005, seed=8)  # fmt: skip
-    dirty, bad = _displace(data, 0.02, torch.Generator().manual_seed(9), 4.0, 8.0)
+    dirty, bad = displace_rows(data, 0.02, torch.Generator().manual_seed(9), 4.0, 8.0)
     table = tmp_path / "campaign.csv"
     write_table(table, dirty)
     out_json = tmp_path / "diag.json"

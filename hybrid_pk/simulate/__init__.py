@@ -7,6 +7,7 @@ from hybrid_pk.simulate.effect_specs import is_hidden_spec as is_hidden_spec
 from hybrid_pk.simulate.effect_specs import paper_effects as paper_effects
 from hybrid_pk.simulate.effect_specs import parse_effects as parse_effects
 from hybrid_pk.simulate.effect_specs import random_effects as random_effects
+from hybrid_pk.simulate.gross_errors import displace_rows as displace_rows
 from hybrid_pk.simulate.mounting import MOUNTS as MOUNTS
 from hybrid_pk.simulate.mounting import Mount as Mount
 from hybrid_pk.simulate.mounting import mount_from_gravity as mount_from_gravity
@@ -23,6 +24,7 @@ __all__ = [
     "IsoCube",
     "Mount",
     "Trajectory",
+    "displace_rows",
     "effect_entry",
     "is_hidden_spec",
     "iso_cube",
