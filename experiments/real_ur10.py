@@ -46,15 +46,13 @@ import json
 import shlex
 import sys
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from hybrid_pk import Robot
-from hybrid_pk.cli.main import main as hybrid_pk
-from hybrid_pk.data import MeasuredData, read_table_for, write_table
+from hybrid_pk.data import MeasuredData, write_table
 from hybrid_pk.effects import conditions_from_data
 from hybrid_pk.evaluation.metrics import error_stats, row_errors
 from hybrid_pk.evaluation.splits import Split, joint_box_split, random_split, region_split
@@ -62,13 +60,9 @@ from hybrid_pk.io.hybrid_file import forward_model
 from hybrid_pk.io.model_file import load_model
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from ipa_series import SERIES, add_data, import_series, read_rows, run, series_paths
 from real_ur10_report import write_markdown
 
-REPO = Path(__file__).resolve().parents[1]
-SERIES = {
-    "A": ("Series_A/measurements_grid.csv", "measurements_grid"),
-    "B": ("Series_B/measurements_joint_configurations.csv", "measurements_joint_configurations"),
-}
 MODELS = (
     ("nominal_frames", "nominal + frames"),
     ("extended", "extended (physics)"),
@@ -80,12 +74,7 @@ SPLITS = ("pan", "region", "random", "joint")
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument(
-        "--data",
-        type=Path,
-        default=REPO.parent / "shared" / "data" / "ipa-ur10",
-        help="IPA UR10 data set (Series_A/, Series_B/) (default: ../shared/data/ipa-ur10)",
-    )
+    add_data(p)
     p.add_argument("--out", type=Path, required=True, help="output directory (created)")
     p.add_argument("--thin", type=int, default=1, metavar="K", help="keep every K-th row")
     p.add_argument(
@@ -114,27 +103,6 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="fit nothing: evaluate the model files of an earlier run in OUT",
     )
     return p.parse_args(argv)
-
-
-def run(argv: list, log: dict) -> None:
-    """One ``hybrid-pk`` command in-process; fails loudly; records its wall time."""
-    print("\n$ hybrid-pk " + " ".join(shlex.quote(str(a)) for a in argv), flush=True)
-    t = time.perf_counter()
-    rc = hybrid_pk([str(a) for a in argv])
-    dt = time.perf_counter() - t
-    sys.stdout.flush()
-    log.setdefault("commands", []).append(
-        {"argv": ["hybrid-pk", *map(str, argv)], "seconds": round(dt, 1), "rc": rc}
-    )
-    print(f"  [{dt:.1f} s]", flush=True)
-    if rc != 0:
-        raise SystemExit(f"hybrid-pk {argv[0]} failed (exit {rc})")
-
-
-def read_rows(paths: list[Path], robot: Robot) -> MeasuredData:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # Series B's std_* extra columns are not read
-        return read_table_for([str(p) for p in paths], robot)
 
 
 def make_splits(series: dict[str, MeasuredData], robot: Robot, args) -> dict[str, dict]:
@@ -309,12 +277,9 @@ def main(argv=None) -> int:
         "seed": args.seed,
         "splits": {},
     }
-    series_files = [out / "series" / f"{name}.parquet" for _, name in SERIES.values()]
-    if not all(f.exists() for f in series_files) and not args.evaluate_only:
-        sources = [args.data / SERIES[k][0] for k in SERIES]
-        run(["import", "ipa", *sources, "--out", out / "series", "--format", "parquet"], log)
+    paths = series_paths(out) if args.evaluate_only else import_series(out, args.data, log)
     series = {}
-    for key, path in zip(SERIES, series_files, strict=True):
+    for key, path in paths.items():
         data = read_rows([path], robot)
         series[key] = data.subset(slice(0, None, args.thin)) if args.thin > 1 else data
     results["rows"] = {k: d.n for k, d in series.items()}

@@ -31,21 +31,17 @@ import json
 import shlex
 import sys
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 from hybrid_pk import Robot
 from hybrid_pk.cli.effect_lists import diagnosis_labels
-from hybrid_pk.cli.main import main as hybrid_pk
-from hybrid_pk.data import MeasuredData, read_table_for, write_table
+from hybrid_pk.data import MeasuredData, write_table
 
-REPO = Path(__file__).resolve().parents[1]
-SERIES = {
-    "A": ("Series_A/measurements_grid.csv", "measurements_grid"),
-    "B": ("Series_B/measurements_joint_configurations.csv", "measurements_joint_configurations"),
-}
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from ipa_series import SERIES, add_data, import_series, read_rows, run
+
 MODELS = (
     ("nominal_frames", "nominal + frames"),
     ("extended", "extended (physics)"),
@@ -57,12 +53,7 @@ REFERENCE_6BCE90D = {"nominal_frames": 1.108, "extended": 0.507, "hybrid": 0.490
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument(
-        "--data",
-        type=Path,
-        default=REPO.parent / "shared" / "data" / "ipa-ur10",
-        help="IPA UR10 data set (Series_A/, Series_B/) (default: ../shared/data/ipa-ur10)",
-    )
+    add_data(p)
     p.add_argument("--out", type=Path, required=True, help="output directory (created)")
     p.add_argument("--directions", default="A->B,B->A", help="from A->B, B->A (default: both)")
     p.add_argument(
@@ -84,27 +75,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     )
     p.add_argument("--seed", type=int, default=0, help="seed of row choices, diagnosis, training")
     return p.parse_args(argv)
-
-
-def run(argv: list, log: dict) -> None:
-    """One ``hybrid-pk`` command in-process; fails loudly; records its wall time."""
-    print("\n$ hybrid-pk " + " ".join(shlex.quote(str(a)) for a in argv), flush=True)
-    t = time.perf_counter()
-    rc = hybrid_pk([str(a) for a in argv])
-    dt = time.perf_counter() - t
-    sys.stdout.flush()
-    log.setdefault("commands", []).append(
-        {"argv": ["hybrid-pk", *map(str, argv)], "seconds": round(dt, 1), "rc": rc}
-    )
-    print(f"  [{dt:.1f} s]", flush=True)
-    if rc != 0:
-        raise SystemExit(f"hybrid-pk {argv[0]} failed (exit {rc})")
-
-
-def read_rows(path: Path, robot: Robot) -> MeasuredData:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # Series B's std_* extra columns are not read
-        return read_table_for([str(path)], robot)
 
 
 def write_rows(path: Path, data: MeasuredData, rows: np.ndarray) -> Path:
@@ -179,7 +149,7 @@ def direction(out: Path, series: dict, robot: Robot, name: str, args, log: dict)
     keys = fit_models(d, files, args, log)
     evaluated = judge_models(d, files, keys, log)
     return {
-        "fit_rows": read_rows(files["fit"], robot).n,
+        "fit_rows": read_rows([files["fit"]], robot).n,
         "refit_rows": args.refit_rows,
         "judged_rows": evaluated[keys[0]]["n"],
         "causes": args.effects.split(",")
@@ -237,11 +207,7 @@ def main(argv=None) -> int:
         "seed": args.seed,
         "directions": {},
     }
-    series_files = {k: out / "series" / f"{name}.parquet" for k, (_, name) in SERIES.items()}
-    if not all(f.exists() for f in series_files.values()):
-        sources = [args.data / SERIES[k][0] for k in SERIES]
-        run(["import", "ipa", *sources, "--out", out / "series", "--format", "parquet"], log)
-    series = {k: read_rows(f, robot) for k, f in series_files.items()}
+    series = {k: read_rows([f], robot) for k, f in import_series(out, args.data, log).items()}
     results["rows_of"] = {k: d.n for k, d in series.items()}
     for name in (s.strip() for s in args.directions.split(",") if s.strip()):
         if name not in ("A->B", "B->A"):
