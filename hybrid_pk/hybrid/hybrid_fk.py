@@ -120,18 +120,15 @@ class HybridFK(nn.Module):
         cls,
         base: ExtendedModel,
         inputs: NetworkInputs,
-        position_net: str | None,
-        orientation_net: str | None,
-        position_scale: Tensor | None = None,
-        orientation_scale: Tensor | None = None,
-        zero_init: bool = False,
+        *heads,
         coverage: Coverage | None = None,
+        **options,
     ) -> HybridFK:
-        """One stage of fresh networks of the named architectures (None: no such
-        network); see :meth:`ResidualStage.build`."""
-        stage = ResidualStage.build(
-            inputs, position_net, orientation_net, position_scale, orientation_scale, zero_init
-        )
+        """One stage of fresh networks on ``base``: ``heads`` and ``options`` are
+        :meth:`ResidualStage.build`'s (``position_net``, ``orientation_net``: the named
+        architectures, None: no such network; ``position_scale``, ``orientation_scale``,
+        ``zero_init``)."""
+        stage = ResidualStage.build(inputs, *heads, **options)
         return cls(base, inputs, stage.position, stage.orientation, coverage)
 
     # ------------------------------------------------------------------ the first stage
