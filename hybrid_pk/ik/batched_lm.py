@@ -85,13 +85,15 @@ class LMSettings:
 class LMOutput(NamedTuple):
     """Per problem: final ``q (P, dof)``, ``position_error (P,)`` [m], ``rotation_error
     (P,)`` [rad], ``iterations (P,)``; ``evaluations``: total number of configurations
-    evaluated (pose + Jacobian)."""
+    evaluated (pose + Jacobian); ``active (P,)`` bool: still iterating when the call
+    returned early (``stop_at``), else None."""
 
     q: Tensor
     position_error: Tensor
     rotation_error: Tensor
     iterations: Tensor
     evaluations: int
+    active: Tensor | None = None
 
 
 # Rows of the kept block: damping mu and its growth nu, iterations spent near, cost at
@@ -258,6 +260,7 @@ def batched_levenberg_marquardt(
     upper: Tensor,
     settings: LMSettings = LMSettings(),
     revolute: Tensor | None = None,
+    stop_at: int = 0,
 ) -> LMOutput:
     """Solve ``P`` small pose problems from their start configurations, in one batch.
 
@@ -276,6 +279,9 @@ def batched_levenberg_marquardt(
         settings: see :class:`LMSettings`.
         revolute: ``(dof,)`` bool; a revolute joint whose box spans at least 2 pi is
             wrapped by 2 pi back into the box instead of clamped (same pose).
+        stop_at: return as soon as at most this many problems are still iterating
+            (``LMOutput.active`` marks them, their state as it is; default 0: run all
+            to the end).
 
     Returns:
         :class:`LMOutput`; every ``q`` is inside the box and finite.
@@ -289,8 +295,13 @@ def batched_levenberg_marquardt(
     out = torch.cat([q0.T, q0.new_full((2, P), torch.inf), q0.new_zeros(1, P)])
     b = _Batch(evaluate, q0, rows, T_target, lower, upper, revolute, settings)
     evaluations, it = P, 0
+    active = None
     while True:
         leave = _leaving(b, it)
+        if 0 < b.size <= stop_at:  # hand the rest back as they are
+            active = torch.zeros(P, dtype=torch.bool, device=q0.device)
+            active[b.kept[_IDX][~leave].long()] = True
+            leave = torch.ones_like(leave)
         if bool(leave.any()):
             gone = leave.nonzero()[:, 0]
             at = b.kept[_IDX].index_select(0, gone).long()
@@ -305,4 +316,5 @@ def batched_levenberg_marquardt(
         trial = b.trial(q_try)
         evaluations += b.size
         _accept(b, trial, ok, predicted)
-    return LMOutput(out[:n].T.contiguous(), out[n], out[n + 1], out[n + 2].long(), evaluations)
+    q = out[:n].T.contiguous()
+    return LMOutput(q, out[n], out[n + 1], out[n + 2].long(), evaluations, active)
