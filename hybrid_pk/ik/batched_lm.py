@@ -111,6 +111,9 @@ class _Batch:
         P, n = q0.shape
         self.evaluate, self.s, self.n, self.rows_all = evaluate, s, n, rows
         self.m = 3 if s.position_only else 6
+        e0 = n + self.m * n  # rows of ev: q, J, e, then cost, pos, rot
+        self._at = {"q": slice(0, n), "J": slice(n, e0), "e": slice(e0, e0 + self.m)}
+        self._at.update(cost=e0 + self.m, pos=e0 + self.m + 1, rot=e0 + self.m + 2)
         self.shared = lower.ndim == 1 and upper.ndim == 1
         lo, hi = (lower[:, None], upper[:, None]) if self.shared else (lower.T, upper.T)
         lo, hi = lo.to(q0), hi.to(q0)
@@ -140,14 +143,8 @@ class _Batch:
 
     def field(self, name: str) -> Tensor:
         """``q``, ``J``, ``e``, ``cost``, ``pos`` or ``rot`` of the active problems."""
-        n, m = self.n, self.m
-        e0 = n + m * n
-        at = {"q": (0, n), "J": (n, e0), "e": (e0, e0 + m)}
-        if name in at:
-            a, b = at[name]
-            out = self.ev[a:b]
-            return out.view(m, n, -1) if name == "J" else out
-        return self.ev[e0 + m + ("cost", "pos", "rot").index(name)]
+        out = self.ev[self._at[name]]
+        return out.view(self.m, self.n, -1) if name == "J" else out
 
     def bounds(self) -> tuple[Tensor, Tensor, Tensor]:
         """``lower``, ``upper`` ``(n, 1 | A)`` and ``periodic`` (bool) of the box."""
