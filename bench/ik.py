@@ -5,7 +5,9 @@ Same targets (FK of random joint values within the limits), same start configura
 solvers; TRAC-IK (``pytracik``, if installed) gets one call per seed with a per-call
 timeout. Reported per robot and solver:
 
-- time per target [ms] (median of ``--rounds``, solvers interleaved),
+- time per target [ms] (median of ``--rounds``, solvers interleaved), wall clock and
+  this process's CPU time (on a machine shared with other jobs the wall time grows
+  with their load, the CPU time much less),
 - success: targets with at least one solution within ``--tol-mm`` / ``--tol-deg``,
   checked here with our FK whatever the solver claims, and within the joint limits,
 - coverage: analytic branches within the limits (EAIK) matched by a solution,
@@ -203,28 +205,33 @@ def main() -> None:
         seeds = quasi_random_seeds(robot.lower, robot.upper, robot.revolute, args.seeds)
         reference = eaik_branches(robot, T)
         times: dict[str, list[float]] = {k: [] for k in solvers}
+        cpu: dict[str, list[float]] = {k: [] for k in solvers}
         found: dict[str, list] = {}
         for r in range(args.rounds):
             for label, fn in solvers.items():
                 if label == "TRAC-IK" and r > 0:
                     continue  # sequential C++ calls: one round is enough
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 found[label] = fn(robot, T, seeds, args)
                 times[label].append(time.perf_counter() - t0)
+                cpu[label].append(time.process_time() - c0)
         print(f"\n{name}: {sum(len(b) for b in reference)} analytic branches within limits")
         ms = {k: 1e3 * statistics.median(v) / args.targets for k, v in times.items()}
+        cpu_ms = {k: 1e3 * statistics.median(v) / args.targets for k, v in cpu.items()}
         for label in solvers:
             sols = found[label]
             success = sum(len(s) > 0 for s in sols) / args.targets
             hit, total, _ = branch_coverage(sols, reference)
             print(
-                f"  {label:<20} {ms[label]:8.2f} ms/target  success {100 * success:6.2f} %  "
+                f"  {label:<20} {ms[label]:8.2f} ms/target (CPU {cpu_ms[label]:.2f})  "
+                f"success {100 * success:6.2f} %  "
                 f"coverage {100 * hit / max(total, 1):6.2f} % ({hit}/{total})  "
                 f"{np.mean([len(s) for s in sols]):.2f} solutions/target"
             )
         for label in solvers:
             if label != "hybrid_pk":
-                print(f"  speed ratio {label} / hybrid_pk: {ms[label] / ms['hybrid_pk']:.1f}x")
+                wall, used = ms[label] / ms["hybrid_pk"], cpu_ms[label] / cpu_ms["hybrid_pk"]
+                print(f"  speed ratio {label} / hybrid_pk: {wall:.1f}x (CPU time {used:.1f}x)")
     if not args.no_hybrid:
         _table_iv(args)
 

@@ -284,6 +284,22 @@ def test_position_only_targets(robots):
     assert float((p - target).norm(dim=-1).max()) <= TOL_MM * 1e-3
 
 
+def test_results_and_the_model_stay_usable_by_autograd(robots):
+    """The chain kernel's iterations run in inference mode: nothing of it may leak into
+    the result or into the model's caches (a fresh robot, its caches first filled by
+    the solver, then used by autograd)."""
+    T = _targets(robots["ur10"], 3, seed=13)
+    robot = hpk.Robot.from_urdf("ur10")
+    robot.requires_grad_(False)
+    result = solve_ik(robot, T, seeds=8)
+    fields = (result.q, result.valid, result.position_error_mm, result.orientation_error_deg)
+    assert not any(t.is_inference() for t in fields)
+    q = result.q[result.valid][:1].clone().requires_grad_(True)
+    robot.fk(q)[..., :3, 3].sum().backward()  # cached chain constants saved for backward
+    assert q.grad is not None
+    assert bool(torch.isfinite(q.grad).all())
+
+
 def test_extra_seeds_alone_find_the_seeded_branch(robots):
     robot = robots["rx160"]
     q = robot.sample_q(5, torch.Generator().manual_seed(12))

@@ -85,13 +85,15 @@ class LMSettings:
 class LMOutput(NamedTuple):
     """Per problem: final ``q (P, dof)``, ``position_error (P,)`` [m], ``rotation_error
     (P,)`` [rad], ``iterations (P,)``; ``evaluations``: total number of configurations
-    evaluated (pose + Jacobian)."""
+    evaluated (pose + Jacobian); ``active (P,)`` bool: still iterating when the call
+    returned early (``stop_at``), else None."""
 
     q: Tensor
     position_error: Tensor
     rotation_error: Tensor
     iterations: Tensor
     evaluations: int
+    active: Tensor | None = None
 
 
 # Rows of the kept block: damping mu and its growth nu, iterations spent near, cost at
@@ -109,6 +111,9 @@ class _Batch:
         P, n = q0.shape
         self.evaluate, self.s, self.n, self.rows_all = evaluate, s, n, rows
         self.m = 3 if s.position_only else 6
+        e0 = n + self.m * n  # rows of ev: q, J, e, then cost, pos, rot
+        self._at = {"q": slice(0, n), "J": slice(n, e0), "e": slice(e0, e0 + self.m)}
+        self._at.update(cost=e0 + self.m, pos=e0 + self.m + 1, rot=e0 + self.m + 2)
         self.shared = lower.ndim == 1 and upper.ndim == 1
         lo, hi = (lower[:, None], upper[:, None]) if self.shared else (lower.T, upper.T)
         lo, hi = lo.to(q0), hi.to(q0)
@@ -138,14 +143,8 @@ class _Batch:
 
     def field(self, name: str) -> Tensor:
         """``q``, ``J``, ``e``, ``cost``, ``pos`` or ``rot`` of the active problems."""
-        n, m = self.n, self.m
-        e0 = n + m * n
-        at = {"q": (0, n), "J": (n, e0), "e": (e0, e0 + m)}
-        if name in at:
-            a, b = at[name]
-            out = self.ev[a:b]
-            return out.view(m, n, -1) if name == "J" else out
-        return self.ev[e0 + m + ("cost", "pos", "rot").index(name)]
+        out = self.ev[self._at[name]]
+        return out.view(self.m, self.n, -1) if name == "J" else out
 
     def bounds(self) -> tuple[Tensor, Tensor, Tensor]:
         """``lower``, ``upper`` ``(n, 1 | A)`` and ``periodic`` (bool) of the box."""
@@ -258,6 +257,7 @@ def batched_levenberg_marquardt(
     upper: Tensor,
     settings: LMSettings = LMSettings(),
     revolute: Tensor | None = None,
+    stop_at: int = 0,
 ) -> LMOutput:
     """Solve ``P`` small pose problems from their start configurations, in one batch.
 
@@ -276,6 +276,9 @@ def batched_levenberg_marquardt(
         settings: see :class:`LMSettings`.
         revolute: ``(dof,)`` bool; a revolute joint whose box spans at least 2 pi is
             wrapped by 2 pi back into the box instead of clamped (same pose).
+        stop_at: return as soon as at most this many problems are still iterating
+            (``LMOutput.active`` marks them, their state as it is; default 0: run all
+            to the end).
 
     Returns:
         :class:`LMOutput`; every ``q`` is inside the box and finite.
@@ -289,8 +292,13 @@ def batched_levenberg_marquardt(
     out = torch.cat([q0.T, q0.new_full((2, P), torch.inf), q0.new_zeros(1, P)])
     b = _Batch(evaluate, q0, rows, T_target, lower, upper, revolute, settings)
     evaluations, it = P, 0
+    active = None
     while True:
         leave = _leaving(b, it)
+        if 0 < b.size <= stop_at:  # hand the rest back as they are
+            active = torch.zeros(P, dtype=torch.bool, device=q0.device)
+            active[b.kept[_IDX][~leave].long()] = True
+            leave = torch.ones_like(leave)
         if bool(leave.any()):
             gone = leave.nonzero()[:, 0]
             at = b.kept[_IDX].index_select(0, gone).long()
@@ -305,4 +313,5 @@ def batched_levenberg_marquardt(
         trial = b.trial(q_try)
         evaluations += b.size
         _accept(b, trial, ok, predicted)
-    return LMOutput(out[:n].T.contiguous(), out[n], out[n + 1], out[n + 2].long(), evaluations)
+    q = out[:n].T.contiguous()
+    return LMOutput(q, out[n], out[n + 1], out[n + 2].long(), evaluations, active)

@@ -24,7 +24,7 @@ from hybrid_pk.effects import Conditions
 from hybrid_pk.errors import ShapeError
 from hybrid_pk.evaluation.metrics import pose_error, position_error_mm
 from hybrid_pk.geometry import transform
-from hybrid_pk.ik.batched_lm import LMSettings, batched_levenberg_marquardt
+from hybrid_pk.ik.batched_lm import LMOutput, LMSettings, batched_levenberg_marquardt
 from hybrid_pk.ik.conditions import Approach, resolve_conditions
 from hybrid_pk.ik.dedup import PRISMATIC_TOL, REVOLUTE_TOL, distinct_mask
 from hybrid_pk.ik.forward_model import IKModel, as_ik_model
@@ -38,7 +38,9 @@ __all__ = [
     "concat_padded",
     "lexicographic_order",
     "make_result",
+    "no_autograd",
     "pack",
+    "plain",
     "prepare_targets",
     "solve_and_check",
     "solve_ik",
@@ -161,6 +163,19 @@ def check_solutions(
     return ok, pos, ori
 
 
+def no_autograd(ikm: IKModel):
+    """The chain kernel needs no autograd at all: inference mode skips the view and
+    version bookkeeping of the iteration's many small tensor operations (~15 % of an
+    IK call, bench/ik.py); other models may need autograd for their Jacobian. Only for
+    pure tensor work: a model's caches filled in it would be inference tensors."""
+    return torch.inference_mode() if ikm.batch_last is not None else torch.no_grad()
+
+
+def plain(*values):
+    """``values`` with inference tensors copied into ordinary ones (others as they are)."""
+    return tuple(v.clone() if isinstance(v, Tensor) and v.is_inference() else v for v in values)
+
+
 def solve_and_check(
     ikm: IKModel,
     q0: Tensor,
@@ -183,7 +198,7 @@ def solve_and_check(
     # rad); cells of half the distinctness tolerance merge only candidates the final
     # reduction would call the same (they differ by less than a cell).
     merge = (options.revolute_tol / 2, options.prismatic_tol / 2)
-    with torch.no_grad():
+    with no_autograd(ikm):
         if ikm.batch_last is None:
             out = batched_levenberg_marquardt(
                 ikm.evaluate, q0, rows, T_target, *bounds, settings, ikm.revolute
@@ -192,7 +207,15 @@ def solve_and_check(
             out = solve_two_precisions(
                 ikm.evaluate, q0, rows, T_target, *bounds, settings, ikm.revolute, merge
             )
-    ok, pos, ori = check_solutions(ikm, out.q, rows, T_target, position_only, options)
+    out = LMOutput(*plain(*out))
+    # Only what the iteration itself left within twice the tolerances (a margin for the
+    # float32 rounding of problems that stopped there) is evaluated afresh: the others
+    # fail that evaluation anyway. Not in inference mode: the model's own caches (chain
+    # constants) must stay ordinary tensors, usable by autograd later.
+    near = out.position_error <= 2e-3 * options.tol_mm
+    if not position_only:
+        near &= out.rotation_error <= 2 * math.radians(options.tol_deg)
+    ok, pos, ori = check_solutions(ikm, out.q, rows, T_target, position_only, options, near)
     return out, ok, pos, ori
 
 
@@ -376,15 +399,17 @@ def solve_ik(
         )
         shape = (hi - lo, s_per)
         score = pos / options.tol_mm + (0 if position_only else ori.nan_to_num() / options.tol_deg)
-        keep = distinct_mask(
-            out.q.reshape(*shape, -1),
-            ok.reshape(shape),
-            score.reshape(shape),
-            ikm.revolute,
-            options.revolute_tol,
-            options.prismatic_tol,
-        )
-        parts.append(pack(out.q.reshape(*shape, -1), pos.reshape(shape), ori.reshape(shape), keep))
+        q = out.q.reshape(*shape, -1)
+        with no_autograd(ikm):
+            keep = distinct_mask(
+                q,
+                ok.reshape(shape),
+                score.reshape(shape),
+                ikm.revolute,
+                options.revolute_tol,
+                options.prismatic_tol,
+            )
+            parts.append(plain(*pack(q, pos.reshape(shape), ori.reshape(shape), keep)))
         iterations += int(out.iterations.sum())
         evaluations += out.evaluations
         if progress is not None:

@@ -11,7 +11,10 @@ phase left them (they had stalled, as they would have in float64). Many starts o
 target arrive at the same solution: given ``merge`` cells, only the best of each
 target's arrivals in one cell of joint space is finished in float64 (the others are
 returned as they arrived; the reduction to distinct solutions then drops them in
-favour of the finished one, the same solution).
+favour of the finished one, the same solution). Once only a few problems are still
+iterating in float32 (``_SWITCH``), float32 saves nothing (an iteration then costs its
+dispatch whatever the precision): they go on in float64 in the same batch as the
+arrived ones, so that the slow last problems and the finishing steps share iterations.
 """
 
 from __future__ import annotations
@@ -29,6 +32,11 @@ __all__ = ["solve_two_precisions"]
 # Handover: this many times float32's resolution (of 1 rad, of the target's distance
 # from the origin), so that float32 rounding never decides whether a problem arrived.
 _MARGIN = 100.0
+# Problems below which float32 saves nothing: an iteration then costs its ~150 tensor
+# operations' dispatch whatever the precision (one thread: f64/f32 time 1.0 at 8
+# problems, 1.1 at 128, 2 at 3,200), so the last problems still iterating go on in
+# float64 together with the arrived ones instead of after them.
+_SWITCH = 128
 
 
 def solve_two_precisions(
@@ -62,7 +70,7 @@ def solve_two_precisions(
     f32 = torch.float32
     lo, hi = lower.to(f32), upper.to(f32)
     first = batched_levenberg_marquardt(
-        evaluate, q0.to(f32), rows, T_target.to(f32), lo, hi, coarse, revolute
+        evaluate, q0.to(f32), rows, T_target.to(f32), lo, hi, coarse, revolute, _SWITCH
     )
     q = first.q.to(q0.dtype)
     pos, rot = first.position_error.to(q0.dtype), first.rotation_error.to(q0.dtype)
@@ -71,6 +79,8 @@ def solve_two_precisions(
     if merge is not None and revolute is not None and bool(arrived.any()):
         score = first.position_error + s.rotation_weight * first.rotation_error
         arrived = same_cell_best(first.q, rows, arrived, score, revolute, *merge)
+    if first.active is not None:
+        arrived |= first.active
     go = arrived.nonzero()[:, 0]
     spent = int(first.iterations.max()) if len(go) else 0
     left = max(s.stall_window, s.max_iterations - spent)
