@@ -68,7 +68,9 @@ __all__ = [
     "structural_check",
 ]
 
-# Rows the frame share is computed on (an even subset of larger data).
+# Rows the frame share is computed on (an even subset of larger data): a share is a
+# ratio of the rows' spread, and 2000 rows (6000 equations) measure the 2 % a share
+# keeps beside DiagnosisTuning.max_frame_share to about 1/sqrt(2000) = 2 % of itself.
 FRAME_SHARE_ROWS = 2000
 
 
