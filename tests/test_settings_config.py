@@ -17,7 +17,6 @@ from hybrid_pk.cli.main import build_parser, main
 from hybrid_pk.cli.settings_flags import given_values
 from hybrid_pk.hybrid.train_settings import TrainSettings
 from hybrid_pk.pipelines.training import train_settings
-
 from tests.test_cli_diagnose import table  # noqa: F401  (the 200-row RX160 campaign)
 
 

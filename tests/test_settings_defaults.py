@@ -49,7 +49,8 @@ def _same(text: str, value) -> bool:
 
 
 # The commands whose fit flags are derived from a settings dataclass, and which fields
-# they leave out (calibrate --effects auto diagnoses with the defaults of diagnose's own).
+# they leave out (calibrate --effects auto takes diagnose's own from --config, else the
+# defaults).
 FIT_COMMANDS = [
     ("diagnose", DiagnosisSettings, ()),
     ("calibrate", DiagnosisSettings, ("candidates", "alpha", "max_causes")),
