@@ -53,7 +53,7 @@ def _axis_words(robot, effect: Effect, u: Tensor) -> str:
     a = torch.as_tensor(spec.axes[i], dtype=u.dtype)
     if effect.stage == "geometry" and effect.unit == "m":
         a = R @ a  # a translation of the origin is in the parent frame
-    if float((u @ a).abs()) > 0.99 * float(a.norm()):
+    if float((u @ a).abs()) > 0.99 * float(a.norm()):  # within 8 deg: "along" in words
         return f"along {effect.joint}'s axis"
     return "along (" + ", ".join(f"{float(x):+.2f}" for x in u) + ")"
 
