@@ -141,9 +141,9 @@ def add_config_flags(parser: argparse.ArgumentParser, cls) -> None:
     parser.add_argument(
         "--config",
         metavar="YAML",
-        help=f"read the settings from YAML: a mapping of {cls.__name__}'s fields, named as "
-        "the flags' second names (max_causes), the tuning constants under tuning:; a flag "
-        "given wins over the YAML, the YAML over the defaults",
+        help=f"read the settings from YAML: the {cls.__name__} fields, named as the flags' "
+        "second names (max_causes), the tuning constants under tuning:; a flag given wins "
+        "over the YAML, the YAML over the defaults",
     )
     parser.add_argument(
         "--print-config",
