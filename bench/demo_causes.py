@@ -28,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from demo import named_within
 
 from hybrid_pk.calibration.diagnosis import diagnose
+from hybrid_pk.calibration.settings import DiagnosisSettings
 from hybrid_pk.pipelines.demo import DEFAULT_ROBOT, hidden_effects
 from hybrid_pk.pipelines.demo_report import found_table
 from hybrid_pk.robot import Robot
@@ -46,7 +47,7 @@ def one_seed(seed: int, n: int = 3000) -> dict:
     truth["unmodelled"] = [{**effect_entry(e), "tau0_Nm": e.tau0} for e in unmodelled]
     calib = data.subset(torch.arange(0, data.n - data.n // 4))
     start = time.perf_counter()
-    diag = diagnose(robot, calib, seed=seed)
+    diag = diagnose(robot, calib, **DiagnosisSettings(seed=seed).keywords())  # the demo's
     seconds = time.perf_counter() - start
     rows = found_table(truth, diag)
     false = [r[0] for r in rows if r[3] == "false positive"]

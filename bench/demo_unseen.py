@@ -7,6 +7,7 @@ import time
 
 from hybrid_pk.calibration.diagnosis import diagnose
 from hybrid_pk.calibration.diagnosis.unseen import mark_unseen
+from hybrid_pk.calibration.settings import DiagnosisSettings
 from hybrid_pk.pipelines.demo import _Split, hidden_effects
 from hybrid_pk.pipelines.demo_report import found_table
 from hybrid_pk.robot import Robot
@@ -25,7 +26,7 @@ for seed in [int(s) for s in sys.argv[2].split(",")]:
     truth["effects"] = [effect_entry(e) for e in voc]
     truth["unmodelled"] = [{**effect_entry(e), "tau0_Nm": e.tau0} for e in un]
     split = _Split(data)
-    diag = diagnose(r, split.calib, seed=seed)
+    diag = diagnose(r, split.calib, **DiagnosisSettings(seed=seed).keywords())  # the demo's
     truth["effects"] = mark_unseen(diag.nominal_model, split.calib, split.cond, truth["effects"])
     print(f"seed {seed} ({time.time() - t:.0f} s)", flush=True)
     for row in found_table(truth, diag):

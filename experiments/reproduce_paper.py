@@ -52,6 +52,7 @@ from torch import Tensor
 
 from hybrid_pk import Robot
 from hybrid_pk.calibration.diagnosis.search import diagnose
+from hybrid_pk.calibration.settings import DiagnosisSettings
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import Effect, ExtendedModel, conditions_from_data, make_effect
 from hybrid_pk.evaluation.metrics import error_stats, pose_error
@@ -151,21 +152,26 @@ def evaluate(model, data: MeasuredData) -> dict:
     return stats(model(data.q, conditions_from_data(data)), data)
 
 
+# The fits' and the diagnosis' settings: hybrid-pk calibrate's defaults (its seed the run's).
+SETTINGS = DiagnosisSettings()
+
+
 def frames_only(robot: Robot, data: MeasuredData) -> ExtendedModel:
     """The paper's mathematical model: the robot as it is, base and tool frames fitted."""
-    model = ExtendedModel(robot)
-    refit_frames(model, data, conditions_from_data(data))
+    model = ExtendedModel(robot, gravity=SETTINGS.mounting())
+    cond = conditions_from_data(data)
+    refit_frames(model, data, cond, priors=SETTINGS.priors(), robust=SETTINGS.loss())
     return model
 
 
 def diagnosed_effects(robot: Robot, data: MeasuredData, seed: int) -> list[str]:
     """``calibrate --effects auto``'s choice: the causes the diagnosis names."""
-    return cause_labels(diagnose(robot, data, seed=seed))
+    return cause_labels(diagnose(robot, data, **replace(SETTINGS, seed=seed).keywords()))
 
 
 def calibrated(robot: Robot, data: MeasuredData, labels: list[str]) -> ExtendedModel:
     """Frames + the ``labels`` effects fitted to ``data`` (``calibrate``'s workflow)."""
-    return calibrate(robot, data, labels).model
+    return calibrate(robot, data, labels, settings=SETTINGS).model
 
 
 def epochs_for(archs: tuple[str, str], rows: int, flops: float, cap: int, dof: int) -> int:

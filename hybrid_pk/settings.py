@@ -1,7 +1,8 @@
 """Typed settings of a job, one field per setting: its default, type, range check and
 help written once. The Python API takes the dataclass (or reads its defaults), the
 CLI's flags are derived from its fields (:mod:`hybrid_pk.cli.settings_flags`) and a
-YAML or a dict is parsed into it by jsonargparse (:func:`parse_settings`).
+YAML or a dict is parsed into it by jsonargparse (:func:`parse_settings`); a settings
+YAML is read by :func:`read_settings` and written by :func:`settings_yaml`.
 
     @dataclass
     class S(Checked):
@@ -14,8 +15,11 @@ import contextlib
 import dataclasses
 import functools
 import math
+import re
+import typing
 from collections.abc import Callable, Iterator
 from contextvars import ContextVar
+from pathlib import Path
 from typing import Any, Generic, TypeVar
 
 from hybrid_pk.errors import HybridPKError
@@ -27,7 +31,9 @@ __all__ = [
     "non_negative",
     "parse_settings",
     "positive",
+    "read_settings",
     "setting",
+    "settings_yaml",
 ]
 
 
@@ -107,7 +113,58 @@ def parse_settings(cls, values: dict, *, base: dict | None = None):
     except HybridPKError:
         raise
     except Exception as exc:  # jsonargparse's ArgumentError names the key and type
-        raise HybridPKError(" ".join(str(exc).split())) from None
+        msg = re.sub(r"Expected a <class '(\w+)'>", r"expected \1", " ".join(str(exc).split()))
+        raise HybridPKError(msg.replace('Parser key "settings.', 'key "')) from None
+
+
+def _check_keys(cls, doc, where: str, prefix: str = "") -> None:
+    """Every key of the mapping ``doc`` is a field of ``cls`` (a nested settings
+    field's mapping checked the same way)."""
+    if not isinstance(doc, dict):
+        what = f"key {prefix[:-1]!r}" if prefix else "the file"
+        raise HybridPKError(f"{where}: {what} must be a mapping, got {doc!r}")
+    hints = typing.get_type_hints(cls)
+    for key, value in doc.items():
+        if key not in hints:
+            known = ", ".join(f.name for f in dataclasses.fields(cls))
+            raise HybridPKError(
+                f"{where}: unknown key '{prefix}{key}' ({cls.__name__} has: {known})"
+            )
+        if dataclasses.is_dataclass(hints[key]):
+            _check_keys(hints[key], value, where, f"{prefix}{key}.")
+
+
+def read_settings(cls, path: str | Path) -> dict:
+    """The mapping of the settings YAML ``path`` (``--config``), its keys and values
+    checked against ``cls`` (:func:`parse_settings`).
+
+    Raises:
+        HybridPKError: the file cannot be read, an unknown key, a value of the wrong
+            type, choice or range; one line naming the file and the key.
+    """
+    import yaml
+
+    where = f"--config {path}"
+    try:
+        doc = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise HybridPKError(f"{where}: file not found") from None
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise HybridPKError(f"{where}: not a YAML file: {' '.join(str(exc).split())}") from None
+    doc = {} if doc is None else doc
+    _check_keys(cls, doc, where)
+    try:
+        parse_settings(cls, {}, base=doc)
+    except HybridPKError as exc:
+        raise HybridPKError(f"{where}: {exc}") from None
+    return doc
+
+
+def settings_yaml(settings) -> str:
+    """``settings`` as a YAML that :func:`read_settings` reads back into equal settings."""
+    import yaml
+
+    return yaml.safe_dump(dataclasses.asdict(settings), sort_keys=False)
 
 
 T = TypeVar("T")

@@ -49,7 +49,8 @@ def _same(text: str, value) -> bool:
 
 
 # The commands whose fit flags are derived from a settings dataclass, and which fields
-# they leave out (calibrate --effects auto diagnoses with the defaults of diagnose's own).
+# they leave out (calibrate --effects auto takes diagnose's own from --config, else the
+# defaults).
 FIT_COMMANDS = [
     ("diagnose", DiagnosisSettings, ()),
     ("calibrate", DiagnosisSettings, ("candidates", "alpha", "max_causes")),
@@ -101,7 +102,16 @@ def test_settings_check_ranges_from_the_api_and_the_flags(capsys):
     )
 
 
-@pytest.mark.parametrize(("command", "func"), [("diagnose", diagnose), ("calibrate", calibrate)])
+def test_calibrate_takes_the_settings_object():
+    """pipelines.calibrate has no default of its own: its fits and its diagnosis take
+    one DiagnosisSettings (the object calibrate's flags and --config give)."""
+    params = inspect.signature(calibrate).parameters
+    assert typing.get_type_hints(calibrate)["settings"] == DiagnosisSettings | None
+    names = {f.name for f in dataclasses.fields(DiagnosisSettings)}
+    assert not names & set(params), sorted(names & set(params))
+
+
+@pytest.mark.parametrize(("command", "func"), [("diagnose", diagnose)])
 def test_flag_defaults_are_the_functions(command, func):
     api = _api_defaults(func)
     shared = {d: a for d, a in _options(command).items() if d in api}

@@ -34,12 +34,13 @@ from hybrid_pk.cli.effect_lists import effect_labels
 from hybrid_pk.cli.fit_settings import (
     fit_lines,
     implausible_effect_lines,
+    print_settings,
     robust_summary,
     settings_of,
 )
 from hybrid_pk.cli.options import ROBOT_HELP, add_data, add_end_link, add_out, add_robot
 from hybrid_pk.cli.progress import progress
-from hybrid_pk.cli.settings_flags import add_settings_flags
+from hybrid_pk.cli.settings_flags import add_config_flags, add_settings_flags
 from hybrid_pk.cli.transfer_check import transfer_check
 from hybrid_pk.effects import make_effect
 from hybrid_pk.effects.vocabulary import vocabulary_units
@@ -67,7 +68,8 @@ flange -> measured point. Errors are reported in mm (position) and deg (orientat
 """
 
 
-# The diagnosis' own flags (diagnose's); calibrate --effects auto uses their defaults.
+# The diagnosis' own flags (diagnose's); calibrate --effects auto takes them from
+# --config (a YAML diagnose reads too), else their defaults.
 _DIAGNOSE_ONLY = ("candidates", "alpha", "max_causes")
 
 NAME = "calibrate"
@@ -112,15 +114,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
             "(default: 0)",
         },
     )  # fmt: skip
+    add_config_flags(p, DiagnosisSettings)
     add_urdf_options(p)
 
 
 def run(args: argparse.Namespace) -> int:
+    settings = settings_of(args, DiagnosisSettings)
+    if print_settings(args, settings):
+        return 0
     if args.model is not None or args.refit is not None:
-        return run_refit(args)
+        return run_refit(args, settings)
     if args.robot is None:
         raise HybridPKError("give --robot ROBOT (new calibration) or --model MODEL --refit ...")
-    return _run_new(args)
+    return _run_new(args, settings)
 
 
 def _requested_labels(robot, spec: str) -> tuple[str, list[str]]:
@@ -135,14 +141,13 @@ def _requested_labels(robot, spec: str) -> tuple[str, list[str]]:
     return spec, labels
 
 
-def _run_new(args: argparse.Namespace) -> int:
-    settings = settings_of(args, DiagnosisSettings)
+def _run_new(args: argparse.Namespace, settings: DiagnosisSettings) -> int:
     robot = load_robot(args.robot, args.end_link)
     gravity = settings.mounting()
     spec, labels = _requested_labels(robot, (args.effects or "auto").strip())
     auto = spec == "auto"
     sets = len(args.data) if args.frames_per_file else 1
-    priors, robust = settings.priors(), settings.loss()
+    settings.priors()  # a bad --tool or --base fails before the data are read
 
     with progress("calibrate", total=6 if auto else 5) as bar:
         bar.stage("reading data")
@@ -155,9 +160,7 @@ def _run_new(args: argparse.Namespace) -> int:
         )
         result = calibrate(
             robot, data, None if auto else labels, frames_per_file=args.frames_per_file,
-            holdout=settings.holdout, seed=settings.seed, priors=priors, robust=robust,
-            gravity=gravity, stage=bar.stage, progress=bar, min_gain_mm=settings.min_gain_mm,
-            tuning=settings.tuning,
+            settings=settings, stage=bar.stage, progress=bar,
         )  # fmt: skip
         model, res, res0, diag = result.model, result.fit, result.nominal_fit, result.diagnosis
         bar.stage("leave one file out")

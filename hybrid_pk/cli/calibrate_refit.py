@@ -17,7 +17,7 @@ from hybrid_pk.cli.common import (
     read_data,
     stats_line,
 )
-from hybrid_pk.cli.fit_settings import fit_lines, robust_summary, settings_of
+from hybrid_pk.cli.fit_settings import fit_lines, robust_summary
 from hybrid_pk.cli.progress import progress
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.errors import HybridPKError
@@ -27,8 +27,9 @@ from hybrid_pk.pipelines.refit import refit
 __all__ = ["run_refit"]
 
 
-def run_refit(args: argparse.Namespace) -> int:
-    """Re-fit the ``--refit`` frame(s) of ``--model`` on DATA and write ``--out``."""
+def run_refit(args: argparse.Namespace, settings: FitSettings) -> int:
+    """Re-fit the ``--refit`` frame(s) of ``--model`` on DATA with the frames, loss and
+    tool limit of ``settings`` (flags over ``--config``) and write ``--out``."""
     if args.model is None or args.refit is None:
         raise HybridPKError("re-fitting needs both --model MODEL and --refit tool|base|frames")
     if args.effects is not None:
@@ -39,7 +40,6 @@ def run_refit(args: argparse.Namespace) -> int:
         raise HybridPKError(
             "--gravity cannot be combined with --refit: the model keeps its mounting"
         )
-    settings = settings_of(args, FitSettings)
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
     robot = model_robot(loaded)
     robot.requires_grad_(False)

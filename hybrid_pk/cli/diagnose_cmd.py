@@ -9,10 +9,10 @@ from pathlib import Path
 
 from hybrid_pk.calibration.settings import DiagnosisSettings
 from hybrid_pk.cli.common import load_robot, mounting_lines, read_data
-from hybrid_pk.cli.fit_settings import diagnosis_notes, settings_of
+from hybrid_pk.cli.fit_settings import diagnosis_notes, print_settings, settings_of
 from hybrid_pk.cli.options import add_data, add_end_link, add_json, add_report, add_robot
 from hybrid_pk.cli.progress import Progress
-from hybrid_pk.cli.settings_flags import add_settings_flags
+from hybrid_pk.cli.settings_flags import add_config_flags, add_settings_flags
 from hybrid_pk.cli.transfer_check import append_to_report, transfer_check
 
 _DESCRIPTION = """\
@@ -44,6 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_robot(p, required=True)
     add_end_link(p)
     add_settings_flags(p, DiagnosisSettings)
+    add_config_flags(p, DiagnosisSettings)
     add_json(p, required=True, help="write the diagnosis JSON here")
     add_report(p, help="write DIR/report.md with plots (PNG) of the evidence for each cause")
 
@@ -138,10 +139,12 @@ def run(args: argparse.Namespace) -> int:
     from hybrid_pk.calibration.diagnosis import diagnose
     from hybrid_pk.effects import make_effect
 
+    settings = settings_of(args, DiagnosisSettings)
+    if print_settings(args, settings):
+        return 0
     for path in args.data:
         if not Path(path).is_file():
             raise FileNotFoundError(f"no such data file: {path}")
-    settings = settings_of(args, DiagnosisSettings)
     robot = load_robot(args.robot, args.end_link)
     for c in settings.candidates or []:
         make_effect(robot, c)  # unknown effect or joint: a clear error now

@@ -14,13 +14,15 @@ from hybrid_pk.calibration.robust import (
     down_weighted,
     list_outliers,
 )
-from hybrid_pk.cli.settings_flags import settings_names
+from hybrid_pk.cli.settings_flags import given_values
+from hybrid_pk.settings import read_settings, settings_yaml
 
 __all__ = [
     "diagnosis_notes",
     "fit_lines",
     "frame_report_lines",
     "implausible_effect_lines",
+    "print_settings",
     "robust_lines",
     "robust_summary",
     "settings_of",
@@ -28,10 +30,22 @@ __all__ = [
 
 
 def settings_of(args: argparse.Namespace, cls):
-    """The settings ``cls`` (:mod:`hybrid_pk.calibration.settings`) that a command's
-    flags give (the fields it has flags for; the others keep their defaults)."""
-    names = [n for n in settings_names(cls) if hasattr(args, n)]
-    return cls.parse({n: getattr(args, n) for n in names})
+    """The settings ``cls`` (:mod:`hybrid_pk.calibration.settings`) of a command: the
+    flags given, over its ``--config`` YAML (if it has one), over the defaults.
+
+    Raises:
+        HybridPKError: the YAML cannot be read, or has an unknown key or a bad value.
+    """
+    config = getattr(args, "config", None)
+    base = read_settings(cls, config) if config else None
+    return cls.parse(given_values(args, cls), base=base)
+
+
+def print_settings(args: argparse.Namespace, settings) -> bool:
+    """With ``--print-config``: print ``settings`` as a ``--config`` YAML; whether it did."""
+    if getattr(args, "print_config", False):
+        print(settings_yaml(settings), end="")
+    return bool(getattr(args, "print_config", False))
 
 
 def frame_report_lines(result) -> list[str]:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from hybrid_pk.cli.common import flag_values, frame_parameter_count, frame_sets_for, read_data
+from hybrid_pk.cli.common import frame_parameter_count, frame_sets_for, read_data
 from hybrid_pk.cli.options import (
     add_data,
     add_fit_frames,
@@ -13,7 +13,7 @@ from hybrid_pk.cli.options import (
     add_seed,
 )
 from hybrid_pk.cli.progress import progress
-from hybrid_pk.cli.settings_flags import add_settings_flags, settings_names
+from hybrid_pk.cli.settings_flags import add_settings_flags, given_values
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.io.model_file import NOMINAL_PREFIX, load_model, model_robot
 from hybrid_pk.pipelines.training import (
@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
             f"training needs Lightning (a dependency of hybrid_pk): pip install lightning ({exc})"
         ) from exc
     quiet_lightning()  # after the import: Lightning sets its logger up when imported
-    settings = train_settings(flag_values(args, *settings_names(TrainSettings)), args.config)
+    settings = train_settings(given_values(args, TrainSettings), args.config)
     training_sections(settings, args.config)  # checked before any data is read
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
     robot = model_robot(loaded)

@@ -34,7 +34,8 @@ __all__ = [
 # held-out rows of the training region trusted fully, the base model beyond twice that.
 DEFAULT_QUANTILE = 0.99
 DEFAULT_RATIO = 2.0
-_CHUNK = 2048  # query rows per distance matrix
+# query rows per distance matrix: 2048 x 50,000 float64 reference distances is 0.8 GB
+_CHUNK = 2048
 _EPS = 1e-12  # inside the square root: finite gradients at zero distance
 
 

@@ -111,6 +111,7 @@ class ResidualStage(nn.Module):
             position_scale, orientation_scale: ``(3,)`` output units [m], [rad]
                 (default 1 mm and 1 mrad).
         """
+        # 1 mm, 1 mrad: the order of a calibrated arm's residual, so outputs start O(1)
         default = torch.full((3,), 1e-3, dtype=torch.float64)
         n_inputs = cls.n_inputs_of(inputs)
 

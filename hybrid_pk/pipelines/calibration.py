@@ -3,6 +3,7 @@
 
     result = calibrate(robot, data)                      # diagnose, then fit the causes
     result = calibrate(robot, data, labels)              # fit these kind:joint effects
+    result = calibrate(robot, data, settings=DiagnosisSettings(robust="cauchy"))
     refit_frames(model, data, cond, "tool")              # re-fit one frame, effects kept
 
 ``calibrate`` returns a :class:`CalibrationResult` (the fitted model, the nominal model
@@ -20,10 +21,8 @@ from hybrid_pk.calibration.fit import FitResult, fit
 from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.calibration.settings import DiagnosisSettings
-from hybrid_pk.calibration.tuning import DiagnosisTuning
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import Conditions, Effect, ExtendedModel, conditions_from_data, make_effect
-from hybrid_pk.effects.gravity import Gravity
 from hybrid_pk.robot import Robot
 
 __all__ = [
@@ -36,8 +35,6 @@ __all__ = [
 ]
 
 # Parameter blocks of the frames, by --refit choice (labels of calibration.fit).
-# The keywords' defaults: the diagnosis settings' (one source of each default).
-_D = DiagnosisSettings()
 FRAME_LABELS = {
     "base": ("base_frame.translation", "base_frame.rotation"),
     "tool": ("tool_frame.translation", "tool_frame.rotation"),
@@ -96,41 +93,32 @@ def calibrate(
     data: MeasuredData,
     labels: Sequence[str] | None = None,
     *,
+    settings: DiagnosisSettings | None = None,
     frames_per_file: bool = False,
-    holdout: float = _D.holdout,
-    seed: int = _D.seed,
-    priors: FramePriors | None = None,
-    robust: str | None = None,
-    gravity: Gravity | None = None,
     stage: Callable[[str], None] | None = None,
     progress: Callable[[str], None] | None = None,
-    min_gain_mm: float | None = None,
-    tuning: DiagnosisTuning | None = None,
 ) -> CalibrationResult:
     """Fit base/tool frames and physical effects to ``data``.
 
     Args:
         labels: the effects to fit; None diagnoses them first (``--effects auto``), the
             fit then starts at the diagnosed values.
+        settings: the fits' known frames, robust loss and mounting and the diagnosis'
+            settings (hold-out, seed, candidates, margin, tuning): what ``hybrid-pk
+            calibrate``'s flags and ``--config`` give (default: ``DiagnosisSettings()``).
         frames_per_file: each file of ``data`` gets its own base and tool frames.
-        holdout, seed: the diagnosis' hold-out fraction and split seed.
-        priors, robust, gravity: known frames, robust loss, mounting (as ``diagnose``).
         stage: told the name of each step; ``progress``: the diagnosis' messages.
-        min_gain_mm: the diagnosis' practical margin on the blocked hold-out (None: its
-            default from the noise estimate).
-        tuning: the diagnosis' tuning constants (default: ``DiagnosisTuning()``).
     """
+    settings = settings or DiagnosisSettings()
+    priors, robust, gravity = settings.priors(), settings.loss(), settings.mounting()
     stage = stage or (lambda _m: None)
     sets = len(data.sources) if frames_per_file else 1
     cond = conditions_from_data(data, frames_per_file)
     diag = None
     if labels is None:
         stage("diagnosing effects")
-        diag = diagnose(
-            robot, data, holdout=holdout, seed=seed, frames_per_file=frames_per_file,
-            progress=progress, frames=priors, robust=robust, gravity=gravity,
-            min_gain_mm=min_gain_mm, tuning=tuning,
-        )  # fmt: skip
+        keywords = settings.keywords() | {"frames": priors, "gravity": gravity}
+        diag = diagnose(robot, data, frames_per_file=frames_per_file, progress=progress, **keywords)
         labels = cause_labels(diag)
     stage("fitting frames to the nominal robot")
     nominal = ExtendedModel(robot, frame_sets=sets, gravity=gravity)

@@ -26,6 +26,7 @@ import torch
 
 from hybrid_pk.calibration.diagnosis import Diagnosis, diagnose
 from hybrid_pk.calibration.diagnosis.unseen import mark_unseen
+from hybrid_pk.calibration.settings import DiagnosisSettings
 from hybrid_pk.data import MeasuredData, write_table
 from hybrid_pk.data.table import write_frame
 from hybrid_pk.effects import Conditions, Effect, ExtendedModel, conditions_from_data
@@ -196,9 +197,10 @@ def run_demo(
     sim = {"noise_mm": noise_mm, "noise_deg": noise_deg, "payload": payload, "seed": seed}
     data, truth = _simulate(out, nominal_robot, n, hidden, sim)
     split = _Split(data)
-    diag, diag_report = _diagnose(out, nominal_robot, split, seed, stages.start(1))
+    settings = DiagnosisSettings(seed=seed)  # hybrid-pk diagnose / calibrate's defaults
+    diag, diag_report = _diagnose(out, nominal_robot, split, settings, stages.start(1))
     truth["effects"] = mark_unseen(diag.nominal_model, split.calib, split.cond, truth["effects"])
-    model, nominal = _calibrate(out, nominal_robot, diag, split, stages.start(2))
+    model, nominal = _calibrate(out, nominal_robot, diag, split, settings, stages.start(2))
     trained = _train(out, model, split, epochs, seed, stages.start(3))
     stages.start(4)
     evaluation_report, results = _evaluate(out, nominal, model, trained.hybrid, split)
@@ -249,20 +251,20 @@ class _Split:
         self.cond, self.test_cond = cond.subset(calib_rows), cond.subset(test_rows)
 
 
-def _diagnose(out: Path, robot: Robot, split: _Split, seed: int, say):
+def _diagnose(out: Path, robot: Robot, split: _Split, settings: DiagnosisSettings, say):
     """The diagnosis of the calibration rows, its JSON and its report with the plots."""
-    diag = diagnose(robot, split.calib, seed=seed, progress=say)
+    diag = diagnose(robot, split.calib, progress=say, **settings.keywords())
     (out / "diagnosis.json").write_text(json.dumps(diag.to_json(), indent=2, default=str))
     say("writing the diagnosis report")
     return diag, write_diagnosis_report(diag, split.calib, robot, out / "diagnosis", say)
 
 
-def _calibrate(out: Path, robot: Robot, diag: Diagnosis, split: _Split, say):
+def _calibrate(out: Path, robot: Robot, diag: Diagnosis, split: _Split, settings, say):
     """The extended model of the named causes and the nominal model, frames and
-    effects fitted on the calibration rows."""
+    effects fitted on the calibration rows with the diagnosis' ``settings``."""
     labels = cause_labels(diag)
     say(f"frames + {len(labels)} effect(s): {', '.join(labels) or 'none'}; nominal: frames only")
-    result = calibrate(robot, split.calib, labels)  # the workflow hybrid-pk calibrate runs
+    result = calibrate(robot, split.calib, labels, settings=settings)  # hybrid-pk calibrate's
     model, nominal = result.model, result.nominal
     model.requires_grad_(False)
     save_model(out / "model.pt", model, metadata={"source": "hybrid-pk demo"})

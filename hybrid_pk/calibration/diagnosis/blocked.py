@@ -41,7 +41,9 @@ __all__ = [
 ]
 
 # A frame column the training rows of a block see less than this share of (relative to
-# all rows) belongs to the held-out file alone: re-fitted on the held-out rows.
+# all rows) belongs to the held-out file alone: re-fitted on the held-out rows. A seen
+# column keeps at least one row's share (1/n, > 1e-6 up to a million rows), an unseen
+# one only float64 round-off (~1e-16): 1e-9 lies orders of magnitude from both.
 UNSEEN_SHARE = 1e-9
 
 

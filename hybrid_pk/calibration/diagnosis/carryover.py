@@ -21,6 +21,7 @@ from hybrid_pk.calibration.diagnosis.blocked import (
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.calibration.problem import ParamBlock, Problem, param_blocks
+from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.effects import ExtendedModel
 
 __all__ = ["Carry", "linearise", "removal_gains", "weakest"]
@@ -44,12 +45,13 @@ class Carry:
 
     def rule(self, res: FitResult) -> dict:
         """The margin and how it was set (the diagnosis JSON's ``carry_over``)."""
+        rows = diagnosis_tuning().check_rows
         return {
             "min_gain_mm": self.margin(res),
             "rule": "--min-gain-mm"
             if self.min_gain_mm is not None
-            else "noise estimate sigma_pos / sqrt(2 x 50): the standard error of an RMS "
-            "error measured on a check of 50 poses",
+            else f"noise estimate sigma_pos / sqrt(2 x {rows}): the standard error of an "
+            f"RMS error measured on a check of {rows} poses",
             "noise_position_mm": res.sigma_pos_mm,
             "gain": "drop of the RMS error [mm] on rows held out in blocks (regions of "
             "joint space, whole files), rotation counted at the noise ratio "

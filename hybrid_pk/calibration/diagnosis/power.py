@@ -137,7 +137,8 @@ def detection_limits(
 
 
 # Rows of the plain position Jacobian used for the mm at the measured point (an even
-# subset: an rms over the workspace, not a sum).
+# subset: an rms over the workspace, not a sum); an rms over 400 rows has a relative
+# standard error of 1/sqrt(2 x 400) = 3.5 %, fine for a limit stated at 80 % power.
 MM_ROWS = 400
 
 

@@ -27,7 +27,8 @@ from hybrid_pk.effects import Conditions, Effect, ExtendedModel, make_effect
 __all__ = ["MAX_ROWS", "mark_unseen", "seeable_split", "seen_error"]
 
 # Rows of the Jacobian used (an even subset): absorption is a property of the poses'
-# spread, not of their count.
+# spread, not of their count; 1000 rows estimate each singular value to ~2 %
+# (1/sqrt(2000)), which moves a direction across RANK_TOLERANCE only within 2 % of it.
 MAX_ROWS = 1000
 _FRAMES = {"base.dp": "base", "base.rotvec": "base", "tool.dp": "tool", "tool.rotvec": "tool"}
 
@@ -52,7 +53,7 @@ def _axis_words(robot, effect: Effect, u: Tensor) -> str:
     a = torch.as_tensor(spec.axes[i], dtype=u.dtype)
     if effect.stage == "geometry" and effect.unit == "m":
         a = R @ a  # a translation of the origin is in the parent frame
-    if float((u @ a).abs()) > 0.99 * float(a.norm()):
+    if float((u @ a).abs()) > 0.99 * float(a.norm()):  # within 8 deg: "along" in words
         return f"along {effect.joint}'s axis"
     return "along (" + ", ".join(f"{float(x):+.2f}" for x in u) + ")"
 
