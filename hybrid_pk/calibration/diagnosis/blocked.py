@@ -37,6 +37,7 @@ __all__ = [
     "BlockedScore",
     "Folds",
     "cell_factors",
+    "joint_levers",
     "make_folds",
     "practical_margin",
 ]
@@ -60,12 +61,17 @@ KMEANS_ITERATIONS = 25
 UNSEEN_SHARE = 1e-9
 
 
-def practical_margin(sigma_pos_mm: float, override: float | None = None) -> float:
+def practical_margin(
+    sigma_pos_mm: float, override: float | None = None, noise_mm: float | None = None
+) -> float:
     """The smallest blocked hold-out gain [mm] a cause must bring: ``override`` (the
-    ``--min-gain-mm`` option) or ``sigma / sqrt(2 CHECK_ROWS)`` (see :data:`CHECK_ROWS`)."""
+    ``--min-gain-mm`` option) or ``sigma / sqrt(2 CHECK_ROWS)`` (see :data:`CHECK_ROWS`),
+    ``sigma`` the measurement noise ``noise_mm`` (:mod:`.noise`, model-free) capped by
+    the fit's ``sigma_pos_mm`` (which also holds every error the model leaves out)."""
     if override is not None:
         return float(override)
-    return float(sigma_pos_mm) / math.sqrt(2 * CHECK_ROWS)
+    sigma = float(sigma_pos_mm) if noise_mm is None else min(float(noise_mm), sigma_pos_mm)
+    return sigma / math.sqrt(2 * CHECK_ROWS)
 
 
 @dataclass(frozen=True)
@@ -114,18 +120,25 @@ def make_folds(model: ExtendedModel, split: Split, seed: int) -> Folds | None:
 
 
 @torch.no_grad()
+def joint_levers(model: ExtendedModel, q: Tensor, cond) -> list[float]:
+    """Per joint the median over the rows ``q`` of how far the measured point moves per
+    radian (or metre) of that joint [m per unit]."""
+    p0 = model(q, cond)[:, :3, 3]
+    step = 1e-6  # [rad or m] finite-difference step of the point Jacobian
+    levers = []
+    for j in range(q.shape[1]):
+        dq = torch.zeros_like(q)
+        dq[:, j] = step
+        p1 = model(q + dq, cond)[:, :3, 3]
+        levers.append(float(((p1 - p0) / step).norm(dim=-1).median()))
+    return levers
+
+
 def _lever_coordinates(model: ExtendedModel, split: Split) -> tuple[list[int], Tensor]:
     """The joints that move the measured point most (:data:`LEVER_SHARE`) and each fit
     row's coordinates along them in metres (angle x median lever)."""
-    data, cond = split.train, split.cond_fit
-    p0 = model(data.q, cond)[:, :3, 3]
-    step = 1e-6  # [rad or m] finite-difference step of the point Jacobian
-    levers = []
-    for j in range(data.q.shape[1]):
-        dq = torch.zeros_like(data.q)
-        dq[:, j] = step
-        p1 = model(data.q + dq, cond)[:, :3, 3]
-        levers.append(float(((p1 - p0) / step).norm(dim=-1).median()))
+    data = split.train
+    levers = joint_levers(model, data.q, split.cond_fit)
     top = max(levers)
     joints = [j for j, v in enumerate(levers) if v >= LEVER_SHARE * top and v > 0]
     x = torch.stack([data.q[:, j] * levers[j] for j in joints], 1)
