@@ -149,7 +149,7 @@ def diagnose(
         warnings=_warnings(causes, data, steps, robot, budget),
         carry_over=carry.rule(res),
         budget=budget.to_json(),
-        detectable=detectable_json(model, detectable, res.sigma_pos_mm),
+        detectable=detectable_json(model, detectable, res.sigma_pos_mm, carry.margin(res)),
         robot=robot.name,
         n_samples=data.n,
         n_holdout=split.test.n,
