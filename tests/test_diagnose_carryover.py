@@ -114,6 +114,36 @@ def test_null_campaign_with_coloured_residuals_names_at_most_one_cause(robot_nam
         assert c.blocked_holdout_gain_mm >= margin, (where, c.to_json(), margin)
 
 
+@pytest.mark.parametrize("robot_name", ["rx160", "ur10"])
+def test_repeated_poses_lower_the_margin_to_the_noise_and_no_cause_appears(robot_name):
+    """The coloured null campaign with a tenth of its poses measured twice: the
+    model-free noise (close pairs) sees the white noise, not the 0.05 mm field the fit's
+    sigma holds, so the margin is the noise / 10; still at most one cause, and none
+    below that margin."""
+    rng = run_rng(f"coloured-null-repeats-{robot_name}")
+    robot = hpk.Robot.from_urdf(robot_name)
+    robot.requires_grad_(False)
+    n = int(rng.integers(1500, 3001))
+    noise = float(rng.uniform(0.005, 0.015))
+    g = torch.Generator().manual_seed(int(rng.integers(1 << 30)))
+    q = robot.sample_q(n, g)
+    q = torch.cat([q, q[torch.randperm(n, generator=g)[: n // 10]]])
+    data, _ = simulate_campaign(
+        robot, None, [], poses=q, noise_mm=noise, noise_deg=noise / 10,
+        seed=int(rng.integers(1 << 30)),
+    )  # fmt: skip
+    data = dataclasses.replace(data, position=data.position + smooth_field(data.q, 0.05, rng))
+    diag = diagnose(robot, data, seed=RUN_SEED % 1000)
+    carry = diag.to_json()["carry_over"]
+    where = f"seed {RUN_SEED}, {robot_name}, n={n}, noise {noise:.4f} mm, {carry['noise']}"
+    assert abs(carry["noise"]["sigma_mm"] / noise - 1) <= 0.3, where
+    assert carry["fit_sigma_mm"] > 1.3 * noise, where  # the field is in the fit's sigma
+    assert carry["min_gain_mm"] == pytest.approx(carry["noise"]["sigma_mm"] / 10), where
+    assert len(diag.causes) <= 1, (where, [c.to_json() for c in diag.causes])
+    for c in diag.causes:
+        assert c.blocked_holdout_gain_mm >= carry["min_gain_mm"], (where, c.to_json())
+
+
 def test_default_margin_is_the_standard_error_of_a_50_pose_check():
     rng = run_rng("margin")
     sigma = float(rng.uniform(0.005, 1.0))

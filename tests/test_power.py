@@ -136,9 +136,10 @@ def test_the_limit_is_the_larger_of_power_and_margin(rx160):
 
 @pytest.mark.slow
 def test_a_limit_set_by_the_margin_predicts_what_the_diagnosis_finds(rx160):
-    """1,000 rows: the F-test would detect an effect a quarter of the size the margin
-    needs. At half the (margin's) limit the effect is still twice its power limit,
-    significant, yet gains too little out of sample: not named; at twice it is named."""
+    """1,000 rows: the F-test would detect an effect under a third of the size the
+    margin needs. At half the (margin's) limit the effect is still 1.5 x its power limit
+    (detected with > 99 % power), significant, yet gains too little out of sample: not
+    named; at twice it is named."""
     rng = run_rng("margin-limit")
     seed = int(rng.integers(1000))
     clean, _ = simulate_campaign(
@@ -153,7 +154,7 @@ def test_a_limit_set_by_the_margin_predicts_what_the_diagnosis_finds(rx160):
     ]
     label = str(rng.choice(pool))
     where = (RUN_SEED, label, limits[label]["value"], power[label]["value"])
-    assert limits[label]["value"] >= 4 * power[label]["value"], where
+    assert limits[label]["value"] >= 3 * power[label]["value"], where
     sign = float(rng.choice([-1.0, 1.0]))
     for factor, named in ((2.0, True), (0.5, False)):
         effect = make_effect(rx160, label, sign * factor * limits[label]["value"])
