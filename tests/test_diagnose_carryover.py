@@ -20,7 +20,7 @@ from hybrid_pk.calibration.diagnosis.search import diagnose
 from hybrid_pk.calibration.problem import ParamBlock
 from hybrid_pk.effects import make_effect
 from hybrid_pk.simulate import simulate_campaign
-from tests.helpers import RUN_SEED, run_rng
+from tests.helpers import RUN_SEED, run_rng, smooth_field
 
 pytestmark = pytest.mark.slow
 
@@ -29,18 +29,6 @@ def _ur10() -> hpk.Robot:
     robot = hpk.Robot.from_urdf("ur10")
     robot.requires_grad_(False)
     return robot
-
-
-def _smooth_field(q: torch.Tensor, rms_mm: float, rng) -> torch.Tensor:
-    """``(N, 3)`` [m]: a smooth random function of the joints (eight plane waves of
-    wavelengths of a few radians), scaled to ``rms_mm`` of RMS point displacement."""
-    dof = q.shape[1]
-    w = torch.as_tensor(rng.normal(0.0, 0.6, (8, dof)), dtype=q.dtype)
-    phase = torch.as_tensor(rng.uniform(0, 2 * math.pi, 8), dtype=q.dtype)
-    amp = torch.as_tensor(rng.normal(0.0, 1.0, (8, 3)), dtype=q.dtype)
-    f = torch.sin(q @ w.T + phase) @ amp
-    f = f - f.mean(0)
-    return f * (rms_mm * 1e-3 / f.pow(2).sum(1).mean().sqrt())
 
 
 def test_linearised_blocked_score_matches_refits_per_block():
@@ -116,7 +104,7 @@ def test_null_campaign_with_coloured_residuals_names_at_most_one_cause(robot_nam
         robot, n, [], noise_mm=noise, noise_deg=noise / 10, trajectory="random",
         seed=int(rng.integers(1 << 30)),
     )  # fmt: skip
-    data = dataclasses.replace(data, position=data.position + _smooth_field(data.q, 0.05, rng))
+    data = dataclasses.replace(data, position=data.position + smooth_field(data.q, 0.05, rng))
     diag = diagnose(robot, data, seed=RUN_SEED % 1000)
     js = diag.to_json()
     margin = js["carry_over"]["min_gain_mm"]
@@ -124,6 +112,36 @@ def test_null_campaign_with_coloured_residuals_names_at_most_one_cause(robot_nam
     assert len(diag.causes) <= 1, (where, [c.to_json() for c in diag.causes])
     for c in diag.causes:
         assert c.blocked_holdout_gain_mm >= margin, (where, c.to_json(), margin)
+
+
+@pytest.mark.parametrize("robot_name", ["rx160", "ur10"])
+def test_repeated_poses_lower_the_margin_to_the_noise_and_no_cause_appears(robot_name):
+    """The coloured null campaign with a tenth of its poses measured twice: the
+    model-free noise (close pairs) sees the white noise, not the 0.05 mm field the fit's
+    sigma holds, so the margin is the noise / 10; still at most one cause, and none
+    below that margin."""
+    rng = run_rng(f"coloured-null-repeats-{robot_name}")
+    robot = hpk.Robot.from_urdf(robot_name)
+    robot.requires_grad_(False)
+    n = int(rng.integers(1500, 3001))
+    noise = float(rng.uniform(0.005, 0.015))
+    g = torch.Generator().manual_seed(int(rng.integers(1 << 30)))
+    q = robot.sample_q(n, g)
+    q = torch.cat([q, q[torch.randperm(n, generator=g)[: n // 10]]])
+    data, _ = simulate_campaign(
+        robot, None, [], poses=q, noise_mm=noise, noise_deg=noise / 10,
+        seed=int(rng.integers(1 << 30)),
+    )  # fmt: skip
+    data = dataclasses.replace(data, position=data.position + smooth_field(data.q, 0.05, rng))
+    diag = diagnose(robot, data, seed=RUN_SEED % 1000)
+    carry = diag.to_json()["carry_over"]
+    where = f"seed {RUN_SEED}, {robot_name}, n={n}, noise {noise:.4f} mm, {carry['noise']}"
+    assert abs(carry["noise"]["sigma_mm"] / noise - 1) <= 0.3, where
+    assert carry["fit_sigma_mm"] > 1.3 * noise, where  # the field is in the fit's sigma
+    assert carry["min_gain_mm"] == pytest.approx(carry["noise"]["sigma_mm"] / 10), where
+    assert len(diag.causes) <= 1, (where, [c.to_json() for c in diag.causes])
+    for c in diag.causes:
+        assert c.blocked_holdout_gain_mm >= carry["min_gain_mm"], (where, c.to_json())
 
 
 def test_default_margin_is_the_standard_error_of_a_50_pose_check():

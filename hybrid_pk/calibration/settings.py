@@ -173,8 +173,9 @@ class DiagnosisSettings(FitSettings):
         None,
         "practical margin: a cause is named only if it lowers the RMS error on "
         "blocked hold-out rows (regions of joint space, whole files) by at least MM "
-        "(default: the noise estimate / 10, the standard error of an RMS error measured "
-        "on 50 check poses)",
+        "(default: the measurement noise / 10, the standard error of an RMS error "
+        "measured on 50 check poses; the noise from residual differences of the closest "
+        "pairs of poses per file, capped by the fit's sigma)",
         "MM",
         check=non_negative,
     )

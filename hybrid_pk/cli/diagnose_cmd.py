@@ -116,6 +116,10 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
         if detectable:
             none = f"causes: none detected (80 % power): {detectable['summary']}"
         lines.append(none)
+    from hybrid_pk.calibration.diagnosis.carryover import margin_text
+
+    margin = margin_text(getattr(diagnosis, "carry_over", None))
+    lines += [margin] if margin else []
     if diagnosis.ambiguous:
         lines.append(f"ambiguous ({len(diagnosis.ambiguous)}):")
         lines += [f"  {' ~ '.join(a['effects'])}" for a in diagnosis.ambiguous]

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from hybrid_pk.calibration.diagnosis.carryover import margin_text
 from hybrid_pk.calibration.fit import model_errors
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import conditions_from_data
@@ -93,6 +94,12 @@ def _cause_rows(diagnosis) -> list[list[object]]:
 def _margin(diagnosis) -> str:
     carry = getattr(diagnosis, "carry_over", None)
     return "-" if not carry else f"{carry['min_gain_mm']:.3g}"
+
+
+def _margin_note(diagnosis) -> list[str]:
+    """The margin and how the noise behind it was found, as a paragraph."""
+    text = margin_text(getattr(diagnosis, "carry_over", None))
+    return [] if text is None else [text[0].upper() + text[1:] + ".", ""]
 
 
 def _evidence_section(diagnosis, data, out: Path, say=None) -> list[str]:
@@ -347,6 +354,7 @@ def write_diagnosis_report(
             "whole files), where each cause must gain at least "
             f"{_margin(diagnosis)} mm (carry_over in the JSON).",
             "",
+            *_margin_note(diagnosis),
             markdown_table(
                 _cause_rows(diagnosis),
                 _CAUSE_COLUMNS,

@@ -31,7 +31,7 @@ def detectable_section(diagnosis) -> list[str]:
         if w is None or d["value"] > w["value"]:
             worst[d["family"]] = d
     rows = [
-        [f, d["joint"] or "-", f"{d['value']:.3g} {d['unit']}", d["mm_rms"]]
+        [f, d["joint"] or "-", f"{d['value']:.3g} {d['unit']}", d["mm_rms"], _set_by(d)]
         for f, d in sorted(worst.items(), key=lambda kv: -kv[1]["mm_rms"])
     ]
     lines = ["## What these data cannot show", ""]
@@ -40,19 +40,29 @@ def detectable_section(diagnosis) -> list[str]:
     return [
         *lines,
         f"The smallest effect of each kind not named that this campaign would have "
-        f"detected with {100 * det['power']:.0f} % power at the diagnosis' level (the "
-        "largest over the joints: smaller effects of that kind may hide at some joint); "
-        "mm: the rms change of the measured point such an effect makes.",
+        f"detected with {100 * det['power']:.0f} % power at the diagnosis' level and "
+        f"that gains the practical margin ({_mm(det.get('min_gain_mm'))} mm) on the "
+        "blocked hold-out, the larger of the two sizes (set by: which one); the largest "
+        "over the joints: smaller effects of that kind may hide at some joint; mm: the "
+        "rms change of the measured point such an effect makes.",
         "",
         markdown_table(
             rows,
-            ["effect", "worst joint", "detectable from", "point [mm rms]"],
-            ["l", "l", "r", "r"],
+            ["effect", "worst joint", "detectable from", "point [mm rms]", "set by"],
+            ["l", "l", "r", "r", "l"],
         ),
         "",
         det["summary"] + ".",
         "",
     ]
+
+
+def _set_by(limit: dict) -> str:
+    return "practical margin" if limit.get("set_by") == "margin" else "80 % power"
+
+
+def _mm(value) -> str:
+    return "-" if value is None else f"{value:.2g}"
 
 
 def outlier_plot(diagnosis, data: MeasuredData, out: Path) -> list[str]:

@@ -10,6 +10,8 @@ The search (:func:`diagnose`, in :mod:`.search`) is built of named steps:
 - :mod:`.plausibility`: values that are significant but not physical;
 - :mod:`.result`: :class:`Cause`, :class:`Diagnosis` and their JSON;
 - :mod:`.statistics`, :mod:`.variants`: F-tests and the model variants compared;
+- :mod:`.blocked`, :mod:`.carryover`: the blocked hold-out and its practical margin;
+- :mod:`.noise`: the measurement noise behind the margin, from close pairs of poses;
 - :mod:`.power`: what the data cannot show (detection limits, too little data);
 - :mod:`.unseen`: the parts of an effect the frames absorb (marked in tables).
 """

@@ -36,6 +36,7 @@ __all__ = [
     "BlockedScore",
     "Folds",
     "cell_factors",
+    "joint_levers",
     "make_folds",
     "practical_margin",
 ]
@@ -47,12 +48,17 @@ __all__ = [
 UNSEEN_SHARE = 1e-9
 
 
-def practical_margin(sigma_pos_mm: float, override: float | None = None) -> float:
+def practical_margin(
+    sigma_pos_mm: float, override: float | None = None, noise_mm: float | None = None
+) -> float:
     """The smallest blocked hold-out gain [mm] a cause must bring: ``override`` (the
-    ``--min-gain-mm`` option) or ``sigma / sqrt(2 n)`` with n the tuning's ``check_rows``."""
+    ``--min-gain-mm`` option) or ``sigma / sqrt(2 n)`` with n the tuning's ``check_rows``,
+    ``sigma`` the measurement noise ``noise_mm`` (:mod:`.noise`, model-free) capped by
+    the fit's ``sigma_pos_mm`` (which also holds every error the model leaves out)."""
     if override is not None:
         return float(override)
-    return float(sigma_pos_mm) / math.sqrt(2 * diagnosis_tuning().check_rows)
+    sigma = float(sigma_pos_mm) if noise_mm is None else min(float(noise_mm), sigma_pos_mm)
+    return sigma / math.sqrt(2 * diagnosis_tuning().check_rows)
 
 
 @dataclass(frozen=True)
@@ -102,18 +108,25 @@ def make_folds(model: ExtendedModel, split: Split, seed: int) -> Folds | None:
 
 
 @torch.no_grad()
+def joint_levers(model: ExtendedModel, q: Tensor, cond) -> list[float]:
+    """Per joint the median over the rows ``q`` of how far the measured point moves per
+    radian (or metre) of that joint [m per unit]."""
+    p0 = model(q, cond)[:, :3, 3]
+    step = 1e-6  # [rad or m] finite-difference step of the point Jacobian
+    levers = []
+    for j in range(q.shape[1]):
+        dq = torch.zeros_like(q)
+        dq[:, j] = step
+        p1 = model(q + dq, cond)[:, :3, 3]
+        levers.append(float(((p1 - p0) / step).norm(dim=-1).median()))
+    return levers
+
+
 def _lever_coordinates(model: ExtendedModel, split: Split) -> tuple[list[int], Tensor]:
     """The joints that move the measured point most (the tuning's ``lever_share``) and
     each fit row's coordinates along them in metres (angle x median lever)."""
-    data, cond = split.train, split.cond_fit
-    p0 = model(data.q, cond)[:, :3, 3]
-    step = 1e-6  # [rad or m] finite-difference step of the point Jacobian
-    levers = []
-    for j in range(data.q.shape[1]):
-        dq = torch.zeros_like(data.q)
-        dq[:, j] = step
-        p1 = model(data.q + dq, cond)[:, :3, 3]
-        levers.append(float(((p1 - p0) / step).norm(dim=-1).median()))
+    data = split.train
+    levers = joint_levers(model, data.q, split.cond_fit)
     top = max(levers)
     share = diagnosis_tuning().lever_share
     joints = [j for j, v in enumerate(levers) if v >= share * top and v > 0]

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 from torch import Tensor
 
@@ -18,13 +19,14 @@ from hybrid_pk.calibration.diagnosis.blocked import (
     cell_factors,
     practical_margin,
 )
+from hybrid_pk.calibration.diagnosis.noise import NoiseEstimate
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.calibration.problem import ParamBlock, Problem, param_blocks
 from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.effects import ExtendedModel
 
-__all__ = ["Carry", "linearise", "removal_gains", "weakest"]
+__all__ = ["Carry", "linearise", "margin_text", "removal_gains", "weakest"]
 
 
 @dataclass(frozen=True)
@@ -34,30 +36,63 @@ class Carry:
     Attributes:
         folds: the blocks (None: too few rows in one file; no blocked decision).
         min_gain_mm: ``--min-gain-mm``, or None for the default rule.
+        noise: the model-free measurement noise (:mod:`.noise`; None: the fit's sigma).
     """
 
     folds: Folds | None
     min_gain_mm: float | None = None
+    noise: NoiseEstimate | None = None
+
+    @property
+    def noise_mm(self) -> float | None:
+        return None if self.noise is None else self.noise.sigma_mm
 
     def margin(self, res: FitResult) -> float:
         """The practical margin [mm] under ``res``'s noise estimate."""
-        return practical_margin(res.sigma_pos_mm, self.min_gain_mm)
+        return practical_margin(res.sigma_pos_mm, self.min_gain_mm, self.noise_mm)
 
     def rule(self, res: FitResult) -> dict:
         """The margin and how it was set (the diagnosis JSON's ``carry_over``)."""
         rows = diagnosis_tuning().check_rows
+        noise = self.noise_mm
+        used = res.sigma_pos_mm if noise is None else min(noise, res.sigma_pos_mm)
         return {
             "min_gain_mm": self.margin(res),
             "rule": "--min-gain-mm"
             if self.min_gain_mm is not None
-            else f"noise estimate sigma_pos / sqrt(2 x {rows}): the standard error of an "
-            f"RMS error measured on a check of {rows} poses",
-            "noise_position_mm": res.sigma_pos_mm,
+            else f"noise sigma_pos / sqrt(2 x {rows}): the standard error of an RMS "
+            f"error measured on a check of {rows} poses; sigma_pos the model-free noise "
+            "estimate (noise) capped by the fit's sigma (fit_sigma_mm)",
+            "noise_position_mm": used,
+            "fit_sigma_mm": res.sigma_pos_mm,
+            "noise": None if self.noise is None else self.noise.to_json(),
             "gain": "drop of the RMS error [mm] on rows held out in blocks (regions of "
             "joint space, whole files), rotation counted at the noise ratio "
             "sigma_pos / sigma_rot; each block predicted by a linearised refit on the others",
             "blocks": None if self.folds is None else self.folds.description,
         }
+
+
+def margin_text(carry_over: dict | None) -> str | None:
+    """``practical margin M mm = noise S mm / sqrt(2 x 50); noise: how it was found``
+    from the diagnosis JSON's ``carry_over``; None without blocks (no margin used)."""
+    if not carry_over or carry_over.get("blocks") is None:
+        return None
+    noise, fit_sigma = carry_over.get("noise") or {}, carry_over["fit_sigma_mm"]
+    files = "; ".join(
+        f"{Path(f['file']).name} {f['sigma_mm']:.2g} mm ({f['pairs']} pairs)"
+        for f in noise.get("files", ())
+    )
+    how = (
+        f"model-free {noise['sigma_mm']:.2g} mm from the closest pairs of poses per file "
+        f"({files}), capped by the fit's sigma {fit_sigma:.2g} mm"
+        if noise.get("sigma_mm") is not None
+        else f"the fit's sigma {fit_sigma:.2g} mm (no pair of poses to compare)"
+    )
+    head = f"practical margin {carry_over['min_gain_mm']:.2g} mm"
+    if carry_over["rule"] == "--min-gain-mm":
+        return f"{head} (--min-gain-mm); noise: {how}"
+    return f"{head} = noise {carry_over['noise_position_mm']:.2g} mm / sqrt(2 x 50); noise: {how}"
 
 
 def linearise(

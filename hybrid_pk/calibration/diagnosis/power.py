@@ -12,6 +12,14 @@ smallest such ``theta`` along the candidate's worst identifiable direction is
 of that size or more, whatever its direction, is detected with >= 80 % probability.
 ``mm_rms`` is the rms change of the measured point such an effect makes over the
 fit rows (plain position Jacobian, before the frames absorb any of it).
+
+Significance is not enough to be named: a cause must also gain the practical margin
+``m`` on the blocked hold-out (:mod:`.carryover`). Along the same direction, an effect
+whose projected signature adds ``s^2`` per row to the noise-normalised mean square
+(``d`` per row from the noise: 3 position coordinates, 6 with rotation) raises the RMS
+error from ``sigma sqrt(d)`` to ``sigma sqrt(d + s^2)``; it gains the margin once
+``s^2 >= (sqrt(d) + m / sigma)^2 - d`` (linearised, in sample). The limit is the larger
+of the two sizes, and ``set_by`` says which: ``"power"`` (the F-test) or ``"margin"``.
 """
 
 from __future__ import annotations
@@ -110,12 +118,16 @@ def detection_limits(
         return []
     level = scores.threshold
     columns = _position_columns(model, [sc.label for sc in scores.scored], split)
+    # the margin binds only where blocks decide: its lambda along any direction
+    carry_lam = _margin_noncentrality(margin if folds is not None else 0.0, res, split, scores.m)
     out = []
     for sc in scores.scored:
         _, S, Vt = torch.linalg.svd(sc.signature, full_matrices=False)
         k = int((S > RANK_TOLERANCE * float(S[0])).sum())
         d2 = max(scores.m - scores.n_current - sc.k, 1)
         lam = noncentrality(level, sc.k, d2)
+        set_by = "power" if lam >= carry_lam else "margin"
+        lam = max(lam, carry_lam)
         theta = math.sqrt(lam) / float(S[k - 1]) * Vt[k - 1]  # worst direction, scaled
         effect = make_effect(model.robot, sc.label)
         J_pos, n_sub = columns[sc.label]
@@ -131,9 +143,18 @@ def detection_limits(
                 "mm_rms": moved,
                 "alpha": level,
                 "power": diagnosis_tuning().power,
+                "set_by": set_by,
             }
         )
     return out
+
+
+def _margin_noncentrality(margin: float, res: FitResult, split: Split, m: int) -> float:
+    """The squared norm of the projected, noise-normalised signature (summed over the
+    fit residuals, as ``lambda``) at which an effect gains ``margin`` [mm] (module)."""
+    per_row = 3 if split.position_only else 6
+    root = math.sqrt(per_row)
+    return ((root + margin / res.sigma_pos_mm) ** 2 - per_row) * (m // per_row)
 
 
 # Rows of the plain position Jacobian used for the mm at the measured point (an even
@@ -164,7 +185,8 @@ def _position_columns(model: ExtendedModel, labels: list[str], split: Split) -> 
 def nothing_above(detectable: list[dict], limit: int = 6) -> str:
     """``nothing above: <family> <limit> <unit> at <joint> (<mm>), ...; below that these data
     cannot tell``: per family its largest limit (true of every joint), the families
-    whose limit moves the point the most first."""
+    whose limit moves the point the most first; ``(<mm>, margin)`` where the practical
+    margin, not the F-test's power, sets the limit."""
     if not detectable:
         return "nothing the data could test (no candidate has a signature in them)"
     worst: dict[str, dict] = {}
@@ -176,7 +198,8 @@ def nothing_above(detectable: list[dict], limit: int = 6) -> str:
     parts = []
     for d in ranked[:limit]:
         at = f" at {d['joint']}" if d["joint"] else ""
-        parts.append(f"{d['family']} {d['value']:.2g} {d['unit']}{at} ({d['mm_rms']:.2g} mm)")
+        by = ", margin" if d.get("set_by") == "margin" else ""
+        parts.append(f"{d['family']} {d['value']:.2g} {d['unit']}{at} ({d['mm_rms']:.2g} mm{by})")
     more = f", {len(ranked) - limit} more families" if len(ranked) > limit else ""
     return f"nothing above: {', '.join(parts)}{more}; below that these data cannot tell"
 
@@ -194,11 +217,15 @@ def beyond_credible(model: ExtendedModel, detectable: list[dict]) -> list[str]:
     return out
 
 
-def detectable_json(model: ExtendedModel, detectable: list[dict], sigma_pos_mm: float) -> dict:
-    """The ``detectable`` field of the diagnosis JSON."""
+def detectable_json(
+    model: ExtendedModel, detectable: list[dict], sigma_pos_mm: float, min_gain_mm: float
+) -> dict:
+    """The ``detectable`` field of the diagnosis JSON (``min_gain_mm``: the practical
+    margin the limits set by ``"margin"`` reach)."""
     blind = beyond_credible(model, detectable)
     return {
         "power": diagnosis_tuning().power,
+        "min_gain_mm": min_gain_mm,
         "limits": detectable,
         "beyond_credible": blind,
         "summary": nothing_above(detectable),

@@ -27,6 +27,7 @@ from hybrid_pk.calibration.diagnosis.carryover import Carry, weakest
 from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic
 from hybrid_pk.calibration.diagnosis.elimination import eliminate
 from hybrid_pk.calibration.diagnosis.gains import measure_causes, range_warnings
+from hybrid_pk.calibration.diagnosis.noise import measurement_noise
 from hybrid_pk.calibration.diagnosis.plausibility import plausibility_warnings
 from hybrid_pk.calibration.diagnosis.power import (
     check_determined,
@@ -111,7 +112,8 @@ def diagnose(
     say = progress or (lambda _msg: None)
     robot.requires_grad_(False)
     budget = Budget()  # the optional stages' share of the main search's time
-    split = split_campaign(data, conditions_from_data(data, frames_per_file), holdout, seed)
+    cond = conditions_from_data(data, frames_per_file)
+    split = split_campaign(data, cond, holdout, seed)
 
     say("fitting base and tool frames to the nominal model")
     model = ExtendedModel(
@@ -124,7 +126,7 @@ def diagnose(
 
     pool = _pool(robot, data, candidates)
     flagged: list[dict] = []
-    carry = Carry(make_folds(model, split, seed), min_gain_mm)
+    carry = Carry(make_folds(model, split, seed), min_gain_mm, measurement_noise(model, data, cond))
     model, res, steps, ambiguous, unobservable = _select(
         model, res, pool, split, (alpha, carry, budget), max_causes, say, flagged
     )
@@ -151,7 +153,7 @@ def diagnose(
         warnings=_warnings(causes, data, steps, robot, budget),
         carry_over=carry.rule(res),
         budget=budget.to_json(),
-        detectable=detectable_json(model, detectable, res.sigma_pos_mm),
+        detectable=detectable_json(model, detectable, res.sigma_pos_mm, carry.margin(res)),
         robot=robot.name,
         n_samples=data.n,
         n_holdout=split.test.n,
