@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.geometry.batch_last import compose, rotate
-from hybrid_pk.robot.chain import ChainTerms, batch_last_terms, plain_inputs
+from hybrid_pk.robot.chain import ChainTerms, batch_last_terms, local_batch_last, plain_inputs
 
 __all__ = ["gravity_values", "statics_batch_last"]
 
@@ -49,15 +49,7 @@ def _loads(terms: ChainTerms, qt: Tensor, revolute: Tensor, mass: Tensor, com: T
     n, M = qt.shape
     batch = (M,) if terms.M0.dim() > 3 else ()
     C = batch_last_terms(terms, batch)
-    all_revolute = bool(revolute.all())
-    if all_revolute:
-        f1, f2 = torch.sin(qt), 1 - torch.cos(qt)
-    else:
-        rev = revolute[:, None]
-        f1 = torch.where(rev, torch.sin(qt), qt)
-        f2 = torch.where(rev, 1 - torch.cos(qt), 0.0)
-    R_loc = torch.addcmul(C.R[0], f1, C.R[1]).addcmul_(f2, C.R[2])  # (3, 3, n, M)
-    t_loc = C.t if all_revolute else torch.addcmul(C.t, f1, C.d)
+    R_loc, t_loc = local_batch_last(C, qt, revolute, bool(revolute.all()))
     z, o, mc = (qt.new_empty(3, n, M) for _ in range(3))
     R, p = None, None
     for i in range(n):
