@@ -50,18 +50,14 @@ def _loads(terms: ChainTerms, qt: Tensor, revolute: Tensor, mass: Tensor, com: T
     batch = (M,) if terms.M0.dim() > 3 else ()
     C = batch_last_terms(terms, batch)
     R_loc, t_loc = local_batch_last(C, qt, revolute, bool(revolute.all()))
-    z, o, mc = (qt.new_empty(3, n, M) for _ in range(3))
-    R, p = None, None
-    for i in range(n):
-        if R is None:
-            R, p = R_loc[:, :, 0], t_loc[:, 0].expand(3, M)
-        else:
-            p = p + rotate(R, t_loc[:, i])
-            R = compose(R, R_loc[:, :, i])
-        o[:, i] = p
-        z[:, i] = rotate(R, C.axis[:, i])
-        mc[:, i] = mass[i] * (p + rotate(R, com[i, :, None]))
-    return z, o, mc, p + rotate(R, C.t_tip)
+    Rs, ps = [R_loc[:, :, 0]], [t_loc[:, 0].expand(3, M)]
+    for i in range(1, n):  # the chain's frames; the loads of all joints at once below
+        ps.append(ps[-1] + rotate(Rs[-1], t_loc[:, i]))
+        Rs.append(compose(Rs[-1], R_loc[:, :, i]))
+    R, o = torch.stack(Rs, 2), torch.stack(ps, 1)  # (3, 3, n, M), (3, n, M)
+    z = (R * C.axis[None]).sum(1)
+    mc = mass[:, None] * (o + (R * com.T[None, :, :, None]).sum(1))
+    return z, o, mc, ps[-1] + rotate(Rs[-1], C.t_tip)
 
 
 def statics_batch_last(
