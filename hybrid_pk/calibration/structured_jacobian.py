@@ -20,6 +20,7 @@ import weakref
 import torch
 from torch import Tensor
 
+from hybrid_pk.calibration.joint_jacobian import joint_effect_jacobian
 from hybrid_pk.calibration.least_squares import jacobian
 from hybrid_pk.calibration.loaded_jacobian import (
     deflection_twists,
@@ -215,8 +216,8 @@ class StructuredJacobian:
         with torch.no_grad():
             g = robot.gravity_torques(q_star, payload=payload, gravity=gravity, params=params)
         kin = [b for b in self.joint if self.effects[b.name].stage == "joint"]
-        dq_kin = None
-        if kin:
+        dq_kin = joint_effect_jacobian(model, q, cond, kin) if kin else None
+        if kin and dq_kin is None:  # some effect couples joints: every direction through all
             wrapper = _KinematicJoints(model)
 
             def q_kin(theta_k: Tensor) -> Tensor:
