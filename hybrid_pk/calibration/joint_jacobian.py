@@ -37,30 +37,30 @@ class _Apply(nn.Module):
 
 def _effect_derivatives(effect, q: Tensor, cond: Conditions, j: int, block):
     """``(q_out, d q_out / d q_j (n, dof), d q_out / d theta (size, n, dof) or None)`` of
-    one effect, or None when it changes another joint or reads another joint's value."""
+    one effect (one forward pass per direction, all in one batch), or None when it
+    changes another joint or reads another joint's value."""
     wrapper, value = _Apply(effect), effect.value.detach()
     n, dof = q.shape
 
     def f(qv: Tensor, v: Tensor) -> Tensor:
         return torch.func.functional_call(wrapper, {"effect.value": v}, (qv, cond))
 
+    with torch.no_grad():
+        out = f(q, value)
+    size = 0 if block is None else block.size
     eye = torch.eye(dof, dtype=q.dtype)
     along, across = eye[j].expand(n, dof), (1 - eye[j]).expand(n, dof)
-    out, d_along = torch.func.jvp(lambda qv: f(qv, value), (q,), (along,))
-    d_across = torch.func.jvp(lambda qv: f(qv, value), (q,), (across,))[1]
-    if not torch.equal(d_across, across) or bool((d_along * across != 0).any()):
+    t_q = torch.stack([along, across, *[torch.zeros_like(q)] * size])
+    t_v = torch.zeros(2 + size, value.numel(), dtype=value.dtype)
+    if size:
+        t_v[2:] = torch.eye(size, dtype=value.dtype) * block.scale
+    t_v = t_v.reshape(2 + size, *value.shape)
+    d = torch.func.vmap(lambda a, b: torch.func.jvp(f, (q, value), (a, b))[1])(t_q, t_v)
+    if not torch.equal(d[1], across) or bool((d[0] * across != 0).any()):
         return None
-    own = None
-    if block is not None:
-        dirs = torch.eye(block.size, dtype=value.dtype).reshape(block.size, *value.shape)
-
-        def along_value(d: Tensor) -> Tensor:
-            return torch.func.jvp(lambda v: f(q, v), (value,), (d * block.scale,))[1]
-
-        own = torch.func.vmap(along_value)(dirs)  # (size, n, dof)
-        if bool((own * across != 0).any()):
-            return None
-    return out.detach(), d_along, own
+    if size and bool((d[2:] * across != 0).any()):
+        return None
+    return out, d[0], d[2:] if size else None
 
 
 def joint_effect_jacobian(
