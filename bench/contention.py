@@ -237,16 +237,16 @@ def plain_fit_seconds(case: dict, diagnosis: Path) -> float:
 
 def structural_share(case: dict, work: Path) -> dict:
     """The structurally wrong campaign alone: wall time, and the structural search's
-    seconds from the diagnosis JSON (``budget.stages``)."""
+    seconds from the diagnosis JSON (``budget.seconds``)."""
     out = work / "diag_wrong.json"
     seconds = _run_together([_diagnose_cmd(case, out)], _env("policy"), 3600.0)[0]
     budget = json.loads(out.read_text())["budget"]
-    structural = budget["stages"].get("structural search", 0.0)
+    structural = budget["seconds"].get("structural search", 0.0)
     cut = [c["stage"] for c in budget["cut_short"]]
     share = structural / seconds
     print(
         f"wrong policy alone {seconds:15.1f} s  structural search {structural:.1f} s = "
-        f"{100 * share:.0f} % of the diagnosis (budget {budget['optional_s']:.1f} s; "
+        f"{100 * share:.0f} % of the diagnosis (budget {budget['optional']:.3g} row evaluations; "
         f"cut short: {', '.join(cut) or 'nothing'})",
         flush=True,
     )

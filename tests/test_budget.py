@@ -1,12 +1,14 @@
 """Bounded worst cases (issue 30): the optional stages of a diagnosis stop on their
-time budget, keep their first unit of work, and say what they left undone."""
+work budget, keep their first unit of work, and say what they left undone."""
 
 from __future__ import annotations
 
+import threading
 import time
 
 import pytest
 
+from hybrid_pk.calibration import work
 from hybrid_pk.calibration.diagnosis.budget import Budget
 from hybrid_pk.calibration.diagnosis.split import split_campaign
 from hybrid_pk.calibration.diagnosis.structural import locate_structural_error
@@ -19,23 +21,39 @@ from tests.helpers import RUN_SEED, run_rng
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
-def test_budget_is_a_share_of_the_main_search():
+def test_budget_is_a_share_of_the_main_search_s_work():
+    """Counted work, not time: sleeping costs nothing, row evaluations do."""
     budget = Budget(share=0.5)
+    work.count(400, columns=9)  # the main search: 4,000 row evaluations
     time.sleep(0.05)
     budget.main_done()
-    assert budget.seconds == pytest.approx(0.5 * budget.main_s)
+    assert budget.main == 4000
+    assert budget.allowed == pytest.approx(2000)
     assert not budget.spent()
     with budget.stage("swaps"):
-        time.sleep(0.6 * budget.seconds)
+        work.count(1200)
+        time.sleep(0.05)
         assert not budget.spent()
-        time.sleep(0.6 * budget.seconds)
+        assert budget.spent(next_work=800)  # a next step as large would overrun it
+        work.count(100, columns=7)
         assert budget.spent()  # counted while the stage runs
     assert budget.spent()
     budget.cut("swaps", ["swaps of joint_offset:joint_2"])
     doc = budget.to_json()
     assert doc["cut_short"] == [{"stage": "swaps", "not_done": ["swaps of joint_offset:joint_2"]}]
-    assert doc["stages"]["swaps"] >= budget.seconds
+    assert doc["stages"]["swaps"] == 2000
+    assert doc["main_search"] == 4000
+    assert doc["seconds"]["swaps"] >= 0.05
     assert "swaps of joint_offset:joint_2" in budget.warnings()[0]["why"]
+
+
+def test_work_is_counted_per_thread():
+    """Two diagnoses in two threads of one process do not spend each other's budget."""
+    start = work.done()
+    other = threading.Thread(target=lambda: work.count(10_000))
+    other.start()
+    other.join()
+    assert work.done() == start
 
 
 # joint_4's origin lies on joint_3's axis (zero translation in the RX160 URDF) and
@@ -76,3 +94,26 @@ def test_a_spent_budget_stops_the_structural_search_after_the_hinted_joint(rx160
     assert [c["stage"] for c in budget.cuts] == ["structural search"], why
     assert wrong in budget.cuts[0]["not_done"], why
     assert hint not in budget.cuts[0]["not_done"], why
+
+
+def test_a_cut_is_the_same_on_every_run(rx160):
+    """The budget counts work: a budget of half the full search's work cuts it at the
+    same step, with the same work counted, on every run (a wall-time budget moved
+    with the machine's load)."""
+    data, _ = simulate_campaign(rx160, 120, "joint_offset:joint_3=0.25", noise_mm=0.05,
+                                noise_deg=0.005, seed=7)  # fmt: skip
+    nominal, split, sigmas = _nominal_fit(rx160, data)
+    start = work.done()
+    locate_structural_error(nominal, split, sigmas, hint=["joint_5"])
+    full = work.done() - start
+    runs = []
+    for _ in range(2):
+        budget = Budget(share=0.5)
+        work.count(full)  # a main search of the full search's work: half of it allowed
+        budget.main_done()
+        with budget.stage("structural search"):
+            found = locate_structural_error(nominal, split, sigmas, ["joint_5"], budget=budget)
+        runs.append((found["joint"], budget.cuts, budget.to_json()["stages"]))
+    assert runs[0] == runs[1]
+    assert runs[0][1], "half the work cuts the search short"
+    assert runs[0][2]["structural search"] < full

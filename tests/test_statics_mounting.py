@@ -7,6 +7,7 @@ Oracle: pinocchio's recursive Newton-Euler at zero velocity and acceleration, wh
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +15,9 @@ import pytest
 import torch
 
 import hybrid_pk as hpk
+from hybrid_pk.calibration.least_squares import jacobian
 from hybrid_pk.robot import STANDARD_GRAVITY
+from hybrid_pk.robot.statics import gravity_values
 
 pin = pytest.importorskip("pinocchio")
 
@@ -111,3 +114,50 @@ def test_wrench_in_joint_frames_is_the_rotated_root_wrench(robot):
         R = robot.link_frames(q)[:, : robot.dof, :3, :3]
     back = torch.cat([(R @ local[..., :3, None])[..., 0], (R @ local[..., 3:, None])[..., 0]], -1)
     torch.testing.assert_close(back, root, atol=1e-10, rtol=0)
+
+
+@pytest.mark.parametrize("payload", [0.0, 8.0])
+def test_values_path_and_its_derivative_match_pinocchio(robot, payload):
+    """The path without autograd (batch last, closed-form dg/dq: the compliance fixed
+    point and the identification Jacobian) against pinocchio's g(q) and dg/dq."""
+    gen = torch.Generator().manual_seed(15)
+    gravity = torch.randn(3, generator=gen, dtype=torch.float64)
+    gravity = gravity / gravity.norm() * STANDARD_GRAVITY  # any mounting
+    model, data = _pin(robot, payload, gravity.numpy())
+    q = robot.sample_q(20, gen)
+    with torch.no_grad():  # the robot's parameters carry gradients otherwise
+        tau, G = gravity_values(robot, q, payload, gravity, derivative=True)
+    cols = [model.idx_vs[model.getJointId(n)] for n in robot.joint_names]
+    for i, qi in enumerate(q.numpy()):
+        qp = _pin_q(model, robot, qi)
+        g = pin.computeGeneralizedGravity(model, data, qp)[cols]
+        dg = pin.computeGeneralizedGravityDerivatives(model, data, qp)[np.ix_(cols, cols)]
+        assert np.abs(tau[i].numpy() - g).max() <= 1e-10 * max(np.abs(g).max(), 1.0)
+        err = np.abs(G[i].numpy() - dg).max() / max(np.abs(dg).max(), 1.0)
+        assert err <= 1e-10, f"config {i}: dg/dq off by {err:.2e} relative"
+
+
+def test_values_path_follows_mimic_and_prismatic_joints():
+    """column_arm without its off-chain body (which keeps the differentiable path):
+    telescopic prismatic joints coupled by mimic tags, per-row gravity and payload;
+    values equal the differentiable statics and dg/dq its forward-mode derivative."""
+    robot = hpk.Robot.from_urdf("column_arm", end_link="tool0").requires_grad_(False)
+    assert gravity_values(robot, robot.sample_q(2), 1.0, (0.0, 0.0, -9.8)) is None
+    robot.spec = dataclasses.replace(robot.spec, branches=())
+    assert robot.has_mimic
+    assert not bool(robot.chain_revolute.all())
+    gen = torch.Generator().manual_seed(16)
+    q = robot.sample_q(30, gen)
+    gravity = torch.randn(30, 3, generator=gen, dtype=torch.float64) * 5.0
+    payload = torch.rand(30, generator=gen, dtype=torch.float64) * 10.0
+    tau, G = gravity_values(robot, q, payload, gravity, derivative=True)
+    with torch.enable_grad():  # inputs that carry gradients: the differentiable path
+        tau_ref = robot.gravity_torques(q.requires_grad_(True), payload, gravity).detach()
+    q = q.detach()
+    torch.testing.assert_close(tau, tau_ref, atol=1e-10, rtol=0)
+
+    def torques(d):
+        return robot.gravity_torques(q + d, payload, gravity).reshape(-1)
+
+    G_ref = jacobian(torques, torch.zeros(robot.dof, dtype=q.dtype))[1]
+    torch.testing.assert_close(G, G_ref.reshape(30, robot.dof, robot.dof), atol=1e-9, rtol=0)

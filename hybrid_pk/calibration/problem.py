@@ -25,6 +25,7 @@ from torch import Tensor
 
 from hybrid_pk.calibration.structured_jacobian import StructuredJacobian
 from hybrid_pk.calibration.twists import residual_columns
+from hybrid_pk.calibration.work import count as count_work
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.geometry import quat_to_matrix
@@ -154,6 +155,7 @@ class Problem:
         """``(m,)`` noise-normalised residuals at scaled offsets ``theta``."""
         values = self.unpack(theta)
         pos, rot = [], []
+        count_work(self.data.n)
         for rows in self._chunks():
             args = (self.data.q[rows], self.cond.subset(rows))
             T = torch.func.functional_call(self.model, values, args)
@@ -218,6 +220,7 @@ class Problem:
         w = None if self.row_weights is None else self.row_weights[rows]
         cp, cr = residual_columns(pt.twists, E, self.sigma_pos_mm, self.sigma_rot_rad, w)
         n = pt.twists.shape[-1]
+        count_work(rows.stop - rows.start, n)
         if rot is None:
             return pos.reshape(-1), cp.reshape(-1, n)
         return torch.cat([pos.reshape(-1), rot.reshape(-1)]), torch.cat(

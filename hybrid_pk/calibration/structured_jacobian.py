@@ -20,6 +20,7 @@ import weakref
 import torch
 from torch import Tensor
 
+from hybrid_pk.calibration.joint_jacobian import joint_effect_jacobian
 from hybrid_pk.calibration.least_squares import jacobian
 from hybrid_pk.calibration.loaded_jacobian import (
     deflection_twists,
@@ -35,6 +36,7 @@ from hybrid_pk.calibration.twists import (
 )
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.robot import KinematicParams
+from hybrid_pk.robot.statics import gravity_values
 
 __all__ = ["GRAVITY_REUSE_RAD", "PoseTwists", "StructuredJacobian"]
 
@@ -214,8 +216,8 @@ class StructuredJacobian:
         with torch.no_grad():
             g = robot.gravity_torques(q_star, payload=payload, gravity=gravity, params=params)
         kin = [b for b in self.joint if self.effects[b.name].stage == "joint"]
-        dq_kin = None
-        if kin:
+        dq_kin = joint_effect_jacobian(model, q, cond, kin) if kin else None
+        if kin and dq_kin is None:  # some effect couples joints: every direction through all
             wrapper = _KinematicJoints(model)
 
             def q_kin(theta_k: Tensor) -> Tensor:
@@ -275,13 +277,17 @@ def _gravity_jacobian(robot, q_star: Tensor, payload, params, key, gravity) -> T
             if float((q_kept[rows] - q_star).abs().max()) <= GRAVITY_REUSE_RAD:
                 return G_kept[rows]
 
-    def grav(d: Tensor) -> Tensor:
-        tau = robot.gravity_torques(q_star + d, payload=payload, gravity=gravity, params=params)
-        return tau.reshape(-1)
+    closed = gravity_values(robot, q_star, payload, gravity, params, derivative=True)
+    if closed is not None:
+        G = closed[1]
+    else:  # off-chain bodies: forward mode through the differentiable statics
 
-    dof = q_star.shape[-1]
-    _, Jg = jacobian(grav, torch.zeros(dof, dtype=q_star.dtype))
-    G = Jg.reshape(-1, dof, dof)
+        def grav(d: Tensor) -> Tensor:
+            tau = robot.gravity_torques(q_star + d, payload=payload, gravity=gravity, params=params)
+            return tau.reshape(-1)
+
+        dof = q_star.shape[-1]
+        G = jacobian(grav, torch.zeros(dof, dtype=q_star.dtype))[1].reshape(-1, dof, dof)
     if store is not None:
         q_kept[rows], G_kept[rows], valid[rows] = q_star, G, True
     return G

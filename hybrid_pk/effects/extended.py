@@ -23,6 +23,7 @@ from hybrid_pk.effects.conditions import Conditions
 from hybrid_pk.effects.gravity import Gravity
 from hybrid_pk.geometry import so3_exp, transform
 from hybrid_pk.robot import Robot
+from hybrid_pk.robot.chain import plain_inputs
 
 __all__ = ["ExtendedModel", "RigidFrame"]
 
@@ -191,7 +192,9 @@ class ExtendedModel(nn.Module):
             # Converge without derivatives, then differentiate the last two steps: the
             # derivative error shrinks like (c dtau/dq)^2 ~ 1e-6 relative, at a quarter
             # of the cost of differentiating every iteration.
-            detached = None if params is None else type(params)(*(t.detach() for t in params))
+            detached = params  # plain values (no_grad fits): the same object keeps the
+            if params is not None and not plain_inputs(*params):  # chain constants cached
+                detached = type(params)(*(t.detach() for t in params))
             q = q_kin.detach()
             with torch.no_grad():
                 for _ in range(COMPLIANCE_ITERATIONS - 2):

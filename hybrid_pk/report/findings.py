@@ -46,8 +46,8 @@ def structural_section(diagnosis) -> list[str]:
     if cut:
         share = diagnosis.budget["share"]  # the tuning's optional_share
         lines += [
-            f"The search stopped on its time budget ({100 * share:g} % of the main "
-            f"search's time, shared by the optional stages) before: {', '.join(cut['not_done'])}.",
+            f"The search stopped on its work budget ({100 * share:g} % of the main "
+            f"search's work, shared by the optional stages) before: {', '.join(cut['not_done'])}.",
             "",
         ]
     withheld = structural.get("withheld_causes") or []

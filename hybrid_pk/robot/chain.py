@@ -47,6 +47,7 @@ __all__ = [
     "aligned_pose",
     "batch_last_terms",
     "chain_terms",
+    "local_batch_last",
     "local_transforms",
     "plain_inputs",
     "pose_jacobian_batch_last",
@@ -180,6 +181,22 @@ def batch_last_terms(terms: ChainTerms, batch: tuple[int, ...] = ()) -> BatchLas
     return BatchLastTerms(L[:, :, :3], L[0, :, 3], L[1, :, 3], axis, tip[:3, :3], tip[:3, 3])
 
 
+def local_batch_last(
+    C: BatchLastTerms, qt: Tensor, revolute: Tensor, all_revolute: bool
+) -> tuple[Tensor, Tensor]:
+    """Local rotation ``(3, 3, n, M)`` and translation ``(3, n, M or 1)`` of every
+    joint at chain joint values ``qt (n, M)`` (batch-last :func:`local_transforms`)."""
+    if all_revolute:
+        f1, f2 = torch.sin(qt), 1 - torch.cos(qt)
+    else:
+        rev = revolute[:, None]
+        f1 = torch.where(rev, torch.sin(qt), qt)
+        f2 = torch.where(rev, 1 - torch.cos(qt), 0.0)
+    R_loc = torch.addcmul(C.R[0], f1, C.R[1])
+    R_loc = torch.addcmul(R_loc, f2, C.R[2])
+    return R_loc, C.t if all_revolute else torch.addcmul(C.t, f1, C.d)
+
+
 def pose_jacobian_batch_last(
     C: BatchLastTerms, qt: Tensor, revolute: Tensor, all_revolute: bool | None = None
 ) -> tuple[Tensor, Tensor, Tensor]:
@@ -195,15 +212,7 @@ def pose_jacobian_batch_last(
     """
     if all_revolute is None:
         all_revolute = bool(revolute.all())
-    if all_revolute:
-        f1, f2 = torch.sin(qt), 1 - torch.cos(qt)
-    else:
-        rev = revolute[:, None]
-        f1 = torch.where(rev, torch.sin(qt), qt)
-        f2 = torch.where(rev, 1 - torch.cos(qt), 0.0)
-    R_loc = torch.addcmul(C.R[0], f1, C.R[1])
-    R_loc = torch.addcmul(R_loc, f2, C.R[2])  # (3, 3, n, M)
-    t_loc = C.t if all_revolute else torch.addcmul(C.t, f1, C.d)
+    R_loc, t_loc = local_batch_last(C, qt, revolute, all_revolute)
     R = R_loc[:, :, 0]
     p = t_loc[:, 0].expand(3, qt.shape[1])
     origins, axes = [p], [rotate(R, C.axis[:, 0])]

@@ -31,6 +31,7 @@ from hybrid_pk.robot.chain import (
 )
 from hybrid_pk.robot.chain_spec import BranchBody, ChainSpec, load_chain_spec
 from hybrid_pk.robot.dh import from_dh
+from hybrid_pk.robot.statics import gravity_values
 
 __all__ = ["STANDARD_GRAVITY", "Robot"]
 
@@ -79,11 +80,8 @@ class Robot(nn.Module):
         self._params_memo: dict[bool, tuple] = {}
         self._no_grad_fk = AlignedFK(self.chain_revolute)  # fk's path without derivatives
 
-    def __getstate__(self) -> dict:
-        # Caches may hold tensors of a finished functorch transform: never pickle them.
-        state = self.__dict__.copy()
-        state["_cache"], state["_params_memo"] = {}, {}
-        return state
+    def __getstate__(self) -> dict:  # caches may hold a finished transform's tensors
+        return {**self.__dict__, "_cache": {}, "_params_memo": {}}
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -346,7 +344,7 @@ class Robot(nn.Module):
         """Static joint torques that hold the arm against gravity.
 
         Same sign as the ``g(q)`` term of ``M(q) q'' + C q' + g(q) = tau``: the torque
-        each motor must apply at rest.
+        each motor must apply at rest (values alone: ``statics.gravity_values``).
 
         Args:
             q: ``(*B, dof)`` joint values [rad or m].
@@ -359,9 +357,10 @@ class Robot(nn.Module):
             ``(*B, dof)`` torques [Nm] (forces [N] for prismatic joints).
         """
         q = self._check_q(q)
+        if (fast := gravity_values(self, q, payload, gravity, params)) is not None:
+            return fast[0]
         frames = self.link_frames(q, params)
-        dtype = frames.dtype
-        g = self._gravity(gravity, frames)
+        g, dtype = self._gravity(gravity, frames), frames.dtype
         mass_out, arm = self._subtree_loads(q, frames, payload)
         gj = g[..., None, :]
         z = self._axes_world(frames, params)

@@ -1,13 +1,15 @@
-"""Bounded worst cases: the optional stages of a diagnosis share a time budget.
+"""Bounded worst cases: the optional stages of a diagnosis share a work budget.
 
 The main search (frames, forward selection with elimination, each cause's gain) is
 the diagnosis; the stages after it that only add a finding (the swaps for fewer
 causes, the search for a structural error, the check of a search that stopped at
-its limit) get, together, a share of the main search's wall time (the tuning's
-``optional_share``). Measured
-in the same process, the budget scales with the machine's speed and load as the
+its limit) get, together, a share (the tuning's ``optional_share``) of the main search's work. Work is
+counted, not timed (:mod:`hybrid_pk.calibration.work`: model evaluations of one row,
+a Jacobian row weighing one per column): the same campaign is cut at the same step
+on an idle or a loaded machine, and the budget still scales with the campaign as the
 main search does. A stage that the budget cuts short says what it left undone
-(:meth:`Budget.cut`), and the diagnosis reports it (``budget`` in its JSON).
+(:meth:`Budget.cut`), and the diagnosis reports it (``budget`` in its JSON, with the
+work and the wall time of each stage).
 
 Every stage does its first unit of work whatever the budget (the structural search
 fits the joints named by implausible causes from the plain start), so that a cut
@@ -19,42 +21,52 @@ from __future__ import annotations
 import time
 
 from hybrid_pk.calibration.tuning import diagnosis_tuning
+from hybrid_pk.calibration.work import done as work_done
 
-__all__ = ["Budget"]
+__all__ = ["WORK_UNIT", "Budget"]
+
+WORK_UNIT = "row evaluations (a residual row 1, a Jacobian row 1 + its columns)"
 
 
 class Budget:
-    """Wall-time budget of the optional stages, started when the main search is."""
+    """Work budget of the optional stages, started when the main search is."""
 
     def __init__(self, share: float | None = None) -> None:
         self.share = diagnosis_tuning().optional_share if share is None else share
-        self.start = time.perf_counter()
+        self.start, self.start_s = work_done(), time.perf_counter()
+        self.main: int | None = None
         self.main_s: float | None = None
         self.cuts: list[dict] = []
-        self._stages: dict[str, float] = {}
-        self._current: float | None = None  # start of the optional stage under way
+        self._stages: dict[str, list] = {}  # name -> [work, seconds]
+        self._current: tuple[int, float] | None = None  # the optional stage under way
 
     def main_done(self) -> None:
         """The main search ends here: the optional stages' budget is fixed from now."""
-        if self.main_s is None:
-            self.main_s = time.perf_counter() - self.start
+        if self.main is None:
+            self.main = work_done() - self.start
+            self.main_s = time.perf_counter() - self.start_s
 
     @property
-    def seconds(self) -> float:
-        """The optional stages' budget [s] (the main search so far, if not done yet)."""
-        main = self.main_s if self.main_s is not None else time.perf_counter() - self.start
+    def allowed(self) -> float:
+        """The optional stages' budget [row evaluations] (of the main search so far,
+        if not done yet)."""
+        main = self.main if self.main is not None else work_done() - self.start
         return self.share * main
 
-    def spent(self, next_s: float = 0.0) -> bool:
-        """True when the optional stages together used up the budget, or would with
-        a next step of ``next_s`` seconds (e.g. the longest such step so far)."""
-        used = next_s + sum(self._stages.values())
+    def used(self) -> int:
+        """Work of the optional stages so far, the one under way included."""
+        used = sum(w for w, _ in self._stages.values())
         if self._current is not None:
-            used += time.perf_counter() - self._current
-        return used >= self.seconds
+            used += work_done() - self._current[0]
+        return used
+
+    def spent(self, next_work: float = 0.0) -> bool:
+        """True when the optional stages together used up the budget, or would with
+        a next step of ``next_work`` (e.g. the largest such step so far)."""
+        return self.used() + next_work >= self.allowed
 
     def stage(self, name: str) -> _Stage:
-        """Context manager timing optional stage ``name`` against the budget."""
+        """Context manager counting optional stage ``name`` against the budget."""
         return _Stage(self, name)
 
     def cut(self, stage: str, left: list[str]) -> None:
@@ -66,20 +78,24 @@ class Budget:
         return [
             {
                 "cause": c["stage"],
-                "why": f"stopped on its time budget ({self.seconds:.3g} s, "
-                f"{100 * self.share:g} % of the main search's {self.main_s or 0.0:.3g} s) "
+                "why": f"stopped on its work budget ({self.allowed:.3g} row evaluations, "
+                f"{100 * self.share:g} % of the main search's {self.main or 0:.3g}) "
                 f"before: {', '.join(c['not_done']) or 'its last step'}",
             }
             for c in self.cuts
         ]
 
     def to_json(self) -> dict:
-        """``{"main_search_s", "optional_s", "share", "stages", "cut_short"}``."""
+        """``{"unit", "main_search", "optional", "share", "stages", "seconds",
+        "cut_short"}``: work in ``unit``, wall times in ``seconds``."""
+        seconds = {"main search": round(self.main_s or 0.0, 3)}
         return {
-            "main_search_s": self.main_s,
-            "optional_s": self.seconds,
+            "unit": WORK_UNIT,
+            "main_search": self.main,
+            "optional": self.allowed,
             "share": self.share,
-            "stages": {k: round(v, 3) for k, v in self._stages.items()},
+            "stages": {k: w for k, (w, _) in self._stages.items()},
+            "seconds": seconds | {k: round(s, 3) for k, (_, s) in self._stages.items()},
             "cut_short": self.cuts,
         }
 
@@ -89,10 +105,13 @@ class _Stage:
         self.budget, self.name = budget, name
 
     def __enter__(self) -> Budget:
-        self.budget._current = time.perf_counter()
+        self.budget._current = (work_done(), time.perf_counter())
         return self.budget
 
     def __exit__(self, *exc) -> None:
         b = self.budget
-        b._stages[self.name] = b._stages.get(self.name, 0.0) + time.perf_counter() - b._current
+        w0, t0 = b._current
+        entry = b._stages.setdefault(self.name, [0, 0.0])
+        entry[0] += work_done() - w0
+        entry[1] += time.perf_counter() - t0
         b._current = None

@@ -111,7 +111,7 @@ def diagnose(
     """
     say = progress or (lambda _msg: None)
     robot.requires_grad_(False)
-    budget = Budget()  # the optional stages' share of the main search's time
+    budget = Budget()  # the optional stages' share of the main search's work
     cond = conditions_from_data(data, frames_per_file)
     split = split_campaign(data, cond, holdout, seed)
 
@@ -215,7 +215,7 @@ def _select(
     """Forward selection with backward elimination after each accepted cause.
 
     ``tests``: ``(alpha, carry, budget)``, the F-tests' level, the blocked hold-out's
-    blocks and margin, and the time budget of the optional stages (the capped-search
+    blocks and margin, and the work budget of the optional stages (the capped-search
     check and the swaps, after the loop). A candidate whose refit value is not a small physical
     correction is set aside and appended to ``flagged`` (its :func:`implausibility`
     entry).

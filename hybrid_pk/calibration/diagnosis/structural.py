@@ -27,7 +27,6 @@ named with the size of the correction and the error it would leave.
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Callable
 
 import torch
@@ -38,6 +37,7 @@ from hybrid_pk.calibration.fit import fit, model_errors
 from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.calibration.problem import Problem, param_blocks
 from hybrid_pk.calibration.tuning import diagnosis_tuning
+from hybrid_pk.calibration.work import done as work_done
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import (
     Conditions,
@@ -275,7 +275,7 @@ def locate_structural_error(
     from quarter and half turns about its perpendicular axes (a large rotation is out of
     reach of a fit that starts at zero), the joints whose plain correction left the
     least first. With a ``budget`` the search stops before a fit that would overrun it
-    (one as long as the slowest so far; the plain fits of the hinted joints, or of the
+    (one as large as the largest so far; the plain fits of the hinted joints, or of the
     first joint without hints, are always made) and records what it left undone.
 
     Returns:
@@ -291,10 +291,10 @@ def locate_structural_error(
     joints += [j for j in chain if j not in joints]
     tasks = [(j, None) for j in joints]  # (joint, start) fits, in order
     floor = [j for j in joints if j in hint] or joints[:1]  # fitted whatever the budget
-    best, plain, k, longest = None, {}, 0, 0.0  # longest: the slowest fit so far [s]
+    best, plain, k, largest = None, {}, 0, 0  # largest: the most work of a fit so far
     while k < len(tasks):
         joint, start = tasks[k]
-        spent = budget is not None and budget.spent(longest)
+        spent = budget is not None and budget.spent(largest)
         if spent and (start is not None or joint not in floor):
             left = sorted({j for j, s in tasks[k:] if s is None})
             turns = sorted({j for j, s in tasks[k:] if s is not None})
@@ -302,9 +302,9 @@ def locate_structural_error(
             break
         if start is None or start is _TURNS[0]:
             say(f"looking for a structural error at {joint}")
-        t0 = time.perf_counter()
+        w0 = work_done()
         model, after = _fit_correction(nominal, joint, split, sigmas, start)
-        longest = max(longest, time.perf_counter() - t0)
+        largest = max(largest, work_done() - w0)
         plain.setdefault(joint, after)
         if best is None or after < best[1]:
             best = (joint, after, model)
@@ -364,7 +364,7 @@ def structural_check(
         split: the diagnosis's fit / hold-out rows.
         nominal: the nominal model with frames fitted to the fit rows.
         sigmas: noise levels ``(position mm, rotation rad)`` of the structural fits.
-        budget: the optional stages' time budget (:mod:`.budget`); the structural
+        budget: the optional stages' work budget (:mod:`.budget`); the structural
             search stops when it is spent (``budget_cut`` says what it left undone).
 
     Returns:
@@ -419,7 +419,7 @@ def structural_check(
         )
         return [], structural
     names = ", ".join(f["cause"] for f in findings) or "no single cause"
-    searched = "" if cut is None else " of those searched before its time budget ran out"
+    searched = "" if cut is None else " of those searched before its work budget ran out"
     structural["message"] = (
         f"{names}: not a small correction of the URDF (see findings); no origin "
         f"correction at one joint{searched} explains the errors either, so the URDF may "
