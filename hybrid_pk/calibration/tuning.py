@@ -57,7 +57,7 @@ class DiagnosisTuning:
     power: float = 0.8
 
     # The optional stages (diagnosis.budget):
-    # together at most a quarter of the main search's time, so at most a fifth of the
+    # together at most a quarter of the main search's work, so at most a fifth of the
     # whole diagnosis (issue 30's bound on the structural search)
     optional_share: float = 0.25
 

@@ -1,13 +1,13 @@
 """Bounded worst cases: the optional stages of a diagnosis share a work budget.
 
-The main search (frames, forward selection with elimination, each cause's gain) is
-the diagnosis; the stages after it that only add a finding (the swaps for fewer
-causes, the search for a structural error, the check of a search that stopped at
-its limit) get, together, a share (the tuning's ``optional_share``) of the main search's work. Work is
-counted, not timed (:mod:`hybrid_pk.calibration.work`: model evaluations of one row,
-a Jacobian row weighing one per column): the same campaign is cut at the same step
-on an idle or a loaded machine, and the budget still scales with the campaign as the
-main search does. A stage that the budget cuts short says what it left undone
+The main search (frames, forward selection with elimination, each cause's gain) is the
+diagnosis; the stages after it that only add a finding (the swaps for fewer causes, the
+search for a structural error, the check of a search that stopped at its limit) get,
+together, a share (the tuning's ``optional_share``) of the main search's work. Work is
+counted, not timed (:mod:`hybrid_pk.calibration.work`: model evaluations of one row, a
+Jacobian row weighing one per column): the same campaign is cut at the same step on an
+idle or a loaded machine, and the budget still scales with the campaign as the main
+search does. A stage that the budget cuts short says what it left undone
 (:meth:`Budget.cut`), and the diagnosis reports it (``budget`` in its JSON, with the
 work and the wall time of each stage).
 
