@@ -123,3 +123,21 @@ def test_the_margin_takes_the_smaller_of_noise_and_fit_sigma():
     assert practical_margin(0.02, noise_mm=0.2) == pytest.approx(0.002)
     assert practical_margin(0.2, None, None) == pytest.approx(0.02)
     assert practical_margin(0.2, 0.5, 0.02) == 0.5
+
+
+def test_the_margin_line_says_how_the_noise_was_found():
+    """The CLI/report line of the margin names the noise, its source per file and the
+    fit's sigma that caps it; ``--min-gain-mm`` is named when it set the margin."""
+    from hybrid_pk.calibration.diagnosis.carryover import margin_text
+
+    files = [{"file": "/data/a.csv", "sigma_mm": 0.025, "pairs": 50}]
+    carry = {
+        "min_gain_mm": 0.0025, "rule": "noise ...", "noise_position_mm": 0.025,
+        "fit_sigma_mm": 0.22, "noise": {"sigma_mm": 0.025, "files": files}, "blocks": {},
+    }  # fmt: skip
+    text = margin_text(carry)
+    assert text.startswith("practical margin 0.0025 mm = noise 0.025 mm / sqrt(2 x 50)")
+    assert "a.csv 0.025 mm (50 pairs)" in text
+    assert "fit's sigma 0.22 mm" in text
+    assert "(--min-gain-mm)" in margin_text({**carry, "rule": "--min-gain-mm"})
+    assert margin_text({**carry, "blocks": None}) is None  # no blocks: no margin used
