@@ -95,15 +95,21 @@ def _distinct_block(q, candidate, score, revolute, revolute_tol, prismatic_tol) 
     # The greedy visit of the module docstring, one kept solution per target per round:
     # the first candidate left is kept (every one before it was the same as one kept),
     # then every candidate the same as it leaves. Rounds: the most distinct solutions of
-    # one target, not the number of candidates.
-    kept = torch.zeros_like(left)
-    rows = torch.arange(n, device=q.device)
+    # one target, not the number of candidates. Wrapping and tolerances of the joints are
+    # set up once (period 2 pi or 0: a prismatic difference is left as it is).
+    rev = revolute.to(q.device)
+    period = rev.to(q.dtype) * _TWO_PI
+    tol = torch.where(rev, revolute_tol, prismatic_tol).to(q.dtype)
+    kept = torch.zeros(left.shape, dtype=torch.uint8, device=q.device)
+    dof = q.shape[-1]
     while bool(left.any()):
-        first = left.to(torch.uint8).argmax(1)  # the first True of each row
-        has = left[rows, first]
-        kept[rows[has], first[has]] = True
-        rep = qs[rows, first]
-        left &= ~same_solution(qs, rep[:, None], revolute, revolute_tol, prismatic_tol)
+        first = left.to(torch.uint8).argmax(1, keepdim=True)  # (n, 1)
+        has = left.gather(1, first).to(torch.uint8)
+        kept.scatter_add_(1, first, has)  # adds 0 where a row is done
+        d = qs - qs.gather(1, first[..., None].expand(n, 1, dof))
+        d -= period * torch.round(d / _TWO_PI)
+        left &= ~(d.abs() <= tol).all(-1)
+    kept = kept.bool()
     out = torch.zeros_like(candidate)
     out.scatter_(1, order, kept)
     return out

@@ -240,9 +240,13 @@ def pack(
     Returns:
         ``q (N, K', dof)``, ``pos``, ``ori``, ``valid`` with NaN in unused slots.
     """
-    order = lexicographic_order(q, keep)
     k = int(keep.sum(-1).max()) if keep.numel() else 0
-    order = order[:, :k]
+    # Only the first k slots of each target are returned: sort just those (the kept
+    # slots first, in their order, then padding) instead of all K seeds.
+    first = torch.argsort((~keep).to(torch.int8), dim=1, stable=True)[:, :k]
+    keep_k = torch.take_along_dim(keep, first, 1)
+    sub = lexicographic_order(torch.take_along_dim(q, first[..., None], 1), keep_k)
+    order = torch.take_along_dim(first, sub, 1)
     valid = torch.take_along_dim(keep, order, 1)
     q = torch.take_along_dim(q, order[..., None], 1)
     pos = torch.take_along_dim(pos, order, 1)
