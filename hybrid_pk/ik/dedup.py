@@ -17,6 +17,7 @@ from torch import Tensor
 __all__ = [
     "PRISMATIC_TOL",
     "REVOLUTE_TOL",
+    "cell_representatives",
     "distinct_mask",
     "joint_difference",
     "same_cell_best",
@@ -143,6 +144,21 @@ def same_cell_best(
     Returns:
         ``(P,)`` bool, a subset of ``candidate`` (of equal scores the first kept).
     """
+    rep = cell_representatives(q, group, candidate, score, revolute, revolute_cell, prismatic_cell)
+    return rep == torch.arange(len(rep), device=rep.device)
+
+
+def cell_representatives(
+    q: Tensor,
+    group: Tensor,
+    candidate: Tensor,
+    score: Tensor,
+    revolute: Tensor,
+    revolute_cell: float,
+    prismatic_cell: float,
+) -> Tensor:
+    """:func:`same_cell_best` (same arguments) as ``(P,)`` long: for each candidate the
+    index of the one kept for its cell (itself when kept), -1 for the others."""
     idx = candidate.nonzero()[:, 0]
     qc = q.index_select(0, idx)
     rev = revolute.to(qc.device)
@@ -157,10 +173,11 @@ def same_cell_best(
     rank[order] = torch.arange(len(order), device=order.device)
     best = rank.new_full((len(order),), len(order)).scatter_reduce_(0, which, rank, "amin")
     rep = order.index_select(0, best.index_select(0, which))
-    drop = (rep != torch.arange(len(rep), device=rep.device)) & (cell == cell[rep]).all(1)
-    keep = torch.zeros_like(candidate)
-    keep[idx] = ~drop
-    return keep
+    me = torch.arange(len(rep), device=rep.device)
+    rep = torch.where((cell == cell[rep]).all(1), rep, me)  # a collision stands for itself
+    out = torch.full_like(candidate, -1, dtype=torch.long)
+    out[idx] = idx.index_select(0, rep)
+    return out
 
 
 def _hash_weights(k: int, device: torch.device) -> Tensor:

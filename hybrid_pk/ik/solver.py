@@ -215,7 +215,21 @@ def solve_and_check(
     near = out.position_error <= 2e-3 * options.tol_mm
     if not position_only:
         near &= out.rotation_error <= 2 * math.radians(options.tol_deg)
-    ok, pos, ori = check_solutions(ikm, out.q, rows, T_target, position_only, options, near)
+    if out.merged is None:
+        ok, pos, ori = check_solutions(ikm, out.q, rows, T_target, position_only, options, near)
+        return out, ok, pos, ori
+    # An arrival merged into another start of its target (same cell) is the same solution
+    # as that start's finished one, which the reduction keeps instead: it is checked only
+    # where that one fails.
+    m = out.merged
+    ok, pos, ori = check_solutions(
+        ikm, out.q, rows, T_target, position_only, options, near & (m < 0)
+    )
+    retry = near & (m >= 0) & ~ok.index_select(0, m.clamp_min(0))
+    if bool(retry.any()):
+        ok2, pos2, ori2 = check_solutions(ikm, out.q, rows, T_target, position_only, options, retry)
+        ok |= ok2
+        pos, ori = torch.where(retry, pos2, pos), torch.where(retry, ori2, ori)
     return out, ok, pos, ori
 
 

@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.ik.batched_lm import LMOutput, LMSettings, batched_levenberg_marquardt
-from hybrid_pk.ik.dedup import same_cell_best
+from hybrid_pk.ik.dedup import cell_representatives
 
 __all__ = ["solve_two_precisions"]
 
@@ -55,7 +55,8 @@ def solve_two_precisions(
 
     ``merge``: ``(revolute, prismatic)`` cell widths [rad, m] of
     :func:`~hybrid_pk.ik.dedup.same_cell_best` (needs ``revolute``); of a target's
-    arrivals in one cell only the best is finished."""
+    arrivals in one cell only the best is finished (``LMOutput.merged`` says which one
+    stands for each of the others)."""
     eps = torch.finfo(torch.float32).eps * _MARGIN
     reach = 1.0 + float(T_target[:, :3, 3].norm(dim=-1).max()) if len(T_target) else 1.0
     loose_p, loose_r = max(eps * reach, s.accept_position), max(eps, s.accept_rotation)
@@ -76,9 +77,13 @@ def solve_two_precisions(
     pos, rot = first.position_error.to(q0.dtype), first.rotation_error.to(q0.dtype)
     it = first.iterations.clone()
     arrived = (first.position_error <= loose_p) & (first.rotation_error <= loose_r)
+    merged = None
     if merge is not None and revolute is not None and bool(arrived.any()):
         score = first.position_error + s.rotation_weight * first.rotation_error
-        arrived = same_cell_best(first.q, rows, arrived, score, revolute, *merge)
+        rep = cell_representatives(first.q, rows, arrived, score, revolute, *merge)
+        me = torch.arange(len(rep), device=rep.device)
+        arrived = rep == me
+        merged = torch.where(arrived, -1, rep)
     if first.active is not None:
         arrived |= first.active
     go = arrived.nonzero()[:, 0]
@@ -90,4 +95,4 @@ def solve_two_precisions(
     )
     q[go], pos[go], rot[go] = fine.q, fine.position_error, fine.rotation_error
     it[go] += fine.iterations
-    return LMOutput(q, pos, rot, it, first.evaluations + fine.evaluations)
+    return LMOutput(q, pos, rot, it, first.evaluations + fine.evaluations, merged=merged)
