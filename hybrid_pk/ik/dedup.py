@@ -91,6 +91,8 @@ def _distinct_block(q, candidate, score, revolute, revolute_tol, prismatic_tol) 
     # Best first; non-candidates last.
     key = torch.where(candidate, score, torch.inf)
     order = torch.argsort(key, dim=1, stable=True)
+    c = int(candidate.sum(1).max()) if candidate.numel() else 0  # non-candidates: never kept
+    order = order[:, :c]
     qs = torch.take_along_dim(q, order[..., None], dim=1)
     left = torch.take_along_dim(candidate, order, dim=1)
     # The greedy visit of the module docstring, one kept solution per target per round:
