@@ -86,9 +86,7 @@ class LMOutput(NamedTuple):
     """Per problem: final ``q (P, dof)``, ``position_error (P,)`` [m], ``rotation_error
     (P,)`` [rad], ``iterations (P,)``; ``evaluations``: total number of configurations
     evaluated (pose + Jacobian); ``active (P,)`` bool: still iterating when the call
-    returned early (``stop_at``), else None; ``merged (P,)`` long: the problem whose
-    result stands for this one (:mod:`~hybrid_pk.ik.two_precision`: same target and
-    cell at the handover, this one not finished), -1 where none; None without merging."""
+    returned early (``stop_at``), else None."""
 
     q: Tensor
     position_error: Tensor
@@ -96,7 +94,6 @@ class LMOutput(NamedTuple):
     iterations: Tensor
     evaluations: int
     active: Tensor | None = None
-    merged: Tensor | None = None
 
 
 # Rows of the kept block: damping mu and its growth nu, iterations spent near, cost at

@@ -20,7 +20,6 @@ __all__ = [
     "cell_representatives",
     "distinct_mask",
     "joint_difference",
-    "same_cell_best",
     "same_solution",
 ]
 
@@ -118,7 +117,7 @@ def _distinct_block(q, candidate, score, revolute, revolute_tol, prismatic_tol) 
     return out
 
 
-def same_cell_best(
+def cell_representatives(
     q: Tensor,
     group: Tensor,
     candidate: Tensor,
@@ -144,23 +143,9 @@ def same_cell_best(
         prismatic_cell: [m] cell width of prismatic joints.
 
     Returns:
-        ``(P,)`` bool, a subset of ``candidate`` (of equal scores the first kept).
+        ``(P,)`` long: for each candidate the index of the one kept for its cell
+        (itself when kept; of equal scores the first), -1 for the others.
     """
-    rep = cell_representatives(q, group, candidate, score, revolute, revolute_cell, prismatic_cell)
-    return rep == torch.arange(len(rep), device=rep.device)
-
-
-def cell_representatives(
-    q: Tensor,
-    group: Tensor,
-    candidate: Tensor,
-    score: Tensor,
-    revolute: Tensor,
-    revolute_cell: float,
-    prismatic_cell: float,
-) -> Tensor:
-    """:func:`same_cell_best` (same arguments) as ``(P,)`` long: for each candidate the
-    index of the one kept for its cell (itself when kept), -1 for the others."""
     idx = candidate.nonzero()[:, 0]
     qc = q.index_select(0, idx)
     rev = revolute.to(qc.device)

@@ -198,16 +198,17 @@ def solve_and_check(
     # rad); cells of half the distinctness tolerance merge only candidates the final
     # reduction would call the same (they differ by less than a cell).
     merge = (options.revolute_tol / 2, options.prismatic_tol / 2)
+    m = None
     with no_autograd(ikm):
         if ikm.batch_last is None:
             out = batched_levenberg_marquardt(
                 ikm.evaluate, q0, rows, T_target, *bounds, settings, ikm.revolute
             )
         else:
-            out = solve_two_precisions(
+            out, m = solve_two_precisions(
                 ikm.evaluate, q0, rows, T_target, *bounds, settings, ikm.revolute, merge
             )
-    out = LMOutput(*plain(*out))
+    out, (m,) = LMOutput(*plain(*out)), plain(m)
     # Only what the iteration itself left within twice the tolerances (a margin for the
     # float32 rounding of problems that stopped there) is evaluated afresh: the others
     # fail that evaluation anyway. Not in inference mode: the model's own caches (chain
@@ -215,13 +216,12 @@ def solve_and_check(
     near = out.position_error <= 2e-3 * options.tol_mm
     if not position_only:
         near &= out.rotation_error <= 2 * math.radians(options.tol_deg)
-    if out.merged is None:
+    if m is None:
         ok, pos, ori = check_solutions(ikm, out.q, rows, T_target, position_only, options, near)
         return out, ok, pos, ori
     # An arrival merged into another start of its target (same cell) is the same solution
     # as that start's finished one, which the reduction keeps instead: it is checked only
     # where that one fails.
-    m = out.merged
     ok, pos, ori = check_solutions(
         ikm, out.q, rows, T_target, position_only, options, near & (m < 0)
     )

@@ -49,14 +49,18 @@ def solve_two_precisions(
     s: LMSettings,
     revolute,
     merge: tuple[float, float] | None = None,
-) -> LMOutput:
+) -> tuple[LMOutput, Tensor | None]:
     """:func:`batched_levenberg_marquardt` (same arguments, ``evaluate`` accepting
     float32 and float64), float32 first and float64 from the handover tolerance.
 
     ``merge``: ``(revolute, prismatic)`` cell widths [rad, m] of
-    :func:`~hybrid_pk.ik.dedup.same_cell_best` (needs ``revolute``); of a target's
-    arrivals in one cell only the best is finished (``LMOutput.merged`` says which one
-    stands for each of the others)."""
+    :func:`~hybrid_pk.ik.dedup.cell_representatives` (needs ``revolute``); of a
+    target's arrivals in one cell only the best is finished.
+
+    Returns:
+        The result and ``merged (P,)`` long: for an arrival not finished, the problem
+        finished for its cell (whose result stands for it), else -1; None without
+        ``merge``."""
     eps = torch.finfo(torch.float32).eps * _MARGIN
     reach = 1.0 + float(T_target[:, :3, 3].norm(dim=-1).max()) if len(T_target) else 1.0
     loose_p, loose_r = max(eps * reach, s.accept_position), max(eps, s.accept_rotation)
@@ -95,4 +99,4 @@ def solve_two_precisions(
     )
     q[go], pos[go], rot[go] = fine.q, fine.position_error, fine.rotation_error
     it[go] += fine.iterations
-    return LMOutput(q, pos, rot, it, first.evaluations + fine.evaluations, merged=merged)
+    return LMOutput(q, pos, rot, it, first.evaluations + fine.evaluations), merged
