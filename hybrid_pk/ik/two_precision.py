@@ -10,8 +10,9 @@ tolerances (two or three Gauss-Newton steps); the others are returned as the flo
 phase left them (they had stalled, as they would have in float64). Many starts of one
 target arrive at the same solution: given ``merge`` cells, only the best of each
 target's arrivals in one cell of joint space is finished in float64 (the others are
-returned as they arrived; the reduction to distinct solutions then drops them in
-favour of the finished one, the same solution). Once only a few problems are still
+returned as they arrived, with the index of the finished one: the solver checks
+them only where that one fails its check, since the reduction to distinct solutions
+would drop them in favour of it, the same solution). Once only a few problems are still
 iterating in float32 (``_SWITCH``), float32 saves nothing (an iteration then costs its
 dispatch whatever the precision): they go on in float64 in the same batch as the
 arrived ones, so that the slow last problems and the finishing steps share iterations.
