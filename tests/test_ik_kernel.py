@@ -14,7 +14,12 @@ import torch
 import hybrid_pk as hpk
 from hybrid_pk.evaluation.metrics import pose_error
 from hybrid_pk.ik import IKOptions, as_ik_model, batched_levenberg_marquardt
-from hybrid_pk.ik.dedup import distinct_mask, joint_difference, same_cell_best, same_solution
+from hybrid_pk.ik.dedup import (
+    cell_representatives,
+    distinct_mask,
+    joint_difference,
+    same_solution,
+)
 from hybrid_pk.ik.lm_algebra import eliminate, normal_equations
 from hybrid_pk.ik.two_precision import solve_two_precisions
 from hybrid_pk.robot.chain import ALIGNED_MIN_BATCH, local_transforms, product
@@ -148,8 +153,17 @@ def test_same_cell_merge_keeps_the_best_of_each_cell():
     candidate = torch.rand(N * K, generator=rng) > 0.2
     score = torch.rand(N * K, generator=rng, dtype=F64)
     cell_r, cell_p = 5e-4, 5e-7
-    keep = same_cell_best(q, group, candidate, score, revolute, cell_r, cell_p)
+    rep = cell_representatives(q, group, candidate, score, revolute, cell_r, cell_p)
+    keep = rep == torch.arange(N * K)
+    assert bool((rep[~candidate] == -1).all())
     assert not bool((keep & ~candidate).any())
+    # every merged candidate names a kept one of its target, in its cell, scoring no worse
+    gone = (candidate & ~keep).nonzero()[:, 0]
+    assert bool(keep[rep[gone]].all())
+    assert bool((group[rep[gone]] == group[gone]).all())
+    d = joint_difference(q[rep[gone]], q[gone], revolute).abs()
+    assert bool(((d[:, :5] < cell_r).all(-1) & (d[:, 5] < cell_p)).all())
+    assert bool((score[rep[gone]] <= score[gone]).all())
     for i in (candidate & ~keep).nonzero()[:, 0]:
         d = joint_difference(q[keep], q[i], revolute).abs()
         near = (d[:, :5] < cell_r).all(-1) & (d[:, 5] < cell_p) & (group[keep] == group[i])
@@ -173,7 +187,7 @@ def test_two_precisions_finish_in_float64():
     s = IKOptions().lm_settings(position_only=False)
     args = (ikm.evaluate, q0, torch.arange(256), T, ikm.lower, ikm.upper, s, ikm.revolute)
     with torch.no_grad():
-        out, ref = solve_two_precisions(*args), batched_levenberg_marquardt(*args)
+        (out, _), ref = solve_two_precisions(*args), batched_levenberg_marquardt(*args)
         err = pose_error(T, robot.fk(out.q))
     assert out.q.dtype == F64
     arrived = (err.position_mm <= 1e-3) & (err.orientation_deg <= 1e-3)

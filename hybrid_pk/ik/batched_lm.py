@@ -221,10 +221,10 @@ def _accept(b: _Batch, trial: Tensor, ok: Tensor, predicted: Tensor) -> None:
     cost, k = b.field("cost"), b.kept
     cost_try = trial[trial.shape[0] - 3]
     accept = ok & (cost_try < cost) & (predicted > 0)  # NaN compares False
-    rho = (cost - cost_try) / predicted.clamp_min(torch.finfo(cost.dtype).tiny)
-    shrink = (1 - (2 * rho - 1) ** 3).clamp_min_(1 / 3)
+    rho = (cost - cost_try).div_(predicted.clamp_min(torch.finfo(cost.dtype).tiny))
+    shrink = (1 - rho.mul_(2).sub_(1).pow_(3)).clamp_min_(1 / 3)
     mu, nu = k[_MU], k[_NU]
-    torch.where(accept, mu * shrink, mu * nu, out=mu).clamp_(1e-12, b.s.damping_max)
+    mu.mul_(torch.where(accept, shrink, nu)).clamp_(1e-12, b.s.damping_max)
     nu.mul_(2).masked_fill_(accept, 2.0)
     b.ev = torch.where(accept, trial, b.ev)  # one pass, no count of the rejected
 

@@ -17,9 +17,9 @@ from torch import Tensor
 __all__ = [
     "PRISMATIC_TOL",
     "REVOLUTE_TOL",
+    "cell_representatives",
     "distinct_mask",
     "joint_difference",
-    "same_cell_best",
     "same_solution",
 ]
 
@@ -90,26 +90,34 @@ def _distinct_block(q, candidate, score, revolute, revolute_tol, prismatic_tol) 
     # Best first; non-candidates last.
     key = torch.where(candidate, score, torch.inf)
     order = torch.argsort(key, dim=1, stable=True)
+    c = int(candidate.sum(1).max()) if candidate.numel() else 0  # non-candidates: never kept
+    order = order[:, :c]
     qs = torch.take_along_dim(q, order[..., None], dim=1)
     left = torch.take_along_dim(candidate, order, dim=1)
     # The greedy visit of the module docstring, one kept solution per target per round:
     # the first candidate left is kept (every one before it was the same as one kept),
     # then every candidate the same as it leaves. Rounds: the most distinct solutions of
-    # one target, not the number of candidates.
-    kept = torch.zeros_like(left)
-    rows = torch.arange(n, device=q.device)
+    # one target, not the number of candidates. Wrapping and tolerances of the joints are
+    # set up once (period 2 pi or 0: a prismatic difference is left as it is).
+    rev = revolute.to(q.device)
+    period = rev.to(q.dtype) * _TWO_PI
+    tol = torch.where(rev, revolute_tol, prismatic_tol).to(q.dtype)
+    kept = torch.zeros(left.shape, dtype=torch.uint8, device=q.device)
+    dof = q.shape[-1]
     while bool(left.any()):
-        first = left.to(torch.uint8).argmax(1)  # the first True of each row
-        has = left[rows, first]
-        kept[rows[has], first[has]] = True
-        rep = qs[rows, first]
-        left &= ~same_solution(qs, rep[:, None], revolute, revolute_tol, prismatic_tol)
+        first = left.to(torch.uint8).argmax(1, keepdim=True)  # (n, 1)
+        has = left.gather(1, first).to(torch.uint8)
+        kept.scatter_add_(1, first, has)  # adds 0 where a row is done
+        d = qs - qs.gather(1, first[..., None].expand(n, 1, dof))
+        d -= period * torch.round(d / _TWO_PI)
+        left &= ~(d.abs() <= tol).all(-1)
+    kept = kept.bool()
     out = torch.zeros_like(candidate)
     out.scatter_(1, order, kept)
     return out
 
 
-def same_cell_best(
+def cell_representatives(
     q: Tensor,
     group: Tensor,
     candidate: Tensor,
@@ -135,7 +143,8 @@ def same_cell_best(
         prismatic_cell: [m] cell width of prismatic joints.
 
     Returns:
-        ``(P,)`` bool, a subset of ``candidate`` (of equal scores the first kept).
+        ``(P,)`` long: for each candidate the index of the one kept for its cell
+        (itself when kept; of equal scores the first), -1 for the others.
     """
     idx = candidate.nonzero()[:, 0]
     qc = q.index_select(0, idx)
@@ -151,10 +160,11 @@ def same_cell_best(
     rank[order] = torch.arange(len(order), device=order.device)
     best = rank.new_full((len(order),), len(order)).scatter_reduce_(0, which, rank, "amin")
     rep = order.index_select(0, best.index_select(0, which))
-    drop = (rep != torch.arange(len(rep), device=rep.device)) & (cell == cell[rep]).all(1)
-    keep = torch.zeros_like(candidate)
-    keep[idx] = ~drop
-    return keep
+    me = torch.arange(len(rep), device=rep.device)
+    rep = torch.where((cell == cell[rep]).all(1), rep, me)  # a collision stands for itself
+    out = torch.full_like(candidate, -1, dtype=torch.long)
+    out[idx] = idx.index_select(0, rep)
+    return out
 
 
 def _hash_weights(k: int, device: torch.device) -> Tensor:

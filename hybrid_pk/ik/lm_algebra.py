@@ -53,9 +53,7 @@ def pose_residual(
     pos = pos2.sqrt()
     if position_only:
         return dp, None, pos2, pos, torch.zeros_like(pos)
-    rt = R_t.transpose(0, 1)[:, :, None].unbind(0)  # columns of R_t, (3, 1, A)
-    rr = R.transpose(0, 1)[:, None].unbind(0)  # columns of R as rows, (1, 3, A)
-    E = torch.mul(rt[0], rr[0]).addcmul_(rt[1], rr[1]).addcmul_(rt[2], rr[2])  # R_t R^T
+    E = (R_t[:, None] * R[None]).sum(2)  # R_t R^T, (3, 3, A)
     sel = E.reshape(9, -1).index_select(0, _vee_trace(E.device))
     vee = sel[:3] - sel[3:6]  # 2 sin(angle) axis
     two_c = sel[6:].sum(0, keepdim=True) - 1
@@ -64,15 +62,25 @@ def pose_residual(
     w_angle = angle * weight
     # angle / (2 sin(angle)), accurate down to sin = 0 (atan2 keeps the ratio's digits)
     w = vee * (w_angle / two_s.clamp_min(torch.finfo(E.dtype).tiny))
-    far = two_c[0] < _NEAR_PI
-    if bool(far.any()):
+    if float(two_c.amin()) < _NEAR_PI:  # one reduction and one sync in the usual case
+        far = two_c[0] < _NEAR_PI
         w[:, far] = weight * so3_log(E[:, :, far].permute(2, 0, 1)).T
     return dp, w, pos2 + w_angle * w_angle, pos, angle
+
+
+# Problems up to which the normal equations are one broadcast product (three tensor
+# operations and an (m, n, n + 1, A) temporary) instead of m row updates: below it the
+# dispatch of the updates dominates, above it the temporary's memory traffic (one
+# thread, n = m = 6: equal at ~400 problems in float64, ~600 in float32).
+_BROADCAST_MAX = 256
 
 
 def normal_equations(J: Tensor, e: Tensor) -> Tensor:
     """``G (n, n + 1, A)`` = ``[J^T J | J^T e]`` of ``J (m, n, A)`` and ``e (m, A)``."""
     m, n, A = J.shape
+    if A <= _BROADCAST_MAX:
+        Je = torch.cat([J, e[:, None]], 1)  # (m, n + 1, A)
+        return (J[:, :, None] * Je[:, None]).sum(0)
     G = J.new_empty(n, n + 1, A)
     H = G[:, :n]
     cols, rows = J[:, :, None].unbind(0), J[:, None].unbind(0)

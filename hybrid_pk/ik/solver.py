@@ -198,16 +198,17 @@ def solve_and_check(
     # rad); cells of half the distinctness tolerance merge only candidates the final
     # reduction would call the same (they differ by less than a cell).
     merge = (options.revolute_tol / 2, options.prismatic_tol / 2)
+    m = None
     with no_autograd(ikm):
         if ikm.batch_last is None:
             out = batched_levenberg_marquardt(
                 ikm.evaluate, q0, rows, T_target, *bounds, settings, ikm.revolute
             )
         else:
-            out = solve_two_precisions(
+            out, m = solve_two_precisions(
                 ikm.evaluate, q0, rows, T_target, *bounds, settings, ikm.revolute, merge
             )
-    out = LMOutput(*plain(*out))
+    out, (m,) = LMOutput(*plain(*out)), plain(m)
     # Only what the iteration itself left within twice the tolerances (a margin for the
     # float32 rounding of problems that stopped there) is evaluated afresh: the others
     # fail that evaluation anyway. Not in inference mode: the model's own caches (chain
@@ -215,7 +216,20 @@ def solve_and_check(
     near = out.position_error <= 2e-3 * options.tol_mm
     if not position_only:
         near &= out.rotation_error <= 2 * math.radians(options.tol_deg)
-    ok, pos, ori = check_solutions(ikm, out.q, rows, T_target, position_only, options, near)
+    if m is None:
+        ok, pos, ori = check_solutions(ikm, out.q, rows, T_target, position_only, options, near)
+        return out, ok, pos, ori
+    # An arrival merged into another start of its target (same cell) is the same solution
+    # as that start's finished one, which the reduction keeps instead: it is checked only
+    # where that one fails.
+    ok, pos, ori = check_solutions(
+        ikm, out.q, rows, T_target, position_only, options, near & (m < 0)
+    )
+    retry = near & (m >= 0) & ~ok.index_select(0, m.clamp_min(0))
+    if bool(retry.any()):
+        ok2, pos2, ori2 = check_solutions(ikm, out.q, rows, T_target, position_only, options, retry)
+        ok |= ok2
+        pos, ori = torch.where(retry, pos2, pos), torch.where(retry, ori2, ori)
     return out, ok, pos, ori
 
 
@@ -240,9 +254,13 @@ def pack(
     Returns:
         ``q (N, K', dof)``, ``pos``, ``ori``, ``valid`` with NaN in unused slots.
     """
-    order = lexicographic_order(q, keep)
     k = int(keep.sum(-1).max()) if keep.numel() else 0
-    order = order[:, :k]
+    # Only the first k slots of each target are returned: sort just those (the kept
+    # slots first, in their order, then padding) instead of all K seeds.
+    first = torch.argsort((~keep).to(torch.int8), dim=1, stable=True)[:, :k]
+    keep_k = torch.take_along_dim(keep, first, 1)
+    sub = lexicographic_order(torch.take_along_dim(q, first[..., None], 1), keep_k)
+    order = torch.take_along_dim(first, sub, 1)
     valid = torch.take_along_dim(keep, order, 1)
     q = torch.take_along_dim(q, order[..., None], 1)
     pos = torch.take_along_dim(pos, order, 1)

@@ -10,8 +10,9 @@ tolerances (two or three Gauss-Newton steps); the others are returned as the flo
 phase left them (they had stalled, as they would have in float64). Many starts of one
 target arrive at the same solution: given ``merge`` cells, only the best of each
 target's arrivals in one cell of joint space is finished in float64 (the others are
-returned as they arrived; the reduction to distinct solutions then drops them in
-favour of the finished one, the same solution). Once only a few problems are still
+returned as they arrived, with the index of the finished one: the solver checks
+them only where that one fails its check, since the reduction to distinct solutions
+would drop them in favour of it, the same solution). Once only a few problems are still
 iterating in float32 (``_SWITCH``), float32 saves nothing (an iteration then costs its
 dispatch whatever the precision): they go on in float64 in the same batch as the
 arrived ones, so that the slow last problems and the finishing steps share iterations.
@@ -25,7 +26,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.ik.batched_lm import LMOutput, LMSettings, batched_levenberg_marquardt
-from hybrid_pk.ik.dedup import same_cell_best
+from hybrid_pk.ik.dedup import cell_representatives
 
 __all__ = ["solve_two_precisions"]
 
@@ -49,13 +50,18 @@ def solve_two_precisions(
     s: LMSettings,
     revolute,
     merge: tuple[float, float] | None = None,
-) -> LMOutput:
+) -> tuple[LMOutput, Tensor | None]:
     """:func:`batched_levenberg_marquardt` (same arguments, ``evaluate`` accepting
     float32 and float64), float32 first and float64 from the handover tolerance.
 
     ``merge``: ``(revolute, prismatic)`` cell widths [rad, m] of
-    :func:`~hybrid_pk.ik.dedup.same_cell_best` (needs ``revolute``); of a target's
-    arrivals in one cell only the best is finished."""
+    :func:`~hybrid_pk.ik.dedup.cell_representatives` (needs ``revolute``); of a
+    target's arrivals in one cell only the best is finished.
+
+    Returns:
+        The result and ``merged (P,)`` long: for an arrival not finished, the problem
+        finished for its cell (whose result stands for it), else -1; None without
+        ``merge``."""
     eps = torch.finfo(torch.float32).eps * _MARGIN
     reach = 1.0 + float(T_target[:, :3, 3].norm(dim=-1).max()) if len(T_target) else 1.0
     loose_p, loose_r = max(eps * reach, s.accept_position), max(eps, s.accept_rotation)
@@ -76,9 +82,13 @@ def solve_two_precisions(
     pos, rot = first.position_error.to(q0.dtype), first.rotation_error.to(q0.dtype)
     it = first.iterations.clone()
     arrived = (first.position_error <= loose_p) & (first.rotation_error <= loose_r)
+    merged = None
     if merge is not None and revolute is not None and bool(arrived.any()):
         score = first.position_error + s.rotation_weight * first.rotation_error
-        arrived = same_cell_best(first.q, rows, arrived, score, revolute, *merge)
+        rep = cell_representatives(first.q, rows, arrived, score, revolute, *merge)
+        me = torch.arange(len(rep), device=rep.device)
+        arrived = rep == me
+        merged = torch.where(arrived, -1, rep)
     if first.active is not None:
         arrived |= first.active
     go = arrived.nonzero()[:, 0]
@@ -90,4 +100,4 @@ def solve_two_precisions(
     )
     q[go], pos[go], rot[go] = fine.q, fine.position_error, fine.rotation_error
     it[go] += fine.iterations
-    return LMOutput(q, pos, rot, it, first.evaluations + fine.evaluations)
+    return LMOutput(q, pos, rot, it, first.evaluations + fine.evaluations), merged
