@@ -135,6 +135,24 @@ def geometry_twists(maps: Tensor, origin_rot: Tensor, d_xyz: Tensor, d_rot: Tens
         d_xyz, d_rot: ``(k, *P, dof + 1, 3)``, ``(k, *P, dof + 1, 3, 3)`` derivatives
             of the origins along each direction.
     """
+    if d_xyz.dim() == 4 and bool((origin_rot == origin_rot[:1]).all()):
+        # Per-row parameters (a thermal expansion) leave most directions equal in every
+        # row (at a zero expansion coefficient exactly): those take the shared path.
+        flat_xyz, flat_rot = d_xyz.flatten(2), d_rot.flatten(2)
+        same = (flat_xyz == flat_xyz[:, :1]).all(-1).all(-1)
+        same &= (flat_rot == flat_rot[:, :1]).all(-1).all(-1)
+        if bool(same.any()):
+            out = maps.new_empty(maps.shape[0], 6, d_xyz.shape[0])
+            out[..., same] = _origin_twists(maps, origin_rot[0], d_xyz[same, 0], d_rot[same, 0])
+            rows = ~same
+            if bool(rows.any()):
+                out[..., rows] = _origin_twists(maps, origin_rot, d_xyz[rows], d_rot[rows])
+            return out
+    return _origin_twists(maps, origin_rot, d_xyz, d_rot)
+
+
+def _origin_twists(maps: Tensor, origin_rot: Tensor, d_xyz: Tensor, d_rot: Tensor) -> Tensor:
+    """:func:`geometry_twists` without the split into shared and per-row directions."""
     k = d_xyz.shape[0]
     w_local = vee(d_rot @ origin_rot.transpose(-1, -2))  # parent-frame angular rates
     D = torch.cat([d_xyz, w_local], -1)  # (k, *P, n_orig, 6)
