@@ -22,7 +22,7 @@ from hybrid_pk.effects import Effect, ExtendedModel
 from hybrid_pk.effects.joint import CYCLIC_PREFIX
 from hybrid_pk.robot import Robot
 
-__all__ = ["GAIN_REFIT_STEPS", "measure_causes", "range_warnings"]
+__all__ = ["GAIN_REFIT_STEPS", "cap_warnings", "measure_causes", "range_warnings"]
 
 # LM steps of the refit without a cause, after its linearised removal: the first step
 # leaves ~1e-9 of the cost to gain (the linearised start is within ~1e-7 of it).
@@ -138,3 +138,19 @@ def range_warnings(causes: list[Cause], robot: Robot) -> list[dict]:
                 }
             )
     return out
+
+
+def cap_warnings(steps: list[dict]) -> list[dict]:
+    """A warning for a search that stopped at its limit with a significant candidate."""
+    return [
+        {
+            "cause": s["candidate"],
+            "why": f"still significant (score F {s['score_F']:.3g}, p {s['score_p']:.2g}) "
+            "and gaining the practical margin on the blocked hold-out "
+            f"when the search stopped at its limit of {s['capped']} "
+            f"cause{'s' if s['capped'] != 1 else ''}: the "
+            "data carry more causes than were named; --max-causes N names more",
+        }
+        for s in steps
+        if s.get("capped")
+    ]
