@@ -4,7 +4,8 @@ Three gains per cause, each the drop of the RMS error [mm] (rotation counted at 
 noise ratio ``sigma_pos / sigma_rot``, as in :mod:`.blocked`) that leaving it out
 costs: on the fit rows (in-sample), on the random hold-out rows, and on the blocked
 hold-out (regions of joint space, whole files). The first two are measured with the
-model refitted without the cause, the last one linearised per block.
+model refitted without the cause, the last one linearised per block. A periodic cause
+also gives its own-range gain (:mod:`.own_range`: the two ends of its joint's range).
 """
 
 from __future__ import annotations
@@ -116,6 +117,10 @@ def _add_gains(cause: Cause, models, res: FitResult, split: Split, blocked: dict
         cause.blocked_holdout_gain_mm = blocked["gain_mm"]
         cause.blocked_position_gain_mm = blocked["position_mm"]
         cause.blocked_orientation_gain_deg = blocked.get("orientation_deg")
+        own = blocked.get("own_range")  # a periodic cause: the ends of its joint's range
+        if own is not None:
+            cause.own_range_gain_mm = own["gain_mm"]
+            cause.own_range = own
 
 
 def range_warnings(causes: list[Cause], robot: Robot) -> list[dict]:
