@@ -1,7 +1,7 @@
 """Periodic errors carry over along their own joint (diagnosis.own_range).
 
 A cyclic error is named only if, with the lowest and with the highest quarter of the
-rows by its joint's angle held out in turn, the refit on the rest predicts each end
+rows by its joint's angle held out in turn, the refit on the rest predicts the ends
 better with it by the practical margin. The region blocks cut along the joints that
 move the point most, so without this check a wrist's periodic law is never tested
 beyond the rows it was fitted on.
@@ -78,12 +78,12 @@ def test_the_ends_are_the_lowest_and_highest_quarter_of_the_rows_by_the_angle():
 
 def test_a_periodic_error_of_part_of_the_range_is_not_named():
     """An 8-per-turn error present only around the middle of the measured range (a
-    Gaussian envelope of 1 rad): order 8 fits it and carries over on the region blocks
+    Gaussian envelope of 0.8 rad): order 8 fits it and carries over on the region blocks
     (named without the own-range check), but fitted on the middle and one end it
     predicts the other end worse than without it: not named, listed with its numbers."""
     robot = _ur10()
     seed = int(run_rng("own-range-envelope").integers(1 << 30))
-    diag = diagnose(robot, _campaign(robot, 1.0, seed), seed=RUN_SEED % 1000)
+    diag = diagnose(robot, _campaign(robot, 0.8, seed), seed=RUN_SEED % 1000)
     named = [f"{c.effect}:{c.joint}" for c in diag.causes]
     where = f"seed {RUN_SEED}, campaign seed {seed}"
     assert f"cyclic_error_{ORDER}:wrist_2_joint" not in named, (where, named)
@@ -92,7 +92,7 @@ def test_a_periodic_error_of_part_of_the_range_is_not_named():
         where, diag.ambiguous,
     )  # fmt: skip
     own = listed[0]["own_range"]
-    assert min(own["ends_mm"]) == own["gain_mm"] < diag.carry_over["min_gain_mm"], (where, own)
+    assert own["gain_mm"] < diag.carry_over["min_gain_mm"], (where, own)
     assert "not resolved over its joint's range" in listed[0]["why"]
 
 

@@ -8,12 +8,13 @@ cycles per turn: the cyclic errors) must also predict the two ends of its own jo
 measured range: the fit rows with the lowest and with the highest angles of that joint
 (:data:`END_SHARE` of them each) are held out in turn and predicted by the linearised
 refit on the others (the frames of a file seen only there re-fitted on it, as in the
-blocked hold-out). Its own-range gain, the smaller of the two ends' gains (each the
-drop of that end's RMS error when the cause is kept, rotation at the noise ratio, as
-:func:`.carryover.removal_gains`), must reach the practical margin too: the law must
-hold beyond the rows it was fitted on in both directions. Otherwise the cause is not
-resolved over its joint's range and is not named (listed beside the ambiguous orders,
-with the numbers).
+blocked hold-out). Its own-range gain (the drop of the two ends' RMS error when it is
+kept, rotation at the noise ratio, as :func:`.carryover.removal_gains`) must reach the
+practical margin too; otherwise the cause is not resolved over its joint's range and
+is not named (listed beside the ambiguous orders, with the numbers). Both ends are
+pooled, as the region blocks are: requiring each end alone took out a 17-per-turn
+error of the UR10's elbow (Series A: low end 0.0009 mm, high end 0.020 mm, margin
+0.0024 mm) whose model transfers better to Series B (0.451 mm with it, 0.465 without).
 """
 
 from __future__ import annotations
@@ -86,9 +87,9 @@ def own_range_gains(
     progress: Callable[[str], None] | None = None,
 ) -> dict[str, dict]:
     """Per periodic cause of ``model`` (:func:`periodic_causes`): its own-range gain
-    [mm] (``gain_mm``, the smaller end's), each end's (``ends_mm``: low, high), both
-    ends' pooled (``both_ends_mm``) and the ends (:func:`end_folds`' description).
-    Causes whose ends would be too small are absent."""
+    [mm] (``gain_mm``, both ends pooled), each end's (``ends_mm``: low, high) and the
+    ends (:func:`end_folds`' description). Causes whose ends would be too small are
+    absent."""
     labels = [e.label for e in model.effects]
     out: dict[str, dict] = {}
     for joint, periodic in periodic_causes(model).items():
@@ -100,12 +101,7 @@ def own_range_gains(
         for label in periodic:
             rest = [x for x in labels if x != label]
             gain = [b.gain_mm(b.of(rest, [label]), b.of(labels)) for b in [blocked, *ends]]
-            out[label] = {
-                "gain_mm": min(gain[1:]),
-                "ends_mm": gain[1:],
-                "both_ends_mm": gain[0],
-                **folds.description,
-            }
+            out[label] = {"gain_mm": gain[0], "ends_mm": gain[1:], **folds.description}
     return out
 
 
@@ -123,7 +119,7 @@ def off_range(own: dict[str, dict], margin: float, ambiguous: list[dict]):
         f"{r['low_end_below_rad']:.3g} rad and above {r['high_end_above_rad']:.3g} rad "
         f"(a quarter of the fit rows each, of {r['range_rad'][0]:.3g} .. "
         f"{r['range_rad'][1]:.3g} rad), each predicted by the refit on the others, gain "
-        f"{low:.3g} mm (low end) and {high:.3g} mm (high end) with it, the smaller less "
+        f"{r['gain_mm']:.3g} mm with it (low end {low:.3g}, high end {high:.3g} mm), less "
         f"than the practical margin {margin:.3g} mm: the law fitted on part of the range "
         "does not hold beyond it, so it is not named"
     )
