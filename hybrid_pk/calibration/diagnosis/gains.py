@@ -134,12 +134,18 @@ def range_warnings(causes: list[Cause], robot: Robot) -> list[dict]:
         j = robot.joint_names.index(c.joint)
         lo, hi = c.fitted_range_rad
         if float(lower[j]) < lo or float(upper[j]) > hi:
+            inside = ""
+            if c.own_range_gain_mm is not None:  # checked on the ends of the fitted range
+                inside = (
+                    f" (inside it, the end quarters predicted from the rest gain "
+                    f"{c.own_range_gain_mm:.3g} mm with it)"
+                )
             out.append(
                 {
                     "cause": f"{c.effect}:{c.joint}",
                     "why": f"fitted on {c.joint} in [{lo:.3g}, {hi:.3g}] rad of its range "
                     f"[{float(lower[j]):.3g}, {float(upper[j]):.3g}] rad: beyond the "
-                    "fitted range the model extrapolates the periodic law, unchecked",
+                    f"fitted range the model extrapolates the periodic law, unchecked{inside}",
                 }
             )
     return out
