@@ -87,7 +87,8 @@ def own_range_gains(
     progress: Callable[[str], None] | None = None,
 ) -> dict[str, dict]:
     """Per periodic cause of ``model`` (:func:`periodic_causes`): its own-range gain
-    [mm] (``gain_mm``, both ends pooled), each end's (``ends_mm``: low, high) and the
+    [mm] (``gain_mm``, both ends pooled), its position [mm] and orientation [deg] parts
+    (``position_mm``, ``orientation_deg``), each end's (``ends_mm``: low, high) and the
     ends (:func:`end_folds`' description). Causes whose ends would be too small are
     absent."""
     labels = [e.label for e in model.effects]
@@ -101,7 +102,8 @@ def own_range_gains(
         for label in periodic:
             rest = [x for x in labels if x != label]
             gain = [b.gain_mm(b.of(rest, [label]), b.of(labels)) for b in [blocked, *ends]]
-            out[label] = {"gain_mm": gain[0], "ends_mm": gain[1:], **folds.description}
+            parts = blocked.parts(blocked.of(rest, [label]), blocked.of(labels))
+            out[label] = {"gain_mm": gain[0], "ends_mm": gain[1:], **parts, **folds.description}
     return out
 
 
