@@ -106,6 +106,8 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
                 gain += f", {c.orientation_gain_deg:.3g} deg"
             if c.blocked_holdout_gain_mm is not None:
                 gain += f"; blocked hold-out {c.blocked_holdout_gain_mm:.3g} mm"
+            if getattr(c, "own_range_gain_mm", None) is not None:
+                gain += f"; own-range hold-out {c.own_range_gain_mm:.3g} mm"
             lines.append(f"  {c.effect}{where} = {_value(c.value, c.std, c.unit)}  ({gain})")
         if detectable:
             lines.append(f"other candidates (80 % power): {detectable['summary']}")
@@ -122,7 +124,7 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
     lines += [margin] if margin else []
     if diagnosis.ambiguous:
         lines.append(f"ambiguous ({len(diagnosis.ambiguous)}):")
-        lines += [f"  {' ~ '.join(a['effects'])}" for a in diagnosis.ambiguous]
+        lines += [_ambiguous_line(a) for a in diagnosis.ambiguous]
     for w in diagnosis.warnings:
         lines.append(f"warning: {w['cause']}: {w['why']}")
     lines += mounting_lines(diagnosis.model)
@@ -186,3 +188,16 @@ def run(args: argparse.Namespace) -> int:
     print("\n".join(lines))
     print(f"wrote {out}" + (f" and {report}" if args.report else ""))
     return 0
+
+
+def _ambiguous_line(entry: dict) -> str:
+    """One ambiguity entry: the effects, or a periodic cause not resolved over its
+    joint's range with its own-range gain."""
+    if not entry.get("not_resolved_over_range"):
+        return f"  {' ~ '.join(entry['effects'])}"
+    own = entry["own_range"]
+    low, high = own["ends_mm"]
+    return (
+        f"  {entry['effects'][0]}: not resolved over its joint's range (own-range hold-out "
+        f"gain {own['gain_mm']:.3g} mm: low end {low:.3g}, high end {high:.3g} mm)"
+    )

@@ -87,6 +87,10 @@ class Effect(nn.Module):
         unplannable: None when the choice of poses controls its information; otherwise
             why not (pose planning leaves it out and says so).
         evidence: the variable its evidence plot shows it against (:data:`EvidenceVariable`).
+        order: cycles per turn of its joint when its law is periodic in that joint's
+            angle (0: not periodic). From 2 up the law repeats within a turn, and what
+            is fitted on part of the joint's range must hold beyond it (the diagnosis
+            checks it on the ends of that range).
         simulate_random: drawn by ``simulate --effects random[:K]``.
         first_joint_is_frame: on the first joint it is a base-frame error (simulation
             does not draw it there; the diagnosis does not test geometric ones there).
@@ -110,6 +114,7 @@ class Effect(nn.Module):
     limit: ClassVar[float | None] = None
     unplannable: ClassVar[str | None] = None
     evidence: ClassVar[EvidenceVariable] = "joint_angle"
+    order: ClassVar[int] = 0
     simulate_random: ClassVar[bool] = False
     first_joint_is_frame: ClassVar[bool] = False
     needs_torque: ClassVar[bool] = False

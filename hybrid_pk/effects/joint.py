@@ -118,8 +118,11 @@ class CyclicError(JointEccentricity):
         "leaves, block by block of the blocked hold-out, and tests the orders that predict "
         "the held-out blocks better by the practical margin (every order counts in the "
         "Bonferroni level); an order that another order predicts the blocked hold-out as "
-        "well as (within the margin) is listed under `ambiguous` and never named; a named "
-        "one gives `fitted_range_rad`, and a warning when its joint moves beyond that range"
+        "well as (within the margin) is listed under `ambiguous` and never named; so is one "
+        "that does not predict both ends of its joint's measured range (the lowest and "
+        "highest quarter of the rows, each held out in turn) by the margin; a named one "
+        "gives `fitted_range_rad` and `own_range_gain_mm`, and a warning when its joint "
+        "moves beyond that range"
     )
 
 

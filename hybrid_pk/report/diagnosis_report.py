@@ -74,6 +74,7 @@ _CAUSE_COLUMNS = [
     "in-sample [mm]",
     "random hold-out [mm]",
     "blocked hold-out [mm]",
+    "own-range hold-out [mm]",
 ]
 
 
@@ -86,7 +87,8 @@ def _cause_rows(diagnosis) -> list[list[object]]:
         if c.fitted_range_rad is not None:
             value += f"; fitted on {fmt(c.fitted_range_rad)} rad of the joint"
         gains = (c.in_sample_gain_mm, c.random_holdout_gain_mm, c.blocked_holdout_gain_mm)
-        gains = (c.position_gain_mm, c.orientation_gain_deg, *gains)
+        own = getattr(c, "own_range_gain_mm", None)  # periodic causes: ends of their joint
+        gains = (c.position_gain_mm, c.orientation_gain_deg, *gains, own)
         rows.append([c.effect, c.joint or "-", value, *gains])
     return rows
 

@@ -4,7 +4,8 @@ Three gains per cause, each the drop of the RMS error [mm] (rotation counted at 
 noise ratio ``sigma_pos / sigma_rot``, as in :mod:`.blocked`) that leaving it out
 costs: on the fit rows (in-sample), on the random hold-out rows, and on the blocked
 hold-out (regions of joint space, whole files). The first two are measured with the
-model refitted without the cause, the last one linearised per block.
+model refitted without the cause, the last one linearised per block. A periodic cause
+also gives its own-range gain (:mod:`.own_range`: the two ends of its joint's range).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from hybrid_pk.effects import Effect, ExtendedModel
 from hybrid_pk.effects.joint import CYCLIC_PREFIX
 from hybrid_pk.robot import Robot
 
-__all__ = ["GAIN_REFIT_STEPS", "measure_causes", "range_warnings"]
+__all__ = ["GAIN_REFIT_STEPS", "cap_warnings", "measure_causes", "range_warnings"]
 
 # LM steps of the refit without a cause, after its linearised removal: the first step
 # leaves ~1e-9 of the cost to gain (the linearised start is within ~1e-7 of it).
@@ -116,6 +117,10 @@ def _add_gains(cause: Cause, models, res: FitResult, split: Split, blocked: dict
         cause.blocked_holdout_gain_mm = blocked["gain_mm"]
         cause.blocked_position_gain_mm = blocked["position_mm"]
         cause.blocked_orientation_gain_deg = blocked.get("orientation_deg")
+        own = blocked.get("own_range")  # a periodic cause: the ends of its joint's range
+        if own is not None:
+            cause.own_range_gain_mm = own["gain_mm"]
+            cause.own_range = own
 
 
 def range_warnings(causes: list[Cause], robot: Robot) -> list[dict]:
@@ -129,12 +134,34 @@ def range_warnings(causes: list[Cause], robot: Robot) -> list[dict]:
         j = robot.joint_names.index(c.joint)
         lo, hi = c.fitted_range_rad
         if float(lower[j]) < lo or float(upper[j]) > hi:
+            inside = ""
+            if c.own_range_gain_mm is not None:  # checked on the ends of the fitted range
+                inside = (
+                    f" (inside it, the end quarters predicted from the rest gain "
+                    f"{c.own_range_gain_mm:.3g} mm with it)"
+                )
             out.append(
                 {
                     "cause": f"{c.effect}:{c.joint}",
                     "why": f"fitted on {c.joint} in [{lo:.3g}, {hi:.3g}] rad of its range "
                     f"[{float(lower[j]):.3g}, {float(upper[j]):.3g}] rad: beyond the "
-                    "fitted range the model extrapolates the periodic law, unchecked",
+                    f"fitted range the model extrapolates the periodic law, unchecked{inside}",
                 }
             )
     return out
+
+
+def cap_warnings(steps: list[dict]) -> list[dict]:
+    """A warning for a search that stopped at its limit with a significant candidate."""
+    return [
+        {
+            "cause": s["candidate"],
+            "why": f"still significant (score F {s['score_F']:.3g}, p {s['score_p']:.2g}) "
+            "and gaining the practical margin on the blocked hold-out "
+            f"when the search stopped at its limit of {s['capped']} "
+            f"cause{'s' if s['capped'] != 1 else ''}: the "
+            "data carry more causes than were named; --max-causes N names more",
+        }
+        for s in steps
+        if s.get("capped")
+    ]

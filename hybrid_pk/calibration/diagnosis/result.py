@@ -44,6 +44,8 @@ class Cause:
     blocked_position_gain_mm: float | None = None
     blocked_orientation_gain_deg: float | None = None
     fitted_range_rad: list[float] | None = None
+    own_range_gain_mm: float | None = None
+    own_range: dict | None = None
 
     def to_json(self) -> dict:
         out = {
@@ -67,6 +69,8 @@ class Cause:
             "blocked_position_gain_mm",
             "blocked_orientation_gain_deg",
             "fitted_range_rad",
+            "own_range_gain_mm",
+            "own_range",
         ):
             if getattr(self, key) is not None:
                 out[key] = getattr(self, key)

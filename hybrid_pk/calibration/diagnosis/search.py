@@ -26,7 +26,7 @@ from hybrid_pk.calibration.diagnosis.budget import Budget
 from hybrid_pk.calibration.diagnosis.carryover import Carry, weakest
 from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic
 from hybrid_pk.calibration.diagnosis.elimination import eliminate
-from hybrid_pk.calibration.diagnosis.gains import measure_causes, range_warnings
+from hybrid_pk.calibration.diagnosis.gains import cap_warnings, measure_causes, range_warnings
 from hybrid_pk.calibration.diagnosis.noise import measurement_noise
 from hybrid_pk.calibration.diagnosis.plausibility import plausibility_warnings
 from hybrid_pk.calibration.diagnosis.power import (
@@ -185,7 +185,7 @@ def _warnings(causes, data: MeasuredData, steps, robot: Robot, budget: Budget) -
     """Every warning of the diagnosis: plausibility, the cap, ranges, budget cuts."""
     return (
         plausibility_warnings(causes, data)
-        + _cap_warnings(steps)
+        + cap_warnings(steps)
         + range_warnings(causes, robot)
         + budget.warnings()
     )
@@ -397,22 +397,6 @@ def _untested(best, scores, why: str) -> dict:
     if scores.blocked is not None:
         out.update({"blocked_gain_mm": scores.carry[best.label], "min_gain_mm": scores.margin})
     return out
-
-
-def _cap_warnings(steps: list[dict]) -> list[dict]:
-    """A warning for a search that stopped at its limit with a significant candidate."""
-    return [
-        {
-            "cause": s["candidate"],
-            "why": f"still significant (score F {s['score_F']:.3g}, p {s['score_p']:.2g}) "
-            "and gaining the practical margin on the blocked hold-out "
-            f"when the search stopped at its limit of {s['capped']} "
-            f"cause{'s' if s['capped'] != 1 else ''}: the "
-            "data carry more causes than were named; --max-causes N names more",
-        }
-        for s in steps
-        if s.get("capped")
-    ]
 
 
 def _outliers(model: ExtendedModel, data: MeasuredData, per_file: bool, res: FitResult):

@@ -4,9 +4,10 @@ On the final model (one Jacobian of its parameters and of every other order of e
 chosen cyclic error), each cause's blocked hold-out gain is measured by leaving it out
 (the rest re-fitted per block). A cyclic error another order predicts the held-out
 blocks nearly as well as (within the practical margin) is not resolved by the data:
-it is listed as ambiguous and taken out. Then a cause that gains less than the margin
-is taken out. One at a time, the weakest first, the model refitted after each, until
-every cause carries over.
+it is listed as ambiguous and taken out. Then a periodic cause that does not carry
+over along its own joint's range (:mod:`.own_range`) is listed and taken out. Then a
+cause that gains less than the margin is taken out. One at a time, the weakest first,
+the model refitted after each, until every cause carries over.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from collections.abc import Callable
 
 from hybrid_pk.calibration.diagnosis.blocked import Blocked
 from hybrid_pk.calibration.diagnosis.carryover import Carry, linearise, removal_gains
+from hybrid_pk.calibration.diagnosis.own_range import off_range, own_range_gains
 from hybrid_pk.calibration.diagnosis.selection import Scores, cyclic_candidates
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.variants import with_effects, without_effect
@@ -83,7 +85,8 @@ def settle(
     """Take out unresolved cyclic errors and causes below the margin (see the module).
 
     Returns the model, its fit, each remaining cause's blocked gains (by label:
-    ``gain_mm``, ``position_mm``, ``orientation_deg``) and the ambiguity entries."""
+    ``gain_mm``, ``position_mm``, ``orientation_deg``; a periodic one also
+    ``own_range``, :func:`.own_range.own_range_gains`) and the ambiguity entries."""
     ambiguous: list[dict] = []
     while model.effects and carry.folds is not None:
         labels = [e.label for e in model.effects]
@@ -98,8 +101,17 @@ def settle(
         blocked = linearise(trial, res, split, carry.folds, say)[3]
         gains = removal_gains(blocked, labels)
         margin = carry.margin(res)
-        drop, why = _to_drop(blocked, labels, alts, gains, margin, ambiguous)
+        drop, why = _unresolved(blocked, labels, alts, margin, ambiguous)
+        own: dict[str, dict] = {}
         if drop is None:
+            say("own-range gain of each periodic cause")
+            own = own_range_gains(model, res, split, say)
+            drop, why = off_range(own, margin, ambiguous)
+        if drop is None:
+            drop, why = _below_margin(gains, margin)
+        if drop is None:
+            for label, record in own.items():
+                gains[label]["own_range"] = record
             return model, res, gains, ambiguous
         say(f"taking out {drop}: {why}")
         _record(steps, drop, why, gains[drop]["gain_mm"], margin)
@@ -112,9 +124,9 @@ def settle(
     return model, res, {}, ambiguous
 
 
-def _to_drop(blocked, labels, alts, gains, margin, ambiguous):
-    """The cause to take out and why (None: every one carries over); an unresolved
-    cyclic error's ambiguity entries go into ``ambiguous``."""
+def _unresolved(blocked, labels, alts, margin, ambiguous):
+    """The cyclic error whose order another order predicts as well, and why (None:
+    every order resolved); its ambiguity entries go into ``ambiguous``."""
     worst = None  # (advantage, label, rivals)
     for label, others in alts.items():
         adv = rival_advantages(blocked, labels, label, others)
@@ -125,6 +137,12 @@ def _to_drop(blocked, labels, alts, gains, margin, ambiguous):
         _, label, rivals = worst
         ambiguous += unresolved_entry(label, rivals, margin)
         return label, f"order not resolved: {', '.join(sorted(rivals))} predict as well"
+    return None, ""
+
+
+def _below_margin(gains, margin):
+    """The cause with the smallest blocked gain below ``margin``, and why (None: every
+    one carries over)."""
     label = min(gains, key=lambda k: gains[k]["gain_mm"])
     if gains[label]["gain_mm"] >= margin:
         return None, ""
