@@ -147,11 +147,12 @@ class ThermalExpansion(Effect):
                 "column in the data, or cond=Conditions(temperature=...)"
             )
         dT = (cond.temperature - REFERENCE_TEMPERATURE).to(params.origin_xyz.dtype)
-        factor = 1 + self.value * dT[..., None, None]  # (*B, 1, 1)
+        grow = self.value * carried(dT[..., None, None], self.value)  # see geometry.tangents
+        factor = carried(1.0, grow) + grow  # (*B, 1, 1)
         n = params.origin_xyz.shape[-2]
         batch = dT.shape
         return KinematicParams(
-            params.origin_xyz * factor,
+            carried(params.origin_xyz, factor) * factor,
             params.origin_rot.expand(*batch, n, 3, 3),
             params.axis.expand(*batch, *params.axis.shape[-2:]),
         )

@@ -183,7 +183,8 @@ class Backlash(Effect):
                 "functions take approach= instead"
             )
         d = cond.direction[..., self.joint_index].to(q.dtype)
-        return _add_to_joint(q, self.joint_index, 0.5 * self.value * d)
+        half = carried(0.5, self.value) * self.value  # see geometry.tangents
+        return _add_to_joint(q, self.joint_index, half * carried(d, half))
 
 
 @register

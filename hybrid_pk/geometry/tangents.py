@@ -16,8 +16,16 @@ from torch import Tensor
 __all__ = ["carried"]
 
 
-def carried(const: Tensor | float, like: Tensor) -> Tensor:
+# Whether a tensor is one of torch.func's (vmap, jvp, grad) wrappers; without the
+# (private) test every call carries, which is only slower.
+_wrapped = getattr(torch._C._functorch, "is_functorch_wrapped_tensor", lambda t: True)
+
+
+def carried(const: Tensor | float, like: Tensor) -> Tensor | float:
     """``const`` broadcast against ``like``: the same values, with a zero tangent (and
-    zero gradient to ``like``) wherever ``like`` is differentiated."""
+    zero gradient to ``like``) wherever ``like`` is differentiated; ``const`` itself
+    when ``like`` is a plain tensor (outside ``torch.func``: nothing to carry)."""
+    if not _wrapped(like):
+        return const
     true = torch.ones((), dtype=torch.bool, device=like.device)
     return torch.where(true, const, like)
