@@ -45,8 +45,6 @@ def _effect_derivatives(effect, q: Tensor, cond: Conditions, j: int, block):
     def f(qv: Tensor, v: Tensor) -> Tensor:
         return torch.func.functional_call(wrapper, {"effect.value": v}, (qv, cond))
 
-    with torch.no_grad():
-        out = f(q, value)
     size = 0 if block is None else block.size
     eye = torch.eye(dof, dtype=q.dtype)
     along, across = eye[j].expand(n, dof), (1 - eye[j]).expand(n, dof)
@@ -55,7 +53,10 @@ def _effect_derivatives(effect, q: Tensor, cond: Conditions, j: int, block):
     if size:
         t_v[2:] = torch.eye(size, dtype=value.dtype) * block.scale
     t_v = t_v.reshape(2 + size, *value.shape)
-    d = torch.func.vmap(lambda a, b: torch.func.jvp(f, (q, value), (a, b))[1])(t_q, t_v)
+    # The value itself comes out of the same pass (unbatched: it reads no direction).
+    out, d = torch.func.vmap(
+        lambda a, b: torch.func.jvp(f, (q, value), (a, b)), out_dims=(None, 0)
+    )(t_q, t_v)
     if not torch.equal(d[1], across) or bool((d[0] * across != 0).any()):
         return None
     if size and bool((d[2:] * across != 0).any()):

@@ -35,6 +35,7 @@ from hybrid_pk.calibration.twists import (
     vee,
 )
 from hybrid_pk.effects import Conditions, ExtendedModel
+from hybrid_pk.geometry.tangents import carried
 from hybrid_pk.robot import KinematicParams
 from hybrid_pk.robot.statics import gravity_values
 
@@ -95,7 +96,8 @@ class StructuredJacobian:
         vals, s0 = {}, 0
         for b in blocks:
             x = self.params[b.name].detach().reshape(-1)
-            chunk = x + theta_sub[s0 : s0 + b.size] * b.scale
+            step = theta_sub[s0 : s0 + b.size]  # constants carried: see geometry.tangents
+            chunk = carried(x, step) + step * carried(b.scale, step)
             vals[prefix + b.name] = chunk.reshape(self.params[b.name].shape)
             s0 += b.size
         return vals

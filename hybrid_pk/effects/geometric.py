@@ -23,6 +23,7 @@ from hybrid_pk.effects.conditions import Conditions
 from hybrid_pk.effects.limits import MAX_ROTATION_DEG, MAX_TRANSLATION_M
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import so3_exp
+from hybrid_pk.geometry.tangents import carried
 from hybrid_pk.robot import KinematicParams
 
 __all__ = ["REFERENCE_TEMPERATURE", "AxisMisalignment", "LinkLength", "ThermalExpansion"]
@@ -46,8 +47,9 @@ class LinkLength(Effect):
 
     def apply_params(self, params: KinematicParams, cond: Conditions) -> KinematicParams:
         xyz = params.origin_xyz
-        e = _onehot_rows(xyz.shape[-2], self.joint_index, xyz)
-        return params._replace(origin_xyz=xyz + e * self.value.to(xyz.dtype))
+        value = self.value.to(xyz.dtype)  # constants carried: see geometry.tangents
+        shift = carried(_onehot_rows(xyz.shape[-2], self.joint_index, xyz), value) * value
+        return params._replace(origin_xyz=carried(xyz, shift) + shift)
 
 
 @register
@@ -108,8 +110,9 @@ class AxisMisalignment(Effect):
         R = params.origin_rot
         dR = so3_exp(self.rotation_vector().to(R.dtype))
         e = _onehot_rows(R.shape[-3], self.joint_index, R)[..., None]
-        eye = torch.eye(3, dtype=R.dtype, device=R.device)
-        return params._replace(origin_rot=R @ (eye + e * (dR - eye)))
+        eye = carried(torch.eye(3, dtype=R.dtype, device=R.device), dR)  # see geometry.tangents
+        change = carried(e, dR) * (dR - eye)
+        return params._replace(origin_rot=R @ (carried(eye, change) + change))
 
 
 # Largest credible linear expansion coefficient [1/K]: structural metals are 1e-5..2.5e-5,
@@ -144,11 +147,12 @@ class ThermalExpansion(Effect):
                 "column in the data, or cond=Conditions(temperature=...)"
             )
         dT = (cond.temperature - REFERENCE_TEMPERATURE).to(params.origin_xyz.dtype)
-        factor = 1 + self.value * dT[..., None, None]  # (*B, 1, 1)
+        grow = self.value * carried(dT[..., None, None], self.value)  # see geometry.tangents
+        factor = carried(1.0, grow) + grow  # (*B, 1, 1)
         n = params.origin_xyz.shape[-2]
         batch = dT.shape
         return KinematicParams(
-            params.origin_xyz * factor,
+            carried(params.origin_xyz, factor) * factor,
             params.origin_rot.expand(*batch, n, 3, 3),
             params.axis.expand(*batch, *params.axis.shape[-2:]),
         )

@@ -32,6 +32,7 @@ from hybrid_pk.effects.limits import (
     MAX_ROTATION_DEG,
 )
 from hybrid_pk.errors import HybridPKError
+from hybrid_pk.geometry.tangents import carried
 
 __all__ = [
     "CYCLIC_PREFIX",
@@ -87,7 +88,8 @@ class JointEccentricity(Effect):
     description = "θ_true = θ + a sin θ + b cos θ (value √(a²+b²); `components` [a, b])"
 
     def apply_q(self, q: Tensor, cond: Conditions) -> Tensor:
-        th = self.order * q[..., self.joint_index]
+        qj = q[..., self.joint_index]
+        th = qj if self.order == 1 else carried(float(self.order), qj) * qj
         a, b = self.value.to(q.dtype).unbind(-1)
         return _add_to_joint(q, self.joint_index, a * torch.sin(th) + b * torch.cos(th))
 
@@ -184,7 +186,8 @@ class Backlash(Effect):
                 "functions take approach= instead"
             )
         d = cond.direction[..., self.joint_index].to(q.dtype)
-        return _add_to_joint(q, self.joint_index, 0.5 * self.value * d)
+        half = carried(0.5, self.value) * self.value  # see geometry.tangents
+        return _add_to_joint(q, self.joint_index, half * carried(d, half))
 
 
 @register

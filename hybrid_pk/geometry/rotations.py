@@ -8,8 +8,12 @@ the identity and at rotations of pi (the two places naive formulas divide by zer
 
 from __future__ import annotations
 
+import functools
+
 import torch
 from torch import Tensor
+
+from hybrid_pk.geometry.tangents import carried
 
 __all__ = [
     "matrix_to_quat",
@@ -53,12 +57,15 @@ def so3_exp(w: Tensor) -> Tensor:
     small = theta2 < _SMALL**2
     theta2_safe = torch.where(small, torch.ones_like(theta2), theta2)
     theta = theta2_safe.sqrt()
-    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
+    c = functools.partial(carried, like=theta2)  # constants in forward mode: see tangents
+    a = torch.where(small, 1 - theta2 / c(6.0), torch.sin(theta) / theta)
     # (1 - cos t) / t^2 written as 2 sin^2(t/2) / t^2: no cancellation for small t in float32.
-    b = torch.where(small, 0.5 - theta2 / 24, 2 * torch.sin(theta / 2) ** 2 / theta2_safe)
+    s = torch.sin(theta / c(2.0))
+    b = torch.where(small, 0.5 - theta2 / c(24.0), c(2.0) * s**2 / theta2_safe)
     K = skew(w)
-    eye = torch.eye(3, dtype=w.dtype, device=w.device).expand_as(K)
-    return eye + a * K + b * (K @ K)
+    aK = a * K
+    eye = carried(torch.eye(3, dtype=w.dtype, device=w.device), aK).expand_as(K)
+    return eye + aK + b * (K @ K)
 
 
 def so3_left_jacobian(w: Tensor) -> Tensor:
