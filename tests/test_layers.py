@@ -10,7 +10,7 @@ PACKAGE = Path(__file__).resolve().parent.parent / "hybrid_pk"
 
 # Lowest first. Modules in one layer may import each other's layer.
 LAYERS = [
-    ("errors", "geometry", "threads"),
+    ("errors", "geometry", "threads", "settings"),
     ("robot",),
     ("data",),
     ("evaluation",),
