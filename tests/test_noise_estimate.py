@@ -134,6 +134,7 @@ def test_the_margin_line_says_how_the_noise_was_found():
     carry = {
         "min_gain_mm": 0.0025, "rule": "noise ...", "noise_position_mm": 0.025,
         "fit_sigma_mm": 0.22, "noise": {"sigma_mm": 0.025, "files": files}, "blocks": {},
+        "check_rows": 50,
     }  # fmt: skip
     text = margin_text(carry)
     assert text.startswith("practical margin 0.0025 mm = noise 0.025 mm / sqrt(2 x 50)")
@@ -141,3 +142,5 @@ def test_the_margin_line_says_how_the_noise_was_found():
     assert "fit's sigma 0.22 mm" in text
     assert "(--min-gain-mm)" in margin_text({**carry, "rule": "--min-gain-mm"})
     assert margin_text({**carry, "blocks": None}) is None  # no blocks: no margin used
+    # the check's size is the tuning's, not a fixed 50
+    assert "/ sqrt(2 x 200)" in margin_text({**carry, "check_rows": 200})

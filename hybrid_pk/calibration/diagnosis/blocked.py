@@ -38,6 +38,7 @@ __all__ = [
     "cell_factors",
     "joint_levers",
     "make_folds",
+    "margin_sigma",
     "practical_margin",
 ]
 
@@ -57,8 +58,13 @@ def practical_margin(
     the fit's ``sigma_pos_mm`` (which also holds every error the model leaves out)."""
     if override is not None:
         return float(override)
-    sigma = float(sigma_pos_mm) if noise_mm is None else min(float(noise_mm), sigma_pos_mm)
-    return sigma / math.sqrt(2 * diagnosis_tuning().check_rows)
+    return margin_sigma(sigma_pos_mm, noise_mm) / math.sqrt(2 * diagnosis_tuning().check_rows)
+
+
+def margin_sigma(sigma_pos_mm: float, noise_mm: float | None) -> float:
+    """The noise [mm] the default margin is set from: the model-free ``noise_mm``
+    capped by the fit's ``sigma_pos_mm`` (the fit's alone without a noise estimate)."""
+    return float(sigma_pos_mm) if noise_mm is None else min(float(noise_mm), sigma_pos_mm)
 
 
 @dataclass(frozen=True)

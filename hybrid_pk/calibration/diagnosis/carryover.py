@@ -17,6 +17,7 @@ from hybrid_pk.calibration.diagnosis.blocked import (
     Blocked,
     Folds,
     cell_factors,
+    margin_sigma,
     practical_margin,
 )
 from hybrid_pk.calibration.diagnosis.noise import NoiseEstimate
@@ -54,8 +55,6 @@ class Carry:
     def rule(self, res: FitResult) -> dict:
         """The margin and how it was set (the diagnosis JSON's ``carry_over``)."""
         rows = diagnosis_tuning().check_rows
-        noise = self.noise_mm
-        used = res.sigma_pos_mm if noise is None else min(noise, res.sigma_pos_mm)
         return {
             "min_gain_mm": self.margin(res),
             "rule": "--min-gain-mm"
@@ -63,7 +62,8 @@ class Carry:
             else f"noise sigma_pos / sqrt(2 x {rows}): the standard error of an RMS "
             f"error measured on a check of {rows} poses; sigma_pos the model-free noise "
             "estimate (noise) capped by the fit's sigma (fit_sigma_mm)",
-            "noise_position_mm": used,
+            "noise_position_mm": margin_sigma(res.sigma_pos_mm, self.noise_mm),
+            "check_rows": rows,
             "fit_sigma_mm": res.sigma_pos_mm,
             "noise": None if self.noise is None else self.noise.to_json(),
             "gain": "drop of the RMS error [mm] on rows held out in blocks (regions of "
@@ -74,7 +74,7 @@ class Carry:
 
 
 def margin_text(carry_over: dict | None) -> str | None:
-    """``practical margin M mm = noise S mm / sqrt(2 x 50); noise: how it was found``
+    """``practical margin M mm = noise S mm / sqrt(2 x N); noise: how it was found``
     from the diagnosis JSON's ``carry_over``; None without blocks (no margin used)."""
     if not carry_over or carry_over.get("blocks") is None:
         return None
@@ -92,7 +92,8 @@ def margin_text(carry_over: dict | None) -> str | None:
     head = f"practical margin {carry_over['min_gain_mm']:.2g} mm"
     if carry_over["rule"] == "--min-gain-mm":
         return f"{head} (--min-gain-mm); noise: {how}"
-    return f"{head} = noise {carry_over['noise_position_mm']:.2g} mm / sqrt(2 x 50); noise: {how}"
+    sigma, rows = carry_over["noise_position_mm"], carry_over["check_rows"]
+    return f"{head} = noise {sigma:.2g} mm / sqrt(2 x {rows}); noise: {how}"
 
 
 def linearise(
