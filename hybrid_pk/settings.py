@@ -27,6 +27,7 @@ from hybrid_pk.errors import HybridPKError
 __all__ = [
     "Active",
     "Checked",
+    "flag_name",
     "in_open_unit",
     "non_negative",
     "parse_settings",

@@ -19,6 +19,8 @@ import dataclasses
 import types
 import typing
 
+from hybrid_pk.settings import flag_name
+
 __all__ = ["add_config_flags", "add_settings_flags", "given_values", "settings_names"]
 
 # The namespace attribute that holds the names of the settings flags given.
@@ -100,7 +102,7 @@ def add_settings_flags(
     for f in _flagged(cls, only, skip):
         meta = f.metadata
         text = (helps or {}).get(f.name, meta["help"])
-        name = meta.get("flag") or f"--{f.name.replace('_', '-')}"
+        name = flag_name(f)
         aliases = [f"--{f.name}"] * ("_" in f.name)
         if meta.get("switch"):
             parser.add_argument(
