@@ -9,6 +9,7 @@ defaults outside one: :class:`hybrid_pk.settings.Active`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 from hybrid_pk.settings import Active
 
@@ -33,6 +34,10 @@ class DiagnosisTuning:
     # error measured on a check of n poses (the rows a re-stationed set-up re-fits its
     # frames on): a smaller gain is one no check of the model could confirm
     check_rows: int = 50
+    # the error a cause must carry over in: "position", the measured point's position,
+    # the quantity an absolute accuracy is stated and judged in (a compensated program
+    # places points); "pose" also counts rotation, at the noise ratio sigma_pos / sigma_rot
+    carry_over_channel: Literal["position", "pose"] = "position"
     # Lloyd iterations of the regions' k-means: they need to be contiguous, not optimal
     kmeans_iterations: int = 25
 

@@ -88,9 +88,17 @@ class HybridSettings:
     trust: str = "auto"
     input_range: str = "data"
     fade: float = 0.0
+    # a posture network is trusted in full only as close to its training rows as 9 in
+    # 10 held-out rows of the training region lie: the farthest tenth already lies in
+    # the gaps between training rows, where a posture network starts to extrapolate
     coverage_quantile: float = 0.9
+    # its weight reaches zero half that distance again further out: a fade as wide as
+    # half the trusted radius keeps the blend's slope (and the IK's Jacobian) moderate
     coverage_ratio: float = 1.5
+    # local stages carry the loads to the flange by their structure, so they are
+    # trusted where 99 in 100 held-out rows lie (the rare farthest rows excepted) ...
     local_coverage_quantile: float = 0.99
+    # ... and fade out by twice that distance (a direct Coverage's own defaults)
     local_coverage_ratio: float = 2.0
     zero_init: bool = True
     spread: bool = True

@@ -98,6 +98,14 @@ def _margin(diagnosis) -> str:
     return "-" if not carry else f"{carry['min_gain_mm']:.3g}"
 
 
+def _channel(diagnosis) -> str:
+    """What the gains are measured on (the diagnosis JSON's ``carry_over.channel``)."""
+    carry = getattr(diagnosis, "carry_over", None) or {}
+    if carry.get("channel", "position") == "position":
+        return "position error"
+    return "error (rotation at the noise ratio)"
+
+
 def _margin_note(diagnosis) -> list[str]:
     """The margin and how the noise behind it was found, as a paragraph."""
     text = margin_text(getattr(diagnosis, "carry_over", None))
@@ -351,7 +359,7 @@ def write_diagnosis_report(
         lines += [
             "Ordered by gain: how much the hold-out mean error grows when the cause is "
             "left out and the rest refitted. The last three columns: the drop of the RMS "
-            "error [mm] (rotation at the noise ratio) it brings on the fit rows, on the "
+            f"{_channel(diagnosis)} [mm] it brings on the fit rows, on the "
             "random hold-out rows and on rows held out in blocks (regions of joint space, "
             "whole files), where each cause must gain at least "
             f"{_margin(diagnosis)} mm (carry_over in the JSON).",

@@ -13,9 +13,13 @@ The fits per block are linearised at the current fit: one Jacobian of every para
 (region x file), gives every block's refit and prediction by a small solve, for any
 subset of the parameters and for any effect set to zero (a cause removed).
 
-A gain is the drop of the RMS error in mm: the position error, with the rotation error
-(pose data) counted at the campaign's noise ratio ``sigma_pos / sigma_rot`` (the
-weighting every fit uses), so that one unit of rotation noise counts as one of position.
+A gain is the drop of the RMS error in mm of the measured point's position: the
+quantity an absolute accuracy is stated in, and what a compensated program places. The
+fits per block use every measured component (pose data: rotation at the noise ratio
+``sigma_pos / sigma_rot``, as every fit); only the judging is on position. A cause whose
+gain is rotation alone is reported (its orientation part), not named. With the
+tuning's ``carry_over_channel = "pose"`` the rotation error counts too, at the noise
+ratio, so that one unit of rotation noise counts as one of position.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.problem import ParamBlock, Problem
 from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.effects import ExtendedModel
+from hybrid_pk.errors import HybridPKError
 
 __all__ = [
     "Blocked",
@@ -39,7 +44,9 @@ __all__ = [
     "joint_levers",
     "make_folds",
     "margin_sigma",
+    "position_channel",
     "practical_margin",
+    "whole_campaign",
 ]
 
 # A frame column the training rows of a block see less than this share of (relative to
@@ -59,6 +66,15 @@ def practical_margin(
     if override is not None:
         return float(override)
     return margin_sigma(sigma_pos_mm, noise_mm) / math.sqrt(2 * diagnosis_tuning().check_rows)
+
+
+def position_channel() -> bool:
+    """Whether gains are judged on the position error alone (the tuning's
+    ``carry_over_channel``; the fits per block use every measured component)."""
+    channel = diagnosis_tuning().carry_over_channel
+    if channel not in ("position", "pose"):
+        raise HybridPKError(f"carry_over_channel {channel!r}: position or pose")
+    return channel == "position"
 
 
 def margin_sigma(sigma_pos_mm: float, noise_mm: float | None) -> float:
@@ -82,6 +98,12 @@ class Folds:
     n_cells: int
     folds: tuple[tuple[int, ...], ...]
     description: dict
+
+
+def whole_campaign(n: int) -> Folds:
+    """One cell of all ``n`` fit rows and no block held out: :func:`cell_factors` then
+    gives the Grams of the whole fit, e.g. its position part alone."""
+    return Folds(torch.zeros(n, dtype=torch.long), 1, (), {})
 
 
 def make_folds(model: ExtendedModel, split: Split, seed: int) -> Folds | None:
@@ -266,10 +288,10 @@ class Blocked:
         return BlockedScore(total, total_pos, rot, rows)
 
     def gain_mm(self, without: BlockedScore, with_it: BlockedScore) -> float:
-        """Drop of the blocked RMS error [mm] (rotation at the noise ratio) from
-        ``without`` to ``with_it``."""
-        rms = lambda s: math.sqrt(max(s.total, 0.0) / max(s.rows, 1))  # noqa: E731
-        return self.sigmas[0] * (rms(without) - rms(with_it))
+        """Drop of the blocked RMS error [mm] in the carry-over channel
+        (:func:`position_channel`) from ``without`` to ``with_it``."""
+        part = (lambda s: s.position) if position_channel() else (lambda s: s.total)
+        return self.sigmas[0] * _rms_drop(part(without), part(with_it), without.rows)
 
     def parts(self, without: BlockedScore, with_it: BlockedScore) -> dict:
         """The drop of the blocked RMS position error [mm] and rotation error [deg]."""

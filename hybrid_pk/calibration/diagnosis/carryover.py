@@ -18,6 +18,7 @@ from hybrid_pk.calibration.diagnosis.blocked import (
     Folds,
     cell_factors,
     margin_sigma,
+    position_channel,
     practical_margin,
 )
 from hybrid_pk.calibration.diagnosis.noise import NoiseEstimate
@@ -66,9 +67,15 @@ class Carry:
             "check_rows": rows,
             "fit_sigma_mm": res.sigma_pos_mm,
             "noise": None if self.noise is None else self.noise.to_json(),
-            "gain": "drop of the RMS error [mm] on rows held out in blocks (regions of "
-            "joint space, whole files), rotation counted at the noise ratio "
-            "sigma_pos / sigma_rot; each block predicted by a linearised refit on the others",
+            "gain": "drop of the RMS "
+            + (
+                "position error [mm]"
+                if position_channel()
+                else "error [mm] (rotation counted at the noise ratio sigma_pos / sigma_rot)"
+            )
+            + " on rows held out in blocks (regions of joint space, whole files); each "
+            "block predicted by a linearised refit on the others (every measured component)",
+            "channel": "position" if position_channel() else "pose",
             "blocks": None if self.folds is None else self.folds.description,
         }
 

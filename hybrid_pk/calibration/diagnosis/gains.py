@@ -1,7 +1,8 @@
 """Each chosen cause's gains (left out and refitted) and its evidence line.
 
-Three gains per cause, each the drop of the RMS error [mm] (rotation counted at the
-noise ratio ``sigma_pos / sigma_rot``, as in :mod:`.blocked`) that leaving it out
+Three gains per cause, each the drop of the RMS error [mm] in the carry-over channel
+(:func:`.blocked.position_channel`: the position error; with the tuning's
+``carry_over_channel = "pose"`` rotation counted at the noise ratio) that leaving it out
 costs: on the fit rows (in-sample), on the random hold-out rows, and on the blocked
 hold-out (regions of joint space, whole files). The first two are measured with the
 model refitted without the cause, the last one linearised per block. A periodic cause
@@ -14,6 +15,7 @@ from collections.abc import Callable
 
 from torch import Tensor
 
+from hybrid_pk.calibration.diagnosis.blocked import position_channel
 from hybrid_pk.calibration.diagnosis.result import Cause, report_value
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.statistics import weighted_ssr
@@ -106,9 +108,11 @@ def _add_gains(cause: Cause, models, res: FitResult, split: Split, blocked: dict
     model, reduced = models
     sig = res.sigma_pos_mm
 
+    position = position_channel()
+
     def rms_drop(data, cond) -> float:
-        without = weighted_ssr(reduced, data, cond, res) / max(data.n, 1)
-        with_it = weighted_ssr(model, data, cond, res) / max(data.n, 1)
+        without = weighted_ssr(reduced, data, cond, res, position) / max(data.n, 1)
+        with_it = weighted_ssr(model, data, cond, res, position) / max(data.n, 1)
         return sig * (max(without, 0.0) ** 0.5 - max(with_it, 0.0) ** 0.5)
 
     cause.in_sample_gain_mm = rms_drop(split.train, split.cond_fit)

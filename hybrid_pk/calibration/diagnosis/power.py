@@ -28,7 +28,9 @@ import math
 from collections.abc import Callable
 
 import torch
+from torch import Tensor
 
+from hybrid_pk.calibration.diagnosis.blocked import position_channel, whole_campaign
 from hybrid_pk.calibration.diagnosis.carryover import Carry
 from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic
 from hybrid_pk.calibration.diagnosis.selection import RANK_TOLERANCE, score_candidates
@@ -111,24 +113,36 @@ def detection_limits(
     # as the search does: the best cyclic orders per joint are scored, the others count
     folds, margin = (None, 0.0) if carry is None else (carry.folds, carry.margin(res))
     pool, screened = screen_cyclic(model, split, pool, res.weights, folds, margin)
+    # gains judged on position (pose data): the margin needs the fit's position Gram
+    on_position = folds is not None and position_channel() and not split.position_only
+    whole = Carry(whole_campaign(split.train.n)) if on_position else None
     scores = score_candidates(
-        model, res, pool, split, alpha, False, progress=progress, screened=screened
+        model, res, pool, split, alpha, False, progress=progress, screened=screened, carry=whole
     )
     if not scores.scored:
         return []
     level = scores.threshold
     columns = _position_columns(model, [sc.label for sc in scores.scored], split)
     # the margin binds only where blocks decide: its lambda along any direction
-    carry_lam = _margin_noncentrality(margin if folds is not None else 0.0, res, split, scores.m)
+    per_row = 3 if split.position_only or on_position else 6
+    margin_used = margin if folds is not None else 0.0
+    carry_lam = _margin_noncentrality(margin_used, res, per_row, split.train.n)
+    position_grams = _position_signature_grams(scores) if on_position else None
     out = []
     for sc in scores.scored:
         _, S, Vt = torch.linalg.svd(sc.signature, full_matrices=False)
         k = int((S > RANK_TOLERANCE * float(S[0])).sum())
         d2 = max(scores.m - scores.n_current - sc.k, 1)
         lam = noncentrality(level, sc.k, d2)
-        set_by = "power" if lam >= carry_lam else "margin"
-        lam = max(lam, carry_lam)
         theta = math.sqrt(lam) / float(S[k - 1]) * Vt[k - 1]  # worst direction, scaled
+        if position_grams is None:  # the margin along the same signature
+            by_margin = math.sqrt(carry_lam) / float(S[k - 1]) * Vt[k - 1]
+        else:
+            by_margin = _margin_theta(position_grams[sc.label], Vt[:k], S[0], carry_lam)
+            if by_margin is None:
+                continue  # moves the point in no direction it can be fitted along
+        set_by = "power" if float(theta.norm()) >= float(by_margin.norm()) else "margin"
+        theta = theta if set_by == "power" else by_margin
         effect = make_effect(model.robot, sc.label)
         J_pos, n_sub = columns[sc.label]
         moved = float((J_pos @ theta).norm()) / math.sqrt(n_sub)  # rms point motion [mm]
@@ -149,12 +163,52 @@ def detection_limits(
     return out
 
 
-def _margin_noncentrality(margin: float, res: FitResult, split: Split, m: int) -> float:
+def _margin_noncentrality(margin: float, res: FitResult, per_row: int, rows: int) -> float:
     """The squared norm of the projected, noise-normalised signature (summed over the
-    fit residuals, as ``lambda``) at which an effect gains ``margin`` [mm] (module)."""
-    per_row = 3 if split.position_only else 6
+    fit rows' ``per_row`` judged components, as ``lambda``) at which an effect gains
+    ``margin`` [mm] (module)."""
     root = math.sqrt(per_row)
-    return ((root + margin / res.sigma_pos_mm) ** 2 - per_row) * (m // per_row)
+    return max((root + margin / res.sigma_pos_mm) ** 2 - per_row, 0.0) * rows
+
+
+def _position_signature_grams(scores) -> dict[str, Tensor]:
+    """Per scored candidate the Gram ``(size, size)`` of the position part of its
+    signature: its columns with what the current model's columns absorb of them (in
+    the fit's metric, every component) taken out, on the position rows alone."""
+    G = (scores.R.T @ scores.R)[:-1, :-1]
+    Gp = scores.blocked.pos[0][:-1, :-1]
+    n = scores.n_current
+    out, start = {}, n
+    scored = {sc.label for sc in scores.scored}
+    for b in _pool_blocks(scores):
+        c = slice(start, start + b.size)
+        start += b.size
+        if b.label not in scored:
+            continue
+        B = torch.linalg.lstsq(G[:n, :n], G[:n, c], driver="gelsd").solution
+        cross = Gp[c, :n] @ B
+        out[b.label] = Gp[c, c] - cross - cross.T + B.T @ Gp[:n, :n] @ B
+    return out
+
+
+def _pool_blocks(scores):
+    """The candidates' parameter blocks (after the current model's)."""
+    start, out = 0, []
+    for b in scores.blocks:
+        if start >= scores.n_current:
+            out.append(b)
+        start += b.size
+    return out
+
+
+def _margin_theta(Gp: Tensor, V: Tensor, s_max: Tensor, lam: float) -> Tensor | None:
+    """The scaled effect of the smallest size that gains the margin (``lam``) in
+    position along its worst direction within the fitted directions ``V (k, size)``;
+    None when some fitted direction moves the point not at all."""
+    g, U = torch.linalg.eigh(V @ Gp @ V.T)
+    if float(g[0]) <= (RANK_TOLERANCE * float(s_max)) ** 2:
+        return None
+    return math.sqrt(lam / float(g[0])) * (U[:, 0] @ V)
 
 
 # Rows of the plain position Jacobian used for the mm at the measured point (an even

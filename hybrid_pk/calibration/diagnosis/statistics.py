@@ -58,14 +58,21 @@ def weighted_residual(
 
 
 def weighted_ssr(
-    model: ExtendedModel, data: MeasuredData, cond: Conditions, res: FitResult
+    model: ExtendedModel,
+    data: MeasuredData,
+    cond: Conditions,
+    res: FitResult,
+    position_only: bool = False,
 ) -> float:
-    """Sum of squared residuals of ``model`` on ``data`` under ``res``'s noise weights;
-    for a robust fit the robust cost of its loss, on the same scale (see
-    :func:`~hybrid_pk.calibration.robust.robust_cost`)."""
+    """Sum of squared residuals of ``model`` on ``data`` under ``res``'s noise weights
+    (``position_only``: of the position components alone); for a robust fit the robust
+    cost of its loss, on the same scale (see :func:`~hybrid_pk.calibration.robust.robust_cost`)."""
     r = weighted_residual(model, data, cond, res)
+    pose = data.quat is not None and not position_only
+    if position_only:
+        r = r[: 3 * data.n]  # the fit's layout: every row's position, then rotation
     if res.robust is not None:
-        return robust_cost(row_distances(r, data.n), 3 if data.quat is None else 6, res.robust)
+        return robust_cost(row_distances(r, data.n), 6 if pose else 3, res.robust)
     return float(r @ r)
 
 
