@@ -34,8 +34,13 @@ _MAX_ITER = 50
 _STEP_TOL = 1e-6
 # Units of the fitted offsets: translations in mm, rotations in mrad (well conditioned).
 _MM, _MRAD = 1e-3, 1e-3
-# Blocks of the 12 offsets, in order.
-BLOCKS = ("base.translation", "base.rotation", "tool.translation", "tool.rotation")
+# Blocks of the 12 offsets, in order (the labels of calibration.fit).
+BLOCKS = (
+    "base_frame.translation",
+    "base_frame.rotation",
+    "tool_frame.translation",
+    "tool_frame.rotation",
+)
 
 
 @dataclass(frozen=True)
@@ -126,7 +131,7 @@ def fit_flange_frames(
 
 def _moves(rows: FlangeRows, block: str) -> bool:
     """Whether the data see ``block``: the tool rotation only through orientations."""
-    return block != "tool.rotation" or rows.R_meas is not None
+    return block != BLOCKS[3] or rows.R_meas is not None
 
 
 def fold_of_rows(n: int) -> tuple[Tensor, int]:

@@ -36,6 +36,7 @@ from hybrid_pk.geometry import quat_to_matrix
 from hybrid_pk.hybrid import HybridFK
 from hybrid_pk.hybrid.blocked_trust import beats
 from hybrid_pk.hybrid.tuning import hybrid_tuning
+from hybrid_pk.pipelines.calibration import FRAME_LABELS
 from hybrid_pk.pipelines.flange_frames import (
     FlangeRows,
     fit_flange_frames,
@@ -44,13 +45,6 @@ from hybrid_pk.pipelines.flange_frames import (
 )
 
 __all__ = ["NetworkVerdict", "network_rule", "verdict_line"]
-
-# The frame blocks of each --refit choice, as named by flange_frames.
-_FREE = {
-    "base": ("base.translation", "base.rotation"),
-    "tool": ("tool.translation", "tool.rotation"),
-}
-_FREE["frames"] = _FREE["base"] + _FREE["tool"]
 
 
 @dataclass(frozen=True)
@@ -112,14 +106,12 @@ def verdict_line(verdict: dict) -> str:
 
 
 def network_rule(
+    nets: dict,
     model: ExtendedModel,
-    networks: dict,
     data: MeasuredData,
     cond: Conditions,
-    which: str = "frames",
-    *,
-    priors: FramePriors | None = None,
-    frame_fit: FitResult | None = None,
+    which: str,
+    fit: FitResult,
 ) -> tuple[NetworkVerdict, tuple[Tensor, Tensor] | None]:
     """The verdict on the networks of a model whose ``which`` frames were just
     re-fitted on ``data`` (``model``: the extended model with those frames, the start of
@@ -127,19 +119,21 @@ def network_rule(
     when the networks are used (None otherwise).
 
     Args:
-        networks: the model file's networks entry.
-        priors: known frames: their fixed components are not fitted here either.
-        frame_fit: the re-fit of ``model``: its noise levels weigh the residuals.
+        nets: the model file's networks entry.
+        which: the re-fitted frames (``"base"``, ``"tool"``, ``"frames"``).
+        fit: the re-fit of ``model`` (a :class:`~hybrid_pk.calibration.fit.FitResult`):
+            its noise levels weigh the residuals; the components its priors fix (known
+            frames) are not fitted here either.
     """
-    hybrid = HybridFK.from_state(model, networks)
+    hybrid = HybridFK.from_state(model, nets)
     with torch.no_grad():
         flanges = {"physics": model.end_pose(data.q, cond), "hybrid": hybrid.end_pose(data.q, cond)}
-    sig_p = getattr(frame_fit, "sigma_pos_mm", None) or DEFAULT_SIGMA_POS_MM
-    sig_r = getattr(frame_fit, "sigma_rot_rad", None) or DEFAULT_SIGMA_ROT_RAD
+    sig_p = fit.sigma_pos_mm or DEFAULT_SIGMA_POS_MM
+    sig_r = fit.sigma_rot_rad or DEFAULT_SIGMA_ROT_RAD
     R_meas = None if data.quat is None else quat_to_matrix(data.quat)
     rows = {k: FlangeRows(E, data.position, R_meas, sig_p, sig_r) for k, E in flanges.items()}
-    fixed = {lab.replace("_frame", "") for lab in (priors or FramePriors()).fixed_labels()}
-    free = tuple(b for b in _FREE[which] if b not in fixed)
+    fixed = (fit.priors or FramePriors()).fixed_labels()
+    free = tuple(b for b in FRAME_LABELS[which] if b not in fixed)
     with torch.no_grad():
         B0, X0 = model.base.matrix().detach(), model.tool.matrix().detach()
     group = cond.group if model.base.sets > 1 else None
@@ -163,27 +157,16 @@ def _verdict(errors: dict, n: int, folds: int) -> NetworkVerdict:
     (p_pos, p_ori), (h_pos, h_ori) = errors["physics"], errors["hybrid"]
     score = {"physics": p_pos / p_pos.mean().clamp_min(1e-12)}
     score["hybrid"] = h_pos / p_pos.mean().clamp_min(1e-12)
-    gain_deg = se_deg = None
+    deg = (None, None)
     if p_ori is not None:
         score["physics"] = score["physics"] + p_ori / p_ori.mean().clamp_min(1e-12)
         score["hybrid"] = score["hybrid"] + h_ori / p_ori.mean().clamp_min(1e-12)
-        gain_deg, se_deg = _mean_se(p_ori - h_ori)
-    gain_mm, se_mm = _mean_se(p_pos - h_pos)
-    score_gain, score_se = _mean_se(score["physics"] - score["hybrid"])
-    return NetworkVerdict(
-        used=beats(score["hybrid"], score["physics"]),
-        rows=n,
-        folds=folds,
-        z=hybrid_tuning().freeing_z,
-        physics_mm=float(p_pos.mean()),
-        hybrid_mm=float(h_pos.mean()),
-        gain_mm=gain_mm,
-        se_mm=se_mm,
-        gain_deg=gain_deg,
-        se_deg=se_deg,
-        score_gain=score_gain,
-        score_se=score_se,
-    )
+        deg = _mean_se(p_ori - h_ori)
+    used = beats(score["hybrid"], score["physics"])
+    means = (float(p_pos.mean()), float(h_pos.mean()))
+    z = hybrid_tuning().freeing_z
+    mm, scores = _mean_se(p_pos - h_pos), _mean_se(score["physics"] - score["hybrid"])
+    return NetworkVerdict(used, n, folds, z, *means, *mm, *deg, *scores)
 
 
 def _mean_se(d: Tensor) -> tuple[float, float]:

@@ -100,9 +100,7 @@ def refit(
     res = refit_frames(model, data, cond, which, priors=priors, robust=robust)
     networks = verdict = None
     if loaded.has_networks:
-        verdict, frames = network_rule(
-            model, loaded.networks, data, cond, which, priors=priors, frame_fit=res
-        )
+        verdict, frames = network_rule(loaded.networks, model, data, cond, which, res)
         if frames is not None:
             for g in range(model.base.sets):
                 model.base.reset_to(frames[0][g], g)
