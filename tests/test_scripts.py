@@ -105,4 +105,11 @@ def test_transfer_ur10_carries_each_series_to_the_other(tmp_path):
         assert set(res["models"]) == {k for k, _ in transfer_ur10.MODELS}
         # the link lengths carry over: they beat nominal + frames on the other series
         assert res["models"]["extended"]["mean"] < res["models"]["nominal_frames"]["mean"]
+        # the re-fit judged the networks on its 50 rows; fallen back, the hybrid is the
+        # extended model
+        assert res["networks"]["rows"] == 50
+        if not res["networks"]["used"]:
+            hybrid, extended = res["models"]["hybrid"], res["models"]["extended"]
+            assert hybrid["mean"] == pytest.approx(extended["mean"], rel=1e-6)
     assert "## B->A" in (out / "results.md").read_text()
+    assert "The re-fit's verdict: residual networks" in (out / "results.md").read_text()
