@@ -47,13 +47,15 @@ BLOCKS = (
 class FlangeRows:
     """Rows to fit frames to: flange poses ``E (n, 4, 4)`` in the robot root frame,
     measured points ``position (n, 3)`` [m] and rotations ``R_meas (n, 3, 3)`` (None:
-    position only), the noise levels that weigh them."""
+    position only), the noise levels that weigh them and the rows' robust weights
+    ``(n,)`` (None: all 1), which scale their squared residuals."""
 
     E: Tensor
     position: Tensor
     R_meas: Tensor | None
     sigma_mm: float
     sigma_rad: float
+    weights: Tensor | None = None
 
     @property
     def n(self) -> int:
@@ -68,14 +70,15 @@ class FlangeRows:
         ``X0``."""
         B, X = frames_at(theta, B0, X0)
         T = B @ self.E[rows] @ X
-        pos = (self.position[rows] - T[:, :3, 3]) * (1e3 / self.sigma_mm)
+        w = 1.0 if self.weights is None else self.weights[rows, None].to(T.dtype).sqrt()
+        pos = (self.position[rows] - T[:, :3, 3]) * (1e3 / self.sigma_mm) * w
         if self.R_meas is None:
             return pos.reshape(-1)
         D = self.R_meas[rows] @ T[:, :3, :3].transpose(-1, -2)
         vee = torch.stack(
             [D[:, 2, 1] - D[:, 1, 2], D[:, 0, 2] - D[:, 2, 0], D[:, 1, 0] - D[:, 0, 1]], -1
         )
-        return torch.cat([pos.reshape(-1), (0.5 / self.sigma_rad) * vee.reshape(-1)])
+        return torch.cat([pos.reshape(-1), ((0.5 / self.sigma_rad) * vee * w).reshape(-1)])
 
 
 def frames_at(theta: Tensor, B0: Tensor, X0: Tensor) -> tuple[Tensor, Tensor]:

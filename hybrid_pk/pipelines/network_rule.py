@@ -122,8 +122,8 @@ def network_rule(
         nets: the model file's networks entry.
         which: the re-fitted frames (``"base"``, ``"tool"``, ``"frames"``).
         fit: the re-fit of ``model`` (a :class:`~hybrid_pk.calibration.fit.FitResult`):
-            its noise levels weigh the residuals; the components its priors fix (known
-            frames) are not fitted here either.
+            its noise levels and robust row weights (``--robust``) weigh the residuals;
+            the components its priors fix (known frames) are not fitted here either.
     """
     hybrid = HybridFK.from_state(model, nets)
     with torch.no_grad():
@@ -131,7 +131,10 @@ def network_rule(
     sig_p = fit.sigma_pos_mm or DEFAULT_SIGMA_POS_MM
     sig_r = fit.sigma_rot_rad or DEFAULT_SIGMA_ROT_RAD
     R_meas = None if data.quat is None else quat_to_matrix(data.quat)
-    rows = {k: FlangeRows(E, data.position, R_meas, sig_p, sig_r) for k, E in flanges.items()}
+    rows = {
+        k: FlangeRows(E, data.position, R_meas, sig_p, sig_r, fit.weights)
+        for k, E in flanges.items()
+    }
     fixed = (fit.priors or FramePriors()).fixed_labels()
     free = tuple(b for b in FRAME_LABELS[which] if b not in fixed)
     with torch.no_grad():
