@@ -16,7 +16,14 @@ from hybrid_pk.evaluation.metrics import row_errors
 from hybrid_pk.geometry import rpy_to_matrix, transform
 from hybrid_pk.io.hybrid_file import networks_used, predict_poses, save_hybrid
 from hybrid_pk.io.model_file import load_model
-from hybrid_pk.pipelines.flange_frames import MAX_FOLDS, fold_of_rows
+from hybrid_pk.pipelines.flange_frames import (
+    BLOCKS,
+    MAX_FOLDS,
+    FlangeRows,
+    fit_flange_frames,
+    fold_of_rows,
+    frames_at,
+)
 from hybrid_pk.pipelines.refit import refit
 from hybrid_pk.simulate import simulate_campaign
 from hybrid_pk.training import train_hybrid
@@ -137,3 +144,22 @@ def test_the_folds_leave_one_row_out_up_to_their_cap():
     fold, folds = fold_of_rows(10 * MAX_FOLDS + 3)
     assert folds == MAX_FOLDS
     assert int(torch.bincount(fold).min()) == 10
+
+
+def test_the_frames_fit_recovers_the_frames_of_exact_rows(ur10):
+    """Noise-free rows of known frames: the fit from frames a few mm and mrad off returns
+    them; a block left out of ``free`` stays where it starts."""
+    rng = run_rng("flange-frames")
+    E = ur10.fk(middle_q(ur10, 30, 3, 0.5))
+    B = transform(rpy_to_matrix(torch.as_tensor(rng.uniform(-1, 1, 3))), torch.ones(3, dtype=F64))
+    X = transform(rpy_to_matrix(torch.tensor([0.0, 0.1, 0.2], dtype=F64)), torch.ones(3) * 0.05)
+    T = B @ E @ X
+    rows = FlangeRows(E, T[:, :3, 3], T[:, :3, :3], 0.01, 1e-5)
+    off = torch.as_tensor(rng.uniform(-3, 3, 12))
+    B0, X0 = frames_at(off, B, X)
+    B1, X1 = fit_flange_frames(rows, B0, X0, BLOCKS)
+    assert torch.allclose(B1, B, atol=1e-9)
+    assert torch.allclose(X1, X, atol=1e-9)
+    B2, X2 = fit_flange_frames(rows, B0, X0, BLOCKS[:2])
+    assert torch.equal(X2, X0)
+    assert not torch.allclose(B2, B0, atol=1e-6)

@@ -22,7 +22,15 @@ from torch import Tensor
 
 from hybrid_pk.geometry import so3_exp, transform
 
-__all__ = ["MAX_FOLDS", "FlangeRows", "fit_flange_frames", "fold_of_rows", "held_out_errors"]
+__all__ = [
+    "BLOCKS",
+    "MAX_FOLDS",
+    "FlangeRows",
+    "fit_flange_frames",
+    "fold_of_rows",
+    "frames_at",
+    "held_out_errors",
+]
 
 # Folds of the held-out prediction: leave one out up to this many rows, this many folds
 # beyond. Each fold's frames are then fitted on at least 98 % of the rows (as the final
