@@ -116,18 +116,22 @@ def fit_flange_frames(
         t[mask] = t_free
         return rows.residual(t, B0, X0, idx)
 
+    # Marquardt's damping (relative to the diagonal): small at the start (Gauss-Newton
+    # near the optimum), x10 after a step that fails, /10 after one that succeeds.
     x, lam = theta[mask].clone(), 1e-3
     r = res(x)
     cost = float(r @ r)
     for _ in range(_MAX_ITER):
         J = torch.func.jacfwd(res)(x)
         A, g = J.T @ J, J.T @ r
+        # a column the rows barely see (a frame trade-off) is still damped: floor of
+        # 1e-12 of the largest diagonal (double precision's reach)
         diag = A.diagonal().clamp_min(1e-12 * float(A.diagonal().max()) + 1e-30)
         while True:
             step = torch.linalg.solve(A + lam * torch.diag(diag), -g)
             r_new = res(x + step)
             cost_new = float(r_new @ r_new)
-            if cost_new <= cost or lam > 1e12:
+            if cost_new <= cost or lam > 1e12:  # 1e12: no step lowers the cost
                 break
             lam *= 10.0
         if cost_new > cost:
@@ -154,10 +158,10 @@ def fold_of_rows(n: int) -> tuple[Tensor, int]:
 
 def held_out_errors(
     rows: FlangeRows, B0: Tensor, X0: Tensor, free: tuple[str, ...], group: Tensor | None = None
-) -> tuple[Tensor, int]:
+) -> Tensor:
     """``(n, 4, 4)`` predicted poses of every row with frames fitted without its fold
-    (each frame set ``group`` fitted on its own rows; ``B0``, ``X0`` ``(G, 4, 4)`` the
-    starts) and the number of folds."""
+    (:func:`fold_of_rows`; each frame set ``group`` fitted on its own rows, ``B0``, ``X0``
+    ``(G, 4, 4)`` the starts)."""
     fold, folds = fold_of_rows(rows.n)
     group = torch.zeros(rows.n, dtype=torch.long) if group is None else group
     T = torch.empty_like(rows.E)
@@ -167,4 +171,4 @@ def held_out_errors(
             B, X = fit_flange_frames(rows, B0[g], X0[g], free, (~held) & (group == g))
             out = held & (group == g)
             T[out] = B @ rows.E[out] @ X
-    return T, folds
+    return T

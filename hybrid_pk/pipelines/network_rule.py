@@ -140,11 +140,8 @@ def network_rule(
     with torch.no_grad():
         B0, X0 = model.base.matrix().detach(), model.tool.matrix().detach()
     group = cond.group if model.base.sets > 1 else None
-    errors, folds = {}, fold_of_rows(data.n)[1]
-    for key, r in rows.items():
-        T, folds = held_out_errors(r, B0, X0, free, group)
-        errors[key] = row_errors(T, data)
-    verdict = _verdict(errors, data.n, folds)
+    errors = {k: row_errors(held_out_errors(r, B0, X0, free, group), data) for k, r in rows.items()}
+    verdict = _verdict(errors, data.n, fold_of_rows(data.n)[1])
     if not verdict.used:
         return verdict, None
     sets = B0.shape[0]
@@ -158,18 +155,22 @@ def network_rule(
 def _verdict(errors: dict, n: int, folds: int) -> NetworkVerdict:
     """The rule on the held-out errors ``{"physics", "hybrid"}: (position, orientation)``."""
     (p_pos, p_ori), (h_pos, h_ori) = errors["physics"], errors["hybrid"]
-    score = {"physics": p_pos / p_pos.mean().clamp_min(1e-12)}
-    score["hybrid"] = h_pos / p_pos.mean().clamp_min(1e-12)
+    score = {"physics": p_pos / _scale(p_pos), "hybrid": h_pos / _scale(p_pos)}
     deg = (None, None)
     if p_ori is not None:
-        score["physics"] = score["physics"] + p_ori / p_ori.mean().clamp_min(1e-12)
-        score["hybrid"] = score["hybrid"] + h_ori / p_ori.mean().clamp_min(1e-12)
+        score["physics"] = score["physics"] + p_ori / _scale(p_ori)
+        score["hybrid"] = score["hybrid"] + h_ori / _scale(p_ori)
         deg = _mean_se(p_ori - h_ori)
     used = beats(score["hybrid"], score["physics"])
     means = (float(p_pos.mean()), float(h_pos.mean()))
     z = hybrid_tuning().freeing_z
     mm, scores = _mean_se(p_pos - h_pos), _mean_se(score["physics"] - score["hybrid"])
     return NetworkVerdict(used, n, folds, z, *means, *mm, *deg, *scores)
+
+
+def _scale(err: Tensor) -> Tensor:
+    """The mean error a score divides by; 1e-12 [mm, deg] only keeps exact rows finite."""
+    return err.mean().clamp_min(1e-12)
 
 
 def _mean_se(d: Tensor) -> tuple[float, float]:
