@@ -49,7 +49,9 @@ def save_hybrid(
 
 def load_hybrid(source: str | os.PathLike | LoadedModel) -> HybridFK:
     """The :class:`HybridFK` of a model file with residual networks, in eval mode
-    (callable as ``model(q, cond) -> (N, 4, 4)``); mirrors :func:`save_hybrid`.
+    (callable as ``model(q, cond) -> (N, 4, 4)``); mirrors :func:`save_hybrid`. It is
+    returned even where a re-fit marked the networks unused (:func:`forward_model`
+    respects that verdict).
 
     Args:
         source: a model file path, or a model file already read by ``load_model``.
