@@ -15,7 +15,9 @@ model is made by the public command line (``hybrid-pk``, called in-process throu
    ``calibrate --model M --refit frames`` for each model (base and tool re-fitted;
    effects and networks kept).
 4. ``evaluate`` each re-fitted model on the remaining rows of the other series
-   (1,445 of Series B for ``A->B``): mean / max position error [mm].
+   (1,445 of Series B for ``A->B``): mean / max position error [mm]. The hybrid's
+   re-fit decides on its rows alone whether its networks are used
+   (:mod:`hybrid_pk.pipelines.network_rule`); the verdict is reported.
 
 Writes ``OUT/results.json`` and ``OUT/results.md``; model files already in OUT are kept.
 Run from the repository root::
@@ -38,6 +40,7 @@ import numpy as np
 from hybrid_pk import Robot
 from hybrid_pk.cli.effect_lists import diagnosis_labels
 from hybrid_pk.data import MeasuredData, write_table
+from hybrid_pk.pipelines.network_rule import verdict_line
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from ipa_series import SERIES, add_data, import_series, read_rows, run
@@ -156,6 +159,8 @@ def direction(out: Path, series: dict, robot: Robot, name: str, args, log: dict)
         if args.effects
         else diagnosis_labels(str(d / "diagnosis.json")),
         "models": {k: evaluated[k]["position_mm"] for k in keys},
+        # the re-fit's verdict on the networks (evaluate's JSON; issue 27)
+        "networks": evaluated.get("hybrid", {}).get("networks"),
     }
 
 
@@ -189,6 +194,8 @@ def write_markdown(results: dict, path: Path) -> None:
         m = res["models"]
         if "hybrid" in m:
             lines += ["", f"hybrid / extended: {m['hybrid']['mean'] / m['extended']['mean']:.3f}"]
+        if res.get("networks"):
+            lines += ["", f"The re-fit's verdict: {verdict_line(res['networks'])}"]
     lines += ["", f"Total {results['seconds_total']:.0f} s."]
     path.write_text("\n".join(lines) + "\n")
 

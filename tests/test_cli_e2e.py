@@ -82,8 +82,10 @@ def test_simulate_diagnose_calibrate_train_evaluate_ik(tmp_path, capsys):
         )
         assert rc == 0, err
         results[name] = json.loads(js.read_text())
-        assert set(results[name]) == {"n", "position_mm", "orientation_deg"}
+        networks = {"networks"} if name == "hybrid" else set()  # their use and its rule
+        assert set(results[name]) == {"n", "position_mm", "orientation_deg", *networks}
         assert results[name]["n"] == 900
+    assert results["hybrid"]["networks"]["used"] is True  # as trained: no re-fit judged them
     # calibrated on these rows: at the noise level (0.02 mm per axis -> ~0.032 mm mean)
     assert results["model"]["position_mm"]["mean"] < 0.05
     assert results["hybrid"]["position_mm"]["mean"] < 0.05

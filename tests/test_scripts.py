@@ -105,4 +105,21 @@ def test_transfer_ur10_carries_each_series_to_the_other(tmp_path):
         assert set(res["models"]) == {k for k, _ in transfer_ur10.MODELS}
         # the link lengths carry over: they beat nominal + frames on the other series
         assert res["models"]["extended"]["mean"] < res["models"]["nominal_frames"]["mean"]
+        # the re-fit judged the networks on its 50 rows; fallen back, the hybrid is the
+        # extended model
+        assert res["networks"]["rows"] == 50
+        if not res["networks"]["used"]:
+            hybrid, extended = res["models"]["hybrid"], res["models"]["extended"]
+            assert hybrid["mean"] == pytest.approx(extended["mean"], rel=1e-6)
     assert "## B->A" in (out / "results.md").read_text()
+    assert "The re-fit's verdict: residual networks" in (out / "results.md").read_text()
+
+    from experiments import network_rule_picks
+
+    assert network_rule_picks.main(["--out", str(out), "--picks", "2"]) == 0
+    picks = json.loads((out / "rule_picks.json").read_text())
+    for rows in picks.values():
+        assert [r["seed"] for r in rows] == [0, 1]
+        for r in rows:  # fallen back: the judged hybrid is the extended model
+            if not r["used"]:
+                assert r["judged_hybrid_mm"] == pytest.approx(r["judged_extended_mm"], rel=1e-6)

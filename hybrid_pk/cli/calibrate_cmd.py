@@ -60,7 +60,9 @@ Fit base/tool frames and physical error effects to measured poses; write one MOD
   --robot ROBOT --effects D.json fit the causes named in a diagnose --json file
   --model MODEL --refit WHICH    keep everything of MODEL (effects, networks) and re-fit
                                  only the tool frame, the base frame, or both (after a
-                                 tool was re-mounted or the tracker moved)
+                                 tool was re-mounted or the tracker moved); MODEL's
+                                 networks stay in use only if they beat the physics on
+                                 DATA, each row predicted with frames fitted without it
 
 {units}
 The frames are always estimated: base = measurement frame <- robot root, tool =

@@ -63,8 +63,9 @@ def run_refit(args: argparse.Namespace, settings: FitSettings) -> int:
         model, res, before, after = result.model, result.fit, result.before, result.after
         bar.stage("writing")
         save_model(
-            args.out, model, networks=loaded.networks, metadata=_metadata(args, loaded, data, res)
-        )
+            args.out, model, networks=result.networks if loaded.has_networks else None,
+            metadata=_metadata(args, loaded, data, res),
+        )  # fmt: skip
         urdf = urdf_target(args, refit=True)
         export_model_urdf(model, args, urdf)
 
@@ -76,6 +77,8 @@ def run_refit(args: argparse.Namespace, settings: FitSettings) -> int:
     )
     for line in frame_lines(model) + fit_lines(data, res):
         print(line)
+    if result.verdict is not None:
+        print(result.verdict.line())
     for i, (name, unit) in enumerate((("position", "mm"), ("orientation", "deg"))):
         if after[i] is None:
             continue

@@ -23,8 +23,10 @@ from hybrid_pk.cli.options import (
 from hybrid_pk.cli.progress import progress
 from hybrid_pk.cli.settings_flags import add_settings_flags
 from hybrid_pk.errors import HybridPKError
+from hybrid_pk.io.hybrid_file import networks_used
 from hybrid_pk.io.model_file import NOMINAL_PREFIX, load_model, model_robot
 from hybrid_pk.pipelines.evaluation import evaluate_model
+from hybrid_pk.pipelines.network_rule import verdict_line
 
 _DESCRIPTION = """\
 Errors of MODEL on DATA: position error = distance of measured and predicted point
@@ -33,7 +35,10 @@ data); mean, rms, p95 and max. MODEL is a model file or nominal:ROBOT (the URDF 
 is, identity base and tool frames). The model's own base/tool frames are used unless
 --fit-frames fits them (only them) to DATA first; nominal:ROBOT needs --fit-frames
 unless DATA is the flange measured in the robot base frame.
-JSON: {"n", "position_mm": {mean, rms, p95, max}, "orientation_deg": {...} | null}.
+JSON: {"n", "position_mm": {mean, rms, p95, max}, "orientation_deg": {...} | null};
+a model with residual networks adds "networks": {"used", "rule", ...}: a frame re-fit
+on a new set-up (calibrate --refit) keeps them only if they beat the physics on its
+rows, held out; else the extended model is evaluated.
 """
 
 
@@ -103,7 +108,7 @@ def _print_summary(args, loaded, robot, data, position, orientation) -> None:
     nominal = args.model.startswith(NOMINAL_PREFIX)
     kind = "nominal URDF" if nominal else f"{len(loaded.model.effects)} effect(s)"
     if loaded.has_networks:
-        kind += " + residual networks"
+        kind += " + residual networks" + ("" if networks_used(loaded) else " (not used)")
     if args.fit_frames:
         frames = "frames fitted to DATA"
     elif loaded.frames_fitted:
@@ -128,6 +133,9 @@ def _print_summary(args, loaded, robot, data, position, orientation) -> None:
             "warning: the model was calibrated on position-only data, so its tool "
             "orientation is unknown and part of the orientation errors; add --fit-frames"
         )
+    verdict = loaded.networks.get("transfer") if loaded.has_networks else None
+    if verdict:
+        print(verdict_line(verdict))
     print(stats_line("position error [mm]", position))
     if orientation is not None:
         print(stats_line("orientation error [deg]", orientation))

@@ -19,6 +19,7 @@ from hybrid_pk.io.dh_export import write_dh_yaml as write_dh_yaml
 from hybrid_pk.io.export_summary import left_out as left_out
 from hybrid_pk.io.hybrid_file import forward_model as forward_model
 from hybrid_pk.io.hybrid_file import load_hybrid as load_hybrid
+from hybrid_pk.io.hybrid_file import networks_used as networks_used
 from hybrid_pk.io.hybrid_file import predict_poses as predict_poses
 from hybrid_pk.io.hybrid_file import save_hybrid as save_hybrid
 from hybrid_pk.io.model_file import FORMAT_TAG as FORMAT_TAG

@@ -19,7 +19,7 @@ from torch import Tensor
 from hybrid_pk.effects import Conditions
 from hybrid_pk.geometry import so3_log
 from hybrid_pk.io.dh_export import geometric_model
-from hybrid_pk.io.hybrid_file import forward_model
+from hybrid_pk.io.hybrid_file import forward_model, networks_used
 from hybrid_pk.io.model_file import LoadedModel
 
 __all__ = ["LeftOut", "left_out", "summary_lines"]
@@ -68,7 +68,7 @@ def left_out(loaded: LoadedModel, q: Tensor, cond: Conditions) -> list[LeftOut]:
                 continue
             without = model.with_effects([x for x in model.effects if x is not e])
             out.append(LeftOut(e.label, _value(e), *_size(full, without(q, cond))))
-        if loaded.has_networks:
+        if networks_used(loaded):
             hybrid = forward_model(loaded)(q, cond)
             out.append(LeftOut("residual networks", "-", *_size(hybrid, full)))
             full = hybrid

@@ -18,7 +18,7 @@ from hybrid_pk.errors import ModelFileError
 from hybrid_pk.hybrid import HybridFK
 from hybrid_pk.io.model_file import LoadedModel, load_model, save_model
 
-__all__ = ["forward_model", "load_hybrid", "predict_poses", "save_hybrid"]
+__all__ = ["forward_model", "load_hybrid", "networks_used", "predict_poses", "save_hybrid"]
 
 
 def save_hybrid(
@@ -49,7 +49,9 @@ def save_hybrid(
 
 def load_hybrid(source: str | os.PathLike | LoadedModel) -> HybridFK:
     """The :class:`HybridFK` of a model file with residual networks, in eval mode
-    (callable as ``model(q, cond) -> (N, 4, 4)``); mirrors :func:`save_hybrid`.
+    (callable as ``model(q, cond) -> (N, 4, 4)``); mirrors :func:`save_hybrid`. It is
+    returned even where a re-fit marked the networks unused (:func:`forward_model`
+    respects that verdict).
 
     Args:
         source: a model file path, or a model file already read by ``load_model``.
@@ -67,10 +69,20 @@ def load_hybrid(source: str | os.PathLike | LoadedModel) -> HybridFK:
     return HybridFK.from_state(loaded.model, loaded.networks, source=loaded.source)
 
 
+def networks_used(loaded: LoadedModel) -> bool:
+    """Whether a file's networks are used: it has some, and no re-fit on a new set-up
+    found them worse than the physics there (their ``transfer`` verdict,
+    :mod:`hybrid_pk.pipelines.network_rule`)."""
+    if not loaded.has_networks:
+        return False
+    return bool((loaded.networks.get("transfer") or {}).get("used", True))
+
+
 def forward_model(loaded: LoadedModel) -> ExtendedModel | HybridFK:
     """The most accurate model a file holds: its :class:`HybridFK` when it carries
-    networks, else its :class:`ExtendedModel`. Both map ``(q, cond) -> (N, 4, 4)``."""
-    return load_hybrid(loaded) if loaded.has_networks else loaded.model
+    networks that are used (:func:`networks_used`), else its :class:`ExtendedModel`.
+    Both map ``(q, cond) -> (N, 4, 4)``."""
+    return load_hybrid(loaded) if networks_used(loaded) else loaded.model
 
 
 def predict_poses(loaded: LoadedModel, data: MeasuredData, cond: Conditions) -> Tensor:

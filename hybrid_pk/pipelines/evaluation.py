@@ -26,7 +26,10 @@ from hybrid_pk.io.model_file import NOMINAL_PREFIX, LoadedModel, model_robot
 from hybrid_pk.pipelines.calibration import refit_frames
 from hybrid_pk.pipelines.refit import with_frame_sets
 
-__all__ = ["EvaluationResult", "evaluate_model"]
+__all__ = ["AS_TRAINED", "EvaluationResult", "evaluate_model", "networks_summary"]
+
+# The rule of networks no re-fit on a new set-up has judged.
+AS_TRAINED = "as trained: no frame re-fit on a new set-up has judged them (calibrate --refit)"
 
 
 @dataclass(frozen=True)
@@ -38,7 +41,8 @@ class EvaluationResult:
         poses: predicted flange poses ``(n, 4, 4)``.
         position, orientation: per-row errors [mm], [deg] (orientation None for
             position-only data).
-        summary: the contract's JSON document (n, position_mm, orientation_deg).
+        summary: the contract's JSON document (n, position_mm, orientation_deg; and
+            ``networks`` for a file with residual networks: :func:`networks_summary`).
         frame_fit: the frames' fit (None without ``fit_frames``).
         report: the report written (None without ``report``).
     """
@@ -86,12 +90,22 @@ def evaluate_model(
     T = predict_poses(loaded, data, cond)
     position, orientation = row_errors(T, data)
     summary = evaluate_json(data.n, position, orientation)
+    if loaded.has_networks:
+        summary["networks"] = networks_summary(loaded)
     written = None
     if report:
         stage("writing the report")
         nominal = model_label.startswith(NOMINAL_PREFIX) and fit_frames
         written = _report(report, model_label, loaded, data, cond, sets, T, nominal)
     return EvaluationResult(loaded, T, position, orientation, summary, frame_fit, written)
+
+
+def networks_summary(loaded: LoadedModel) -> dict:
+    """Whether a file's residual networks were used, and by which rule: the verdict of
+    its last re-fit on a new set-up (:mod:`~hybrid_pk.pipelines.network_rule`), else
+    used as trained."""
+    verdict = loaded.networks.get("transfer")
+    return dict(verdict) if verdict else {"used": True, "rule": AS_TRAINED}
 
 
 def _report(path, label: str, loaded, data, cond: Conditions, sets: int, T, nominal: bool) -> Path:

@@ -1,5 +1,7 @@
 """Re-fit the frames of a saved model (a re-mounted tool, a moved tracker): its effects
-and residual networks are kept, only the base and/or tool frame is fitted again.
+and residual networks are kept, only the base and/or tool frame is fitted again. The
+networks are used afterwards only if they beat the physics on the re-fit rows, held out
+(:mod:`~hybrid_pk.pipelines.network_rule`); the verdict is the networks' ``transfer``.
 
     result = refit(load_model("model.pt"), data, "tool")
 """
@@ -21,6 +23,7 @@ from hybrid_pk.evaluation.metrics import row_errors
 from hybrid_pk.io.hybrid_file import predict_poses
 from hybrid_pk.io.model_file import LoadedModel
 from hybrid_pk.pipelines.calibration import refit_frames
+from hybrid_pk.pipelines.network_rule import NetworkVerdict, network_rule
 
 __all__ = ["RefitResult", "model_errors", "refit", "with_frame_sets"]
 
@@ -34,12 +37,17 @@ class RefitResult:
         fit: the frames' fit.
         before, after: :func:`model_errors` of MODEL and of the re-fitted model on the
             data (``before`` None where MODEL has another number of frame sets).
+        networks: MODEL's networks entry with the verdict as its ``transfer`` (None
+            without networks); the file to write holds it.
+        verdict: whether the networks are used on the new set-up (None without networks).
     """
 
     model: ExtendedModel
     fit: FitResult
     before: tuple[Tensor, Tensor | None, str] | None
     after: tuple[Tensor, Tensor | None, str]
+    networks: dict | None = None
+    verdict: NetworkVerdict | None = None
 
 
 def with_frame_sets(model: ExtendedModel, sets: int, keep: str | None = None) -> ExtendedModel:
@@ -81,15 +89,26 @@ def refit(
     robust: str | None = None,
 ) -> RefitResult:
     """Re-fit the ``which`` frame(s) (``"base"``, ``"tool"``, ``"frames"``) of a loaded
-    model on ``data``; the other frame keeps its values, effects and networks are kept."""
+    model on ``data``; the other frame keeps its values, effects and networks are kept.
+    With networks, :func:`~hybrid_pk.pipelines.network_rule.network_rule` decides on
+    ``data`` whether they are used; if so, the frames are the hybrid's own fit."""
     sets = len(data.sources) if frames_per_file else 1
     cond = conditions_from_data(data, sets > 1)
     before = model_errors(loaded, data, cond) if loaded.model.base.sets == sets else None
     keep = {"base": "tool", "tool": "base", "frames": None}[which]
     model = with_frame_sets(loaded.model, sets, keep=keep)
     res = refit_frames(model, data, cond, which, priors=priors, robust=robust)
-    after = model_errors(dataclasses.replace(loaded, model=model, frames_fitted=True), data, cond)
-    return RefitResult(model, res, before, after)
+    networks = verdict = None
+    if loaded.has_networks:
+        verdict, frames = network_rule(loaded.networks, model, data, cond, which, res)
+        if frames is not None:
+            for g in range(model.base.sets):
+                model.base.reset_to(frames[0][g], g)
+                model.tool.reset_to(frames[1][g], g)
+        networks = {**loaded.networks, "transfer": verdict.to_json()}
+    moved = dataclasses.replace(loaded, model=model, frames_fitted=True, networks=networks)
+    after = model_errors(moved, data, cond)
+    return RefitResult(model, res, before, after, networks, verdict)
 
 
 def model_errors(loaded: LoadedModel, data: MeasuredData, cond: Conditions):

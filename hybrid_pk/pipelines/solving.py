@@ -28,7 +28,7 @@ from hybrid_pk.ik import (
 )
 from hybrid_pk.ik.conditions import Approach
 from hybrid_pk.ik.two_stage import DEFAULT_BOX
-from hybrid_pk.io.hybrid_file import load_hybrid
+from hybrid_pk.io.hybrid_file import load_hybrid, networks_used
 from hybrid_pk.io.model_file import LoadedModel
 
 __all__ = ["CHUNK", "IKJob", "solutions_frame", "solve_targets"]
@@ -49,7 +49,7 @@ class IKJob:
 
 def _expensive(loaded: LoadedModel, model: ExtendedModel):
     """The accurate model when it is more than the kinematics plus frames, else None."""
-    if loaded.has_networks:
+    if networks_used(loaded):
         return load_hybrid(loaded)
     return model if len(model.effects) else None
 

@@ -1,0 +1,180 @@
+"""Whether a hybrid's networks carry over to a new set-up, decided on the rows its frames
+are re-fitted on (issue 27: the hybrid is never worse than the physics out of coverage).
+
+A model file with residual networks moved to a new set-up (``calibrate --model HYBRID
+--refit frames``, :func:`~hybrid_pk.pipelines.refit.refit`) brings N rows of that set-up:
+the only evidence there is of whether the networks' correction holds there (a robot's
+own error does; one of the old set-up, its tracker or its workspace, does not). So both
+the extended model (the physics) and the hybrid get their frames fitted on those rows
+by the same fitter (:mod:`~hybrid_pk.pipelines.flange_frames`), and every row is
+predicted with frames fitted without it (leave one out; folds beyond ``MAX_FOLDS`` rows).
+The comparison is then out of sample for the frames, as it already is for the effects
+and the networks (fitted on the other set-up); no other row of the new set-up is read.
+
+The networks are kept only if the hybrid beats the physics on those held-out rows by
+the tuning's ``freeing_z`` standard errors of the mean paired difference
+(:func:`~hybrid_pk.hybrid.blocked_trust.beats`, the rule that frees a stage on blocked
+hold-out), per row on the validation's score (position error over the physics' mean,
+plus the orientation error over its mean where measured). Otherwise the file keeps
+them but marks them unused (``networks["transfer"]``), and every command uses the
+extended model (:func:`~hybrid_pk.io.hybrid_file.forward_model`) and says so.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from hybrid_pk.calibration.fit import DEFAULT_SIGMA_POS_MM, DEFAULT_SIGMA_ROT_RAD, FitResult
+from hybrid_pk.calibration.frames import FramePriors
+from hybrid_pk.data import MeasuredData
+from hybrid_pk.effects import Conditions, ExtendedModel
+from hybrid_pk.evaluation.metrics import row_errors
+from hybrid_pk.geometry import quat_to_matrix
+from hybrid_pk.hybrid import HybridFK
+from hybrid_pk.hybrid.blocked_trust import beats
+from hybrid_pk.hybrid.tuning import hybrid_tuning
+from hybrid_pk.pipelines.calibration import FRAME_LABELS
+from hybrid_pk.pipelines.flange_frames import (
+    FlangeRows,
+    fit_flange_frames,
+    fold_of_rows,
+    held_out_errors,
+)
+
+__all__ = ["NetworkVerdict", "network_rule", "verdict_line"]
+
+
+@dataclass(frozen=True)
+class NetworkVerdict:
+    """The rule's outcome on the re-fit rows: mean held-out errors of the physics and
+    the hybrid, the mean paired gains (physics minus hybrid; positive: the networks
+    help) with their standard errors, and whether the networks are used."""
+
+    used: bool
+    rows: int
+    folds: int
+    z: float
+    physics_mm: float
+    hybrid_mm: float
+    gain_mm: float
+    se_mm: float
+    gain_deg: float | None
+    se_deg: float | None
+    score_gain: float
+    score_se: float
+
+    @property
+    def rule(self) -> str:
+        held = "leave one out" if self.folds == self.rows else f"{self.folds} folds"
+        return (
+            f"networks used only if, on the {self.rows} rows the frames are re-fitted on, "
+            f"each predicted with frames fitted without it ({held}), the hybrid's error "
+            "(position over the physics' mean, plus orientation over its mean where "
+            f"measured) is lower than the extended model's by at least {self.z:g} standard "
+            "errors of the mean paired difference"
+        )
+
+    def to_json(self) -> dict:
+        out = {"used": self.used, "rule": self.rule}
+        for key in ("z", "rows", "folds", "physics_mm", "hybrid_mm", "gain_mm", "se_mm"):
+            out[key] = getattr(self, key)
+        for key in ("gain_deg", "se_deg", "score_gain", "score_se"):
+            out[key] = getattr(self, key)
+        return out
+
+    def line(self) -> str:
+        """One line for the command's output."""
+        return verdict_line(self.to_json())
+
+
+def verdict_line(verdict: dict) -> str:
+    """One line on a file's networks from their ``transfer`` verdict (the JSON of a
+    :class:`NetworkVerdict`)."""
+    if verdict.get("used", True):
+        what = "residual networks used"
+    else:
+        what = "residual networks NOT used, the extended model (physics) instead"
+    z = f"{verdict['z']:g}"
+    return (
+        f"{what} (held out on the {verdict['rows']} re-fit rows: hybrid "
+        f"{verdict['hybrid_mm']:.4g} mm vs physics {verdict['physics_mm']:.4g} mm, gain "
+        f"{verdict['gain_mm']:.3g} ± {verdict['se_mm']:.2g} mm; needs {z} standard errors)"
+    )
+
+
+def network_rule(
+    nets: dict,
+    model: ExtendedModel,
+    data: MeasuredData,
+    cond: Conditions,
+    which: str,
+    fit: FitResult,
+) -> tuple[NetworkVerdict, tuple[Tensor, Tensor] | None]:
+    """The verdict on the networks of a model whose ``which`` frames were just
+    re-fitted on ``data`` (``model``: the extended model with those frames, the start of
+    every fit here), and the hybrid's own frames ``(B, X)`` ``(G, 4, 4)`` on all rows
+    when the networks are used (None otherwise).
+
+    Args:
+        nets: the model file's networks entry.
+        which: the re-fitted frames (``"base"``, ``"tool"``, ``"frames"``).
+        fit: the re-fit of ``model`` (a :class:`~hybrid_pk.calibration.fit.FitResult`):
+            its noise levels and robust row weights (``--robust``) weigh the residuals;
+            the components its priors fix (known frames) are not fitted here either.
+    """
+    hybrid = HybridFK.from_state(model, nets)
+    with torch.no_grad():
+        flanges = {"physics": model.end_pose(data.q, cond), "hybrid": hybrid.end_pose(data.q, cond)}
+    sig_p = fit.sigma_pos_mm or DEFAULT_SIGMA_POS_MM
+    sig_r = fit.sigma_rot_rad or DEFAULT_SIGMA_ROT_RAD
+    R_meas = None if data.quat is None else quat_to_matrix(data.quat)
+    rows = {
+        k: FlangeRows(E, data.position, R_meas, sig_p, sig_r, fit.weights)
+        for k, E in flanges.items()
+    }
+    fixed = (fit.priors or FramePriors()).fixed_labels()
+    free = tuple(b for b in FRAME_LABELS[which] if b not in fixed)
+    with torch.no_grad():
+        B0, X0 = model.base.matrix().detach(), model.tool.matrix().detach()
+    group = cond.group if model.base.sets > 1 else None
+    errors = {k: row_errors(held_out_errors(r, B0, X0, free, group), data) for k, r in rows.items()}
+    verdict = _verdict(errors, data.n, fold_of_rows(data.n)[1])
+    if not verdict.used:
+        return verdict, None
+    sets = B0.shape[0]
+    frames = [
+        fit_flange_frames(rows["hybrid"], B0[g], X0[g], free, None if group is None else group == g)
+        for g in range(sets)
+    ]
+    return verdict, (torch.stack([f[0] for f in frames]), torch.stack([f[1] for f in frames]))
+
+
+def _verdict(errors: dict, n: int, folds: int) -> NetworkVerdict:
+    """The rule on the held-out errors ``{"physics", "hybrid"}: (position, orientation)``."""
+    (p_pos, p_ori), (h_pos, h_ori) = errors["physics"], errors["hybrid"]
+    score = {"physics": p_pos / _scale(p_pos), "hybrid": h_pos / _scale(p_pos)}
+    deg = (None, None)
+    if p_ori is not None:
+        score["physics"] = score["physics"] + p_ori / _scale(p_ori)
+        score["hybrid"] = score["hybrid"] + h_ori / _scale(p_ori)
+        deg = _mean_se(p_ori - h_ori)
+    used = beats(score["hybrid"], score["physics"])
+    means = (float(p_pos.mean()), float(h_pos.mean()))
+    z = hybrid_tuning().freeing_z
+    mm, scores = _mean_se(p_pos - h_pos), _mean_se(score["physics"] - score["hybrid"])
+    return NetworkVerdict(used, n, folds, z, *means, *mm, *deg, *scores)
+
+
+def _scale(err: Tensor) -> Tensor:
+    """The mean error a score divides by; 1e-12 [mm, deg] only keeps exact rows finite."""
+    return err.mean().clamp_min(1e-12)
+
+
+def _mean_se(d: Tensor) -> tuple[float, float]:
+    """Mean of paired differences and its standard error (NaN for one row)."""
+    d = d.to(torch.float64)
+    se = float(d.std() / d.numel() ** 0.5) if d.numel() > 1 else float("nan")
+    return float(d.mean()), se

@@ -1,0 +1,165 @@
+"""A hybrid moved to a new set-up keeps its networks only where they carry over (issue
+27): hybrid_pk.pipelines.network_rule, reached through calibrate --refit and evaluate."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import pytest
+import torch
+
+from hybrid_pk.cli.main import main
+from hybrid_pk.data import write_table
+from hybrid_pk.effects import ExtendedModel, conditions_from_data
+from hybrid_pk.evaluation.metrics import row_errors
+from hybrid_pk.geometry import rpy_to_matrix, transform
+from hybrid_pk.io.hybrid_file import networks_used, predict_poses, save_hybrid
+from hybrid_pk.io.model_file import load_model
+from hybrid_pk.pipelines.flange_frames import (
+    BLOCKS,
+    MAX_FOLDS,
+    FlangeRows,
+    fit_flange_frames,
+    fold_of_rows,
+    frames_at,
+)
+from hybrid_pk.pipelines.refit import refit
+from hybrid_pk.simulate import simulate_campaign
+from hybrid_pk.training import train_hybrid
+from tests.helpers import middle_q, run_rng
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+F64 = torch.float64
+NETS = {"position_net": "mlp:16x2", "orientation_net": "mlp:16x2", "refine_net": "mlp:8x2"}
+REFIT_ROWS = 50  # the issue's re-fit rows
+NOISE_MM = 0.01
+
+
+def _campaign(robot, n: int, seed: int, effect: str, base=None, tool=None):
+    """``n`` rows from the middle half of each joint's range (inside the training rows'
+    coverage), measured with ``effect`` ('' none), in frames ``base``/``tool`` (None:
+    the robot's root frame at the flange)."""
+    q = middle_q(robot, n, seed, 0.5)
+    data, _ = simulate_campaign(
+        robot, None, effect, poses=q, noise_mm=NOISE_MM, known_frames=base is None,
+        temperature_range=None, seed=seed, base=base, tool=tool,
+    )  # fmt: skip
+    return data
+
+
+@pytest.fixture(scope="module")
+def setups(ur10, tmp_path_factory):
+    """A hybrid trained on a first set-up whose rows carry an unmodelled elbow
+    compliance (0.3-0.6 mm at the flange), and a re-stationed set-up (tracker moved,
+    target re-mounted) measured with and without that error."""
+    rng = run_rng("network-rule")
+    stiffness = float(rng.uniform(2e-5, 4e-5))  # [rad/Nm]
+    effect = f"joint_compliance:elbow_joint={stiffness}"
+    first = _campaign(ur10, 500, 1, effect)
+    physics = ExtendedModel(ur10)  # frames known, the compliance not modelled
+    result = train_hybrid(first, physics, model=NETS, max_epochs=80, progress=False, seed=0)
+    path = tmp_path_factory.mktemp("rule") / "hybrid.pt"
+    save_hybrid(path, result.hybrid)
+    rpy = torch.as_tensor(rng.uniform(-0.3, 0.3, 3), dtype=F64)
+    base = transform(rpy_to_matrix(rpy), torch.as_tensor(rng.uniform(-2, 2, 3), dtype=F64))
+    tool = transform(torch.eye(3, dtype=F64), torch.tensor([0.01, -0.02, 0.08], dtype=F64))
+    moved = {
+        name: _campaign(ur10, REFIT_ROWS + 300, 2, e, base, tool)
+        for name, e in (("robot's own", effect), ("first set-up's", ""))
+    }
+    return path, moved
+
+
+def _split(data):
+    pick = torch.zeros(data.n, dtype=torch.bool)
+    pick[:REFIT_ROWS] = True
+    return data.subset(pick), data.subset(~pick)
+
+
+def _physics(path, fit_rows):
+    """The model file's extended model alone, its frames re-fitted on ``fit_rows``."""
+    alone = replace(load_model(path), networks=None)
+    return replace(alone, model=refit(alone, fit_rows, "frames").model)
+
+
+def _mean_mm(loaded, data) -> float:
+    T = predict_poses(loaded, data, conditions_from_data(data))
+    return float(row_errors(T, data)[0].mean())
+
+
+def test_networks_that_learned_the_robots_own_error_are_kept_on_a_new_setup(setups):
+    """The compliance is the robot's: it moves with it, and the networks that learned it
+    beat the physics on the re-fit rows held out, and on the judged rows."""
+    path, moved = setups
+    fit_rows, judged = _split(moved["robot's own"])
+    res = refit(load_model(path), fit_rows, "frames")
+    assert res.verdict is not None
+    assert res.verdict.used, res.verdict
+    assert res.verdict.gain_mm > 2 * res.verdict.se_mm > 0
+    kept = replace(load_model(path), model=res.model, networks=res.networks)
+    hybrid, physics = _mean_mm(kept, judged), _mean_mm(_physics(path, fit_rows), judged)
+    assert hybrid < 0.9 * physics, (hybrid, physics, res.verdict)
+
+
+def test_networks_that_learned_an_error_of_the_old_setup_fall_back_to_the_physics(
+    setups, tmp_path, capsys
+):
+    """The error belonged to the first set-up (absent after re-stationing): the networks
+    would add it back, so the re-fit marks them unused, evaluate uses the extended model
+    (the same errors as a re-fit of the physics alone) and says so, in its output and
+    its JSON."""
+    path, moved = setups
+    fit_rows, judged = _split(moved["first set-up's"])
+    refit_file, judge_file = (
+        write_table(tmp_path / "refit.csv", fit_rows),
+        write_table(tmp_path / "judge.csv", judged),
+    )
+    out = tmp_path / "moved.pt"
+    args = ["calibrate", str(refit_file), "--model", str(path), "--refit", "frames"]
+    assert main([*args, "--out", str(out), "--no-urdf"]) == 0
+    assert "residual networks NOT used" in capsys.readouterr().out
+    loaded = load_model(out)
+    assert loaded.has_networks
+    assert not networks_used(loaded)
+    assert main(["evaluate", str(out), str(judge_file), "--json", str(tmp_path / "e.json")]) == 0
+    printed = capsys.readouterr().out
+    assert "residual networks NOT used" in printed
+    assert "(not used)" in printed
+    summary = json.loads((tmp_path / "e.json").read_text())
+    rule = summary["networks"]
+    assert rule["used"] is False
+    assert rule["rows"] == REFIT_ROWS
+    assert rule["gain_mm"] < 0
+    assert "standard errors" in rule["rule"]
+    physics = _mean_mm(_physics(path, fit_rows), judged)
+    assert summary["position_mm"]["mean"] == pytest.approx(physics, rel=1e-6)
+
+
+def test_the_folds_leave_one_row_out_up_to_their_cap():
+    fold, folds = fold_of_rows(REFIT_ROWS)
+    assert folds == REFIT_ROWS
+    assert torch.equal(fold, torch.arange(REFIT_ROWS))
+    fold, folds = fold_of_rows(10 * MAX_FOLDS + 3)
+    assert folds == MAX_FOLDS
+    assert int(torch.bincount(fold).min()) == 10
+
+
+def test_the_frames_fit_recovers_the_frames_of_exact_rows(ur10):
+    """Noise-free rows of known frames: the fit from frames a few mm and mrad off returns
+    them; a block left out of ``free`` stays where it starts."""
+    rng = run_rng("flange-frames")
+    E = ur10.fk(middle_q(ur10, 30, 3, 0.5))
+    B = transform(rpy_to_matrix(torch.as_tensor(rng.uniform(-1, 1, 3))), torch.ones(3, dtype=F64))
+    X = transform(rpy_to_matrix(torch.tensor([0.0, 0.1, 0.2], dtype=F64)), torch.ones(3) * 0.05)
+    T = B @ E @ X
+    rows = FlangeRows(E, T[:, :3, 3], T[:, :3, :3], 0.01, 1e-5)
+    off = torch.as_tensor(rng.uniform(-3, 3, 12))
+    B0, X0 = frames_at(off, B, X)
+    B1, X1 = fit_flange_frames(rows, B0, X0, BLOCKS)
+    assert torch.allclose(B1, B, atol=1e-9)
+    assert torch.allclose(X1, X, atol=1e-9)
+    B2, X2 = fit_flange_frames(rows, B0, X0, BLOCKS[:2])
+    assert torch.equal(X2, X0)
+    assert not torch.allclose(B2, B0, atol=1e-6)
