@@ -178,6 +178,8 @@ class ExtendedModel(nn.Module):
         cond = cond or Conditions()
         q = self.kinematic_joint_values(q, cond)
         c = self._compliance()
+        if c is not None and plain_inputs(c) and not bool(c.detach().any()):
+            c = None  # every compliance zero (candidates scored): q_kin - 0 g(q) is q_kin
         if c is not None:
             payload = 0.0 if cond.payload is None else cond.payload
             q_kin, c = q, c.to(q.dtype)
