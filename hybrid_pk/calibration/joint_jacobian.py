@@ -77,9 +77,10 @@ def _effect_derivatives(effect, q: Tensor, cond: Conditions, j: int, block):
 def joint_effect_jacobian(
     model: ExtendedModel, q: Tensor, cond: Conditions, blocks
 ) -> Tensor | None:
-    """``dq_kin/dtheta (n, dof, k)`` of the joint-stage parameter ``blocks`` (scaled
-    offsets, as :class:`~.structured_jacobian.StructuredJacobian` fits them) at the
-    current values, or None when some joint effect is not a map of its own joint alone.
+    """``dq_kin/dtheta (n, dof, k)`` of the parameter ``blocks`` (scaled offsets, as
+    :class:`~.structured_jacobian.StructuredJacobian` fits them) at the current values
+    (zero columns for blocks of other stages), or None when some joint effect is not a
+    map of its own joint alone.
     """
     n, dof = q.shape
     where, k = {}, 0
@@ -97,7 +98,8 @@ def joint_effect_jacobian(
         if step is None:
             return None  # not a map of its joint alone
         q, d_along, own = step
-        D[:, j, :] *= d_along[:, None]  # the chain through this effect
+        if not bool((d_along == 1).all()):  # (a candidate at zero passes q_j through)
+            D[:, j, :] *= d_along[:, None]  # the chain through this effect
         if own is not None:
             D[:, j, start : start + block.size] += own.T
     return D
