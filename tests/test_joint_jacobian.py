@@ -94,3 +94,27 @@ def test_an_effect_that_couples_joints_is_declined(ur10):
     plain = ExtendedModel(ur10, [make_effect(ur10, "joint_offset:elbow_joint")])
     blocks = [b for b in param_blocks(plain, None, False) if b.name.startswith("effects.")]
     assert joint_effect_jacobian(plain, q, Conditions(), blocks) is not None
+
+
+def test_closed_form_derivatives_equal_forward_mode_bit_for_bit(ur10, monkeypatch):
+    """The built-in joint effects' ``joint_derivatives`` give the very numbers forward
+    mode through ``apply_q`` gives (the diagnosis finds the same, only faster)."""
+    from hybrid_pk.calibration import joint_jacobian as jj
+
+    data, _ = simulate_campaign(ur10, 200, "none", noise_mm=0.0, seed=6)
+    cond = conditions_from_data(data)
+    model = _model(ur10, LABELS, 3)
+    blocks = {b.name: b for b in param_blocks(model, None, False)}
+    checked = 0
+    for i, e in enumerate(model.effects):
+        if getattr(e, "joint_derivatives", None) is None:
+            continue
+        block = blocks[f"effects.{i}.value"]
+        got = jj._effect_derivatives(e, data.q, cond, e.joint_index, block)
+        monkeypatch.setattr(type(e), "joint_derivatives", None)  # the forward-mode path
+        ref = jj._effect_derivatives(e, data.q, cond, e.joint_index, block)
+        monkeypatch.undo()
+        for a, b in zip(got, ref, strict=True):
+            assert torch.equal(a, b), e.label
+        checked += 1
+    assert checked == 9  # every joint-stage effect of LABELS

@@ -36,9 +36,19 @@ class _Apply(nn.Module):
 
 
 def _effect_derivatives(effect, q: Tensor, cond: Conditions, j: int, block):
-    """``(q_out, d q_out / d q_j (n, dof), d q_out / d theta (size, n, dof) or None)`` of
-    one effect (one forward pass per direction, all in one batch), or None when it
-    changes another joint or reads another joint's value."""
+    """``(q_out, d q_out_j / d q_j (n,), d q_out_j / d theta (size, n) or None)`` of one
+    effect, or None when it changes another joint or reads another joint's value.
+
+    An effect with ``joint_derivatives`` (a map of its own joint alone, derivatives in
+    closed form: the built-in ones) gives them directly; any other goes through forward
+    mode (one pass per direction, all in one batch) and is checked to be such a map.
+    """
+    closed = getattr(effect, "joint_derivatives", None)
+    if closed is not None:
+        with torch.no_grad():
+            out = effect.apply_q(q, cond)
+            along, own = closed(q, cond, 0.0 if block is None else block.scale)
+        return out, along, own if block is not None else None
     wrapper, value = _Apply(effect), effect.value.detach()
     n, dof = q.shape
 
@@ -61,15 +71,16 @@ def _effect_derivatives(effect, q: Tensor, cond: Conditions, j: int, block):
         return None
     if size and bool((d[2:] * across != 0).any()):
         return None
-    return out, d[0], d[2:] if size else None
+    return out, d[0][:, j], d[2:, :, j] if size else None
 
 
 def joint_effect_jacobian(
     model: ExtendedModel, q: Tensor, cond: Conditions, blocks
 ) -> Tensor | None:
-    """``dq_kin/dtheta (n, dof, k)`` of the joint-stage parameter ``blocks`` (scaled
-    offsets, as :class:`~.structured_jacobian.StructuredJacobian` fits them) at the
-    current values, or None when some joint effect is not a map of its own joint alone.
+    """``dq_kin/dtheta (n, dof, k)`` of the parameter ``blocks`` (scaled offsets, as
+    :class:`~.structured_jacobian.StructuredJacobian` fits them) at the current values
+    (zero columns for blocks of other stages), or None when some joint effect is not a
+    map of its own joint alone.
     """
     n, dof = q.shape
     where, k = {}, 0
@@ -87,7 +98,8 @@ def joint_effect_jacobian(
         if step is None:
             return None  # not a map of its joint alone
         q, d_along, own = step
-        D[:, j, :] *= d_along[:, j, None]  # the chain through this effect
+        if not bool((d_along == 1).all()):  # (a candidate at zero passes q_j through)
+            D[:, j, :] *= d_along[:, None]  # the chain through this effect
         if own is not None:
-            D[:, j, start : start + block.size] += own[..., j].T
+            D[:, j, start : start + block.size] += own.T
     return D

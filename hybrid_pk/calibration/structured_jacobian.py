@@ -218,8 +218,30 @@ class StructuredJacobian:
         with torch.no_grad():
             g = robot.gravity_torques(q_star, payload=payload, gravity=gravity, params=params)
         kin = [b for b in self.joint if self.effects[b.name].stage == "joint"]
-        dq_kin = joint_effect_jacobian(model, q, cond, kin) if kin else None
-        if kin and dq_kin is None:  # some effect couples joints: every direction through all
+        size = sum(b.size for b in self.joint)
+        # compliance columns zero, filled below
+        dq = joint_effect_jacobian(model, q, cond, self.joint) if kin else q.new_zeros(n, dof, size)
+        if dq is not None:
+            start = 0
+            for b in self.joint:
+                e = self.effects[b.name]
+                if e.stage == "compliance":  # d(-c g)/dc
+                    dq[:, e.joint_index, start] = -g[:, e.joint_index] * b.scale
+                start += b.size
+        else:  # some effect couples joints: every direction through all
+            dq = self._coupled_derivatives(q, cond, kin, g)
+        c = self._compliance()
+        if c is not None and bool((c != 0).any()):
+            # q* = q_kin - C g(q*)  =>  (I + C dg/dq) dq* = dq_kin - dC g
+            G = _gravity_jacobian(robot, q_star, payload, params, key, gravity)
+            M = torch.eye(dof, dtype=q.dtype) + c.to(q.dtype)[:, None] * G
+            dq = torch.linalg.solve(M, dq)
+        return dq
+
+    def _coupled_derivatives(self, q, cond, kin, g) -> Tensor:
+        """``dq_kin/dtheta (n, dof, k)`` by forward mode through every joint effect."""
+        model, (n, dof) = self.model, q.shape
+        if kin:
             wrapper = _KinematicJoints(model)
 
             def q_kin(theta_k: Tensor) -> Tensor:
@@ -239,14 +261,7 @@ class StructuredJacobian:
             else:
                 columns.append(dq_kin[..., k_col : k_col + b.size])
                 k_col += b.size
-        dq = torch.cat(columns, -1)
-        c = self._compliance()
-        if c is not None and bool((c != 0).any()):
-            # q* = q_kin - C g(q*)  =>  (I + C dg/dq) dq* = dq_kin - dC g
-            G = _gravity_jacobian(robot, q_star, payload, params, key, gravity)
-            M = torch.eye(dof, dtype=q.dtype) + c.to(q.dtype)[:, None] * G
-            dq = torch.linalg.solve(M, dq)
-        return dq
+        return torch.cat(columns, -1)
 
 
 # dg/dq kept for reuse: id(data q) -> (weakref to it, q_star (N, dof), G (N, dof, dof),

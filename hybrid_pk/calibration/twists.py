@@ -135,7 +135,8 @@ def geometry_twists(maps: Tensor, origin_rot: Tensor, d_xyz: Tensor, d_rot: Tens
         d_xyz, d_rot: ``(k, *P, dof + 1, 3)``, ``(k, *P, dof + 1, 3, 3)`` derivatives
             of the origins along each direction.
     """
-    if d_xyz.dim() == 4 and bool((origin_rot == origin_rot[:1]).all()):
+    shared_rot = origin_rot if origin_rot.dim() == 3 else origin_rot[0]
+    if d_xyz.dim() == 4 and bool((origin_rot == shared_rot).all()):
         # Per-row parameters (a thermal expansion) leave most directions equal in every
         # row (at a zero expansion coefficient exactly): those take the shared path.
         flat_xyz, flat_rot = d_xyz.flatten(2), d_rot.flatten(2)
@@ -143,7 +144,7 @@ def geometry_twists(maps: Tensor, origin_rot: Tensor, d_xyz: Tensor, d_rot: Tens
         same &= (flat_rot == flat_rot[:, :1]).all(-1).all(-1)
         if bool(same.any()):
             out = maps.new_empty(maps.shape[0], 6, d_xyz.shape[0])
-            out[..., same] = _origin_twists(maps, origin_rot[0], d_xyz[same, 0], d_rot[same, 0])
+            out[..., same] = _origin_twists(maps, shared_rot, d_xyz[same, 0], d_rot[same, 0])
             rows = ~same
             if bool(rows.any()):
                 out[..., rows] = _origin_twists(maps, origin_rot, d_xyz[rows], d_rot[rows])

@@ -3,7 +3,10 @@
 An effect is a small ``nn.Module`` with one learnable ``value`` (the number of the
 contract's vocabulary, in its unit). It acts in one of two places:
 
-- ``stage = "joint"``: maps commanded joint values to true ones, ``apply_q``;
+- ``stage = "joint"``: maps commanded joint values to true ones, ``apply_q`` (a map of
+  its own joint alone may also give ``joint_derivatives(q, cond, step) -> (d q_j /
+  d q_j (*B,), d q_j / d value (size, *B) per step)`` in closed form: the
+  identification Jacobian then skips its forward-mode pass);
 - ``stage = "geometry"``: perturbs the kinematic parameters, ``apply_params``;
 - ``stage = "compliance"``: a joint spring, solved as a fixed point by the model (it
   needs gravity torques at the deflected configuration), so it only exposes its

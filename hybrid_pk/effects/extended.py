@@ -76,6 +76,12 @@ class RigidFrame(nn.Module):
         self.rotvec[sl] = 0
 
 
+def _zero(value: Tensor) -> bool:
+    """A plain value (no derivative taken through it) that is exactly zero: an effect
+    being scored as a candidate, which changes nothing."""
+    return plain_inputs(value) and not bool(value.detach().any())
+
+
 class ExtendedModel(nn.Module):
     """Robot + frames + effects: predicts the measured pose of each sample.
 
@@ -178,6 +184,8 @@ class ExtendedModel(nn.Module):
         cond = cond or Conditions()
         q = self.kinematic_joint_values(q, cond)
         c = self._compliance()
+        if c is not None and _zero(c):
+            c = None  # every compliance zero (candidates scored): q_kin - 0 g(q) is q_kin
         if c is not None:
             payload = 0.0 if cond.payload is None else cond.payload
             q_kin, c = q, c.to(q.dtype)
@@ -221,7 +229,7 @@ class ExtendedModel(nn.Module):
         ``wrenches``: precomputed :meth:`static_wrenches` (the identification Jacobian
         holds them fixed); computed from the rigid ``params`` when omitted.
         """
-        bending = [e for e in self.effects if e.stage == "deflection"]
+        bending = [e for e in self.effects if e.stage == "deflection" and not _zero(e.value)]
         if not bending:
             return params
         if wrenches is None:

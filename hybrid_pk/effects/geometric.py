@@ -25,6 +25,7 @@ from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import so3_exp
 from hybrid_pk.geometry.tangents import carried
 from hybrid_pk.robot import KinematicParams
+from hybrid_pk.robot.chain import plain_inputs
 
 __all__ = ["REFERENCE_TEMPERATURE", "AxisMisalignment", "LinkLength", "ThermalExpansion"]
 
@@ -146,6 +147,10 @@ class ThermalExpansion(Effect):
                 "thermal_expansion needs the temperature of each row [°C]: a temperature "
                 "column in the data, or cond=Conditions(temperature=...)"
             )
+        if plain_inputs(self.value) and not bool(self.value.detach().any()):
+            # zero (a candidate being scored): every factor is exactly 1, so the shared
+            # parameters are the same values without one copy of the chain per row
+            return params
         dT = (cond.temperature - REFERENCE_TEMPERATURE).to(params.origin_xyz.dtype)
         grow = self.value * carried(dT[..., None, None], self.value)  # see geometry.tangents
         factor = carried(1.0, grow) + grow  # (*B, 1, 1)

@@ -65,6 +65,11 @@ class JointOffset(Effect):
     def apply_q(self, q: Tensor, cond: Conditions) -> Tensor:
         return _add_to_joint(q, self.joint_index, self.value.to(q.dtype).expand(q.shape[:-1]))
 
+    def joint_derivatives(self, q: Tensor, cond: Conditions, step: float):
+        """Closed-form forward-mode derivatives (see :mod:`.base`), the same numbers."""
+        ones = q.new_ones(q.shape[:-1])
+        return ones, (ones * step)[None]
+
 
 @register
 class GearRatio(Effect):
@@ -75,6 +80,10 @@ class GearRatio(Effect):
 
     def apply_q(self, q: Tensor, cond: Conditions) -> Tensor:
         return _add_to_joint(q, self.joint_index, q[..., self.joint_index] * self.value)
+
+    def joint_derivatives(self, q: Tensor, cond: Conditions, step: float):
+        qj = q[..., self.joint_index]
+        return 1 + self.value.detach().to(q.dtype).expand_as(qj), (qj * step)[None]
 
 
 @register
@@ -92,6 +101,15 @@ class JointEccentricity(Effect):
         th = qj if self.order == 1 else carried(float(self.order), qj) * qj
         a, b = self.value.to(q.dtype).unbind(-1)
         return _add_to_joint(q, self.joint_index, a * torch.sin(th) + b * torch.cos(th))
+
+    def joint_derivatives(self, q: Tensor, cond: Conditions, step: float):
+        qj = q[..., self.joint_index]
+        n = float(self.order)
+        th = qj if self.order == 1 else n * qj
+        a, b = self.value.detach().to(q.dtype).unbind(-1)
+        s, c = torch.sin(th), torch.cos(th)
+        ds, dc = (c, -s) if self.order == 1 else (c * n, -(s * n))
+        return 1 + (a * ds + b * dc), torch.stack([step * s, step * c])
 
 
 MAX_CYCLIC_ORDER = 36  # a period of 10 degrees; the diagnosis tests every order up to it
@@ -188,6 +206,10 @@ class Backlash(Effect):
         d = cond.direction[..., self.joint_index].to(q.dtype)
         half = carried(0.5, self.value) * self.value  # see geometry.tangents
         return _add_to_joint(q, self.joint_index, half * carried(d, half))
+
+    def joint_derivatives(self, q: Tensor, cond: Conditions, step: float):
+        d = cond.direction[..., self.joint_index].to(q.dtype)
+        return q.new_ones(q.shape[:-1]), ((0.5 * step) * d)[None]
 
 
 @register

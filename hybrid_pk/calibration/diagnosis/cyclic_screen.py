@@ -92,20 +92,21 @@ def blocked_order_gains(e, w, theta, rows, folds: Folds, ns: list[int]) -> dict[
     of ``n`` cycles per turn is fitted per block besides the constant."""
     cells = folds.cell[rows]
     s = w.sqrt()
-    onehot = torch.nn.functional.one_hot(cells, folds.n_cells).to(e.dtype)
+    cell_rows = torch.nn.functional.one_hot(cells, folds.n_cells).to(e.dtype).T.contiguous()
     n_rows = sum(int((cells[:, None] == torch.tensor(f)).any(1).sum()) for f in folds.folds)
+    held = torch.zeros(len(folds.folds), folds.n_cells, dtype=e.dtype)  # fold x cell
+    for i, f in enumerate(folds.folds):
+        held[i, list(f)] = 1.0
 
-    def blocked_rms(A):  # A: (N, p) regressors; the Gram of [A*s, e*s] per cell
+    def blocked_rms(A):  # A: (N, k) regressors; the Gram of [A*s, e*s] per cell
         M = torch.cat([A, e[:, None]], 1) * s[:, None]
-        grams = torch.einsum("nc,ni,nj->cij", onehot, M, M)
-        total, ssr = grams.sum(0), 0.0
-        for f in folds.folds:
-            test = grams[list(f)].sum(0)
-            train = total - test
-            k = A.shape[1]
-            coef = torch.linalg.lstsq(train[:k, :k], train[:k, k:], driver="gelsd").solution
-            v = torch.cat([-coef[:, 0], coef.new_ones(1)])
-            ssr += float(v @ test @ v)
+        p, k = M.shape[1], A.shape[1]  # the cell indicator times the outer products
+        grams = (cell_rows @ (M[:, :, None] * M[:, None, :]).reshape(-1, p * p)).reshape(-1, p, p)
+        test = (held @ grams.reshape(-1, p * p)).reshape(-1, p, p)  # every fold at once
+        train = grams.sum(0) - test
+        coef = torch.linalg.lstsq(train[:, :k, :k], train[:, :k, k:], driver="gelsd").solution
+        v = torch.cat([-coef, coef.new_ones(len(test), 1, 1)], 1)  # (folds, p, 1)
+        ssr = float((v.transpose(1, 2) @ test @ v).sum())
         return 1000.0 * (max(ssr, 0.0) / max(n_rows, 1)) ** 0.5  # m -> mm
 
     ones = torch.ones_like(theta)[:, None]
