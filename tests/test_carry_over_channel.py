@@ -1,9 +1,9 @@
 """What a cause must carry over in (diagnosis.blocked.position_channel).
 
-A cause is judged on the blocked hold-out position error of the measured point, the
-quantity an absolute accuracy is stated in; the refit of every block still uses
-rotation. With the tuning's ``carry_over_channel: pose`` the rotation error counts too,
-at the noise ratio.
+By default a cause is judged on the blocked hold-out error of every measured component
+(rotation at the noise ratio); with the tuning's ``carry_over_channel: position`` on the
+position error of the measured point alone (the refit of every block still uses
+rotation).
 """
 
 from __future__ import annotations
@@ -45,10 +45,11 @@ def test_a_rotation_only_gain_counts_only_when_rotation_counts():
     label = "cyclic_error_3:wrist_3_joint"
     with_it, without = blocked.of([label]), blocked.of([], [label])
     parts = blocked.parts(without, with_it)
-    assert parts["orientation_deg"] > 0 and abs(parts["position_mm"]) < 1e-12
-    assert abs(blocked.gain_mm(without, with_it)) < 1e-12  # the default: position
-    with ACTIVE.using(DiagnosisTuning(carry_over_channel="pose")):
-        assert blocked.gain_mm(without, with_it) > 0.5 * 0.01  # a of 2-5 noise units
+    assert parts["orientation_deg"] > 0
+    assert abs(parts["position_mm"]) < 1e-12
+    assert blocked.gain_mm(without, with_it) > 0.5 * 0.01  # the default: a of 2-5 noise units
+    with ACTIVE.using(DiagnosisTuning(carry_over_channel="position")):
+        assert abs(blocked.gain_mm(without, with_it)) < 1e-12
 
 
 def test_an_unknown_channel_is_one_clear_error():

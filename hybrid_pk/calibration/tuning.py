@@ -34,10 +34,12 @@ class DiagnosisTuning:
     # error measured on a check of n poses (the rows a re-stationed set-up re-fits its
     # frames on): a smaller gain is one no check of the model could confirm
     check_rows: int = 50
-    # the error a cause must carry over in: "position", the measured point's position,
-    # the quantity an absolute accuracy is stated and judged in (a compensated program
-    # places points); "pose" also counts rotation, at the noise ratio sigma_pos / sigma_rot
-    carry_over_channel: Literal["position", "pose"] = "position"
+    # the error a cause must carry over in: "pose", every measured component (rotation
+    # at the noise ratio sigma_pos / sigma_rot, the weighting of every fit): each is
+    # evidence of a physical cause. "position": the measured point's position alone,
+    # the quantity an absolute accuracy is stated in (on the shared UR10 proxies the
+    # two tie: set-up transfers and region split favour position, the pan split pose)
+    carry_over_channel: Literal["position", "pose"] = "pose"
     # Lloyd iterations of the regions' k-means: they need to be contiguous, not optimal
     kmeans_iterations: int = 25
 

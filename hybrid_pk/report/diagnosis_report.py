@@ -101,7 +101,7 @@ def _margin(diagnosis) -> str:
 def _channel(diagnosis) -> str:
     """What the gains are measured on (the diagnosis JSON's ``carry_over.channel``)."""
     carry = getattr(diagnosis, "carry_over", None) or {}
-    if carry.get("channel", "position") == "position":
+    if carry.get("channel", "pose") == "position":
         return "position error"
     return "error (rotation at the noise ratio)"
 

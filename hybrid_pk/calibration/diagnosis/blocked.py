@@ -13,13 +13,12 @@ The fits per block are linearised at the current fit: one Jacobian of every para
 (region x file), gives every block's refit and prediction by a small solve, for any
 subset of the parameters and for any effect set to zero (a cause removed).
 
-A gain is the drop of the RMS error in mm of the measured point's position: the
-quantity an absolute accuracy is stated in, and what a compensated program places. The
-fits per block use every measured component (pose data: rotation at the noise ratio
-``sigma_pos / sigma_rot``, as every fit); only the judging is on position. A cause whose
-gain is rotation alone is reported (its orientation part), not named. With the
-tuning's ``carry_over_channel = "pose"`` the rotation error counts too, at the noise
-ratio, so that one unit of rotation noise counts as one of position.
+A gain is the drop of the RMS error in mm: the position error, with the rotation error
+(pose data) counted at the campaign's noise ratio ``sigma_pos / sigma_rot`` (the
+weighting every fit uses), so that one unit of rotation noise counts as one of position:
+every measured component is evidence of a physical cause. With the tuning's
+``carry_over_channel = "position"`` only the position error is judged (the quantity an
+absolute accuracy is stated in); the fits per block still use every component.
 """
 
 from __future__ import annotations

@@ -1,11 +1,12 @@
 """Each chosen cause's gains (left out and refitted) and its evidence line.
 
 Three gains per cause, each the drop of the RMS error [mm] in the carry-over channel
-(:func:`.blocked.position_channel`: the position error; with the tuning's
-``carry_over_channel = "pose"`` rotation counted at the noise ratio) that leaving it out
-costs: on the fit rows (in-sample), on the random hold-out rows, and on the blocked
-hold-out (regions of joint space, whole files). The first two are measured with the
-model refitted without the cause, the last one linearised per block. A periodic cause
+(:func:`.blocked.position_channel`; by default rotation counted at the noise ratio
+``sigma_pos / sigma_rot``, with the tuning's ``carry_over_channel = "position"`` the
+position error alone) that leaving it out costs: on the fit rows (in-sample), on the
+random hold-out rows, and on the blocked hold-out (regions of joint space, whole
+files). The first two are measured with the model refitted without the cause, the last
+one linearised per block. A periodic cause
 also gives its own-range gain (:mod:`.own_range`: the two ends of its joint's range).
 """
 
