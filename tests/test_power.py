@@ -7,6 +7,7 @@ import pytest
 
 from hybrid_pk.calibration.diagnosis import diagnose
 from hybrid_pk.calibration.diagnosis.power import noncentrality
+from hybrid_pk.calibration.tuning import DiagnosisTuning
 from hybrid_pk.cli.main import main
 from hybrid_pk.data import write_table
 from hybrid_pk.effects import make_effect
@@ -40,15 +41,18 @@ def _limits(diag) -> dict[str, dict]:
 
 
 @pytest.mark.slow
-def test_the_limit_predicts_what_the_diagnosis_finds(rx160):
+@pytest.mark.parametrize("channel", ["pose", "position"])
+def test_the_limit_predicts_what_the_diagnosis_finds(rx160, channel):
     """An effect twice its detection limit is named, one a quarter of it is not; 'none'
-    comes with the limits."""
+    comes with the limits. Under either carry-over channel (position: the limit's margin
+    size from the position part of the signature)."""
+    tuning = DiagnosisTuning(carry_over_channel=channel)
     rng = run_rng("power-limit")
     seed = int(rng.integers(1000))
     clean, _ = simulate_campaign(
         rx160, 120, "none", noise_mm=NOISE_MM, noise_deg=NOISE_DEG, seed=seed
     )
-    diag = diagnose(rx160, clean, max_causes=3)
+    diag = diagnose(rx160, clean, max_causes=3, tuning=tuning)
     assert diag.detectable["summary"].startswith("nothing above: ")
     limits = _limits(diag)
     pool = [k for k in limits if k.split(":")[0] in ("joint_offset", "gear_ratio")]
@@ -60,7 +64,7 @@ def test_the_limit_predicts_what_the_diagnosis_finds(rx160):
         data, _ = simulate_campaign(
             rx160, 120, [effect], noise_mm=NOISE_MM, noise_deg=NOISE_DEG, seed=seed
         )
-        found = diagnose(rx160, data, max_causes=3)
+        found = diagnose(rx160, data, max_causes=3, tuning=tuning)
         labels = [c.effect if c.joint is None else f"{c.effect}:{c.joint}" for c in found.causes]
         assert (label in labels) == named, (RUN_SEED, label, factor, value, labels)
 

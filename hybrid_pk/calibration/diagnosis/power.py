@@ -178,26 +178,16 @@ def _position_signature_grams(scores) -> dict[str, Tensor]:
     G = (scores.R.T @ scores.R)[:-1, :-1]
     Gp = scores.blocked.pos[0][:-1, :-1]
     n = scores.n_current
-    out, start = {}, n
+    out, start = {}, 0
     scored = {sc.label for sc in scores.scored}
-    for b in _pool_blocks(scores):
+    for b in scores.blocks:  # the current model's blocks (the first n columns), then the pool's
         c = slice(start, start + b.size)
         start += b.size
-        if b.label not in scored:
+        if c.start < n or b.label not in scored:
             continue
         B = torch.linalg.lstsq(G[:n, :n], G[:n, c], driver="gelsd").solution
         cross = Gp[c, :n] @ B
         out[b.label] = Gp[c, c] - cross - cross.T + B.T @ Gp[:n, :n] @ B
-    return out
-
-
-def _pool_blocks(scores):
-    """The candidates' parameter blocks (after the current model's)."""
-    start, out = 0, []
-    for b in scores.blocks:
-        if start >= scores.n_current:
-            out.append(b)
-        start += b.size
     return out
 
 
