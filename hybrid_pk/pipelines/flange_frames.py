@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from hybrid_pk.calibration.least_squares import levenberg_marquardt
 from hybrid_pk.geometry import so3_exp, transform
 
 __all__ = [
@@ -38,8 +39,6 @@ __all__ = [
 MAX_FOLDS = 50
 # Iterations of one fit: a frames-only fit from nearby frames converges in a few.
 _MAX_ITER = 50
-# A step [mm, mrad] below this ends the fit: 1e-6 mm is far below any tracker's noise.
-_STEP_TOL = 1e-6
 # Units of the fitted offsets: translations in mm, rotations in mrad (well conditioned).
 _MM, _MRAD = 1e-3, 1e-3
 # Blocks of the 12 offsets, in order (the labels of calibration.fit).
@@ -116,29 +115,7 @@ def fit_flange_frames(
         t[mask] = t_free
         return rows.residual(t, B0, X0, idx)
 
-    # Marquardt's damping (relative to the diagonal): small at the start (Gauss-Newton
-    # near the optimum), x10 after a step that fails, /10 after one that succeeds.
-    x, lam = theta[mask].clone(), 1e-3
-    r = res(x)
-    cost = float(r @ r)
-    for _ in range(_MAX_ITER):
-        J = torch.func.jacfwd(res)(x)
-        A, g = J.T @ J, J.T @ r
-        # a column the rows barely see (a frame trade-off) is still damped: floor of
-        # 1e-12 of the largest diagonal (double precision's reach)
-        diag = A.diagonal().clamp_min(1e-12 * float(A.diagonal().max()) + 1e-30)
-        while True:
-            step = torch.linalg.solve(A + lam * torch.diag(diag), -g)
-            r_new = res(x + step)
-            cost_new = float(r_new @ r_new)
-            if cost_new <= cost or lam > 1e12:  # 1e12: no step lowers the cost
-                break
-            lam *= 10.0
-        if cost_new > cost:
-            break
-        x, r, cost, lam = x + step, r_new, cost_new, max(lam / 10.0, 1e-9)
-        if float(step.abs().max()) < _STEP_TOL:
-            break
+    x = levenberg_marquardt(res, theta[mask], max_iter=_MAX_ITER).x
     theta[mask] = x
     B, X = frames_at(theta, B0, X0)
     return B.detach(), X.detach()
