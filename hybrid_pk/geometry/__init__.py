@@ -16,5 +16,6 @@ from hybrid_pk.geometry.rotations import so3_left_jacobian as so3_left_jacobian
 from hybrid_pk.geometry.rotations import so3_log as so3_log
 from hybrid_pk.geometry.rotations import transform as transform
 from hybrid_pk.geometry.rotations import transform_inverse as transform_inverse
+from hybrid_pk.geometry.rotations import vee_antisym as vee_antisym
 
 __all__ = list(rotations.__all__)

@@ -28,6 +28,7 @@ __all__ = [
     "so3_log",
     "transform",
     "transform_inverse",
+    "vee_antisym",
 ]
 
 # Below this angle [rad] Taylor series replace the closed forms.
@@ -44,7 +45,7 @@ def skew(v: Tensor) -> Tensor:
     )
 
 
-def _vee_antisym(R: Tensor) -> Tensor:
+def vee_antisym(R: Tensor) -> Tensor:
     """``vee(R - R^T)`` = ``2 sin(theta) * axis``."""
     return torch.stack(
         [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1
@@ -88,7 +89,7 @@ def rotation_angle(R: Tensor) -> Tensor:
     Uses ``atan2(|sin|, cos)``, accurate at every angle (``acos`` of the trace loses
     half the digits near 0 and pi).
     """
-    s = _vee_antisym(R).norm(dim=-1) / 2
+    s = vee_antisym(R).norm(dim=-1) / 2
     c = (R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2
     return torch.atan2(s, c)
 
@@ -109,7 +110,7 @@ def nearest_rotation(M: Tensor) -> Tensor:
 
 def so3_log(R: Tensor) -> Tensor:
     """Rotation matrix ``(*B, 3, 3)`` -> rotation vector ``(*B, 3)`` [rad], angle in [0, pi]."""
-    vee = _vee_antisym(R)  # 2 sin(theta) axis
+    vee = vee_antisym(R)  # 2 sin(theta) axis
     s = vee.norm(dim=-1, keepdim=True) / 2
     c = ((R.diagonal(dim1=-2, dim2=-1).sum(-1, keepdim=True)) - 1) / 2
     theta = torch.atan2(s, c)

@@ -28,6 +28,7 @@ from torch import Tensor
 
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.errors import HybridPKError, ShapeError
+from hybrid_pk.geometry import vee_antisym
 from hybrid_pk.robot import Robot
 from hybrid_pk.robot.kernel import ChainKernel
 
@@ -77,12 +78,6 @@ class IKModel:
         return T[:, :3, :3].permute(1, 2, 0), T[:, :3, 3].T, J.permute(1, 2, 0)
 
 
-def _vee_antisym(R: Tensor) -> Tensor:
-    return torch.stack(
-        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1
-    )
-
-
 def autograd_pose_jacobian(pose: PoseFn, q: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
     """Pose and geometric Jacobian of any differentiable pose function, by autograd.
 
@@ -102,7 +97,7 @@ def autograd_pose_jacobian(pose: PoseFn, q: Tensor, rows: Tensor) -> tuple[Tenso
         qv = q.detach().requires_grad_(True)
         T = pose(qv, rows)
         R = T[:, :3, :3]
-        omega = _vee_antisym(R @ R.detach().transpose(-1, -2)) / 2
+        omega = vee_antisym(R @ R.detach().transpose(-1, -2)) / 2
         y = torch.cat([T[:, :3, 3], omega], -1)  # (M, 6)
         cols = []
         for k in range(6):

@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.calibration.least_squares import levenberg_marquardt
-from hybrid_pk.geometry import so3_exp, transform
+from hybrid_pk.geometry import so3_exp, transform, vee_antisym
 
 __all__ = [
     "BLOCKS",
@@ -82,9 +82,7 @@ class FlangeRows:
         if self.R_meas is None:
             return pos.reshape(-1)
         D = self.R_meas[rows] @ T[:, :3, :3].transpose(-1, -2)
-        vee = torch.stack(
-            [D[:, 2, 1] - D[:, 1, 2], D[:, 0, 2] - D[:, 2, 0], D[:, 1, 0] - D[:, 0, 1]], -1
-        )
+        vee = vee_antisym(D)
         return torch.cat([pos.reshape(-1), ((0.5 / self.sigma_rad) * vee * w).reshape(-1)])
 
 
