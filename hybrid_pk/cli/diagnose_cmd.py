@@ -106,6 +106,8 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
                 gain += f", {c.orientation_gain_deg:.3g} deg"
             if c.blocked_holdout_gain_mm is not None:
                 gain += f"; blocked hold-out {c.blocked_holdout_gain_mm:.3g} mm"
+                if c.blocked_blocks is not None:
+                    gain += f" ({c.blocked_blocks['gained']} of {c.blocked_blocks['of']} blocks)"
             if getattr(c, "own_range_gain_mm", None) is not None:
                 gain += f"; own-range hold-out {c.own_range_gain_mm:.3g} mm"
             lines.append(f"  {c.effect}{where} = {_value(c.value, c.std, c.unit)}  ({gain})")
