@@ -145,6 +145,11 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     from hybrid_pk.calibration.diagnosis import diagnose
+    from hybrid_pk.calibration.diagnosis.stability import (
+        cause_labels,
+        seed_stability,
+        stability_lines,
+    )
     from hybrid_pk.effects import make_effect
 
     settings = settings_of(args, DiagnosisSettings)
@@ -166,7 +171,13 @@ def run(args: argparse.Namespace) -> int:
             robot, data, frames_per_file=args.frames_per_file, progress=progress.stage,
             **keywords,
         )  # fmt: skip
-        labels = [c.effect + (f":{c.joint}" if c.joint else "") for c in result.causes]
+        labels = cause_labels(result)
+        stability = None
+        if settings.stability > 1:
+            stability = seed_stability(
+                robot, data, result, settings.stability,
+                keywords | {"frames_per_file": args.frames_per_file}, progress.stage,
+            )  # fmt: skip
         transfer = transfer_check(
             settings, args.frames_per_file, robot, data, labels, gravity=gravity,
             start=result.model, progress=progress.stage,
@@ -177,7 +188,9 @@ def run(args: argparse.Namespace) -> int:
 
             report = write_diagnosis_report(result, data, robot, args.report, progress)
             if transfer is not None:
-                append_to_report(report, transfer)
+                append_to_report(report, "Transfer: leave one file out", transfer.lines())
+            if stability is not None:
+                append_to_report(report, "Stability over seeds", stability_lines(stability))
     finally:
         progress.close()
     seconds = progress.elapsed()
@@ -185,8 +198,10 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
     doc = result.to_json() | {"transfer": None if transfer is None else transfer.to_json()}
+    doc["stability"] = stability
     out.write_text(json.dumps(_finite(doc), indent=2) + "\n", encoding="utf-8")
     lines = summary_lines(result, seconds) + ([] if transfer is None else transfer.lines())
+    lines += [] if stability is None else stability_lines(stability)
     print("\n".join(lines))
     print(f"wrote {out}" + (f" and {report}" if args.report else ""))
     return 0
