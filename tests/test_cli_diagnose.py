@@ -118,6 +118,7 @@ def test_stability_diagnoses_again_with_the_next_seeds_and_says_what_holds(table
     assert stability["named"] == {"joint_compliance:joint_2": 3}
     assert stability["in_some_runs"] == []
     assert "stability over seeds 4-6 (3 diagnoses of the same rows):" in printed
+    assert " s (3 diagnoses, --stability)" in printed.splitlines()[0]
     assert "named in every run: joint_compliance:joint_2" in printed
     assert "## Stability over seeds" in (report / "report.md").read_text()
     assert main(argv) == 0  # once, by default: no stability entry

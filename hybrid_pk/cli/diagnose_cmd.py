@@ -76,9 +76,12 @@ def _value(value, std, unit: str) -> str:
     return f"{value:.4g} ± {std:.2g} {unit}"
 
 
-def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
-    """The short human summary ``diagnose`` prints (errors, causes, ambiguities, rest)."""
+def summary_lines(diagnosis, seconds: float | None = None, runs: int = 1) -> list[str]:
+    """The short human summary ``diagnose`` prints (errors, causes, ambiguities, rest);
+    ``runs``: diagnoses the ``seconds`` cover (``--stability``)."""
     took = "" if seconds is None else f" in {seconds:.1f} s"
+    if seconds is not None and runs > 1:
+        took += f" ({runs} diagnoses, --stability)"
     lines = [
         f"diagnosed {diagnosis.robot}: {diagnosis.n_samples} rows, "
         f"{diagnosis.n_holdout} hold-out{took}",
@@ -200,7 +203,8 @@ def run(args: argparse.Namespace) -> int:
     doc = result.to_json() | {"transfer": None if transfer is None else transfer.to_json()}
     doc["stability"] = stability
     out.write_text(json.dumps(_finite(doc), indent=2) + "\n", encoding="utf-8")
-    lines = summary_lines(result, seconds) + ([] if transfer is None else transfer.lines())
+    lines = summary_lines(result, seconds, settings.stability)
+    lines += [] if transfer is None else transfer.lines()
     lines += [] if stability is None else stability_lines(stability)
     print("\n".join(lines))
     print(f"wrote {out}" + (f" and {report}" if args.report else ""))
