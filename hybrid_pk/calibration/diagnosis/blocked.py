@@ -162,8 +162,23 @@ def _lever_coordinates(model: ExtendedModel, split: Split) -> tuple[list[int], T
 
 
 def _kmeans(x: Tensor, k: int, seed: int) -> Tensor:
-    """Cluster index of each row of ``x``: k-means++ start (seeded), Lloyd iterations."""
+    """Cluster index of each row of ``x``: the tightest (least within-cluster sum of
+    squares) of the tuning's ``kmeans_starts`` k-means++ starts (seeded) with Lloyd
+    iterations."""
     g = torch.Generator().manual_seed(seed)
+    best, spread = None, math.inf
+    for _ in range(diagnosis_tuning().kmeans_starts):
+        label = _lloyd(x, k, g)
+        centres = torch.stack([x[label == i].mean(0) for i in range(int(label.max()) + 1)])
+        within = float(((x - centres[label]) ** 2).sum())
+        if within < spread:
+            best, spread = label, within
+    return best
+
+
+def _lloyd(x: Tensor, k: int, g: torch.Generator) -> Tensor:
+    """Cluster index of each row of ``x``: k-means++ start drawn from ``g``, Lloyd
+    iterations; empty clusters dropped (consecutive indices)."""
     n = x.shape[0]
     centres = [x[int(torch.randint(n, (1,), generator=g))]]
     for _ in range(1, k):
@@ -174,7 +189,6 @@ def _kmeans(x: Tensor, k: int, seed: int) -> Tensor:
         label = torch.cdist(x, c).argmin(1)
         c = torch.stack([x[label == i].mean(0) if (label == i).any() else c[i] for i in range(k)])
     label = torch.cdist(x, c).argmin(1)
-    # empty clusters are dropped: relabel to consecutive indices
     _, label = torch.unique(label, return_inverse=True)
     return label
 
