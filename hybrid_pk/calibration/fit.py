@@ -49,6 +49,10 @@ __all__ = [
 # First-pass noise levels, replaced by the estimates of the re-weighted pass.
 DEFAULT_SIGMA_POS_MM = 0.05
 DEFAULT_SIGMA_ROT_RAD = 1e-4
+# A fit stops once its next LM step is predicted to lower the noise-normalised cost by
+# less than this squared: the parameters would move by under 0.01 of their standard
+# deviation (a drop d moves them by sqrt(d) std), ten times below what any test reads.
+NEXT_STEP_STD = 0.01
 # Most passes of a robust fit (each re-estimates the noise and re-weights the rows).
 ROBUST_PASSES = 8
 
@@ -341,6 +345,7 @@ def _solve_reweighted(
             max_iter=max_iter,
             normal=problem.normal_equations,
             progress=progress,
+            drop_tol=NEXT_STEP_STD**2 / problem.n_residuals,  # cost ~ 1 per residual
         )
         problem.write(result.x)
         iterations += result.iterations
