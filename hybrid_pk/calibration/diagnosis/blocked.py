@@ -179,10 +179,13 @@ def _kmeans(x: Tensor, k: int, seed: int) -> Tensor:
     return label
 
 
-def cell_factors(problem: Problem, folds: Folds | None) -> tuple[Tensor, Tensor | None, tuple]:
-    """The triangular factor ``R`` of ``[J r]`` on all rows (as :meth:`Problem.r_factor`)
-    and, with ``folds``, the Gram matrices of ``[J r]`` per cell: ``(pos, rot)``, each
-    ``(n_cells, n + 1, n + 1)`` (``rot`` None for position-only data)."""
+def cell_factors(
+    problem: Problem, folds: Folds | None, factor: bool = True
+) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
+    """The triangular factor ``R`` of ``[J r]`` on all rows (as :meth:`Problem.r_factor`;
+    None unless ``factor``) and, with ``folds``, the Gram matrices of ``[J r]`` per
+    cell: ``(pos, rot)``, each ``(n_cells, n + 1, n + 1)`` (``rot`` None for
+    position-only data)."""
     R, start = None, 0
     per_row = 3 if problem.R_meas is None else 6
     grams: tuple = ()
@@ -194,15 +197,18 @@ def cell_factors(problem: Problem, folds: Folds | None) -> tuple[Tensor, Tensor 
         M = torch.cat([J_c, r_c[:, None]], 1)
         n_c = M.shape[0] // per_row
         if folds is not None:
-            cells = folds.cell[start : start + n_c].repeat_interleave(3)
+            # rows gathered cell by cell (stable: each cell's rows keep their order)
+            cells, order = folds.cell[start : start + n_c].repeat_interleave(3).sort(stable=True)
+            counts = torch.bincount(cells, minlength=folds.n_cells).tolist()
             for channel, part in enumerate((M[: 3 * n_c], M[3 * n_c :])):
                 if grams[channel] is None:
                     continue
-                for c in cells.unique().tolist():
-                    sub = part[cells == c]
-                    grams[channel][c] += sub.T @ sub
+                for c, sub in enumerate(part[order].split(counts)):
+                    if counts[c]:
+                        grams[channel][c] += sub.T @ sub
         start += n_c
-        R = torch.linalg.qr(M if R is None else torch.cat([R, M], 0), mode="r").R
+        if factor:
+            R = torch.linalg.qr(M if R is None else torch.cat([R, M], 0), mode="r").R
     return R, grams[0] if grams else None, grams[1] if grams else None
 
 
