@@ -180,19 +180,25 @@ def _kmeans(x: Tensor, k: int, seed: int) -> Tensor:
 
 
 def cell_factors(
-    problem: Problem, folds: Folds | None, factor: bool = True
+    problem: Problem, folds: Folds | None, factor: bool = True, lead: int | None = None
 ) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
-    """The triangular factor ``R`` of ``[J r]`` on all rows (as :meth:`Problem.r_factor`;
-    None unless ``factor``) and, with ``folds``, the Gram matrices of ``[J r]`` per
-    cell: ``(pos, rot)``, each ``(n_cells, n + 1, n + 1)`` (``rot`` None for
-    position-only data)."""
+    """A factor ``R`` of ``[J r]`` on all rows (``R^T R = [J r]^T [J r]``, as
+    :meth:`Problem.r_factor`; None unless ``factor``) and, with ``folds``, the Gram
+    matrices of ``[J r]`` per cell: ``(pos, rot)``, each ``(n_cells, n + 1, n + 1)``
+    (``rot`` None for position-only data).
+
+    ``lead``: only the first ``lead`` columns are factored by QR; the rest of ``R``
+    is completed from the Gram (:func:`_completed_factor`), or by a full QR where the
+    leading columns are too ill-conditioned for that.
+    """
     R, start = None, 0
     per_row = 3 if problem.R_meas is None else 6
     grams: tuple = ()
+    size = problem.x0.numel() + 1
     if folds is not None:
-        size = problem.x0.numel() + 1
         zeros = torch.zeros(folds.n_cells, size, size, dtype=problem.x0.dtype)
         grams = (zeros, None if per_row == 3 else zeros.clone())
+    G = torch.zeros(size, size, dtype=problem.x0.dtype) if lead is not None and not grams else None
     for r_c, J_c in problem.linearised_chunks(torch.zeros_like(problem.x0)):
         M = torch.cat([J_c, r_c[:, None]], 1)
         n_c = M.shape[0] // per_row
@@ -206,10 +212,65 @@ def cell_factors(
                 for c, sub in enumerate(part[order].split(counts)):
                     if counts[c]:
                         grams[channel][c] += sub.T @ sub
+        elif G is not None:
+            G += M.T @ M
         start += n_c
         if factor:
+            M = M if lead is None else M[:, :lead]
             R = torch.linalg.qr(M if R is None else torch.cat([R, M], 0), mode="r").R
+    if factor and lead is not None:
+        if G is None:
+            G = grams[0].sum(0) if grams[1] is None else grams[0].sum(0) + grams[1].sum(0)
+        R = _completed_factor(R, G, per_row * problem.data.n)
+        if R is None:
+            R = problem.r_factor(torch.zeros_like(problem.x0))
     return R, grams[0] if grams else None, grams[1] if grams else None
+
+
+def _completion_limit(m: int) -> float:
+    """Condition number (columns at unit norm) of the leading columns up to which the
+    rest of a factor is completed from the Gram of ``m`` residual rows: that loses
+    ~ 2 sqrt(m) eps cond of a column's squared norm, which must stay 100 times below
+    the 1e-8 share that makes a candidate equivalent to the model
+    (``selection.EQUIVALENCE_FRACTION``)."""
+    return 1e-10 / (2 * math.sqrt(max(m, 1)) * torch.finfo(torch.float64).eps)
+
+
+# Directions of the leading columns (at unit norm) weaker than this share of the
+# strongest are exact degeneracies (two parameters the data cannot tell apart): a QR
+# leaves them at round-off, ~ sqrt(m) eps ~ 1e-13; 1e-10 lies far above that and far
+# below any direction data determine (their singular values pass the completion limit).
+NULL_SHARE = 1e-10
+
+
+def _completed_factor(R11: Tensor, G: Tensor, m: int) -> Tensor | None:
+    """``R`` with ``R^T R = G`` (the Gram of ``[J r]``, ``m`` rows) whose leading rows
+    stand for the first ``k`` columns, from their QR factor ``R11 = U diag(s) W^T``:
+    ``[[diag(s) W^T, B], [0, F]]`` with ``B = diag(1/s) W^T G_12`` (zero in the
+    directions the leading columns do not span, :data:`NULL_SHARE`) and ``F^T F = S =
+    G_22 - B^T B``, the Gram of the other columns projected off the leading ones
+    (semi-normal equations: a QR of only ``k`` columns). ``F`` from the
+    eigen-decomposition of ``S`` at the columns' unit norm (``S`` may be singular:
+    candidates the model already explains). None where ``R11`` has fewer rows than
+    columns, or spans a direction too weakly for the Gram (:func:`_completion_limit`)."""
+    k = R11.shape[1]
+    norms = R11.norm(dim=0)
+    if R11.shape[0] < k:
+        return None
+    unit = torch.where(norms > 0, norms, torch.ones_like(norms))
+    _, sv, Wt = torch.linalg.svd(R11 / unit, full_matrices=False)  # R11 = U diag(sv) Wt D
+    spans = sv > NULL_SHARE * sv[0]
+    if float(sv[0]) > _completion_limit(m) * float(sv[spans][-1]):
+        return None
+    coef = torch.where(spans, 1.0 / sv.clamp_min(1e-300), torch.zeros_like(sv))
+    B = coef[:, None] * ((Wt / unit[None, :]) @ G[:k, k:])  # U^T Q^T [J_rest r]
+    S = G[k:, k:] - B.T @ B
+    scale = G[k:, k:].diagonal().clamp_min(0).sqrt()  # the other columns' norms
+    inv = torch.where(scale > 0, 1.0 / scale.clamp_min(1e-300), torch.zeros_like(scale))
+    lam, V = torch.linalg.eigh(S * inv[:, None] * inv[None, :])
+    F = lam.clamp_min(0).sqrt()[:, None] * V.T * scale[None, :]
+    top = torch.cat([sv[:, None] * Wt * unit[None, :], B], 1)  # U^T R11
+    return torch.cat([top, torch.cat([F.new_zeros(F.shape[0], k), F], 1)], 0)
 
 
 @dataclass(frozen=True)
