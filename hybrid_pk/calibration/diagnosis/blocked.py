@@ -333,23 +333,21 @@ class Blocked:
         None: zero, the linearisation point)."""
         n = free.numel()
         idx = torch.nonzero(free).flatten()
-        T = torch.zeros(n + 1, idx.numel() + 1, dtype=self.pos.dtype)
-        T[idx, torch.arange(idx.numel())] = 1.0
-        T[n, -1] = 1.0
+        last = torch.zeros(n + 1, dtype=self.pos.dtype)
+        last[n] = 1.0
         if shift is not None:
-            T[:n, -1] = torch.where(free, torch.zeros_like(shift), shift)
-        pos = T.T @ self.pos @ T
-        both = pos if self.rot is None else pos + T.T @ self.rot @ T
+            last[:n] = torch.where(free, torch.zeros_like(shift), shift)
+        pos = _selected(self.pos, idx, last)
+        both = pos if self.rot is None else pos + _selected(self.rot, idx, last)
         frames = self.frame_cols[idx]
-        total, total_pos, rows = 0.0, 0.0, 0
         all_cells = both.sum(0)
-        for cells in self.folds.folds:
-            test = both[list(cells)].sum(0)
-            theta = _fold_fit(all_cells - test, test, frames, all_cells)
-            v = torch.cat([theta, theta.new_ones(1)])
-            total += float(v @ test @ v)
-            total_pos += float(v @ pos[list(cells)].sum(0) @ v)
-            rows += int(self.rows[list(cells)].sum())
+        test = torch.stack([both[list(cells)].sum(0) for cells in self.folds.folds])
+        test_pos = torch.stack([pos[list(cells)].sum(0) for cells in self.folds.folds])
+        theta = _fold_fits(all_cells - test, test, frames, all_cells)
+        v = torch.cat([theta, theta.new_ones(theta.shape[0], 1)], 1)[:, None, :]
+        total = sum((v @ test @ v.mT).flatten().tolist())  # folds summed in order
+        total_pos = sum((v @ test_pos @ v.mT).flatten().tolist())
+        rows = sum(int(self.rows[list(cells)].sum()) for cells in self.folds.folds)
         rot = None if self.rot is None else total - total_pos
         return BlockedScore(total, total_pos, rot, rows)
 
@@ -367,6 +365,21 @@ class Blocked:
             drop = _rms_drop(without.rotation, with_it.rotation, without.rows)
             out["orientation_deg"] = math.degrees(self.sigmas[1] * drop)
         return out
+
+
+def _selected(P: Tensor, idx: Tensor, last: Tensor) -> Tensor:
+    """``T^T P T`` of every cell's Gram ``P (cells, n + 1, n + 1)`` of ``[J r]`` with
+    ``T = [e_idx, last]``: the columns ``idx`` and, last, the residual column plus the
+    held columns times their shifts (``last (n + 1,)``), by indexing and one matrix-
+    vector product instead of two matrix products."""
+    k = idx.numel()
+    u = P @ last  # (cells, n + 1)
+    out = P.new_empty(P.shape[0], k + 1, k + 1)
+    out[:, :k, :k] = P[:, idx][:, :, idx]
+    out[:, :k, k] = u[:, idx]
+    out[:, k, :k] = u[:, idx]
+    out[:, k, k] = u @ last
+    return out
 
 
 def _rms_drop(a: float, b: float, rows: int) -> float:
@@ -390,8 +403,26 @@ def _fold_fit(train: Tensor, test: Tensor, frames: Tensor, all_rows: Tensor) -> 
     return theta
 
 
+def _fold_fits(train: Tensor, test: Tensor, frames: Tensor, all_rows: Tensor) -> Tensor:
+    """:func:`_fold_fit` of every fold (``train``, ``test``: ``(folds, k + 1, k + 1)``),
+    ``(folds, k)``: the folds whose training rows see every frame column in one batched
+    solve, the others one by one."""
+    k = train.shape[-1] - 1
+    seen_all = all_rows.diagonal()[:k].clamp_min(1e-300)
+    unseen = frames & (train.diagonal(dim1=-2, dim2=-1)[:, :k] <= UNSEEN_SHARE * seen_all)
+    plain = ~unseen.any(1)
+    theta = train.new_zeros(train.shape[0], k)
+    if bool(plain.any()):
+        theta[plain] = _solve(train[plain][:, :k, :k], train[plain][:, :k, k])
+    for f in torch.nonzero(~plain).flatten().tolist():
+        theta[f] = _fold_fit(train[f], test[f], frames, all_rows)
+    return theta
+
+
 def _solve(H: Tensor, g: Tensor) -> Tensor:
-    """Minimum-norm ``-H^+ g`` of a Gram ``H``, equilibrated by its diagonal first."""
-    d = H.diagonal().clamp_min(1e-300).rsqrt()
-    y = torch.linalg.lstsq(H * d[:, None] * d[None, :], (g * d)[:, None], driver="gelsd")
-    return -d * y.solution[:, 0]
+    """Minimum-norm ``-H^+ g`` of a Gram ``H`` (or a batch), equilibrated by its
+    diagonal first."""
+    d = H.diagonal(dim1=-2, dim2=-1).clamp_min(1e-300).rsqrt()
+    A = H * d[..., :, None] * d[..., None, :]
+    y = torch.linalg.lstsq(A, (g * d)[..., None], driver="gelsd")
+    return -d * y.solution[..., 0]
