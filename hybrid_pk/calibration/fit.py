@@ -49,9 +49,8 @@ __all__ = [
 # First-pass noise levels, replaced by the estimates of the re-weighted pass.
 DEFAULT_SIGMA_POS_MM = 0.05
 DEFAULT_SIGMA_ROT_RAD = 1e-4
-# A fit stops once its next LM step is predicted to lower the noise-normalised cost by
-# less than this squared: the parameters would move by under 0.01 of their standard
-# deviation (a drop d moves them by sqrt(d) std), ten times below what any test reads.
+# A fit stops once its next LM step would lower the noise-normalised cost by < this^2:
+# it would move the parameters by < 0.01 std (a drop d is sqrt(d) std), 10x below any test.
 NEXT_STEP_STD = 0.01
 # Most passes of a robust fit (each re-estimates the noise and re-weights the rows).
 ROBUST_PASSES = 8
