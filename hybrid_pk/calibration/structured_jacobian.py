@@ -90,6 +90,7 @@ class StructuredJacobian:
         self.joint = [b for b in blocks if stage.get(b.name) in ("joint", "compliance")]
         self.geometry = [b for b in blocks if stage.get(b.name) == "geometry"]
         self.deflection = [b for b in blocks if stage.get(b.name) == "deflection"]
+        self._turns_axis: dict[str, bool] = {}  # geometric blocks that turn a joint axis
 
     def _sub_params(self, blocks, theta_sub: Tensor, prefix: str = "") -> dict[str, Tensor]:
         """Parameter values of ``blocks`` at scaled offsets ``theta_sub`` from current."""
@@ -156,7 +157,23 @@ class StructuredJacobian:
     def _geometry_twists(
         self, cond, q_star, params, E, B, X, T, bent, wrenches
     ) -> dict[str, Tensor]:
-        blocks = self.geometry
+        frames = self.model.robot.link_frames(q_star, params=bent)
+        maps = origin_twist_maps(frames, params.origin_xyz, (E @ X)[:, :3, 3], B[..., :3, :3])
+        out: dict[str, Tensor] = {}
+        # Effects that read a condition per row (a temperature) make the origins' derivatives
+        # per row; the others' stay shared by every row when taken apart from them.
+        for per_row in (False, True):
+            blocks = [b for b in self.geometry if (self.effects[b.name].needs is None) != per_row]
+            if blocks:
+                out.update(self._origin_twists(blocks, cond, q_star, params, maps))
+        for b in self.geometry:  # effects that turn a joint axis: forward mode through FK
+            if self._turns_axis[b.name]:
+                out[b.name] = self._fk_twists(b, cond, q_star, B, X, T, wrenches)
+        return out
+
+    def _origin_twists(self, blocks, cond, q_star, params, maps) -> dict[str, Tensor]:
+        """Twists of geometric ``blocks`` through the chain origins they move (forward
+        mode on the origins, closed form from there); notes which turn a joint axis."""
         size = sum(b.size for b in blocks)
         wrapper = _KinematicParams(self.model)
 
@@ -170,18 +187,15 @@ class StructuredJacobian:
             return torch.func.jvp(origins, (theta0,), (v,))[1]
 
         eye = torch.eye(size, dtype=q_star.dtype)
-        d_xyz, d_rot, d_axis = torch.func.vmap(along)(eye)
-        frames = self.model.robot.link_frames(q_star, params=bent)
-        maps = origin_twist_maps(frames, params.origin_xyz, (E @ X)[:, :3, 3], B[..., :3, :3])
+        with torch.no_grad():  # values of the other effects plain: shared where they can be
+            d_xyz, d_rot, d_axis = torch.func.vmap(along)(eye)
         tw = geometry_twists(maps, params.origin_rot, d_xyz, d_rot)
-        out = self._split(blocks, tw)
         turns_axis = d_axis.reshape(size, -1).abs().amax(1) > 0
         start = 0
-        for b in blocks:  # effects that turn a joint axis: forward mode through FK
-            if bool(turns_axis[start : start + b.size].any()):
-                out[b.name] = self._fk_twists(b, cond, q_star, B, X, T, wrenches)
+        for b in blocks:
+            self._turns_axis[b.name] = bool(turns_axis[start : start + b.size].any())
             start += b.size
-        return out
+        return self._split(blocks, tw)
 
     def _fk_twists(self, block, cond, q_star, B, X, T, wrenches) -> Tensor:
         """Twists of one geometric block by forward mode through FK (generic path),
