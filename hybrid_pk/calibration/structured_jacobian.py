@@ -39,7 +39,7 @@ from hybrid_pk.geometry.tangents import carried
 from hybrid_pk.robot import KinematicParams
 from hybrid_pk.robot.statics import gravity_values
 
-__all__ = ["GRAVITY_REUSE_RAD", "PoseTwists", "StructuredJacobian"]
+__all__ = ["GRAVITY_REUSE_RAD", "PoseTwists", "StructuredJacobian", "point_jacobian"]
 
 
 class _KinematicJoints(torch.nn.Module):
@@ -322,3 +322,33 @@ def _gravity_jacobian(robot, q_star: Tensor, payload, params, key, gravity) -> T
     if store is not None:
         q_kept[rows], G_kept[rows], valid[rows] = q_star, G, True
     return G
+
+
+@torch.no_grad()
+def point_jacobian(model: ExtendedModel, q: Tensor, cond: Conditions) -> Tensor:
+    """``(n, 3, dof)`` motion of the measured point (measurement frame) per unit of each
+    commanded joint value ``q (n, dof)``, every effect included: the joint effects'
+    derivative (forward mode, joint space only), the compliance's feedback
+    ``(I + C dg/dq)^-1`` and the geometric Jacobian at the true joint values (the
+    deflection's bending held, a second-order term)."""
+    robot = model.robot
+    params, gravity, q_star, _, bent = loaded_state(model, q, cond)
+    E = robot.fk(q_star, params=bent)
+    group = cond.group if model.base.sets > 1 else None
+    B = model.base.matrix()[0] if group is None else model.base.matrix(group)
+    X = model.tool.matrix()[0] if group is None else model.tool.matrix(group)
+    lever = (E @ X)[:, :3, 3] - E[:, :3, 3]
+    tw = point_joint_twists(robot.jacobian(q_star, params=bent), lever, B[..., :3, :3])
+
+    def kinematic(qq: Tensor) -> Tensor:
+        return model.kinematic_joint_values(qq, cond)
+
+    eye = torch.eye(q.shape[-1], dtype=q.dtype)
+    along = torch.func.vmap(lambda v: torch.func.jvp(kinematic, (q,), (v.expand_as(q),))[1])
+    dq = along(eye).permute(1, 2, 0)  # (n, dof, dof): d q_kin / d q
+    c = StructuredJacobian(model, ())._compliance()
+    if c is not None and bool((c != 0).any()):
+        payload = 0.0 if cond.payload is None else cond.payload
+        G = _gravity_jacobian(robot, q_star, payload, params, None, gravity)
+        dq = torch.linalg.solve(torch.eye(q.shape[-1], dtype=q.dtype) + c[:, None] * G, dq)
+    return tw[:, :3, :] @ dq

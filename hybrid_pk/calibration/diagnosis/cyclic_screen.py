@@ -31,14 +31,12 @@ import torch
 from hybrid_pk.calibration.diagnosis.blocked import Folds
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.statistics import equivalent_angle_error
+from hybrid_pk.calibration.structured_jacobian import point_jacobian
 from hybrid_pk.effects import ExtendedModel
 from hybrid_pk.effects.joint import CYCLIC_PREFIX
 
 __all__ = ["angle_error", "blocked_order_gains", "screen_cyclic"]
 
-# [rad] finite-difference step of the joint's point Jacobian: its truncation error
-# (~1e-6 of the lever) and round-off (~1e-16 / 1e-6 m) both stay far under a micrometre.
-_STEP = 1e-6
 # rows whose |J_j| is below this fraction of the median are left out: a row's angle
 # error is its position residual / |J_j|, so such a row carries over 5x the median
 # row's noise and under 4 % of its weight (|J_j|^2): noise, hardly information.
@@ -76,9 +74,10 @@ def screen_cyclic(
     with torch.no_grad():
         T0 = model(data.q, cond)
         r = data.position.to(T0.dtype) - T0[:, :3, 3]
+        J = point_jacobian(model, data.q, cond)
         kept = set()
         for joint, ns in orders.items():
-            got = angle_error(model, split, names.index(joint), T0, r, weights)
+            got = angle_error(J[:, :, names.index(joint)], split, names.index(joint), r, weights)
             if got is None:
                 continue  # the joint barely moves the point: no order to rank
             gains = blocked_order_gains(*got, folds, ns)
@@ -130,17 +129,13 @@ def _blocked_rms(grams, held, n_rows: int):
     return 1000.0 * (ssr.clamp_min(0.0) / max(n_rows, 1)).sqrt()  # m -> mm
 
 
-def angle_error(model, split, j, T0, r, weights):
-    """``(e, w, theta, rows)`` of the rows where joint ``j`` moves the measured point:
-    the angle error [rad] that best explains each row's position residual ``r (n, 3)``
-    [m], its weight ``|J_j|²`` (times the robust row weight), the joint angle and the
-    mask of those fit rows; None for too few such rows. ``T0``: the model's poses at
-    the fit rows."""
-    data, cond = split.train, split.cond_fit
-    dq = torch.zeros_like(data.q)
-    dq[:, j] = _STEP
-    T1 = model(data.q + dq, cond)
-    J = (T1[:, :3, 3] - T0[:, :3, 3]) / _STEP  # (n, 3) [m/rad]
+def angle_error(J, split, j, r, weights):
+    """``(e, w, theta, rows)`` of the rows where joint ``j`` moves the measured point
+    (``J (n, 3)`` [m/rad], :func:`point_jacobian`): the angle error [rad] that best
+    explains each row's position residual ``r (n, 3)`` [m], its weight ``|J_j|²``
+    (times the robust row weight), the joint angle and the mask of those fit rows;
+    None for too few such rows."""
+    data = split.train
     e, w, rows = equivalent_angle_error(J, r, _MIN_LEVER)
     if int(rows.sum()) < _MIN_ROWS:
         return None
