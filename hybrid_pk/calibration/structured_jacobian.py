@@ -278,6 +278,10 @@ class StructuredJacobian:
         return torch.cat(columns, -1)
 
 
+# [rad or m] difference step of the joint effects' derivative in point_jacobian: its
+# truncation is ~1e-6 of their slope's change, its round-off ~1e-16 / 1e-6 = 1e-10.
+_JOINT_STEP = 1e-6
+
 # dg/dq kept for reuse: id(data q) -> (weakref to it, q_star (N, dof), G (N, dof, dof),
 # valid (N,) bool), whatever the chunking of the problem that asks.
 _GRAVITY_JACOBIANS: dict[int, tuple] = {}
@@ -328,7 +332,7 @@ def _gravity_jacobian(robot, q_star: Tensor, payload, params, key, gravity) -> T
 def point_jacobian(model: ExtendedModel, q: Tensor, cond: Conditions) -> Tensor:
     """``(n, 3, dof)`` motion of the measured point (measurement frame) per unit of each
     commanded joint value ``q (n, dof)``, every effect included: the joint effects'
-    derivative (forward mode, joint space only), the compliance's feedback
+    derivative (differences in joint space), the compliance's feedback
     ``(I + C dg/dq)^-1`` and the geometric Jacobian at the true joint values (the
     deflection's bending held, a second-order term)."""
     robot = model.robot
@@ -340,12 +344,14 @@ def point_jacobian(model: ExtendedModel, q: Tensor, cond: Conditions) -> Tensor:
     lever = (E @ X)[:, :3, 3] - E[:, :3, 3]
     tw = point_joint_twists(robot.jacobian(q_star, params=bent), lever, B[..., :3, :3])
 
-    def kinematic(qq: Tensor) -> Tensor:
-        return model.kinematic_joint_values(qq, cond)
-
-    eye = torch.eye(q.shape[-1], dtype=q.dtype)
-    along = torch.func.vmap(lambda v: torch.func.jvp(kinematic, (q,), (v.expand_as(q),))[1])
-    dq = along(eye).permute(1, 2, 0)  # (n, dof, dof): d q_kin / d q
+    # the joint effects' derivative by differences in joint space (no FK, no forward
+    # mode: vmap over some effects' index updates would load torch's compiler, ~1 s)
+    base = model.kinematic_joint_values(q, cond)
+    dq = torch.stack(
+        [(model.kinematic_joint_values(q + _JOINT_STEP * e, cond) - base) / _JOINT_STEP
+         for e in torch.eye(q.shape[-1], dtype=q.dtype)],
+        -1,
+    )  # fmt: skip
     c = StructuredJacobian(model, ())._compliance()
     if c is not None and bool((c != 0).any()):
         payload = 0.0 if cond.payload is None else cond.payload
