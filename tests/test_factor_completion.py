@@ -21,9 +21,9 @@ class _Chunks:
         self.R_meas = None
         self.data = SimpleNamespace(n=J.shape[0] // 3)
 
-    def linearised_chunks(self, theta):
+    def augmented_chunks(self, theta):
         for s in range(0, self.J.shape[0], self.step):
-            yield self.r[s : s + self.step], self.J[s : s + self.step]
+            yield torch.cat([self.J[s : s + self.step], self.r[s : s + self.step, None]], 1)
 
     def r_factor(self, theta):
         return torch.linalg.qr(torch.cat([self.J, self.r[:, None]], 1), mode="r").R

@@ -177,21 +177,25 @@ def residual_columns(
     sigma_pos_mm: float,
     sigma_rot_rad: float,
     weights: Tensor | None = None,
+    out: list | None = None,
 ) -> tuple[Tensor, Tensor | None]:
     """Jacobian columns of the residuals from twists ``(n, 6, k)``.
 
     Position residuals ``(p_meas - p) [mm] / sigma_pos`` change by ``-v``; rotation
     residuals ``vee(E - E^T) / 2 / sigma_rot`` (``E = R_meas R^T``, ``E_rot``) by
     ``-(tr(E) I - E^T) w / 2``. Returns ``(n, 3, k)`` position and rotation columns
-    (None without orientation data), each scaled by the row ``weights``.
+    (None without orientation data), each scaled by the row ``weights``; written into
+    ``out`` (``[pos, rot]``, views of a chunk's Jacobian) when given.
     """
-    pos = (-1000.0 / sigma_pos_mm) * twists[:, :3, :]
+    pos_out, rot_out = out if out is not None else (None, None)
+    pos = torch.mul(twists[:, :3, :], -1000.0 / sigma_pos_mm, out=pos_out)
     rot = None
     if E_rot is not None:
         tr = E_rot.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None]
         A = tr * torch.eye(3, dtype=E_rot.dtype, device=E_rot.device) - E_rot.transpose(-1, -2)
-        rot = (-0.5 / sigma_rot_rad) * (A @ twists[:, 3:, :])
+        rot = torch.mul(A @ twists[:, 3:, :], -0.5 / sigma_rot_rad, out=rot_out)
     if weights is not None:
-        pos = pos * weights[:, None, None]
-        rot = None if rot is None else rot * weights[:, None, None]
+        pos.mul_(weights[:, None, None])
+        if rot is not None:
+            rot.mul_(weights[:, None, None])
     return pos, rot

@@ -199,8 +199,7 @@ def cell_factors(
         zeros = torch.zeros(folds.n_cells, size, size, dtype=problem.x0.dtype)
         grams = (zeros, None if per_row == 3 else zeros.clone())
     G = torch.zeros(size, size, dtype=problem.x0.dtype) if lead is not None and not grams else None
-    for r_c, J_c in problem.linearised_chunks(torch.zeros_like(problem.x0)):
-        M = torch.cat([J_c, r_c[:, None]], 1)
+    for M in problem.augmented_chunks(torch.zeros_like(problem.x0)):
         n_c = M.shape[0] // per_row
         if folds is not None:
             # rows gathered cell by cell (stable: each cell's rows keep their order)
