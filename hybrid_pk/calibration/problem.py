@@ -226,6 +226,12 @@ class Problem:
             E = self.R_meas[rows] @ pt.T[:, :3, :3].transpose(-1, -2)
         w = None if self.row_weights is None else self.row_weights[rows]
         n_rows, n = pt.twists.shape[0], pt.twists.shape[-1]
+        count_work(rows.stop - rows.start, n)
+        if torch.is_grad_enabled() and pt.twists.requires_grad:  # out= records no derivative
+            cols = residual_columns(pt.twists, E, self.sigma_pos_mm, self.sigma_rot_rad, w)
+            J = torch.cat([c.reshape(-1, n) for c in cols if c is not None])
+            r = torch.cat([p.reshape(-1) for p in (pos, rot) if p is not None])
+            return torch.cat([J, r[:, None]], 1)
         M = pt.twists.new_empty((3 if rot is None else 6) * n_rows, n + 1)
         out = [M[: 3 * n_rows, :n].view(n_rows, 3, n), None]
         M[: 3 * n_rows, n] = pos.reshape(-1)
@@ -233,7 +239,6 @@ class Problem:
             out[1] = M[3 * n_rows :, :n].view(n_rows, 3, n)
             M[3 * n_rows :, n] = rot.reshape(-1)
         residual_columns(pt.twists, E, self.sigma_pos_mm, self.sigma_rot_rad, w, out=out)
-        count_work(rows.stop - rows.start, n)
         return M
 
     def _report(self, done: int) -> None:
