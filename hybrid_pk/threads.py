@@ -6,10 +6,10 @@ The policy, in the order it is decided:
    (a count, or ``torch``: leave torch's own settings, the behaviour before the policy);
 2. else the cores this process may use (:func:`usable_cores`: its CPU affinity and its
    cgroup's CPU quota), and no more than the work can use: one thread per
-   ``ROWS_PER_THREAD`` measured rows (:func:`threads_for`), so a 1,000-row campaign
-   runs on one thread and the 13,406 UR10 rows on every usable core; never more than
-   torch's setting when the call began (``OMP_NUM_THREADS=1`` or
-   ``torch.set_num_threads(1)`` keep one thread);
+   ``ROWS_PER_THREAD`` rows of a batch (:func:`threads_for`), and one thread for the
+   fits and the diagnosis (``FIT_THREADS``: :func:`fit_work`); never more than torch's
+   setting when the call began (``OMP_NUM_THREADS=1`` or ``torch.set_num_threads(1)``
+   keep one thread);
 3. inter-op threads: one (nothing here forks torch work in parallel);
 4. OpenMP threads that wait for work sleep instead of spinning (``OMP_WAIT_POLICY=
    PASSIVE``, set by :func:`quiet_waiting` before torch loads OpenMP, unless the user
@@ -18,9 +18,9 @@ The policy, in the order it is decided:
    spinning and 28 s wall / 10 s CPU waiting passively (one thread: 20 s / 9 s).
 
 The command line applies the policy once (:func:`configure`); the library entry points
-that do the heavy work (:func:`hybrid_pk.calibration.diagnose`,
-:func:`hybrid_pk.calibration.fit.fit`) size the threads to their rows for the duration
-of the call (:func:`work_threads`) and restore the caller's setting after.
+of the fits (:func:`hybrid_pk.calibration.diagnose`, :func:`hybrid_pk.calibration.fit.fit`)
+set their threads for the duration of the call (:func:`fit_work`) and restore the
+caller's setting after.
 """
 
 from __future__ import annotations
@@ -34,13 +34,14 @@ from pathlib import Path
 
 __all__ = [
     "ENV",
+    "FIT_THREADS",
     "ROWS_PER_THREAD",
     "cgroup_quota",
     "configure",
+    "fit_work",
     "parse_threads",
     "quiet_waiting",
     "requested_threads",
-    "sized_by_data",
     "threads_for",
     "usable_cores",
     "work_threads",
@@ -51,6 +52,12 @@ ENV = "HYBRID_PK_THREADS"
 # the batched kinematics hold a 4x4 pose (16 elements) per row, so below 2,048 rows per
 # thread a second thread has no work of its own to take.
 ROWS_PER_THREAD = 32_768 // 16
+# The fits and the diagnosis are many small operations (per joint, per parameter block,
+# per held-out block), none larger than one chunk of rows (calibration.problem), so
+# their size does not grow with the campaign's. Measured on 2 cores, a second thread
+# bought nothing at full chunks (13,406 UR10 rows: diagnosis 41.1 s on one thread,
+# 42.7 s on two; calibrate 11.0 / 11.1 s) and takes a core another job needs.
+FIT_THREADS = 1
 _TORCH = "torch"  # HYBRID_PK_THREADS=torch / --threads torch: torch's own setting
 _state = {"explicit": None, "depth": 0}  # threads fixed by --threads / env; nesting
 
@@ -152,11 +159,11 @@ def configure(threads: str | int | None = None) -> int | str:
 
 
 @contextmanager
-def work_threads(rows: int | None) -> Iterator[int]:
+def work_threads(rows: int | None, at_most: int | None = None) -> Iterator[int]:
     """Intra-op threads for a library call on ``rows`` rows, restored after: the
     user's fixed count if any, else :func:`threads_for` ``(rows)`` but never more than
-    the caller's torch setting. Calls nested in one that already sized the threads
-    keep its choice."""
+    ``at_most`` nor the caller's torch setting. Calls nested in one that already sized
+    the threads keep its choice."""
     import torch
 
     previous = torch.get_num_threads()
@@ -165,6 +172,8 @@ def work_threads(rows: int | None) -> Iterator[int]:
         yield previous
         return
     n = choice if isinstance(choice, int) else min(threads_for(rows), previous)
+    if at_most is not None and not isinstance(choice, int):
+        n = min(n, at_most)
     _state["depth"] += 1
     try:
         if n != previous:
@@ -176,14 +185,15 @@ def work_threads(rows: int | None) -> Iterator[int]:
             _set(previous)
 
 
-def sized_by_data(func: Callable) -> Callable:
-    """Run ``func(x, data, ...)`` under :func:`work_threads` sized to ``data.n`` rows
-    (``data`` its second argument or keyword)."""
+def fit_work(func: Callable) -> Callable:
+    """Run ``func(x, data, ...)`` (a fit or the diagnosis) under :func:`work_threads`
+    sized to ``data.n`` rows (``data`` its second argument or keyword) and at most
+    ``FIT_THREADS``, unless the user fixed a count."""
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
         data = args[1] if len(args) > 1 else kwargs.get("data")
-        with work_threads(getattr(data, "n", None)):
+        with work_threads(getattr(data, "n", None), at_most=FIT_THREADS):
             return func(*args, **kwargs)
 
     return wrapper

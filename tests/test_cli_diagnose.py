@@ -101,6 +101,46 @@ def test_diagnose_writes_contract_json_summary_and_report(table, tmp_path, capsy
     assert str(report / "report.md") in captured.out
 
 
+def test_stability_diagnoses_again_with_the_next_seeds_and_says_what_holds(table, tmp_path, capsys):
+    """--stability 3: the user's seed is the diagnosis, two more seeds re-diagnose the
+    same rows; the compliance the rows were made with is named in every run; a
+    candidate the data do not hold is in no run; JSON, printed lines and report agree."""
+    out, report = tmp_path / "diag.json", tmp_path / "report"
+    argv = ["diagnose", str(table), "--robot", "rx160", "--json", str(out), "--seed", "4"]
+    argv += ["--candidates", "joint_compliance:joint_2,joint_offset:joint_3"]
+    assert main([*argv, "--stability", "3", "--report", str(report)]) == 0
+    printed = capsys.readouterr().out
+    stability = json.loads(out.read_text())["stability"]
+    assert stability["seeds"] == [4, 5, 6]
+    assert len(stability["runs"]) == 3
+    assert stability["runs"][0] == ["joint_compliance:joint_2"]  # the diagnosis itself
+    assert stability["in_every_run"] == ["joint_compliance:joint_2"]
+    assert stability["named"] == {"joint_compliance:joint_2": 3}
+    assert stability["in_some_runs"] == []
+    assert "stability over seeds 4-6 (3 diagnoses of the same rows):" in printed
+    assert " s (3 diagnoses, --stability)" in printed.splitlines()[0]
+    assert "named in every run: joint_compliance:joint_2" in printed
+    assert "## Stability over seeds" in (report / "report.md").read_text()
+    assert main(argv) == 0  # once, by default: no stability entry
+    assert json.loads(out.read_text())["stability"] is None
+    assert "stability over seeds" not in capsys.readouterr().out
+
+
+def test_stability_lines_name_what_only_some_runs_name():
+    from hybrid_pk.calibration.diagnosis.stability import stability_lines
+
+    stability = {
+        "seeds": [0, 1, 2],
+        "runs": [["a", "b"], ["a", "c"], ["a", "b"]],
+        "named": {"a": 3, "b": 2, "c": 1},
+        "in_every_run": ["a"],
+        "in_some_runs": ["b", "c"],
+    }
+    lines = stability_lines(stability)
+    assert lines[1] == "  named in every run: a"
+    assert lines[2].endswith("b (2 of 3), c (1 of 3)")
+
+
 def test_missing_data_file_is_one_line_error(tmp_path, capsys):
     missing = tmp_path / "nope.csv"
     argv = ["diagnose", str(missing), "--robot", "rx160", "--json", str(tmp_path / "d.json")]

@@ -196,6 +196,10 @@ def _check(diag, truth_values, where):
         err = _value_error(cause.value, truth, cause.effect)
         assert err < 0.2, f"{where}: {label} value {cause.value}, truth {truth} ({err:.0%} off)"
         assert cause.position_gain_mm > 0, f"{where}: {label} has no hold-out gain"
+        # a cause of the whole robot lowers the error of most regions held out in turn
+        blocks = cause.blocked_blocks
+        if blocks is not None:
+            assert 2 * blocks["gained"] > blocks["of"], f"{where}: {label} {blocks}"
 
 
 @pytest.mark.parametrize("kind", sorted(EFFECTS))

@@ -46,13 +46,26 @@ def test_linearised_blocked_score_matches_refits_per_block():
     folds = Folds(cell, 4, ((0,), (1,), (2,), (3,)), {})
     blocks = (ParamBlock("x", "x", p, 1.0, "m"),)
     b = Blocked(grams, None, folds, blocks, torch.zeros(p, dtype=J.dtype), (1.0, None))
-    got = b.score(torch.ones(p, dtype=torch.bool)).total
-    want = 0.0
+    score = b.score(torch.ones(p, dtype=torch.bool))
+    per_block = []
     for c in range(4):
         train, test = cell != c, cell == c
         theta = -torch.linalg.lstsq(J[train], r[train, None]).solution[:, 0]
-        want += float((r[test] + J[test] @ theta).pow(2).sum())
-    assert abs(got - want) <= 1e-9 * want
+        per_block.append(float((r[test] + J[test] @ theta).pow(2).sum()))
+    want = sum(per_block)
+    assert abs(score.total - want) <= 1e-9 * want
+    for (total, _, rows), direct, c in zip(score.per_fold, per_block, range(4), strict=True):
+        assert abs(total - direct) <= 1e-9 * want
+        assert rows == int((cell == c).sum())
+    # against the model at the linearisation point (nothing re-fitted): the drop per
+    # block is that block's RMS before minus after, and blocks_gained counts them
+    nothing = b.score(torch.zeros(p, dtype=torch.bool))
+    drops = b.block_drops(nothing, score)
+    pairs = zip(drops, nothing.per_fold, score.per_fold, strict=True)
+    for d, (before, _, n_c), (after, _, _) in pairs:
+        assert d == pytest.approx(math.sqrt(before / n_c) - math.sqrt(after / n_c), rel=1e-12)
+    assert b.parts(nothing, score)["blocks_gained"] == sum(d > 0 for d in drops)
+    assert b.parts(nothing, score)["blocks"] == 4
 
 
 def test_an_unresolved_cyclic_order_is_never_named():

@@ -137,6 +137,32 @@ def test_networks_that_learned_an_error_of_the_old_setup_fall_back_to_the_physic
     assert summary["position_mm"]["mean"] == pytest.approx(physics, rel=1e-6)
 
 
+@pytest.mark.parametrize("error", ["robot's own", "first set-up's"])
+def test_evaluate_fit_frames_judges_the_networks_on_the_rows_it_fits_the_frames_to(
+    setups, error, tmp_path, capsys
+):
+    """``evaluate --fit-frames`` on a new set-up fits the frames there as ``calibrate
+    --refit frames`` does, so the same rule decides on those rows whether the networks
+    are used: kept for the robot's own error (the hybrid beats the physics), dropped
+    for the old set-up's (the errors are the physics' with its frames fitted there)."""
+    path, moved = setups
+    data = moved[error]
+    file, out = write_table(tmp_path / "new.csv", data), tmp_path / "e.json"
+    assert main(["evaluate", str(path), str(file), "--fit-frames", "--json", str(out)]) == 0
+    printed, summary = capsys.readouterr().out, json.loads(out.read_text())
+    rule = summary["networks"]
+    assert rule["rows"] == data.n
+    physics = _mean_mm(_physics(path, data), data)
+    if error == "robot's own":
+        assert rule["used"] is True, rule
+        assert "residual networks used" in printed
+        assert summary["position_mm"]["mean"] < 0.9 * physics
+    else:
+        assert rule["used"] is False, rule
+        assert "residual networks NOT used" in printed
+        assert summary["position_mm"]["mean"] == pytest.approx(physics, rel=1e-6)
+
+
 def test_the_folds_leave_one_row_out_up_to_their_cap():
     fold, folds = fold_of_rows(REFIT_ROWS)
     assert folds == REFIT_ROWS

@@ -53,7 +53,7 @@ def _same(text: str, value) -> bool:
 # defaults).
 FIT_COMMANDS = [
     ("diagnose", DiagnosisSettings, ()),
-    ("calibrate", DiagnosisSettings, ("candidates", "alpha", "max_causes")),
+    ("calibrate", DiagnosisSettings, ("candidates", "alpha", "max_causes", "stability")),
     ("evaluate", FitSettings, ("gravity",)),
 ]
 

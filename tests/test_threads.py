@@ -100,6 +100,31 @@ def test_work_threads_sizes_restores_and_respects_the_caller(fresh):
         pass
 
 
+def test_fits_run_on_fit_threads_unless_the_user_fixed_a_count(fresh):
+    """A fit or the diagnosis of many rows takes ``FIT_THREADS`` under ``auto`` (their
+    operations do not grow with the rows); ``--threads`` / the environment still win,
+    and the caller's setting is restored after."""
+    fresh.setattr(threads, "usable_cores", lambda: 4)
+    seen = []
+
+    @threads.fit_work
+    def fake_fit(_model, data):
+        seen.append(torch.get_num_threads())
+
+    class Rows:
+        n = 100 * threads.ROWS_PER_THREAD
+
+    torch.set_num_threads(4)
+    fake_fit(None, Rows())
+    fake_fit(None, data=Rows())
+    assert seen == [threads.FIT_THREADS] * 2
+    assert torch.get_num_threads() == 4
+    fresh.setenv(threads.ENV, "3")
+    fake_fit(None, Rows())
+    assert seen[-1] == 3
+    assert torch.get_num_threads() == 4
+
+
 def test_every_command_takes_threads_and_a_bad_value_is_one_line(fresh, capsys):
     from hybrid_pk.cli.main import build_parser
 

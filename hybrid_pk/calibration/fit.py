@@ -35,7 +35,7 @@ from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data
 from hybrid_pk.evaluation.metrics import pose_error, position_error_mm
 from hybrid_pk.geometry import quat_to_matrix
 from hybrid_pk.geometry.registration import register_frames
-from hybrid_pk.threads import sized_by_data
+from hybrid_pk.threads import fit_work
 
 __all__ = [
     "FitResult",
@@ -176,7 +176,7 @@ def initialise_frames(
                 model.tool.reset_to(tool, g)
 
 
-@sized_by_data
+@fit_work
 def fit(
     model: ExtendedModel,
     data: MeasuredData,

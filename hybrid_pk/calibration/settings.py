@@ -190,6 +190,14 @@ class DiagnosisSettings(FitSettings):
         "N",
         check=_count,
     )
+    stability: int = setting(
+        1,
+        "diagnose the same rows N times, with the seeds from --seed on, and report in "
+        "how many runs each cause is named (the first run stays the diagnosis; each "
+        "run costs a diagnosis; default: {default}, once)",
+        "N",
+        check=_at_least_one,
+    )
     tuning: DiagnosisTuning = field(default_factory=DiagnosisTuning, metadata={"flag": False})
 
     def keywords(self) -> dict:

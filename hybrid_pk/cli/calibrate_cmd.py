@@ -72,7 +72,7 @@ flange -> measured point. Errors are reported in mm (position) and deg (orientat
 
 # The diagnosis' own flags (diagnose's); calibrate --effects auto takes them from
 # --config (a YAML diagnose reads too), else their defaults.
-_DIAGNOSE_ONLY = ("candidates", "alpha", "max_causes")
+_DIAGNOSE_ONLY = ("candidates", "alpha", "max_causes", "stability")
 
 NAME = "calibrate"
 HELP = "fit frames + physical effects to measured poses; write a MODEL file"

@@ -76,9 +76,12 @@ def _value(value, std, unit: str) -> str:
     return f"{value:.4g} ± {std:.2g} {unit}"
 
 
-def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
-    """The short human summary ``diagnose`` prints (errors, causes, ambiguities, rest)."""
+def summary_lines(diagnosis, seconds: float | None = None, runs: int = 1) -> list[str]:
+    """The short human summary ``diagnose`` prints (errors, causes, ambiguities, rest);
+    ``runs``: diagnoses the ``seconds`` cover (``--stability``)."""
     took = "" if seconds is None else f" in {seconds:.1f} s"
+    if seconds is not None and runs > 1:
+        took += f" ({runs} diagnoses, --stability)"
     lines = [
         f"diagnosed {diagnosis.robot}: {diagnosis.n_samples} rows, "
         f"{diagnosis.n_holdout} hold-out{took}",
@@ -106,6 +109,8 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
                 gain += f", {c.orientation_gain_deg:.3g} deg"
             if c.blocked_holdout_gain_mm is not None:
                 gain += f"; blocked hold-out {c.blocked_holdout_gain_mm:.3g} mm"
+                if c.blocked_blocks is not None:
+                    gain += f" ({c.blocked_blocks['gained']} of {c.blocked_blocks['of']} blocks)"
             if getattr(c, "own_range_gain_mm", None) is not None:
                 gain += f"; own-range hold-out {c.own_range_gain_mm:.3g} mm"
             lines.append(f"  {c.effect}{where} = {_value(c.value, c.std, c.unit)}  ({gain})")
@@ -143,6 +148,11 @@ def summary_lines(diagnosis, seconds: float | None = None) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     from hybrid_pk.calibration.diagnosis import diagnose
+    from hybrid_pk.calibration.diagnosis.stability import (
+        cause_labels,
+        seed_stability,
+        stability_lines,
+    )
     from hybrid_pk.effects import make_effect
 
     settings = settings_of(args, DiagnosisSettings)
@@ -164,7 +174,13 @@ def run(args: argparse.Namespace) -> int:
             robot, data, frames_per_file=args.frames_per_file, progress=progress.stage,
             **keywords,
         )  # fmt: skip
-        labels = [c.effect + (f":{c.joint}" if c.joint else "") for c in result.causes]
+        labels = cause_labels(result)
+        stability = None
+        if settings.stability > 1:
+            stability = seed_stability(
+                robot, data, result, settings.stability,
+                keywords | {"frames_per_file": args.frames_per_file}, progress.stage,
+            )  # fmt: skip
         transfer = transfer_check(
             settings, args.frames_per_file, robot, data, labels, gravity=gravity,
             start=result.model, progress=progress.stage,
@@ -175,7 +191,9 @@ def run(args: argparse.Namespace) -> int:
 
             report = write_diagnosis_report(result, data, robot, args.report, progress)
             if transfer is not None:
-                append_to_report(report, transfer)
+                append_to_report(report, "Transfer: leave one file out", transfer.lines())
+            if stability is not None:
+                append_to_report(report, "Stability over seeds", stability_lines(stability))
     finally:
         progress.close()
     seconds = progress.elapsed()
@@ -183,8 +201,11 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
     doc = result.to_json() | {"transfer": None if transfer is None else transfer.to_json()}
+    doc["stability"] = stability
     out.write_text(json.dumps(_finite(doc), indent=2) + "\n", encoding="utf-8")
-    lines = summary_lines(result, seconds) + ([] if transfer is None else transfer.lines())
+    lines = summary_lines(result, seconds, settings.stability)
+    lines += [] if transfer is None else transfer.lines()
+    lines += [] if stability is None else stability_lines(stability)
     print("\n".join(lines))
     print(f"wrote {out}" + (f" and {report}" if args.report else ""))
     return 0

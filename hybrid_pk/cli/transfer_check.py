@@ -1,5 +1,6 @@
 """The leave-one-file-out transfer check (:mod:`hybrid_pk.pipelines.transfer`) of
-``diagnose`` and ``calibrate`` (``--refit-rows N``) when DATA holds several files."""
+``diagnose`` and ``calibrate`` (``--refit-rows N``) when DATA holds several files, and
+the report sections such checks append."""
 
 from __future__ import annotations
 
@@ -32,8 +33,9 @@ def transfer_check(
     )
 
 
-def append_to_report(report: Path, transfer: TransferResult) -> None:
-    """A section with the check's table at the end of a ``report.md``."""
-    lines = ["", "## Transfer: leave one file out", "", "```", *transfer.lines(), "```", ""]
+def append_to_report(report: Path, title: str, body: list[str]) -> None:
+    """A section ``title`` with the text lines ``body`` (as printed) at the end of a
+    ``report.md`` (the transfer check's table, the seeds' stability)."""
+    lines = ["", f"## {title}", "", "```", *body, "```", ""]
     with open(report, "a", encoding="utf-8") as f:
         f.write("\n".join(lines))

@@ -24,7 +24,7 @@ from hybrid_pk.evaluation.metrics import evaluate_json, row_errors
 from hybrid_pk.io.hybrid_file import predict_poses
 from hybrid_pk.io.model_file import NOMINAL_PREFIX, LoadedModel, model_robot
 from hybrid_pk.pipelines.calibration import refit_frames
-from hybrid_pk.pipelines.refit import with_frame_sets
+from hybrid_pk.pipelines.refit import refit, with_frame_sets
 
 __all__ = ["AS_TRAINED", "EvaluationResult", "evaluate_model", "networks_summary"]
 
@@ -73,7 +73,10 @@ def evaluate_model(
     Args:
         sets: base/tool frame sets (default: the model's).
         fit_frames: first fit only the base and tool frames to ``data`` (``priors``,
-            ``robust`` as in :func:`~hybrid_pk.pipelines.calibration.refit_frames`).
+            ``robust`` as in :func:`~hybrid_pk.pipelines.calibration.refit_frames`); a
+            file with residual networks is re-fitted as by ``calibrate --refit frames``
+            (:func:`~hybrid_pk.pipelines.refit.refit`): the networks are used only if
+            they beat the physics on these rows, held out.
         report: directory of the report (None: none).
         stage: told the name of each step.
     """
@@ -83,9 +86,16 @@ def evaluate_model(
     frame_fit = None
     if fit_frames:
         stage("fitting base and tool frames")
-        model = with_frame_sets(loaded.model, sets)
-        frame_fit = refit_frames(model, data, cond, priors=priors, robust=robust)
-        loaded = dataclasses.replace(loaded, model=model, frames_fitted=True)
+        if loaded.has_networks:
+            # the rows are a new set-up: its networks are judged on them as on re-fit rows
+            moved = refit(
+                loaded, data, "frames", frames_per_file=sets > 1, priors=priors, robust=robust
+            )
+            frame_fit, model, networks = moved.fit, moved.model, moved.networks
+        else:
+            model, networks = with_frame_sets(loaded.model, sets), loaded.networks
+            frame_fit = refit_frames(model, data, cond, priors=priors, robust=robust)
+        loaded = dataclasses.replace(loaded, model=model, frames_fitted=True, networks=networks)
     stage("predicting")
     T = predict_poses(loaded, data, cond)
     position, orientation = row_errors(T, data)

@@ -74,6 +74,7 @@ _CAUSE_COLUMNS = [
     "in-sample [mm]",
     "random hold-out [mm]",
     "blocked hold-out [mm]",
+    "blocks gained",
     "own-range hold-out [mm]",
 ]
 
@@ -88,7 +89,9 @@ def _cause_rows(diagnosis) -> list[list[object]]:
             value += f"; fitted on {fmt(c.fitted_range_rad)} rad of the joint"
         gains = (c.in_sample_gain_mm, c.random_holdout_gain_mm, c.blocked_holdout_gain_mm)
         own = getattr(c, "own_range_gain_mm", None)  # periodic causes: ends of their joint
-        gains = (c.position_gain_mm, c.orientation_gain_deg, *gains, own)
+        blocks = getattr(c, "blocked_blocks", None)
+        share = "-" if blocks is None else f"{blocks['gained']} of {blocks['of']}"
+        gains = (c.position_gain_mm, c.orientation_gain_deg, *gains, share, own)
         rows.append([c.effect, c.joint or "-", value, *gains])
     return rows
 

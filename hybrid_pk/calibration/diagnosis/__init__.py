@@ -13,6 +13,7 @@ The search (:func:`diagnose`, in :mod:`.search`) is built of named steps:
 - :mod:`.blocked`, :mod:`.carryover`: the blocked hold-out and its practical margin;
 - :mod:`.noise`: the measurement noise behind the margin, from close pairs of poses;
 - :mod:`.power`: what the data cannot show (detection limits, too little data);
+- :mod:`.stability`: the same rows diagnosed with other seeds (``--stability N``);
 - :mod:`.unseen`: the parts of an effect the frames absorb (marked in tables).
 """
 

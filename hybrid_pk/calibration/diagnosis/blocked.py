@@ -280,6 +280,7 @@ class BlockedScore:
     position: float
     rotation: float | None
     rows: int
+    per_fold: tuple[tuple[float, float, int], ...] = ()  # (total, position, rows) per block
 
 
 @dataclass
@@ -344,11 +345,17 @@ class Blocked:
         test_pos = torch.stack([pos[list(cells)].sum(0) for cells in self.folds.folds])
         theta = _fold_fits(all_cells - test, test, frames, all_cells)
         v = torch.cat([theta, theta.new_ones(theta.shape[0], 1)], 1)[:, None, :]
-        total = sum((v @ test @ v.mT).flatten().tolist())  # folds summed in order
-        total_pos = sum((v @ test_pos @ v.mT).flatten().tolist())
-        rows = sum(int(self.rows[list(cells)].sum()) for cells in self.folds.folds)
+        per_fold = tuple(
+            zip(
+                (v @ test @ v.mT).flatten().tolist(),
+                (v @ test_pos @ v.mT).flatten().tolist(),
+                [int(self.rows[list(cells)].sum()) for cells in self.folds.folds],
+                strict=True,
+            )
+        )
+        total, total_pos, rows = (sum(f[i] for f in per_fold) for i in range(3))  # in order
         rot = None if self.rot is None else total - total_pos
-        return BlockedScore(total, total_pos, rot, rows)
+        return BlockedScore(total, total_pos, rot, rows, per_fold)
 
     def gain_mm(self, without: BlockedScore, with_it: BlockedScore) -> float:
         """Drop of the blocked RMS error [mm] in the carry-over channel
@@ -356,10 +363,23 @@ class Blocked:
         part = (lambda s: s.position) if position_channel() else (lambda s: s.total)
         return self.sigmas[0] * _rms_drop(part(without), part(with_it), without.rows)
 
+    def block_drops(self, without: BlockedScore, with_it: BlockedScore) -> list[float]:
+        """Per held-out block, the drop of its RMS error [mm] in the carry-over channel
+        (:meth:`gain_mm` pools the blocks)."""
+        i = 1 if position_channel() else 0
+        return [
+            self.sigmas[0] * _rms_drop(a[i], b[i], a[2])
+            for a, b in zip(without.per_fold, with_it.per_fold, strict=True)
+        ]
+
     def parts(self, without: BlockedScore, with_it: BlockedScore) -> dict:
-        """The drop of the blocked RMS position error [mm] and rotation error [deg]."""
+        """The drop of the blocked RMS position error [mm] and rotation error [deg], and
+        in how many of the held-out blocks the error drops (``blocks_gained`` of
+        ``blocks``): a gain all blocks share, or one region's."""
+        drops = self.block_drops(without, with_it)
         out = {"position_mm": self.sigmas[0] * _rms_drop(without.position, with_it.position,
-                                                          without.rows)}  # fmt: skip
+                                                          without.rows),
+               "blocks_gained": sum(d > 0 for d in drops), "blocks": len(drops)}  # fmt: skip
         if without.rotation is not None and self.sigmas[1] is not None:
             drop = _rms_drop(without.rotation, with_it.rotation, without.rows)
             out["orientation_deg"] = math.degrees(self.sigmas[1] * drop)

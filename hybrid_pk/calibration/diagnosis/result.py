@@ -43,6 +43,7 @@ class Cause:
     blocked_holdout_gain_mm: float | None = None
     blocked_position_gain_mm: float | None = None
     blocked_orientation_gain_deg: float | None = None
+    blocked_blocks: dict[str, int] | None = None
     fitted_range_rad: list[float] | None = None
     own_range_gain_mm: float | None = None
     own_range: dict | None = None
@@ -68,6 +69,7 @@ class Cause:
             "blocked_holdout_gain_mm",
             "blocked_position_gain_mm",
             "blocked_orientation_gain_deg",
+            "blocked_blocks",
             "fitted_range_rad",
             "own_range_gain_mm",
             "own_range",

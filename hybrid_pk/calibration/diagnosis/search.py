@@ -61,14 +61,14 @@ from hybrid_pk.calibration.tuning import DiagnosisTuning, diagnosis_tuning, tune
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import ExtendedModel, Gravity, conditions_from_data, make_effect
 from hybrid_pk.robot import Robot
-from hybrid_pk.threads import sized_by_data
+from hybrid_pk.threads import fit_work
 
 __all__ = ["Cause", "Diagnosis", "candidate_labels", "diagnose", "plausibility_warnings"]
 
 _D = DiagnosisSettings()  # the keywords' defaults (one source of each default)
 
 
-@sized_by_data
+@fit_work
 @tuned
 def diagnose(
     robot: Robot,
