@@ -49,6 +49,9 @@ __all__ = [
 # First-pass noise levels, replaced by the estimates of the re-weighted pass.
 DEFAULT_SIGMA_POS_MM = 0.05
 DEFAULT_SIGMA_ROT_RAD = 1e-4
+# A fit stops once its next LM step would lower the noise-normalised cost by < this^2:
+# it would move the parameters by < 0.01 std (a drop d is sqrt(d) std), 10x below any test.
+NEXT_STEP_STD = 0.01
 # Most passes of a robust fit (each re-estimates the noise and re-weights the rows).
 ROBUST_PASSES = 8
 
@@ -341,6 +344,7 @@ def _solve_reweighted(
             max_iter=max_iter,
             normal=problem.normal_equations,
             progress=progress,
+            drop_tol=NEXT_STEP_STD**2 / problem.n_residuals,  # cost ~ 1 per residual
         )
         problem.write(result.x)
         iterations += result.iterations

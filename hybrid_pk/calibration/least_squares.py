@@ -10,6 +10,7 @@ invariant to the units of the parameters.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -68,6 +69,7 @@ def levenberg_marquardt(
     jac: Callable[[Tensor], tuple[Tensor, Tensor]] | None = None,
     normal: Callable[[Tensor], tuple[Tensor, Tensor, float]] | None = None,
     progress: Callable[[str], None] | None = None,
+    drop_tol: float = 0.0,
 ) -> LMResult:
     """Minimise ``sum(fun(x)**2)`` from ``x0``.
 
@@ -82,6 +84,11 @@ def levenberg_marquardt(
         normal: ``x -> (J^T J, J^T r, r^T r)`` instead of ``jac``: the normal equations
             of a problem too large to hold its Jacobian (built chunk by chunk).
         progress: called with a short text after every accepted step.
+        drop_tol: stop, without another Jacobian, when the next step is predicted to
+            lower the cost by less than this fraction of it. The prediction assumes
+            the drops shrink at least geometrically, by the ratio of the last two
+            undamped ones: ``drop_k^2 / drop_(k-1)`` (Gauss–Newton near a solution
+            converges linearly or faster). 0: only ``ftol`` and ``xtol`` stop.
     """
     if normal is None:
         jac = jac or (lambda x: jacobian(fun, x))
@@ -94,6 +101,7 @@ def levenberg_marquardt(
     A, g, cost = normal(x)
     r = None
     lam, it, converged = lam0, 0, False
+    last_drop = 0.0  # no drop yet: no prediction
     eye = torch.eye(x.numel(), dtype=x.dtype, device=x.device)
     while it < max_iter:
         d = A.diagonal().clamp_min(1e-12 * float(A.diagonal().max().clamp_min(1e-300)))
@@ -112,13 +120,16 @@ def levenberg_marquardt(
             converged = True  # no descent left at any damping: at a minimum
             break
         it += 1
-        rel_drop = (cost - cost_new) / max(cost, 1e-300)
+        drop = cost - cost_new
+        rel_drop = drop / max(cost, 1e-300)
+        undamped = lam <= lam0  # a damped step's drop says little about the next one
+        predicted = drop * drop / last_drop if last_drop > 0 and undamped else math.inf
         small_step = float(step.norm()) < xtol * (float(x.norm()) + xtol)
-        x, r, cost = x_new, r_new, cost_new
+        x, r, cost, last_drop = x_new, r_new, cost_new, drop
         lam = max(lam / 10.0, 1e-12)
         if progress is not None:
             progress(f"LM iteration {it}: cost {cost:.6g} ({100 * rel_drop:.2g} % lower)")
-        if rel_drop < ftol or small_step:
+        if rel_drop < ftol or small_step or predicted < drop_tol * cost:
             converged = True
             break
         if it < max_iter:  # the last iteration's Jacobian would be unused

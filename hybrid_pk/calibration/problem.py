@@ -203,14 +203,21 @@ class Problem:
     def linearised_chunks(self, theta: Tensor) -> Iterator[tuple[Tensor, Tensor]]:
         """``(r_c, J_c)`` residuals and Jacobian rows chunk by chunk at ``theta`` (rows
         of a chunk in an order of their own; the ``extra`` rows come last)."""
+        for M in self.augmented_chunks(theta):
+            yield M[:, -1], M[:, :-1]
+
+    def augmented_chunks(self, theta: Tensor) -> Iterator[Tensor]:
+        """``[J_c r_c]`` chunk by chunk at ``theta``, as :meth:`linearised_chunks`
+        (each chunk written into one buffer, not concatenated)."""
         with self._at(theta):
             for rows in self._chunks():
                 yield self._chunk_rows(rows)
                 self._report(rows.stop)
         if self.extra is not None:
-            yield self.extra(theta)
+            r_x, J_x = self.extra(theta)
+            yield torch.cat([J_x, r_x[:, None]], 1)
 
-    def _chunk_rows(self, rows: slice) -> tuple[Tensor, Tensor]:
+    def _chunk_rows(self, rows: slice) -> Tensor:
         key = (self.data.q, rows.start, rows.stop)
         pt = self._structure.pose_twists(self.data.q[rows], self.cond.subset(rows), key)
         pos, rot = self._residual_parts(pt.T, rows)
@@ -218,14 +225,21 @@ class Problem:
         if self.R_meas is not None:
             E = self.R_meas[rows] @ pt.T[:, :3, :3].transpose(-1, -2)
         w = None if self.row_weights is None else self.row_weights[rows]
-        cp, cr = residual_columns(pt.twists, E, self.sigma_pos_mm, self.sigma_rot_rad, w)
-        n = pt.twists.shape[-1]
+        n_rows, n = pt.twists.shape[0], pt.twists.shape[-1]
         count_work(rows.stop - rows.start, n)
-        if rot is None:
-            return pos.reshape(-1), cp.reshape(-1, n)
-        return torch.cat([pos.reshape(-1), rot.reshape(-1)]), torch.cat(
-            [cp.reshape(-1, n), cr.reshape(-1, n)]
-        )
+        if torch.is_grad_enabled() and pt.twists.requires_grad:  # out= records no derivative
+            cols = residual_columns(pt.twists, E, self.sigma_pos_mm, self.sigma_rot_rad, w)
+            J = torch.cat([c.reshape(-1, n) for c in cols if c is not None])
+            r = torch.cat([p.reshape(-1) for p in (pos, rot) if p is not None])
+            return torch.cat([J, r[:, None]], 1)
+        M = pt.twists.new_empty((3 if rot is None else 6) * n_rows, n + 1)
+        out = [M[: 3 * n_rows, :n].view(n_rows, 3, n), None]
+        M[: 3 * n_rows, n] = pos.reshape(-1)
+        if rot is not None:
+            out[1] = M[3 * n_rows :, :n].view(n_rows, 3, n)
+            M[3 * n_rows :, n] = rot.reshape(-1)
+        residual_columns(pt.twists, E, self.sigma_pos_mm, self.sigma_rot_rad, w, out=out)
+        return M
 
     def _report(self, done: int) -> None:
         if self.progress is None:
@@ -241,7 +255,8 @@ class Problem:
         pos_r, rot_r, pos_j, rot_j = [], [], [], []
         with self._at(theta):
             for rows in self._chunks():
-                r_c, J_c = self._chunk_rows(rows)
+                M = self._chunk_rows(rows)
+                r_c, J_c = M[:, -1], M[:, :-1]
                 n_pos = 3 * (rows.stop - rows.start)
                 pos_r.append(r_c[:n_pos])
                 pos_j.append(J_c[:n_pos])
@@ -272,8 +287,7 @@ class Problem:
         product and projection among them is the same on ``R`` as on the ``m`` rows.
         """
         R = None
-        for r_c, J_c in self.linearised_chunks(theta):
-            M = torch.cat([J_c, r_c[:, None]], 1)
+        for M in self.augmented_chunks(theta):
             if R is not None:
                 M = torch.cat([R, M], 0)
             R = torch.linalg.qr(M, mode="r").R

@@ -39,7 +39,7 @@ from hybrid_pk.geometry.tangents import carried
 from hybrid_pk.robot import KinematicParams
 from hybrid_pk.robot.statics import gravity_values
 
-__all__ = ["GRAVITY_REUSE_RAD", "PoseTwists", "StructuredJacobian"]
+__all__ = ["GRAVITY_REUSE_RAD", "PoseTwists", "StructuredJacobian", "point_jacobian"]
 
 
 class _KinematicJoints(torch.nn.Module):
@@ -90,6 +90,7 @@ class StructuredJacobian:
         self.joint = [b for b in blocks if stage.get(b.name) in ("joint", "compliance")]
         self.geometry = [b for b in blocks if stage.get(b.name) == "geometry"]
         self.deflection = [b for b in blocks if stage.get(b.name) == "deflection"]
+        self._turns_axis: dict[str, bool] = {}  # geometric blocks that turn a joint axis
 
     def _sub_params(self, blocks, theta_sub: Tensor, prefix: str = "") -> dict[str, Tensor]:
         """Parameter values of ``blocks`` at scaled offsets ``theta_sub`` from current."""
@@ -156,7 +157,23 @@ class StructuredJacobian:
     def _geometry_twists(
         self, cond, q_star, params, E, B, X, T, bent, wrenches
     ) -> dict[str, Tensor]:
-        blocks = self.geometry
+        frames = self.model.robot.link_frames(q_star, params=bent)
+        maps = origin_twist_maps(frames, params.origin_xyz, (E @ X)[:, :3, 3], B[..., :3, :3])
+        out: dict[str, Tensor] = {}
+        # Effects that read a condition per row (a temperature) make the origins' derivatives
+        # per row; the others' stay shared by every row when taken apart from them.
+        for per_row in (False, True):
+            blocks = [b for b in self.geometry if (self.effects[b.name].needs is None) != per_row]
+            if blocks:
+                out.update(self._origin_twists(blocks, cond, q_star, params, maps))
+        for b in self.geometry:  # effects that turn a joint axis: forward mode through FK
+            if self._turns_axis[b.name]:
+                out[b.name] = self._fk_twists(b, cond, q_star, B, X, T, wrenches)
+        return out
+
+    def _origin_twists(self, blocks, cond, q_star, params, maps) -> dict[str, Tensor]:
+        """Twists of geometric ``blocks`` through the chain origins they move (forward
+        mode on the origins, closed form from there); notes which turn a joint axis."""
         size = sum(b.size for b in blocks)
         wrapper = _KinematicParams(self.model)
 
@@ -170,18 +187,15 @@ class StructuredJacobian:
             return torch.func.jvp(origins, (theta0,), (v,))[1]
 
         eye = torch.eye(size, dtype=q_star.dtype)
-        d_xyz, d_rot, d_axis = torch.func.vmap(along)(eye)
-        frames = self.model.robot.link_frames(q_star, params=bent)
-        maps = origin_twist_maps(frames, params.origin_xyz, (E @ X)[:, :3, 3], B[..., :3, :3])
+        with torch.no_grad():  # values of the other effects plain: shared where they can be
+            d_xyz, d_rot, d_axis = torch.func.vmap(along)(eye)
         tw = geometry_twists(maps, params.origin_rot, d_xyz, d_rot)
-        out = self._split(blocks, tw)
         turns_axis = d_axis.reshape(size, -1).abs().amax(1) > 0
         start = 0
-        for b in blocks:  # effects that turn a joint axis: forward mode through FK
-            if bool(turns_axis[start : start + b.size].any()):
-                out[b.name] = self._fk_twists(b, cond, q_star, B, X, T, wrenches)
+        for b in blocks:
+            self._turns_axis[b.name] = bool(turns_axis[start : start + b.size].any())
             start += b.size
-        return out
+        return self._split(blocks, tw)
 
     def _fk_twists(self, block, cond, q_star, B, X, T, wrenches) -> Tensor:
         """Twists of one geometric block by forward mode through FK (generic path),
@@ -264,6 +278,10 @@ class StructuredJacobian:
         return torch.cat(columns, -1)
 
 
+# [rad or m] difference step of the joint effects' derivative in point_jacobian: its
+# truncation is ~1e-6 of their slope's change, its round-off ~1e-16 / 1e-6 = 1e-10.
+_JOINT_STEP = 1e-6
+
 # dg/dq kept for reuse: id(data q) -> (weakref to it, q_star (N, dof), G (N, dof, dof),
 # valid (N,) bool), whatever the chunking of the problem that asks.
 _GRAVITY_JACOBIANS: dict[int, tuple] = {}
@@ -308,3 +326,35 @@ def _gravity_jacobian(robot, q_star: Tensor, payload, params, key, gravity) -> T
     if store is not None:
         q_kept[rows], G_kept[rows], valid[rows] = q_star, G, True
     return G
+
+
+@torch.no_grad()
+def point_jacobian(model: ExtendedModel, q: Tensor, cond: Conditions) -> Tensor:
+    """``(n, 3, dof)`` motion of the measured point (measurement frame) per unit of each
+    commanded joint value ``q (n, dof)``, every effect included: the joint effects'
+    derivative (differences in joint space), the compliance's feedback
+    ``(I + C dg/dq)^-1`` and the geometric Jacobian at the true joint values (the
+    deflection's bending held, a second-order term)."""
+    robot = model.robot
+    params, gravity, q_star, _, bent = loaded_state(model, q, cond)
+    E = robot.fk(q_star, params=bent)
+    group = cond.group if model.base.sets > 1 else None
+    B = model.base.matrix()[0] if group is None else model.base.matrix(group)
+    X = model.tool.matrix()[0] if group is None else model.tool.matrix(group)
+    lever = (E @ X)[:, :3, 3] - E[:, :3, 3]
+    tw = point_joint_twists(robot.jacobian(q_star, params=bent), lever, B[..., :3, :3])
+
+    # the joint effects' derivative by differences in joint space (no FK, no forward
+    # mode: vmap over some effects' index updates would load torch's compiler, ~1 s)
+    base = model.kinematic_joint_values(q, cond)
+    dq = torch.stack(
+        [(model.kinematic_joint_values(q + _JOINT_STEP * e, cond) - base) / _JOINT_STEP
+         for e in torch.eye(q.shape[-1], dtype=q.dtype)],
+        -1,
+    )  # fmt: skip
+    c = StructuredJacobian(model, ())._compliance()
+    if c is not None and bool((c != 0).any()):
+        payload = 0.0 if cond.payload is None else cond.payload
+        G = _gravity_jacobian(robot, q_star, payload, params, None, gravity)
+        dq = torch.linalg.solve(torch.eye(q.shape[-1], dtype=q.dtype) + c[:, None] * G, dq)
+    return tw[:, :3, :] @ dq

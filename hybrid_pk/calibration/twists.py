@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.effects import RigidFrame
-from hybrid_pk.geometry import skew, so3_exp, so3_left_jacobian
+from hybrid_pk.geometry import so3_exp, so3_left_jacobian
 
 __all__ = [
     "frame_rotation_derivatives",
@@ -112,17 +112,26 @@ def origin_twist_maps(frames: Tensor, origin_xyz: Tensor, point: Tensor, R_B: Te
         R_B: ``(n, 3, 3)`` or ``(3, 3)`` root -> measurement frame rotation.
     """
     n, n_orig = frames.shape[0], origin_xyz.shape[-2]
-    eye = torch.eye(3, dtype=frames.dtype, device=frames.device).expand(n, 1, 3, 3)
-    R_P = torch.cat([eye, frames[:, : n_orig - 1, :3, :3]], 1)  # parent frame of origin i
-    t_P = torch.cat([frames.new_zeros(n, 1, 3), frames[:, : n_orig - 1, :3, 3]], 1)
-    o = t_P + (R_P @ origin_xyz.expand(n, n_orig, 3)[..., None])[..., 0]  # (n, n_orig, 3)
-    R = R_B if R_B.dim() == 2 else R_B[:, None]
-    R_MP = R @ R_P  # parent frames in the measurement frame
-    lever = (R @ (point[:, None, :] - o)[..., None])[..., 0]
-    top = torch.cat([R_MP, -skew(lever) @ R_MP], -1)  # (n, n_orig, 3, 6)
-    bottom = torch.cat([torch.zeros_like(R_MP), R_MP], -1)
-    M = torch.cat([top, bottom], -2)  # (n, n_orig, 6, 6)
-    return M.permute(0, 2, 1, 3).reshape(n, 6, 6 * n_orig)
+    # Laid out (row, origin, column) so that the rotations act by one product per row
+    # (not one 3x3 product per origin) and the blocks are written into place.
+    R_P = frames.new_empty(n, 3, n_orig, 3)  # parent frame of origin i
+    R_P[:, :, 0] = torch.eye(3, dtype=frames.dtype, device=frames.device)
+    R_P[:, :, 1:] = frames[:, : n_orig - 1, :3, :3].transpose(1, 2)
+    t_P = frames.new_zeros(n, 3, n_orig)
+    t_P[:, :, 1:] = frames[:, : n_orig - 1, :3, 3].transpose(1, 2)
+    o = t_P + (R_P * origin_xyz.expand(n, n_orig, 3)[:, None]).sum(-1)  # (n, 3, n_orig)
+    R_MP = torch.matmul(R_B, R_P.reshape(n, 3, -1)).reshape(n, 3, n_orig, 3)
+    lever = torch.matmul(R_B, point[:, :, None] - o)[..., None]  # measurement frame
+    M = frames.new_empty(n, 6, n_orig, 6)
+    M[:, :3, :, :3] = R_MP
+    M[:, 3:, :, 3:] = R_MP
+    M[:, 3:, :, :3] = 0.0
+    x, y, z = R_MP.unbind(1)  # each column's components
+    lx, ly, lz = lever.unbind(1)
+    M[:, 0, :, 3:] = y * lz - z * ly  # -[lever] R_MP: each column crossed with the lever
+    M[:, 1, :, 3:] = z * lx - x * lz
+    M[:, 2, :, 3:] = x * ly - y * lx
+    return M.reshape(n, 6, 6 * n_orig)
 
 
 def geometry_twists(maps: Tensor, origin_rot: Tensor, d_xyz: Tensor, d_rot: Tensor) -> Tensor:
@@ -168,21 +177,25 @@ def residual_columns(
     sigma_pos_mm: float,
     sigma_rot_rad: float,
     weights: Tensor | None = None,
+    out: list | None = None,
 ) -> tuple[Tensor, Tensor | None]:
     """Jacobian columns of the residuals from twists ``(n, 6, k)``.
 
     Position residuals ``(p_meas - p) [mm] / sigma_pos`` change by ``-v``; rotation
     residuals ``vee(E - E^T) / 2 / sigma_rot`` (``E = R_meas R^T``, ``E_rot``) by
     ``-(tr(E) I - E^T) w / 2``. Returns ``(n, 3, k)`` position and rotation columns
-    (None without orientation data), each scaled by the row ``weights``.
+    (None without orientation data), each scaled by the row ``weights``; written into
+    ``out`` (``[pos, rot]``, views of a chunk's Jacobian) when given.
     """
-    pos = (-1000.0 / sigma_pos_mm) * twists[:, :3, :]
+    pos_out, rot_out = out if out is not None else (None, None)
+    pos = torch.mul(twists[:, :3, :], -1000.0 / sigma_pos_mm, out=pos_out)
     rot = None
     if E_rot is not None:
         tr = E_rot.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None]
         A = tr * torch.eye(3, dtype=E_rot.dtype, device=E_rot.device) - E_rot.transpose(-1, -2)
-        rot = (-0.5 / sigma_rot_rad) * (A @ twists[:, 3:, :])
+        rot = torch.mul(A @ twists[:, 3:, :], -0.5 / sigma_rot_rad, out=rot_out)
     if weights is not None:
-        pos = pos * weights[:, None, None]
-        rot = None if rot is None else rot * weights[:, None, None]
+        pos.mul_(weights[:, None, None])
+        if rot is not None:
+            rot.mul_(weights[:, None, None])
     return pos, rot

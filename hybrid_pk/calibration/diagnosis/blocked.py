@@ -193,31 +193,97 @@ def _lloyd(x: Tensor, k: int, g: torch.Generator) -> Tensor:
     return label
 
 
-def cell_factors(problem: Problem, folds: Folds | None) -> tuple[Tensor, Tensor | None, tuple]:
-    """The triangular factor ``R`` of ``[J r]`` on all rows (as :meth:`Problem.r_factor`)
-    and, with ``folds``, the Gram matrices of ``[J r]`` per cell: ``(pos, rot)``, each
-    ``(n_cells, n + 1, n + 1)`` (``rot`` None for position-only data)."""
+def cell_factors(
+    problem: Problem, folds: Folds | None, factor: bool = True, lead: int | None = None
+) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
+    """A factor ``R`` of ``[J r]`` on all rows (``R^T R = [J r]^T [J r]``, as
+    :meth:`Problem.r_factor`; None unless ``factor``) and, with ``folds``, the Gram
+    matrices of ``[J r]`` per cell: ``(pos, rot)``, each ``(n_cells, n + 1, n + 1)``
+    (``rot`` None for position-only data).
+
+    ``lead``: only the first ``lead`` columns are factored by QR; the rest of ``R``
+    is completed from the Gram (:func:`_completed_factor`), or by a full QR where the
+    leading columns are too ill-conditioned for that.
+    """
     R, start = None, 0
     per_row = 3 if problem.R_meas is None else 6
     grams: tuple = ()
+    size = problem.x0.numel() + 1
     if folds is not None:
-        size = problem.x0.numel() + 1
         zeros = torch.zeros(folds.n_cells, size, size, dtype=problem.x0.dtype)
         grams = (zeros, None if per_row == 3 else zeros.clone())
-    for r_c, J_c in problem.linearised_chunks(torch.zeros_like(problem.x0)):
-        M = torch.cat([J_c, r_c[:, None]], 1)
+    G = torch.zeros(size, size, dtype=problem.x0.dtype) if lead is not None and not grams else None
+    for M in problem.augmented_chunks(torch.zeros_like(problem.x0)):
         n_c = M.shape[0] // per_row
         if folds is not None:
-            cells = folds.cell[start : start + n_c].repeat_interleave(3)
+            # rows gathered cell by cell (stable: each cell's rows keep their order)
+            cells, order = folds.cell[start : start + n_c].repeat_interleave(3).sort(stable=True)
+            counts = torch.bincount(cells, minlength=folds.n_cells).tolist()
             for channel, part in enumerate((M[: 3 * n_c], M[3 * n_c :])):
                 if grams[channel] is None:
                     continue
-                for c in cells.unique().tolist():
-                    sub = part[cells == c]
-                    grams[channel][c] += sub.T @ sub
+                for c, sub in enumerate(part[order].split(counts)):
+                    if counts[c]:
+                        grams[channel][c] += sub.T @ sub
+        elif G is not None:
+            G += M.T @ M
         start += n_c
-        R = torch.linalg.qr(M if R is None else torch.cat([R, M], 0), mode="r").R
+        if factor:
+            M = M if lead is None else M[:, :lead]
+            R = torch.linalg.qr(M if R is None else torch.cat([R, M], 0), mode="r").R
+    if factor and lead is not None:
+        if G is None:
+            G = grams[0].sum(0) if grams[1] is None else grams[0].sum(0) + grams[1].sum(0)
+        R = _completed_factor(R, G, per_row * problem.data.n)
+        if R is None:
+            R = problem.r_factor(torch.zeros_like(problem.x0))
     return R, grams[0] if grams else None, grams[1] if grams else None
+
+
+def _completion_limit(m: int) -> float:
+    """Condition number (columns at unit norm) of the leading columns up to which the
+    rest of a factor is completed from the Gram of ``m`` residual rows: that loses
+    ~ 2 sqrt(m) eps cond of a column's squared norm, which must stay 100 times below
+    the 1e-8 share that makes a candidate equivalent to the model
+    (``selection.EQUIVALENCE_FRACTION``)."""
+    return 1e-10 / (2 * math.sqrt(max(m, 1)) * torch.finfo(torch.float64).eps)
+
+
+# Directions of the leading columns (at unit norm) weaker than this share of the
+# strongest are exact degeneracies (two parameters the data cannot tell apart): a QR
+# leaves them at round-off, ~ sqrt(m) eps ~ 1e-13; 1e-10 lies far above that and far
+# below any direction data determine (their singular values pass the completion limit).
+NULL_SHARE = 1e-10
+
+
+def _completed_factor(R11: Tensor, G: Tensor, m: int) -> Tensor | None:
+    """``R`` with ``R^T R = G`` (the Gram of ``[J r]``, ``m`` rows) whose leading rows
+    stand for the first ``k`` columns, from their QR factor ``R11 = U diag(s) W^T``:
+    ``[[diag(s) W^T, B], [0, F]]`` with ``B = diag(1/s) W^T G_12`` (zero in the
+    directions the leading columns do not span, :data:`NULL_SHARE`) and ``F^T F = S =
+    G_22 - B^T B``, the Gram of the other columns projected off the leading ones
+    (semi-normal equations: a QR of only ``k`` columns). ``F`` from the
+    eigen-decomposition of ``S`` at the columns' unit norm (``S`` may be singular:
+    candidates the model already explains). None where ``R11`` has fewer rows than
+    columns, or spans a direction too weakly for the Gram (:func:`_completion_limit`)."""
+    k = R11.shape[1]
+    norms = R11.norm(dim=0)
+    if R11.shape[0] < k:
+        return None
+    unit = torch.where(norms > 0, norms, torch.ones_like(norms))
+    _, sv, Wt = torch.linalg.svd(R11 / unit, full_matrices=False)  # R11 = U diag(sv) Wt D
+    spans = sv > NULL_SHARE * sv[0]
+    if float(sv[0]) > _completion_limit(m) * float(sv[spans][-1]):
+        return None
+    coef = torch.where(spans, 1.0 / sv.clamp_min(1e-300), torch.zeros_like(sv))
+    B = coef[:, None] * ((Wt / unit[None, :]) @ G[:k, k:])  # U^T Q^T [J_rest r]
+    S = G[k:, k:] - B.T @ B
+    scale = G[k:, k:].diagonal().clamp_min(0).sqrt()  # the other columns' norms
+    inv = torch.where(scale > 0, 1.0 / scale.clamp_min(1e-300), torch.zeros_like(scale))
+    lam, V = torch.linalg.eigh(S * inv[:, None] * inv[None, :])
+    F = lam.clamp_min(0).sqrt()[:, None] * V.T * scale[None, :]
+    top = torch.cat([sv[:, None] * Wt * unit[None, :], B], 1)  # U^T R11
+    return torch.cat([top, torch.cat([F.new_zeros(F.shape[0], k), F], 1)], 0)
 
 
 @dataclass(frozen=True)
@@ -281,27 +347,29 @@ class Blocked:
         None: zero, the linearisation point)."""
         n = free.numel()
         idx = torch.nonzero(free).flatten()
-        T = torch.zeros(n + 1, idx.numel() + 1, dtype=self.pos.dtype)
-        T[idx, torch.arange(idx.numel())] = 1.0
-        T[n, -1] = 1.0
+        last = torch.zeros(n + 1, dtype=self.pos.dtype)
+        last[n] = 1.0
         if shift is not None:
-            T[:n, -1] = torch.where(free, torch.zeros_like(shift), shift)
-        pos = T.T @ self.pos @ T
-        both = pos if self.rot is None else pos + T.T @ self.rot @ T
+            last[:n] = torch.where(free, torch.zeros_like(shift), shift)
+        pos = _selected(self.pos, idx, last)
+        both = pos if self.rot is None else pos + _selected(self.rot, idx, last)
         frames = self.frame_cols[idx]
-        per_fold = []
         all_cells = both.sum(0)
-        for cells in self.folds.folds:
-            test = both[list(cells)].sum(0)
-            theta = _fold_fit(all_cells - test, test, frames, all_cells)
-            v = torch.cat([theta, theta.new_ones(1)])
-            per_fold.append(
-                (float(v @ test @ v), float(v @ pos[list(cells)].sum(0) @ v),
-                 int(self.rows[list(cells)].sum()))
-            )  # fmt: skip
-        total, total_pos, rows = (sum(f[i] for f in per_fold) for i in range(3))
+        test = torch.stack([both[list(cells)].sum(0) for cells in self.folds.folds])
+        test_pos = torch.stack([pos[list(cells)].sum(0) for cells in self.folds.folds])
+        theta = _fold_fits(all_cells - test, test, frames, all_cells)
+        v = torch.cat([theta, theta.new_ones(theta.shape[0], 1)], 1)[:, None, :]
+        per_fold = tuple(
+            zip(
+                (v @ test @ v.mT).flatten().tolist(),
+                (v @ test_pos @ v.mT).flatten().tolist(),
+                [int(self.rows[list(cells)].sum()) for cells in self.folds.folds],
+                strict=True,
+            )
+        )
+        total, total_pos, rows = (sum(f[i] for f in per_fold) for i in range(3))  # in order
         rot = None if self.rot is None else total - total_pos
-        return BlockedScore(total, total_pos, rot, rows, tuple(per_fold))
+        return BlockedScore(total, total_pos, rot, rows, per_fold)
 
     def gain_mm(self, without: BlockedScore, with_it: BlockedScore) -> float:
         """Drop of the blocked RMS error [mm] in the carry-over channel
@@ -332,6 +400,21 @@ class Blocked:
         return out
 
 
+def _selected(P: Tensor, idx: Tensor, last: Tensor) -> Tensor:
+    """``T^T P T`` of every cell's Gram ``P (cells, n + 1, n + 1)`` of ``[J r]`` with
+    ``T = [e_idx, last]``: the columns ``idx`` and, last, the residual column plus the
+    held columns times their shifts (``last (n + 1,)``), by indexing and one matrix-
+    vector product instead of two matrix products."""
+    k = idx.numel()
+    u = P @ last  # (cells, n + 1)
+    out = P.new_empty(P.shape[0], k + 1, k + 1)
+    out[:, :k, :k] = P[:, idx][:, :, idx]
+    out[:, :k, k] = u[:, idx]
+    out[:, k, :k] = u[:, idx]
+    out[:, k, k] = u @ last
+    return out
+
+
 def _rms_drop(a: float, b: float, rows: int) -> float:
     return math.sqrt(max(a, 0.0) / max(rows, 1)) - math.sqrt(max(b, 0.0) / max(rows, 1))
 
@@ -353,8 +436,26 @@ def _fold_fit(train: Tensor, test: Tensor, frames: Tensor, all_rows: Tensor) -> 
     return theta
 
 
+def _fold_fits(train: Tensor, test: Tensor, frames: Tensor, all_rows: Tensor) -> Tensor:
+    """:func:`_fold_fit` of every fold (``train``, ``test``: ``(folds, k + 1, k + 1)``),
+    ``(folds, k)``: the folds whose training rows see every frame column in one batched
+    solve, the others one by one."""
+    k = train.shape[-1] - 1
+    seen_all = all_rows.diagonal()[:k].clamp_min(1e-300)
+    unseen = frames & (train.diagonal(dim1=-2, dim2=-1)[:, :k] <= UNSEEN_SHARE * seen_all)
+    plain = ~unseen.any(1)
+    theta = train.new_zeros(train.shape[0], k)
+    if bool(plain.any()):
+        theta[plain] = _solve(train[plain][:, :k, :k], train[plain][:, :k, k])
+    for f in torch.nonzero(~plain).flatten().tolist():
+        theta[f] = _fold_fit(train[f], test[f], frames, all_rows)
+    return theta
+
+
 def _solve(H: Tensor, g: Tensor) -> Tensor:
-    """Minimum-norm ``-H^+ g`` of a Gram ``H``, equilibrated by its diagonal first."""
-    d = H.diagonal().clamp_min(1e-300).rsqrt()
-    y = torch.linalg.lstsq(H * d[:, None] * d[None, :], (g * d)[:, None], driver="gelsd")
-    return -d * y.solution[:, 0]
+    """Minimum-norm ``-H^+ g`` of a Gram ``H`` (or a batch), equilibrated by its
+    diagonal first."""
+    d = H.diagonal(dim1=-2, dim2=-1).clamp_min(1e-300).rsqrt()
+    A = H * d[..., :, None] * d[..., None, :]
+    y = torch.linalg.lstsq(A, (g * d)[..., None], driver="gelsd")
+    return -d * y.solution[..., 0]

@@ -109,9 +109,16 @@ def linearise(
     split: Split,
     folds: Folds | None,
     progress: Callable[[str], None] | None = None,
-) -> tuple[Problem, tuple[ParamBlock, ...], Tensor, Blocked | None]:
+    factor: bool = True,
+    candidates: int = 0,
+) -> tuple[Problem, tuple[ParamBlock, ...], Tensor | None, Blocked | None]:
     """One Jacobian of every free parameter of ``trial`` on the fit rows: the problem,
-    its blocks, the factor ``R`` of ``[J r]`` and the cell Grams of the blocked score."""
+    its blocks, a factor ``R`` of ``[J r]`` (None unless ``factor``: the blocked score
+    alone needs only the cell Grams) and the cell Grams of the blocked score.
+
+    ``candidates``: the last blocks are that many candidates; the factor's QR covers
+    only the columns before them, the rest is completed from the Gram
+    (:func:`.blocked.cell_factors`)."""
     fixed = set() if res.priors is None else set(res.priors.fixed_labels())
     blocks = param_blocks(trial, None, split.position_only)
     blocks = tuple(b for b in blocks if b.label not in fixed)
@@ -122,7 +129,8 @@ def linearise(
         trial, split.train, split.cond_fit, blocks, res.sigma_pos_mm, sig_r,
         row_weights=weights, progress=progress,
     )  # fmt: skip
-    R, pos, rot = cell_factors(problem, folds)
+    lead = sum(b.size for b in blocks[: len(blocks) - candidates]) if candidates else None
+    R, pos, rot = cell_factors(problem, folds, factor, lead)
     blocked = None
     if folds is not None:
         values = problem.x0 / problem.scale

@@ -31,14 +31,12 @@ import torch
 from hybrid_pk.calibration.diagnosis.blocked import Folds
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.statistics import equivalent_angle_error
+from hybrid_pk.calibration.structured_jacobian import point_jacobian
 from hybrid_pk.effects import ExtendedModel
 from hybrid_pk.effects.joint import CYCLIC_PREFIX
 
 __all__ = ["angle_error", "blocked_order_gains", "screen_cyclic"]
 
-# [rad] finite-difference step of the joint's point Jacobian: its truncation error
-# (~1e-6 of the lever) and round-off (~1e-16 / 1e-6 m) both stay far under a micrometre.
-_STEP = 1e-6
 # rows whose |J_j| is below this fraction of the median are left out: a row's angle
 # error is its position residual / |J_j|, so such a row carries over 5x the median
 # row's noise and under 4 % of its weight (|J_j|^2): noise, hardly information.
@@ -76,9 +74,10 @@ def screen_cyclic(
     with torch.no_grad():
         T0 = model(data.q, cond)
         r = data.position.to(T0.dtype) - T0[:, :3, 3]
+        J = point_jacobian(model, data.q, cond)
         kept = set()
         for joint, ns in orders.items():
-            got = angle_error(model, split, names.index(joint), T0, r, weights)
+            got = angle_error(J[:, :, names.index(joint)], split, names.index(joint), r, weights)
             if got is None:
                 continue  # the joint barely moves the point: no order to rank
             gains = blocked_order_gains(*got, folds, ns)
@@ -91,44 +90,52 @@ def blocked_order_gains(e, w, theta, rows, folds: Folds, ns: list[int]) -> dict[
     """Per order ``n``: the drop [mm] of the blocked RMS of ``e |J|`` when the sinusoid
     of ``n`` cycles per turn is fitted per block besides the constant."""
     cells = folds.cell[rows]
-    s = w.sqrt()
     cell_rows = torch.nn.functional.one_hot(cells, folds.n_cells).to(e.dtype).T.contiguous()
     n_rows = sum(int((cells[:, None] == torch.tensor(f)).any(1).sum()) for f in folds.folds)
     held = torch.zeros(len(folds.folds), folds.n_cells, dtype=e.dtype)  # fold x cell
     for i, f in enumerate(folds.folds):
         held[i, list(f)] = 1.0
+    # Per cell, the weighted Gram of [sin(n q), cos(n q), 1, e] of every order at once:
+    # products of the cell indicator with the rows' weighted products.
+    order = torch.tensor(ns, dtype=e.dtype)
+    S, C = torch.sin(theta[:, None] * order), torch.cos(theta[:, None] * order)  # (N, L)
+    wS, wC, we = w[:, None] * S, w[:, None] * C, w * e
+    per_order = {  # (i, j) entries of the Gram of [sin, cos, 1, e], summed per cell
+        (0, 0): S * wS, (0, 1): C * wS, (0, 2): wS, (0, 3): e[:, None] * wS,
+        (1, 1): C * wC, (1, 2): wC, (1, 3): e[:, None] * wC,
+    }  # fmt: skip
+    shared = {(2, 2): w, (2, 3): we, (3, 3): we * e}
+    grams = e.new_empty(folds.n_cells, len(ns), 4, 4)
+    for (i, j), x in per_order.items():
+        grams[:, :, i, j] = grams[:, :, j, i] = cell_rows @ x
+    for (i, j), x in shared.items():
+        grams[:, :, i, j] = grams[:, :, j, i] = (cell_rows @ x)[:, None]
+    base = _blocked_rms(grams[:, :1, 2:, 2:], held, n_rows)[0]  # the constant alone
+    gains = base - _blocked_rms(grams, held, n_rows)
+    return dict(zip(ns, gains.tolist(), strict=True))
 
-    def blocked_rms(A):  # A: (N, k) regressors; the Gram of [A*s, e*s] per cell
-        M = torch.cat([A, e[:, None]], 1) * s[:, None]
-        p, k = M.shape[1], A.shape[1]  # the cell indicator times the outer products
-        grams = (cell_rows @ (M[:, :, None] * M[:, None, :]).reshape(-1, p * p)).reshape(-1, p, p)
-        test = (held @ grams.reshape(-1, p * p)).reshape(-1, p, p)  # every fold at once
-        train = grams.sum(0) - test
-        coef = torch.linalg.lstsq(train[:, :k, :k], train[:, :k, k:], driver="gelsd").solution
-        v = torch.cat([-coef, coef.new_ones(len(test), 1, 1)], 1)  # (folds, p, 1)
-        ssr = float((v.transpose(1, 2) @ test @ v).sum())
-        return 1000.0 * (max(ssr, 0.0) / max(n_rows, 1)) ** 0.5  # m -> mm
 
-    ones = torch.ones_like(theta)[:, None]
-    base = blocked_rms(ones)
-    out = {}
-    for n in ns:
-        A = torch.stack([torch.sin(n * theta), torch.cos(n * theta), ones[:, 0]], 1)
-        out[n] = base - blocked_rms(A)
-    return out
+def _blocked_rms(grams, held, n_rows: int):
+    """Blocked RMS [mm] per order of the residual of ``e`` after its regressors, each
+    fitted on the other blocks: ``grams (cells, L, p, p)``, the Gram of ``[A e]`` per
+    cell (regressors first), ``held (folds, cells)`` the cells each fold holds out."""
+    cells, L, p = grams.shape[0], grams.shape[1], grams.shape[-1]
+    test = (held @ grams.reshape(cells, -1)).reshape(-1, L, p, p)  # every fold at once
+    train = grams.sum(0) - test
+    k = p - 1
+    coef = torch.linalg.lstsq(train[..., :k, :k], train[..., :k, k:], driver="gelsd").solution
+    v = torch.cat([-coef, coef.new_ones(*coef.shape[:2], 1, 1)], -2)  # (folds, L, p, 1)
+    ssr = (v.transpose(-1, -2) @ test @ v)[..., 0, 0].sum(0)  # (L,)
+    return 1000.0 * (ssr.clamp_min(0.0) / max(n_rows, 1)).sqrt()  # m -> mm
 
 
-def angle_error(model, split, j, T0, r, weights):
-    """``(e, w, theta, rows)`` of the rows where joint ``j`` moves the measured point:
-    the angle error [rad] that best explains each row's position residual ``r (n, 3)``
-    [m], its weight ``|J_j|²`` (times the robust row weight), the joint angle and the
-    mask of those fit rows; None for too few such rows. ``T0``: the model's poses at
-    the fit rows."""
-    data, cond = split.train, split.cond_fit
-    dq = torch.zeros_like(data.q)
-    dq[:, j] = _STEP
-    T1 = model(data.q + dq, cond)
-    J = (T1[:, :3, 3] - T0[:, :3, 3]) / _STEP  # (n, 3) [m/rad]
+def angle_error(J, split, j, r, weights):
+    """``(e, w, theta, rows)`` of the rows where joint ``j`` moves the measured point
+    (``J (n, 3)`` [m/rad], :func:`point_jacobian`): the angle error [rad] that best
+    explains each row's position residual ``r (n, 3)`` [m], its weight ``|J_j|²``
+    (times the robust row weight), the joint angle and the mask of those fit rows;
+    None for too few such rows."""
+    data = split.train
     e, w, rows = equivalent_angle_error(J, r, _MIN_LEVER)
     if int(rows.sum()) < _MIN_ROWS:
         return None

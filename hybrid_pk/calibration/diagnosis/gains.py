@@ -53,6 +53,7 @@ def measure_causes(
     """
     pos1, ori1 = errors
     causes = []
+    full = _full_ssr(model, res, split)  # the full model's, the same for every cause
     for e in model.effects:
         say = None
         if progress is not None:
@@ -63,7 +64,7 @@ def measure_causes(
         pos_r, ori_r = model_errors(reduced, split.test, split.cond_hold)
         step = next(s for s in steps if s["candidate"] == e.label and s.get("accepted"))
         cause = _cause(e, res, step, alpha, (pos1, ori1), (pos_r, ori_r))
-        _add_gains(cause, (model, reduced), res, split, (blocked or {}).get(e.label))
+        _add_gains(cause, (full, reduced), res, split, (blocked or {}).get(e.label))
         if e.kind.startswith(CYCLIC_PREFIX):
             q = split.train.q[:, e.joint_index]
             cause.fitted_range_rad = [float(q.min()), float(q.max())]
@@ -104,20 +105,31 @@ def _cause(
     )
 
 
+def _full_ssr(model: ExtendedModel, res: FitResult, split: Split) -> tuple[float, float]:
+    """The full model's weighted sums of squares on the fit and the hold-out rows, in
+    the carry-over channel."""
+    position = position_channel()
+    return (
+        weighted_ssr(model, split.train, split.cond_fit, res, position),
+        weighted_ssr(model, split.test, split.cond_hold, res, position),
+    )
+
+
 def _add_gains(cause: Cause, models, res: FitResult, split: Split, blocked: dict | None):
-    """The cause's in-sample, random and blocked hold-out RMS gains [mm]."""
-    model, reduced = models
+    """The cause's in-sample, random and blocked hold-out RMS gains [mm]. ``models``:
+    the full model's :func:`_full_ssr` and the model without the cause."""
+    (full_fit, full_hold), reduced = models
     sig = res.sigma_pos_mm
 
     position = position_channel()
 
-    def rms_drop(data, cond) -> float:
+    def rms_drop(data, cond, full: float) -> float:
         without = weighted_ssr(reduced, data, cond, res, position) / max(data.n, 1)
-        with_it = weighted_ssr(model, data, cond, res, position) / max(data.n, 1)
+        with_it = full / max(data.n, 1)
         return sig * (max(without, 0.0) ** 0.5 - max(with_it, 0.0) ** 0.5)
 
-    cause.in_sample_gain_mm = rms_drop(split.train, split.cond_fit)
-    cause.random_holdout_gain_mm = rms_drop(split.test, split.cond_hold)
+    cause.in_sample_gain_mm = rms_drop(split.train, split.cond_fit, full_fit)
+    cause.random_holdout_gain_mm = rms_drop(split.test, split.cond_hold, full_hold)
     if blocked is not None:
         cause.blocked_holdout_gain_mm = blocked["gain_mm"]
         cause.blocked_position_gain_mm = blocked["position_mm"]

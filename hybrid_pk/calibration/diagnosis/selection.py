@@ -134,8 +134,10 @@ class Scores:
         threshold: Bonferroni level ``alpha / (len(scored) + screened)``.
         unobservable: candidates without any signature in this data.
         equivalent: ambiguity entries of candidates that a frame or effect absorbs.
-        R: ``(n + 1, n + 1)`` triangular factor of ``[J r]`` of the current model and
-            every candidate (``blocks``), for the Gauss–Newton start of a refit.
+        R: ``(n + 1, n + 1)`` factor of ``[J r]`` (``R^T R = [J r]^T [J r]``) of the
+            current model and every candidate (``blocks``): the current model's
+            columns by QR, the candidates' completed from the Gram
+            (:func:`.blocked.cell_factors`), for the Gauss–Newton start of a refit.
         blocked, margin, carry: the cell Grams of the blocked hold-out, the practical
             margin [mm] and each candidate's blocked gain [mm] (empty without blocks).
     """
@@ -191,9 +193,11 @@ def score_candidates(
     robot = model.robot
     trial = with_effects(model, [make_effect(robot, c) for c in pool])
     folds = None if carry is None else carry.folds
-    problem, blocks, R, blocked = linearise(trial, res, split, folds, progress)
-    # [J r] = Q R: R's columns stand for J's and r's (same norms, inner products and
-    # projections) with n + 1 rows instead of m.
+    problem, blocks, R, blocked = linearise(
+        trial, res, split, folds, progress, candidates=len(pool)
+    )
+    # R^T R = [J r]^T [J r]: R's columns stand for J's and r's (same norms, inner
+    # products and projections) with n + 1 rows instead of m.
     J, r = R[:, :-1], R[:, -1]
     current_blocks = blocks[: len(blocks) - len(pool)]
     n_cur = sum(b.size for b in current_blocks)
@@ -264,7 +268,13 @@ def gauss_newton_start(scores: Scores, label: str) -> dict[str, Tensor]:
         start += b.size
     idx = torch.cat(cols)
     J, r = scores.R[:, idx], scores.R[:, -1:]
-    step = -torch.linalg.lstsq(J, r, driver="gelsd").solution[:, 0]
+    norms = J.norm(dim=0)
+    unit = torch.where(norms > 0, norms, torch.ones_like(norms))
+    # Directions weaker than RANK_TOLERANCE of the strongest (columns at unit norm) stay
+    # where they are: the score test counts none of them, and the factor (its candidate
+    # columns completed from the Gram) resolves them only to ~1e-5.
+    fit = torch.linalg.lstsq(J / unit, r, rcond=RANK_TOLERANCE, driver="gelsd")
+    step = -fit.solution[:, 0] / unit
     out, s0 = {}, 0
     for lbl, size in labels:
         out[lbl] = step[s0 : s0 + size]

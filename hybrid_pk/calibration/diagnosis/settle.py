@@ -98,7 +98,7 @@ def settle(
         extra = sorted({a for v in alts.values() for a in v})
         trial = with_effects(model, [make_effect(model.robot, a) for a in extra])
         say("blocked hold-out gain of each cause")
-        blocked = linearise(trial, res, split, carry.folds, say)[3]
+        blocked = linearise(trial, res, split, carry.folds, say, factor=False)[3]
         gains = removal_gains(blocked, labels)
         margin = carry.margin(res)
         drop, why = _unresolved(blocked, labels, alts, margin, ambiguous)

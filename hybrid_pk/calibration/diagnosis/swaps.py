@@ -104,7 +104,7 @@ def _blocked(model, res, split, carry, say):
     block) under ``res``'s noise weights; None without blocks."""
     if carry.folds is None:
         return None
-    blocked = linearise(model, res, split, carry.folds, say)[3]
+    blocked = linearise(model, res, split, carry.folds, say, factor=False)[3]
     return blocked.of([e.label for e in model.effects]), blocked
 
 
@@ -117,7 +117,7 @@ def _drop_split_duplicates(model, res, pairs, split, carry, steps, say):
         if not set(pair) <= set(labels) or len(labels) < 3 or carry.folds is None:
             continue
         say(f"testing whether one of {' and '.join(pair)} only splits the other's signature")
-        blocked = linearise(model, res, split, carry.folds, say)[3]
+        blocked = linearise(model, res, split, carry.folds, say, factor=False)[3]
         margin = carry.margin(res)
         worst = weakest(blocked, labels, margin, keep=None, only=pair)
         if worst is None:
