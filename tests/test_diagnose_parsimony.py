@@ -79,8 +79,8 @@ def test_a_tilt_that_only_carries_an_offset_gives_way_to_the_offset():
     exactly the z component of a joint_5 axis tilt. When the search has chosen the tilt
     (two parameters), the swap pass must trade it for the offset (one parameter, the
     same fit): the same cause count, fewer parameters."""
-    from hybrid_pk.calibration.diagnosis.blocked import make_folds
     from hybrid_pk.calibration.diagnosis.carryover import Carry
+    from hybrid_pk.calibration.diagnosis.regions import make_folds
     from hybrid_pk.calibration.diagnosis.split import split_campaign
     from hybrid_pk.calibration.diagnosis.swaps import prefer_fewer_causes
     from hybrid_pk.calibration.fit import fit

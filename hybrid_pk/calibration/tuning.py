@@ -42,11 +42,6 @@ class DiagnosisTuning:
     carry_over_channel: Literal["position", "pose"] = "pose"
     # Lloyd iterations of the regions' k-means: they need to be contiguous, not optimal
     kmeans_iterations: int = 25
-    # k-means++ starts the regions are the tightest of (least within-region spread):
-    # one start ends in a local minimum that depends on the seed, so the regions, and the
-    # causes judged on them, were the seed's rather than the data's; ten starts, the
-    # customary count, make a start near the best one all but certain
-    kmeans_starts: int = 10
 
     # The search (diagnosis.search, elimination, ambiguity, selection):
     # a candidate whose refit fails is set aside; after this many in a row the model,

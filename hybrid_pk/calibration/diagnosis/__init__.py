@@ -11,6 +11,7 @@ The search (:func:`diagnose`, in :mod:`.search`) is built of named steps:
 - :mod:`.result`: :class:`Cause`, :class:`Diagnosis` and their JSON;
 - :mod:`.statistics`, :mod:`.variants`: F-tests and the model variants compared;
 - :mod:`.blocked`, :mod:`.carryover`: the blocked hold-out and its practical margin;
+- :mod:`.regions`: the regions of joint space (and files) it leaves out in turn;
 - :mod:`.noise`: the measurement noise behind the margin, from close pairs of poses;
 - :mod:`.power`: what the data cannot show (detection limits, too little data);
 - :mod:`.stability`: the same rows diagnosed with other seeds (``--stability N``);

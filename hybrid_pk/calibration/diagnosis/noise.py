@@ -11,7 +11,7 @@ the median over the pairs divided by the median of ``chi^2_3`` estimates ``sigma
 variances are pooled, weighted by their pairs.
 
 Closeness is measured in metres of point motion: each joint's angle difference times
-its median lever (:func:`.blocked.joint_levers`), so a wrist joint that hardly moves
+its median lever (:func:`.regions.joint_levers`), so a wrist joint that hardly moves
 the point does not make a pair look far apart. Where no pair is close, the change of
 the systematic error between its poses adds to the estimate: it is an upper bound of
 the noise there, and the diagnosis caps it by the fit's sigma.
@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import torch
 
-from hybrid_pk.calibration.diagnosis.blocked import joint_levers
+from hybrid_pk.calibration.diagnosis.regions import joint_levers
 from hybrid_pk.calibration.fit import predicted_poses
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel

@@ -21,7 +21,6 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from hybrid_pk.calibration.diagnosis.ambiguity import correlated_groups, near_duplicates
-from hybrid_pk.calibration.diagnosis.blocked import make_folds
 from hybrid_pk.calibration.diagnosis.budget import Budget
 from hybrid_pk.calibration.diagnosis.carryover import Carry, weakest
 from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic
@@ -35,6 +34,7 @@ from hybrid_pk.calibration.diagnosis.power import (
     detection_limits,
     frame_parameters,
 )
+from hybrid_pk.calibration.diagnosis.regions import make_folds
 from hybrid_pk.calibration.diagnosis.result import (
     Cause,
     Diagnosis,
