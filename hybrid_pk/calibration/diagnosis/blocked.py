@@ -261,6 +261,8 @@ class Blocked:
             last[:n] = torch.where(free, torch.zeros_like(shift), shift)
         pos = _selected(self.pos, idx, last)
         both = pos if self.rot is None else pos + _selected(self.rot, idx, last)
+        if not self.folds.folds:  # the whole campaign as one cell: nothing held out
+            return BlockedScore(0.0, 0.0, None if self.rot is None else 0.0, 0)
         frames = self.frame_cols[idx]
         all_cells = both.sum(0)
         test = torch.stack([both[list(cells)].sum(0) for cells in self.folds.folds])
