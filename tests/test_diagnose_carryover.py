@@ -15,7 +15,7 @@ import pytest
 import torch
 
 import hybrid_pk as hpk
-from hybrid_pk.calibration.diagnosis.blocked import Blocked, Folds, practical_margin
+from hybrid_pk.calibration.diagnosis.blocked import Blocked, BlockedScore, Folds, practical_margin
 from hybrid_pk.calibration.diagnosis.search import diagnose
 from hybrid_pk.calibration.problem import ParamBlock
 from hybrid_pk.effects import make_effect
@@ -66,6 +66,9 @@ def test_linearised_blocked_score_matches_refits_per_block():
         assert d == pytest.approx(math.sqrt(before / n_c) - math.sqrt(after / n_c), rel=1e-12)
     assert b.parts(nothing, score)["blocks_gained"] == sum(d > 0 for d in drops)
     assert b.parts(nothing, score)["blocks"] == 4
+    # no block held out (the whole campaign as one cell): nothing to score
+    whole = dataclasses.replace(b, folds=Folds(cell, 4, (), {}))
+    assert whole.score(torch.ones(p, dtype=torch.bool)) == BlockedScore(0.0, 0.0, None, 0)
 
 
 def test_an_unresolved_cyclic_order_is_never_named():
