@@ -54,9 +54,9 @@ ENV = "HYBRID_PK_THREADS"
 ROWS_PER_THREAD = 32_768 // 16
 # The fits and the diagnosis are many small operations (per joint, per parameter block,
 # per held-out block), none larger than one chunk of rows (calibration.problem), so
-# their size does not grow with the campaign's. Measured on 2 cores, a second thread
-# bought nothing at full chunks (13,406 UR10 rows: diagnosis 41.1 s on one thread,
-# 42.7 s on two; calibrate 11.0 / 11.1 s) and takes a core another job needs.
+# their size does not grow with the campaign's. Measured on 2 cores (bench/threads.py),
+# a second thread bought nothing (a fit of 13,406 / 50,000 rows 0.95x / 1.06x, the
+# diagnosis of 13,406 rows 1.00x) and takes a core another job needs.
 FIT_THREADS = 1
 _TORCH = "torch"  # HYBRID_PK_THREADS=torch / --threads torch: torch's own setting
 _state = {"explicit": None, "depth": 0}  # threads fixed by --threads / env; nesting
@@ -171,9 +171,8 @@ def work_threads(rows: int | None, at_most: int | None = None) -> Iterator[int]:
     if _state["depth"] or choice == _TORCH:
         yield previous
         return
-    n = choice if isinstance(choice, int) else min(threads_for(rows), previous)
-    if at_most is not None and not isinstance(choice, int):
-        n = min(n, at_most)
+    cap = previous if at_most is None else min(previous, at_most)
+    n = choice if isinstance(choice, int) else min(threads_for(rows), cap)
     _state["depth"] += 1
     try:
         if n != previous:

@@ -148,11 +148,8 @@ def summary_lines(diagnosis, seconds: float | None = None, runs: int = 1) -> lis
 
 def run(args: argparse.Namespace) -> int:
     from hybrid_pk.calibration.diagnosis import diagnose
-    from hybrid_pk.calibration.diagnosis.stability import (
-        cause_labels,
-        seed_stability,
-        stability_lines,
-    )
+    from hybrid_pk.calibration.diagnosis.result import cause_labels
+    from hybrid_pk.calibration.diagnosis.stability import seed_stability, stability_lines
     from hybrid_pk.effects import make_effect
 
     settings = settings_of(args, DiagnosisSettings)

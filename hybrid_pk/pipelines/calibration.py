@@ -17,6 +17,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from hybrid_pk.calibration.diagnosis import Diagnosis, diagnose
+from hybrid_pk.calibration.diagnosis.result import cause_labels
 from hybrid_pk.calibration.fit import FitResult, fit
 from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.calibration.known_frames import initialise_with_priors
@@ -81,11 +82,6 @@ def refit_frames(
     """
     initialise_with_priors(model, data, cond, priors, which=which)
     return fit(model, data, free=list(FRAME_LABELS[which]), cond=cond, frames=priors, robust=robust)
-
-
-def cause_labels(diag: Diagnosis) -> list[str]:
-    """The diagnosed causes as effect labels (``kind:joint`` or ``kind``)."""
-    return [c.effect if c.joint is None else f"{c.effect}:{c.joint}" for c in diag.causes]
 
 
 def calibrate(

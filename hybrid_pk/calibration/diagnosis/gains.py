@@ -134,8 +134,7 @@ def _add_gains(cause: Cause, models, res: FitResult, split: Split, blocked: dict
         cause.blocked_holdout_gain_mm = blocked["gain_mm"]
         cause.blocked_position_gain_mm = blocked["position_mm"]
         cause.blocked_orientation_gain_deg = blocked.get("orientation_deg")
-        if "blocks" in blocked:
-            cause.blocked_blocks = {"gained": blocked["blocks_gained"], "of": blocked["blocks"]}
+        cause.blocked_blocks = {"gained": blocked["blocks_gained"], "of": blocked["blocks"]}
         own = blocked.get("own_range")  # a periodic cause: the ends of its joint's range
         if own is not None:
             cause.own_range_gain_mm = own["gain_mm"]

@@ -18,6 +18,7 @@ from hybrid_pk.evaluation.metrics import error_stats
 __all__ = [
     "Cause",
     "Diagnosis",
+    "cause_labels",
     "gravity_json",
     "identifiability_json",
     "report_value",
@@ -129,6 +130,11 @@ class Diagnosis:
             "budget": self.budget,
             "detectable": self.detectable,
         }
+
+
+def cause_labels(diag: Diagnosis) -> list[str]:
+    """The diagnosed causes as effect labels (``kind:joint`` or ``kind``)."""
+    return [c.effect if c.joint is None else f"{c.effect}:{c.joint}" for c in diag.causes]
 
 
 def gravity_json(model: ExtendedModel) -> dict:

@@ -16,17 +16,12 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Callable
 
-from hybrid_pk.calibration.diagnosis.result import Diagnosis
+from hybrid_pk.calibration.diagnosis.result import Diagnosis, cause_labels
 from hybrid_pk.calibration.diagnosis.search import diagnose
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.robot import Robot
 
-__all__ = ["cause_labels", "seed_stability", "stability_lines"]
-
-
-def cause_labels(result: Diagnosis) -> list[str]:
-    """``effect:joint`` (or ``effect``) of every cause, in the result's order."""
-    return [c.effect + (f":{c.joint}" if c.joint else "") for c in result.causes]
+__all__ = ["seed_stability", "stability_lines"]
 
 
 def seed_stability(
