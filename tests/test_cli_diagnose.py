@@ -78,6 +78,8 @@ def test_diagnose_writes_contract_json_summary_and_report(table, tmp_path, capsy
         assert set(result[model]["orientation_deg"]) == STATS
     assert {"position_mm_rms", "orientation_deg_rms", "structured"} <= set(result["unexplained"])
     assert isinstance(result["unexplained"]["structured"], bool)
+    along = result["unexplained"]["along_joints"]
+    assert along == []  # 50 hold-out rows: fewer than two bins of 50
     [cause] = result["causes"]
     assert CAUSE_KEYS <= set(cause)
     assert (cause["effect"], cause["joint"], cause["unit"]) == (
@@ -94,6 +96,7 @@ def test_diagnose_writes_contract_json_summary_and_report(table, tmp_path, capsy
     assert "joint_compliance joint_2 = " in captured.out
     assert "± " in captured.out
     assert "structured: " in captured.out
+    assert "left error along the joints" not in captured.out
     # Progress on stderr (not a terminal here: one line per stage, elapsed seconds).
     assert "diagnose [" in captured.err
     assert " s] fitting base and tool frames" in captured.err

@@ -7,6 +7,7 @@ import json
 import math
 from pathlib import Path
 
+from hybrid_pk.calibration.diagnosis.statistics import along_joints_text
 from hybrid_pk.calibration.settings import DiagnosisSettings
 from hybrid_pk.cli.common import load_robot, mounting_lines, read_data
 from hybrid_pk.cli.fit_settings import diagnosis_notes, print_settings, settings_of
@@ -143,6 +144,9 @@ def summary_lines(diagnosis, seconds: float | None = None, runs: int = 1) -> lis
         else "; structured: no (looks like measurement noise)"
     )
     lines.append(rest)
+    along = along_joints_text(un.get("along_joints"))
+    if along is not None:
+        lines.append(f"  left error along the joints: {along}")
     return lines + diagnosis_notes(diagnosis)
 
 

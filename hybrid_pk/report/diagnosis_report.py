@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from hybrid_pk.calibration.diagnosis.carryover import margin_text
+from hybrid_pk.calibration.diagnosis.statistics import along_joints_text
 from hybrid_pk.calibration.fit import model_errors
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import conditions_from_data
@@ -210,6 +211,17 @@ def _what_is_left(diagnosis, data, robot: Robot, out: Path, ext) -> list[str]:
         f" {fmt(un.get('orientation_deg_rms'))} deg. {text}"
         + (f" (neighbour correlation {fmt(corr, 3)})" if corr is not None else ""),
         "",
+    ]
+    along = along_joints_text(un.get("along_joints"))
+    if along is not None:
+        lines += [
+            f"How much of it varies along each joint alone: {along}. A share far above "
+            "the noise's on the first joint means the error is not the same at every turn "
+            "of the arm: a residual network that assumes it is (inputs without joint 1) "
+            "cannot carry it to joint-1 angles it was not trained on.",
+            "",
+        ]
+    lines += [
         "Hold-out errors against each joint (black: binned median; dashed red: the mean "
         "error measurement noise alone would give). Flat medians on the dashed line mean "
         "nothing structured remains.",

@@ -48,7 +48,12 @@ from hybrid_pk.calibration.diagnosis.selection import (
 )
 from hybrid_pk.calibration.diagnosis.settle import entry_rivals, settle, unresolved_entry
 from hybrid_pk.calibration.diagnosis.split import Split, split_campaign
-from hybrid_pk.calibration.diagnosis.statistics import neighbour_structure, residual_vectors
+from hybrid_pk.calibration.diagnosis.statistics import (
+    along_joints,
+    in_link_1,
+    neighbour_structure,
+    residual_vectors,
+)
 from hybrid_pk.calibration.diagnosis.structural import implausibility, structural_check
 from hybrid_pk.calibration.diagnosis.swaps import prefer_fewer_causes
 from hybrid_pk.calibration.diagnosis.variants import with_effects, without_effect
@@ -417,7 +422,8 @@ def _robust_json(res: FitResult, data: MeasuredData, split: Split) -> dict | Non
 
 
 def _unexplained(model: ExtendedModel, split: Split, errors: tuple) -> dict:
-    """RMS of what the model leaves on the hold-out rows, and whether it is smooth."""
+    """RMS of what the model leaves on the hold-out rows, whether it is smooth, and how
+    much of it varies along each joint."""
     pos1, ori1 = errors
     residual_hold = residual_vectors(model, split.test, split.cond_hold)
     lower, upper = model.robot.joint_limits
@@ -427,6 +433,11 @@ def _unexplained(model: ExtendedModel, split: Split, errors: tuple) -> dict:
         "orientation_deg_rms": None if ori1 is None else float(ori1.pow(2).mean().sqrt()),
         "structured": structured,
         "neighbour_correlation": nn_corr,
+        "along_joints": along_joints(
+            in_link_1(model, split.test, split.cond_hold, residual_hold),
+            split.test.q,
+            model.robot.joint_names,
+        ),
     }
 
 

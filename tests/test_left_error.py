@@ -1,0 +1,70 @@
+"""What the extended model leaves, binned along each joint (the diagnosis'
+``unexplained.along_joints``): the joint an error varies along carries it, the others
+stay near the noise's share, and an error that turns with the arm is the same at every
+joint-1 angle once in the first link's axes. Errors drawn at random per run
+(``tests.helpers.run_rng``)."""
+
+from __future__ import annotations
+
+import torch
+
+import hybrid_pk as hpk
+from hybrid_pk.calibration.diagnosis.statistics import along_joints, along_joints_text, in_link_1
+from hybrid_pk.effects import Conditions, ExtendedModel
+from hybrid_pk.geometry import so3_exp, transform
+from tests.helpers import run_rng
+
+
+def _q(robot: hpk.Robot, n: int, seed: int) -> torch.Tensor:
+    return robot.sample_q(n, torch.Generator().manual_seed(seed))
+
+
+def test_the_joint_an_error_varies_along_carries_it():
+    rng = run_rng("along_joints")
+    robot = hpk.Robot.from_urdf("ur10")
+    q = _q(robot, 3000, int(rng.integers(1 << 30)))
+    joint, amp = int(rng.integers(6)), float(rng.uniform(0.05, 0.3))  # mm
+    g = torch.Generator().manual_seed(int(rng.integers(1 << 30)))
+    r = 0.01 * torch.randn(3000, 3, generator=g, dtype=torch.float64)
+    r[:, int(rng.integers(3))] += amp * torch.cos(q[:, joint])
+    shares = along_joints(r, q, robot.joint_names)
+    assert shares[0]["joint"] == robot.joint_names[joint], (joint, shares)
+    signal, noise = amp**2 / 2, 3 * 1e-4
+    assert shares[0]["share"] > 0.9 * signal / (signal + noise), (amp, shares[0])
+    for e in shares[1:]:  # the others: noise's share, within a few times its spread
+        assert e["share"] < 4 * e["chance"], (joint, e)
+    assert "noise alone" in along_joints_text(shares)
+
+
+def test_an_error_that_turns_with_the_arm_is_flat_along_joint_1_in_link_1():
+    rng = run_rng("in_link_1")
+    robot = hpk.Robot.from_urdf("ur10")
+    model = ExtendedModel(robot)
+    with torch.no_grad():
+        R = so3_exp(torch.as_tensor(rng.normal(0, 1, 3), dtype=torch.float64))
+        model.base.reset_to(transform(R, torch.as_tensor(rng.normal(0, 1, 3))))
+    q = _q(robot, 2000, int(rng.integers(1 << 30)))
+    data = hpk.MeasuredData(
+        q=q,
+        position=torch.zeros(2000, 3, dtype=torch.float64),
+        quat=None,
+        joint_names=robot.joint_names,
+        file_index=torch.zeros(2000, dtype=torch.long),
+        rows=torch.arange(1, 2001),
+        sources=("sim",),
+    )
+    # a fixed error across joint 1's axis in the first link's axes (e.g. a link too
+    # long): seen from the tracker it turns with joint 1
+    R_1 = robot.link_frames(q)[:, 0, :3, :3]
+    rel = R_1[0].T @ R_1[1]  # a turn about joint 1's axis, in link-1 axes
+    axis = torch.stack([rel[2, 1] - rel[1, 2], rel[0, 2] - rel[2, 0], rel[1, 0] - rel[0, 1]])
+    axis = axis / axis.norm()
+    e = torch.as_tensor(rng.normal(0, 0.1, 3), dtype=torch.float64)
+    e = e - (e @ axis) * axis
+    seen = (model.base.matrix()[0, :3, :3] @ R_1 @ e[:, None])[..., 0]
+    in_tracker = along_joints(seen, q, robot.joint_names)
+    assert in_tracker[0]["joint"] == robot.joint_names[0], in_tracker
+    assert in_tracker[0]["share"] > 0.5, in_tracker[0]
+    turned = in_link_1(model, data, Conditions(), seen)
+    torch.testing.assert_close(turned, e.expand(2000, 3), atol=1e-12, rtol=0)
+    assert all(x["share"] < 1e-12 for x in along_joints(turned, q, robot.joint_names))
