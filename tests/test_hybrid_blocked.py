@@ -149,6 +149,13 @@ def test_decide_frees_a_stage_only_on_a_clear_gain_on_every_family_of_blocks():
     assert out[1]["mode"] == "gated"  # a loss on one family: the invariance fails there,
     assert "shrunk" not in out[1]  # and no shrink frees it
     assert out[2]["mode"] == "gated"  # a gain within the noise on one family
+    # the evidence is kept per family: the failing family of stage 1 is joint 1's ends
+    assert {f: v["beats"] for f, v in out[1]["families"].items()} == {
+        "joint 1": False,
+        "lift": True,
+    }
+    v = out[0]["families"]["joint 1"]
+    assert v["rows"] == 200 and abs(v["gain"] - 0.1) < 4 * v["se"] and v["z"] > 2
     assert beats(torch.zeros(200, dtype=F64) + noise[:200], 0.1 + noise[:200])
     assert not beats(noise[:200], noise[200:])
 

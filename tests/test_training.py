@@ -157,9 +157,12 @@ def test_cli_train_writes_a_model_that_evaluate_reads(files, rx160, campaign, tm
     # the default stages on physics inputs were probed on blocked hold-out: the decision
     # printed, in the metadata and with each stage in the networks
     assert "blocked hold-out (" in captured.out
+    assert "free against gated, per family of blocks" in captured.out
     blocked = loaded.metadata["training"]["blocked"]
     assert blocked
     assert {r["mode"] for r in blocked.values()} <= {"gated", "free", "shrunk"}
+    for r in blocked.values():  # freed only where every family's gain is clear
+        assert (r["mode"] != "gated") == all(v["beats"] for v in r["families"].values())
     assert [s.blocked for s in hybrid.stages if s.blocked] == list(blocked.values())
     cond = conditions_from_data(campaign)
     err = pose_error(campaign.T_measured(), predict_poses(loaded, campaign, cond))

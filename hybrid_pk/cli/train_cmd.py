@@ -15,6 +15,7 @@ from hybrid_pk.cli.options import (
 from hybrid_pk.cli.progress import progress
 from hybrid_pk.cli.settings_flags import add_settings_flags, given_values
 from hybrid_pk.errors import HybridPKError
+from hybrid_pk.hybrid.tuning import hybrid_tuning
 from hybrid_pk.io.model_file import NOMINAL_PREFIX, load_model, model_robot
 from hybrid_pk.pipelines.training import (
     TrainSettings,
@@ -203,3 +204,14 @@ def _print_blocked(blocked: dict) -> None:
         )
         where = "used beyond its training joints" if record["mode"] != "gated" else "gated"
         print(f"  {name.split(':', 1)[1]}: {record['mode']} ({where}); {tried}")
+        families = record.get("families") or {}
+        if families:
+            z = hybrid_tuning().freeing_z
+            print(
+                f"    free against gated, per family of blocks (z of the mean gain; frees at "
+                f"> {z:g} on every family): "
+                + ", ".join(
+                    f"{f} z {v['z']:+.2g}" + ("" if v["beats"] else " (no)")
+                    for f, v in families.items()
+                )
+            )

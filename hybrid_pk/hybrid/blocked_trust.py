@@ -37,7 +37,7 @@ from hybrid_pk.hybrid.coverage import Coverage
 from hybrid_pk.hybrid.inputs import InputBox
 from hybrid_pk.hybrid.tuning import hybrid_tuning
 
-__all__ = ["MODES", "JointGate", "beats", "decide"]
+__all__ = ["MODES", "JointGate", "beats", "decide", "verdict"]
 
 MODES = ("gated", "free", "shrunk")
 
@@ -104,10 +104,20 @@ Scorer = Callable[[dict[int, str]], tuple[dict[str, Tensor], dict[str, float]]]
 def beats(candidate: Tensor, reference: Tensor) -> bool:
     """Whether per-row scores ``candidate (n,)`` are lower than ``reference (n,)`` (the
     same rows) by at least the tuning's ``freeing_z`` standard errors of the mean difference."""
+    return verdict(candidate, reference)["beats"]
+
+
+def verdict(candidate: Tensor, reference: Tensor) -> dict:
+    """The evidence :func:`beats` decides on: rows, the mean drop of the per-row score
+    from ``reference`` to ``candidate`` (a share of the physics' error per channel,
+    summed over the channels), its standard error, ``z`` (their ratio) and ``beats``."""
     d = (reference - candidate).to(torch.float64)
     if d.numel() < 2:
-        return False
-    return bool(d.mean() > hybrid_tuning().freeing_z * d.std() / d.numel() ** 0.5)
+        return {"rows": int(d.numel()), "gain": 0.0, "se": 0.0, "z": 0.0, "beats": False}
+    gain, se = float(d.mean()), float(d.std()) / d.numel() ** 0.5
+    z = gain / max(se, 1e-300)  # finite for the JSON; no spread: the sign decides
+    rows = int(d.numel())
+    return {"rows": rows, "gain": gain, "se": se, "z": z, "beats": z > hybrid_tuning().freeing_z}
 
 
 def decide(stages: list[int], spread: set[int], score: Scorer) -> dict[int, dict]:
@@ -121,7 +131,8 @@ def decide(stages: list[int], spread: set[int], score: Scorer) -> dict[int, dict
             ends, the files) and the mean errors to report (``position_mm``, ...).
 
     Returns:
-        ``{stage: {"mode": ..., "<mode>": errors of that choice}}``. ``free`` is taken
+        ``{stage: {"mode": ..., "families": {family: verdict of free against gated},
+        "<mode>": errors of that choice}}``. ``free`` is taken
         only if it :func:`beats` ``gated`` on every family (each invariance the stage
         assumes holds); a freed stage with a spread is ``shrunk`` if that beats
         ``free`` on all the blocked rows (the shrink alone never frees a stage: it only
@@ -132,11 +143,13 @@ def decide(stages: list[int], spread: set[int], score: Scorer) -> dict[int, dict
     for i in stages:
         tried = {m: score({**modes, i: m}) for m in ("gated", "free")}
         gated, free = tried["gated"][0], tried["free"][0]
-        best = "free" if all(beats(free[f], gated[f]) for f in gated) else "gated"
+        families = {f: verdict(free[f], gated[f]) for f in gated}
+        best = "free" if all(v["beats"] for v in families.values()) else "gated"
         if best == "free" and i in spread:
             tried["shrunk"] = score({**modes, i: "shrunk"})
             if beats(torch.cat(list(tried["shrunk"][0].values())), torch.cat(list(free.values()))):
                 best = "shrunk"
         modes[i] = best
-        out[i] = {"mode": best, **{m: errors for m, (_, errors) in tried.items()}}
+        out[i] = {"mode": best, "families": families}
+        out[i].update({m: errors for m, (_, errors) in tried.items()})
     return out

@@ -18,7 +18,8 @@ Format (``format: hybrid_pk.residual_networks``)::
      "spread": {"position", "orientation": (3,) tensors} or None,
      "gate": {"input": {...as above}, "coverage": {...as above}} or None,
      "blocked": {"mode": "gated" | "free" | "shrunk", "physics", "gated", "free",
-                 "shrunk": {"position_mm", "orientation_deg", "rows"}, "blocks": [...]}
+                 "shrunk": {"position_mm", "orientation_deg", "rows"}, "blocks": [...],
+                 "families": {family: {"rows", "gain", "se", "z", "beats"}}}
                 or None,
      "stages": [{"role": "cascade" or "refine", "input", "features", "coverage",
                  "spread", "gate", "blocked", "position", "orientation"}, ...],
