@@ -155,7 +155,9 @@ def test_decide_frees_a_stage_only_on_a_clear_gain_on_every_family_of_blocks():
         "lift": True,
     }
     v = out[0]["families"]["joint 1"]
-    assert v["rows"] == 200 and abs(v["gain"] - 0.1) < 4 * v["se"] and v["z"] > 2
+    assert v["rows"] == 200
+    assert abs(v["gain"] - 0.1) < 4 * v["se"]
+    assert v["z"] > 2
     assert beats(torch.zeros(200, dtype=F64) + noise[:200], 0.1 + noise[:200])
     assert not beats(noise[:200], noise[200:])
 

@@ -7,6 +7,7 @@ import json
 import math
 from pathlib import Path
 
+from hybrid_pk.calibration.diagnosis.rivals import rival_lines
 from hybrid_pk.calibration.diagnosis.statistics import along_joints_text
 from hybrid_pk.calibration.settings import DiagnosisSettings
 from hybrid_pk.cli.common import load_robot, mounting_lines, read_data
@@ -131,6 +132,10 @@ def summary_lines(diagnosis, seconds: float | None = None, runs: int = 1) -> lis
     if diagnosis.ambiguous:
         lines.append(f"ambiguous ({len(diagnosis.ambiguous)}):")
         lines += [_ambiguous_line(a) for a in diagnosis.ambiguous]
+    if diagnosis.rival_stories:
+        margin = (diagnosis.carry_over or {}).get("min_gain_mm")
+        lines.append("rival stories (the rows cannot choose; named / rival):")
+        lines += [f"  {x}" for x in rival_lines(diagnosis.rival_stories, margin)]
     for w in diagnosis.warnings:
         lines.append(f"warning: {w['cause']}: {w['why']}")
     lines += mounting_lines(diagnosis.model)

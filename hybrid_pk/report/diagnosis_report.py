@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from hybrid_pk.calibration.diagnosis.carryover import margin_text
+from hybrid_pk.calibration.diagnosis.rivals import rival_lines
 from hybrid_pk.calibration.diagnosis.statistics import along_joints_text
 from hybrid_pk.calibration.fit import model_errors
 from hybrid_pk.data.measured import MeasuredData
@@ -229,6 +230,21 @@ def _what_is_left(diagnosis, data, robot: Robot, out: Path, ext) -> list[str]:
         image(path, "hold-out errors of the extended model against each joint", out),
         "",
     ]
+    margin = (diagnosis.carry_over or {}).get("min_gain_mm")
+    stories = rival_lines(diagnosis.rival_stories, margin)
+    if stories:
+        lines += [
+            "## Rival stories",
+            "",
+            "A named cause that another candidate of the vocabulary stands in for: the "
+            "rival, refitted, predicts the blocked hold-out as well (within the practical "
+            "margin) or better, so these rows cannot choose between the two stories. "
+            "Where the two models part, outside the measured rows, a measurement tells "
+            "them apart (blocked hold-out RMS error of the named model / the rival's):",
+            "",
+            *[f"- {x}" for x in stories],
+            "",
+        ]
     return lines
 
 

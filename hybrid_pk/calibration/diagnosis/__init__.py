@@ -14,6 +14,8 @@ The search (:func:`diagnose`, in :mod:`.search`) is built of named steps:
 - :mod:`.regions`: the regions of joint space (and files) it leaves out in turn;
 - :mod:`.noise`: the measurement noise behind the margin, from close pairs of poses;
 - :mod:`.power`: what the data cannot show (detection limits, too little data);
+- :mod:`.rivals`: causes another candidate stands in for, and where the two part;
+- :mod:`.leftovers`: outliers and the error no cause explains (what it varies along);
 - :mod:`.stability`: the same rows diagnosed with other seeds (``--stability N``);
 - :mod:`.unseen`: the parts of an effect the frames absorb (marked in tables).
 """

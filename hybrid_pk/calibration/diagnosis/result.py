@@ -107,6 +107,7 @@ class Diagnosis:
     carry_over: dict | None = None
     budget: dict | None = None
     detectable: dict | None = None
+    rival_stories: list[dict] = field(default_factory=list)
 
     def to_json(self) -> dict:
         return {
@@ -129,6 +130,7 @@ class Diagnosis:
             "carry_over": self.carry_over,
             "budget": self.budget,
             "detectable": self.detectable,
+            "rival_stories": self.rival_stories,
         }
 
 

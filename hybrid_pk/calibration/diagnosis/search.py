@@ -26,6 +26,7 @@ from hybrid_pk.calibration.diagnosis.carryover import Carry, weakest
 from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic
 from hybrid_pk.calibration.diagnosis.elimination import eliminate
 from hybrid_pk.calibration.diagnosis.gains import cap_warnings, measure_causes, range_warnings
+from hybrid_pk.calibration.diagnosis.leftovers import outliers_json, robust_json, unexplained_json
 from hybrid_pk.calibration.diagnosis.noise import measurement_noise
 from hybrid_pk.calibration.diagnosis.plausibility import plausibility_warnings
 from hybrid_pk.calibration.diagnosis.power import (
@@ -41,6 +42,7 @@ from hybrid_pk.calibration.diagnosis.result import (
     identifiability_json,
     stats_json,
 )
+from hybrid_pk.calibration.diagnosis.rivals import rival_stories
 from hybrid_pk.calibration.diagnosis.selection import (
     candidate_labels,
     score_candidates,
@@ -48,19 +50,12 @@ from hybrid_pk.calibration.diagnosis.selection import (
 )
 from hybrid_pk.calibration.diagnosis.settle import entry_rivals, settle, unresolved_entry
 from hybrid_pk.calibration.diagnosis.split import Split, split_campaign
-from hybrid_pk.calibration.diagnosis.statistics import (
-    along_joints,
-    in_link_1,
-    neighbour_structure,
-    residual_vectors,
-)
 from hybrid_pk.calibration.diagnosis.structural import implausibility, structural_check
 from hybrid_pk.calibration.diagnosis.swaps import prefer_fewer_causes
 from hybrid_pk.calibration.diagnosis.variants import with_effects, without_effect
 from hybrid_pk.calibration.fit import FitResult, fit, model_errors
 from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.calibration.known_frames import initialise_with_priors
-from hybrid_pk.calibration.robust import OUTLIER_K, down_weighted, list_outliers
 from hybrid_pk.calibration.settings import DiagnosisSettings
 from hybrid_pk.calibration.tuning import DiagnosisTuning, diagnosis_tuning, tuned
 from hybrid_pk.data.measured import MeasuredData
@@ -144,15 +139,13 @@ def diagnose(
     causes = measure_causes(
         model, res, split, steps, alpha, errors, progress=say, blocked=blocked_gains
     )
-    sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
-    with budget.stage("structural search"):
-        causes, structural = structural_check(
-            model, causes, flagged, split, nominal_model, sigmas, say, budget
-        )
+    causes, structural, stories = _optional_findings(
+        model, res, (causes, flagged, pool), split, (carry, nominal_model), say, budget
+    )
     ambiguous += correlated_groups(res) + unresolved
     return Diagnosis(
-        outliers=_outliers(model, data, frames_per_file, res),
-        robust=_robust_json(res, data, split),
+        outliers=outliers_json(model, data, frames_per_file, res),
+        robust=robust_json(res, data, split),
         structural=structural,
         frames=frame_json,
         warnings=_warnings(causes, data, steps, robot, budget),
@@ -166,14 +159,29 @@ def diagnose(
         extended=stats_json(*errors),
         causes=causes,
         ambiguous=ambiguous,
-        unexplained=_unexplained(model, split, errors),
+        unexplained=unexplained_json(model, split, errors),
         identifiability=identifiability_json(res, unobservable),
         model=model,
         nominal_model=nominal_model,
         fit_rows=split.fit_rows,
         holdout_rows=split.holdout_rows,
         steps=steps,
+        rival_stories=stories,
     )
+
+
+def _optional_findings(model, res, named, split, refs, say, budget):
+    """The structural search and the rival stories, each under the optional stages'
+    ``budget``. ``named``: ``(causes, flagged, pool)``; ``refs``: ``(carry, nominal)``."""
+    (causes, flagged, pool), (carry, nominal_model) = named, refs
+    with budget.stage("structural search"):
+        sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
+        causes, structural = structural_check(
+            model, causes, flagged, split, nominal_model, sigmas, say, budget
+        )
+    with budget.stage("rival stories"):
+        stories = rival_stories(model, res, pool, split, carry, say, budget)
+    return causes, structural, stories
 
 
 def _fit_frames(model: ExtendedModel, split, frames, robust, say) -> FitResult:
@@ -402,43 +410,6 @@ def _untested(best, scores, why: str) -> dict:
     if scores.blocked is not None:
         out.update({"blocked_gain_mm": scores.carry[best.label], "min_gain_mm": scores.margin})
     return out
-
-
-def _outliers(model: ExtendedModel, data: MeasuredData, per_file: bool, res: FitResult):
-    """Rows of ``data`` (fit and hold-out) beyond ``OUTLIER_K`` sigma of the final fit."""
-    pos, ori = model_errors(model, data, conditions_from_data(data, per_file))
-    return list_outliers(data, pos, ori, res.sigma_pos_mm, res.sigma_rot_rad)
-
-
-def _robust_json(res: FitResult, data: MeasuredData, split: Split) -> dict | None:
-    """What a robust diagnosis down-weighted (rows of the fit set)."""
-    if res.robust is None:
-        return None
-    return {
-        "loss": res.robust,
-        "outlier_k": OUTLIER_K,
-        "down_weighted": down_weighted(data, res.weights, split.fit_rows),
-    }
-
-
-def _unexplained(model: ExtendedModel, split: Split, errors: tuple) -> dict:
-    """RMS of what the model leaves on the hold-out rows, whether it is smooth, and how
-    much of it varies along each joint."""
-    pos1, ori1 = errors
-    residual_hold = residual_vectors(model, split.test, split.cond_hold)
-    lower, upper = model.robot.joint_limits
-    structured, nn_corr = neighbour_structure(residual_hold, split.test.q, lower, upper)
-    return {
-        "position_mm_rms": float(pos1.pow(2).mean().sqrt()),
-        "orientation_deg_rms": None if ori1 is None else float(ori1.pow(2).mean().sqrt()),
-        "structured": structured,
-        "neighbour_correlation": nn_corr,
-        "along_joints": along_joints(
-            in_link_1(model, split.test, split.cond_hold, residual_hold),
-            split.test.q,
-            model.robot.joint_names,
-        ),
-    }
 
 
 def _prefixed(say: Callable[[str], None], prefix: str) -> Callable[[str], None]:

@@ -1,0 +1,56 @@
+"""What a diagnosis leaves: the rows beyond the noise (outliers, the robust fit's
+down-weighted rows) and the error no cause explains (its size, whether it is smooth,
+what it varies along)."""
+
+from __future__ import annotations
+
+from hybrid_pk.calibration.diagnosis.split import Split
+from hybrid_pk.calibration.diagnosis.statistics import (
+    along_joints,
+    in_link_1,
+    neighbour_structure,
+    residual_vectors,
+)
+from hybrid_pk.calibration.fit import FitResult, model_errors
+from hybrid_pk.calibration.robust import OUTLIER_K, down_weighted, list_outliers
+from hybrid_pk.data.measured import MeasuredData
+from hybrid_pk.effects import ExtendedModel, conditions_from_data
+
+__all__ = ["outliers_json", "robust_json", "unexplained_json"]
+
+
+def outliers_json(model: ExtendedModel, data: MeasuredData, per_file: bool, res: FitResult):
+    """Rows of ``data`` (fit and hold-out) beyond ``OUTLIER_K`` sigma of the final fit."""
+    pos, ori = model_errors(model, data, conditions_from_data(data, per_file))
+    return list_outliers(data, pos, ori, res.sigma_pos_mm, res.sigma_rot_rad)
+
+
+def robust_json(res: FitResult, data: MeasuredData, split: Split) -> dict | None:
+    """What a robust diagnosis down-weighted (rows of the fit set)."""
+    if res.robust is None:
+        return None
+    return {
+        "loss": res.robust,
+        "outlier_k": OUTLIER_K,
+        "down_weighted": down_weighted(data, res.weights, split.fit_rows),
+    }
+
+
+def unexplained_json(model: ExtendedModel, split: Split, errors: tuple) -> dict:
+    """RMS of what the model leaves on the hold-out rows, whether it is smooth, and how
+    much of it varies along each joint."""
+    pos1, ori1 = errors
+    residual_hold = residual_vectors(model, split.test, split.cond_hold)
+    lower, upper = model.robot.joint_limits
+    structured, nn_corr = neighbour_structure(residual_hold, split.test.q, lower, upper)
+    return {
+        "position_mm_rms": float(pos1.pow(2).mean().sqrt()),
+        "orientation_deg_rms": None if ori1 is None else float(ori1.pow(2).mean().sqrt()),
+        "structured": structured,
+        "neighbour_correlation": nn_corr,
+        "along_joints": along_joints(
+            in_link_1(model, split.test, split.cond_hold, residual_hold),
+            split.test.q,
+            model.robot.joint_names,
+        ),
+    }
