@@ -63,12 +63,19 @@ def entry_rivals(scores: Scores, effects: list[str], label: str) -> dict[str, fl
 
 def unresolved_entry(label: str, rivals: dict[str, float], margin: float) -> list[dict]:
     """Ambiguity entries of a cyclic order that ``rivals`` predict nearly as well."""
+
+    def how(alt: str, adv: float) -> str:  # adv: how much better label predicts than alt
+        if adv < 0:
+            return f"{alt} predicts the blocked hold-out better than {label} (by {-adv:.3g} mm)"
+        return (
+            f"{alt} predicts the blocked hold-out within {adv:.3g} mm of {label} (less than "
+            f"the {margin:.3g} mm margin)"
+        )
+
     return [
         {
             "effects": [label, alt],
-            "why": f"{alt} predicts the blocked hold-out within {adv:.3g} mm of {label} "
-            f"(less than the {margin:.3g} mm margin): the order is not resolved by these "
-            "rows, so neither is named",
+            "why": f"{how(alt, adv)}: the order is not resolved by these rows, so neither is named",
         }
         for alt, adv in sorted(rivals.items(), key=lambda kv: kv[1])
     ]
