@@ -310,8 +310,9 @@ def _select(
 
 def _first_resolved(scores, model, ambiguous):
     """The best eligible candidate (:meth:`Scores.eligible`) that is not a cyclic order
-    another order predicts the blocked hold-out nearly as well as; and the candidates
-    set aside as unresolved (their ambiguity entries go into ``ambiguous``)."""
+    another order predicts the blocked hold-out nearly as well as (or better than, by
+    the margin: then that order is left to its own turn); and the candidates set aside
+    (the ambiguity entries of the unresolved go into ``ambiguous``)."""
     current = [e.label for e in model.effects]
     aside: set[str] = set()
     for sc in scores.ranked:
@@ -322,6 +323,9 @@ def _first_resolved(scores, model, ambiguous):
         rivals = entry_rivals(scores, current, sc.label)
         if not rivals:
             return sc, aside
+        if min(rivals.values()) <= -scores.margin:  # another order beats it: not this one
+            aside.add(sc.label)
+            continue
         ambiguous += unresolved_entry(sc.label, rivals, scores.margin)
         aside |= {sc.label, *rivals}
     return None, aside

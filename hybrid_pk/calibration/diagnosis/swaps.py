@@ -35,7 +35,7 @@ from hybrid_pk.calibration.diagnosis.variants import refit_without, with_effects
 from hybrid_pk.calibration.fit import FitResult, fit
 from hybrid_pk.effects import ExtendedModel, make_effect
 
-__all__ = ["prefer_fewer_causes"]
+__all__ = ["prefer_fewer_causes", "step_evidence"]
 
 
 def prefer_fewer_causes(
@@ -84,7 +84,7 @@ def prefer_fewer_causes(
         _, alternative, trial, trial_res, removed, removals = best
         chosen_step = next(s for s in steps if s["candidate"] == chosen and s.get("accepted"))
         step = {"candidate": alternative, "replaces": chosen, "accepted": True}
-        step.update(_evidence(trial, trial_res, alternative, split, chosen_step["threshold"]))
+        step.update(step_evidence(trial, trial_res, alternative, split, chosen_step["threshold"]))
         simpler = "fewer causes" if removed else "fewer parameters"
         step["why"] = (
             f"{alternative} alone does what {chosen} needed {', '.join(sorted(removed))} for"
@@ -187,7 +187,7 @@ def _swapped(model, res, current, swap, split, tests, say):
     return d_bic, alternative, trial, trial_res, removed, removals
 
 
-def _evidence(
+def step_evidence(
     model: ExtendedModel, res: FitResult, label: str, split: Split, threshold: float
 ) -> dict:
     """The F-test, BIC change and hold-out scores of ``label`` in ``model`` against
