@@ -96,12 +96,14 @@ def refit_without(
     Starts from the linearised removal (:func:`linearised_removal`) when ``res`` has
     its normal matrix, otherwise from the full model's values; ``max_iter`` LM steps
     from there (a few re-balance the rest; after the linearised start one is enough
-    for a value, ~1e-9 of the cost left to gain).
+    for a value, ~1e-9 of the cost left to gain; 0: the linearised start itself).
     """
     reduced = without_effect(model, label)
     if res.normal_matrix is not None:
         _, steps = linearised_removal(res, label)
         shift_parameters(reduced, steps, data.quat is None)
+    if max_iter == 0:
+        return reduced
     fit(
         reduced,
         data,
