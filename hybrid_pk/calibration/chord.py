@@ -89,7 +89,8 @@ def chord_passes(problem: Problem, near: Linearisation):
 
     def residual(theta: Tensor) -> Tensor:
         if last[0] is None or not torch.equal(last[0], theta):
-            last[0], last[1] = theta.clone(), problem.residual(theta)
+            with torch.no_grad():  # values only (a frame left out may carry a gradient)
+                last[0], last[1] = theta.clone(), problem.residual(theta)
             costs.append(float(last[1] @ last[1]))  # LM keeps the lowest: the pass's drop
             near.pass_drop = costs[0] - min(costs)
         return last[1]
@@ -143,7 +144,8 @@ def settled_factor(
         if decrement < tol:
             settled = True
             break
-        r = _scaled(problem, problem.residual(theta + step), to_pass)
+        with torch.no_grad():
+            r = _scaled(problem, problem.residual(theta + step), to_pass)
         if float(r @ r) >= cost:
             break
         theta, last = theta + step, decrement**2 / max(previous, 1e-300)
