@@ -18,12 +18,13 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from hybrid_pk.calibration.covariance import (
-    correlated_pairs,
-    parameter_names,
-    svd_covariance,
-    undetermined_groups,
+from hybrid_pk.calibration.chord import (
+    Linearisation,
+    covariance_fields,
+    first_passes,
+    settled_factor,
 )
+from hybrid_pk.calibration.covariance import correlated_pairs, parameter_names, undetermined_groups
 from hybrid_pk.calibration.frame_hold import held_prior, join_rows
 from hybrid_pk.calibration.frames import FramePriors, PriorRows, prior_centres, prior_residual
 from hybrid_pk.calibration.identifiability import FrameReport, frame_report
@@ -186,6 +187,7 @@ def fit(
     sigma_pos_mm: float | None = None,
     sigma_rot_rad: float | None = None,
     max_iter: int = 50,
+    near: Linearisation | None = None,
     initial_sigma: tuple[float, float | None] | None = None,
     covariance: bool = True,
     row_weights: Tensor | None = None,
@@ -205,6 +207,9 @@ def fit(
         cond: operating conditions (default :func:`conditions_from_data`).
         sigma_pos_mm, sigma_rot_rad: noise levels; estimated from the data if omitted.
         max_iter: LM iterations per pass.
+        near: a Jacobian of these rows a few std from the start (the diagnosis' score
+            of the effect it adds): the first pass steps with it, one exact Jacobian
+            checks the end (:mod:`.chord`).
         initial_sigma: ``(sigma_pos_mm, sigma_rot_rad)`` to start the noise
             re-estimation from (e.g. a previous fit's), which saves passes.
         covariance: compute standard deviations, correlations, singular values and the
@@ -243,40 +248,47 @@ def fit(
     )
     fixed = (sigma_pos_mm, sigma_rot_rad)
     sig_p, sig_r, iterations, converged, weights = _solve_reweighted(
-        problem_at, data, sigmas, fixed, max_iter, progress, robust, weights
+        problem_at, data, sigmas, fixed, max_iter, progress, robust, weights, near
     )
     given = frames is not None and frames.tool is not None  # held there, else at origin
     held = held_prior(model, data, cond, blocks, prior, given)  # at this optimum
-    if held is not prior:
+    R, R_start = None, None  # the factors of [J r] where the chord's check settled / not
+    if held is prior:
+        R, R_start = _checked_chord(problem_at(sig_p, sig_r, weights), near, max_iter)
+        converged = converged or R is not None
+    if held is not prior or R_start is not None:  # LM from here
         prior, rows_extra = held, join_rows(held, extra)
         sig_p, sig_r, more, converged, weights = _solve_reweighted(
-            problem_at, data, (sig_p, sig_r), fixed, max_iter, progress, robust, weights
+            problem_at, data, (sig_p, sig_r), fixed, max_iter, progress, robust, weights, R_start
         )
         iterations += more
     # Residuals and Jacobian at the solution with the final weights.
     problem = problem_at(sig_p, sig_r, weights)
     pos, ori = model_errors(model, data, cond)
-    common = {
-        "blocks": blocks,
-        "x": problem.x0,
-        "sigma_pos_mm": sig_p,
-        "sigma_rot_rad": None if position_only else sig_r,
-        "position_mm": pos,
-        "orientation_deg": ori,
-        "n_params": problem.x0.numel(),
-        "iterations": iterations,
-        "converged": converged,
-        "robust": robust,
-        "weights": weights,
-        "priors": frames,
-    }
+    common = dict(
+        blocks=blocks, x=problem.x0, sigma_pos_mm=sig_p,
+        sigma_rot_rad=None if position_only else sig_r, position_mm=pos, orientation_deg=ori,
+        n_params=problem.x0.numel(), iterations=iterations, converged=converged,
+        robust=robust, weights=weights, priors=frames,
+    )  # fmt: skip
     if not covariance:
         return FitResult(**common, **_no_covariance(problem, data))
     report = frame_report(
         model, data, cond, blocks, sigma_pos_mm=sig_p, sigma_rot_rad=common["sigma_rot_rad"],
         prior=prior, priors=frames, start=start, rms_mm=float(pos.pow(2).mean().sqrt()),
     )  # fmt: skip
-    return FitResult(**common, **_covariance(problem, prior), frame_report=report)
+    return FitResult(**common, **covariance_fields(problem, prior, R), frame_report=report)
+
+
+def _checked_chord(problem: Problem, near: Linearisation | None, max_iter: int):
+    """``(R, None)`` where the fit's last pass stepped with ``near`` and the exact check
+    at its end settled (:func:`.chord.settled_factor`; ``R`` there), ``(None, R)``
+    where LM must go on from there (its first step from ``R``), ``(None, None)``
+    without a chord."""
+    if near is None or near.pass_sigmas is None:  # no chord, or a later pass was exact
+        return None, None
+    R, settled = settled_factor(problem, NEXT_STEP_STD, near, max_iter)
+    return (R, None) if settled else (None, R)
 
 
 def _no_covariance(problem: Problem, data: MeasuredData) -> dict:
@@ -322,13 +334,15 @@ def _solve_reweighted(
     progress: Callable[[str], None] | None,
     robust: str | None = None,
     weights: Tensor | None = None,
+    near: Linearisation | Tensor | None = None,
 ) -> tuple[float, float, int, bool, Tensor | None]:
     """LM fit, noise re-estimated from the residuals and refitted (at most 3 passes;
     robust fits re-weight their rows each pass too, at most ``ROBUST_PASSES``).
 
     ``problem_at(sigma_pos_mm, sigma_rot_rad, weights)`` is the problem under those
     noise levels and robust weights; ``sigmas`` are the starting levels, ``fixed``
-    those given by the caller (not re-estimated). Returns the final noise levels, LM
+    those given by the caller (not re-estimated); ``near``: the first pass starts from
+    that Jacobian (:func:`.chord.first_passes`). Returns the final noise levels, LM
     iterations, convergence and the robust weights.
     """
     sig_p, sig_r = sigmas
@@ -336,13 +350,18 @@ def _solve_reweighted(
     position_only = data.quat is None
     iterations, converged = 0, False
     fixed_noise = sigma_pos_mm is not None and (sigma_rot_rad is not None or position_only)
-    for _ in range(3 if robust is None else ROBUST_PASSES):
+    for k in range(3 if robust is None else ROBUST_PASSES):
         problem = problem_at(sig_p, sig_r, weights)
+        passes = first_passes(problem, near) if near is not None and k == 0 else None
+        if isinstance(near, Linearisation) and k > 0:
+            near.pass_sigmas = None  # a later pass took exact steps
+        fun, normal = passes or (problem.residual, problem.normal_equations)
+        chord = isinstance(near, Linearisation) and passes is not None  # an exact check follows
         result = levenberg_marquardt(
-            problem.residual,
+            fun,
             torch.zeros_like(problem.x0),
-            max_iter=max_iter,
-            normal=problem.normal_equations,
+            max_iter=1 if chord else max_iter,
+            normal=normal,
             progress=progress,
             drop_tol=NEXT_STEP_STD**2 / problem.n_residuals,  # cost ~ 1 per residual
         )
@@ -391,34 +410,6 @@ def reestimated_noise(
         rot = r[n_pos : 2 * n_pos]
         new_r = max(sig_r * float((rot**2).mean() * dof_factor) ** 0.5, 1e-9)
     return new_p, new_r
-
-
-def _covariance(problem: Problem, prior: PriorRows | None = None) -> dict:
-    """Standard deviations, correlations and singular values at the problem's point,
-    and the normal matrix ``J^T J`` (scaled parameters) they come from."""
-    R = problem.r_factor(torch.zeros_like(problem.x0))
-    n_par = problem.x0.numel()
-    J, z = R[:, :n_par], R[:, n_par]
-    n_obs = problem.n_residuals
-    s2 = float(z @ z) / max(n_obs - n_par, 1)
-    normal = J.T @ J
-    svd = svd_covariance(J, n_obs, s2)
-    std = svd["cov"].diagonal().clamp_min(0).sqrt() * problem.scale
-    sv = svd["singular_values"]
-    cost = float(z @ z)
-    if prior is not None:  # the cost of the data alone (tests compare it with refits')
-        r_prior = prior(torch.zeros_like(problem.x0))[0]
-        cost -= float(r_prior @ r_prior)
-    return {
-        "std": std,
-        "corr": svd["corr"],
-        "singular_values": sv,
-        "singular_vectors": svd["singular_vectors"],
-        "condition": float(sv[0] / sv[-1].clamp_min(1e-300)),
-        "n_obs": n_obs,
-        "normal_matrix": normal,
-        "cost": cost,
-    }
 
 
 @torch.no_grad()

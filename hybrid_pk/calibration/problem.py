@@ -131,6 +131,7 @@ class Problem:
         self.progress = progress
         self._structure = StructuredJacobian(model, blocks)
         self._last_message = time.monotonic()
+        self.kept: list[Tensor] | None = None  # a list: every data chunk built goes in
 
     @property
     def n_residuals(self) -> int:
@@ -211,7 +212,10 @@ class Problem:
         (each chunk written into one buffer, not concatenated)."""
         with self._at(theta):
             for rows in self._chunks():
-                yield self._chunk_rows(rows)
+                M = self._chunk_rows(rows)
+                if self.kept is not None:
+                    self.kept.append(M)
+                yield M
                 self._report(rows.stop)
         if self.extra is not None:
             r_x, J_x = self.extra(theta)

@@ -111,6 +111,7 @@ def linearise(
     progress: Callable[[str], None] | None = None,
     factor: bool = True,
     candidates: int = 0,
+    keep: bool = False,
 ) -> tuple[Problem, tuple[ParamBlock, ...], Tensor | None, Blocked | None]:
     """One Jacobian of every free parameter of ``trial`` on the fit rows: the problem,
     its blocks, a factor ``R`` of ``[J r]`` (None unless ``factor``: the blocked score
@@ -118,7 +119,8 @@ def linearise(
 
     ``candidates``: the last blocks are that many candidates; the factor's QR covers
     only the columns before them, the rest is completed from the Gram
-    (:func:`.blocked.cell_factors`)."""
+    (:func:`.blocked.cell_factors`). With candidates or ``keep`` the chunks of
+    ``[J r]`` are kept (``problem.kept``) for a refit to step with."""
     fixed = set() if res.priors is None else set(res.priors.fixed_labels())
     blocks = param_blocks(trial, None, split.position_only)
     blocks = tuple(b for b in blocks if b.label not in fixed)
@@ -130,7 +132,10 @@ def linearise(
         row_weights=weights, progress=progress,
     )  # fmt: skip
     lead = sum(b.size for b in blocks[: len(blocks) - candidates]) if candidates else None
+    problem.kept = [] if candidates or keep else None
     R, pos, rot = cell_factors(problem, folds, factor, lead)
+    if problem.kept is not None:  # one pass's chunks (a fallback QR makes a second)
+        problem.kept = problem.kept[: len(range(0, split.train.n, problem.chunk_rows))]
     blocked = None
     if folds is not None:
         values = problem.x0 / problem.scale

@@ -28,9 +28,11 @@ from hybrid_pk.robot import Robot
 
 __all__ = ["GAIN_REFIT_STEPS", "cap_warnings", "measure_causes", "range_warnings"]
 
-# LM steps of the refit without a cause, after its linearised removal: the first step
-# leaves ~1e-9 of the cost to gain (the linearised start is within ~1e-7 of it).
-GAIN_REFIT_STEPS = 1
+# LM steps of the refit without a cause, after its linearised removal: none. The
+# linearised start is within ~1e-6 of the refit's cost (a step gains 1e-7 - 3e-6 of it
+# on the UR10 series): its parameters within ~0.5 std of the refit's, which moves a
+# gain by <= 1e-5 mm there, 1/200 of the practical margin; a step costs a Jacobian.
+GAIN_REFIT_STEPS = 0
 
 
 def measure_causes(
@@ -46,7 +48,7 @@ def measure_causes(
     """The causes of ``model``, largest hold-out position gain first.
 
     A cause's gain is the hold-out mean error of the model refitted without it (its
-    linearised removal and :data:`GAIN_REFIT_STEPS` LM steps) minus the full model's
+    linearised removal, :data:`GAIN_REFIT_STEPS` LM steps) minus the full model's
     (``errors``: its per-row hold-out position [mm] and orientation [deg] errors); its
     evidence quotes the step that accepted it. ``blocked``: each cause's blocked gains
     (:func:`.carryover.removal_gains`).
@@ -57,6 +59,7 @@ def measure_causes(
     for e in model.effects:
         say = None
         if progress is not None:
+            progress(f"gain of {e.label}")
             say = lambda text, lbl=e.label: progress(f"gain of {lbl}: {text}")  # noqa: E731
         reduced = refit_without(
             model, e.label, split.train, split.cond_fit, res, say, max_iter=GAIN_REFIT_STEPS

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from hybrid_pk.calibration.chord import Linearisation
 from hybrid_pk.calibration.diagnosis.ambiguity import (
     equivalent_to_frame,
     frame_of_equivalence,
@@ -140,6 +141,8 @@ class Scores:
             (:func:`.blocked.cell_factors`), for the Gauss–Newton start of a refit.
         blocked, margin, carry: the cell Grams of the blocked hold-out, the practical
             margin [mm] and each candidate's blocked gain [mm] (empty without blocks).
+        near: the Jacobian's rows, where the chosen candidate's refit steps from
+            (:mod:`hybrid_pk.calibration.chord`; released by :func:`try_candidate`).
     """
 
     scored: list[CandidateScore]
@@ -153,6 +156,7 @@ class Scores:
     blocked: Blocked | None = None
     margin: float = 0.0
     carry: dict[str, float] = field(default_factory=dict)
+    near: Linearisation | None = None
 
     @property
     def ranked(self) -> list[CandidateScore]:
@@ -206,6 +210,7 @@ def score_candidates(
     ssr = float(r @ r)
     m = problem.n_residuals
     out = Scores(scored=[], m=m, n_current=n_cur, R=R, blocks=blocks)
+    out.near = Linearisation(problem.kept, blocks, (problem.sigma_pos_mm, problem.sigma_rot_rad))
     start = 0
     for b, label in zip(blocks[len(blocks) - len(pool) :], pool, strict=True):
         Jc = J_pool[:, start : start + b.size]
@@ -324,8 +329,9 @@ def try_candidate(
         sigmas = (noise[0], None if split.position_only else noise[1])
     new_res = fit(
         new, split.train, cond=split.cond_fit, initial_sigma=sigmas, progress=progress,
-        **res.settings(),
+        near=scores.near, **res.settings(),
     )  # fmt: skip
+    scores.near = None  # its rows (~the whole Jacobian) are not needed again
     # F-test and BIC of the refit, both models' residuals under the same weights.
     ssr_new = _ssr(new, split, res)
     dof_new = max(m - new_res.n_params, 1)

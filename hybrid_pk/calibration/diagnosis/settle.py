@@ -14,13 +14,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from hybrid_pk.calibration.chord import Linearisation
 from hybrid_pk.calibration.diagnosis.blocked import Blocked
 from hybrid_pk.calibration.diagnosis.carryover import Carry, linearise, removal_gains
 from hybrid_pk.calibration.diagnosis.own_range import off_range, own_range_gains
 from hybrid_pk.calibration.diagnosis.selection import Scores, cyclic_candidates
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.swaps import step_evidence
-from hybrid_pk.calibration.diagnosis.variants import with_effects, without_effect
+from hybrid_pk.calibration.diagnosis.variants import refit_removed, with_effects, without_effect
 from hybrid_pk.calibration.fit import FitResult, fit
 from hybrid_pk.effects import ExtendedModel, make_effect
 from hybrid_pk.effects.joint import CYCLIC_PREFIX
@@ -107,7 +108,11 @@ def settle(
         extra = sorted({a for v in alts.values() for a in v})
         trial = with_effects(model, [make_effect(model.robot, a) for a in extra])
         say("blocked hold-out gain of each cause")
-        blocked = linearise(trial, res, split, carry.folds, say, factor=False)[3]
+        problem, blocks, _, blocked = linearise(
+            trial, res, split, carry.folds, say, factor=False, keep=True
+        )
+        near = Linearisation(problem.kept, blocks, (problem.sigma_pos_mm, problem.sigma_rot_rad))
+        del problem  # its rows live on in near
         gains = removal_gains(blocked, labels)
         margin = carry.margin(res)
         drop, why, better = _unresolved(blocked, labels, alts, margin, ambiguous)
@@ -126,17 +131,19 @@ def settle(
         threshold = next(s for s in steps if s["candidate"] == drop and s.get("accepted"))
         _record(steps, drop, why, gains[drop]["gain_mm"], margin)
         model = without_effect(model, drop)
-        if better is not None:  # the joint's periodic error, at the order the blocks prefer
-            replaced.add(drop)
-            model = with_effects(model, [make_effect(model.robot, better)])
+        if better is None:
+            res = refit_removed(model, drop, split.train, split.cond_fit, res, near, say)
+            continue
+        # the joint's periodic error, at the order the blocks prefer
+        replaced.add(drop)
+        model = with_effects(model, [make_effect(model.robot, better)])
         sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
         res = fit(
             model, split.train, cond=split.cond_fit, initial_sigma=sigmas, progress=say,
             **res.settings(),
         )  # fmt: skip
-        if better is not None:
-            step = {"candidate": better, "replaces": drop, "accepted": True, "why": why}
-            steps.append(step | step_evidence(model, res, better, split, threshold["threshold"]))
+        step = {"candidate": better, "replaces": drop, "accepted": True, "why": why}
+        steps.append(step | step_evidence(model, res, better, split, threshold["threshold"]))
     return model, res, {}, ambiguous
 
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
+from hybrid_pk.calibration.chord import Linearisation
 from hybrid_pk.calibration.diagnosis.carryover import Carry, linearise, weakest
 from hybrid_pk.calibration.diagnosis.elimination import eliminate
 from hybrid_pk.calibration.diagnosis.split import Split
@@ -71,12 +72,14 @@ def prefer_fewer_causes(
         labels = [e.label for e in model.effects]
         if chosen not in labels or len(labels) < 2:
             continue
-        # what every swap of this cause must match
-        current = (weighted_ssr(model, split.train, split.cond_fit, res),
-                   _blocked(model, res, split, carry, say))  # fmt: skip
+        alternatives = [a for c, a in pairs if c == chosen and a not in labels]
+        # what every swap of this cause must match, and the Jacobian its refit steps with
+        blocked, near = _blocked_near(model, res, split, carry, alternatives, say)
+        current = (weighted_ssr(model, split.train, split.cond_fit, res), blocked)
         best = None  # (d_bic, alternative, model, fit, removed, removal steps)
-        for alternative in [a for c, a in pairs if c == chosen and a not in labels]:
-            trial = _swapped(model, res, current, (chosen, alternative), split, (alpha, carry), say)
+        for alternative in alternatives:
+            swap = (chosen, alternative)
+            trial = _swapped(model, res, current, swap, split, (alpha, carry), say, near)
             if trial is not None and (best is None or trial[0] < best[0]):
                 best = trial
         if best is None:
@@ -106,6 +109,21 @@ def _blocked(model, res, split, carry, say):
         return None
     blocked = linearise(model, res, split, carry.folds, say, factor=False)[3]
     return blocked.of([e.label for e in model.effects]), blocked
+
+
+def _blocked_near(model, res, split, carry, extra, say):
+    """:func:`_blocked` of ``model``, and the ``[J r]`` chunks of its linearisation,
+    made with the ``extra`` effects' columns (at zero: the score is the model's), that
+    a swap's refit steps with (:mod:`hybrid_pk.calibration.chord`); None, None without
+    blocks."""
+    if carry.folds is None:
+        return None, None
+    trial = with_effects(model, [make_effect(model.robot, a) for a in extra])
+    problem, blocks, _, blocked = linearise(
+        trial, res, split, carry.folds, say, factor=False, keep=True
+    )
+    near = Linearisation(problem.kept, blocks, (problem.sigma_pos_mm, problem.sigma_rot_rad))
+    return (blocked.of([e.label for e in model.effects]), blocked), near
 
 
 def _drop_split_duplicates(model, res, pairs, split, carry, steps, say):
@@ -149,20 +167,21 @@ def _drop_split_duplicates(model, res, pairs, split, carry, steps, say):
     return model, res
 
 
-def _swapped(model, res, current, swap, split, tests, say):
+def _swapped(model, res, current, swap, split, tests, say, near=None):
     """``(BIC change, alternative, model, fit, removed, removal steps)`` of ``model``
     with ``alternative`` in place of ``chosen`` (``swap``) after backward elimination,
     or None when that is implausible, leaves neither fewer causes nor fewer
     parameters, or fits worse than ``current`` (``model``'s weighted SSR and blocked
     score): a higher BIC, or a blocked hold-out the current model predicts better by
-    the practical margin."""
+    the practical margin. ``near``: a Jacobian of ``model`` with ``alternative``'s
+    columns, that the refit steps with."""
     (chosen, alternative), (alpha, carry) = swap, tests
     say(f"trying {alternative} in place of {chosen}")
     trial = with_effects(without_effect(model, chosen), [make_effect(model.robot, alternative)])
     sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
     trial_res = fit(
         trial, split.train, cond=split.cond_fit, initial_sigma=sigmas, progress=say,
-        **res.settings(),
+        near=near, **res.settings(),
     )  # fmt: skip
     if implausibility(trial.effect(alternative), trial.robot, split.train) is not None:
         return None

@@ -12,13 +12,16 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from hybrid_pk.calibration.fit import FitResult, fit
+from hybrid_pk.calibration.chord import Linearisation
+from hybrid_pk.calibration.diagnosis.statistics import weighted_residual
+from hybrid_pk.calibration.fit import FitResult, fit, reestimated_noise
 from hybrid_pk.calibration.problem import param_blocks
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, Effect, ExtendedModel, make_effect
 
 __all__ = [
     "linearised_removal",
+    "refit_removed",
     "refit_without",
     "shift_parameters",
     "with_effects",
@@ -96,12 +99,14 @@ def refit_without(
     Starts from the linearised removal (:func:`linearised_removal`) when ``res`` has
     its normal matrix, otherwise from the full model's values; ``max_iter`` LM steps
     from there (a few re-balance the rest; after the linearised start one is enough
-    for a value, ~1e-9 of the cost left to gain).
+    for a value, ~1e-9 of the cost left to gain; 0: the linearised start itself).
     """
     reduced = without_effect(model, label)
     if res.normal_matrix is not None:
         _, steps = linearised_removal(res, label)
         shift_parameters(reduced, steps, data.quat is None)
+    if max_iter == 0:
+        return reduced
     fit(
         reduced,
         data,
@@ -114,3 +119,31 @@ def refit_without(
         **res.settings(),
     )
     return reduced
+
+
+def refit_removed(
+    reduced: ExtendedModel,
+    label: str,
+    data: MeasuredData,
+    cond: Conditions,
+    res: FitResult,
+    near: Linearisation,
+    progress: Callable[[str], None] | None = None,
+) -> FitResult:
+    """Refit ``reduced``, the model of ``res`` less effect ``label`` (same values),
+    under ``res``'s frame prior and robust loss: from its linearised removal, the noise
+    levels re-estimated there (the removal raises them; a pass at the old ones would
+    be one more), the first step with ``near``, a Jacobian of ``res``'s model on these
+    rows (:mod:`hybrid_pk.calibration.chord`)."""
+    position_only = data.quat is None
+    _, steps = linearised_removal(res, label)
+    shift_parameters(reduced, steps, position_only)
+    n_params = sum(b.size for b in param_blocks(reduced, None, position_only))
+    sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
+    r = weighted_residual(reduced, data, cond, res)
+    noise = reestimated_noise(r, data.n, n_params, sigmas, position_only=position_only)
+    start = (noise[0], None if position_only else noise[1])
+    return fit(
+        reduced, data, cond=cond, initial_sigma=start, progress=progress, near=near,
+        **res.settings(),
+    )  # fmt: skip
