@@ -4,7 +4,8 @@ On the final model (one Jacobian of its parameters and of every other order of e
 chosen cyclic error), each cause's blocked hold-out gain is measured by leaving it out
 (the rest re-fitted per block). A cyclic error another order predicts the held-out
 blocks nearly as well as (within the practical margin) is not resolved by the data:
-it is listed as ambiguous and taken out. Then a periodic cause that does not carry
+it is listed as ambiguous and taken out; one that another order beats by the margin is
+resolved, as that order, which replaces it. Then a periodic cause that does not carry
 over along its own joint's range (:mod:`.own_range`) is listed and taken out. Then a
 cause that gains less than the margin is taken out. One at a time, the weakest first,
 the model refitted after each, until every cause carries over.
