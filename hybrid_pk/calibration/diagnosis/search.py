@@ -127,9 +127,10 @@ def diagnose(
     pool = _pool(robot, data, candidates)
     flagged: list[dict] = []
     carry = Carry(make_folds(model, split, seed), min_gain_mm, measurement_noise(model, data, cond))
-    model, res, steps, ambiguous, unobservable, blocked_gains, unresolved = _search_settled(
+    model, res, steps, ambiguous, unobservable = _select(
         model, res, pool, split, (alpha, carry, budget), max_causes, say, flagged
     )
+    model, res, blocked_gains, unresolved = settle(model, res, split, carry, steps, say)
 
     say("detection limits of the candidates not named")
     detectable = detection_limits(model, res, pool, split, alpha, say, carry)
@@ -181,35 +182,6 @@ def _optional_findings(model, res, named, split, refs, say, budget):
     with budget.stage("rival stories"):
         stories = rival_stories(model, res, pool, split, carry, say, budget)
     return causes, structural, stories
-
-
-def _search_settled(model, res, pool, split, tests, max_causes, say, flagged):
-    """The search, then :func:`.settle`; again from the settled model while the search
-    stopped at ``max_causes`` with a candidate still carrying over and settle took causes
-    out: a slot a cause held until settle is one the search could not use. Causes taken
-    out are not tried again (so the rounds end)."""
-    carry = tests[1]
-    steps: list[dict] = []
-    ambiguous: list[dict] = []
-    unobservable: list[str] = []
-    while True:
-        model, res, new_steps, amb, unobs = _select(
-            model, res, pool, split, tests, max_causes, say, flagged
-        )
-        start = len(steps)
-        steps += new_steps
-        model, res, gains, unresolved = settle(model, res, split, carry, steps, say)
-        new_steps = steps[start:]
-        ambiguous += [a for a in amb if a not in ambiguous]
-        unobservable += [u for u in unobs if u not in unobservable]
-        out = [s["candidate"] for s in new_steps if s.get("removed")]
-        capped = any(s.get("capped") for s in new_steps)
-        if not (capped and out and len(model.effects) < max_causes):
-            return model, res, steps, ambiguous, unobservable, gains, unresolved
-        named = {e.label for e in model.effects}
-        pool = [c for c in pool if c not in named and c not in out]
-        say(f"settle freed {max_causes - len(model.effects)} of the {max_causes} slots: "
-            "searching on")  # fmt: skip
 
 
 def _fit_frames(model: ExtendedModel, split, frames, robust, say) -> FitResult:
@@ -338,9 +310,8 @@ def _select(
 
 def _first_resolved(scores, model, ambiguous):
     """The best eligible candidate (:meth:`Scores.eligible`) that is not a cyclic order
-    another order predicts the blocked hold-out nearly as well as (or better than, by
-    the margin: then that order is left to its own turn); and the candidates set aside
-    (the ambiguity entries of the unresolved go into ``ambiguous``)."""
+    another order predicts the blocked hold-out nearly as well as (or better); and the
+    candidates set aside as unresolved (their ambiguity entries go into ``ambiguous``)."""
     current = [e.label for e in model.effects]
     aside: set[str] = set()
     for sc in scores.ranked:
@@ -351,9 +322,6 @@ def _first_resolved(scores, model, ambiguous):
         rivals = entry_rivals(scores, current, sc.label)
         if not rivals:
             return sc, aside
-        if min(rivals.values()) <= -scores.margin:  # another order beats it: not this one
-            aside.add(sc.label)
-            continue
         ambiguous += unresolved_entry(sc.label, rivals, scores.margin)
         aside |= {sc.label, *rivals}
     return None, aside

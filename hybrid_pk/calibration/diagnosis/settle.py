@@ -4,8 +4,8 @@ On the final model (one Jacobian of its parameters and of every other order of e
 chosen cyclic error), each cause's blocked hold-out gain is measured by leaving it out
 (the rest re-fitted per block). A cyclic error another order predicts the held-out
 blocks nearly as well as (within the practical margin) is not resolved by the data:
-it is listed as ambiguous and taken out; one that another order beats by the margin is
-resolved, as that order, which replaces it. Then a periodic cause that does not carry
+it is listed as ambiguous and taken out (so is one another order predicts better).
+Then a periodic cause that does not carry
 over along its own joint's range (:mod:`.own_range`) is listed and taken out. Then a
 cause that gains less than the margin is taken out. One at a time, the weakest first,
 the model refitted after each, until every cause carries over.
@@ -21,9 +21,8 @@ from hybrid_pk.calibration.diagnosis.carryover import Carry, linearise, removal_
 from hybrid_pk.calibration.diagnosis.own_range import off_range, own_range_gains
 from hybrid_pk.calibration.diagnosis.selection import Scores, cyclic_candidates
 from hybrid_pk.calibration.diagnosis.split import Split
-from hybrid_pk.calibration.diagnosis.swaps import step_evidence
 from hybrid_pk.calibration.diagnosis.variants import refit_removed, with_effects, without_effect
-from hybrid_pk.calibration.fit import FitResult, fit
+from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.effects import ExtendedModel, make_effect
 from hybrid_pk.effects.joint import CYCLIC_PREFIX
 
@@ -98,12 +97,11 @@ def settle(
     ``gain_mm``, ``position_mm``, ``orientation_deg``; a periodic one also
     ``own_range``, :func:`.own_range.own_range_gains`) and the ambiguity entries."""
     ambiguous: list[dict] = []
-    replaced: set[str] = set()  # orders taken out for a better one (never back: no cycle)
     while model.effects and carry.folds is not None:
         labels = [e.label for e in model.effects]
         alts = {
             lbl: [c for c in cyclic_candidates(model.robot, split.train)
-                  if _joint(c) == _joint(lbl) and c not in labels and c not in replaced]
+                  if _joint(c) == _joint(lbl) and c not in labels]
             for lbl in labels if _is_cyclic(lbl)
         }  # fmt: skip
         extra = sorted({a for v in alts.values() for a in v})
@@ -116,7 +114,7 @@ def settle(
         del problem  # its rows live on in near
         gains = removal_gains(blocked, labels)
         margin = carry.margin(res)
-        drop, why, better = _unresolved(blocked, labels, alts, margin, ambiguous)
+        drop, why = _unresolved(blocked, labels, alts, margin, ambiguous)
         own: dict[str, dict] = {}
         if drop is None:
             say("own-range gain of each periodic cause")
@@ -129,45 +127,26 @@ def settle(
                 gains[label]["own_range"] = record
             return model, res, gains, ambiguous
         say(f"taking out {drop}: {why}")
-        threshold = next(s for s in steps if s["candidate"] == drop and s.get("accepted"))
         _record(steps, drop, why, gains[drop]["gain_mm"], margin)
         model = without_effect(model, drop)
-        if better is None:
-            res = refit_removed(model, drop, split.train, split.cond_fit, res, near, say)
-            continue
-        # the joint's periodic error, at the order the blocks prefer
-        replaced.add(drop)
-        model = with_effects(model, [make_effect(model.robot, better)])
-        sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
-        res = fit(
-            model, split.train, cond=split.cond_fit, initial_sigma=sigmas, progress=say,
-            **res.settings(),
-        )  # fmt: skip
-        step = {"candidate": better, "replaces": drop, "accepted": True, "why": why}
-        steps.append(step | step_evidence(model, res, better, split, threshold["threshold"]))
+        res = refit_removed(model, drop, split.train, split.cond_fit, res, near, say)
     return model, res, {}, ambiguous
 
 
 def _unresolved(blocked, labels, alts, margin, ambiguous):
-    """The cyclic error whose order another order predicts as well or better, why, and
-    the order that replaces it (None: not resolved either way, it is only taken out);
-    ``(None, "", None)``: every order resolved. An order that another one beats by the
-    margin is resolved, as that one; orders within the margin of each other are
-    ambiguous (their entries go into ``ambiguous``)."""
+    """The cyclic error whose order another order predicts as well (or better), and why
+    (None: every order resolved); its ambiguity entries go into ``ambiguous``."""
     worst = None  # (advantage, label, rivals)
     for label, others in alts.items():
         adv = rival_advantages(blocked, labels, label, others)
         rivals = {a: v for a, v in adv.items() if v < margin}
         if rivals and (worst is None or min(rivals.values()) < worst[0]):
             worst = (min(rivals.values()), label, rivals)
-    if worst is None:
-        return None, "", None
-    best, label, rivals = worst
-    better = min(rivals, key=rivals.get)
-    if best <= -margin and all(v >= best + margin for a, v in rivals.items() if a != better):
-        return label, f"{better} predicts the blocked hold-out better by {-best:.3g} mm", better
-    ambiguous += unresolved_entry(label, rivals, margin)
-    return label, f"order not resolved: {', '.join(sorted(rivals))} predict as well", None
+    if worst is not None:
+        _, label, rivals = worst
+        ambiguous += unresolved_entry(label, rivals, margin)
+        return label, f"order not resolved: {', '.join(sorted(rivals))} predict as well"
+    return None, ""
 
 
 def _below_margin(gains, margin):
