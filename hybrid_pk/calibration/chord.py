@@ -44,6 +44,12 @@ class Linearisation:
     pass_sigmas: tuple[float, float] | None = None  # those of the last pass it ran
     pass_drop: float = 0.0  # and how much that pass lowered its cost
 
+    @classmethod
+    def kept_by(cls, problem: Problem, blocks: tuple[ParamBlock, ...]) -> Linearisation:
+        """The chunks ``problem`` kept while it was linearised (``keep=True``), with
+        ``blocks`` and the noise levels it was built under."""
+        return cls(problem.kept, blocks, (problem.sigma_pos_mm, problem.sigma_rot_rad))
+
     def columns(self, blocks: tuple[ParamBlock, ...]) -> Tensor | None:
         """Indices of ``blocks``' columns among the chunks' (None: one is missing)."""
         where, start = {}, 0

@@ -291,7 +291,7 @@ class Blocked:
         """The blocked RMS error [mm] of ``score`` in the carry-over channel (what
         :meth:`gain_mm` takes differences of)."""
         part = score.position if position_channel() else score.total
-        return self.sigmas[0] * math.sqrt(max(part, 0.0) / max(score.rows, 1))
+        return self.sigmas[0] * _rms_drop(part, 0.0, score.rows)
 
     def block_drops(self, without: BlockedScore, with_it: BlockedScore) -> list[float]:
         """Per held-out block, the drop of its RMS error [mm] in the carry-over channel

@@ -210,7 +210,7 @@ def score_candidates(
     ssr = float(r @ r)
     m = problem.n_residuals
     out = Scores(scored=[], m=m, n_current=n_cur, R=R, blocks=blocks)
-    out.near = Linearisation(problem.kept, blocks, (problem.sigma_pos_mm, problem.sigma_rot_rad))
+    out.near = Linearisation.kept_by(problem, blocks)
     start = 0
     for b, label in zip(blocks[len(blocks) - len(pool) :], pool, strict=True):
         Jc = J_pool[:, start : start + b.size]

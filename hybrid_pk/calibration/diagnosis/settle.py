@@ -5,8 +5,8 @@ chosen cyclic error), each cause's blocked hold-out gain is measured by leaving 
 (the rest re-fitted per block). A cyclic error another order predicts the held-out
 blocks nearly as well as (within the practical margin) is not resolved by the data:
 it is listed as ambiguous and taken out (so is one another order predicts better).
-Then a periodic cause that does not carry
-over along its own joint's range (:mod:`.own_range`) is listed and taken out. Then a
+Then a periodic cause that does not carry over along its own joint's range
+(:mod:`.own_range`) is listed and taken out. Then a
 cause that gains less than the margin is taken out. One at a time, the weakest first,
 the model refitted after each, until every cause carries over.
 """
@@ -110,7 +110,7 @@ def settle(
         problem, blocks, _, blocked = linearise(
             trial, res, split, carry.folds, say, factor=False, keep=True
         )
-        near = Linearisation(problem.kept, blocks, (problem.sigma_pos_mm, problem.sigma_rot_rad))
+        near = Linearisation.kept_by(problem, blocks)
         del problem  # its rows live on in near
         gains = removal_gains(blocked, labels)
         margin = carry.margin(res)

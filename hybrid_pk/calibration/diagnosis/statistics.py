@@ -157,7 +157,7 @@ def in_link_1(model: ExtendedModel, data: MeasuredData, cond: Conditions, residu
     with torch.no_grad():
         R_base = model.base.matrix(group)[..., :3, :3].to(residual.dtype)
         R_1 = model.robot.link_frames(data.q)[..., 0, :3, :3].to(residual.dtype)
-    R = R_base @ R_1 if R_base.dim() == 3 else R_base[None] @ R_1
+    R = R_base @ R_1  # one base rotation, or one per row: broadcast either way
     return (R.transpose(-1, -2) @ residual[:, :3, None])[..., 0]
 
 

@@ -36,7 +36,7 @@ from hybrid_pk.calibration.diagnosis.variants import refit_without, with_effects
 from hybrid_pk.calibration.fit import FitResult, fit
 from hybrid_pk.effects import ExtendedModel, make_effect
 
-__all__ = ["prefer_fewer_causes", "step_evidence"]
+__all__ = ["prefer_fewer_causes"]
 
 
 def prefer_fewer_causes(
@@ -87,7 +87,7 @@ def prefer_fewer_causes(
         _, alternative, trial, trial_res, removed, removals = best
         chosen_step = next(s for s in steps if s["candidate"] == chosen and s.get("accepted"))
         step = {"candidate": alternative, "replaces": chosen, "accepted": True}
-        step.update(step_evidence(trial, trial_res, alternative, split, chosen_step["threshold"]))
+        step.update(_evidence(trial, trial_res, alternative, split, chosen_step["threshold"]))
         simpler = "fewer causes" if removed else "fewer parameters"
         step["why"] = (
             f"{alternative} alone does what {chosen} needed {', '.join(sorted(removed))} for"
@@ -122,7 +122,7 @@ def _blocked_near(model, res, split, carry, extra, say):
     problem, blocks, _, blocked = linearise(
         trial, res, split, carry.folds, say, factor=False, keep=True
     )
-    near = Linearisation(problem.kept, blocks, (problem.sigma_pos_mm, problem.sigma_rot_rad))
+    near = Linearisation.kept_by(problem, blocks)
     return (blocked.of([e.label for e in model.effects]), blocked), near
 
 
@@ -206,7 +206,7 @@ def _swapped(model, res, current, swap, split, tests, say, near=None):
     return d_bic, alternative, trial, trial_res, removed, removals
 
 
-def step_evidence(
+def _evidence(
     model: ExtendedModel, res: FitResult, label: str, split: Split, threshold: float
 ) -> dict:
     """The F-test, BIC change and hold-out scores of ``label`` in ``model`` against
