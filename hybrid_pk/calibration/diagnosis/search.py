@@ -382,19 +382,24 @@ def _eliminate_blocked(model, res, scores, before, split, steps, say):
 
 
 def _note_cap(model, res, pool, split, tests, limits, steps, say) -> None:
-    """Record (``"capped"`` step) the best remaining candidate when the search stopped
-    at ``max_causes`` with it still significant and gaining the margin: the data carry
-    more than was named. ``tests``: ``(alpha, carry)``; ``limits``:
-    ``(max_causes, screened)``."""
+    """Record (``"capped"`` step) the candidate the search would have tested next when it
+    stopped at ``max_causes`` (:func:`_first_resolved`: significant, gaining the margin,
+    a resolved order): the data carry more than was named. ``tests``: ``(alpha, carry)``;
+    ``limits``: ``(max_causes, screened)``."""
     (alpha, carry), (max_causes, screened) = tests, limits
     say(f"{max_causes} causes named (the limit): does the next candidate still carry over?")
     scores = score_candidates(
         model, res, pool, split, alpha, False, progress=say, screened=screened, carry=carry
     )
-    if not scores.scored or not scores.eligible(scores.ranked[0]):
+    if not scores.scored:
+        return
+    # the candidate the search would have tested next: eligible and, if a cyclic
+    # order, resolved (its unresolved orders were never candidates for a cause)
+    best, _ = _first_resolved(scores, model, [])
+    if best is None:
         return
     why = f"not tested: the search stopped at max_causes = {max_causes}"
-    steps.append({**_untested(scores.ranked[0], scores, why), "capped": max_causes})
+    steps.append({**_untested(best, scores, why), "capped": max_causes})
 
 
 def _untested(best, scores, why: str) -> dict:
