@@ -68,3 +68,64 @@ def test_an_error_that_turns_with_the_arm_is_flat_along_joint_1_in_link_1():
     turned = in_link_1(model, data, Conditions(), seen)
     torch.testing.assert_close(turned, e.expand(2000, 3), atol=1e-12, rtol=0)
     assert all(x["share"] < 1e-12 for x in along_joints(turned, q, robot.joint_names))
+
+
+def _noise(sigma: float, pairs: int):
+    from hybrid_pk.calibration.diagnosis.noise import NoiseEstimate
+
+    return NoiseEstimate(sigma, ({"file": "a.csv", "sigma_mm": sigma, "pairs": pairs},))
+
+
+def test_noise_alone_is_not_beyond_the_noise_and_a_larger_error_is():
+    from hybrid_pk.calibration.diagnosis.noise import beyond_noise
+
+    rng = run_rng("beyond_noise")
+    g = torch.Generator().manual_seed(int(rng.integers(1 << 30)))
+    sigma, n = float(rng.uniform(0.01, 1.0)), int(rng.integers(80, 3000))
+    for _ in range(20):  # noise at the estimate's own sigma, give or take its error
+        estimate = sigma * float(rng.uniform(0.92, 1.08))  # 1 sd of a 50-pair median
+        r = sigma * torch.randn(n, 3, generator=g, dtype=torch.float64)
+        out = beyond_noise(r, _noise(estimate, 50))
+        assert not out["beyond"], (sigma, n, out)
+        assert 1.0 < out["limit"] < 1.6, out
+    r = 2.0 * sigma * torch.randn(n, 3, generator=g, dtype=torch.float64)
+    assert beyond_noise(r, _noise(sigma, 50))["beyond"], (sigma, n)
+    # fewer rows and pairs: a wider band; no estimate: no verdict
+    few = beyond_noise(r[:20], _noise(sigma, 10))["limit"]
+    assert few > beyond_noise(r, _noise(sigma, 200))["limit"]
+    assert beyond_noise(r, None) is None
+
+
+def test_an_error_left_well_above_the_noise_is_called_structured():
+    """An offset the candidates offered cannot explain (only other joints' offsets) is
+    left; the campaign repeats a sixth of its poses, so the model-free noise is the
+    simulated one. Left at 1-3 mrad it is far above the noise: structured, whatever
+    the neighbours of the few hold-out rows show; with nothing left, not."""
+    from hybrid_pk.calibration import diagnose
+    from hybrid_pk.calibration.diagnosis.leftovers import structured_text
+    from hybrid_pk.simulate import simulate_campaign
+
+    rng = run_rng("beyond_noise_campaign")
+    robot = hpk.Robot.from_urdf("rx160")
+    robot.requires_grad_(False)
+    seed = int(rng.integers(1 << 20))
+    q = robot.sample_q(250, torch.Generator().manual_seed(seed))
+    q = torch.cat([q, q[:50]])
+    joint = str(rng.choice(["joint_2", "joint_3"]))
+    others = [f"joint_offset:{j}" for j in ("joint_5", "joint_6")]
+    clean, _ = simulate_campaign(
+        robot, None, [], poses=q, noise_mm=0.05, position_only=True, seed=seed
+    )
+    un = diagnose(robot, clean, seed=seed, candidates=others).unexplained
+    assert not un["beyond_noise"]["beyond"], un
+    assert not un["structured"], un
+    assert structured_text(un).startswith("no"), un
+    offset = hpk.make_effect(robot, f"joint_offset:{joint}", float(rng.uniform(1e-3, 3e-3)))
+    data, _ = simulate_campaign(
+        robot, None, [offset], poses=q, noise_mm=0.05, position_only=True, seed=seed
+    )
+    un = diagnose(robot, data, seed=seed, candidates=others).unexplained
+    assert un["beyond_noise"]["beyond"], (joint, un)
+    assert un["structured"], (joint, un)
+    assert un["beyond_noise"]["ratio"] > 3, un
+    assert structured_text(un).startswith("yes"), un

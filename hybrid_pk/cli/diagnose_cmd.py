@@ -7,6 +7,7 @@ import json
 import math
 from pathlib import Path
 
+from hybrid_pk.calibration.diagnosis.leftovers import structured_text
 from hybrid_pk.calibration.diagnosis.rivals import rival_lines
 from hybrid_pk.calibration.diagnosis.statistics import along_joints_text
 from hybrid_pk.calibration.settings import DiagnosisSettings
@@ -143,11 +144,7 @@ def summary_lines(diagnosis, seconds: float | None = None, runs: int = 1) -> lis
     rest = f"unexplained: RMS {_num(un.get('position_mm_rms'))} mm"
     if un.get("orientation_deg_rms") is not None:
         rest += f", {_num(un['orientation_deg_rms'])} deg"
-    rest += (
-        "; structured: yes (a smooth error is left that no cause explains)"
-        if un.get("structured")
-        else "; structured: no (looks like measurement noise)"
-    )
+    rest += "; structured: " + structured_text(un)
     lines.append(rest)
     along = along_joints_text(un.get("along_joints"))
     if along is not None:

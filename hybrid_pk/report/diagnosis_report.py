@@ -197,14 +197,26 @@ def _what_is_left(diagnosis, data, robot: Robot, out: Path, ext) -> list[str]:
         title=f"extended model, hold-out rows: {verdict}",
     )
     corr = un.get("neighbour_correlation")
-    text = (
-        "**Structured: yes.** Neighbouring configurations share their residuals, so a "
-        "smooth error is left that no named cause explains (an unmodelled effect, or "
-        "one for the residual networks)."
-        if un.get("structured")
-        else "**Structured: no.** The residuals of neighbouring configurations are not "
-        "correlated: what is left looks like measurement noise."
-    )
+    beyond = un.get("beyond_noise") or {}
+    if un.get("smooth", un.get("structured")):
+        text = (
+            "**Structured: yes.** Neighbouring configurations share their residuals, so a "
+            "smooth error is left that no named cause explains (an unmodelled effect, or "
+            "one for the residual networks)."
+        )
+    elif beyond.get("beyond"):
+        text = (
+            f"**Structured: yes.** What is left is {fmt(beyond['ratio'], 3)} times the "
+            f"measurement noise per axis (noise alone stays below {fmt(beyond['limit'], 3)}"
+            "), an error no named cause explains; the hold-out configurations lie too far "
+            "apart for their neighbours to show its shape."
+        )
+    else:
+        text = (
+            "**Structured: no.** The residuals of neighbouring configurations are not "
+            "correlated and stay within the measurement noise: what is left looks like "
+            "measurement noise."
+        )
     lines = [
         "## What is left",
         "",

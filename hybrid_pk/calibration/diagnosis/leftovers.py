@@ -4,6 +4,7 @@ what it varies along)."""
 
 from __future__ import annotations
 
+from hybrid_pk.calibration.diagnosis.noise import NoiseEstimate, beyond_noise
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.statistics import (
     along_joints,
@@ -16,7 +17,7 @@ from hybrid_pk.calibration.robust import OUTLIER_K, down_weighted, list_outliers
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import ExtendedModel, conditions_from_data
 
-__all__ = ["outliers_json", "robust_json", "unexplained_json"]
+__all__ = ["outliers_json", "robust_json", "structured_text", "unexplained_json"]
 
 
 def outliers_json(model: ExtendedModel, data: MeasuredData, per_file: bool, res: FitResult):
@@ -36,21 +37,41 @@ def robust_json(res: FitResult, data: MeasuredData, split: Split) -> dict | None
     }
 
 
-def unexplained_json(model: ExtendedModel, split: Split, errors: tuple) -> dict:
-    """RMS of what the model leaves on the hold-out rows, whether it is smooth, and how
-    much of it varies along each joint."""
+def unexplained_json(
+    model: ExtendedModel, split: Split, errors: tuple, noise: NoiseEstimate | None = None
+) -> dict:
+    """RMS of what the model leaves on the hold-out rows, whether it is structured
+    (neighbouring rows share it, or it is larger than the measurement ``noise``), and
+    how much of it varies along each joint."""
     pos1, ori1 = errors
     residual_hold = residual_vectors(model, split.test, split.cond_hold)
     lower, upper = model.robot.joint_limits
-    structured, nn_corr = neighbour_structure(residual_hold, split.test.q, lower, upper)
+    smooth, nn_corr = neighbour_structure(residual_hold, split.test.q, lower, upper)
+    beyond = beyond_noise(residual_hold[:, :3], noise)
     return {
         "position_mm_rms": float(pos1.pow(2).mean().sqrt()),
         "orientation_deg_rms": None if ori1 is None else float(ori1.pow(2).mean().sqrt()),
-        "structured": structured,
+        "structured": smooth or bool(beyond and beyond["beyond"]),
         "neighbour_correlation": nn_corr,
+        "smooth": smooth,
+        "beyond_noise": beyond,
         "along_joints": along_joints(
             in_link_1(model, split.test, split.cond_hold, residual_hold),
             split.test.q,
             model.robot.joint_names,
         ),
     }
+
+
+def structured_text(un: dict) -> str:
+    """The verdict on the left error (:func:`unexplained_json`) in words."""
+    beyond = un.get("beyond_noise") or {}
+    if un.get("smooth", un.get("structured")):
+        return "yes (a smooth error is left that no cause explains)"
+    if beyond.get("beyond"):
+        return (
+            f"yes (it is {beyond['ratio']:.3g} times the measurement noise, where noise "
+            f"alone stays below {beyond['limit']:.3g}; the hold-out poses are too far "
+            "apart for neighbours to show its shape)"
+        )
+    return "no (looks like measurement noise)"

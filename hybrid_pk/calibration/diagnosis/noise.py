@@ -23,13 +23,14 @@ import math
 from dataclasses import dataclass
 
 import torch
+from torch import Tensor
 
 from hybrid_pk.calibration.diagnosis.regions import joint_levers
 from hybrid_pk.calibration.fit import predicted_poses
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
 
-__all__ = ["NOISE_PAIRS", "NoiseEstimate", "measurement_noise"]
+__all__ = ["NOISE_PAIRS", "NoiseEstimate", "beyond_noise", "measurement_noise"]
 
 # Closest pairs per file: the median of 50 chi^2_3 draws gives sigma within 8 % (one
 # standard deviation, 20 % at 99 %), and 50 pairs stay the close ones in a campaign of
@@ -37,6 +38,10 @@ __all__ = ["NOISE_PAIRS", "NoiseEstimate", "measurement_noise"]
 NOISE_PAIRS = 50
 # Neighbours per row searched for pairs: each row's nearest few hold the closest pairs.
 NEIGHBOURS = 3
+
+# Standard deviations of the log mean square beyond which the left error is called
+# larger than the noise: the 4 sigma of the neighbour test (statistics.py).
+BEYOND_SD = 4.0
 
 METHOD = (
     "model-free: per file the {pairs} closest pairs in joint space (metres of point "
@@ -117,3 +122,31 @@ def _closest_pairs(tree, x):
     order = first[np.argsort(dist[first], kind="stable")]
     pairs = torch.from_numpy(np.stack([a[order], b[order]], 1)).long()
     return pairs, dist[order]
+
+
+def beyond_noise(position_mm: Tensor, noise: NoiseEstimate | None) -> dict | None:
+    """Is the left position error ``(N, 3)`` [mm] of the hold-out rows larger than the
+    measurement noise? Under noise alone its mean square per coordinate is ``sigma^2``
+    with a relative variance ``2 / (3 N)`` (chi^2 of 3N), and the estimate's own
+    ``sigma^2`` (the median of the closest pairs' chi^2_3) one of ``1 / (4 P f(m)^2 m^2)``
+    (P pairs, ``f`` the chi^2_3 density at its median ``m``); the error is beyond the
+    noise when the log of their ratio exceeds :data:`BEYOND_SD` standard deviations.
+    None without a noise estimate. A smooth error that neighbouring hold-out poses are
+    too far apart to share (a few hundred rows in many joints) still shows here."""
+    from scipy import stats
+
+    if noise is None or noise.sigma_mm is None or position_mm.shape[0] < 2:
+        return None
+    pairs = sum(f["pairs"] for f in noise.files)
+    m = float(stats.chi2.median(3))
+    estimate_var = 1.0 / (4 * pairs * float(stats.chi2.pdf(m, 3)) ** 2 * m**2)
+    sd = math.sqrt(2.0 / position_mm.numel() + estimate_var)
+    rms = float(position_mm.pow(2).mean().sqrt())
+    ratio, limit = rms / noise.sigma_mm, math.exp(BEYOND_SD * sd / 2)  # RMS: half the log
+    return {
+        "rms_per_axis_mm": rms,
+        "noise_mm": noise.sigma_mm,
+        "ratio": ratio,
+        "limit": limit,
+        "beyond": ratio > limit,
+    }

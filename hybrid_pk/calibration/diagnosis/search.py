@@ -159,7 +159,7 @@ def diagnose(
         extended=stats_json(*errors),
         causes=causes,
         ambiguous=ambiguous,
-        unexplained=unexplained_json(model, split, errors),
+        unexplained=unexplained_json(model, split, errors, carry.noise),
         identifiability=identifiability_json(res, unobservable),
         model=model,
         nominal_model=nominal_model,
