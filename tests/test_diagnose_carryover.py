@@ -165,3 +165,29 @@ def test_default_margin_is_the_standard_error_of_a_50_pose_check():
     sigma = float(rng.uniform(0.005, 1.0))
     assert practical_margin(sigma) == pytest.approx(sigma / 10)
     assert practical_margin(sigma, 0.25) == 0.25
+
+
+def test_unresolved_orders_are_printed_per_joint():
+    """Entries of orders that predict as well as each other, as the search and settle
+    write them, print as one line per joint with the orders ascending; other
+    ambiguities stay one line each."""
+    from hybrid_pk.calibration.diagnosis.settle import order_groups, unresolved_entry
+    from hybrid_pk.cli.diagnose_cmd import ambiguous_lines
+
+    rng = run_rng("order-groups")
+    joints = ["elbow_joint", "wrist_3_joint"]
+    want: dict[str, set[int]] = {}
+    ambiguous = [{"effects": ["joint_offset:shoulder_pan_joint", "base_frame"], "why": "."}]
+    for joint in joints:
+        orders = [int(o) for o in rng.choice(range(2, 37), int(rng.integers(2, 6)), False)]
+        rivals = {f"cyclic_error_{o}:{joint}": float(rng.normal(0, 1e-3)) for o in orders[1:]}
+        ambiguous += unresolved_entry(f"cyclic_error_{orders[0]}:{joint}", rivals, 1e-3)
+        want[joint] = set(orders)
+    groups, others = order_groups(ambiguous)
+    assert groups == {j: sorted(o) for j, o in want.items()}
+    assert others == ambiguous[:1]
+    lines = ambiguous_lines(ambiguous)
+    assert lines[:2] == ["ambiguous (1):", "  joint_offset:shoulder_pan_joint ~ base_frame"]
+    for joint in joints:
+        assert f"  {joint}: {', '.join(map(str, sorted(want[joint])))} per turn" in lines
+    assert ambiguous_lines([]) == []

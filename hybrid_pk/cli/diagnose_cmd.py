@@ -9,6 +9,7 @@ from pathlib import Path
 
 from hybrid_pk.calibration.diagnosis.leftovers import structured_text
 from hybrid_pk.calibration.diagnosis.rivals import rival_lines
+from hybrid_pk.calibration.diagnosis.settle import order_groups
 from hybrid_pk.calibration.diagnosis.statistics import along_joints_text
 from hybrid_pk.calibration.settings import DiagnosisSettings
 from hybrid_pk.cli.common import load_robot, mounting_lines, read_data
@@ -130,9 +131,7 @@ def summary_lines(diagnosis, seconds: float | None = None, runs: int = 1) -> lis
 
     margin = margin_text(getattr(diagnosis, "carry_over", None))
     lines += [margin] if margin else []
-    if diagnosis.ambiguous:
-        lines.append(f"ambiguous ({len(diagnosis.ambiguous)}):")
-        lines += [_ambiguous_line(a) for a in diagnosis.ambiguous]
+    lines += ambiguous_lines(diagnosis.ambiguous)
     if diagnosis.rival_stories:
         margin = (diagnosis.carry_over or {}).get("min_gain_mm")
         lines.append("rival stories (the rows cannot choose; named / rival):")
@@ -212,6 +211,22 @@ def run(args: argparse.Namespace) -> int:
     print("\n".join(lines))
     print(f"wrote {out}" + (f" and {report}" if args.report else ""))
     return 0
+
+
+def ambiguous_lines(ambiguous: list[dict]) -> list[str]:
+    """The printed ambiguity entries; the cyclic orders not resolved gathered per joint."""
+    orders, others = order_groups(ambiguous)
+    lines = []
+    if others:
+        lines.append(f"ambiguous ({len(others)}):")
+        lines += [_ambiguous_line(a) for a in others]
+    if orders:
+        lines.append(
+            "periodic errors whose order these rows do not resolve (each order predicts "
+            "the blocked hold-out within the margin of another, or worse; none is named):"
+        )
+        lines += [f"  {j}: {', '.join(map(str, o))} per turn" for j, o in orders.items()]
+    return lines
 
 
 def _ambiguous_line(entry: dict) -> str:

@@ -18,6 +18,7 @@ import torch
 
 from hybrid_pk.calibration.diagnosis.carryover import margin_text
 from hybrid_pk.calibration.diagnosis.rivals import rival_lines
+from hybrid_pk.calibration.diagnosis.settle import order_groups
 from hybrid_pk.calibration.diagnosis.statistics import along_joints_text
 from hybrid_pk.calibration.fit import model_errors
 from hybrid_pk.data.measured import MeasuredData
@@ -298,6 +299,11 @@ def _identifiability(diagnosis) -> list[str]:
         lines.append(markdown_table(amb, ["effects", "why"], ["l", "l"]))
     else:
         lines += ["None.", ""]
+    orders, _ = order_groups(diagnosis.ambiguous)
+    if orders:
+        lines += ["Periodic errors whose order the rows do not resolve (none is named; the "
+                  "data show a periodic error at the joint, not at which order):", ""]  # fmt: skip
+        lines += [f"- {j}: {', '.join(map(str, o))} per turn" for j, o in orders.items()] + [""]
     unobservable = ident.get("unobservable_candidates") or []
     lines += [
         "### Unobservable candidates",

@@ -24,9 +24,9 @@ from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.variants import refit_removed, with_effects, without_effect
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.effects import ExtendedModel, make_effect
-from hybrid_pk.effects.joint import CYCLIC_PREFIX
+from hybrid_pk.effects.joint import CYCLIC_PREFIX, cyclic_error_kind
 
-__all__ = ["entry_rivals", "settle", "unresolved_entry"]
+__all__ = ["entry_rivals", "order_groups", "settle", "unresolved_entry"]
 
 
 def _is_cyclic(label: str) -> bool:
@@ -78,9 +78,26 @@ def unresolved_entry(label: str, rivals: dict[str, float], margin: float) -> lis
         {
             "effects": [label, alt],
             "why": f"{how(alt, adv)}: the order is not resolved by these rows, so neither is named",
+            "order_not_resolved": _joint(label),
         }
         for alt, adv in sorted(rivals.items(), key=lambda kv: kv[1])
     ]
+
+
+def order_groups(ambiguous: list[dict]) -> tuple[dict[str, list[int]], list[dict]]:
+    """The cyclic orders ``ambiguous`` lists as not resolved, per joint (``{joint:
+    orders per turn, ascending}``; the data show a periodic error there, not its
+    order), and the other entries."""
+    groups: dict[str, set[int]] = {}
+    others = []
+    for entry in ambiguous:
+        joint = entry.get("order_not_resolved")
+        if not joint:
+            others.append(entry)
+            continue
+        for label in entry["effects"]:
+            groups.setdefault(joint, set()).add(cyclic_error_kind(label.partition(":")[0]).order)
+    return {j: sorted(v) for j, v in groups.items()}, others
 
 
 def settle(
