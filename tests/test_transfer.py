@@ -93,3 +93,19 @@ def test_diagnose_and_calibrate_report_the_check(rx160, tmp_path, capsys):
     one = tmp_path / "one.json"
     assert main(["diagnose", str(files[0]), "--robot", "rx160", "--json", str(one)]) == 0
     assert json.loads(one.read_text())["transfer"] is None
+
+
+def test_the_printed_table_keeps_whole_file_names():
+    """File names longer than the old 40-column cut (which dropped their first letters:
+    'easurements_joint_configurations.parquet') print whole, the columns aligned."""
+    from hybrid_pk.pipelines.transfer import FileTransfer, TransferResult
+
+    stats = {"mean": 0.39, "rms": 0.4, "p95": 0.7, "max": 2.2}
+    names = ["/data/measurements_joint_configurations_second_setup.parquet", "/data/a.csv"]
+    files = tuple(FileTransfer(n, 100, 50, 1445, stats, stats) for n in names)
+    lines = TransferResult(50, ("joint_offset:joint_2",), files, 0).lines()
+    rows = lines[2:]
+    assert rows[0].startswith("  measurements_joint_configurations_second_setup.parquet ")
+    assert rows[1].startswith("  a.csv ")
+    assert len({len(r) for r in rows}) == 1  # aligned
+    assert lines[1].index("judged") + len("judged") == rows[0].index("1445") + 4

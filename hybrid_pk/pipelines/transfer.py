@@ -94,20 +94,21 @@ class TransferResult:
 
     def lines(self) -> list[str]:
         """The table ``diagnose`` and ``calibrate`` print."""
+        names = [Path(f.file).name for f in self.files]
+        w = max([len("left-out file"), *map(len, names)])  # whole names: they tell files apart
         out = [
             f"transfer (leave one file out; frames re-fitted on {self.refit_rows} rows of "
             "the left-out file, judged on its other rows), position [mm]:",
-            f"  {'left-out file':<40}{'judged':>8}  {'nominal+frames mean/max':>24}"
+            f"  {'left-out file':<{w}}{'judged':>8}  {'nominal+frames mean/max':>24}"
             f"  {'extended mean/max':>18}  {'ratio':>6}",
         ]
-        for f in self.files:
-            name = Path(f.file).name[-40:]
+        for name, f in zip(names, self.files, strict=True):
             if f.skipped is not None:
-                out.append(f"  {name:<40}  skipped: {f.skipped}")
+                out.append(f"  {name:<{w}}  skipped: {f.skipped}")
                 continue
             nom = f"{f.nominal_mm['mean']:.4g} / {f.nominal_mm['max']:.4g}"
             ext = f"{f.extended_mm['mean']:.4g} / {f.extended_mm['max']:.4g}"
-            out.append(f"  {name:<40}{f.judged_rows:>8}  {nom:>24}  {ext:>18}  {f.ratio:>6.3f}")
+            out.append(f"  {name:<{w}}{f.judged_rows:>8}  {nom:>24}  {ext:>18}  {f.ratio:>6.3f}")
         return out
 
 
