@@ -97,6 +97,8 @@ def test_diagnose_writes_contract_json_summary_and_report(table, tmp_path, capsy
     assert "± " in captured.out
     assert "structured: " in captured.out
     assert "left error along the joints" not in captured.out
+    assert "transfer: not measured (one file)" in captured.out  # what one set-up cannot show
+    assert result["transfer"] is None
     # Progress on stderr (not a terminal here: one line per stage, elapsed seconds).
     assert "diagnose [" in captured.err
     assert " s] fitting base and tool frames" in captured.err

@@ -41,7 +41,7 @@ from hybrid_pk.cli.fit_settings import (
 from hybrid_pk.cli.options import ROBOT_HELP, add_data, add_end_link, add_out, add_robot
 from hybrid_pk.cli.progress import progress
 from hybrid_pk.cli.settings_flags import add_config_flags, add_settings_flags
-from hybrid_pk.cli.transfer_check import transfer_check
+from hybrid_pk.cli.transfer_check import transfer_check, transfer_lines
 from hybrid_pk.effects import make_effect
 from hybrid_pk.effects.vocabulary import vocabulary_units
 from hybrid_pk.errors import HybridPKError
@@ -198,7 +198,7 @@ def _run_new(args: argparse.Namespace, settings: DiagnosisSettings) -> int:
         export_model_urdf(model, args, urdf)
 
     _print_summary(robot, data, diag, effects, model, res0, res)
-    for line in [] if transfer is None else transfer.lines():
+    for line in transfer_lines(transfer, settings, data):
         print(line)
     print(f"wrote {args.out}" + (f" and {urdf}" if urdf else ""))
     return 0

@@ -17,7 +17,7 @@ from hybrid_pk.cli.fit_settings import diagnosis_notes, print_settings, settings
 from hybrid_pk.cli.options import add_data, add_end_link, add_json, add_report, add_robot
 from hybrid_pk.cli.progress import Progress
 from hybrid_pk.cli.settings_flags import add_config_flags, add_settings_flags
-from hybrid_pk.cli.transfer_check import append_to_report, transfer_check
+from hybrid_pk.cli.transfer_check import append_to_report, transfer_check, transfer_lines
 
 _DESCRIPTION = """\
 Diagnose a robot from measured poses: fit base and tool frames to the nominal URDF,
@@ -206,7 +206,7 @@ def run(args: argparse.Namespace) -> int:
     doc["stability"] = stability
     out.write_text(json.dumps(_finite(doc), indent=2) + "\n", encoding="utf-8")
     lines = summary_lines(result, seconds, settings.stability)
-    lines += [] if transfer is None else transfer.lines()
+    lines += transfer_lines(transfer, settings, data)
     lines += [] if stability is None else stability_lines(stability)
     print("\n".join(lines))
     print(f"wrote {out}" + (f" and {report}" if args.report else ""))

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from hybrid_pk.pipelines.transfer import TransferResult, leave_one_file_out
 
-__all__ = ["append_to_report", "transfer_check"]
+__all__ = ["append_to_report", "transfer_check", "transfer_lines"]
 
 
 def transfer_check(
@@ -39,3 +39,16 @@ def append_to_report(report: Path, title: str, body: list[str]) -> None:
     lines = ["", f"## {title}", "", "```", *body, "```", ""]
     with open(report, "a", encoding="utf-8") as f:
         f.write("\n".join(lines))
+
+
+def transfer_lines(transfer: TransferResult | None, settings, data) -> list[str]:
+    """The check's table, or why there is none: what these rows cannot show."""
+    if transfer is not None:
+        return transfer.lines()
+    if len(data.sources) < 2:
+        return [
+            "transfer: not measured (one file): how the causes carry to another set-up "
+            "(the robot re-mounted, the instrument moved) needs rows of a second one; "
+            "the blocked hold-out holds out regions of this one only"
+        ]
+    return [f"transfer: not measured (--refit-rows {settings.refit_rows})"]
