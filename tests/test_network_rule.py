@@ -98,6 +98,7 @@ def test_networks_that_learned_the_robots_own_error_are_kept_on_a_new_setup(setu
     assert res.verdict is not None
     assert res.verdict.used, res.verdict
     assert res.verdict.gain_mm > 2 * res.verdict.se_mm > 0
+    assert res.verdict.reached == REFIT_ROWS  # inside the training rows' joints
     kept = replace(load_model(path), model=res.model, networks=res.networks)
     hybrid, physics = _mean_mm(kept, judged), _mean_mm(_physics(path, fit_rows), judged)
     assert hybrid < 0.9 * physics, (hybrid, physics, res.verdict)
@@ -135,6 +136,29 @@ def test_networks_that_learned_an_error_of_the_old_setup_fall_back_to_the_physic
     assert "standard errors" in rule["rule"]
     physics = _mean_mm(_physics(path, fit_rows), judged)
     assert summary["position_mm"]["mean"] == pytest.approx(physics, rel=1e-6)
+
+
+def test_rows_where_no_network_acts_say_the_rows_cannot_show_it(setups, ur10):
+    """Re-fit rows with joint 1 beyond the range the networks were trained on (the middle
+    half): no stage acts there, so the verdict says the rows cannot show whether the
+    networks carry, not that they lost to the physics by nothing."""
+    from hybrid_pk.pipelines.network_rule import verdict_line
+
+    path, _ = setups
+    rng = run_rng("network-rule-unreached")
+    q = middle_q(ur10, REFIT_ROWS, int(rng.integers(1 << 20)), 0.5)
+    lo, hi = ur10.joint_limits
+    side = float(rng.choice([-1.0, 1.0]))  # an end quarter of joint 1, either side
+    mid, half = float(lo[0] + hi[0]) / 2, float(hi[0] - lo[0]) / 2
+    q[:, 0] = mid + side * half * torch.empty(REFIT_ROWS, dtype=F64).uniform_(0.6, 0.95)
+    data, _ = simulate_campaign(
+        ur10, None, "", poses=q, noise_mm=NOISE_MM, known_frames=True,
+        temperature_range=None, seed=3,
+    )  # fmt: skip
+    res = refit(load_model(path), data, "frames")
+    assert res.verdict.reached == 0, res.verdict
+    assert not res.verdict.used
+    assert "act on none of the 50 re-fit rows" in verdict_line(res.verdict.to_json())
 
 
 @pytest.mark.parametrize("error", ["robot's own", "first set-up's"])

@@ -22,6 +22,7 @@ extended model (:func:`~hybrid_pk.io.hybrid_file.forward_model`) and says so.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -65,6 +66,7 @@ class NetworkVerdict:
     se_deg: float | None
     score_gain: float
     score_se: float
+    reached: int | None = None  # re-fit rows where any stage's networks act (trust > 0)
 
     @property
     def rule(self) -> str:
@@ -81,7 +83,7 @@ class NetworkVerdict:
         out = {"used": self.used, "rule": self.rule}
         for key in ("z", "rows", "folds", "physics_mm", "hybrid_mm", "gain_mm", "se_mm"):
             out[key] = getattr(self, key)
-        for key in ("gain_deg", "se_deg", "score_gain", "score_se"):
+        for key in ("gain_deg", "se_deg", "score_gain", "score_se", "reached"):
             out[key] = getattr(self, key)
         return out
 
@@ -93,10 +95,20 @@ class NetworkVerdict:
 def verdict_line(verdict: dict) -> str:
     """One line on a file's networks from their ``transfer`` verdict (the JSON of a
     :class:`NetworkVerdict`)."""
+    reached = verdict.get("reached")
+    if reached == 0:
+        return (
+            f"residual networks NOT used: they act on none of the {verdict['rows']} re-fit "
+            "rows (every row lies beyond where a stage is trusted: the joints they were "
+            "trained on, joint 1's trained range), so these rows cannot show whether they "
+            "would carry there; the extended model (physics) instead"
+        )
     if verdict.get("used", True):
         what = "residual networks used"
     else:
         what = "residual networks NOT used, the extended model (physics) instead"
+    if reached is not None and reached < verdict["rows"]:
+        what += f" (they act on {reached} of the {verdict['rows']} re-fit rows)"
     z = f"{verdict['z']:g}"
     return (
         f"{what} (held out on the {verdict['rows']} re-fit rows: hybrid "
@@ -142,6 +154,7 @@ def network_rule(
     group = cond.group if model.base.sets > 1 else None
     errors = {k: row_errors(held_out_errors(r, B0, X0, free, group), data) for k, r in rows.items()}
     verdict = _verdict(errors, data.n, fold_of_rows(data.n)[1])
+    verdict = dataclasses.replace(verdict, reached=_reached(hybrid, data.q))
     if not verdict.used:
         return verdict, None
     sets = B0.shape[0]
@@ -166,6 +179,15 @@ def _verdict(errors: dict, n: int, folds: int) -> NetworkVerdict:
     z = hybrid_tuning().freeing_z
     mm, scores = _mean_se(p_pos - h_pos), _mean_se(score["physics"] - score["hybrid"])
     return NetworkVerdict(used, n, folds, z, *means, *mm, *deg, *scores)
+
+
+@torch.no_grad()
+def _reached(hybrid: HybridFK, q: Tensor) -> int:
+    """Rows of joints ``q`` where any stage's networks have a weight above zero."""
+    acts = torch.zeros(q.shape[0], dtype=torch.bool)
+    for w in hybrid.weights(q):
+        acts |= (w.reshape(q.shape[0], -1) > 0).any(1)
+    return int(acts.sum())
 
 
 def _scale(err: Tensor) -> Tensor:
