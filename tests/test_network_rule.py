@@ -27,7 +27,7 @@ from hybrid_pk.pipelines.flange_frames import (
 from hybrid_pk.pipelines.refit import refit
 from hybrid_pk.simulate import simulate_campaign
 from hybrid_pk.training import train_hybrid
-from tests.helpers import middle_q, run_rng
+from tests.helpers import RUN_SEED, middle_q, run_rng
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -213,3 +213,50 @@ def test_the_frames_fit_recovers_the_frames_of_exact_rows(ur10):
     B2, X2 = fit_flange_frames(rows, B0, X0, BLOCKS[:2])
     assert torch.equal(X2, X0)
     assert not torch.allclose(B2, B0, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_networks_gated_beyond_joint_1_are_carried_where_the_new_rows_show_they_hold(
+    ur10, tmp_path
+):
+    """A gravity-driven compliance (it turns with the arm): networks trained on joint 1's
+    lower half are gated beyond it, and a new set-up measured only on its upper half
+    (frames moved) gives them no row as stored. The second look lifts their joint gates:
+    the re-fit rows held out show the correction carries, so it is kept (carried) and
+    the judged rows gain on the physics; a compliance the robot does not have there
+    (the first set-up's error, absent after moving) leaves the networks unused."""
+    rng = run_rng("network-rule-carried")
+    joint, lo = (("shoulder_lift_joint", 5e-6), ("elbow_joint", 2e-5))[int(rng.integers(2))]
+    effect = f"joint_compliance:{joint}={lo * float(rng.uniform(1.5, 3.0)):.3g}"
+    data, _ = simulate_campaign(
+        ur10, 1200, effect, noise_mm=0.002, known_frames=True, temperature_range=None,
+        seed=int(rng.integers(1 << 20)),
+    )  # fmt: skip
+    low = data.q[:, 0] < data.q[:, 0].median()
+    nets = {"position_net": "mlp:64x2", "orientation_net": "mlp:64x2", "refine_net": "mlp:64x2"}
+    result = train_hybrid(
+        data.subset(torch.nonzero(low)[:, 0]), ExtendedModel(ur10), model=nets,
+        max_epochs=40, progress=False, seed=0,
+    )  # fmt: skip
+    path = tmp_path / "hybrid.pt"
+    save_hybrid(path, result.hybrid)
+    rpy = torch.as_tensor(rng.uniform(-0.3, 0.3, 3), dtype=F64)
+    base = transform(rpy_to_matrix(rpy), torch.as_tensor(rng.uniform(-2, 2, 3), dtype=F64))
+    tool = transform(torch.eye(3, dtype=F64), torch.tensor([0.01, -0.02, 0.08], dtype=F64))
+    q_new = data.q[~low][: REFIT_ROWS + 300]
+    where = f"seed {RUN_SEED}: {effect}"
+    for error, kept in ((effect, True), ("", False)):
+        moved, _ = simulate_campaign(
+            ur10, None, error, poses=q_new, noise_mm=0.002, known_frames=False,
+            temperature_range=None, seed=5, base=base, tool=tool,
+        )  # fmt: skip
+        fit_rows, judged = _split(moved)
+        res = refit(load_model(path), fit_rows, "frames")
+        assert res.verdict.used is kept, (where, error, res.verdict)
+        assert res.verdict.carried is kept, (where, error, res.verdict)
+        if kept:
+            assert res.verdict.z > 2.0  # the second look's stricter z
+            moved_model = replace(load_model(path), model=res.model, networks=res.networks)
+            hybrid = _mean_mm(moved_model, judged)
+            physics = _mean_mm(_physics(path, fit_rows), judged)
+            assert hybrid < 0.9 * physics, (where, hybrid, physics, res.verdict)

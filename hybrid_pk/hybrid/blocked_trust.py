@@ -51,13 +51,20 @@ class JointGate(nn.Module):
         coverage: coverage of the normalised training joints.
         free: the stage earned its use away from the training joints: only joint 1's
             trained range remains (see :meth:`trust`).
+        carried: rows of a new set-up showed the stage carries beyond its training
+            joints, joint 1's range included (``calibrate --refit``,
+            :mod:`~hybrid_pk.pipelines.network_rule`): the gate is open everywhere and
+            the stage's own coverage (in its inputs) alone limits it.
     """
 
-    def __init__(self, box: InputBox, coverage: Coverage, free: bool = False) -> None:
+    def __init__(
+        self, box: InputBox, coverage: Coverage, free: bool = False, carried: bool = False
+    ) -> None:
         super().__init__()
         self.box = box
         self.coverage = coverage
         self.free = bool(free)
+        self.carried = bool(carried)
 
     @classmethod
     def fit(cls, q_train: Tensor, q_val: Tensor | None, quantile: float, ratio: float) -> JointGate:
@@ -79,6 +86,8 @@ class JointGate(nn.Module):
         from one symmetric about the middle of that range (the test of a sin q1 field
         trained on [0, pi]: the stages gained 8-18 % on joint 1's end quarters and were
         1.6 x worse than the physics on [-pi, 0])."""
+        if self.carried:
+            return torch.ones(q.shape[:-1], dtype=q.dtype, device=q.device)
         if self.free:
             lo, hi = self.box.trust_lower[0].to(q.dtype), self.box.trust_upper[0].to(q.dtype)
             return ((q[..., 0] >= lo) & (q[..., 0] <= hi)).to(q.dtype)
@@ -86,7 +95,8 @@ class JointGate(nn.Module):
 
     def state(self) -> dict:
         """Plain data for a model file."""
-        return {"input": self.box.state(), "coverage": self.coverage.state(), "free": self.free}
+        out = {"input": self.box.state(), "coverage": self.coverage.state(), "free": self.free}
+        return out | ({"carried": True} if self.carried else {})
 
     @classmethod
     def from_state(cls, state: dict) -> JointGate:
@@ -95,6 +105,7 @@ class JointGate(nn.Module):
             InputBox.from_state(state["input"]),
             Coverage.from_state(state["coverage"]),
             bool(state.get("free", False)),
+            bool(state.get("carried", False)),
         )
 
 

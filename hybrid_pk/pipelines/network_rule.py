@@ -22,6 +22,7 @@ extended model (:func:`~hybrid_pk.io.hybrid_file.forward_model`) and says so.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from dataclasses import dataclass
 
@@ -45,7 +46,7 @@ from hybrid_pk.pipelines.flange_frames import (
     held_out_errors,
 )
 
-__all__ = ["NetworkVerdict", "network_rule", "verdict_line"]
+__all__ = ["NetworkVerdict", "carried_networks", "network_rule", "second_look_z", "verdict_line"]
 
 
 @dataclass(frozen=True)
@@ -67,6 +68,7 @@ class NetworkVerdict:
     score_gain: float
     score_se: float
     reached: int | None = None  # re-fit rows where any stage's networks act (trust > 0)
+    carried: bool = False  # used with the stages' joint gates lifted (second look)
 
     @property
     def rule(self) -> str:
@@ -83,7 +85,7 @@ class NetworkVerdict:
         out = {"used": self.used, "rule": self.rule}
         for key in ("z", "rows", "folds", "physics_mm", "hybrid_mm", "gain_mm", "se_mm"):
             out[key] = getattr(self, key)
-        for key in ("gain_deg", "se_deg", "score_gain", "score_se", "reached"):
+        for key in ("gain_deg", "se_deg", "score_gain", "score_se", "reached", "carried"):
             out[key] = getattr(self, key)
         return out
 
@@ -103,7 +105,13 @@ def verdict_line(verdict: dict) -> str:
             "trained on, joint 1's trained range), so these rows cannot show whether they "
             "would carry there; the extended model (physics) instead"
         )
-    if verdict.get("used", True):
+    if verdict.get("used", True) and verdict.get("carried"):
+        what = (
+            "residual networks used beyond the joints they were trained on (their joint "
+            "gates lifted: as stored they did not beat the physics here, lifted they do, "
+            "at the stricter z of a second look)"
+        )
+    elif verdict.get("used", True):
         what = "residual networks used"
     else:
         what = "residual networks NOT used, the extended model (physics) instead"
@@ -124,11 +132,18 @@ def network_rule(
     cond: Conditions,
     which: str,
     fit: FitResult,
-) -> tuple[NetworkVerdict, tuple[Tensor, Tensor] | None]:
+) -> tuple[NetworkVerdict, tuple[Tensor, Tensor] | None, dict]:
     """The verdict on the networks of a model whose ``which`` frames were just
     re-fitted on ``data`` (``model``: the extended model with those frames, the start of
-    every fit here), and the hybrid's own frames ``(B, X)`` ``(G, 4, 4)`` on all rows
-    when the networks are used (None otherwise).
+    every fit here), the hybrid's own frames ``(B, X)`` ``(G, 4, 4)`` on all rows
+    when the networks are used (None otherwise), and the networks entry to keep.
+
+    Networks that do not beat the physics as stored get a second look with their
+    stages' joint gates lifted (:func:`carried_networks`): a stage gated to its
+    training joints, or to joint 1's trained range, may still carry to the new rows (an
+    error that turns with the arm, where the rows lie at new angles of joint 1), and
+    these rows are the only evidence there is. They are then kept, lifted, only at
+    :func:`second_look_z` (the one-sided level of ``freeing_z`` halved: two looks).
 
     Args:
         nets: the model file's networks entry.
@@ -137,36 +152,67 @@ def network_rule(
             its noise levels and robust row weights (``--robust``) weigh the residuals;
             the components its priors fix (known frames) are not fitted here either.
     """
-    hybrid = HybridFK.from_state(model, nets)
-    with torch.no_grad():
-        flanges = {"physics": model.end_pose(data.q, cond), "hybrid": hybrid.end_pose(data.q, cond)}
-    sig_p = fit.sigma_pos_mm or DEFAULT_SIGMA_POS_MM
-    sig_r = fit.sigma_rot_rad or DEFAULT_SIGMA_ROT_RAD
-    R_meas = None if data.quat is None else quat_to_matrix(data.quat)
-    rows = {
-        k: FlangeRows(E, data.position, R_meas, sig_p, sig_r, fit.weights)
-        for k, E in flanges.items()
-    }
     fixed = (fit.priors or FramePriors()).fixed_labels()
     free = tuple(b for b in FRAME_LABELS[which] if b not in fixed)
     with torch.no_grad():
         B0, X0 = model.base.matrix().detach(), model.tool.matrix().detach()
     group = cond.group if model.base.sets > 1 else None
-    errors = {k: row_errors(held_out_errors(r, B0, X0, free, group), data) for k, r in rows.items()}
-    verdict = _verdict(errors, data.n, fold_of_rows(data.n)[1])
-    verdict = dataclasses.replace(verdict, reached=_reached(hybrid, data.q))
+    sig = (fit.sigma_pos_mm or DEFAULT_SIGMA_POS_MM, fit.sigma_rot_rad or DEFAULT_SIGMA_ROT_RAD)
+    R_meas = None if data.quat is None else quat_to_matrix(data.quat)
+
+    def held_out(flange: Tensor) -> tuple[FlangeRows, tuple]:
+        rows = FlangeRows(flange, data.position, R_meas, *sig, fit.weights)
+        return rows, row_errors(held_out_errors(rows, B0, X0, free, group), data)
+
+    with torch.no_grad():
+        physics = held_out(model.end_pose(data.q, cond))[1]
+
+    def judged(state: dict, z: float | None) -> tuple[NetworkVerdict, FlangeRows]:
+        hybrid = HybridFK.from_state(model, state)
+        with torch.no_grad():
+            rows, errors = held_out(hybrid.end_pose(data.q, cond))
+        v = _verdict({"physics": physics, "hybrid": errors}, data.n, fold_of_rows(data.n)[1], z)
+        return dataclasses.replace(v, reached=_reached(hybrid, data.q)), rows
+
+    verdict, hybrid_rows = judged(nets, None)
+    lifted = None if verdict.used else carried_networks(nets)
+    if lifted is not None:
+        second, rows2 = judged(lifted, second_look_z())
+        if second.used:
+            verdict, hybrid_rows, nets = dataclasses.replace(second, carried=True), rows2, lifted
     if not verdict.used:
-        return verdict, None
-    sets = B0.shape[0]
+        return verdict, None, nets
     frames = [
-        fit_flange_frames(rows["hybrid"], B0[g], X0[g], free, None if group is None else group == g)
-        for g in range(sets)
+        fit_flange_frames(hybrid_rows, B0[g], X0[g], free, None if group is None else group == g)
+        for g in range(B0.shape[0])
     ]
-    return verdict, (torch.stack([f[0] for f in frames]), torch.stack([f[1] for f in frames]))
+    return verdict, (torch.stack([f[0] for f in frames]), torch.stack([f[1] for f in frames])), nets
 
 
-def _verdict(errors: dict, n: int, folds: int) -> NetworkVerdict:
-    """The rule on the held-out errors ``{"physics", "hybrid"}: (position, orientation)``."""
+def carried_networks(nets: dict) -> dict | None:
+    """``nets`` (a model file's networks entry) with every stage's joint gate lifted
+    (``carried``), or None when no stage has one."""
+    stages = [nets, *nets.get("stages", [])]
+    if all(st.get("gate") is None for st in stages):
+        return None
+    out = copy.deepcopy(nets)
+    for st in [out, *out.get("stages", [])]:
+        if st.get("gate") is not None:
+            st["gate"]["carried"] = True
+    return out
+
+
+def second_look_z() -> float:
+    """The z of the lifted gates' look: the one-sided level of ``freeing_z`` halved
+    (Bonferroni over the two looks at the same rows)."""
+    from scipy.stats import norm
+
+    return float(norm.isf(norm.sf(hybrid_tuning().freeing_z) / 2))
+
+
+def _verdict(errors: dict, n: int, folds: int, z: float | None = None) -> NetworkVerdict:
+    """The rule on the held-out errors ``{"physics", "hybrid"}: (position, orientation)``
+    (``z``: the standard errors the gain needs; None: the tuning's ``freeing_z``)."""
     (p_pos, p_ori), (h_pos, h_ori) = errors["physics"], errors["hybrid"]
     score = {"physics": p_pos / _scale(p_pos), "hybrid": h_pos / _scale(p_pos)}
     deg = (None, None)
@@ -174,10 +220,12 @@ def _verdict(errors: dict, n: int, folds: int) -> NetworkVerdict:
         score["physics"] = score["physics"] + p_ori / _scale(p_ori)
         score["hybrid"] = score["hybrid"] + h_ori / _scale(p_ori)
         deg = _mean_se(p_ori - h_ori)
-    used = beats(score["hybrid"], score["physics"])
     means = (float(p_pos.mean()), float(h_pos.mean()))
-    z = hybrid_tuning().freeing_z
     mm, scores = _mean_se(p_pos - h_pos), _mean_se(score["physics"] - score["hybrid"])
+    if z is None:
+        z, used = hybrid_tuning().freeing_z, beats(score["hybrid"], score["physics"])
+    else:
+        used = n > 1 and scores[0] > z * scores[1]
     return NetworkVerdict(used, n, folds, z, *means, *mm, *deg, *scores)
 
 

@@ -100,12 +100,12 @@ def refit(
     res = refit_frames(model, data, cond, which, priors=priors, robust=robust)
     networks = verdict = None
     if loaded.has_networks:
-        verdict, frames = network_rule(loaded.networks, model, data, cond, which, res)
+        verdict, frames, kept = network_rule(loaded.networks, model, data, cond, which, res)
         if frames is not None:
             for g in range(model.base.sets):
                 model.base.reset_to(frames[0][g], g)
                 model.tool.reset_to(frames[1][g], g)
-        networks = {**loaded.networks, "transfer": verdict.to_json()}
+        networks = {**kept, "transfer": verdict.to_json()}
     moved = dataclasses.replace(loaded, model=model, frames_fitted=True, networks=networks)
     after = model_errors(moved, data, cond)
     return RefitResult(model, res, before, after, networks, verdict)
