@@ -47,7 +47,10 @@ class Linearisation:
     @classmethod
     def kept_by(cls, problem: Problem, blocks: tuple[ParamBlock, ...]) -> Linearisation:
         """The chunks ``problem`` kept while it was linearised (``keep=True``), with
-        ``blocks`` and the noise levels it was built under."""
+        ``blocks`` and the noise levels it was built under (those of the shared point
+        the chunks came from, with all its columns, where they did)."""
+        if problem.kept_blocks is not None:
+            return cls(problem.kept, problem.kept_blocks, problem.kept_sigmas)
         return cls(problem.kept, blocks, (problem.sigma_pos_mm, problem.sigma_rot_rad))
 
     def columns(self, blocks: tuple[ParamBlock, ...]) -> Tensor | None:

@@ -132,6 +132,9 @@ class Problem:
         self._structure = StructuredJacobian(model, blocks)
         self._last_message = time.monotonic()
         self.kept: list[Tensor] | None = None  # a list: every data chunk built goes in
+        # set where ``kept`` came from elsewhere (a shared point): its blocks, noise levels
+        self.kept_blocks: tuple[ParamBlock, ...] | None = None
+        self.kept_sigmas: tuple[float, float] | None = None
 
     @property
     def n_residuals(self) -> int:
