@@ -179,19 +179,27 @@ def _gauss_newton(R: Tensor, z: Tensor) -> Tensor:
 
 def _factors(problem: Problem, theta: Tensor, to_pass: tuple[float, float]):
     """``R`` of ``[J r]`` at ``theta`` under the problem's noise levels and under the
-    pass's (rows scaled by ``to_pass``: position, rotation)."""
+    pass's (rows scaled by ``to_pass``: position, rotation). The position rows, the
+    rotation rows and the prior's (which do not scale with the noise) are factored
+    apart, once: each level's ``R`` is then the factor of the three small ``R``s, scaled."""
     per_row = 3 if problem.R_meas is None else 6
-    R = R_pass = None
+    parts: list[Tensor | None] = [None, None, None]  # position, rotation, prior rows
     data_rows = per_row * problem.data.n
     for M in problem.augmented_chunks(theta):
-        S = M  # the prior's rows come after the data's and do not scale with the noise
         if data_rows > 0:
-            S, n_c = M.clone(), M.shape[0] // per_row
-            S[: 3 * n_c] *= to_pass[0]
-            S[3 * n_c :] *= to_pass[1]
+            n_c = M.shape[0] // per_row
+            parts[0] = _appended(parts[0], M[: 3 * n_c])
+            if per_row == 6:
+                parts[1] = _appended(parts[1], M[3 * n_c :])
             data_rows -= M.shape[0]
-        R, R_pass = _appended(R, M), _appended(R_pass, S)
-    return R, R_pass
+        else:
+            parts[2] = _appended(parts[2], M)
+
+    def level(a: float, b: float) -> Tensor:
+        scaled = [f * P for f, P in zip((a, b, 1.0), parts, strict=True) if P is not None]
+        return torch.linalg.qr(torch.cat(scaled), mode="r").R
+
+    return level(1.0, 1.0), level(*to_pass)
 
 
 def _scaled(problem: Problem, r: Tensor, to_pass: tuple[float, float]) -> Tensor:
