@@ -94,16 +94,24 @@ class SharedColumns:
         self.blocks += blocks
 
     def gathered(self, problem: Problem) -> Iterator[Tensor]:
-        """``[J r]`` chunks of ``problem``'s blocks under its noise levels (copies)."""
+        """``[J r]`` chunks of ``problem``'s blocks under its noise levels (copies, but
+        the kept chunks themselves where they are exactly that: read-only)."""
         where = self.where()
         idx = [torch.arange(where[b.label][0], where[b.label][0] + b.size) for b in problem.blocks]
         idx.append(torch.tensor([sum(b.size for b in self.blocks)]))
         cols = torch.cat(idx)
+        every = cols.numel() == self.chunks[0].shape[1] and bool(
+            torch.equal(cols, torch.arange(cols.numel()))
+        )  # all kept columns in order: no copy
         to_pos = self.sigmas[0] / problem.sigma_pos_mm  # columns and residuals: 1 / sigma
         to_rot = self.sigmas[1] / problem.sigma_rot_rad
+        same = to_pos == 1.0 and to_rot == 1.0
         for M in self.chunks:
+            if every and same:
+                yield M
+                continue
             G = M[:, cols]
-            if to_pos != 1.0 or to_rot != 1.0:
+            if not same:
                 n_c = M.shape[0] // self.per_row
                 G[: 3 * n_c] *= to_pos
                 G[3 * n_c :] *= to_rot

@@ -143,7 +143,8 @@ class StructuredJacobian:
                 deflection_twists(model, self.deflection, q_star, wrenches, bent, point, R_B)
             )
         n = q.shape[0]
-        twists = torch.cat([q.new_zeros(n, 6, 0)] + [cols[b.name] for b in self.blocks], -1)
+        pieces = _runs([cols[b.name] for b in self.blocks])
+        twists = torch.cat([q.new_zeros(n, 6, 0), *pieces], -1)
         return PoseTwists(T, twists)
 
     @staticmethod
@@ -276,6 +277,35 @@ class StructuredJacobian:
                 columns.append(dq_kin[..., k_col : k_col + b.size])
                 k_col += b.size
         return torch.cat(columns, -1)
+
+
+def _runs(pieces: list[Tensor]) -> list[Tensor]:
+    """``pieces`` (``(n, 6, k)`` each) with neighbours that lie side by side in one
+    tensor (blocks split from one source's twists, in order) joined into one view: the
+    same concatenation, copied from a few strided views instead of one per block."""
+    out: list[Tensor] = []
+    for p in pieces:
+        if out and _follows(out[-1], p):
+            a = out[-1]
+            size = (*a.shape[:-1], a.shape[-1] + p.shape[-1])
+            out[-1] = a.as_strided(size, a.stride(), a.storage_offset())
+        else:
+            out.append(p)
+    return out
+
+
+def _follows(a: Tensor, b: Tensor) -> bool:
+    """Whether ``b`` continues ``a`` along the last dimension in the same storage (a
+    plain value: no derivative is traced through the joined view)."""
+    return (
+        not (a.requires_grad or b.requires_grad)
+        and a.dim() == b.dim()
+        and a.shape[:-1] == b.shape[:-1]
+        and a.stride() == b.stride()
+        and a.dtype == b.dtype
+        and a.untyped_storage().data_ptr() == b.untyped_storage().data_ptr()
+        and b.storage_offset() == a.storage_offset() + a.shape[-1] * a.stride(-1)
+    )
 
 
 # [rad or m] difference step of the joint effects' derivative in point_jacobian: its
