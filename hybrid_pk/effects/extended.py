@@ -23,6 +23,7 @@ from torch import Tensor, nn
 from hybrid_pk.effects.base import Effect
 from hybrid_pk.effects.conditions import Conditions
 from hybrid_pk.effects.gravity import Gravity
+from hybrid_pk.effects.warm_start import keep_start, kept_start
 from hybrid_pk.geometry import so3_exp, transform
 from hybrid_pk.robot import Robot
 from hybrid_pk.robot.chain import plain_inputs
@@ -191,7 +192,7 @@ class ExtendedModel(nn.Module):
         """True joint values ``(*B, dof)`` for commanded ``q`` (``gravity``: the root-frame
         vector of :meth:`gravity_root`, computed when omitted)."""
         cond = cond or Conditions()
-        q = self.kinematic_joint_values(q, cond)
+        commanded, q = q, self.kinematic_joint_values(q, cond)
         c = self._compliance()
         if c is not None and _zero(c):
             c = None  # every compliance zero (candidates scored): q_kin - 0 g(q) is q_kin
@@ -210,8 +211,11 @@ class ExtendedModel(nn.Module):
             # derivative error shrinks like (c dtau/dq)^2 ~ 1e-6 relative, at a quarter
             # of the cost of differentiating every iteration.
             own = tuple(self.robot.parameters()) if params is None else params
-            if plain_inputs(q_kin, c, g, *own, *_tensors(payload)):
-                return self._settled(step, q_kin)  # no derivative to carry: converge
+            if plain_inputs(q_kin, c, g, *own, *_tensors(payload)):  # no derivative to carry
+                start = kept_start(commanded)  # where these rows last settled
+                q = self._settled(step, q_kin if start is None else start)
+                keep_start(commanded, q)
+                return q
             detached = params  # plain values (no_grad fits): the same object keeps the
             if params is not None and not plain_inputs(*params):  # chain constants cached
                 detached = type(params)(*(t.detach() for t in params))
