@@ -91,6 +91,7 @@ class StructuredJacobian:
         self.geometry = [b for b in blocks if stage.get(b.name) == "geometry"]
         self.deflection = [b for b in blocks if stage.get(b.name) == "deflection"]
         self._turns_axis: dict[str, bool] = {}  # geometric blocks that turn a joint axis
+        self._origins: tuple | None = None  # (key, derivatives) of the last chunk's origins
 
     def _sub_params(self, blocks, theta_sub: Tensor, prefix: str = "") -> dict[str, Tensor]:
         """Parameter values of ``blocks`` at scaled offsets ``theta_sub`` from current."""
@@ -188,8 +189,14 @@ class StructuredJacobian:
             return torch.func.jvp(origins, (theta0,), (v,))[1]
 
         eye = torch.eye(size, dtype=q_star.dtype)
-        with torch.no_grad():  # values of the other effects plain: shared where they can be
-            d_xyz, d_rot, d_axis = torch.func.vmap(along)(eye)
+        key = self._origins_key(blocks)
+        if key is not None and self._origins is not None and _same_values(self._origins[0], key):
+            d_xyz, d_rot, d_axis = self._origins[1]  # every chunk's, at these values
+        else:
+            with torch.no_grad():  # values of the other effects plain: shared where they can be
+                d_xyz, d_rot, d_axis = torch.func.vmap(along)(eye)
+            if key is not None:
+                self._origins = (key, (d_xyz, d_rot, d_axis))
         tw = geometry_twists(maps, params.origin_rot, d_xyz, d_rot)
         turns_axis = d_axis.reshape(size, -1).abs().amax(1) > 0
         start = 0
@@ -197,6 +204,15 @@ class StructuredJacobian:
             self._turns_axis[b.name] = bool(turns_axis[start : start + b.size].any())
             start += b.size
         return self._split(blocks, tw)
+
+    def _origins_key(self, blocks) -> tuple | None:
+        """What the origins' derivatives along ``blocks`` depend on when no geometric
+        effect (what moves the origins) reads a row's conditions: the blocks and every
+        parameter value (None: they may differ from row to row, so from chunk to chunk)."""
+        if any(e.needs is not None for e in self.model.effects if e.stage == "geometry"):
+            return None
+        values = [p.detach().clone() for p in self.params.values()]
+        return tuple(b.name for b in blocks), values
 
     def _fk_twists(self, block, cond, q_star, B, X, T, wrenches) -> Tensor:
         """Twists of one geometric block by forward mode through FK (generic path),
@@ -277,6 +293,11 @@ class StructuredJacobian:
                 columns.append(dq_kin[..., k_col : k_col + b.size])
                 k_col += b.size
         return torch.cat(columns, -1)
+
+
+def _same_values(a: tuple, b: tuple) -> bool:
+    """Whether two :meth:`StructuredJacobian._origins_key` are equal."""
+    return a[0] == b[0] and all(torch.equal(x, y) for x, y in zip(a[1], b[1], strict=True))
 
 
 def _runs(pieces: list[Tensor]) -> list[Tensor]:
