@@ -23,6 +23,7 @@ from torch import Tensor
 from hybrid_pk.calibration.covariance import svd_covariance
 from hybrid_pk.calibration.frames import PriorRows
 from hybrid_pk.calibration.problem import ParamBlock, Problem
+from hybrid_pk.calibration.work import count as count_work
 
 # Directions of a Jacobian (columns at unit norm) weaker than this share of the
 # strongest are exact degeneracies: a QR leaves them at round-off, ~ sqrt(m) eps ~
@@ -43,6 +44,9 @@ class Linearisation:
     sigmas: tuple[float, float]
     pass_sigmas: tuple[float, float] | None = None  # those of the last pass it ran
     pass_drop: float = 0.0  # and how much that pass lowered its cost
+    # the data residuals of the refit's start and the noise levels they are under (no
+    # row weights): its first residual, rescaled (:func:`chord_passes`); None: computed
+    start: tuple[Tensor, tuple[float, float]] | None = None
 
     @classmethod
     def kept_by(cls, problem: Problem, blocks: tuple[ParamBlock, ...]) -> Linearisation:
@@ -93,7 +97,11 @@ def chord_passes(problem: Problem, near: Linearisation):
         start += n_c
     A0 = sum(J.T @ J for _, _, J in parts)
     last: list = [None, None]  # the latest (theta, residual): LM asks for it twice
-    costs: list[float] = []
+    if near.start is not None and problem.row_weights is None:
+        last[:] = [torch.zeros_like(problem.x0), _rescaled(problem, *near.start)]
+        count_work(problem.data.n)  # counted as if evaluated: the budgets stay as they were
+    near.start = None  # for this pass only
+    costs: list[float] = [] if last[0] is None else [float(last[1] @ last[1])]
     near.pass_drop = 0.0
 
     def residual(theta: Tensor) -> Tensor:
@@ -117,6 +125,19 @@ def chord_passes(problem: Problem, near: Linearisation):
         return A, g, float(r @ r)
 
     return residual, normal
+
+
+def _rescaled(problem: Problem, r: Tensor, sigmas: tuple[float, float]) -> Tensor:
+    """The problem's residuals at its start from the data residuals ``r`` there under
+    noise levels ``sigmas`` (rows as :meth:`Problem.residual`, no extra rows):
+    rescaled to the problem's levels, the extra rows appended."""
+    n3 = 3 * problem.data.n
+    out = r.clone()
+    out[:n3] *= sigmas[0] / problem.sigma_pos_mm
+    out[n3:] *= sigmas[1] / problem.sigma_rot_rad
+    if problem.extra is not None:
+        out = torch.cat([out, problem.extra(torch.zeros_like(problem.x0))[0]])
+    return out
 
 
 def settled_factor(

@@ -327,6 +327,8 @@ def try_candidate(
             r_start, split.train.n, n_params, sigmas, position_only=split.position_only
         )
         sigmas = (noise[0], None if split.position_only else noise[1])
+        if scores.near is not None and res.robust is None:  # the refit's first residual
+            scores.near.start = (r_start, (res.sigma_pos_mm, res.sigma_rot_rad or 1.0))
     new_res = fit(
         new, split.train, cond=split.cond_fit, initial_sigma=sigmas, progress=progress,
         near=scores.near, **res.settings(),
