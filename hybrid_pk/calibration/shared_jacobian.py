@@ -15,6 +15,7 @@ question would have computed (up to the round-off of another chunking).
 
 from __future__ import annotations
 
+import threading
 import weakref
 from collections.abc import Iterator
 
@@ -25,7 +26,7 @@ from hybrid_pk.calibration.problem import ParamBlock, Problem
 from hybrid_pk.calibration.work import count as count_work
 from hybrid_pk.effects import ExtendedModel
 
-__all__ = ["SharedColumns", "shared_chunks"]
+__all__ = ["SharedColumns", "release_shared", "shared_chunks"]
 
 
 def _point(model: ExtendedModel) -> tuple:
@@ -118,13 +119,19 @@ class SharedColumns:
             yield G
 
 
-# The kept point (one at a time: the next point's columns replace it), dropped with its rows.
-_KEPT: list[SharedColumns | None] = [None]
+# The kept point of each thread (one at a time: the next point's columns replace it;
+# two diagnoses in two threads keep theirs apart), dropped with its rows.
+_KEPT: dict[int, SharedColumns] = {}
 
 
-def _forget(entry_id: int) -> None:
-    if _KEPT[0] is not None and id(_KEPT[0]) == entry_id:
-        _KEPT[0] = None
+def _forget(thread: int, entry_id: int) -> None:
+    if id(_KEPT.get(thread)) == entry_id:
+        _KEPT.pop(thread, None)
+
+
+def release_shared() -> None:
+    """Drop this thread's kept point (its questions are all asked: the model moved on)."""
+    _KEPT.pop(threading.get_ident(), None)
 
 
 def shared_chunks(problem: Problem) -> tuple[Iterator[Tensor], SharedColumns]:
@@ -133,12 +140,13 @@ def shared_chunks(problem: Problem) -> tuple[Iterator[Tensor], SharedColumns]:
     them; else the kept point is replaced by this one. Returns the chunks (under the
     problem's noise levels, one at a time) and the kept point (every column there, for
     a refit to step with: :class:`~hybrid_pk.calibration.chord.Linearisation`)."""
-    entry = _KEPT[0]
+    thread = threading.get_ident()
+    entry = _KEPT.get(thread)
     if entry is None or not entry.serves(problem):
-        _KEPT[0] = None  # its memory free before the new point's is taken
-        entry = SharedColumns(problem)
-        weakref.finalize(problem.data, _forget, id(entry))
-        _KEPT[0] = entry
+        _KEPT.pop(thread, None)
+        entry = SharedColumns(problem)  # the old one's memory free before this one's is taken
+        weakref.finalize(problem.data, _forget, thread, id(entry))
+        _KEPT[thread] = entry
     have = entry.where()
     missing = [b for b in problem.blocks if b.label not in have]
     if any(have[b.label][1] != b.size for b in problem.blocks if b.label in have):

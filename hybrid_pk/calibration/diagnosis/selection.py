@@ -34,6 +34,7 @@ from hybrid_pk.calibration.diagnosis.statistics import (
 )
 from hybrid_pk.calibration.diagnosis.variants import shift_parameters, with_effects
 from hybrid_pk.calibration.fit import FitResult, fit, reestimated_noise
+from hybrid_pk.calibration.shared_jacobian import release_shared
 from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import EFFECTS, ExtendedModel, effect_joint_names, make_effect
@@ -357,6 +358,8 @@ def try_candidate(
     step["accepted"] = step["accepted"] and carries
     if not step["accepted"]:
         step["why"] = "refit not significant, BIC not lower, or hold-out not better"
+    else:
+        release_shared()  # the model moves on: no question is asked at its point again
     return new, new_res, step
 
 
