@@ -213,7 +213,7 @@ class ExtendedModel(nn.Module):
             own = tuple(self.robot.parameters()) if params is None else params
             if plain_inputs(q_kin, c, g, *own, *_tensors(payload)):  # no derivative to carry
                 start = kept_start(commanded)  # where these rows last settled
-                q = self._settled(step, q_kin if start is None else start)
+                q = self._settled(step, q_kin if start is None else start, start is not None)
                 keep_start(commanded, q)
                 return q
             detached = params  # plain values (no_grad fits): the same object keeps the
@@ -230,12 +230,16 @@ class ExtendedModel(nn.Module):
         return q
 
     @staticmethod
-    def _settled(step, q: Tensor) -> Tensor:
+    def _settled(step, q: Tensor, warm: bool = False) -> Tensor:
         """The fixed point of ``step`` from ``q``, stopped once the error left,
         estimated from the last two changes (their ratio is the contraction), is below
-        :data:`COMPLIANCE_TOL_RAD`; at most :data:`COMPLIANCE_ITERATIONS` steps."""
+        :data:`COMPLIANCE_TOL_RAD`; at most :data:`COMPLIANCE_ITERATIONS` steps.
+        ``warm``: ``q`` is where the same rows settled before (:mod:`.warm_start`):
+        a first change below the tolerance ends it too (a start within round-off of the
+        fixed point moves by round-off, which no contraction can be read from; the step
+        leaves |c dtau/dq| ~ 1e-3 of that change)."""
         last = math.inf  # no change yet: no contraction to estimate
-        for _ in range(COMPLIANCE_ITERATIONS):
+        for k in range(COMPLIANCE_ITERATIONS):
             q_new = step(q)
             change = float((q_new - q).abs().max()) if q.numel() else 0.0
             q = q_new
@@ -243,6 +247,8 @@ class ExtendedModel(nn.Module):
             if change == 0.0 or (
                 0 < rate < 0.5 and change * rate / (1 - rate) <= COMPLIANCE_TOL_RAD
             ):
+                break
+            if warm and k == 0 and change <= COMPLIANCE_TOL_RAD:
                 break
             last = change
         return q
