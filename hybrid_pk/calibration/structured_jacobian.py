@@ -190,12 +190,12 @@ class StructuredJacobian:
 
         eye = torch.eye(size, dtype=q_star.dtype)
         key = self._origins_key(blocks)
-        if key is not None and self._origins is not None and _same_values(self._origins[0], key):
+        if self._origins is not None and _same_values(self._origins[0], key):
             d_xyz, d_rot, d_axis = self._origins[1]  # every chunk's, at these values
         else:
             with torch.no_grad():  # values of the other effects plain: shared where they can be
                 d_xyz, d_rot, d_axis = torch.func.vmap(along)(eye)
-            if key is not None:
+            if (d_xyz.dim(), d_rot.dim(), d_axis.dim()) == (3, 4, 3):  # no row dimension
                 self._origins = (key, (d_xyz, d_rot, d_axis))
         tw = geometry_twists(maps, params.origin_rot, d_xyz, d_rot)
         turns_axis = d_axis.reshape(size, -1).abs().amax(1) > 0
@@ -205,12 +205,10 @@ class StructuredJacobian:
             start += b.size
         return self._split(blocks, tw)
 
-    def _origins_key(self, blocks) -> tuple | None:
-        """What the origins' derivatives along ``blocks`` depend on when no geometric
-        effect (what moves the origins) reads a row's conditions: the blocks and every
-        parameter value (None: they may differ from row to row, so from chunk to chunk)."""
-        if any(e.needs is not None for e in self.model.effects if e.stage == "geometry"):
-            return None
+    def _origins_key(self, blocks) -> tuple:
+        """What the origins' derivatives along ``blocks`` depend on where they are the
+        same for every row (no row dimension: no effect that reads a row's conditions,
+        a temperature, takes part at its values): the blocks and every parameter value."""
         values = [p.detach().clone() for p in self.params.values()]
         return tuple(b.name for b in blocks), values
 
