@@ -26,10 +26,10 @@ from hybrid_pk.calibration.problem import ParamBlock, Problem
 from hybrid_pk.calibration.work import count as count_work
 from hybrid_pk.effects import ExtendedModel
 
-__all__ = ["SharedColumns", "release_shared", "shared_chunks"]
+__all__ = ["SharedColumns", "model_point", "release_shared", "same_point", "shared_chunks"]
 
 
-def _point(model: ExtendedModel) -> tuple:
+def model_point(model: ExtendedModel) -> tuple:
     """What the model's poses depend on besides the rows: robot, mounting, frames (their
     guesses and offsets) and the values of the effects that are not zero, in order."""
     frames = [t.detach().clone() for f in (model.base, model.tool) for t in (f.T0, f.dp, f.rotvec)]
@@ -37,7 +37,8 @@ def _point(model: ExtendedModel) -> tuple:
     return model.robot, model.gravity, frames, effects
 
 
-def _same_point(a: tuple, b: tuple) -> bool:
+def same_point(a: tuple, b: tuple) -> bool:
+    """Whether two :func:`model_point` are the same point."""
     if a[0] is not b[0] or a[1] is not b[1] or len(a[3]) != len(b[3]):
         return False
     if not all(x.shape == y.shape and torch.equal(x, y) for x, y in zip(a[2], b[2], strict=True)):
@@ -53,7 +54,7 @@ class SharedColumns:
     ``r``), built under ``sigmas`` on ``data``'s rows in chunks of ``chunk_rows``."""
 
     def __init__(self, problem: Problem) -> None:
-        self.point = _point(problem.model)
+        self.point = model_point(problem.model)
         self.data = weakref.ref(problem.data)
         self.cond, self.weights = problem.cond, problem.row_weights
         self.sigmas = (problem.sigma_pos_mm, problem.sigma_rot_rad)
@@ -70,7 +71,7 @@ class SharedColumns:
             return False
         if self.weights is not None and not torch.equal(self.weights, problem.row_weights):
             return False
-        return problem.extra is None and _same_point(self.point, _point(problem.model))
+        return problem.extra is None and same_point(self.point, model_point(problem.model))
 
     def where(self) -> dict[str, tuple[int, int]]:
         """``label -> (first column, size)`` of the kept blocks."""
