@@ -216,7 +216,7 @@ class Problem:
         with self._at(theta):
             for rows in self._chunks():
                 M = self._chunk_rows(rows)
-                if self.kept is not None:
+                if self.kept is not None and self.kept_blocks is None:  # not a shared point's
                     self.kept.append(M)
                 yield M
                 self._report(rows.stop)
