@@ -30,9 +30,12 @@ __all__ = ["SharedColumns", "model_point", "release_shared", "same_point", "shar
 
 
 def model_point(model: ExtendedModel) -> tuple:
-    """What the model's poses depend on besides the rows: robot, mounting, frames (their
-    guesses and offsets) and the values of the effects that are not zero, in order."""
+    """What the model's poses depend on besides the rows: robot (its values too),
+    mounting, frames (their guesses and offsets) and the values of the effects that are
+    not zero, in order."""
+    robot = [*model.robot.parameters(), *model.robot.buffers()]
     frames = [t.detach().clone() for f in (model.base, model.tool) for t in (f.T0, f.dp, f.rotvec)]
+    frames += [t.detach().clone() for t in robot if t.is_floating_point()]
     effects = [(e.label, e.value.detach().clone()) for e in model.effects if bool(e.value.any())]
     return model.robot, model.gravity, frames, effects
 

@@ -235,20 +235,22 @@ class ExtendedModel(nn.Module):
         estimated from the last two changes (their ratio is the contraction), is below
         :data:`COMPLIANCE_TOL_RAD`; at most :data:`COMPLIANCE_ITERATIONS` steps.
         ``warm``: ``q`` is where the same rows settled before (:mod:`.warm_start`):
-        a first change below the tolerance ends it too (a start within round-off of the
-        fixed point moves by round-off, which no contraction can be read from; the step
-        leaves |c dtau/dq| ~ 1e-3 of that change)."""
+        when the first step moves it by less than the tolerance, it is the fixed point
+        within that (the step contracts its error by |c dtau/dq| ~ 1e-3) and is returned
+        as it is, so the same point evaluated again gives the same values, bit for bit
+        (a start within round-off of the fixed point moves by round-off, from which no
+        contraction can be read)."""
         last = math.inf  # no change yet: no contraction to estimate
         for k in range(COMPLIANCE_ITERATIONS):
             q_new = step(q)
             change = float((q_new - q).abs().max()) if q.numel() else 0.0
+            if warm and k == 0 and change <= COMPLIANCE_TOL_RAD:
+                return q
             q = q_new
             rate = change / last  # 0 after the first step: not yet an estimate
             if change == 0.0 or (
                 0 < rate < 0.5 and change * rate / (1 - rate) <= COMPLIANCE_TOL_RAD
             ):
-                break
-            if warm and k == 0 and change <= COMPLIANCE_TOL_RAD:
                 break
             last = change
         return q

@@ -41,7 +41,7 @@ def kept_start(q: Tensor) -> Tensor | None:
     kept = _store().get(_key(q))
     if kept is None or not torch.equal(kept[0], q):
         return None
-    return kept[1]
+    return kept[1].clone()  # the caller's to change
 
 
 def keep_start(q: Tensor, q_star: Tensor) -> None:
