@@ -23,6 +23,7 @@ from torch import Tensor
 from hybrid_pk.calibration.covariance import svd_covariance
 from hybrid_pk.calibration.frames import PriorRows
 from hybrid_pk.calibration.problem import ParamBlock, Problem
+from hybrid_pk.calibration.work import count as count_work
 
 # Directions of a Jacobian (columns at unit norm) weaker than this share of the
 # strongest are exact degeneracies: a QR leaves them at round-off, ~ sqrt(m) eps ~
@@ -43,11 +44,17 @@ class Linearisation:
     sigmas: tuple[float, float]
     pass_sigmas: tuple[float, float] | None = None  # those of the last pass it ran
     pass_drop: float = 0.0  # and how much that pass lowered its cost
+    # the data residuals of the refit's start and the noise levels they are under (no
+    # row weights): its first residual, rescaled (:func:`chord_passes`); None: computed
+    start: tuple[Tensor, tuple[float, float]] | None = None
 
     @classmethod
     def kept_by(cls, problem: Problem, blocks: tuple[ParamBlock, ...]) -> Linearisation:
         """The chunks ``problem`` kept while it was linearised (``keep=True``), with
-        ``blocks`` and the noise levels it was built under."""
+        ``blocks`` and the noise levels it was built under (those of the shared point
+        the chunks came from, with all its columns, where they did)."""
+        if problem.kept_blocks is not None:
+            return cls(problem.kept, problem.kept_blocks, problem.kept_sigmas)
         return cls(problem.kept, blocks, (problem.sigma_pos_mm, problem.sigma_rot_rad))
 
     def columns(self, blocks: tuple[ParamBlock, ...]) -> Tensor | None:
@@ -90,7 +97,11 @@ def chord_passes(problem: Problem, near: Linearisation):
         start += n_c
     A0 = sum(J.T @ J for _, _, J in parts)
     last: list = [None, None]  # the latest (theta, residual): LM asks for it twice
-    costs: list[float] = []
+    if near.start is not None and problem.row_weights is None:
+        last[:] = [torch.zeros_like(problem.x0), _rescaled(problem, *near.start)]
+        count_work(problem.data.n)  # counted as if evaluated: the budgets stay as they were
+    near.start = None  # for this pass only
+    costs: list[float] = [] if last[0] is None else [float(last[1] @ last[1])]
     near.pass_drop = 0.0
 
     def residual(theta: Tensor) -> Tensor:
@@ -114,6 +125,19 @@ def chord_passes(problem: Problem, near: Linearisation):
         return A, g, float(r @ r)
 
     return residual, normal
+
+
+def _rescaled(problem: Problem, r: Tensor, sigmas: tuple[float, float]) -> Tensor:
+    """The problem's residuals at its start from the data residuals ``r`` there under
+    noise levels ``sigmas`` (rows as :meth:`Problem.residual`, no extra rows):
+    rescaled to the problem's levels, the extra rows appended."""
+    n3 = 3 * problem.data.n
+    out = r.clone()
+    out[:n3] *= sigmas[0] / problem.sigma_pos_mm
+    out[n3:] *= sigmas[1] / problem.sigma_rot_rad
+    if problem.extra is not None:
+        out = torch.cat([out, problem.extra(torch.zeros_like(problem.x0))[0]])
+    return out
 
 
 def settled_factor(
@@ -176,19 +200,27 @@ def _gauss_newton(R: Tensor, z: Tensor) -> Tensor:
 
 def _factors(problem: Problem, theta: Tensor, to_pass: tuple[float, float]):
     """``R`` of ``[J r]`` at ``theta`` under the problem's noise levels and under the
-    pass's (rows scaled by ``to_pass``: position, rotation)."""
+    pass's (rows scaled by ``to_pass``: position, rotation). The position rows, the
+    rotation rows and the prior's (which do not scale with the noise) are factored
+    apart, once: each level's ``R`` is then the factor of the three small ``R``s, scaled."""
     per_row = 3 if problem.R_meas is None else 6
-    R = R_pass = None
+    parts: list[Tensor | None] = [None, None, None]  # position, rotation, prior rows
     data_rows = per_row * problem.data.n
     for M in problem.augmented_chunks(theta):
-        S = M  # the prior's rows come after the data's and do not scale with the noise
         if data_rows > 0:
-            S, n_c = M.clone(), M.shape[0] // per_row
-            S[: 3 * n_c] *= to_pass[0]
-            S[3 * n_c :] *= to_pass[1]
+            n_c = M.shape[0] // per_row
+            parts[0] = _appended(parts[0], M[: 3 * n_c])
+            if per_row == 6:
+                parts[1] = _appended(parts[1], M[3 * n_c :])
             data_rows -= M.shape[0]
-        R, R_pass = _appended(R, M), _appended(R_pass, S)
-    return R, R_pass
+        else:
+            parts[2] = _appended(parts[2], M)
+
+    def level(a: float, b: float) -> Tensor:
+        scaled = [f * P for f, P in zip((a, b, 1.0), parts, strict=True) if P is not None]
+        return torch.linalg.qr(torch.cat(scaled), mode="r").R
+
+    return level(1.0, 1.0), level(*to_pass)
 
 
 def _scaled(problem: Problem, r: Tensor, to_pass: tuple[float, float]) -> Tensor:

@@ -28,6 +28,7 @@ from hybrid_pk.calibration.covariance import correlated_pairs, parameter_names, 
 from hybrid_pk.calibration.frame_hold import held_prior, join_rows
 from hybrid_pk.calibration.frames import FramePriors, PriorRows, prior_centres, prior_residual
 from hybrid_pk.calibration.identifiability import FrameReport, frame_report
+from hybrid_pk.calibration.kept_poses import keep_poses, kept_poses
 from hybrid_pk.calibration.least_squares import levenberg_marquardt
 from hybrid_pk.calibration.problem import ParamBlock, Problem, param_blocks
 from hybrid_pk.calibration.robust import irls_update, row_weights_vector
@@ -432,10 +433,17 @@ def predicted_poses(
     model: ExtendedModel, q: Tensor, cond: Conditions, end_link: bool = False
 ) -> Tensor:
     """``(N, 4, 4)`` predicted measured poses (or flange poses in the robot root frame,
-    ``end_link``) of joint values ``q (N, dof)``, evaluated in chunks of rows."""
+    ``end_link``) of joint values ``q (N, dof)``, evaluated in chunks of rows (measured
+    poses: kept for the same point and rows, :mod:`.kept_poses`)."""
+    kept = None if end_link else kept_poses(model, q, cond)
+    if kept is not None:
+        return kept.clone()  # the caller's to change
     parts = []
     for start in range(0, q.shape[0], POSE_CHUNK_ROWS):
         rows = slice(start, min(start + POSE_CHUNK_ROWS, q.shape[0]))
         sub = cond.subset(rows)
         parts.append(model.end_pose(q[rows], sub) if end_link else model(q[rows], sub))
-    return torch.cat(parts) if parts else model(q, cond)
+    T = torch.cat(parts) if parts else model(q, cond)
+    if not end_link:
+        keep_poses(model, q, cond, T)
+    return T

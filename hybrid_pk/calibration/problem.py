@@ -132,6 +132,9 @@ class Problem:
         self._structure = StructuredJacobian(model, blocks)
         self._last_message = time.monotonic()
         self.kept: list[Tensor] | None = None  # a list: every data chunk built goes in
+        # set where ``kept`` came from elsewhere (a shared point): its blocks, noise levels
+        self.kept_blocks: tuple[ParamBlock, ...] | None = None
+        self.kept_sigmas: tuple[float, float] | None = None
 
     @property
     def n_residuals(self) -> int:
@@ -213,7 +216,7 @@ class Problem:
         with self._at(theta):
             for rows in self._chunks():
                 M = self._chunk_rows(rows)
-                if self.kept is not None:
+                if self.kept is not None and self.kept_blocks is None:  # not a shared point's
                     self.kept.append(M)
                 yield M
                 self._report(rows.stop)

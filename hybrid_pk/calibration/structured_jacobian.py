@@ -91,6 +91,7 @@ class StructuredJacobian:
         self.geometry = [b for b in blocks if stage.get(b.name) == "geometry"]
         self.deflection = [b for b in blocks if stage.get(b.name) == "deflection"]
         self._turns_axis: dict[str, bool] = {}  # geometric blocks that turn a joint axis
+        self._origins: tuple | None = None  # (key, derivatives) of the last chunk's origins
 
     def _sub_params(self, blocks, theta_sub: Tensor, prefix: str = "") -> dict[str, Tensor]:
         """Parameter values of ``blocks`` at scaled offsets ``theta_sub`` from current."""
@@ -143,7 +144,8 @@ class StructuredJacobian:
                 deflection_twists(model, self.deflection, q_star, wrenches, bent, point, R_B)
             )
         n = q.shape[0]
-        twists = torch.cat([q.new_zeros(n, 6, 0)] + [cols[b.name] for b in self.blocks], -1)
+        pieces = _runs([cols[b.name] for b in self.blocks])
+        twists = torch.cat([q.new_zeros(n, 6, 0), *pieces], -1)
         return PoseTwists(T, twists)
 
     @staticmethod
@@ -187,8 +189,14 @@ class StructuredJacobian:
             return torch.func.jvp(origins, (theta0,), (v,))[1]
 
         eye = torch.eye(size, dtype=q_star.dtype)
-        with torch.no_grad():  # values of the other effects plain: shared where they can be
-            d_xyz, d_rot, d_axis = torch.func.vmap(along)(eye)
+        key = self._origins_key(blocks)
+        if self._origins is not None and _same_values(self._origins[0], key):
+            d_xyz, d_rot, d_axis = self._origins[1]  # every chunk's, at these values
+        else:
+            with torch.no_grad():  # values of the other effects plain: shared where they can be
+                d_xyz, d_rot, d_axis = torch.func.vmap(along)(eye)
+            if (d_xyz.dim(), d_rot.dim(), d_axis.dim()) == (3, 4, 3):  # no row dimension
+                self._origins = (key, (d_xyz, d_rot, d_axis))
         tw = geometry_twists(maps, params.origin_rot, d_xyz, d_rot)
         turns_axis = d_axis.reshape(size, -1).abs().amax(1) > 0
         start = 0
@@ -196,6 +204,13 @@ class StructuredJacobian:
             self._turns_axis[b.name] = bool(turns_axis[start : start + b.size].any())
             start += b.size
         return self._split(blocks, tw)
+
+    def _origins_key(self, blocks) -> tuple:
+        """What the origins' derivatives along ``blocks`` depend on where they are the
+        same for every row (no row dimension: no effect that reads a row's conditions,
+        a temperature, takes part at its values): the blocks and every parameter value."""
+        values = [p.detach().clone() for p in self.params.values()]
+        return tuple(b.name for b in blocks), values
 
     def _fk_twists(self, block, cond, q_star, B, X, T, wrenches) -> Tensor:
         """Twists of one geometric block by forward mode through FK (generic path),
@@ -276,6 +291,40 @@ class StructuredJacobian:
                 columns.append(dq_kin[..., k_col : k_col + b.size])
                 k_col += b.size
         return torch.cat(columns, -1)
+
+
+def _same_values(a: tuple, b: tuple) -> bool:
+    """Whether two :meth:`StructuredJacobian._origins_key` are equal."""
+    return a[0] == b[0] and all(torch.equal(x, y) for x, y in zip(a[1], b[1], strict=True))
+
+
+def _runs(pieces: list[Tensor]) -> list[Tensor]:
+    """``pieces`` (``(n, 6, k)`` each) with neighbours that lie side by side in one
+    tensor (blocks split from one source's twists, in order) joined into one view: the
+    same concatenation, copied from a few strided views instead of one per block."""
+    out: list[Tensor] = []
+    for p in pieces:
+        if out and _follows(out[-1], p):
+            a = out[-1]
+            size = (*a.shape[:-1], a.shape[-1] + p.shape[-1])
+            out[-1] = a.as_strided(size, a.stride(), a.storage_offset())
+        else:
+            out.append(p)
+    return out
+
+
+def _follows(a: Tensor, b: Tensor) -> bool:
+    """Whether ``b`` continues ``a`` along the last dimension in the same storage (a
+    plain value: no derivative is traced through the joined view)."""
+    return (
+        not (a.requires_grad or b.requires_grad)
+        and a.dim() == b.dim()
+        and a.shape[:-1] == b.shape[:-1]
+        and a.stride() == b.stride()
+        and a.dtype == b.dtype
+        and a.untyped_storage().data_ptr() == b.untyped_storage().data_ptr()
+        and b.storage_offset() == a.storage_offset() + a.shape[-1] * a.stride(-1)
+    )
 
 
 # [rad or m] difference step of the joint effects' derivative in point_jacobian: its

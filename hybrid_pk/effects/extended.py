@@ -23,6 +23,7 @@ from torch import Tensor, nn
 from hybrid_pk.effects.base import Effect
 from hybrid_pk.effects.conditions import Conditions
 from hybrid_pk.effects.gravity import Gravity
+from hybrid_pk.effects.warm_start import keep_start, kept_start
 from hybrid_pk.geometry import so3_exp, transform
 from hybrid_pk.robot import Robot
 from hybrid_pk.robot.chain import plain_inputs
@@ -191,7 +192,7 @@ class ExtendedModel(nn.Module):
         """True joint values ``(*B, dof)`` for commanded ``q`` (``gravity``: the root-frame
         vector of :meth:`gravity_root`, computed when omitted)."""
         cond = cond or Conditions()
-        q = self.kinematic_joint_values(q, cond)
+        commanded, q = q, self.kinematic_joint_values(q, cond)
         c = self._compliance()
         if c is not None and _zero(c):
             c = None  # every compliance zero (candidates scored): q_kin - 0 g(q) is q_kin
@@ -210,8 +211,11 @@ class ExtendedModel(nn.Module):
             # derivative error shrinks like (c dtau/dq)^2 ~ 1e-6 relative, at a quarter
             # of the cost of differentiating every iteration.
             own = tuple(self.robot.parameters()) if params is None else params
-            if plain_inputs(q_kin, c, g, *own, *_tensors(payload)):
-                return self._settled(step, q_kin)  # no derivative to carry: converge
+            if plain_inputs(q_kin, c, g, *own, *_tensors(payload)):  # no derivative to carry
+                start = kept_start(commanded)  # where these rows last settled
+                q = self._settled(step, q_kin if start is None else start, start is not None)
+                keep_start(commanded, q)
+                return q
             detached = params  # plain values (no_grad fits): the same object keeps the
             if params is not None and not plain_inputs(*params):  # chain constants cached
                 detached = type(params)(*(t.detach() for t in params))
@@ -226,14 +230,22 @@ class ExtendedModel(nn.Module):
         return q
 
     @staticmethod
-    def _settled(step, q: Tensor) -> Tensor:
+    def _settled(step, q: Tensor, warm: bool = False) -> Tensor:
         """The fixed point of ``step`` from ``q``, stopped once the error left,
         estimated from the last two changes (their ratio is the contraction), is below
-        :data:`COMPLIANCE_TOL_RAD`; at most :data:`COMPLIANCE_ITERATIONS` steps."""
+        :data:`COMPLIANCE_TOL_RAD`; at most :data:`COMPLIANCE_ITERATIONS` steps.
+        ``warm``: ``q`` is where the same rows settled before (:mod:`.warm_start`):
+        when the first step moves it by less than the tolerance, it is the fixed point
+        within that (the step contracts its error by |c dtau/dq| ~ 1e-3) and is returned
+        as it is, so the same point evaluated again gives the same values, bit for bit
+        (a start within round-off of the fixed point moves by round-off, from which no
+        contraction can be read)."""
         last = math.inf  # no change yet: no contraction to estimate
-        for _ in range(COMPLIANCE_ITERATIONS):
+        for k in range(COMPLIANCE_ITERATIONS):
             q_new = step(q)
             change = float((q_new - q).abs().max()) if q.numel() else 0.0
+            if warm and k == 0 and change <= COMPLIANCE_TOL_RAD:
+                return q
             q = q_new
             rate = change / last  # 0 after the first step: not yet an estimate
             if change == 0.0 or (

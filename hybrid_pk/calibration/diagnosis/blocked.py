@@ -24,6 +24,7 @@ absolute accuracy is stated in); the fits per block still use every component.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import torch
@@ -102,7 +103,11 @@ def whole_campaign(n: int) -> Folds:
 
 
 def cell_factors(
-    problem: Problem, folds: Folds | None, factor: bool = True, lead: int | None = None
+    problem: Problem,
+    folds: Folds | None,
+    factor: bool = True,
+    lead: int | None = None,
+    chunks: Iterable[Tensor] | None = None,
 ) -> tuple[Tensor | None, Tensor | None, Tensor | None]:
     """A factor ``R`` of ``[J r]`` on all rows (``R^T R = [J r]^T [J r]``, as
     :meth:`Problem.r_factor`; None unless ``factor``) and, with ``folds``, the Gram
@@ -111,7 +116,8 @@ def cell_factors(
 
     ``lead``: only the first ``lead`` columns are factored by QR; the rest of ``R``
     is completed from the Gram (:func:`_completed_factor`), or by a full QR where the
-    leading columns are too ill-conditioned for that.
+    leading columns are too ill-conditioned for that. ``chunks``: the problem's ``[J r]``
+    chunks at its values when already built (default: built here).
     """
     R, start = None, 0
     per_row = 3 if problem.R_meas is None else 6
@@ -121,7 +127,9 @@ def cell_factors(
         zeros = torch.zeros(folds.n_cells, size, size, dtype=problem.x0.dtype)
         grams = (zeros, None if per_row == 3 else zeros.clone())
     G = torch.zeros(size, size, dtype=problem.x0.dtype) if lead is not None and not grams else None
-    for M in problem.augmented_chunks(torch.zeros_like(problem.x0)):
+    if chunks is None:
+        chunks = problem.augmented_chunks(torch.zeros_like(problem.x0))
+    for M in chunks:
         n_c = M.shape[0] // per_row
         if folds is not None:
             # rows gathered cell by cell (stable: each cell's rows keep their order)

@@ -25,6 +25,7 @@ from hybrid_pk.calibration.diagnosis.noise import NoiseEstimate
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.calibration.problem import ParamBlock, Problem, param_blocks
+from hybrid_pk.calibration.shared_jacobian import shared_chunks
 from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.effects import ExtendedModel
 
@@ -112,6 +113,7 @@ def linearise(
     factor: bool = True,
     candidates: int = 0,
     keep: bool = False,
+    share: bool = True,
 ) -> tuple[Problem, tuple[ParamBlock, ...], Tensor | None, Blocked | None]:
     """One Jacobian of every free parameter of ``trial`` on the fit rows: the problem,
     its blocks, a factor ``R`` of ``[J r]`` (None unless ``factor``: the blocked score
@@ -120,7 +122,10 @@ def linearise(
     ``candidates``: the last blocks are that many candidates; the factor's QR covers
     only the columns before them, the rest is completed from the Gram
     (:func:`.blocked.cell_factors`). With candidates or ``keep`` the chunks of
-    ``[J r]`` are kept (``problem.kept``) for a refit to step with."""
+    ``[J r]`` are kept (``problem.kept``) for a refit to step with. ``share``: the
+    columns come from, and go into, the point kept by
+    :func:`~hybrid_pk.calibration.shared_jacobian.shared_chunks` (False: a one-off
+    point, e.g. a variant fitted on part of the range, that would replace it)."""
     fixed = set() if res.priors is None else set(res.priors.fixed_labels())
     blocks = param_blocks(trial, None, split.position_only)
     blocks = tuple(b for b in blocks if b.label not in fixed)
@@ -132,10 +137,16 @@ def linearise(
         row_weights=weights, progress=progress,
     )  # fmt: skip
     lead = sum(b.size for b in blocks[: len(blocks) - candidates]) if candidates else None
-    problem.kept = [] if candidates or keep else None
-    R, pos, rot = cell_factors(problem, folds, factor, lead)
-    if problem.kept is not None:  # one pass's chunks (a fallback QR makes a second)
-        problem.kept = problem.kept[: len(range(0, split.train.n, problem.chunk_rows))]
+    if share:  # the kept point's chunks: every column asked for there, its noise levels
+        chunks, kept = shared_chunks(problem)
+        R, pos, rot = cell_factors(problem, folds, factor, lead, chunks)
+        problem.kept, problem.kept_blocks = kept.chunks, tuple(kept.blocks)
+        problem.kept_sigmas = kept.sigmas
+    else:
+        problem.kept = [] if candidates or keep else None
+        R, pos, rot = cell_factors(problem, folds, factor, lead)
+        if problem.kept is not None:  # one pass's chunks (a fallback QR makes a second)
+            problem.kept = problem.kept[: len(range(0, split.train.n, problem.chunk_rows))]
     blocked = None
     if folds is not None:
         values = problem.x0 / problem.scale

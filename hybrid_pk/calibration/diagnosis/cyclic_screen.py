@@ -31,6 +31,7 @@ import torch
 from hybrid_pk.calibration.diagnosis.blocked import Folds
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.statistics import equivalent_angle_error
+from hybrid_pk.calibration.fit import predicted_poses
 from hybrid_pk.calibration.structured_jacobian import point_jacobian
 from hybrid_pk.effects import ExtendedModel
 from hybrid_pk.effects.joint import CYCLIC_PREFIX
@@ -72,7 +73,7 @@ def screen_cyclic(
     data, cond = split.train, split.cond_fit
     names = model.robot.joint_names
     with torch.no_grad():
-        T0 = model(data.q, cond)
+        T0 = predicted_poses(model, data.q, cond)  # kept where the refit ended
         r = data.position.to(T0.dtype) - T0[:, :3, 3]
         J = point_jacobian(model, data.q, cond)
         kept = set()

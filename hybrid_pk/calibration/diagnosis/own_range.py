@@ -97,7 +97,7 @@ def own_range_gains(
         folds = end_folds(model, split, joint)
         if folds is None:
             continue
-        blocked = linearise(model, res, split, folds, progress, factor=False)[3]
+        blocked = linearise(model, res, split, folds, progress, factor=False, share=False)[3]
         ends = [replace(blocked, folds=replace(folds, folds=(f,))) for f in folds.folds]
         for label in periodic:
             rest = [x for x in labels if x != label]

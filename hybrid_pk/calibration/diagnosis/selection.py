@@ -34,6 +34,7 @@ from hybrid_pk.calibration.diagnosis.statistics import (
 )
 from hybrid_pk.calibration.diagnosis.variants import shift_parameters, with_effects
 from hybrid_pk.calibration.fit import FitResult, fit, reestimated_noise
+from hybrid_pk.calibration.shared_jacobian import release_shared
 from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import EFFECTS, ExtendedModel, effect_joint_names, make_effect
@@ -327,6 +328,8 @@ def try_candidate(
             r_start, split.train.n, n_params, sigmas, position_only=split.position_only
         )
         sigmas = (noise[0], None if split.position_only else noise[1])
+        if scores.near is not None and res.robust is None:  # the refit's first residual
+            scores.near.start = (r_start, (res.sigma_pos_mm, res.sigma_rot_rad or 1.0))
     new_res = fit(
         new, split.train, cond=split.cond_fit, initial_sigma=sigmas, progress=progress,
         near=scores.near, **res.settings(),
@@ -355,6 +358,8 @@ def try_candidate(
     step["accepted"] = step["accepted"] and carries
     if not step["accepted"]:
         step["why"] = "refit not significant, BIC not lower, or hold-out not better"
+    else:
+        release_shared()  # the model moves on: no question is asked at its point again
     return new, new_res, step
 
 

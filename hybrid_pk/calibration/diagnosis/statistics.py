@@ -7,9 +7,10 @@ import math
 import torch
 from torch import Tensor
 
-from hybrid_pk.calibration.fit import FitResult
+from hybrid_pk.calibration.fit import FitResult, predicted_poses
 from hybrid_pk.calibration.problem import Problem
 from hybrid_pk.calibration.robust import robust_cost, row_distances
+from hybrid_pk.calibration.work import count as count_work
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
 
@@ -54,10 +55,11 @@ def f_critical(alpha: float, d1: int, d2: int) -> float:
 def weighted_residual(
     model: ExtendedModel, data: MeasuredData, cond: Conditions, res: FitResult
 ) -> Tensor:
-    """Residuals of ``model`` on ``data`` under ``res``'s noise weights."""
+    """Residuals of ``model`` on ``data`` under ``res``'s noise weights (the poses kept
+    where this point was evaluated on these rows: :func:`.fit.predicted_poses`)."""
     problem = Problem(model, data, cond, (), res.sigma_pos_mm, res.sigma_rot_rad or 1.0)
-    with torch.no_grad():
-        return problem.residual(torch.zeros(0, dtype=torch.float64))
+    count_work(data.n)  # a residual pass, kept poses or not: the budgets stay as they were
+    return problem.residual_of_pose(predicted_poses(model, data.q, cond))
 
 
 def weighted_ssr(
