@@ -31,7 +31,7 @@ _local = threading.local()
 
 def _store() -> list:
     if not hasattr(_local, "kept"):
-        _local.kept = []  # [(point, q, cond, T)], the newest last
+        _local.kept = []  # [(point, q, cond, T, q's version)], the newest last
     return _local.kept
 
 
@@ -42,7 +42,8 @@ def kept_poses(model: ExtendedModel, q: Tensor, cond: Conditions) -> Tensor | No
         return None
     point = model_point(model)
     for entry in reversed(store):
-        if entry[1] is q and entry[2] is cond and same_point(entry[0], point):
+        same_rows = entry[1] is q and entry[4] == q._version and entry[2] is cond
+        if same_rows and same_point(entry[0], point):
             return entry[3]
     return None
 
@@ -52,6 +53,7 @@ def keep_poses(model: ExtendedModel, q: Tensor, cond: Conditions, T: Tensor) -> 
     if T.requires_grad or q.shape[0] > MAX_KEPT_ROWS:
         return
     store = _store()
-    store.append((model_point(model), q, cond, T))
+    # q's version counter: rows changed in place since are other rows; T: the caller's
+    store.append((model_point(model), q, cond, T.clone(), q._version))
     while len(store) > MAX_KEPT or sum(e[1].shape[0] for e in store) > MAX_KEPT_ROWS:
         store.pop(0)
