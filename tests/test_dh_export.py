@@ -163,7 +163,8 @@ def test_random_geometry_exports_and_summary(name, tmp_path):
         for item, label in zip(items, carried_not, strict=False):
             others = [e for e in model.effects if e.label != label]
             moved = (full - model.with_effects(others)(q, cond))[:, :3, 3].norm(dim=-1) * 1000
-            assert item.size_mm[1] == pytest.approx(float(moved.max()), rel=1e-9)
+            # abs: the compliance fixed point's tolerance (1e-12 rad) over a 10 m lever
+            assert item.size_mm[1] == pytest.approx(float(moved.max()), rel=1e-9, abs=1e-8)
             assert max(item.size_mm[1], item.turn_mrad) > 0
 
 
