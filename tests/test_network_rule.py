@@ -254,6 +254,9 @@ def test_networks_gated_beyond_joint_1_are_carried_where_the_new_rows_show_they_
         res = refit(load_model(path), fit_rows, "frames")
         assert res.verdict.used is kept, (where, error, res.verdict)
         assert res.verdict.carried is kept, (where, error, res.verdict)
+        if not kept:  # the second look's numbers stay beside the verdict
+            assert res.verdict.lifted["reached"] == REFIT_ROWS, res.verdict
+            assert "with their joint gates lifted" in res.verdict.line()
         if kept:
             assert res.verdict.z > 2.0  # the second look's stricter z
             moved_model = replace(load_model(path), model=res.model, networks=res.networks)

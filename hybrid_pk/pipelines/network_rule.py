@@ -73,6 +73,7 @@ class NetworkVerdict:
     score_se: float
     reached: int | None = None  # re-fit rows where any stage's networks act (trust > 0)
     carried: bool = False  # used with the stages' joint gates lifted (second look)
+    lifted: dict | None = None  # the second look's numbers when it did not decide
 
     @property
     def rule(self) -> str:
@@ -89,7 +90,7 @@ class NetworkVerdict:
         out = {"used": self.used, "rule": self.rule}
         for key in ("z", "rows", "folds", "physics_mm", "hybrid_mm", "gain_mm", "se_mm"):
             out[key] = getattr(self, key)
-        for key in ("gain_deg", "se_deg", "score_gain", "score_se", "reached", "carried"):
+        for key in ("gain_deg", "se_deg", "score_gain", "score_se", "reached", "carried", "lifted"):
             out[key] = getattr(self, key)
         return out
 
@@ -101,13 +102,20 @@ class NetworkVerdict:
 def verdict_line(verdict: dict) -> str:
     """One line on a file's networks from their ``transfer`` verdict (the JSON of a
     :class:`NetworkVerdict`)."""
-    reached = verdict.get("reached")
+    reached, lifted = verdict.get("reached"), verdict.get("lifted")
+    second = ""
+    if lifted is not None:
+        second = (
+            f"; with their joint gates lifted they act on {lifted['reached']} rows and gain "
+            f"{lifted['gain_mm']:.3g} ± {lifted['se_mm']:.2g} mm (needs {lifted['z']:.3g} "
+            "standard errors)"
+        )
     if reached == 0:
         return (
-            f"residual networks NOT used: they act on none of the {verdict['rows']} re-fit "
-            "rows (every row lies beyond where a stage is trusted: the joints they were "
-            "trained on, joint 1's trained range), so these rows cannot show whether they "
-            "would carry there; the extended model (physics) instead"
+            f"residual networks NOT used: as stored they act on none of the {verdict['rows']} "
+            "re-fit rows (every row lies beyond where a stage is trusted: the joints they "
+            f"were trained on, joint 1's trained range){second}; the extended model "
+            "(physics) instead"
         )
     if verdict.get("used", True) and verdict.get("carried"):
         what = (
@@ -125,7 +133,7 @@ def verdict_line(verdict: dict) -> str:
     return (
         f"{what} (held out on the {verdict['rows']} re-fit rows: hybrid "
         f"{verdict['hybrid_mm']:.4g} mm vs physics {verdict['physics_mm']:.4g} mm, gain "
-        f"{verdict['gain_mm']:.3g} ± {verdict['se_mm']:.2g} mm; needs {z} standard errors)"
+        f"{verdict['gain_mm']:.3g} ± {verdict['se_mm']:.2g} mm; needs {z} standard errors)" + second
     )
 
 
@@ -184,6 +192,9 @@ def network_rule(
         second, rows2 = judged(lifted, second_look_z())
         if second.used:
             verdict, hybrid_rows, nets = dataclasses.replace(second, carried=True), rows2, lifted
+        else:
+            keys = ("reached", "gain_mm", "se_mm", "score_gain", "score_se", "z")
+            verdict = dataclasses.replace(verdict, lifted={k: getattr(second, k) for k in keys})
     if not verdict.used:
         return verdict, None, nets
     frames = [
