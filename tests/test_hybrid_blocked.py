@@ -188,3 +188,46 @@ def test_qarm_reads_every_joint_after_the_frame_but_those_on_the_flange_axis(nam
     assert resolve_arm(FeatureSpec.parse("frame2+q3-4"), robot, q).angles == (3, 4)
     hybrid = build_hybrid(ExtendedModel(robot), DEFAULT_INPUTS, SMALL_STAGES, q)
     assert hybrid.input_label.startswith("frame1+q2-5+torque")
+
+
+def test_the_second_look_does_not_carry_an_error_that_does_not_turn_with_joint_1(ur10, tmp_path):
+    """The same field, the networks moved to rows of the other half of joint 1 with
+    their frames re-fitted there (calibrate --refit): lifting their joint gates
+    (pipelines.network_rule's second look) would carry a correction that does not hold
+    there, so the re-fit rows held out keep them off; the judged rows get the physics."""
+    from hybrid_pk.evaluation.metrics import row_errors
+    from hybrid_pk.io.hybrid_file import predict_poses
+    from hybrid_pk.io.model_file import load_model
+    from hybrid_pk.pipelines.refit import refit
+
+    rng = run_rng("second-look-not-equivariant")
+    size = float(rng.uniform(0.2, 0.5)) * 1e-3  # [m]
+    k, phase = int(rng.integers(1, 3)), float(rng.uniform(0, 2 * math.pi))
+
+    def field(q):
+        out = torch.zeros(q.shape[0], 3, dtype=F64)
+        out[:, 2] = size * torch.sin(q[:, 0]) * torch.cos(q[:, k] + phase)
+        out[:, 0] = 0.5 * size * torch.sin(q[:, 0]) ** 2
+        return out
+
+    train = _measure(ur10, _half_campaign(ur10, 500, 1, +1), field, 0.01, 1)
+    moved = _measure(ur10, _half_campaign(ur10, 350, 2, -1), field, 0.01, 2)
+    path = tmp_path / "hybrid.pt"
+    save_hybrid(path, _train(train, ExtendedModel(ur10)).hybrid)
+    pick = torch.zeros(moved.n, dtype=torch.bool)
+    pick[:50] = True
+    fit_rows, judged = moved.subset(pick), moved.subset(~pick)
+    loaded = load_model(path)
+    res = refit(loaded, fit_rows, "frames")
+    assert not res.verdict.used, res.verdict
+    assert not res.verdict.carried
+    assert res.verdict.lifted is not None, res.verdict  # the second look was taken
+    errors = {}
+    physics = dataclasses.replace(loaded, networks=None)
+    for name, source in (("hybrid", loaded), ("physics", physics)):
+        r = refit(source, fit_rows, "frames")
+        model = dataclasses.replace(source, model=r.model, networks=r.networks)
+        with torch.no_grad():
+            T = predict_poses(model, judged, conditions_from_data(judged))
+        errors[name] = float(row_errors(T, judged)[0].mean())
+    assert errors["hybrid"] <= 1.02 * errors["physics"], (errors, res.verdict)
