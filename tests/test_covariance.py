@@ -79,3 +79,24 @@ def test_the_warning_names_the_group_of_an_over_parameterised_fit(rx160):
     assert res.undetermined(MAX_CONDITION) == [["base_frame.rotation[2]", "joint_offset:joint_1"]]
     warning = condition_warning(res)
     assert "cannot separate: {base_frame.rotation[2], joint_offset:joint_1}" in warning
+
+
+def test_link_lengths_along_parallel_axes_are_named_as_an_exact_trade_off(ur10):
+    """The UR10's elbow and wrist-1 axes are parallel to the shoulder lift's: moving
+    along that common axis at the elbow or at wrist 1 moves the flange alike, so only the
+    sum of those two components is determined. The diagnosis' ambiguity entry says so
+    (not 'the data barely separates them')."""
+    from hybrid_pk.calibration.diagnosis.ambiguity import correlated_groups
+
+    g = torch.Generator().manual_seed(7)
+    values = (torch.rand(2, 3, generator=g, dtype=F64) - 0.5) * 1e-3
+    effects = f"link_length:elbow_joint={','.join(f'{v:.6g}' for v in values[0].tolist())}"
+    effects += f"; link_length:wrist_1_joint={','.join(f'{v:.6g}' for v in values[1].tolist())}"
+    data, _ = simulate_campaign(ur10, 300, effects, noise_mm=0.01, noise_deg=0.001, seed=2)
+    labels = ["link_length:elbow_joint", "link_length:wrist_1_joint"]
+    model = ExtendedModel(ur10, [make_effect(ur10, lbl) for lbl in labels])
+    res = fit(model, data, cond=conditions_from_data(data))
+    entries = [e for e in correlated_groups(res) if e["effects"] == labels]
+    assert len(entries) == 1, correlated_groups(res)
+    assert "only the combination is determined" in entries[0]["why"]
+    assert "link_length:elbow_joint[" in entries[0]["why"]

@@ -21,7 +21,17 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["correlated_pairs", "parameter_names", "svd_covariance", "undetermined_groups"]
+__all__ = [
+    "MAX_CONDITION",
+    "correlated_pairs",
+    "parameter_names",
+    "svd_covariance",
+    "undetermined_groups",
+]
+
+# Above this condition number of the scaled identification Jacobian a fit is not
+# identifiable from the data (well-posed calibrations here stay below 1e5).
+MAX_CONDITION = 1e8
 
 
 def parameter_names(blocks) -> tuple[list[str], list[str]]:

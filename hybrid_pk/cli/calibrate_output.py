@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from hybrid_pk.calibration.covariance import MAX_CONDITION
 from hybrid_pk.calibration.diagnosis import report_value
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.effects import ExtendedModel
@@ -24,10 +25,6 @@ __all__ = [
     "frame_lines",
     "urdf_target",
 ]
-
-# Above this condition number of the scaled identification Jacobian a fit is not
-# identifiable from the data (well-posed calibrations here stay below 1e5).
-MAX_CONDITION = 1e8
 
 
 def effect_rows(model: ExtendedModel, res: FitResult) -> list[dict]:

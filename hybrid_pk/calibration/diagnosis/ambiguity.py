@@ -17,6 +17,7 @@ import math
 import torch
 from torch import Tensor
 
+from hybrid_pk.calibration.covariance import MAX_CONDITION
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.calibration.problem import ParamBlock
 from hybrid_pk.calibration.tuning import diagnosis_tuning
@@ -92,17 +93,31 @@ def near_duplicates(label: str, fitted: Tensor, signatures: dict[str, Tensor]) -
 
 
 def correlated_groups(res: FitResult) -> list[dict]:
-    """Entries for strongly correlated estimates (frames included, frame pairs not)."""
+    """Entries for strongly correlated estimates (frames included, frame pairs not).
+    Where the two share a direction the data do not determine at all (a group of
+    :meth:`FitResult.undetermined`, e.g. the components along parallel joint axes of
+    two link lengths), the entry says only their combination is determined."""
     out, seen = [], set()
+    exact = [g for g in res.undetermined(MAX_CONDITION) if len(g) > 1]
     for a, _, b, _, r in res.correlated_pairs(diagnosis_tuning().ambiguity_correlation):
         if (a, b) in seen or (a.endswith("_frame") and b.endswith("_frame")):
             continue
         seen.add((a, b))
-        out.append(
-            {
-                "effects": [a, b],
-                "why": f"estimates correlated at {abs(r):.3f}: the data "
-                "barely separates them, their values trade off",
-            }
+        group = next((g for g in exact if {_label(n) for n in g} >= {a, b}), None)
+        why = (
+            f"estimates correlated at {abs(r):.3f}: the data barely separates them, their "
+            "values trade off"
         )
+        if group is not None:
+            why = (
+                f"a combination of {', '.join(group)} moves nothing these data measure: "
+                "only the combination is determined, the split between them (and their "
+                "stds there) is the minimum-norm one, not a measurement"
+            )
+        out.append({"effects": [a, b], "why": why})
     return out
+
+
+def _label(name: str) -> str:
+    """The effect or frame of a parameter name (``link_length:joint_3[2]``)."""
+    return name.split("[")[0].split(".")[0]
