@@ -126,25 +126,27 @@ def _closest_pairs(tree, x):
 
 def beyond_noise(position_mm: Tensor, noise: NoiseEstimate | None) -> dict | None:
     """Is the left position error ``(N, 3)`` [mm] of the hold-out rows larger than the
-    measurement noise? Under noise alone its mean square per coordinate is ``sigma^2``
-    with a relative variance ``2 / (3 N)`` (chi^2 of 3N), and the estimate's own
-    ``sigma^2`` (the median of the closest pairs' chi^2_3) one of ``1 / (4 P f(m)^2 m^2)``
-    (P pairs, ``f`` the chi^2_3 density at its median ``m``); the error is beyond the
-    noise when the log of their ratio exceeds :data:`BEYOND_SD` standard deviations.
-    None without a noise estimate. A smooth error that neighbouring hold-out poses are
-    too far apart to share (a few hundred rows in many joints) still shows here."""
+    measurement noise? Both sides are read the same robust way: the median over rows of
+    the squared error (three coordinates) over the median of chi^2_3 estimates the
+    per-coordinate variance, as :func:`measurement_noise` does over its P closest pairs
+    (a gross row or a backlash flip moves neither). Each median of K draws has a
+    relative variance ``1 / (4 K f(m)^2 m^2)`` (``f`` the chi^2_3 density at its median
+    ``m``); the error is beyond the noise when the log of the two variances' ratio
+    exceeds :data:`BEYOND_SD` standard deviations of their sum. None without a noise
+    estimate. A smooth error that neighbouring hold-out poses are too far apart to share
+    (a few hundred rows in many joints) still shows here."""
     from scipy import stats
 
     if noise is None or noise.sigma_mm is None or position_mm.shape[0] < 2:
         return None
-    pairs = sum(f["pairs"] for f in noise.files)
     m = float(stats.chi2.median(3))
-    estimate_var = 1.0 / (4 * pairs * float(stats.chi2.pdf(m, 3)) ** 2 * m**2)
-    sd = math.sqrt(2.0 / position_mm.numel() + estimate_var)
-    rms = float(position_mm.pow(2).mean().sqrt())
-    ratio, limit = rms / noise.sigma_mm, math.exp(BEYOND_SD * sd / 2)  # RMS: half the log
+    per_draw = 1.0 / (4 * float(stats.chi2.pdf(m, 3)) ** 2 * m**2)  # K = 1
+    pairs = sum(f["pairs"] for f in noise.files)
+    sd = math.sqrt(per_draw / position_mm.shape[0] + per_draw / pairs)
+    sigma = math.sqrt(float(position_mm.pow(2).sum(-1).median()) / m)
+    ratio, limit = sigma / noise.sigma_mm, math.exp(BEYOND_SD * sd / 2)  # sigma: half the log
     return {
-        "rms_per_axis_mm": rms,
+        "sigma_mm": sigma,
         "noise_mm": noise.sigma_mm,
         "ratio": ratio,
         "limit": limit,
