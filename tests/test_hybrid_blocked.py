@@ -54,6 +54,22 @@ def _measure(robot, q, field, noise_mm, seed):
     return dataclasses.replace(data, position=data.position + field(data.q))
 
 
+def _sin_q1_field(rng):
+    """A smooth error of 0.2-0.5 mm that does not turn with joint 1: along the base axis,
+    sin q1 times a smooth function of the arm (random joint and phase); ``q -> (N, 3)``
+    [m]."""
+    size = float(rng.uniform(0.2, 0.5)) * 1e-3  # [m]
+    k, phase = int(rng.integers(1, 3)), float(rng.uniform(0, 2 * math.pi))
+
+    def field(q):
+        out = torch.zeros(q.shape[0], 3, dtype=F64)
+        out[:, 2] = size * torch.sin(q[:, 0]) * torch.cos(q[:, k] + phase)
+        out[:, 0] = 0.5 * size * torch.sin(q[:, 0]) ** 2
+        return out
+
+    return field
+
+
 def _train(data, base, epochs=40):
     return train_hybrid(data, base, model=NETS, max_epochs=epochs, progress=False, seed=0)
 
@@ -62,15 +78,7 @@ def test_an_error_that_does_not_turn_with_joint_1_keeps_the_networks_off_the_oth
     """(i): trained on one half of joint 1's range, judged on the other: an unmodelled
     smooth error that is not equivariant to joint 1 (it grows with sin q1 along the
     base axis) must not be carried there; hybrid <= 1.02 x extended."""
-    rng = run_rng("blocked-not-equivariant")
-    size = float(rng.uniform(0.2, 0.5)) * 1e-3  # [m]
-    k, phase = int(rng.integers(1, 3)), float(rng.uniform(0, 2 * math.pi))
-
-    def field(q):  # along the base axis: sin q1 times a smooth function of the arm
-        out = torch.zeros(q.shape[0], 3, dtype=F64)
-        out[:, 2] = size * torch.sin(q[:, 0]) * torch.cos(q[:, k] + phase)
-        out[:, 0] = 0.5 * size * torch.sin(q[:, 0]) ** 2
-        return out
+    field = _sin_q1_field(run_rng("blocked-not-equivariant"))
 
     train = _measure(ur10, _half_campaign(ur10, 500, 1, +1), field, 0.01, 1)
     judged = _measure(ur10, _half_campaign(ur10, 300, 2, -1), field, 0.01, 2)
@@ -200,15 +208,7 @@ def test_the_second_look_does_not_carry_an_error_that_does_not_turn_with_joint_1
     from hybrid_pk.io.model_file import load_model
     from hybrid_pk.pipelines.refit import refit
 
-    rng = run_rng("second-look-not-equivariant")
-    size = float(rng.uniform(0.2, 0.5)) * 1e-3  # [m]
-    k, phase = int(rng.integers(1, 3)), float(rng.uniform(0, 2 * math.pi))
-
-    def field(q):
-        out = torch.zeros(q.shape[0], 3, dtype=F64)
-        out[:, 2] = size * torch.sin(q[:, 0]) * torch.cos(q[:, k] + phase)
-        out[:, 0] = 0.5 * size * torch.sin(q[:, 0]) ** 2
-        return out
+    field = _sin_q1_field(run_rng("second-look-not-equivariant"))
 
     train = _measure(ur10, _half_campaign(ur10, 500, 1, +1), field, 0.01, 1)
     moved = _measure(ur10, _half_campaign(ur10, 350, 2, -1), field, 0.01, 2)

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from hybrid_pk.calibration.diagnosis.carryover import margin_text
+from hybrid_pk.calibration.diagnosis.leftovers import left_verdict
 from hybrid_pk.calibration.diagnosis.rivals import rival_lines
 from hybrid_pk.calibration.diagnosis.settle import order_groups
 from hybrid_pk.calibration.diagnosis.statistics import along_joints_text
@@ -198,14 +199,14 @@ def _what_is_left(diagnosis, data, robot: Robot, out: Path, ext) -> list[str]:
         title=f"extended model, hold-out rows: {verdict}",
     )
     corr = un.get("neighbour_correlation")
-    beyond = un.get("beyond_noise") or {}
-    if un.get("smooth", un.get("structured")):
+    beyond, left = un.get("beyond_noise") or {}, left_verdict(un)
+    if left == "smooth":
         text = (
             "**Structured: yes.** Neighbouring configurations share their residuals, so a "
             "smooth error is left that no named cause explains (an unmodelled effect, or "
             "one for the residual networks)."
         )
-    elif beyond.get("beyond"):
+    elif left == "beyond_noise":
         text = (
             f"**Structured: yes.** What is left is {fmt(beyond['ratio'], 3)} times the "
             f"measurement noise per axis (noise alone stays below {fmt(beyond['limit'], 3)}"

@@ -17,7 +17,7 @@ import math
 import torch
 from torch import Tensor
 
-from hybrid_pk.calibration.covariance import MAX_CONDITION
+from hybrid_pk.calibration.covariance import MAX_CONDITION, parameter_names
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.calibration.problem import ParamBlock
 from hybrid_pk.calibration.tuning import diagnosis_tuning
@@ -98,12 +98,13 @@ def correlated_groups(res: FitResult) -> list[dict]:
     :meth:`FitResult.undetermined`, e.g. the components along parallel joint axes of
     two link lengths), the entry says only their combination is determined."""
     out, seen = [], set()
+    group_of = dict(zip(*parameter_names(res.blocks), strict=True))  # name -> effect/frame
     exact = [g for g in res.undetermined(MAX_CONDITION) if len(g) > 1]
     for a, _, b, _, r in res.correlated_pairs(diagnosis_tuning().ambiguity_correlation):
         if (a, b) in seen or (a.endswith("_frame") and b.endswith("_frame")):
             continue
         seen.add((a, b))
-        group = next((g for g in exact if {_label(n) for n in g} >= {a, b}), None)
+        group = next((g for g in exact if {group_of[n] for n in g} >= {a, b}), None)
         why = (
             f"estimates correlated at {abs(r):.3f}: the data barely separates them, their "
             "values trade off"
@@ -116,8 +117,3 @@ def correlated_groups(res: FitResult) -> list[dict]:
             )
         out.append({"effects": [a, b], "why": why})
     return out
-
-
-def _label(name: str) -> str:
-    """The effect or frame of a parameter name (``link_length:joint_3[2]``)."""
-    return name.split("[")[0].split(".")[0]

@@ -17,7 +17,7 @@ from hybrid_pk.calibration.robust import OUTLIER_K, down_weighted, list_outliers
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import ExtendedModel, conditions_from_data
 
-__all__ = ["outliers_json", "robust_json", "structured_text", "unexplained_json"]
+__all__ = ["left_verdict", "outliers_json", "robust_json", "structured_text", "unexplained_json"]
 
 
 def outliers_json(model: ExtendedModel, data: MeasuredData, per_file: bool, res: FitResult):
@@ -63,12 +63,21 @@ def unexplained_json(
     }
 
 
-def structured_text(un: dict) -> str:
-    """The verdict on the left error (:func:`unexplained_json`) in words."""
-    beyond = un.get("beyond_noise") or {}
+def left_verdict(un: dict) -> str:
+    """Why the left error (:func:`unexplained_json`) is structured: ``"smooth"``
+    (neighbouring rows share it), ``"beyond_noise"`` (larger than the noise), or
+    ``"noise"`` (neither)."""
     if un.get("smooth", un.get("structured")):
+        return "smooth"
+    return "beyond_noise" if (un.get("beyond_noise") or {}).get("beyond") else "noise"
+
+
+def structured_text(un: dict) -> str:
+    """The verdict on the left error (:func:`left_verdict`) in words."""
+    beyond, verdict = un.get("beyond_noise") or {}, left_verdict(un)
+    if verdict == "smooth":
         return "yes (a smooth error is left that no cause explains)"
-    if beyond.get("beyond"):
+    if verdict == "beyond_noise":
         return (
             f"yes (it is {beyond['ratio']:.3g} times the measurement noise, where noise "
             f"alone stays below {beyond['limit']:.3g}; the hold-out poses are too far "
