@@ -87,6 +87,8 @@ class Effect(nn.Module):
         limit: largest credible norm of ``value`` [its unit] (None: depends on the loads
             or the data); :func:`~hybrid_pk.effects.limits.effect_limit` adapts it to a
             prismatic joint.
+        drawn: largest norm simulation draws it at, where real robots stay well below
+            ``limit`` (None: ``limit``; :func:`~hybrid_pk.effects.limits.drawn_limit`).
         unplannable: None when the choice of poses controls its information; otherwise
             why not (pose planning leaves it out and says so).
         evidence: the variable its evidence plot shows it against (:data:`EvidenceVariable`).
@@ -115,6 +117,7 @@ class Effect(nn.Module):
     joints: ClassVar[JointRule] = "any"
     positive: ClassVar[bool] = False
     limit: ClassVar[float | None] = None
+    drawn: ClassVar[float | None] = None
     unplannable: ClassVar[str | None] = None
     evidence: ClassVar[EvidenceVariable] = "joint_angle"
     order: ClassVar[int] = 0

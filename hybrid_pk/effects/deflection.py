@@ -34,7 +34,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.effects.base import Effect, register
-from hybrid_pk.effects.limits import MAX_COMPLIANCE
+from hybrid_pk.effects.limits import DRAWN_COMPLIANCE, MAX_COMPLIANCE
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import so3_exp
 from hybrid_pk.robot import KinematicParams
@@ -140,6 +140,7 @@ class TiltCompliance(DeflectionEffect):
     """
 
     kind, unit, limit = "tilt_compliance", "rad/Nm", MAX_COMPLIANCE
+    drawn = DRAWN_COMPLIANCE
     equation = "w = −(c₁M₁e₁ + c₂M₂e₂): tilt about the two axes perpendicular to the joint"
     description = (
         "the joint's bearings and the link after it tilt about the two axes e1, e2 "

@@ -26,6 +26,7 @@ from torch import Tensor
 from hybrid_pk.effects.base import Effect, register, register_family
 from hybrid_pk.effects.conditions import Conditions
 from hybrid_pk.effects.limits import (
+    DRAWN_COMPLIANCE,
     MAX_BACKLASH_DEG,
     MAX_COMPLIANCE,
     MAX_GEAR_RATIO,
@@ -220,6 +221,7 @@ class JointCompliance(Effect):
 
     kind, unit, stage, scale = "joint_compliance", "rad/Nm", "compliance", 1e-6
     joints, positive, limit, evidence = "revolute", True, MAX_COMPLIANCE, "torque"
+    drawn = DRAWN_COMPLIANCE
     simulate_random = needs_torque = True
     law = "θ_true - θ = c · τ_gravity: a line through the origin, slope c"
     equation = "θ_true = θ + c · τ_gravity(θ_true, payload)"

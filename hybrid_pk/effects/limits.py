@@ -12,11 +12,13 @@ if TYPE_CHECKING:
     from hybrid_pk.robot import Robot
 
 __all__ = [
+    "DRAWN_COMPLIANCE",
     "MAX_BACKLASH_DEG",
     "MAX_COMPLIANCE",
     "MAX_GEAR_RATIO",
     "MAX_ROTATION_DEG",
     "MAX_TRANSLATION_M",
+    "drawn_limit",
     "effect_limit",
 ]
 
@@ -24,7 +26,14 @@ MAX_ROTATION_DEG = 5.0  # [deg] a joint zero or origin off by more is a wrong UR
 MAX_BACKLASH_DEG = 1.0  # [deg] worn gearboxes play arcminutes; a degree is a loose coupling
 MAX_TRANSLATION_M = 0.05  # [m] machining and assembly errors are sub-mm; 5 cm is a wrong link
 MAX_GEAR_RATIO = 0.01  # 1 % is an encoder scaling mistake, far beyond a gear's tolerance
-MAX_COMPLIANCE = 1e-4  # [rad/Nm]; industrial joints are 1e-7 .. 1e-5
+# [rad/Nm]: industrial joints are 1e-7 .. 1e-5, torque-sensed cobot joints and small
+# strain-wave gears at low torque reach 1e-4; ten times that is no metal gear train (a
+# compliance that bends its joint beyond MAX_ROTATION_DEG under the data's gravity is
+# flagged as well, whatever its size)
+MAX_COMPLIANCE = 1e-3
+# [rad/Nm]: simulated joints are drawn within the soft end of real ones (a cobot's), not
+# up to what the diagnosis still credits
+DRAWN_COMPLIANCE = 1e-4
 
 
 def effect_limit(effect: Effect, robot: Robot) -> float | None:
@@ -38,3 +47,11 @@ def effect_limit(effect: Effect, robot: Robot) -> float | None:
         and robot.joint_types[effect.joint_index] == "prismatic"
     )
     return MAX_TRANSLATION_M if prismatic and effect.unit == "rad" else effect.limit
+
+
+def drawn_limit(effect: Effect, robot: Robot) -> float | None:
+    """Largest norm simulation draws ``effect`` at: its class's ``drawn`` where stated
+    (compliances: real joints, below what the diagnosis credits), else
+    :func:`effect_limit`."""
+    drawn = getattr(type(effect), "drawn", None)
+    return drawn if drawn is not None else effect_limit(effect, robot)

@@ -37,7 +37,7 @@ from hybrid_pk.effects import (
 from hybrid_pk.effects import approach_direction as _approach_direction
 from hybrid_pk.effects.base import known_kinds
 from hybrid_pk.effects.joint import JointCompliance
-from hybrid_pk.effects.limits import effect_limit
+from hybrid_pk.effects.limits import drawn_limit
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import transform
 from hybrid_pk.robot import Robot
@@ -369,9 +369,9 @@ def random_effects(
     Each effect's size is set so that alone it moves the flange + a 125 mm tool by a
     mean distance drawn uniformly in :data:`RANDOM_TARGET_MM` over random
     configurations at ``payload`` [kg] under ``gravity`` (default upright), or to half
-    its credible limit (:func:`hybrid_pk.effects.limits.effect_limit`) where that distance
-    would need more. Joints are
-    distinct while there are enough; labels in ``exclude`` (``kind:joint``) are not drawn.
+    the largest size it is drawn at (:func:`hybrid_pk.effects.limits.drawn_limit`)
+    where that distance would need more. Joints are distinct while there are enough;
+    labels in ``exclude`` (``kind:joint``) are not drawn.
     """
     candidates = _random_candidates(robot, payload, gravity)
     candidates = [c for c in candidates if ":".join(c) not in exclude]
@@ -402,9 +402,9 @@ def random_effects(
         if not error > 1e-9:  # a candidate must move the measured point
             raise HybridPKError(f"{unit.label} does not move the measured point of {robot.name}")
         size = target / error
-        # Physics first: where the target needs more than a credible correction (a
-        # wrist compliance of 1e-4 rad/Nm), draw it at half the limit instead.
-        limit = effect_limit(unit, robot)
+        # Physics first: where the target needs more than a real robot shows (a wrist
+        # compliance of 1e-4 rad/Nm), draw it at half that instead.
+        limit = drawn_limit(unit, robot)
         if limit is not None:
             size = min(size, 0.5 * limit / math.hypot(*probe))
         value = [v * size for v in probe]
