@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from hybrid_pk.calibration.diagnosis import diagnose
-from hybrid_pk.calibration.diagnosis.power import noncentrality
+from hybrid_pk.calibration.diagnosis.power import noncentrality, nothing_above
 from hybrid_pk.calibration.tuning import DiagnosisTuning
 from hybrid_pk.cli.main import main
 from hybrid_pk.data import write_table
@@ -167,3 +167,24 @@ def test_a_limit_set_by_the_margin_predicts_what_the_diagnosis_finds(rx160):
         )
         found = diagnose(rx160, data, max_causes=3)
         assert (label in _labels(found)) == named, (*where, factor, _labels(found))
+
+
+def test_a_limit_beyond_any_credible_size_is_named_apart():
+    """A family's stated limit holds for its joints; one joint's limit beyond what the
+    effect can physically be (9 rad of axis tilt) would make it read absurd, so that
+    joint is named as missed instead."""
+
+    def limit(effect, joint, value, mm):
+        return {"effect": effect, "joint": joint, "family": effect, "value": value,
+                "unit": "rad", "mm_rms": mm, "set_by": "power"}  # fmt: skip
+
+    detectable = [
+        limit("axis_misalignment", "j2", 0.004, 3.0),
+        limit("axis_misalignment", "j5", 9.3, 2000.0),
+        limit("joint_offset", "j3", 0.002, 1.5),
+    ]
+    text = nothing_above(detectable, blind=["axis_misalignment:j5"])
+    assert text.startswith("nothing above: axis_misalignment 0.004 rad at j2 (3 mm)"), text
+    assert text.endswith("; missed at any credible size: axis_misalignment at j5"), text
+    assert "9.3" not in text
+    assert "missed" not in nothing_above(detectable[:1] + detectable[2:])

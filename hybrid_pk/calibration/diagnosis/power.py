@@ -226,15 +226,21 @@ def _position_columns(model: ExtendedModel, labels: list[str], split: Split) -> 
     return out
 
 
-def nothing_above(detectable: list[dict], limit: int = 6) -> str:
+def nothing_above(detectable: list[dict], limit: int = 6, blind: list[str] = ()) -> str:
     """``nothing above: <family> <limit> <unit> at <joint> (<mm>), ...; below that these data
-    cannot tell``: per family its largest limit (true of every joint), the families
-    whose limit moves the point the most first; ``(<mm>, margin)`` where the practical
-    margin, not the F-test's power, sets the limit."""
+    cannot tell``: per family its largest limit (true of every joint but those in
+    ``blind``, whose limit exceeds any credible size: they are named after it), the
+    families whose limit moves the point the most first; ``(<mm>, margin)`` where the
+    practical margin, not the F-test's power, sets the limit."""
     if not detectable:
         return "nothing the data could test (no candidate has a signature in them)"
     worst: dict[str, dict] = {}
+    missed = []
     for d in detectable:  # the largest limit of a family holds for all its joints
+        label = d["effect"] if d["joint"] is None else f"{d['effect']}:{d['joint']}"
+        if label in blind:
+            missed.append(f"{d['family']} at {d['joint']}" if d["joint"] else d["family"])
+            continue
         w = worst.get(d["family"])
         if w is None or d["value"] > w["value"]:
             worst[d["family"]] = d
@@ -245,7 +251,13 @@ def nothing_above(detectable: list[dict], limit: int = 6) -> str:
         by = ", margin" if d.get("set_by") == "margin" else ""
         parts.append(f"{d['family']} {d['value']:.2g} {d['unit']}{at} ({d['mm_rms']:.2g} mm{by})")
     more = f", {len(ranked) - limit} more families" if len(ranked) > limit else ""
-    return f"nothing above: {', '.join(parts)}{more}; below that these data cannot tell"
+    text = f"nothing above: {', '.join(parts)}{more}; below that these data cannot tell"
+    if missed:
+        shown = ", ".join(missed[:limit]) + (
+            f" and {len(missed) - limit} more" if len(missed) > limit else ""
+        )
+        text += f"; missed at any credible size: {shown}"
+    return text
 
 
 def beyond_credible(model: ExtendedModel, detectable: list[dict]) -> list[str]:
@@ -272,7 +284,7 @@ def detectable_json(
         "min_gain_mm": min_gain_mm,
         "limits": detectable,
         "beyond_credible": blind,
-        "summary": nothing_above(detectable),
+        "summary": nothing_above(detectable, blind=blind),
         "little_power": little_power(detectable, sigma_pos_mm, blind),
     }
 
