@@ -73,7 +73,8 @@ def test_an_error_that_turns_with_the_arm_is_flat_along_joint_1_in_link_1():
 def _noise(sigma: float, pairs: int):
     from hybrid_pk.calibration.diagnosis.noise import NoiseEstimate
 
-    return NoiseEstimate(sigma, ({"file": "a.csv", "sigma_mm": sigma, "pairs": pairs},))
+    one = {"file": "a.csv", "sigma_mm": sigma, "pairs": pairs, "max_distance_mm": 0.0}
+    return NoiseEstimate(sigma, (one,))
 
 
 def test_noise_alone_is_not_beyond_the_noise_and_a_larger_error_is():
@@ -120,6 +121,10 @@ def test_an_error_left_well_above_the_noise_is_called_structured():
     assert not un["beyond_noise"]["beyond"], un
     assert not un["structured"], un
     assert structured_text(un).startswith("no"), un
+    # 50 repeated poses are the estimate's 50 pairs: said so, not a distance
+    assert "from repeated poses" in structured_text(un), un
+    far = {**un["beyond_noise"], "pair_distance_mm": 559.0}
+    assert "up to 559 mm apart" in structured_text({**un, "beyond_noise": far})
     offset = hpk.make_effect(robot, f"joint_offset:{joint}", float(rng.uniform(1e-3, 3e-3)))
     data, _ = simulate_campaign(
         robot, None, [offset], poses=q, noise_mm=0.05, position_only=True, seed=seed

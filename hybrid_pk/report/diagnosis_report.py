@@ -219,6 +219,12 @@ def _what_is_left(diagnosis, data, robot: Robot, out: Path, ext) -> list[str]:
             "correlated and stay within the measurement noise: what is left looks like "
             "measurement noise."
         )
+        if "pair_distance_mm" in beyond:
+            text += (
+                " The noise is estimated from pairs of poses up to "
+                f"{fmt(beyond['pair_distance_mm'], 3)} mm apart (point motion): an error "
+                "that varies over less than that is not told from noise."
+            )
     lines = [
         "## What is left",
         "",

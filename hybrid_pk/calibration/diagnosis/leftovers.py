@@ -83,4 +83,12 @@ def structured_text(un: dict) -> str:
             f"alone stays below {beyond['limit']:.3g}; the hold-out poses are too far "
             "apart for neighbours to show its shape)"
         )
-    return "no (looks like measurement noise)"
+    if "pair_distance_mm" not in beyond:
+        return "no (looks like measurement noise)"
+    if beyond["pair_distance_mm"] == 0:
+        return "no (within the measurement noise, as estimated from repeated poses)"
+    return (
+        "no (within the measurement noise, as estimated from pairs of poses up to "
+        f"{beyond['pair_distance_mm']:.3g} mm apart: an error that varies over less than "
+        "that is not told from noise)"
+    )

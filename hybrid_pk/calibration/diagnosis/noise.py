@@ -134,7 +134,8 @@ def beyond_noise(position_mm: Tensor, noise: NoiseEstimate | None) -> dict | Non
     ``m``); the error is beyond the noise when the log of the two variances' ratio
     exceeds :data:`BEYOND_SD` standard deviations of their sum. None without a noise
     estimate. A smooth error that neighbouring hold-out poses are too far apart to share
-    (a few hundred rows in many joints) still shows here."""
+    (a few hundred rows in many joints) still shows here, unless it varies over less
+    than the distance of the estimate's pairs (``pair_distance_mm``, point motion)."""
     from scipy import stats
 
     if noise is None or noise.sigma_mm is None or position_mm.shape[0] < 2:
@@ -151,4 +152,7 @@ def beyond_noise(position_mm: Tensor, noise: NoiseEstimate | None) -> dict | Non
         "ratio": ratio,
         "limit": limit,
         "beyond": ratio > limit,
+        # an error that varies over less than this differs between the estimate's pairs:
+        # it is counted as noise there, and cannot be told from noise here
+        "pair_distance_mm": max(f["max_distance_mm"] for f in noise.files),
     }
