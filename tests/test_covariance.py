@@ -100,3 +100,14 @@ def test_link_lengths_along_parallel_axes_are_named_as_an_exact_trade_off(ur10):
     assert len(entries) == 1, correlated_groups(res)
     assert "only the combination is determined" in entries[0]["why"]
     assert "link_length:elbow_joint[" in entries[0]["why"]
+    # each cause marks that component: its printed std is not a measurement
+    from hybrid_pk.calibration.diagnosis.gains import _undetermined
+    from hybrid_pk.cli.diagnose_cmd import _value
+
+    marks = {e.label: _undetermined(e, res, e.report_value()) for e in model.effects}
+    (k,) = {u["component"] for m in marks.values() for u in m}
+    assert marks[labels[0]] == [{"component": k, "with": [f"{labels[1]}[{k}]"]}], marks
+    assert marks[labels[1]] == [{"component": k, "with": [f"{labels[0]}[{k}]"]}], marks
+    line = _value([1e-4] * 3, [2e-6] * 3, "m", marks[labels[0]])
+    assert line.count("*") == 2, line
+    assert f"* [{k}]: only its combination with" in line, line

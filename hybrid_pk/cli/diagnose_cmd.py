@@ -72,11 +72,18 @@ def _num(x, digits: int = 4) -> str:
     return "-" if x is None else f"{x:.{digits}g}"
 
 
-def _value(value, std, unit: str) -> str:
+def _value(value, std, unit: str, undetermined: list[dict] | None = None) -> str:
+    """``value ± std unit``; a component the data do not determine (``undetermined``)
+    shows ``*`` for its std and is named after it."""
     if isinstance(value, list):
+        free = {u["component"]: u["with"] for u in undetermined or []}
         vals = ", ".join(f"{v:.3g}" for v in value)
-        stds = ", ".join(f"{s:.2g}" for s in std)
-        return f"({vals}) ± ({stds}) {unit}"
+        stds = ", ".join("*" if k in free else f"{s:.2g}" for k, s in enumerate(std))
+        note = "".join(
+            f"; * [{k}]: only its combination with {', '.join(w)} is determined"
+            for k, w in free.items()
+        )
+        return f"({vals}) ± ({stds}) {unit}{note}"
     return f"{value:.4g} ± {std:.2g} {unit}"
 
 
@@ -117,7 +124,8 @@ def summary_lines(diagnosis, seconds: float | None = None, runs: int = 1) -> lis
                     gain += f" ({c.blocked_blocks['gained']} of {c.blocked_blocks['of']} blocks)"
             if getattr(c, "own_range_gain_mm", None) is not None:
                 gain += f"; own-range hold-out {c.own_range_gain_mm:.3g} mm"
-            lines.append(f"  {c.effect}{where} = {_value(c.value, c.std, c.unit)}  ({gain})")
+            value = _value(c.value, c.std, c.unit, c.undetermined)
+            lines.append(f"  {c.effect}{where} = {value}  ({gain})")
         if detectable:
             lines.append(f"other candidates (80 % power): {detectable['summary']}")
     elif getattr(diagnosis, "structural", None) and diagnosis.structural["structurally_wrong"]:

@@ -17,7 +17,6 @@ import numpy as np
 import torch
 
 from hybrid_pk.calibration.diagnosis.carryover import margin_text
-from hybrid_pk.calibration.diagnosis.leftovers import left_verdict
 from hybrid_pk.calibration.diagnosis.rivals import rival_lines
 from hybrid_pk.calibration.diagnosis.settle import order_groups
 from hybrid_pk.calibration.diagnosis.statistics import along_joints_text
@@ -27,7 +26,12 @@ from hybrid_pk.effects import conditions_from_data
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.plots import error_histograms
 from hybrid_pk.report.evidence import Evidence, cause_evidence, cause_label
-from hybrid_pk.report.findings import frames_section, robust_section, structural_section
+from hybrid_pk.report.findings import (
+    frames_section,
+    robust_section,
+    structural_section,
+    structured_paragraph,
+)
 from hybrid_pk.report.limits import detectable_section, outlier_plot
 from hybrid_pk.report.markdown import fmt, image, markdown_table, stats_table, value_with_std
 from hybrid_pk.report.plots import evidence_plot, residual_scan
@@ -91,6 +95,9 @@ def _cause_rows(diagnosis) -> list[list[object]]:
             value += f" (components {fmt(c.components)})"
         if c.fitted_range_rad is not None:
             value += f"; fitted on {fmt(c.fitted_range_rad)} rad of the joint"
+        for u in c.undetermined or []:  # an exact trade-off: the split is not measured
+            others = ", ".join(u["with"])
+            value += f"; [{u['component']}]: only its combination with {others} is determined"
         gains = (c.in_sample_gain_mm, c.random_holdout_gain_mm, c.blocked_holdout_gain_mm)
         own = getattr(c, "own_range_gain_mm", None)  # periodic causes: ends of their joint
         blocks = getattr(c, "blocked_blocks", None)
@@ -199,32 +206,7 @@ def _what_is_left(diagnosis, data, robot: Robot, out: Path, ext) -> list[str]:
         title=f"extended model, hold-out rows: {verdict}",
     )
     corr = un.get("neighbour_correlation")
-    beyond, left = un.get("beyond_noise") or {}, left_verdict(un)
-    if left == "smooth":
-        text = (
-            "**Structured: yes.** Neighbouring configurations share their residuals, so a "
-            "smooth error is left that no named cause explains (an unmodelled effect, or "
-            "one for the residual networks)."
-        )
-    elif left == "beyond_noise":
-        text = (
-            f"**Structured: yes.** What is left is {fmt(beyond['ratio'], 3)} times the "
-            f"measurement noise per axis (noise alone stays below {fmt(beyond['limit'], 3)}"
-            "), an error no named cause explains; the hold-out configurations lie too far "
-            "apart for their neighbours to show its shape."
-        )
-    else:
-        text = (
-            "**Structured: no.** The residuals of neighbouring configurations are not "
-            "correlated and stay within the measurement noise: what is left looks like "
-            "measurement noise."
-        )
-        if "pair_distance_mm" in beyond:
-            text += (
-                " The noise is estimated from pairs of poses up to "
-                f"{fmt(beyond['pair_distance_mm'], 3)} mm apart (point motion): an error "
-                "that varies over less than that is not told from noise."
-            )
+    text = structured_paragraph(un)
     lines = [
         "## What is left",
         "",

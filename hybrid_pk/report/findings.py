@@ -6,9 +6,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from hybrid_pk.calibration.diagnosis.leftovers import left_verdict
 from hybrid_pk.report.markdown import fmt, markdown_table
 
-__all__ = ["frames_section", "robust_section", "structural_section"]
+__all__ = ["frames_section", "robust_section", "structural_section", "structured_paragraph"]
 
 
 def structural_section(diagnosis) -> list[str]:
@@ -124,3 +125,35 @@ def robust_section(diagnosis) -> list[str]:
     else:
         lines += ["No row lies beyond 4 sigma of the noise.", ""]
     return lines
+
+
+def structured_paragraph(un: dict) -> str:
+    """The report's verdict on the left error (the diagnosis's ``unexplained``), as
+    :func:`~hybrid_pk.calibration.diagnosis.leftovers.left_verdict` decides it."""
+    beyond, left = un.get("beyond_noise") or {}, left_verdict(un)
+    if left == "smooth":
+        text = (
+            "**Structured: yes.** Neighbouring configurations share their residuals, so a "
+            "smooth error is left that no named cause explains (an unmodelled effect, or "
+            "one for the residual networks)."
+        )
+    elif left == "beyond_noise":
+        text = (
+            f"**Structured: yes.** What is left is {fmt(beyond['ratio'], 3)} times the "
+            f"measurement noise per axis (noise alone stays below {fmt(beyond['limit'], 3)}"
+            "), an error no named cause explains; the hold-out configurations lie too far "
+            "apart for their neighbours to show its shape."
+        )
+    else:
+        text = (
+            "**Structured: no.** The residuals of neighbouring configurations are not "
+            "correlated and stay within the measurement noise: what is left looks like "
+            "measurement noise."
+        )
+        if "pair_distance_mm" in beyond:
+            text += (
+                " The noise is estimated from pairs of poses up to "
+                f"{fmt(beyond['pair_distance_mm'], 3)} mm apart (point motion): an error "
+                "that varies over less than that is not told from noise."
+            )
+    return text

@@ -16,6 +16,7 @@ from collections.abc import Callable
 
 from torch import Tensor
 
+from hybrid_pk.calibration.covariance import MAX_CONDITION
 from hybrid_pk.calibration.diagnosis.blocked import position_channel
 from hybrid_pk.calibration.diagnosis.result import Cause, report_value
 from hybrid_pk.calibration.diagnosis.split import Split
@@ -105,7 +106,23 @@ def _cause(
         orientation_gain_deg=gain_o,
         evidence=evidence,
         components=components,
+        undetermined=_undetermined(e, res, value),
     )
+
+
+def _undetermined(e: Effect, res: FitResult, value) -> list[dict] | None:
+    """The components of ``e`` in a group the data do not determine at all (an exact
+    trade-off with other parameters, :meth:`FitResult.undetermined` at
+    :data:`MAX_CONDITION`), where each reported component is one parameter; else None."""
+    if not isinstance(value, list) or len(value) != e.value.numel():
+        return None
+    out = []
+    for group in res.undetermined(MAX_CONDITION):
+        for k in range(len(value)):
+            name = f"{e.label}[{k}]"
+            if name in group and len(group) > 1:
+                out.append({"component": k, "with": [n for n in group if n != name]})
+    return sorted(out, key=lambda u: u["component"]) or None
 
 
 def _full_ssr(model: ExtendedModel, res: FitResult, split: Split) -> tuple[float, float]:

@@ -48,6 +48,10 @@ class Cause:
     fitted_range_rad: list[float] | None = None
     own_range_gain_mm: float | None = None
     own_range: dict | None = None
+    # components whose split with other parameters the data do not determine at all:
+    # ``{"component": k, "with": [parameter names]}`` (their value and std are the
+    # minimum-norm solution's, not a measurement)
+    undetermined: list[dict] | None = None
 
     def to_json(self) -> dict:
         out = {
@@ -74,6 +78,7 @@ class Cause:
             "fitted_range_rad",
             "own_range_gain_mm",
             "own_range",
+            "undetermined",
         ):
             if getattr(self, key) is not None:
                 out[key] = getattr(self, key)
