@@ -61,6 +61,12 @@ def test_values_beyond_a_small_correction_are_named(rx160):
     bent = implausibility(make_effect(rx160, "joint_compliance:joint_2", 5e-4), rx160, data)
     assert "would bend joint_2" in bent["why"]
     assert "metal" not in bent["why"]
+    # a bearing's tilt likewise: per Nm credible, under the shoulder's moment not
+    tilt = make_effect(rx160, "tilt_compliance:joint_2", [9e-4, 9e-4])
+    assert implausibility(tilt, rx160) is None
+    assert "would tilt joint_2" in implausibility(tilt, rx160, data)["why"]
+    small = make_effect(rx160, "tilt_compliance:joint_2", [1e-6, 1e-6])
+    assert implausibility(small, rx160, data) is None
 
 
 def test_a_frame_change_dressed_as_a_link_length_is_mostly_the_frames(rx160):

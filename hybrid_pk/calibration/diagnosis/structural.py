@@ -144,10 +144,30 @@ def _deflection_check(effect: Effect, robot: Robot, data: MeasuredData | None) -
                 reach = float(robot.chain_q(data.q)[:, effect.joint_index].abs().max())
         what += f" ({c * reach:.3g} rad/Nm at the longest extension, {reach:.3g} m)"
         c *= reach
-    if c <= MAX_COMPLIANCE:
+    reasons = []
+    if c > MAX_COMPLIANCE:
+        reasons.append(
+            f"{what} is beyond what metal joints and links show ({MAX_COMPLIANCE:g} rad/Nm)"
+        )
+    bend = None if data is None else _largest_tilt_deg(effect, robot, data)
+    if bend is not None and bend > MAX_ROTATION_DEG:
+        reasons.append(
+            f"it would tilt {effect.joint} by {bend:.3g}° under the gravity of these poses "
+            f"({MAX_ROTATION_DEG:g}° at most)"
+        )
+    if not reasons:
         return None
-    why = f"{what} is beyond what metal joints and links show ({MAX_COMPLIANCE:g} rad/Nm)"
-    return _finding(effect.label, c, MAX_COMPLIANCE, "rad/Nm", why)
+    return _finding(effect.label, c, MAX_COMPLIANCE, "rad/Nm", "; ".join(reasons))
+
+
+@torch.no_grad()
+def _largest_tilt_deg(effect: Effect, robot: Robot, data: MeasuredData) -> float:
+    """The largest tilt [deg] a deflection effect makes over the rows of ``data`` under
+    upright gravity (the data's payload)."""
+    payload = 0.0 if data.payload is None else data.payload
+    wrench = robot.static_wrenches(data.q, payload=payload, frame="joint")
+    w, _ = effect.rotation(wrench[:, effect.joint_index], robot.chain_q(data.q))
+    return math.degrees(float(w.norm(dim=-1).max()))
 
 
 @torch.no_grad()
