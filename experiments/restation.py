@@ -31,6 +31,7 @@ import hybrid_pk as hpk
 from hybrid_pk.cli.main import main as cli
 from hybrid_pk.data import write_table
 from hybrid_pk.ik import solve_ik
+from hybrid_pk.io.model_file import load_model
 from hybrid_pk.simulate import simulate_campaign
 from hybrid_pk.simulate.mounting import parse_mount
 from hybrid_pk.simulate.unmodelled import HardeningCompliance, rms_gravity_torques
@@ -97,7 +98,8 @@ def restation(
     n_calibration: int = 600,
 ) -> dict:
     """One transfer: ``{"nominal", "extended"}`` mean position errors [mm] of the moved
-    set-up, ``"ratio"`` and ``"what"`` was hidden. ``make_rng`` gives the same stream
+    set-up, ``"ratio"``, ``"what"`` was hidden, the vocabulary effects ``"hidden"`` and
+    those the extended model ``"named"`` (label: value). ``make_rng`` gives the same stream
     each call (the tilted set-up's effects are the upright's, under its gravity);
     ``seed`` seeds the noise and the judged poses. Raises on a failed command."""
     robot = column_arm()
@@ -135,7 +137,10 @@ def restation(
             if cli([str(a) for a in argv]) != 0:
                 raise RuntimeError(f"hybrid-pk {' '.join(map(str, argv))} failed")
         errors[name] = json.loads(out.read_text())["position_mm"]["mean"]
-    return {**errors, "ratio": errors["extended"] / errors["nominal"], "what": what}
+    named = {e.label: e.report_value() for e in load_model(workdir / "extended.pt").model.effects}
+    hidden = {e.label: e.report_value() for e in effects[:2]}  # the vocabulary's two
+    ratio = errors["extended"] / errors["nominal"]
+    return {**errors, "ratio": ratio, "what": what, "hidden": hidden, "named": named}
 
 
 def _seeds(text: str) -> list[int]:
