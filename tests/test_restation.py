@@ -42,3 +42,46 @@ def test_a_soft_joint_carries_to_the_tilted_set_up_at_the_construction_robots_no
     assert soft in r["named"], (r, RUN_SEED)
     assert abs(r["named"][soft] / r["hidden"][soft] - 1) < 0.1, (r, RUN_SEED)
     assert r["ratio"] <= 0.5, (r, RUN_SEED)
+
+
+def test_a_tilted_re_stationing_names_a_fixed_mounting(tmp_path, capsys):
+    """Calibrated with gravity fixed in the robot frame (the default), a model whose
+    compliance cannot follow a re-stationing: the re-fit says how far the base tilted
+    and that ``--gravity level-tracker`` would follow it; with it, no note."""
+    import torch
+
+    import hybrid_pk as hpk
+    from hybrid_pk.cli.main import main
+    from hybrid_pk.data import write_table
+    from hybrid_pk.simulate import simulate_campaign
+    from hybrid_pk.simulate.mounting import parse_mount
+
+    robot = hpk.Robot.from_urdf("column_arm", end_link="tool0")
+    robot.requires_grad_(False)
+    soft = [hpk.make_effect(robot, "joint_compliance:dsr_joint2", 5e-5)]
+    kw = {"noise_mm": 0.1, "position_only": True, "temperature_range": None}
+    upright, truth = simulate_campaign(robot, 300, soft, mount=parse_mount("floor"), seed=1, **kw)
+    tool = torch.tensor(truth["tool_frame"], dtype=torch.float64)  # the same prism
+    tilted, _ = simulate_campaign(
+        robot, 80, soft, mount=parse_mount("tilt:8"), seed=2, tool=tool, **kw
+    )
+    cal, moved = (
+        write_table(tmp_path / "cal.csv", upright),
+        write_table(tmp_path / "st.csv", tilted),
+    )
+    notes = {}
+    for gravity in ([], ["--gravity", "level-tracker"]):
+        model = tmp_path / f"m{len(gravity)}.pt"
+        argv = ["calibrate", str(cal), "--robot", "column_arm", "--end-link", "tool0",
+                "--effects", "joint_compliance:dsr_joint2", "--out", str(model), "--no-urdf",
+                *gravity]  # fmt: skip
+        assert main(argv) == 0
+        capsys.readouterr()
+        argv = ["calibrate", str(moved), "--model", str(model), "--refit", "base",
+                "--out", str(tmp_path / "r.pt"), "--no-urdf"]  # fmt: skip
+        assert main(argv) == 0
+        notes[bool(gravity)] = [ln for ln in capsys.readouterr().out.splitlines() if "note:" in ln]
+    assert len(notes[False]) == 1, notes
+    assert "tilts the robot by 8.0 deg" in notes[False][0], notes
+    assert "--gravity level-tracker" in notes[False][0], notes
+    assert notes[True] == [], notes

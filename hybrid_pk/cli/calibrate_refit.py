@@ -4,6 +4,7 @@ keep everything of MODEL (effects, networks) and re-fit only its frame(s)."""
 from __future__ import annotations
 
 import argparse
+import math
 
 from hybrid_pk.calibration.settings import FitSettings
 from hybrid_pk.cli.calibrate_output import (
@@ -56,6 +57,7 @@ def run_refit(args: argparse.Namespace, settings: FitSettings) -> int:
         )
         bar.stage(f"re-fitting the {which} frame(s)")
         priors = settings.priors(loaded.model if loaded.frames_fitted else None)
+        up = loaded.model.base.matrix()[0, :3, 2].detach().clone()  # the re-fit moves it
         result = refit(
             loaded, data, which, frames_per_file=args.frames_per_file, priors=priors,
             robust=settings.loss(),
@@ -79,6 +81,9 @@ def run_refit(args: argparse.Namespace, settings: FitSettings) -> int:
         print(line)
     if result.verdict is not None:
         print(result.verdict.line())
+    tilt = _tilt_note(up, model)
+    if tilt:
+        print(tilt)
     for i, (name, unit) in enumerate((("position", "mm"), ("orientation", "deg"))):
         if after[i] is None:
             continue
@@ -89,6 +94,31 @@ def run_refit(args: argparse.Namespace, settings: FitSettings) -> int:
         print(after[2])
     print(f"wrote {args.out}" + (f" and {urdf}" if urdf else ""))
     return 0
+
+
+# [deg] a gravity effect whose gravity is off by this much points 1.7 % of its size
+# astray (sin 1°), about the relative std a compliance is fitted to in a campaign of a
+# few hundred poses: beyond it the mounting matters to the re-stationed model
+TILT_NOTE_DEG = 1.0
+
+
+def _tilt_note(up, after) -> str | None:
+    """A note when the re-fitted base tilts the robot (its z axis, was ``up`` in the
+    measurement frame) while its gravity effects assume a fixed mounting (``--gravity``
+    in the root frame)."""
+    gravity_effects = [e.label for e in after.effects if e.stage in ("compliance", "deflection")]
+    if after.gravity.levelled or not gravity_effects:
+        return None
+    z1 = after.base.matrix()[0, :3, 2].detach()
+    tilt = math.degrees(math.acos(max(-1.0, min(1.0, float(up.to(z1.dtype) @ z1)))))
+    if tilt <= TILT_NOTE_DEG:
+        return None
+    return (
+        f"note: the re-fitted base tilts the robot by {tilt:.1f} deg against the model's, "
+        f"but its gravity effects ({', '.join(gravity_effects)}) keep the mounting they were "
+        "calibrated with (gravity fixed in the robot frame); if the instrument is levelled, "
+        "calibrate with --gravity level-tracker and they follow the tilt"
+    )
 
 
 def _metadata(args, loaded: LoadedModel, data: MeasuredData, res) -> dict:
