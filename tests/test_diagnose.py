@@ -14,8 +14,8 @@ import pytest
 import torch
 
 import hybrid_pk as hpk
+from hybrid_pk.calibration.diagnosis.plausibility import implausibility
 from hybrid_pk.calibration.diagnosis.search import diagnose
-from hybrid_pk.calibration.diagnosis.structural import implausibility
 from hybrid_pk.effects import EFFECTS, ExtendedModel, make_effect
 from hybrid_pk.simulate import simulate_campaign
 from tests.helpers import RUN_SEED, is_periodic, run_rng

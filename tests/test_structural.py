@@ -12,11 +12,11 @@ import pytest
 import torch
 
 from hybrid_pk.calibration.diagnosis import diagnose
+from hybrid_pk.calibration.diagnosis.plausibility import implausibility
 from hybrid_pk.calibration.diagnosis.structural import (
     MAX_ROTATION_DEG,
     MAX_TRANSLATION_M,
     frame_share,
-    implausibility,
 )
 from hybrid_pk.cli.main import main
 from hybrid_pk.data import write_table

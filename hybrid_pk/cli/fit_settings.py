@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from hybrid_pk.calibration.diagnosis.structural import implausibility
+from hybrid_pk.calibration.diagnosis.plausibility import implausibility
 from hybrid_pk.calibration.robust import (
     CUT_WEIGHT,
     OUTLIER_K,

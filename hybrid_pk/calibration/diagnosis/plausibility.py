@@ -1,15 +1,26 @@
-"""Statistically supported is not physically credible: flag cause values that are not."""
+"""Statistically supported is not physically credible: flag cause values that are not
+(:func:`implausibility`: a fitted effect beyond what its physics can be, the limits of
+:mod:`hybrid_pk.effects.limits`; :func:`plausibility_warnings`: signs and expansions)."""
 
 from __future__ import annotations
+
+import math
 
 import torch
 
 from hybrid_pk.calibration.diagnosis.result import Cause
 from hybrid_pk.data.measured import MeasuredData
-from hybrid_pk.effects import EFFECTS
+from hybrid_pk.effects import EFFECTS, Effect
 from hybrid_pk.effects.geometric import MAX_CREDIBLE_EXPANSION
+from hybrid_pk.effects.limits import (
+    MAX_COMPLIANCE,
+    MAX_ROTATION_DEG,
+    MAX_TRANSLATION_M,
+    effect_limit,
+)
+from hybrid_pk.robot import Robot
 
-__all__ = ["MAX_CREDIBLE_EXPANSION", "plausibility_warnings"]
+__all__ = ["MAX_CREDIBLE_EXPANSION", "finding_entry", "implausibility", "plausibility_warnings"]
 
 
 def plausibility_warnings(causes: list[Cause], data: MeasuredData) -> list[dict]:
@@ -47,3 +58,99 @@ def _temperature_reasons(data: MeasuredData) -> list[str]:
                 "difference between the files"
             )
     return reasons
+
+
+def finding_entry(cause: str, value, limit: float | None, unit: str, why: str) -> dict:
+    """A structural finding: ``{"cause", "value", "limit", "unit", "why"}``."""
+    return {"cause": cause, "value": value, "limit": limit, "unit": unit, "why": why}
+
+
+def implausibility(effect: Effect, robot: Robot, data: MeasuredData | None = None) -> dict | None:
+    """Why ``effect``'s value is not a small physical correction, or None.
+
+    Args:
+        effect: a fitted effect of ``robot``.
+        data: the rows (compliance: the gravity torques they load the joint with).
+
+    Returns:
+        ``{"cause", "value", "limit", "unit", "why"}`` when beyond the limits.
+    """
+    unit = effect.unit
+    size = float(effect.value.detach().norm())
+    if effect.stage == "compliance":
+        return _compliance_check(effect, robot, data)
+    if effect.stage == "deflection":
+        return _deflection_check(effect, robot, data)
+    limit = effect_limit(effect, robot)
+    if limit is None or size <= limit:
+        return None
+    if unit == "1":  # a gear ratio error
+        what, shown, limit_text = "gear ratio error", f"{100 * size:.3g} %", f"{100 * limit:g} %"
+    elif limit == MAX_TRANSLATION_M:  # a length: unit m, or a prismatic joint's shift
+        what, shown, limit_text = "translation", f"{1e3 * size:.4g} mm", f"{1e3 * limit:g} mm"
+    else:
+        what, shown = "rotation", f"{math.degrees(size):.3g}°"
+        limit_text = f"{math.degrees(limit):g}°"
+    why = f"a {what} of {shown} is beyond what a small correction of the URDF can be ({limit_text})"
+    return finding_entry(effect.label, size, limit, unit, why)
+
+
+def _compliance_check(effect: Effect, robot: Robot, data: MeasuredData | None) -> dict | None:
+    c = float(effect.value.detach())
+    reasons = []
+    if abs(c) > MAX_COMPLIANCE:
+        reasons.append(
+            f"a compliance of {c:.3g} rad/Nm is beyond what metal joints show "
+            f"({MAX_COMPLIANCE:g} rad/Nm)"
+        )
+    if data is not None:
+        payload = 0.0 if data.payload is None else data.payload
+        with torch.no_grad():
+            tau = robot.gravity_torques(data.q, payload=payload)[:, effect.joint_index]
+        bend = math.degrees(abs(c) * float(tau.abs().max()))
+        if bend > MAX_ROTATION_DEG:
+            reasons.append(
+                f"it would bend {effect.joint} by {bend:.3g}° under the gravity of these "
+                f"poses ({MAX_ROTATION_DEG:g}° at most)"
+            )
+    if not reasons:
+        return None
+    return finding_entry(effect.label, c, MAX_COMPLIANCE, effect.unit, "; ".join(reasons))
+
+
+def _deflection_check(effect: Effect, robot: Robot, data: MeasuredData | None) -> dict | None:
+    """A bearing or link compliance beyond what metal shows (a column's per metre of
+    extension, times the longest extension of the data)."""
+    c = float(effect.value.detach().abs().max())
+    what = f"a compliance of {c:.3g} {effect.unit}"
+    if effect.joints == "prismatic":  # a column's bending is per metre of extension
+        reach = 1.0
+        if data is not None:
+            with torch.no_grad():
+                reach = float(robot.chain_q(data.q)[:, effect.joint_index].abs().max())
+        what += f" ({c * reach:.3g} rad/Nm at the longest extension, {reach:.3g} m)"
+        c *= reach
+    reasons = []
+    if c > MAX_COMPLIANCE:
+        reasons.append(
+            f"{what} is beyond what metal joints and links show ({MAX_COMPLIANCE:g} rad/Nm)"
+        )
+    bend = None if data is None else _largest_tilt_deg(effect, robot, data)
+    if bend is not None and bend > MAX_ROTATION_DEG:
+        reasons.append(
+            f"it would tilt {effect.joint} by {bend:.3g}° under the gravity of these poses "
+            f"({MAX_ROTATION_DEG:g}° at most)"
+        )
+    if not reasons:
+        return None
+    return finding_entry(effect.label, c, MAX_COMPLIANCE, "rad/Nm", "; ".join(reasons))
+
+
+@torch.no_grad()
+def _largest_tilt_deg(effect: Effect, robot: Robot, data: MeasuredData) -> float:
+    """The largest tilt [deg] a deflection effect makes over the rows of ``data`` under
+    upright gravity (the data's payload)."""
+    payload = 0.0 if data.payload is None else data.payload
+    wrench = robot.static_wrenches(data.q, payload=payload, frame="joint")
+    w, _ = effect.rotation(wrench[:, effect.joint_index], robot.chain_q(data.q))
+    return math.degrees(float(w.norm(dim=-1).max()))

@@ -19,8 +19,8 @@ import torch
 
 from hybrid_pk.calibration.diagnosis.carryover import Carry, linearise
 from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic
+from hybrid_pk.calibration.diagnosis.plausibility import implausibility
 from hybrid_pk.calibration.diagnosis.split import Split
-from hybrid_pk.calibration.diagnosis.structural import implausibility
 from hybrid_pk.calibration.diagnosis.variants import with_effects, without_effect
 from hybrid_pk.calibration.fit import FitResult, fit
 from hybrid_pk.effects import ExtendedModel, make_effect

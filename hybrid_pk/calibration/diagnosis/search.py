@@ -28,7 +28,7 @@ from hybrid_pk.calibration.diagnosis.elimination import eliminate
 from hybrid_pk.calibration.diagnosis.gains import cap_warnings, measure_causes, range_warnings
 from hybrid_pk.calibration.diagnosis.leftovers import outliers_json, robust_json, unexplained_json
 from hybrid_pk.calibration.diagnosis.noise import measurement_noise
-from hybrid_pk.calibration.diagnosis.plausibility import plausibility_warnings
+from hybrid_pk.calibration.diagnosis.plausibility import implausibility, plausibility_warnings
 from hybrid_pk.calibration.diagnosis.power import (
     check_determined,
     detectable_json,
@@ -50,7 +50,7 @@ from hybrid_pk.calibration.diagnosis.selection import (
 )
 from hybrid_pk.calibration.diagnosis.settle import entry_rivals, settle, unresolved_entry
 from hybrid_pk.calibration.diagnosis.split import Split, split_campaign
-from hybrid_pk.calibration.diagnosis.structural import implausibility, structural_check
+from hybrid_pk.calibration.diagnosis.structural import structural_check
 from hybrid_pk.calibration.diagnosis.swaps import prefer_fewer_causes
 from hybrid_pk.calibration.diagnosis.variants import with_effects, without_effect
 from hybrid_pk.calibration.fit import FitResult, fit, model_errors

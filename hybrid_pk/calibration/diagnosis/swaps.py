@@ -29,9 +29,9 @@ from collections.abc import Callable
 from hybrid_pk.calibration.chord import Linearisation
 from hybrid_pk.calibration.diagnosis.carryover import Carry, linearise, weakest
 from hybrid_pk.calibration.diagnosis.elimination import eliminate
+from hybrid_pk.calibration.diagnosis.plausibility import implausibility
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.statistics import f_survival, holdout_score, weighted_ssr
-from hybrid_pk.calibration.diagnosis.structural import implausibility
 from hybrid_pk.calibration.diagnosis.variants import refit_without, with_effects, without_effect
 from hybrid_pk.calibration.fit import FitResult, fit
 from hybrid_pk.effects import ExtendedModel, make_effect
