@@ -232,10 +232,9 @@ class Problem:
         if self.R_meas is not None:
             E = self.R_meas[rows] @ pt.T[:, :3, :3].transpose(-1, -2)
         w = None if self.row_weights is None else self.row_weights[rows]
-        n_rows, n = pt.T.shape[0], pt.n_params
+        n_rows, n = pt.twists.shape[0], pt.twists.shape[-1]
         count_work(rows.stop - rows.start, n)
-        grad = any(p.requires_grad for p in pt.pieces)
-        if torch.is_grad_enabled() and grad:  # out= records no derivative
+        if torch.is_grad_enabled() and pt.twists.requires_grad:  # out= records no derivative
             cols = residual_columns(pt.twists, E, self.sigma_pos_mm, self.sigma_rot_rad, w)
             J = torch.cat([c.reshape(-1, n) for c in cols if c is not None])
             r = torch.cat([p.reshape(-1) for p in (pos, rot) if p is not None])
@@ -246,7 +245,7 @@ class Problem:
         if rot is not None:
             out[1] = M[3 * n_rows :, :n].view(n_rows, 3, n)
             M[3 * n_rows :, n] = rot.reshape(-1)
-        residual_columns(pt.pieces, E, self.sigma_pos_mm, self.sigma_rot_rad, w, out=out)
+        residual_columns(pt.twists, E, self.sigma_pos_mm, self.sigma_rot_rad, w, out=out)
         return M
 
     def _report(self, done: int) -> None:

@@ -65,18 +65,10 @@ class _KinematicParams(torch.nn.Module):
 
 
 class PoseTwists:
-    """Predicted poses ``T (n, 4, 4)`` of a chunk and their twists ``(n, 6, n_params)``,
-    held as ``pieces`` (``(n, 6, k)`` each, in column order) that :attr:`twists` joins:
-    :func:`~hybrid_pk.calibration.twists.residual_columns` reads them apart (one copy
-    fewer of the chunk's columns)."""
+    """Predicted poses ``T (n, 4, 4)`` of a chunk and their twists ``(n, 6, n_params)``."""
 
-    def __init__(self, T: Tensor, pieces: list[Tensor]) -> None:
-        self.T, self.pieces = T, pieces or [T.new_zeros(T.shape[0], 6, 0)]
-        self.n_params = sum(p.shape[-1] for p in pieces)
-
-    @property
-    def twists(self) -> Tensor:
-        return torch.cat([self.T.new_zeros(self.T.shape[0], 6, 0), *self.pieces], -1)
+    def __init__(self, T: Tensor, twists: Tensor) -> None:
+        self.T, self.twists = T, twists
 
 
 class StructuredJacobian:
@@ -158,7 +150,10 @@ class StructuredJacobian:
                     model, self.deflection, q_star, wrenches, bent, point, R_B, frames=frames
                 )
             )
-        return PoseTwists(T, _runs([cols[b.name] for b in self.blocks]))
+        n = q.shape[0]
+        pieces = _runs([cols[b.name] for b in self.blocks])
+        twists = torch.cat([q.new_zeros(n, 6, 0), *pieces], -1)
+        return PoseTwists(T, twists)
 
     @staticmethod
     def _split(blocks, tw: Tensor) -> dict[str, Tensor]:

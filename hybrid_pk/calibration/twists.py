@@ -172,16 +172,14 @@ def _origin_twists(maps: Tensor, origin_rot: Tensor, d_xyz: Tensor, d_rot: Tenso
 
 
 def residual_columns(
-    twists: Tensor | list[Tensor],
+    twists: Tensor,
     E_rot: Tensor | None,
     sigma_pos_mm: float,
     sigma_rot_rad: float,
     weights: Tensor | None = None,
     out: list | None = None,
 ) -> tuple[Tensor, Tensor | None]:
-    """Jacobian columns of the residuals from twists ``(n, 6, k)`` (or, with ``out``,
-    their pieces side by side: the position columns written piece by piece, the
-    rotation ones from the pieces' rotation rows joined).
+    """Jacobian columns of the residuals from twists ``(n, 6, k)``.
 
     Position residuals ``(p_meas - p) [mm] / sigma_pos`` change by ``-v``; rotation
     residuals ``vee(E - E^T) / 2 / sigma_rot`` (``E = R_meas R^T``, ``E_rot``) by
@@ -190,22 +188,12 @@ def residual_columns(
     ``out`` (``[pos, rot]``, views of a chunk's Jacobian) when given.
     """
     pos_out, rot_out = out if out is not None else (None, None)
-    pieces = twists if isinstance(twists, list) else [twists]
-    if pos_out is None:
-        pos = torch.mul(twists[:, :3, :], -1000.0 / sigma_pos_mm)
-    else:
-        pos, start = pos_out, 0
-        for p in pieces:
-            k = p.shape[-1]
-            torch.mul(p[:, :3, :], -1000.0 / sigma_pos_mm, out=pos_out[..., start : start + k])
-            start += k
+    pos = torch.mul(twists[:, :3, :], -1000.0 / sigma_pos_mm, out=pos_out)
     rot = None
     if E_rot is not None:
         tr = E_rot.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None]
         A = tr * torch.eye(3, dtype=E_rot.dtype, device=E_rot.device) - E_rot.transpose(-1, -2)
-        # pieces: their rotation rows joined into one block, as one tensor's would be
-        w = torch.cat([p[:, 3:, :] for p in pieces], -1) if twists is pieces else twists[:, 3:, :]
-        rot = torch.mul(A @ w, -0.5 / sigma_rot_rad, out=rot_out)
+        rot = torch.mul(A @ twists[:, 3:, :], -0.5 / sigma_rot_rad, out=rot_out)
     if weights is not None:
         pos.mul_(weights[:, None, None])
         if rot is not None:
