@@ -282,12 +282,9 @@ class Blocked:
         out = []
         folds = [list(cells) for cells in self.folds.folds]
         rows = [int(self.rows[cells].sum()) for cells in folds]
-        tests, test_pos, all_cells = [], [], []
-        for c in range(idx.shape[0]):
-            all_cells.append(both[c].sum(0))
-            tests.append(torch.stack([both[c][cells].sum(0) for cells in folds]))
-            test_pos.append(torch.stack([pos[c][cells].sum(0) for cells in folds]))
-        all_cells, test = torch.stack(all_cells), torch.stack(tests)
+        all_cells = both.sum(1)  # sums over cells: each candidate's in the same order
+        test = torch.stack([both[:, cells].sum(1) for cells in folds], 1)
+        test_pos = torch.stack([pos[:, cells].sum(1) for cells in folds], 1)
         theta = fold_fits_each(all_cells[:, None] - test, test, self.frame_cols[idx], all_cells)
         for c in range(idx.shape[0]):
             v = torch.cat([theta[c], theta.new_ones(theta.shape[1], 1)], 1)[:, None, :]
