@@ -67,6 +67,7 @@ def deflection_twists(
     bent,
     point: Tensor,
     R_B: Tensor,
+    frames: Tensor | None = None,
 ) -> dict[str, Tensor]:
     """Twists ``(n, 6, 2)`` of every deflection block, by module path.
 
@@ -76,9 +77,10 @@ def deflection_twists(
         bent: the deflected parameters of the pose (per row).
         point: ``(n, 3)`` measured point in the root frame [m].
         R_B: ``(n, 3, 3)`` or ``(3, 3)`` root -> measurement frame rotation.
+        frames: ``Robot.link_frames`` at ``q_star`` and ``bent`` (computed if None).
     """
     effects = dict(model.named_modules())
-    frames = model.robot.link_frames(q_star, params=bent)
+    frames = model.robot.link_frames(q_star, params=bent) if frames is None else frames
     q_chain = model.robot.chain_q(q_star)
     out = {}
     for b in blocks:

@@ -136,12 +136,19 @@ class StructuredJacobian:
             lever = (E @ X)[:, :3, 3] - E[:, :3, 3]
             tw = point_joint_twists(robot.jacobian(q_star, params=bent), lever, R_B) @ dq
             cols.update(self._split(self.joint, tw))
+        # the link frames at q*, for the geometric and the deflection blocks alike
+        frames = (
+            robot.link_frames(q_star, params=bent) if self.geometry or self.deflection else None
+        )
         if self.geometry:
-            cols.update(self._geometry_twists(cond, q_star, params, E, B, X, T, bent, wrenches))
+            state = (q_star, params, E, B, X, T, bent, wrenches)
+            cols.update(self._geometry_twists(cond, state, frames))
         if self.deflection:
             point = (E @ X)[:, :3, 3]
             cols.update(
-                deflection_twists(model, self.deflection, q_star, wrenches, bent, point, R_B)
+                deflection_twists(
+                    model, self.deflection, q_star, wrenches, bent, point, R_B, frames=frames
+                )
             )
         n = q.shape[0]
         pieces = _runs([cols[b.name] for b in self.blocks])
@@ -156,10 +163,10 @@ class StructuredJacobian:
             start += b.size
         return out
 
-    def _geometry_twists(
-        self, cond, q_star, params, E, B, X, T, bent, wrenches
-    ) -> dict[str, Tensor]:
-        frames = self.model.robot.link_frames(q_star, params=bent)
+    def _geometry_twists(self, cond, state: tuple, frames: Tensor) -> dict[str, Tensor]:
+        """Twists of the geometric blocks; ``state``: ``(q_star, params, E, B, X, T,
+        bent, wrenches)`` of the chunk, ``frames`` its link frames at ``q_star``."""
+        q_star, params, E, B, X, T, _, wrenches = state
         maps = origin_twist_maps(frames, params.origin_xyz, (E @ X)[:, :3, 3], B[..., :3, :3])
         out: dict[str, Tensor] = {}
         # Effects that read a condition per row (a temperature) make the origins' derivatives

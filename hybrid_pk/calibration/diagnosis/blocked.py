@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from hybrid_pk.calibration.diagnosis.fold_fits import fold_fits, fold_fits_each
 from hybrid_pk.calibration.problem import ParamBlock, Problem
 from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.errors import HybridPKError
@@ -44,12 +45,6 @@ __all__ = [
     "practical_margin",
     "whole_campaign",
 ]
-
-# A frame column the training rows of a block see less than this share of (relative to
-# all rows) belongs to the held-out file alone: re-fitted on the held-out rows. A seen
-# column keeps at least one row's share (1/n, > 1e-6 up to a million rows), an unseen
-# one only float64 round-off (~1e-16): 1e-9 lies orders of magnitude from both.
-UNSEEN_SHARE = 1e-9
 
 
 def practical_margin(
@@ -257,6 +252,55 @@ class Blocked:
         gone = self.columns(removed)
         return self.score(free, torch.where(gone, -self.values, torch.zeros_like(self.values)))
 
+    def each(self, effects, extras, removed=()) -> list[BlockedScore]:
+        """``[self.of([*effects, x], removed) for x in extras]``, the same values, with
+        the extras of one column count gathered and solved as one batch."""
+        out: list[BlockedScore | None] = [None] * len(extras)
+        gone = self.columns(removed)
+        shift = torch.where(gone, -self.values, torch.zeros_like(self.values))
+        base, groups = self.frame_cols | self.columns(effects), {}
+        for i, x in enumerate(extras):
+            free = base | self.columns([x])
+            if bool((free & gone).any()) or not self.folds.folds:
+                out[i] = self.score(free, shift)  # a held column freed: its own last column
+            else:
+                groups.setdefault(int(free.sum()), []).append((i, torch.nonzero(free).flatten()))
+        last = torch.zeros(self.values.numel() + 1, dtype=self.pos.dtype)
+        last[-1], last[:-1] = 1.0, shift
+        for items in groups.values():
+            idx = torch.stack([ix for _, ix in items])
+            for (i, _), sc in zip(items, self._scores(idx, last), strict=True):
+                out[i] = sc
+        return out
+
+    def _scores(self, idx: Tensor, last: Tensor) -> list[BlockedScore]:
+        """:meth:`score` of each row of ``idx`` (``(C, k)`` free columns), the held
+        columns at ``last``: the gathers and the solves batched, each candidate's
+        sums and products as :meth:`score` makes them."""
+        pos = _selected_each(self.pos, idx, last)
+        both = pos if self.rot is None else pos + _selected_each(self.rot, idx, last)
+        out = []
+        folds = [list(cells) for cells in self.folds.folds]
+        rows = [int(self.rows[cells].sum()) for cells in folds]
+        all_cells = both.sum(1)  # sums over cells: each candidate's in the same order
+        test = torch.stack([both[:, cells].sum(1) for cells in folds], 1)
+        test_pos = torch.stack([pos[:, cells].sum(1) for cells in folds], 1)
+        theta = fold_fits_each(all_cells[:, None] - test, test, self.frame_cols[idx], all_cells)
+        for c in range(idx.shape[0]):
+            v = torch.cat([theta[c], theta.new_ones(theta.shape[1], 1)], 1)[:, None, :]
+            per_fold = tuple(
+                zip(
+                    (v @ test[c] @ v.mT).flatten().tolist(),
+                    (v @ test_pos[c] @ v.mT).flatten().tolist(),
+                    rows,
+                    strict=True,
+                )
+            )
+            total, total_pos, n = (sum(f[i] for f in per_fold) for i in range(3))  # in order
+            rot = None if self.rot is None else total - total_pos
+            out.append(BlockedScore(total, total_pos, rot, n, per_fold))
+        return out
+
     def score(self, free: Tensor, shift: Tensor | None = None) -> BlockedScore:
         """Blocked score of the linearised model with the columns ``free`` (bool
         ``(n,)``) re-fitted per block and the others held at ``shift`` (scaled offsets;
@@ -275,7 +319,7 @@ class Blocked:
         all_cells = both.sum(0)
         test = torch.stack([both[list(cells)].sum(0) for cells in self.folds.folds])
         test_pos = torch.stack([pos[list(cells)].sum(0) for cells in self.folds.folds])
-        theta = _fold_fits(all_cells - test, test, frames, all_cells)
+        theta = fold_fits(all_cells - test, test, frames, all_cells)
         v = torch.cat([theta, theta.new_ones(theta.shape[0], 1)], 1)[:, None, :]
         per_fold = tuple(
             zip(
@@ -339,47 +383,16 @@ def _selected(P: Tensor, idx: Tensor, last: Tensor) -> Tensor:
     return out
 
 
+def _selected_each(P: Tensor, idx: Tensor, last: Tensor) -> Tensor:
+    """:func:`_selected` of each row of ``idx (C, k)``: ``(C, cells, k + 1, k + 1)``."""
+    k = idx.shape[1]
+    u = P @ last
+    out = P.new_empty(idx.shape[0], P.shape[0], k + 1, k + 1)
+    out[:, :, :k, :k] = P[:, idx[:, :, None], idx[:, None, :]].transpose(0, 1)
+    out[:, :, :k, k] = out[:, :, k, :k] = u[:, idx].transpose(0, 1)
+    out[:, :, k, k] = u @ last
+    return out
+
+
 def _rms_drop(a: float, b: float, rows: int) -> float:
     return math.sqrt(max(a, 0.0) / max(rows, 1)) - math.sqrt(max(b, 0.0) / max(rows, 1))
-
-
-def _fold_fit(train: Tensor, test: Tensor, frames: Tensor, all_rows: Tensor) -> Tensor:
-    """Scaled parameter offsets of one block: least squares on ``train`` (a Gram of
-    ``[J r]``); frame columns the training rows do not see are then fitted on ``test``
-    with the rest held."""
-    k = train.shape[0] - 1
-    seen_all = all_rows.diagonal()[:k].clamp_min(1e-300)
-    unseen = frames & (train.diagonal()[:k] <= UNSEEN_SHARE * seen_all)
-    theta = torch.zeros(k, dtype=train.dtype)
-    fit = ~unseen
-    if fit.any():
-        theta[fit] = _solve(train[:k, :k][fit][:, fit], train[:k, k][fit])
-    if unseen.any():
-        g = test[:k, k][unseen] + test[:k, :k][unseen][:, fit] @ theta[fit]
-        theta[unseen] = _solve(test[:k, :k][unseen][:, unseen], g)
-    return theta
-
-
-def _fold_fits(train: Tensor, test: Tensor, frames: Tensor, all_rows: Tensor) -> Tensor:
-    """:func:`_fold_fit` of every fold (``train``, ``test``: ``(folds, k + 1, k + 1)``),
-    ``(folds, k)``: the folds whose training rows see every frame column in one batched
-    solve, the others one by one."""
-    k = train.shape[-1] - 1
-    seen_all = all_rows.diagonal()[:k].clamp_min(1e-300)
-    unseen = frames & (train.diagonal(dim1=-2, dim2=-1)[:, :k] <= UNSEEN_SHARE * seen_all)
-    plain = ~unseen.any(1)
-    theta = train.new_zeros(train.shape[0], k)
-    if bool(plain.any()):
-        theta[plain] = _solve(train[plain][:, :k, :k], train[plain][:, :k, k])
-    for f in torch.nonzero(~plain).flatten().tolist():
-        theta[f] = _fold_fit(train[f], test[f], frames, all_rows)
-    return theta
-
-
-def _solve(H: Tensor, g: Tensor) -> Tensor:
-    """Minimum-norm ``-H^+ g`` of a Gram ``H`` (or a batch), equilibrated by its
-    diagonal first."""
-    d = H.diagonal(dim1=-2, dim2=-1).clamp_min(1e-300).rsqrt()
-    A = H * d[..., :, None] * d[..., None, :]
-    y = torch.linalg.lstsq(A, (g * d)[..., None], driver="gelsd")
-    return -d * y.solution[..., 0]

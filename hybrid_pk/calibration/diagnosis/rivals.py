@@ -67,7 +67,8 @@ def rival_stories(
             break
         without, own = gains[c]
         rest = [x for x in causes if x != c]
-        swaps = {o: blocked.gain_mm(without, blocked.of([*rest, o], removed=[c])) for o in others}
+        each = blocked.each(rest, others, removed=[c])
+        swaps = {o: blocked.gain_mm(without, s) for o, s in zip(others, each, strict=True)}
         close = sorted((o for o in swaps if swaps[o] >= own - margin), key=lambda o: -swaps[o])
         for rival in close[:RIVAL_TRIES]:
             entry = _parted(model, res, split, (c, rival), (carry, blocked.rms_mm(full)), say)

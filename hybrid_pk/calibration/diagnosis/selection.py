@@ -236,8 +236,9 @@ def score_candidates(
         out.blocked, out.margin = blocked, carry.margin(res)
         current = [e.label for e in model.effects]
         base = blocked.of(current)
-        for sc in out.scored:
-            out.carry[sc.label] = blocked.gain_mm(base, blocked.of([*current, sc.label]))
+        withs = blocked.each(current, [sc.label for sc in out.scored])
+        for sc, with_it in zip(out.scored, withs, strict=True):
+            out.carry[sc.label] = blocked.gain_mm(base, with_it)
     return out
 
 

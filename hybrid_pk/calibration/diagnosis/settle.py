@@ -44,9 +44,9 @@ def rival_advantages(blocked: Blocked, effects: list[str], label: str, alternati
     removed = [label] if label in effects else []
     rest = [e for e in effects if e != label]
     with_it = blocked.of([*rest, label])
-    return {
-        alt: blocked.gain_mm(blocked.of([*rest, alt], removed), with_it) for alt in alternatives
-    }
+    alternatives = list(alternatives)
+    each = blocked.each(rest, alternatives, removed)
+    return {alt: blocked.gain_mm(s, with_it) for alt, s in zip(alternatives, each, strict=True)}
 
 
 def entry_rivals(scores: Scores, effects: list[str], label: str) -> dict[str, float]:
