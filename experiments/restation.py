@@ -18,6 +18,8 @@ of some ten times the noise)::
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
 import sys
 import tempfile
@@ -134,8 +136,13 @@ def restation(
             ["evaluate", refit, files["judged"], "--json", out],
         ]  # fmt: skip
         for argv in commands:
-            if cli([str(a) for a in argv]) != 0:
-                raise RuntimeError(f"hybrid-pk {' '.join(map(str, argv))} failed")
+            printed = io.StringIO()
+            with contextlib.redirect_stdout(printed):  # the table is this script's output
+                rc = cli([str(a) for a in argv])
+            if rc != 0:
+                raise RuntimeError(
+                    f"hybrid-pk {' '.join(map(str, argv))} failed:\n{printed.getvalue()}"
+                )
         errors[name] = json.loads(out.read_text())["position_mm"]["mean"]
     named = {e.label: e.report_value() for e in load_model(workdir / "extended.pt").model.effects}
     hidden = {e.label: e.report_value() for e in effects[:2]}  # the vocabulary's two
