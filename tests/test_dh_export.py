@@ -131,8 +131,14 @@ def _random_model(robot: Robot, rng: np.random.Generator) -> ExtendedModel:
     for i in rng.choice(len(joints), size=3, replace=False):
         effects.append(make_effect(robot, f"axis_misalignment:{joints[i]}", rng.normal(0, 2e-3, 2)))
         effects.append(make_effect(robot, f"link_length:{joints[i]}", rng.normal(0, 2e-3, 3)))
-    k = int(rng.integers(1, len(joints)))
-    effects.append(make_effect(robot, f"joint_compliance:{joints[k]}", abs(rng.normal(2e-5, 5e-6))))
+    # a compliance where gravity loads the joint (the last joint's axis carries none: a
+    # compliance there moves nothing, the summary rightly sizes it 0)
+    q = robot.sample_q(64, torch.Generator().manual_seed(0))
+    loaded = [
+        j for j, t in zip(joints, robot.gravity_torques(q).abs().amax(0), strict=True) if t > 1.0
+    ]
+    soft = str(rng.choice(loaded))
+    effects.append(make_effect(robot, f"joint_compliance:{soft}", abs(rng.normal(2e-5, 5e-6))))
     effects.append(make_effect(robot, f"backlash:{joints[-1]}", abs(rng.normal(1e-3, 2e-4))))
     return ExtendedModel(robot, effects)
 
