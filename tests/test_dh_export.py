@@ -169,8 +169,10 @@ def test_random_geometry_exports_and_summary(name, tmp_path):
         for item, label in zip(items, carried_not, strict=False):
             others = [e for e in model.effects if e.label != label]
             moved = (full - model.with_effects(others)(q, cond))[:, :3, 3].norm(dim=-1) * 1000
-            # abs: the compliance fixed point's tolerance (1e-12 rad) over a 10 m lever
-            assert item.size_mm[1] == pytest.approx(float(moved.max()), rel=1e-9, abs=1e-8)
+            # abs: the compliance fixed point's tolerance (1e-12 rad) over a 10 m lever,
+            # reached from another warm start in each evaluation (seed 606: 2e-8 mm for a
+            # wrist backlash that moves the flange 1.5e-9 mm): 1e-7 mm, 0.1 nm
+            assert item.size_mm[1] == pytest.approx(float(moved.max()), rel=1e-9, abs=1e-7)
             assert max(item.size_mm[1], item.turn_mrad) > 0
 
 
