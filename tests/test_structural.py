@@ -110,6 +110,11 @@ def test_an_arm_mounted_turned_by_90_degrees_gets_the_structural_message(tmp_pat
     assert doc["nominal"]["position_mm"]["mean"] > 100.0
     assert "causes: withheld, the URDF looks structurally wrong" in out
     assert "structural: the URDF looks structurally wrong at joint_2" in out
+    # the search stopped on two implausible candidates: which, why, the rest untested
+    stops = [w for w in doc["warnings"] if "the search stopped after 2" in w["why"]]
+    assert len(stops) == 1, doc["warnings"]
+    assert "not a small correction of the URDF" in stops[0]["why"], stops
+    assert "candidates after them were not tested" in stops[0]["why"], stops
     text = (report / "report.md").read_text()
     assert "## The URDF looks structurally wrong" in text
     assert "Withheld: the URDF looks structurally wrong" in text

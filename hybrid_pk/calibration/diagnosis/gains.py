@@ -27,7 +27,7 @@ from hybrid_pk.effects import Effect, ExtendedModel
 from hybrid_pk.effects.joint import CYCLIC_PREFIX
 from hybrid_pk.robot import Robot
 
-__all__ = ["GAIN_REFIT_STEPS", "cap_warnings", "measure_causes", "range_warnings"]
+__all__ = ["GAIN_REFIT_STEPS", "cap_warnings", "measure_causes", "range_warnings", "stop_warnings"]
 
 # LM steps of the refit without a cause, after its linearised removal: none. The
 # linearised start is within ~1e-6 of the refit's cost (a step gains 1e-7 - 3e-6 of it
@@ -186,6 +186,27 @@ def range_warnings(causes: list[Cause], robot: Robot) -> list[dict]:
                     f"fitted range the model extrapolates the periodic law, unchecked{inside}",
                 }
             )
+    return out
+
+
+def stop_warnings(steps: list[dict]) -> list[dict]:
+    """A warning for a search that stopped on candidates rejected in a row: which, why,
+    and that the candidates after them were not tested."""
+    out = []
+    for i, s in enumerate(steps):
+        stop = s.get("stopped_search")
+        if not stop:
+            continue
+        last = steps[i + 1 - stop["in_a_row"] : i + 1]
+        why = "; ".join(f"{t['candidate']}: {t.get('why', 'rejected')}" for t in last)
+        out.append(
+            {
+                "cause": ", ".join(t["candidate"] for t in last),
+                "why": f"the search stopped after {stop['in_a_row']} candidates in a row were "
+                f"rejected ({why}): the model rather than one candidate looks wrong, and "
+                f"the {stop['untested']} candidates after them were not tested",
+            }
+        )
     return out
 
 

@@ -25,7 +25,12 @@ from hybrid_pk.calibration.diagnosis.budget import Budget
 from hybrid_pk.calibration.diagnosis.carryover import Carry, weakest
 from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic
 from hybrid_pk.calibration.diagnosis.elimination import eliminate
-from hybrid_pk.calibration.diagnosis.gains import cap_warnings, measure_causes, range_warnings
+from hybrid_pk.calibration.diagnosis.gains import (
+    cap_warnings,
+    measure_causes,
+    range_warnings,
+    stop_warnings,
+)
 from hybrid_pk.calibration.diagnosis.leftovers import outliers_json, robust_json, unexplained_json
 from hybrid_pk.calibration.diagnosis.noise import measurement_noise
 from hybrid_pk.calibration.diagnosis.plausibility import implausibility, plausibility_warnings
@@ -199,6 +204,7 @@ def _warnings(causes, data: MeasuredData, steps, robot: Robot, budget: Budget) -
     return (
         plausibility_warnings(causes, data)
         + cap_warnings(steps)
+        + stop_warnings(steps)
         + range_warnings(causes, robot)
         + budget.warnings()
     )
@@ -281,6 +287,7 @@ def _select(
         if not step["accepted"]:
             rejected_in_a_row += 1
             if rejected_in_a_row >= diagnosis_tuning().max_rejected_in_a_row:
+                step["stopped_search"] = {"in_a_row": rejected_in_a_row, "untested": len(remaining)}
                 break
             continue
         rejected_in_a_row = 0
