@@ -161,7 +161,7 @@ def initialise_frames(
     """
     R_meas = None if data.quat is None else quat_to_matrix(data.quat)
     groups = [None] if model.base.sets == 1 or cond.group is None else range(model.base.sets)
-    loaded = any(e.stage in ("compliance", "deflection") for e in model.effects)
+    loaded = bool(model.loaded_effects())
     passes = 2 if model.gravity.levelled and loaded and which != "tool" else 1
     for _ in range(passes):
         T_end = predicted_poses(model, data.q, cond, end_link=True)

@@ -35,10 +35,6 @@ from hybrid_pk.geometry import so3_exp, so3_left_jacobian
 __all__ = ["deflection_twists", "levelled_gravity_twists", "loaded_state"]
 
 
-def _loaded(model: ExtendedModel) -> bool:
-    return any(e.stage in ("compliance", "deflection") for e in model.effects)
-
-
 @torch.no_grad()
 def loaded_state(model: ExtendedModel, q: Tensor, cond: Conditions):
     """Everything the structured Jacobian linearises about, at the current values:
@@ -116,7 +112,7 @@ def levelled_gravity_twists(
         q: ``(n, dof)`` commanded joints; ``cond`` their conditions (``group``).
         B, X: base and tool transforms of every row (fixed); ``T`` the poses.
     """
-    if not model.gravity.levelled or not _loaded(model):
+    if not model.gravity.levelled or not model.loaded_effects():
         return None
     dtype = model.robot.dtype
     g_meas = torch.tensor(model.gravity.vector, dtype=dtype)

@@ -106,7 +106,7 @@ def _tilt_note(up, after) -> str | None:
     """A note when the re-fitted base tilts the robot (its z axis, was ``up`` in the
     measurement frame) while its gravity effects assume a fixed mounting (``--gravity``
     in the root frame)."""
-    gravity_effects = [e.label for e in after.effects if e.stage in ("compliance", "deflection")]
+    gravity_effects = [e.label for e in after.loaded_effects()]
     if after.gravity.levelled or not gravity_effects:
         return None
     z1 = after.base.matrix()[0, :3, 2].detach()

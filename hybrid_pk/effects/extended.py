@@ -286,14 +286,15 @@ class ExtendedModel(nn.Module):
         """``(*B, 4, 4)`` flange pose in the robot root frame, with every effect."""
         cond = cond or Conditions()
         params = self.kinematic_params(cond)
-        gravity = self.gravity_root(cond) if self._loaded() else None
+        gravity = self.gravity_root(cond) if self.loaded_effects() else None
         q_true = self.joint_values(q, cond, params, gravity)
         params = self.deflected_params(q_true, params, cond, gravity)
         return self.robot.fk(q_true, params=params)
 
-    def _loaded(self) -> bool:
-        """True when some effect reads the static load (compliance, deflection)."""
-        return any(e.stage in ("compliance", "deflection") for e in self.effects)
+    def loaded_effects(self) -> list[Effect]:
+        """The effects that read the static load (compliance, deflection): those gravity
+        and its mounting act on."""
+        return [e for e in self.effects if e.stage in ("compliance", "deflection")]
 
     def forward(self, q: Tensor, cond: Conditions | None = None) -> Tensor:
         """``(*B, 4, 4)`` pose of the measured point/frame in the measurement frame."""
