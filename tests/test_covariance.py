@@ -104,7 +104,8 @@ def test_link_lengths_along_parallel_axes_are_named_as_an_exact_trade_off(ur10):
     from hybrid_pk.calibration.diagnosis.gains import _undetermined
     from hybrid_pk.cli.diagnose_cmd import _value
 
-    marks = {e.label: _undetermined(e, res, e.report_value()) for e in model.effects}
+    exact = [g for g in res.undetermined(MAX_CONDITION) if len(g) > 1]
+    marks = {e.label: _undetermined(e, exact, e.report_value()) for e in model.effects}
     (k,) = {u["component"] for m in marks.values() for u in m}
     assert marks[labels[0]] == [{"component": k, "with": [f"{labels[1]}[{k}]"]}], marks
     assert marks[labels[1]] == [{"component": k, "with": [f"{labels[0]}[{k}]"]}], marks

@@ -57,6 +57,7 @@ def measure_causes(
     pos1, ori1 = errors
     causes = []
     full = _full_ssr(model, res, split)  # the full model's, the same for every cause
+    exact = [g for g in res.undetermined(MAX_CONDITION) if len(g) > 1]  # likewise
     for e in model.effects:
         say = None
         if progress is not None:
@@ -68,6 +69,7 @@ def measure_causes(
         pos_r, ori_r = model_errors(reduced, split.test, split.cond_hold)
         step = next(s for s in steps if s["candidate"] == e.label and s.get("accepted"))
         cause = _cause(e, res, step, alpha, (pos1, ori1), (pos_r, ori_r))
+        cause.undetermined = _undetermined(e, exact, cause.value)
         _add_gains(cause, (full, reduced), res, split, (blocked or {}).get(e.label))
         if e.kind.startswith(CYCLIC_PREFIX):
             q = split.train.q[:, e.joint_index]
@@ -106,21 +108,20 @@ def _cause(
         orientation_gain_deg=gain_o,
         evidence=evidence,
         components=components,
-        undetermined=_undetermined(e, res, value),
     )
 
 
-def _undetermined(e: Effect, res: FitResult, value) -> list[dict] | None:
-    """The components of ``e`` in a group the data do not determine at all (an exact
-    trade-off with other parameters, :meth:`FitResult.undetermined` at
-    :data:`MAX_CONDITION`), where each reported component is one parameter; else None."""
+def _undetermined(e: Effect, exact: list[list[str]], value) -> list[dict] | None:
+    """The components of ``e`` in one of the ``exact`` groups (parameters the data do not
+    separate at all: :meth:`FitResult.undetermined` at :data:`MAX_CONDITION`), where each
+    reported component is one parameter; else None."""
     if not isinstance(value, list) or len(value) != e.value.numel():
         return None
     out = []
-    for group in res.undetermined(MAX_CONDITION):
+    for group in exact:
         for k in range(len(value)):
             name = f"{e.label}[{k}]"
-            if name in group and len(group) > 1:
+            if name in group:
                 out.append({"component": k, "with": [n for n in group if n != name]})
     return sorted(out, key=lambda u: u["component"]) or None
 
