@@ -104,15 +104,9 @@ def _compliance_check(effect: Effect, robot: Robot, data: MeasuredData | None) -
             f"({MAX_COMPLIANCE:g} rad/Nm)"
         )
     if data is not None:
-        payload = 0.0 if data.payload is None else data.payload
         with torch.no_grad():
-            tau = robot.gravity_torques(data.q, payload=payload)[:, effect.joint_index]
-        bend = math.degrees(abs(c) * float(tau.abs().max()))
-        if bend > MAX_ROTATION_DEG:
-            reasons.append(
-                f"it would bend {effect.joint} by {bend:.3g}° under the gravity of these "
-                f"poses ({MAX_ROTATION_DEG:g}° at most)"
-            )
+            tau = robot.gravity_torques(data.q, payload=_payload(data))[:, effect.joint_index]
+        reasons += _sag_reasons("bend", effect.joint, math.degrees(abs(c) * float(tau.abs().max())))
     if not reasons:
         return None
     return finding_entry(effect.label, c, MAX_COMPLIANCE, effect.unit, "; ".join(reasons))
@@ -135,12 +129,8 @@ def _deflection_check(effect: Effect, robot: Robot, data: MeasuredData | None) -
         reasons.append(
             f"{what} is beyond what metal joints and links show ({MAX_COMPLIANCE:g} rad/Nm)"
         )
-    bend = None if data is None else _largest_tilt_deg(effect, robot, data)
-    if bend is not None and bend > MAX_ROTATION_DEG:
-        reasons.append(
-            f"it would tilt {effect.joint} by {bend:.3g}° under the gravity of these poses "
-            f"({MAX_ROTATION_DEG:g}° at most)"
-        )
+    if data is not None:
+        reasons += _sag_reasons("tilt", effect.joint, _largest_tilt_deg(effect, robot, data))
     if not reasons:
         return None
     return finding_entry(effect.label, c, MAX_COMPLIANCE, "rad/Nm", "; ".join(reasons))
@@ -150,7 +140,22 @@ def _deflection_check(effect: Effect, robot: Robot, data: MeasuredData | None) -
 def _largest_tilt_deg(effect: Effect, robot: Robot, data: MeasuredData) -> float:
     """The largest tilt [deg] a deflection effect makes over the rows of ``data`` under
     upright gravity (the data's payload)."""
-    payload = 0.0 if data.payload is None else data.payload
-    wrench = robot.static_wrenches(data.q, payload=payload, frame="joint")
+    wrench = robot.static_wrenches(data.q, payload=_payload(data), frame="joint")
     w, _ = effect.rotation(wrench[:, effect.joint_index], robot.chain_q(data.q))
     return math.degrees(float(w.norm(dim=-1).max()))
+
+
+def _payload(data: MeasuredData):
+    """The rows' payload [kg] (0 where the data give none)."""
+    return 0.0 if data.payload is None else data.payload
+
+
+def _sag_reasons(verb: str, joint: str, degrees: float) -> list[str]:
+    """The reason a load-driven effect is implausible when it would ``verb`` (bend,
+    tilt) its joint beyond ``MAX_ROTATION_DEG`` under the data's gravity; else none."""
+    if degrees <= MAX_ROTATION_DEG:
+        return []
+    return [
+        f"it would {verb} {joint} by {degrees:.3g}° under the gravity of these poses "
+        f"({MAX_ROTATION_DEG:g}° at most)"
+    ]
