@@ -153,6 +153,8 @@ def _print_summary(args, robot, data, result) -> None:
     from hybrid_pk.hybrid.nets import count_parameters
 
     hybrid = result.hybrid
+    for note in result.settings.get("notes", []):
+        print(f"note: {note}")
     nets = []
     for stage in hybrid.stages:
         for name, head in stage.heads().items():

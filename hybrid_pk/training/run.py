@@ -240,6 +240,7 @@ def train_hybrid(
     """
     settings = preset(preset_name)
     settings["model"] = full_model_settings({**settings["model"], **(model or {})})
+    settings["notes"] = _preset_inputs_for(base.robot, settings["model"], model or {})
     settings["data"].update(datamodule or {})
     if max_epochs is not None:
         settings["trainer"]["max_epochs"] = int(max_epochs)
@@ -286,6 +287,20 @@ def train_hybrid(
         settings=settings,
         blocked=blocked,
     )
+
+
+def _preset_inputs_for(robot, module: dict, given: dict) -> list[str]:
+    """The preset's physics inputs replaced by the joints on a robot they do not handle
+    yet (mimic joints), unless the caller chose them: a default that works, said so
+    (the notes). Inputs the caller gave are kept and checked as given."""
+    if not robot.has_mimic or "inputs" in given or module.get("inputs", "joints") == "joints":
+        return []
+    preset_inputs, module["inputs"] = module["inputs"], "joints"
+    return [
+        f"{robot.name!r} has mimic joints, which the physics inputs ({preset_inputs}) do not "
+        "handle yet: the networks read every joint instead (--inputs joints; trusted inside "
+        "the training rows' joint box)"
+    ]
 
 
 def blocked_hold_out(
