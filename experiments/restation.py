@@ -99,13 +99,17 @@ def restation(
     scale: float = 1.0,
     noise_mm: float = 0.1,
     n_calibration: int = 600,
+    hybrid_epochs: int | None = None,
 ) -> dict:
     """One transfer: ``{"nominal", "extended", "truth"}`` mean position errors [mm] of the
     moved set-up (``truth``: the hidden vocabulary effects at their values, the spring
     left out), ``"ratio"``, ``"what"`` was hidden, the vocabulary effects ``"hidden"``
     and those the extended model ``"named"`` (label: value). ``make_rng`` gives the same stream
     each call (the tilted set-up's effects are the upright's, under its gravity);
-    ``seed`` seeds the noise and the judged poses. Raises on a failed command."""
+    ``seed`` seeds the noise and the judged poses. ``hybrid_epochs``: also train the
+    default hybrid on the extended model (that many epochs), re-station it the same way
+    and add ``"hybrid"`` and ``"networks"`` (whether the re-fit kept them). Raises on a
+    failed command."""
     robot = column_arm()
     rng = make_rng()
     upright, tilted = parse_mount("floor"), parse_mount(TILT)
@@ -132,13 +136,20 @@ def restation(
     frame = {k: torch.tensor(truth[f"{k}_frame"], dtype=torch.float64) for k in ("base", "tool")}
     oracle = ExtendedModel(robot, effects[:2], gravity=Gravity.level_tracker(), **frame)
     save_model(workdir / "truth.pt", oracle)
-    errors = {}
-    for name, spec in (("nominal", "none"), ("extended", "auto"), ("truth", None)):
+    errors, runs = {}, [("nominal", "none"), ("extended", "auto"), ("truth", None)]
+    if hybrid_epochs is not None:
+        runs.append(("hybrid", hybrid_epochs))
+    for name, spec in runs:
         model, refit, out = (workdir / f"{name}{s}" for s in (".pt", "_moved.pt", ".json"))
         commands = [] if spec is None else [
             ["calibrate", files["cal"], "--robot", ROBOT, "--end-link", "tool0", "--effects",
              spec, "--gravity", "level-tracker", "--out", model, "--no-urdf"],
         ]  # fmt: skip
+        if name == "hybrid":
+            commands = [
+                ["train", files["cal"], "--model", workdir / "extended.pt", "--out", model,
+                 "--epochs", spec, "--seed", seed, "--no-progress"],
+            ]  # fmt: skip
         commands += [
             ["calibrate", files["station"], "--model", model, "--refit", "base", "--out", refit,
              "--no-urdf"],
@@ -152,7 +163,10 @@ def restation(
                 raise RuntimeError(
                     f"hybrid-pk {' '.join(map(str, argv))} failed:\n{printed.getvalue()}"
                 )
-        errors[name] = json.loads(out.read_text())["position_mm"]["mean"]
+        judged = json.loads(out.read_text())
+        errors[name] = judged["position_mm"]["mean"]
+        if name == "hybrid":
+            errors["networks"] = judged.get("networks")
     named = {e.label: e.report_value() for e in load_model(workdir / "extended.pt").model.effects}
     hidden = {e.label: e.report_value() for e in effects[:2]}  # the vocabulary's two
     ratio = errors["extended"] / errors["nominal"]
@@ -172,29 +186,28 @@ def main(argv=None) -> int:
     p.add_argument("--noise", type=float, default=0.1, help="position noise [mm]")
     p.add_argument("--rows", type=int, default=600, help="calibration rows")
     p.add_argument("--seeds", default="1-5", help="seeds, 'A-B' or 'A,B,...'")
+    p.add_argument("--hybrid-epochs", type=int, help="also train and re-station the default hybrid")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
-    ratios = []
+    ratios, hybrid = [], args.hybrid_epochs is not None
+    extra = " hybrid [mm] | networks |" if hybrid else ""
     print(
         f"| seed | nominal + frames [mm] | extended [mm] | ratio | true physics [mm] "
-        f"| hidden (x{args.scale:g}) |"
+        f"|{extra} hidden (x{args.scale:g}) |"
     )
-    print("|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|" + ("---|---|" if hybrid else ""))
     for seed in _seeds(args.seeds):
         with tempfile.TemporaryDirectory() as tmp:
             r = restation(
                 lambda s=seed: np.random.default_rng(s), seed, Path(tmp), args.scale,
-                args.noise, args.rows,
+                args.noise, args.rows, args.hybrid_epochs,
             )  # fmt: skip
         ratios.append(r["ratio"])
-        cells = (
-            seed,
-            f"{r['nominal']:.3f}",
-            f"{r['extended']:.3f}",
-            f"{r['ratio']:.3f}",
-            f"{r['truth']:.3f}",
-            r["what"],
-        )
+        cells = [seed, *(f"{r[k]:.3f}" for k in ("nominal", "extended", "ratio", "truth"))]
+        if hybrid:
+            used = (r["networks"] or {}).get("used")
+            cells += [f"{r['hybrid']:.3f}", {True: "used", False: "not used"}.get(used, "-")]
+        cells.append(r["what"])
         print("| " + " | ".join(map(str, cells)) + " |")
     print(f"ratio median {np.median(ratios):.3f}, max {max(ratios):.3f} over {len(ratios)} seeds")
     return 0
