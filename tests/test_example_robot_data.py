@@ -93,3 +93,14 @@ def test_every_example_robot_data_urdf(pin):
     print(f"{len(arms)} serial arms equal to pinocchio: {', '.join(arms)}")
     print(f"{len(refused)} refused with one line: {', '.join(refused)}")
     assert len(arms) >= 10  # UR3/5/10, panda, kinova, xarm, z1, so100/101, ... are serial
+
+
+def test_panda_loads_without_a_line_per_unknown_urdf_attribute(capfd):
+    """The Panda's <dynamics D= K= mu_coulomb= mu_viscous=> made the URDF parser of
+    pytorch-kinematics print 28 'Unknown attribute' lines on stderr on every command."""
+    path = erd_root() / "panda_description" / "urdf" / "panda.urdf"
+    assert 'mu_coulomb="' in path.read_text()  # the attributes are still in the file
+    robot = Robot.from_urdf(path, end_link="panda_hand_tcp")
+    assert robot.dof == 7
+    err = capfd.readouterr().err
+    assert "Unknown attribute" not in err, err[:200]
