@@ -121,7 +121,10 @@ def run(args: argparse.Namespace) -> int:
         full = ", refined on full model" if two_stage else ""
         bar.set_description(f"ik (kinematic model{full})", refresh=False)
 
-    with tqdm(total=data.n, unit="target", file=sys.stderr, leave=False, delay=0.5) as bar:
+    with tqdm(
+        total=data.n, unit="target", file=sys.stderr, leave=False, delay=0.5,
+        disable=args.no_progress,
+    ) as bar:  # fmt: skip
         job = solve_targets(
             loaded, data, frame_set=k, seeds=args.seeds, options=options, box=args.box,
             approach=parse_approach(args.approach), fixes=_FIXES, progress=bar.update,
