@@ -213,6 +213,22 @@ def test_degrees_in_radian_column_reported_before_limits(tmp_path):
     _raises(path, 3, "shoulder_lift_joint", "looks like degrees", on_bad_row="skip")
 
 
+def test_positions_in_mm_are_refused_with_file_row_column(tmp_path):
+    """x, y, z written in mm (a tracker 2-3 m away: thousands) is a file-level error,
+    never a diagnosis of 550 m errors; the largest value's row and column are named."""
+    frame = _frame(8)
+    frame[["x", "y", "z"]] = 1000 * (frame[["x", "y", "z"]] + [2.0, -1.0, 0.5])
+    frame.loc[4, "y"] = -3456.5  # largest magnitude, data row 5
+    path = _csv(tmp_path, frame)
+    message = re.escape("position 3456.5 m: looks like mm")
+    _raises(path, 5, "y", message)
+    _raises(path, 5, "y", message, on_bad_row="skip")
+    # a robot cell 20 m from the tracker, in metres, is read as it is
+    frame = _frame(8)
+    frame["x"] += 20.0
+    assert read_table(_csv(tmp_path, frame, "far.csv"), **UR10).n == 8
+
+
 def test_single_large_radian_typo_is_a_limit_error_not_degrees(tmp_path):
     path = _csv(tmp_path, _set(_frame(8), 6, "wrist_2_joint", 7.0))
     _raises(path, 6, "wrist_2_joint", "joint 'wrist_2_joint' value 7 rad outside")

@@ -28,7 +28,13 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from hybrid_pk.data.cells import RowProblems, check_time_order, missing_columns_error, to_float
+from hybrid_pk.data.cells import (
+    MAX_POSITION_M,
+    RowProblems,
+    check_time_order,
+    missing_columns_error,
+    to_float,
+)
 from hybrid_pk.data.files import load_cells, to_frame, write_frame
 from hybrid_pk.data.measured import (
     OPTIONAL_COLUMNS,
@@ -200,6 +206,22 @@ def _check_degrees(
         )
 
 
+def _check_metres(file: str, columns: dict[str, np.ndarray], ok: np.ndarray) -> None:
+    """Raise if the position columns hold mm (or cm): a file-level problem, never skipped."""
+    if not ok.any() or any(c not in columns for c in POSITION_COLUMNS):
+        return
+    pos = np.abs(np.stack([columns[c][ok] for c in POSITION_COLUMNS], -1))
+    i, c = np.unravel_index(int(np.argmax(pos)), pos.shape)
+    if pos[i, c] > MAX_POSITION_M:
+        raise DataError(
+            f"position {pos[i, c]:.6g} m: looks like mm (no instrument measures a robot "
+            f"beyond {MAX_POSITION_M:g} m); x, y, z are metres: divide by 1000",
+            file=file,
+            row=int(np.flatnonzero(ok)[i]) + 1,
+            column=POSITION_COLUMNS[c],
+        )
+
+
 class _FilePart(NamedTuple):
     columns: dict[str, np.ndarray]  # kept rows only
     rows: np.ndarray  # (n,) 1-based data rows kept
@@ -220,6 +242,7 @@ def _read_file(path: Path, spec: _JointSpec, skip: bool, require_joints: bool) -
     problems.raise_first(skip)
 
     ok = problems.ok()
+    _check_metres(file, columns, ok)
     for j, name in enumerate(select.joints):
         _check_degrees(file, name, spec, j, columns[name], ok)
     _note_limits(columns, select.joints, spec, ok, problems)
