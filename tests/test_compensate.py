@@ -209,6 +209,11 @@ def test_cli_hybrid_model_file(tmp_path, capsys, rx160):
     [
         ("x,y,z\n1,0,1\n", "needs the flange orientation"),
         ("joint_1,joint_2,joint_3,joint_4,joint_5,joint_6\n0,0,0,0,9,0\n", "joint limits"),
+        # a UR joint program for the RX160 model: its joints are named, not x, y, z
+        (
+            "shoulder_pan_joint,shoulder_lift_joint,elbow_joint\n0,0,0\n",
+            "missing joint column(s) 'joint_1', 'joint_2'",
+        ),
     ],
 )
 def test_cli_bad_programs_are_one_line_errors(tmp_path, capsys, rx160, content, message):
