@@ -195,7 +195,7 @@ class _Tree:
     def end_link(self, end_link: str | None) -> str:
         if end_link is not None:
             if end_link not in self.links:
-                raise InvalidFrame(end_link, self.links)
+                raise InvalidFrame(end_link, self.links, file=str(self.path))
             return end_link
         leaves = [n for n in self.links if n not in self.joints_from]
         if len(leaves) != 1:
