@@ -159,6 +159,19 @@ def test_missing_joint_column_suggests_close_name(tmp_path):
     assert "'elbow_joint' (found 'Elbow_joint'?)" in str(err)
 
 
+def test_joint_and_position_columns_in_other_case_are_named_as_close_matches(tmp_path):
+    """Names match exactly; a header in capitals ('ELBOW_JOINT', 'X') gets the hint that a
+    misspelling gets."""
+    frame = _frame(3).rename(columns={"elbow_joint": "ELBOW_JOINT", "x": "X"})
+    path = _csv(tmp_path, frame)
+    _raises(
+        path, None, None, ".*" + re.escape("close matches: 'elbow_joint' (found 'ELBOW_JOINT'?)")
+    )
+    path = _csv(tmp_path, _frame(3).rename(columns={"x": "X"}), "xyz.csv")
+    found_x = re.escape("close matches: 'x' (found 'X'?)")
+    _raises(path, None, None, ".*" + re.escape("[m]; found columns: ") + ".*" + found_x)
+
+
 def test_missing_position_column(tmp_path):
     path = _csv(tmp_path, _frame(5).drop(columns=["z"]))
     _raises(path, None, None, re.escape("missing position column(s) 'z' [m]"))

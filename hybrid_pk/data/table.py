@@ -116,6 +116,18 @@ class _Columns(NamedTuple):
     ignored: list[str]  # columns present but not part of the format
 
 
+def _close_matches(missing: list[str], found: list[str]) -> str:
+    """``; close matches: 'j1' (found 'J1'?)`` for the missing names that a found column
+    spells in other case (names match exactly) or nearly; empty when none does."""
+    hints = []
+    for n in missing:
+        m = [f for f in found if f.lower() == n.lower()]
+        m = m or difflib.get_close_matches(n, found, n=1, cutoff=0.8)
+        if m:
+            hints.append(f"{n!r} (found {m[0]!r}?)")
+    return f"; close matches: {', '.join(hints)}" if hints else ""
+
+
 def _select_columns(
     file: str, found: list[str], spec: _JointSpec, require_joints: bool
 ) -> _Columns:
@@ -124,18 +136,14 @@ def _select_columns(
     missing_joints = [n for n in spec.names if n not in present]
     has_joints = len(missing_joints) < len(spec.names) or require_joints or not spec.names
     if has_joints and missing_joints:
-        hints = [
-            f"{n!r} (found {m[0]!r}?)"
-            for n in missing_joints
-            if (m := difflib.get_close_matches(n, found, n=1, cutoff=0.8))
-        ]
-        hint = f"; close matches: {', '.join(hints)}" if hints else ""
+        hint = _close_matches(missing_joints, found)
         if len(found) == 1 and ";" in found[0]:
             hint += "; the file looks ';'-separated, tables need ','"
         raise missing_columns_error(file, missing_joints, found, "joint ", hint=hint)
     missing_xyz = [c for c in POSITION_COLUMNS if c not in present]
     if missing_xyz:
-        raise missing_columns_error(file, missing_xyz, found, "position ", " [m]")
+        hint = _close_matches(missing_xyz, found)
+        raise missing_columns_error(file, missing_xyz, found, "position ", " [m]", hint=hint)
     quat = [c for c in QUAT_COLUMNS if c in present]
     if quat and len(quat) < 4:
         absent = [c for c in QUAT_COLUMNS if c not in present]
