@@ -156,13 +156,14 @@ def resolve_urdf(robot: str | Path) -> Path:
 
 @contextmanager
 def _quiet_unknown_attributes():
-    """pytorch-kinematics' URDF parser writes a stderr line per attribute it does not know
-    (the Panda's ``<dynamics D= K= mu_coulomb= mu_viscous=>``: 28 lines on every command);
-    no part of hybrid_pk reads them, so those notes are dropped, any other is passed on."""
+    """pytorch-kinematics' URDF parser writes a stderr line per attribute or tag it does
+    not know (the Panda's ``<dynamics D= K= mu_coulomb= mu_viscous=>``: 28 lines on every
+    command; the Z1's ``<hardwareInterface>`` in ``<actuator>``: 6); no part of hybrid_pk
+    reads them, so those notes are dropped, any other is passed on."""
     said = _pk_xml.on_error
 
     def note(message: str) -> None:
-        if not message.startswith("Unknown attribute"):
+        if not message.startswith(("Unknown attribute", "Unknown tag")):
             said(message)
 
     _pk_xml.on_error = note
