@@ -188,6 +188,13 @@ def test_cli_joint_and_pose_programs(tmp_path, capsys, rx160):
     assert main([*argv, "--approach", "mid"]) == 0
     assert "flange poses" in capsys.readouterr().out
     assert len(pd.read_csv(out)) == 8
+    # a pose 10 m away: no nominal joints, so none are said to be kept
+    poses.loc[2, "x"] = 10.0
+    poses.to_csv(tmp_path / "poses.csv", index=False)
+    assert main([*argv, "--approach", "mid"]) == 0
+    text = capsys.readouterr().out
+    assert "1 row(s) no_nominal_solution, joints left empty: row 3" in text
+    assert pd.read_csv(out).loc[2, rx160.joint_names].isna().all()
 
 
 def test_cli_hybrid_model_file(tmp_path, capsys, rx160):
