@@ -6,6 +6,8 @@ joint name). The CLI prints ``str(error)`` as a single line and exits non-zero.
 
 from __future__ import annotations
 
+import difflib
+
 
 class HybridPKError(Exception):
     """Base class of every error hybrid_pk raises on purpose."""
@@ -18,8 +20,13 @@ class RobotModelError(HybridPKError):
 class InvalidFrame(RobotModelError):
     """A link name that is not in the model; lists the valid names."""
 
-    def __init__(self, name: str, valid: list[str], what: str = "link") -> None:
-        super().__init__(f"unknown {what} {name!r}; valid {what}s: {', '.join(valid)}")
+    def __init__(
+        self, name: str, valid: list[str], what: str = "link", file: str | None = None
+    ) -> None:
+        close = difflib.get_close_matches(name, valid, n=1)
+        hint = f" (close match: {close[0]!r})" if close else ""
+        where = f"{file}: " if file else ""
+        super().__init__(f"{where}unknown {what} {name!r}{hint}; valid {what}s: {', '.join(valid)}")
         self.name = name
         self.valid = valid
 

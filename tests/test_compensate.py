@@ -188,6 +188,13 @@ def test_cli_joint_and_pose_programs(tmp_path, capsys, rx160):
     assert main([*argv, "--approach", "mid"]) == 0
     assert "flange poses" in capsys.readouterr().out
     assert len(pd.read_csv(out)) == 8
+    # a pose 10 m away: no nominal joints, so none are said to be kept
+    poses.loc[2, "x"] = 10.0
+    poses.to_csv(tmp_path / "poses.csv", index=False)
+    assert main([*argv, "--approach", "mid"]) == 0
+    text = capsys.readouterr().out
+    assert "1 row(s) no_nominal_solution, joints left empty: row 3" in text
+    assert pd.read_csv(out).loc[2, rx160.joint_names].isna().all()
 
 
 def test_cli_hybrid_model_file(tmp_path, capsys, rx160):
@@ -209,6 +216,11 @@ def test_cli_hybrid_model_file(tmp_path, capsys, rx160):
     [
         ("x,y,z\n1,0,1\n", "needs the flange orientation"),
         ("joint_1,joint_2,joint_3,joint_4,joint_5,joint_6\n0,0,0,0,9,0\n", "joint limits"),
+        # a UR joint program for the RX160 model: its joints are named, not x, y, z
+        (
+            "shoulder_pan_joint,shoulder_lift_joint,elbow_joint\n0,0,0\n",
+            "missing joint column(s) 'joint_1', 'joint_2'",
+        ),
     ],
 )
 def test_cli_bad_programs_are_one_line_errors(tmp_path, capsys, rx160, content, message):

@@ -242,7 +242,7 @@ def test_networks_listed_with_their_size(tmp_path, rx160, capsys):
     argv = ["export", str(path), "--format", "mdh", "--data", str(_table_of(rx160, q, tmp_path))]
     assert main([*argv, "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert "residual networks" in printed
+    assert "  residual networks: " in printed  # not 'residual networks = -:'
     assert "the 64 measured points" in printed
 
 

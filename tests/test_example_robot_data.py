@@ -93,3 +93,24 @@ def test_every_example_robot_data_urdf(pin):
     print(f"{len(arms)} serial arms equal to pinocchio: {', '.join(arms)}")
     print(f"{len(refused)} refused with one line: {', '.join(refused)}")
     assert len(arms) >= 10  # UR3/5/10, panda, kinova, xarm, z1, so100/101, ... are serial
+
+
+@pytest.mark.parametrize(
+    ("folder", "name", "end", "extension"),
+    [
+        ("panda_description", "panda.urdf", "panda_hand_tcp", 'mu_coulomb="'),
+        ("z1_description", "z1.urdf", None, "<hardwareInterface>"),
+    ],
+)
+def test_urdf_loads_without_a_line_per_unknown_attribute_or_tag(
+    capfd, folder, name, end, extension
+):
+    """The Panda's <dynamics D= K= mu_coulomb= mu_viscous=> and the Z1's
+    <actuator><hardwareInterface> made the URDF parser of pytorch-kinematics print an
+    'Unknown attribute' / 'Unknown tag' line each on stderr on every command."""
+    path = erd_root() / folder / "urdf" / name
+    assert extension in path.read_text()  # the extensions are still in the file
+    robot = Robot.from_urdf(path, end_link=end)
+    assert robot.dof >= 6
+    err = capfd.readouterr().err
+    assert "Unknown" not in err, err[:200]

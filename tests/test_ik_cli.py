@@ -172,6 +172,28 @@ def test_ik_on_a_model_with_residual_networks(tmp_path, capsys):
     _check_rows(frame, robot, lambda qq: model(qq, None), T)
 
 
+def test_ik_no_progress_shows_no_bar(tmp_path, capsys):
+    """--no-progress (every command) turned off every bar but the IK one (a hybrid model,
+    two stages: 400 targets take about a second, beyond the 0.5 s delay of the bar)."""
+    robot = Robot.from_urdf("ur10")
+    torch.manual_seed(0)
+    net = HybridFK.build(
+        ExtendedModel(robot), InputBox(*robot.joint_limits), "mlp:16x2", "mlp:16x2"
+    )
+    path = tmp_path / "hybrid.pt"
+    save_hybrid(path, net)
+    targets = _write_targets(tmp_path / "t.csv", _targets(robot, 400, seed=5))
+    argv = ["ik", path, targets, "--out", tmp_path / "s.csv"]
+    rc, out, err = _run(capsys, *argv, "--no-progress")
+    assert rc == 0
+    assert "on 400 target(s)" in out
+    assert "target" not in err, err[:200]
+    # off a terminal the progress is lines, as every command's, not a bar redrawn by \r
+    rc, out, err = _run(capsys, *argv)
+    assert rc == 0
+    assert "\r" not in err
+
+
 def test_ik_help_states_units(capsys):
     with pytest.raises(SystemExit):
         main(["ik", "--help"])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import shutil
 from pathlib import Path
 
@@ -160,6 +161,23 @@ def test_text_file_is_not_a_model_file(tmp_path):
     bad = tmp_path / "data.csv"
     bad.write_text("joint_1,x\n0.1,0.2\n")
     with pytest.raises(ModelFileError, match="is not a hybrid_pk model file"):
+        load_model(bad)
+
+
+@pytest.mark.parametrize(
+    ("name", "text", "why"),
+    [
+        ("empty.pt", "", "it is empty"),
+        ("diag.json", '{"robot": "ur5"}', "it is not a torch archive"),
+        ("notes.pt", "hello", "it is not a torch archive"),
+    ],
+)
+def test_empty_or_text_file_says_why_it_is_not_a_model_file(tmp_path, name, text, why):
+    """An empty file gave 'cannot be read as one: )' and a JSON file 'it holds Python
+    objects besides tensors': the reason names what the file is."""
+    bad = tmp_path / name
+    bad.write_text(text)
+    with pytest.raises(ModelFileError, match=re.escape(f"model file ({why}); model files")):
         load_model(bad)
 
 

@@ -23,6 +23,7 @@ from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data, m
 from hybrid_pk.errors import DataError, HybridPKError
 from hybrid_pk.simulate import simulate_campaign
 from hybrid_pk.simulate.trajectories import joint_box
+from tests.dh_reader import erd_root
 
 F64 = torch.float64
 EFFECTS = ["joint_offset:joint_3", "joint_compliance:joint_2"]
@@ -212,6 +213,19 @@ def test_plan_and_simulate_cli(tmp_path, capsys):
     assert 0 < plan_doc["position_rms_mm"]["planned"] < 1
     assert main(["simulate", "rx160", "--poses", str(poses), "--out", str(tmp_path / "m.csv")]) == 0
     assert "simulated 14 rows of rx160: poses of" in capsys.readouterr().out
+
+
+def test_plan_cli_hint_runs_as_printed_on_a_urdf_of_several_leaves(tmp_path, capsys):
+    """The printed ``simulate`` command names the chosen --end-link (UR5 of
+    example-robot-data: leaves ee_link, base, tool0), so it runs as printed."""
+    urdf = erd_root() / "ur_description" / "urdf" / "ur5_robot.urdf"
+    poses = tmp_path / "poses.csv"
+    argv = ["plan", str(urdf), "--end-link", "tool0", "--n", "8", "--candidates", "40"]
+    assert main([*argv, "--seed", "0", "--out", str(poses), "--no-progress"]) == 0
+    hint = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("measure them:"))
+    command = hint.removeprefix("measure them: hybrid-pk ").split(" ... ")[0].split()
+    assert main([*command, "--no-progress", "--out", str(tmp_path / "m.csv")]) == 0
+    assert "simulated 8 rows of ur5" in capsys.readouterr().out
 
 
 def test_plan_cli_errors_are_one_line(tmp_path, capsys):

@@ -110,6 +110,8 @@ def test_report_markdown_has_tables_and_links_every_png(report):
     for i, line in enumerate(lines[:-1]):
         if line.startswith("|") and (i == 0 or not lines[i - 1].startswith("|")):
             assert SEPARATOR.match(lines[i + 1]), f"table without separator: {line}"
+            cells = len(line.replace("\\|", "").split("|"))
+            assert len(lines[i + 1].split("|")) == cells, f"separator of another width: {line}"
     for row in ("position RMS [mm]", "position p95 [mm]", "orientation max [deg]"):
         assert f"| {row} |" in text
     assert "| joint_compliance | joint_2 |" in text
@@ -172,6 +174,8 @@ def test_markdown_table_renders_and_checks_row_length():
     assert lines[3] == "| c | - |"
     with pytest.raises(ValueError, match="row 0 has 1 cells, expected 2"):
         markdown_table([["only one"]], ["name", "value"])
+    with pytest.raises(ValueError, match="1 alignments, expected 2"):
+        markdown_table([["a", 1.0]], ["name", "value"], ["l"])
 
 
 def test_stats_table_position_only_and_change():

@@ -243,6 +243,12 @@ def test_unknown_end_link_lists_valid_links():
         hpk.Robot.from_urdf("rx160", end_link="nope")
 
 
+def test_misspelled_end_link_names_the_urdf_and_the_close_link():
+    with pytest.raises(hpk.InvalidFrame, match=r"rx160\.urdf: unknown link 'tool_0'") as info:
+        hpk.Robot.from_urdf("rx160", end_link="tool_0")
+    assert "(close match: 'tool0')" in str(info.value)
+
+
 def test_unknown_robot_name_lists_shipped():
     with pytest.raises(hpk.RobotModelError, match=r"unknown robot 'kuka'.*rx160"):
         hpk.Robot.from_urdf("kuka")

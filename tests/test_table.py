@@ -159,6 +159,19 @@ def test_missing_joint_column_suggests_close_name(tmp_path):
     assert "'elbow_joint' (found 'Elbow_joint'?)" in str(err)
 
 
+def test_joint_and_position_columns_in_other_case_are_named_as_close_matches(tmp_path):
+    """Names match exactly; a header in capitals ('ELBOW_JOINT', 'X') gets the hint that a
+    misspelling gets."""
+    frame = _frame(3).rename(columns={"elbow_joint": "ELBOW_JOINT", "x": "X"})
+    path = _csv(tmp_path, frame)
+    _raises(
+        path, None, None, ".*" + re.escape("close matches: 'elbow_joint' (found 'ELBOW_JOINT'?)")
+    )
+    path = _csv(tmp_path, _frame(3).rename(columns={"x": "X"}), "xyz.csv")
+    found_x = re.escape("close matches: 'x' (found 'X'?)")
+    _raises(path, None, None, ".*" + re.escape("[m]; found columns: ") + ".*" + found_x)
+
+
 def test_missing_position_column(tmp_path):
     path = _csv(tmp_path, _frame(5).drop(columns=["z"]))
     _raises(path, None, None, re.escape("missing position column(s) 'z' [m]"))
@@ -211,6 +224,22 @@ def test_degrees_in_radian_column_reported_before_limits(tmp_path):
     )
     # a file-level problem: asking to skip bad rows does not hide it
     _raises(path, 3, "shoulder_lift_joint", "looks like degrees", on_bad_row="skip")
+
+
+def test_positions_in_mm_are_refused_with_file_row_column(tmp_path):
+    """x, y, z written in mm (a tracker 2-3 m away: thousands) is a file-level error,
+    never a diagnosis of 550 m errors; the largest value's row and column are named."""
+    frame = _frame(8)
+    frame[["x", "y", "z"]] = 1000 * (frame[["x", "y", "z"]] + [2.0, -1.0, 0.5])
+    frame.loc[4, "y"] = -3456.5  # largest magnitude, data row 5
+    path = _csv(tmp_path, frame)
+    message = re.escape("position 3456.5 m: looks like mm")
+    _raises(path, 5, "y", message)
+    _raises(path, 5, "y", message, on_bad_row="skip")
+    # a robot cell 20 m from the tracker, in metres, is read as it is
+    frame = _frame(8)
+    frame["x"] += 20.0
+    assert read_table(_csv(tmp_path, frame, "far.csv"), **UR10).n == 8
 
 
 def test_single_large_radian_typo_is_a_limit_error_not_degrees(tmp_path):

@@ -99,9 +99,9 @@ def _summary(comp: Compensation, args, robot, kind: str) -> list[str]:
         if rows:
             shown = "; ".join(f"row {i + 1}: {comp.note[i]}" for i in rows[:5])
             more = f" (and {len(rows) - 5} more)" if len(rows) > 5 else ""
-            lines.append(
-                f"warning: {len(rows)} row(s) {status}, nominal joints kept: {shown}{more}"
-            )
+            # a pose the nominal model cannot reach has no nominal joints to keep
+            kept = "joints left empty" if status == "no_nominal_solution" else "nominal joints kept"
+            lines.append(f"warning: {len(rows)} row(s) {status}, {kept}: {shown}{more}")
     return lines
 
 

@@ -3,12 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import sys
-
-from tqdm import tqdm
 
 from hybrid_pk.cli.common import data_notes, load_frozen_model
 from hybrid_pk.cli.options import add_approach, add_frame_set, add_model, add_out, add_seed
+from hybrid_pk.cli.progress import progress
 from hybrid_pk.data import read_table_for
 from hybrid_pk.data.table import write_frame
 from hybrid_pk.errors import HybridPKError
@@ -117,14 +115,21 @@ def run(args: argparse.Namespace) -> int:
         tol_mm=args.tol_mm, tol_deg=args.tol_deg, max_iterations=args.max_iterations, seed=args.seed
     )
 
-    def started(n: int, two_stage: bool) -> None:
-        full = ", refined on full model" if two_stage else ""
-        bar.set_description(f"ik (kinematic model{full})", refresh=False)
+    solved = [0]
 
-    with tqdm(total=data.n, unit="target", file=sys.stderr, leave=False, delay=0.5) as bar:
+    def started(n: int, two_stage: bool) -> None:
+        full = ", then refined on the full model" if two_stage else ""
+        bar.stage(f"solving {n} target(s) on the kinematic model{full}")
+
+    def moved(k: int) -> None:
+        solved[0] += k
+        bar(f"{solved[0]} of {data.n} target(s) done")
+
+    # the progress of every command: a status line on a terminal, lines in a log
+    with progress("ik", enabled=not args.no_progress) as bar:
         job = solve_targets(
             loaded, data, frame_set=k, seeds=args.seeds, options=options, box=args.box,
-            approach=parse_approach(args.approach), fixes=_FIXES, progress=bar.update,
+            approach=parse_approach(args.approach), fixes=_FIXES, progress=moved,
             started=started,
         )  # fmt: skip
     for note in job.notes:

@@ -187,5 +187,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         write_json(args.json, res.document(args.robot))
     print(f"wrote {args.out}" + (f" and {args.json}" if args.json else ""))
-    print(f"measure them: hybrid-pk simulate {args.robot} --poses {args.out} ... (or on the robot)")
+    end = f" --end-link {args.end_link}" if args.end_link else ""  # a URDF of several leaves
+    hint = f"hybrid-pk simulate {args.robot}{end} --poses {args.out} ..."
+    print(f"measure them: {hint} (or on the robot)")
     return 0

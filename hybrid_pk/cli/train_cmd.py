@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 from hybrid_pk.cli.common import frame_parameter_count, frame_sets_for, read_data
 from hybrid_pk.cli.options import (
@@ -116,6 +119,19 @@ def _prepare(args, loaded, robot, sets: int):
     return data, cond, base
 
 
+@contextmanager
+def _epoch_progress(args) -> Iterator[object]:
+    """Lightning's epoch bar on a terminal; off one (a log, a pipe) one line per epoch as
+    every other command's progress (the bar redrawn with carriage returns filled a log
+    with a line per batch). Several processes (--devices) keep Lightning's bar."""
+    if args.no_progress or sys.stderr.isatty() or args.devices > 1:
+        yield not args.no_progress
+        return
+    with progress("train") as bar:
+        bar.stage("training the residual networks")
+        yield bar
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         from hybrid_pk.training import quiet_lightning
@@ -133,11 +149,12 @@ def run(args: argparse.Namespace) -> int:
     data, cond, base = _prepare(args, loaded, robot, sets)
     if loaded.has_networks and is_main_process():
         print(f"note: {args.model} already has residual networks; they are replaced")
-    job = train_job(
-        loaded, data, cond, base, model_label=args.model, out=args.out, settings=settings,
-        config=args.config, fit_frames=args.fit_frames, seed=args.seed, logdir=args.logdir,
-        progress=not args.no_progress, strategy=args.strategy, devices=args.devices,
-    )  # fmt: skip
+    with _epoch_progress(args) as shown:
+        job = train_job(
+            loaded, data, cond, base, model_label=args.model, out=args.out, settings=settings,
+            config=args.config, fit_frames=args.fit_frames, seed=args.seed, logdir=args.logdir,
+            progress=shown, strategy=args.strategy, devices=args.devices,
+        )  # fmt: skip
     if job.out is None:
         return 0
     _print_summary(args, robot, data, job.result)

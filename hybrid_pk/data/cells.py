@@ -21,6 +21,7 @@ from hybrid_pk.data.measured import SkippedRow
 from hybrid_pk.errors import DataError
 
 __all__ = [
+    "MAX_POSITION_M",
     "RowProblems",
     "cell_problem",
     "check_header_names",
@@ -29,6 +30,11 @@ __all__ = [
     "missing_columns_error",
     "to_float",
 ]
+
+# A measured position beyond this [m] is mm (or cm) written as m: a laser tracker measures
+# within a few tens of metres (the largest, e.g. Leica AT403, to 160 m diameter, but a
+# robot cell is never that far from the instrument).
+MAX_POSITION_M = 50.0
 
 
 def to_float(values: pd.Series) -> tuple[np.ndarray, np.ndarray]:

@@ -68,7 +68,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 
-from hybrid_pk.data.cells import RowProblems, check_time_order
+from hybrid_pk.data.cells import MAX_POSITION_M, RowProblems, check_time_order
 from hybrid_pk.data.column_map import ColumnMap, load_column_map, parse_inline_map
 from hybrid_pk.data.export_cells import convert_cells, read_cells, resolve_column, source_columns
 from hybrid_pk.data.files import write_frame
@@ -91,8 +91,6 @@ __all__ = [
 
 # A quaternion further than this from unit norm is not a rounding problem: wrong columns.
 QUAT_NORM_TOL = 1e-3
-# Positions beyond this [m] after conversion are mm (or worse) written as m.
-_MAX_POSITION_M = 50.0
 _TWO_PI = 2 * math.pi
 
 
@@ -122,7 +120,7 @@ def _check_positions(values, resolved, ok: np.ndarray, file: str) -> None:
         return
     pos = np.stack([values[c][ok] for c in POSITION], -1)
     worst = float(np.abs(pos).max())
-    if worst > _MAX_POSITION_M:
+    if worst > MAX_POSITION_M:
         i = int(np.abs(pos).max(-1).argmax())
         raise DataError(
             f"position {worst:.6g} m after conversion: the column looks like mm; "

@@ -28,7 +28,13 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from hybrid_pk.data.cells import RowProblems, check_time_order, missing_columns_error, to_float
+from hybrid_pk.data.cells import (
+    MAX_POSITION_M,
+    RowProblems,
+    check_time_order,
+    missing_columns_error,
+    to_float,
+)
 from hybrid_pk.data.files import load_cells, to_frame, write_frame
 from hybrid_pk.data.measured import (
     OPTIONAL_COLUMNS,
@@ -110,6 +116,18 @@ class _Columns(NamedTuple):
     ignored: list[str]  # columns present but not part of the format
 
 
+def _close_matches(missing: list[str], found: list[str]) -> str:
+    """``; close matches: 'j1' (found 'J1'?)`` for the missing names that a found column
+    spells in other case (names match exactly) or nearly; empty when none does."""
+    hints = []
+    for n in missing:
+        m = [f for f in found if f.lower() == n.lower()]
+        m = m or difflib.get_close_matches(n, found, n=1, cutoff=0.8)
+        if m:
+            hints.append(f"{n!r} (found {m[0]!r}?)")
+    return f"; close matches: {', '.join(hints)}" if hints else ""
+
+
 def _select_columns(
     file: str, found: list[str], spec: _JointSpec, require_joints: bool
 ) -> _Columns:
@@ -118,18 +136,14 @@ def _select_columns(
     missing_joints = [n for n in spec.names if n not in present]
     has_joints = len(missing_joints) < len(spec.names) or require_joints or not spec.names
     if has_joints and missing_joints:
-        hints = [
-            f"{n!r} (found {m[0]!r}?)"
-            for n in missing_joints
-            if (m := difflib.get_close_matches(n, found, n=1, cutoff=0.8))
-        ]
-        hint = f"; close matches: {', '.join(hints)}" if hints else ""
+        hint = _close_matches(missing_joints, found)
         if len(found) == 1 and ";" in found[0]:
             hint += "; the file looks ';'-separated, tables need ','"
         raise missing_columns_error(file, missing_joints, found, "joint ", hint=hint)
     missing_xyz = [c for c in POSITION_COLUMNS if c not in present]
     if missing_xyz:
-        raise missing_columns_error(file, missing_xyz, found, "position ", " [m]")
+        hint = _close_matches(missing_xyz, found)
+        raise missing_columns_error(file, missing_xyz, found, "position ", " [m]", hint=hint)
     quat = [c for c in QUAT_COLUMNS if c in present]
     if quat and len(quat) < 4:
         absent = [c for c in QUAT_COLUMNS if c not in present]
@@ -200,6 +214,22 @@ def _check_degrees(
         )
 
 
+def _check_metres(file: str, columns: dict[str, np.ndarray], ok: np.ndarray) -> None:
+    """Raise if the position columns hold mm (or cm): a file-level problem, never skipped."""
+    if not ok.any() or any(c not in columns for c in POSITION_COLUMNS):
+        return
+    pos = np.abs(np.stack([columns[c][ok] for c in POSITION_COLUMNS], -1))
+    i, c = np.unravel_index(int(np.argmax(pos)), pos.shape)
+    if pos[i, c] > MAX_POSITION_M:
+        raise DataError(
+            f"position {pos[i, c]:.6g} m: looks like mm (no instrument measures a robot "
+            f"beyond {MAX_POSITION_M:g} m); x, y, z are metres: divide by 1000",
+            file=file,
+            row=int(np.flatnonzero(ok)[i]) + 1,
+            column=POSITION_COLUMNS[c],
+        )
+
+
 class _FilePart(NamedTuple):
     columns: dict[str, np.ndarray]  # kept rows only
     rows: np.ndarray  # (n,) 1-based data rows kept
@@ -220,6 +250,7 @@ def _read_file(path: Path, spec: _JointSpec, skip: bool, require_joints: bool) -
     problems.raise_first(skip)
 
     ok = problems.ok()
+    _check_metres(file, columns, ok)
     for j, name in enumerate(select.joints):
         _check_degrees(file, name, spec, j, columns[name], ok)
     _note_limits(columns, select.joints, spec, ok, problems)

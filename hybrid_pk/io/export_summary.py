@@ -36,8 +36,9 @@ class LeftOut:
 
     def line(self) -> str:
         rms, peak = self.size_mm
+        value = "" if self.value == "-" else f" = {self.value}"  # networks have no value
         return (
-            f"{self.what} = {self.value}: {rms:.4g} mm rms, {peak:.4g} mm max, "
+            f"{self.what}{value}: {rms:.4g} mm rms, {peak:.4g} mm max, "
             f"{self.turn_mrad:.4g} mrad max"
         )
 

@@ -32,6 +32,7 @@ import datetime as _dt
 import hashlib
 import os
 import tempfile
+import zipfile
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -315,6 +316,12 @@ def _read_payload(path: Path) -> dict:
         raise ModelFileError(
             f"{path} is a URDF, not a hybrid_pk model file; write nominal:{path} to use the "
             "URDF as it is"
+        )
+    if path.stat().st_size == 0 or not zipfile.is_zipfile(path):  # torch.save writes a zip
+        what = "it is empty" if path.stat().st_size == 0 else "it is not a torch archive"
+        raise ModelFileError(
+            f"{path} is not a hybrid_pk model file ({what}); model files are written by "
+            "'hybrid-pk calibrate' or 'hybrid-pk train'"
         )
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)

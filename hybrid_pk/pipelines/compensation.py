@@ -52,7 +52,9 @@ class Program:
 
 def read_program(path: str, robot: Robot) -> Program:
     """The program ``path``: joint targets (one column per joint) or flange poses."""
-    if has_joint_columns(path, robot.joint_names):
+    # Joint targets when a joint column is there, or when no x, y, z are (a program of
+    # another robot's joints: the missing joint columns are the error to name).
+    if has_joint_columns(path, robot.joint_names) or not has_joint_columns(path, ("x", "y", "z")):
         q, rest = read_joint_table(path, robot)
         unused = [c for c in rest.columns if c not in ("payload", "temperature")]
         notes = [f"{path}: joint targets used; columns {', '.join(unused)} are not"] * bool(unused)

@@ -396,7 +396,8 @@ def write_diagnosis_report(
     if diagnosis.causes:
         lines += [
             "Ordered by gain: how much the hold-out mean error grows when the cause is "
-            "left out and the rest refitted. The last three columns: the drop of the RMS "
+            "left out and the rest refitted. The in-sample, random and blocked hold-out "
+            "columns: the drop of the RMS "
             f"{_channel(diagnosis)} [mm] it brings on the fit rows, on the "
             "random hold-out rows and on rows held out in blocks (regions of joint space, "
             "whole files), where each cause must gain at least "
@@ -406,7 +407,7 @@ def write_diagnosis_report(
             markdown_table(
                 _cause_rows(diagnosis),
                 _CAUSE_COLUMNS,
-                ["l", "l", "l", "r", "r", "r", "r", "r"],
+                ["l", "l", "l", "r", "r", "r", "r", "r", "r", "r"],
             ),
         ]
     elif diagnosis.structural and diagnosis.structural["structurally_wrong"]:

@@ -66,7 +66,8 @@ def markdown_table(
         The table, ending with a newline.
 
     Raises:
-        ValueError: if a row has not as many cells as there are headers.
+        ValueError: if a row or ``align`` has not as many cells as there are headers (a
+            separator row of another width does not render as a table).
     """
     n = len(headers)
     for i, row in enumerate(rows):
@@ -77,6 +78,8 @@ def markdown_table(
         align = [
             "r" if isinstance(c, int | float) and not isinstance(c, bool) else "l" for c in first
         ]
+    if len(align) != n:
+        raise ValueError(f"markdown_table: {len(align)} alignments, expected {n}")
     marks = {"l": ":---", "r": "---:", "c": ":---:"}
     lines = [
         "| " + " | ".join(_cell(h) for h in headers) + " |",

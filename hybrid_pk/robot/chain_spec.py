@@ -19,12 +19,14 @@ chain joint appears.
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytorch_kinematics as pk
 import yourdfpy
+from pytorch_kinematics.urdf_parser_py.xml_reflection import core as _pk_xml
 
 from hybrid_pk.errors import InvalidFrame, RobotModelError
 
@@ -152,6 +154,25 @@ def resolve_urdf(robot: str | Path) -> Path:
     )
 
 
+@contextmanager
+def _quiet_unknown_attributes():
+    """pytorch-kinematics' URDF parser writes a stderr line per attribute or tag it does
+    not know (the Panda's ``<dynamics D= K= mu_coulomb= mu_viscous=>``: 28 lines on every
+    command; the Z1's ``<hardwareInterface>`` in ``<actuator>``: 6); no part of hybrid_pk
+    reads them, so those notes are dropped, any other is passed on."""
+    said = _pk_xml.on_error
+
+    def note(message: str) -> None:
+        if not message.startswith(("Unknown attribute", "Unknown tag")):
+            said(message)
+
+    _pk_xml.on_error = note
+    try:
+        yield
+    finally:
+        _pk_xml.on_error = said
+
+
 class _Tree:
     """The URDF's link tree: joints by child link, children by parent link."""
 
@@ -175,7 +196,7 @@ class _Tree:
     def end_link(self, end_link: str | None) -> str:
         if end_link is not None:
             if end_link not in self.links:
-                raise InvalidFrame(end_link, self.links)
+                raise InvalidFrame(end_link, self.links, file=str(self.path))
             return end_link
         leaves = [n for n in self.links if n not in self.joints_from]
         if len(leaves) != 1:
@@ -190,7 +211,8 @@ class _Tree:
         if end_link == self.root:
             raise RobotModelError(f"{self.path}: {end_link!r} is the root link: no joint moves it")
         try:
-            chain = pk.build_serial_chain_from_urdf(self.path.read_bytes(), end_link, self.root)
+            with _quiet_unknown_attributes():
+                chain = pk.build_serial_chain_from_urdf(self.path.read_bytes(), end_link, self.root)
         except Exception as exc:  # pk raises bare KeyErrors/ValueErrors
             raise RobotModelError(f"{self.path}: no serial chain to {end_link!r}: {exc}") from exc
         frames = chain.get_frame_names(exclude_fixed=False)[1:]  # the root has no joint
