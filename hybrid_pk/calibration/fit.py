@@ -31,7 +31,7 @@ from hybrid_pk.calibration.identifiability import FrameReport, frame_report
 from hybrid_pk.calibration.kept_poses import keep_poses, kept_poses
 from hybrid_pk.calibration.least_squares import levenberg_marquardt
 from hybrid_pk.calibration.problem import ParamBlock, Problem, param_blocks
-from hybrid_pk.calibration.robust import irls_update, row_weights_vector
+from hybrid_pk.calibration.robust import irls_update, rotation_noise, row_weights_vector
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data
 from hybrid_pk.evaluation.metrics import pose_error, position_error_mm
@@ -409,7 +409,7 @@ def reestimated_noise(
     new_r = sig_r
     if not position_only and fixed[1] is None:
         rot = r[n_pos : 2 * n_pos]
-        new_r = max(sig_r * float((rot**2).mean() * dof_factor) ** 0.5, 1e-9)
+        new_r = rotation_noise(sig_r * float((rot**2).mean() * dof_factor) ** 0.5, new_p)
     return new_p, new_r
 
 

@@ -40,6 +40,7 @@ __all__ = [
     "CUT_WEIGHT",
     "DOWN_WEIGHT",
     "FAMILY_ALPHA",
+    "LEVER_M",
     "OUTLIER_K",
     "ROBUST_LOSSES",
     "check_robust",
@@ -52,10 +53,25 @@ __all__ = [
     "robust_cost",
     "robust_noise",
     "robust_weights",
+    "rotation_noise",
     "row_d2",
     "row_distances",
     "row_weights_vector",
 ]
+
+
+# The lever [m] that bounds how finely an orientation noise may weigh against the
+# position noise: the reach of a large industrial arm. No instrument pairs the two more
+# finely (a 6-DoF laser tracker: 0.01 deg against 15 um, sigma_pos / sigma_rot ~ 0.09 m);
+# below sigma_pos / LEVER_M the orientation is not measured but exact (rounding, a
+# simulation without orientation noise) and would outweigh every position row.
+LEVER_M = 2.0
+
+
+def rotation_noise(sigma_rot_rad: float, sigma_pos_mm: float) -> float:
+    """``sigma_rot_rad`` [rad], at least the position noise over :data:`LEVER_M`."""
+    return max(sigma_rot_rad, 1e-3 * sigma_pos_mm / LEVER_M, 1e-9)
+
 
 ROBUST_LOSSES = ("huber", "cauchy")
 # Rows beyond the tail probability of a k-sigma normal deviation are outliers.
@@ -207,7 +223,7 @@ def irls_update(
     dof_factor = r.numel() / max(r.numel() - n_params, 1)
     f_p, f_r = robust_noise(r, n_rows, dof_factor)
     new_p = fixed[0] or max(sig_p * f_p, 1e-6)
-    new_r = sig_r if position_only or fixed[1] is not None else max(sig_r * f_r, 1e-9)
+    new_r = sig_r if position_only or fixed[1] is not None else rotation_noise(sig_r * f_r, new_p)
     change = (
         0.0
         if fixed[0] and (fixed[1] or position_only)
