@@ -330,3 +330,25 @@ def test_the_model_file_holds_the_frame_report(rx160, tmp_path, capsys):
     (d,) = meta["frames"]["directions"]
     assert d["frame"] == "tool"
     assert d["status"] == "not determined"
+
+
+def test_a_refit_of_the_tool_after_the_tracker_moved_warns_and_names_the_fix(tmp_path, capsys):
+    """The tracker moved (base 1.5 m and 90° away) but only the tool is re-fitted: the
+    model still misses by metres, and the re-fit says so with the fix; re-fitting both
+    frames follows the move and says nothing."""
+    first, moved, model = tmp_path / "a.csv", tmp_path / "b.csv", tmp_path / "m.pt"
+    for path, base in ((first, "0.5,-1.0,0.2,0,0,0.3"), (moved, "2.0,0.4,0.1,0,0,1.87")):
+        rc, _, err = _run(
+            capsys, "simulate", "rx160", "--n", "80", "--noise-mm", "0.05", "--noise-deg",
+            "0.005", "--base", base, "--seed", "5", "--out", path,
+        )  # fmt: skip
+        assert rc == 0, err
+    argv = ["calibrate", first, "--robot", "rx160", "--effects", "none", "--no-urdf"]
+    rc, _, err = _run(capsys, *argv, "--out", model)
+    assert rc == 0, err
+    for which, warned in (("tool", True), ("frames", False)):
+        argv = ["calibrate", moved, "--model", model, "--refit", which, "--no-urdf"]
+        rc, out, err = _run(capsys, *argv, "--out", tmp_path / f"{which}.pt")
+        assert rc == 0, err
+        assert ("warning: after the re-fit the model still misses" in out) == warned, out
+        assert ("--refit frames re-fits both frames" in out) == warned, out

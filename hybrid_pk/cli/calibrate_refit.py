@@ -7,6 +7,7 @@ import argparse
 import math
 
 from hybrid_pk.calibration.settings import FitSettings
+from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.cli.calibrate_output import (
     error_summary,
     export_model_urdf,
@@ -81,9 +82,9 @@ def run_refit(args: argparse.Namespace, settings: FitSettings) -> int:
         print(line)
     if result.verdict is not None:
         print(result.verdict.line())
-    tilt = _tilt_note(up, model)
-    if tilt:
-        print(tilt)
+    for note in (_tilt_note(up, model), _gross_warning(which, after[0])):
+        if note:
+            print(note)
     for i, (name, unit) in enumerate((("position", "mm"), ("orientation", "deg"))):
         if after[i] is None:
             continue
@@ -118,6 +119,22 @@ def _tilt_note(up, after) -> str | None:
         f"but its gravity effects ({', '.join(gravity_effects)}) keep the mounting they were "
         "calibrated with (gravity fixed in the robot frame); if the instrument is levelled, "
         "calibrate with --gravity level-tracker and they follow the tilt"
+    )
+
+
+def _gross_warning(which: str, position_mm) -> str | None:
+    """A warning when the re-fitted model still misses the rows by more than small
+    corrections explain (the diagnosis' ``gross_error_mm``): more moved than the
+    re-fitted frame, or the rows are not this robot's."""
+    gross = diagnosis_tuning().gross_error_mm
+    mean = float(position_mm.mean())
+    if mean <= gross:
+        return None
+    other = "" if which == "frames" else " (--refit frames re-fits both frames)"
+    return (
+        f"warning: after the re-fit the model still misses these rows by {mean:.4g} mm "
+        f"(mean), more than small corrections make ({gross:g} mm): more changed than the "
+        f"{which} frame{other}, or the rows are not this robot's"
     )
 
 
