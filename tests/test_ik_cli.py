@@ -87,6 +87,7 @@ def test_ik_nominal_table_with_an_unreachable_target(tmp_path, capsys):
     _check_rows(frame, robot, robot.fk, T)
     assert "1 of 4 target(s) failed" in stdout
     assert f"wrote {out}" in stdout
+    assert "parameter family" not in stdout  # a full pose of six joints: branches
 
 
 def test_ik_position_only_parquet(tmp_path, capsys):
@@ -105,6 +106,9 @@ def test_ik_position_only_parquet(tmp_path, capsys):
     assert float(d.max()) <= 1e-6  # 1e-3 mm
     assert "position only" in stdout
     assert "0 of 2 target(s) failed" in stdout
+    # three coordinates of six joints: a family of solutions, sampled, said so
+    assert "a target fixes 3 coordinates of ur10's 6 joints: its solutions form a " in stdout
+    assert "3-parameter family" in stdout
 
 
 def test_ik_on_a_calibrated_model_refines_on_its_effects(tmp_path, capsys):

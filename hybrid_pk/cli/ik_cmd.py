@@ -155,6 +155,14 @@ def _print_summary(args, loaded, robot, data, frame, two_stage: bool) -> None:
         if data.has_orientation:
             line += f", {float(frame['orientation_error_deg'].max()):.3g} deg"
         print(line)
+    fixed = 6 if data.has_orientation else 3  # the coordinates a target fixes
+    if robot.dof > fixed and n_sol:
+        print(
+            f"note: a target fixes {fixed} coordinates of {robot.name}'s {robot.dof} joints: "
+            f"its solutions form a {robot.dof - fixed}-parameter family, and the ones "
+            "listed are samples of it (one per start that converged apart), not distinct "
+            "branches" + ("" if data.has_orientation else "; orientation columns fix more")
+        )
     tol = f"{args.tol_mm:g} mm" + (f" / {args.tol_deg:g} deg" if data.has_orientation else "")
     failed = n - frame["target"].nunique()
     print(f"{failed} of {n} target(s) failed (no solution within {tol} and the joint limits)")
