@@ -88,6 +88,12 @@ def run(args: argparse.Namespace) -> int:
     lines = [f"hybrid_pk export of {loaded.source} ({args.format})"]
     lines += summary_lines(left_out(loaded, q, cond), where)
     if args.format in ("dh", "mdh"):
+        if float(model.robot.segment_mass.sum()) > 0:
+            lines.append(
+                "the table carries the geometry, not the links' masses: read back "
+                "(hybrid-pk import dh) it has no static load for compliance or deflection "
+                "effects; keep the URDF (--format urdf) for those"
+            )
         write_dh_yaml(model_dh_table(model, args.format), args.out, header=lines)
     elif args.format == "ur-calibration":
         _, note = write_ur_calibration(model, args.out, header=lines, root=args.ur_root)
