@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import pytest
@@ -23,6 +24,7 @@ from hybrid_pk.data import write_table
 from hybrid_pk.effects import ExtendedModel, conditions_from_data, make_effect
 from hybrid_pk.robot import Robot
 from hybrid_pk.simulate import simulate_campaign
+from tests.helpers import RUN_SEED
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -54,6 +56,8 @@ def test_values_beyond_a_small_correction_are_named(rx160):
     assert check("backlash:joint_4", math.radians(2.0)) is not None
     assert "metal joints" in check("joint_compliance:joint_2", 2e-3)["why"]
     assert check("joint_compliance:joint_2", 2e-6) is None
+    assert check("thermal_expansion", 2e-5) is None  # aluminium
+    assert "thermal expansion of 0.003 1/K" in check("thermal_expansion", 3e-3)["why"]
     # a cobot's soft joint (5e-4 rad/Nm) is credible per Nm, but not under the RX160's
     # shoulder load: the bend it would make under the poses' gravity decides
     assert check("joint_compliance:joint_2", 5e-4) is None
@@ -171,3 +175,27 @@ def test_calibrate_does_not_let_a_large_value_pass_for_a_cause(rx160, tmp_path, 
     assert rc == 0
     assert "warning: joint_offset:joint_3: a rotation of 11.5° is beyond" in out
     assert "the URDF is wrong there" in out
+
+
+def test_rows_of_a_larger_sibling_robot_name_no_cause_and_say_so(rx160, tmp_path):
+    """Rows of an arm 30 % larger than the URDF (every origin scaled: a sibling model,
+    as a UR5's rows given the UR10's URDF) and a random temperature span: a uniform
+    stretch is exactly a thermal expansion of 0.3 / (T - 20 °C), which was named as a
+    cause (-0.04 1/K and the like). It is no small correction: nothing is named, and the
+    structural message says the rows may not be this URDF's robot."""
+    text = URDF.read_text()
+    scaled = re.sub(
+        r'xyz="([^"]+)"',
+        lambda m: 'xyz="' + " ".join(f"{1.3 * float(v):.6g}" for v in m.group(1).split()) + '"',
+        text,
+    )
+    path = tmp_path / "rx160_larger.urdf"
+    path.write_text(scaled)
+    larger = Robot.from_urdf(str(path))
+    larger.requires_grad_(False)
+    data, _ = simulate_campaign(larger, 400, "none", noise_mm=0.02, noise_deg=0.002, seed=RUN_SEED)
+    result = diagnose(rx160, data).to_json()
+    assert result["causes"] == [], result["causes"]
+    found = [f["cause"] for f in result["structural"]["findings"]]
+    assert "thermal_expansion" in found, found
+    assert "not this URDF's robot" in result["structural"]["message"]

@@ -125,6 +125,10 @@ MAX_CREDIBLE_EXPANSION = 5e-5
 class ThermalExpansion(Effect):
     kind, unit, stage, scale, needs = "thermal_expansion", "1/K", "geometry", 1e-5, "temperature"
     per_joint, joints, evidence = False, "none", "temperature"
+    # ten times the largest credible coefficient (five times a polymer's): beyond it a
+    # fit stands in for something else (a wrong URDF, rows of another robot), as the
+    # other effects' limits do at ten times their credible sizes
+    limit = 10 * MAX_CREDIBLE_EXPANSION
     equation = "link translations × (1 + α (T − T_ref)), T_ref = 20 °C"
     description = "all link translations × (1 + α(T − 20 °C))"
     unplannable = (

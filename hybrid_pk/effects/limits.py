@@ -38,9 +38,9 @@ DRAWN_COMPLIANCE = 1e-4
 
 def effect_limit(effect: Effect, robot: Robot) -> float | None:
     """Largest credible norm of a made effect's value [its unit], or None where the
-    limit depends on the loads (deflections per metre of extension) or on the data
-    (thermal expansion): the ``limit`` its class states, except that a joint-space
-    angle of a prismatic joint of ``robot`` is a length."""
+    limit depends on the loads (deflections per metre of extension): the ``limit`` its
+    class states, except that a joint-space angle of a prismatic joint of ``robot`` is
+    a length."""
     prismatic = (
         effect.stage == "joint"
         and effect.joint is not None

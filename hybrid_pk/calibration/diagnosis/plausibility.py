@@ -86,6 +86,8 @@ def implausibility(effect: Effect, robot: Robot, data: MeasuredData | None = Non
         return None
     if unit == "1":  # a gear ratio error
         what, shown, limit_text = "gear ratio error", f"{100 * size:.3g} %", f"{100 * limit:g} %"
+    elif unit == "1/K":  # a thermal expansion coefficient
+        what, shown, limit_text = "thermal expansion", f"{size:.3g} 1/K", f"{limit:g} 1/K"
     elif limit == MAX_TRANSLATION_M:  # a length: unit m, or a prismatic joint's shift
         what, shown, limit_text = "translation", f"{1e3 * size:.4g} mm", f"{1e3 * limit:g} mm"
     else:

@@ -350,9 +350,11 @@ def structural_check(
         return [], structural
     names = ", ".join(f["cause"] for f in findings) or "no single cause"
     searched = "" if cut is None else " of those searched before its work budget ran out"
+    # a gross nominal error no single correction explains: the URDF may be another robot's
+    other = " (or the rows are not this URDF's robot)" if before >= tuning.gross_error_mm else ""
     structural["message"] = (
         f"{names}: not a small correction of the URDF (see findings); no origin "
         f"correction at one joint{searched} explains the errors either, so the URDF may "
-        "be wrong in more than one place or an unmodelled effect is at work"
+        f"be wrong in more than one place{other} or an unmodelled effect is at work"
     )
     return keep, structural
