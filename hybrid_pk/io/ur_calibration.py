@@ -41,9 +41,10 @@ from hybrid_pk.robot.dh import dh_row_parts, rot, trans
 
 __all__ = ["UR_JOINTS", "UR_ROOTS", "ur_kinematics", "write_ur_calibration"]
 
-# [m or rad] a residual below this is the float64 rounding of the construction, not a
-# flange off the last axis.
-_ROUNDING = 1e-12
+# [m or rad] a residual below this is rounding, not a flange off the last axis: of the
+# construction (float64) or of the URDF's own text (12-digit angles: 5e-12 rad); no
+# robot or instrument resolves a nanometre or a nanoradian.
+_ROUNDING = 1e-9
 UR_ROOTS = ("base_link_inertia", "base_link")
 UR_JOINTS = ("shoulder", "upper_arm", "forearm", "wrist_1", "wrist_2", "wrist_3")
 
