@@ -125,6 +125,10 @@ def test_an_error_left_well_above_the_noise_is_called_structured():
     assert "from repeated poses" in structured_text(un), un
     far = {**un["beyond_noise"], "pair_distance_mm": 559.0}
     assert "up to 559 mm apart" in structured_text({**un, "beyond_noise": far})
+    # nothing to compare with (one hold-out row, no noise estimate): not "noise"
+    unknown = structured_text({**un, "beyond_noise": None})
+    assert unknown.startswith("no sign of it"), unknown
+    assert "not compared with the noise" in unknown
     offset = hpk.make_effect(robot, f"joint_offset:{joint}", float(rng.uniform(1e-3, 3e-3)))
     data, _ = simulate_campaign(
         robot, None, [offset], poses=q, noise_mm=0.05, position_only=True, seed=seed

@@ -84,7 +84,10 @@ def structured_text(un: dict) -> str:
             "apart for neighbours to show its shape)"
         )
     if "pair_distance_mm" not in beyond:
-        return "no (looks like measurement noise)"
+        return (
+            "no sign of it (no smooth error; its size is not compared with the noise: "
+            "too few hold-out rows, or no model-free noise estimate)"
+        )
     if beyond["pair_distance_mm"] == 0:
         return "no (within the measurement noise, as estimated from repeated poses)"
     return (
