@@ -85,6 +85,13 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _shown(value) -> str:
+    """A value or vector to 4 significant digits (the printed summary)."""
+    if isinstance(value, list | tuple):
+        return "(" + ", ".join(f"{float(v):.4g}" for v in value) + ")"
+    return f"{float(value):.4g}"
+
+
 def print_summary(result: DemoResult) -> None:
     """The demo's printed summary: held-out errors, injected vs found, IK, run time."""
     print(f"demo: {result.n_rows} simulated poses of {result.robot}, results in {result.out}/")
@@ -95,18 +102,22 @@ def print_summary(result: DemoResult) -> None:
             f"  {name:28s} position mean {p['mean']:.4f} mm (max {p['max']:.4f}), "
             f"orientation mean {o['mean']:.5f} deg"
         )
+    from hybrid_pk.effects import EFFECTS
+
     print("  injected (hidden until now) vs found:")
     found = {(c.effect, c.joint): c for c in result.diagnosis.causes}
     for e in result.truth["effects"]:
         c = found.get((e["effect"], e.get("joint")))
-        got = "NOT FOUND" if c is None else f"found {c.value}"
+        unit = EFFECTS[e["effect"]].unit
+        unit = "" if unit == "1" else f" {unit}"  # a ratio: no unit
+        got = "NOT FOUND" if c is None else f"found {_shown(c.value)}{unit}"
         if e.get("unseen"):
             got += f" ({e['unseen']['words']})"
-        print(f"    {e['effect']}:{e.get('joint')} = {e['value']}  ->  {got}")
+        print(f"    {e['effect']}:{e.get('joint')} = {_shown(e['value'])}{unit}  ->  {got}")
     for e in result.truth["unmodelled"]:
         print(
-            f"    {e['effect']}:{e['joint']} = {e['value']} (outside the vocabulary: left to "
-            "the networks)"
+            f"    {e['effect']}:{e['joint']} = {_shown(e['value'])} (outside the vocabulary: "
+            "left to the networks)"
         )
     ik = result.ik
     print(
