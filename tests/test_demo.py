@@ -41,7 +41,7 @@ def test_reduced_demo_names_the_hidden_effects(tmp_path, capsys):
     assert hybrid < nominal / 5
 
     report = (out / "report.md").read_text()
-    assert "| effect | injected | found | named |" in report
+    assert "| effect | unit | injected | found | named |" in report
     assert "| position mean [mm] | " in report
     assert (out / "diagnosis" / "report.md").is_file()
     pngs = list((out / "evaluation").glob("*.png")) + list((out / "diagnosis").rglob("*.png"))

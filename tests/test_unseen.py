@@ -79,8 +79,9 @@ def test_the_demo_table_marks_the_unseen_part(rx160, campaign):
     # what a diagnosis names: the seen part (1 % off), ~0 along the axis
     cause = SimpleNamespace(effect="link_length", joint="joint_6", value=[1.01 * x for x in seen])
     (row,) = found_table(truth, SimpleNamespace(causes=[cause]))
-    assert "(along joint_6's axis: absorbed by the tool frame)" in row[3]
-    assert "within 1 %" in row[3]
+    assert "(along joint_6's axis: absorbed by the tool frame)" in row[4]
+    assert "within 1 %" in row[4]
+    assert row[1] == "m"  # the unit column
     assert seen_error(entry, cause.value) == pytest.approx(0.01, rel=1e-6)
 
 

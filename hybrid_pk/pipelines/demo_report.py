@@ -22,8 +22,10 @@ def run_time_line(stage_seconds: dict[str, float], seconds: float) -> str:
 
 
 def found_table(truth: dict, diag) -> list[list[object]]:
-    """Rows ``effect, injected, found, named`` of the injected effects, the unmodelled
-    spring and every named cause that was not injected."""
+    """Rows ``effect, unit, injected, found, named`` of the injected effects, the
+    unmodelled spring and every named cause that was not injected."""
+    from hybrid_pk.effects import EFFECTS
+
     found = {(c.effect, c.joint): c for c in diag.causes}
     rows = []
     for e in truth["effects"]:
@@ -34,14 +36,15 @@ def found_table(truth: dict, diag) -> list[list[object]]:
             err = None if c is None else seen_error(e, c.value)
             within = "" if err is None else f", the part the data see within {100 * err:.2g} %"
             named = f"{named}{within} ({unseen['words']})"
-        rows.append(
-            [f"{e['effect']}:{e.get('joint')}", e["value"], "-" if c is None else c.value, named]
-        )
+        value = "-" if c is None else c.value
+        rows.append([f"{e['effect']}:{e.get('joint')}", EFFECTS[e["effect"]].unit, e["value"],
+                     value, named])  # fmt: skip
     unmodelled_joints = {e["joint"] for e in truth["unmodelled"]}
     for e in truth["unmodelled"]:
         rows.append(
             [
                 f"{e['effect']}:{e['joint']} (knee {e['tau0_Nm']:.0f} Nm)",
+                "rad/Nm",
                 e["value"],
                 "-",
                 "outside the vocabulary",
@@ -53,7 +56,7 @@ def found_table(truth: dict, diag) -> list[list[object]]:
             if joint in unmodelled_joints
             else "false positive"
         )
-        rows.append([f"{effect}:{joint}", "(not injected)", c.value, why])
+        rows.append([f"{effect}:{joint}", c.unit, "(not injected)", c.value, why])
     return rows
 
 
@@ -118,7 +121,7 @@ def _causes_section(out: Path, truth: dict, diag, diag_report: Path) -> list[str
     return [
         "## Hidden effects vs what the diagnosis found",
         "",
-        markdown_table(found_table(truth, diag), ["effect", "injected", "found", "named"]),
+        markdown_table(found_table(truth, diag), ["effect", "unit", "injected", "found", "named"]),
         "",
         "Each plot below shows the residual a cause leaves when it is taken out of the "
         "model, against that cause's signature (e.g. the error against the gravity torque "
