@@ -1,0 +1,152 @@
+"""``hybrid-pk export --format dh|mdh`` writes the links' inertials, and ``hybrid-pk
+import dh`` reads them back: the statics survive the round trip.
+
+Each row holds segment ``i``'s mass, centre of mass and inertia in table frame ``i``
+(``dh``: the frame row ``i`` ends in; ``mdh``: the frame on joint ``i``'s axis), where
+the importer attaches them. Read back, the robot must hold the same loads as the model:
+gravity torques and full static wrenches at 50 random joint values, the moving mass,
+its centre of mass and every segment's inertia tensor (in the root frame) at a few.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from hybrid_pk import Robot
+from hybrid_pk.cli.main import main
+from hybrid_pk.effects import Conditions
+from hybrid_pk.effects.geometric import REFERENCE_TEMPERATURE
+from hybrid_pk.io.dh_export import geometric_model
+from hybrid_pk.io.model_file import save_model
+from hybrid_pk.robot.dh_table import INERTIA_COLUMNS
+from tests.helpers import run_rng
+from tests.test_dh_export import _random_model
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+# Relative to the largest torque: the table and the URDF carry every float by its
+# shortest exact text, only the base / flange roll-pitch-yaw round (1e-16 rad), so the
+# loads agree to rounding (5e-16 measured); 1e-9 is the geometry's own acceptance.
+REL = 1e-9
+
+
+def _round_trip(source: str, convention: str, tmp_path: Path, capsys) -> tuple[Robot, str]:
+    """export SOURCE --format CONVENTION, then import dh: the re-imported robot and what
+    the export printed."""
+    table, urdf = tmp_path / f"{convention}.yaml", tmp_path / f"{convention}.urdf"
+    assert main(["export", source, "--format", convention, "--out", str(table)]) == 0
+    printed = capsys.readouterr().out
+    assert main(["import", "dh", str(table), "--out", str(urdf)]) == 0
+    assert "statics from the table" in capsys.readouterr().out
+    rows = yaml.safe_load(table.read_text(encoding="utf-8"))["joints"]
+    assert all(set(INERTIA_COLUMNS) <= set(r) for r in rows)
+    back = Robot.from_urdf(urdf)
+    back.requires_grad_(False)
+    return back, printed
+
+
+def _loads(robot: Robot, q: torch.Tensor, params=None) -> dict[str, np.ndarray]:
+    """Gravity torques, static wrenches (moment about the root origin: each robot's
+    joint frames sit elsewhere on the same axes, and a moment is about a point), moving
+    mass, its centre of mass and each segment's inertia in the root frame, at ``q``."""
+    with torch.no_grad():
+        tau = robot.gravity_torques(q, params=params)
+        wrench = robot.static_wrenches(q, params=params)
+        frames = robot.link_frames(q, params)[:, : robot.chain_dof]
+        force, about_joint = wrench[..., :3], wrench[..., 3:]
+        moment = about_joint + torch.linalg.cross(frames[..., :3, 3], force)
+    m, c = robot.segment_mass[1:], robot.segment_com[1:]
+    R, p = frames[..., :3, :3], frames[..., :3, 3]
+    placed = (R @ c[..., None])[..., 0] + p
+    com = (m[:, None] * placed).sum(-2) / m.sum()
+    inertia = torch.as_tensor(robot.spec.segment_inertia[1:])
+    turned = R @ inertia @ R.transpose(-1, -2)
+    return {
+        "tau": tau.numpy(),
+        "force": force.numpy(),
+        "moment": moment.numpy(),
+        "mass": np.array(float(m.sum())),
+        "com": com.numpy(),
+        "inertia": turned.numpy(),
+    }
+
+
+def _compare(want: dict, got: dict) -> dict[str, float]:
+    """Largest difference per quantity, relative to the quantity's largest value."""
+    return {
+        k: float(np.abs(got[k] - want[k]).max() / max(np.abs(want[k]).max(), 1e-300)) for k in want
+    }
+
+
+@pytest.mark.parametrize("convention", ["dh", "mdh"])
+@pytest.mark.parametrize("name", ["ur10", "rx160"])
+def test_nominal_statics_round_trip(name, convention, tmp_path, capsys):
+    """export nominal:ROBOT -> import dh: the same gravity torques, static wrenches,
+    moving mass, centre of mass and inertias (fails where the table holds no masses:
+    the re-imported arm then has no load)."""
+    robot = Robot.from_urdf(name)
+    robot.requires_grad_(False)
+    back, printed = _round_trip(f"nominal:{name}", convention, tmp_path, capsys)
+    assert "link masses written" in printed
+    assert "not the links' masses" not in printed
+    root = float(robot.segment_mass[0])
+    assert f"the root link's {root:.4g} kg" in printed  # fixed: no row, said
+    q = robot.sample_q(50, torch.Generator().manual_seed(11))
+    want, got = _loads(robot, q), _loads(back, q)
+    assert np.abs(want["tau"]).max() > 10.0  # a loaded arm [Nm], not a vacuous compare
+    errors = _compare(want, got)
+    print(f"{name} {convention} relative errors: {errors}")
+    assert max(errors.values()) < REL, errors
+
+
+@pytest.mark.parametrize("convention", ["dh", "mdh"])
+@pytest.mark.parametrize("name", ["ur10", "rx160"])
+def test_calibrated_statics_round_trip(name, convention, tmp_path, capsys):
+    """A model with random joint offsets, axis misalignments and link lengths: the
+    re-imported robot at commanded q holds the loads of the model's geometry at q plus
+    its offsets (the segments' masses ride on the calibrated joint frames)."""
+    robot = Robot.from_urdf(name)
+    robot.requires_grad_(False)
+    model = _random_model(robot, run_rng(f"dh-mass-{name}-{convention}"))
+    model.requires_grad_(False)
+    save_model(tmp_path / "m.pt", model)
+    back, _ = _round_trip(str(tmp_path / "m.pt"), convention, tmp_path, capsys)
+    geometric = geometric_model(model)
+    q = robot.sample_q(50, torch.Generator().manual_seed(12))
+    with torch.no_grad():
+        params = geometric.kinematic_params(
+            Conditions(temperature=torch.tensor(REFERENCE_TEMPERATURE, dtype=torch.float64))
+        )
+        params = type(params)(*(t.detach() for t in params))
+        moved = geometric.kinematic_joint_values(q)
+    assert (moved - q).abs().max() > 1e-4  # the offsets are there to be carried
+    want, got = _loads(robot, moved, params), _loads(back, q)
+    errors = _compare(want, got)
+    print(f"{name} {convention} calibrated relative errors: {errors}")
+    assert max(errors.values()) < REL, errors
+
+
+def test_massless_robot_gets_no_line_and_no_columns(tmp_path, capsys):
+    """A table-built robot without masses exports no inertial columns and says nothing
+    about masses."""
+    rows = [
+        {"name": f"j{i}", "a": 0.3, "alpha": 1.2, "d": 0.1, "theta": 0.0, "type": "revolute"}
+        | {"lower": -2.0, "upper": 2.0}
+        for i in range(1, 4)
+    ]
+    src = tmp_path / "arm.yaml"
+    src.write_text(yaml.safe_dump({"convention": "dh", "joints": rows}), encoding="utf-8")
+    urdf = tmp_path / "arm.urdf"
+    assert main(["import", "dh", str(src), "--out", str(urdf)]) == 0
+    capsys.readouterr()
+    out = tmp_path / "out.yaml"
+    assert main(["export", f"nominal:{urdf}", "--format", "mdh", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "masses" not in printed
+    written = yaml.safe_load(out.read_text(encoding="utf-8"))["joints"]
+    assert not any("mass" in r for r in written)
