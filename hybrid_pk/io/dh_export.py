@@ -56,14 +56,8 @@ from hybrid_pk.geometry import matrix_to_rpy
 from hybrid_pk.robot.dh import rot, trans
 from hybrid_pk.robot.dh_table import CONVENTIONS, INERTIA_COLUMNS, DHTable
 
-__all__ = [
-    "frame_entry",
-    "geometric_model",
-    "inertial_note",
-    "model_dh_table",
-    "write_dh_yaml",
-    "zero_frames",
-]
+__all__ = ["frame_entry", "geometric_model", "inertial_note", "model_dh_table"]
+__all__ += ["write_dh_yaml", "zero_frames"]
 
 # Below this length [m] two lines count as crossing (a = 0): far below any machining
 # tolerance, far above the float64 rounding of metre-sized chains (1e-16 m).
