@@ -150,3 +150,46 @@ def test_massless_robot_gets_no_line_and_no_columns(tmp_path, capsys):
     assert "masses" not in printed
     written = yaml.safe_load(out.read_text(encoding="utf-8"))["joints"]
     assert not any("mass" in r for r in written)
+
+
+_BRANCHED = """<?xml version="1.0"?>
+<robot name="branched">
+  <link name="base_link"/>
+  <link name="link_1">{inertial}</link>
+  <link name="link_2">{inertial}</link>
+  <link name="finger">{inertial}</link>
+  <link name="tool0"/>
+  <joint name="j1" type="revolute"><parent link="base_link"/><child link="link_1"/>
+    <origin xyz="0 0 0.4"/><axis xyz="0 0 1"/>{limit}</joint>
+  <joint name="j2" type="revolute"><parent link="link_1"/><child link="link_2"/>
+    <origin xyz="0.3 0 0" rpy="1.5708 0 0"/><axis xyz="0 0 1"/>{limit}</joint>
+  <joint name="finger_joint" type="revolute"><parent link="link_1"/><child link="finger"/>
+    <origin xyz="0 0.1 0"/><axis xyz="1 0 0"/>{limit}
+    <mimic joint="j2"/></joint>
+  <joint name="tool_joint" type="fixed"><parent link="link_2"/><child link="tool0"/>
+    <origin xyz="0.5 0 0"/></joint>
+</robot>
+"""
+_MASS = (
+    '<inertial><origin xyz="0.1 0 0"/><mass value="2.0"/>'
+    '<inertia ixx="0.01" ixy="0" ixz="0" iyy="0.01" iyz="0" izz="0.01"/></inertial>'
+)
+
+
+def test_driven_off_chain_mass_is_not_written_and_said(tmp_path, capsys):
+    """A mass on an off-chain joint that a chain joint drives (a finger following j2,
+    on j1's link) moves about another axis than any row's: no inertial columns (a
+    partial table would give wrong statics), and the line says why."""
+    urdf = tmp_path / "branched.urdf"
+    limit = '<limit lower="-2" upper="2" effort="0" velocity="0"/>'
+    urdf.write_text(_BRANCHED.format(inertial=_MASS, limit=limit), encoding="utf-8")
+    robot = Robot.from_urdf(urdf, end_link="tool0")
+    assert robot.spec.branches  # what this test is about: a driven off-chain mass
+    assert not robot.has_mimic
+    out = tmp_path / "t.yaml"
+    argv = ["export", f"nominal:{urdf}", "--end-link", "tool0", "--format", "dh"]
+    assert main([*argv, "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "not the links' masses: a mass off the chain (on finger_joint," in printed
+    written = yaml.safe_load(out.read_text(encoding="utf-8"))["joints"]
+    assert not any("mass" in r for r in written)

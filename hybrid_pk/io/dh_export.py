@@ -218,9 +218,10 @@ def inertial_note(robot) -> str | None:
     if robot.spec.branches:
         names = ", ".join(b.joint for b in robot.spec.branches)
         return (
-            f"the table carries the geometry, not the links' masses: {names} move(s) "
-            "masses off the chain that no row holds; keep the URDF (--format urdf) for "
-            "compliance or deflection effects"
+            "the table carries the geometry, not the links' masses: a mass off the chain "
+            f"(on {names}, driven by a chain joint) turns about an axis no row has, so no "
+            "row holds a mass; keep the URDF (--format urdf) for compliance or deflection "
+            "effects"
         )
     root = float(robot.segment_mass[0])
     fixed = f"; the root link's {root:.4g} kg carries no joint load and has no row" if root else ""
