@@ -26,7 +26,9 @@ values) in one of these formats:
 
   dh              DH table, YAML: rows name a alpha d theta beta type lower upper
                   [m, rad], Rz(theta) Tz(d) Tx(a) Rx(alpha) Ry(beta); base (root ->
-                  frame 0) and flange (frame n -> end link) as {xyz [m], rpy [rad]}
+                  frame 0) and flange (frame n -> end link) as {xyz [m], rpy [rad]};
+                  where the links have mass, each row also holds mass com_x com_y com_z
+                  ixx ixy ixz iyy iyz izz [kg, m, kg m^2] in its frame i (import dh's)
   mdh             modified (Craig) DH, same file: Rx(alpha) Tx(a) Ry(beta) Rz(theta) Tz(d)
   urdf            the corrected URDF (joint offsets folded into the joint origins)
   ur-calibration  Universal Robots' kinematics YAML (ur_description): per joint
