@@ -110,8 +110,8 @@ def test_calibrated_ur10_exports_reproduce_geometry(calibrated_ur10, tmp_path, c
         assert "joint_compliance:shoulder_lift_joint" in printed
         assert "mm rms" in printed
         assert "125 measured points" in printed  # the model's own calibration rows
-        # a DH table holds no masses: what that costs read back is said (the UR10 has them)
-        assert ("not the links' masses" in printed) == (fmt in ("dh", "mdh")), printed
+        # a DH table holds the UR10's link masses, and says so (tests/test_dh_export_mass.py)
+        assert ("link masses written" in printed) == (fmt in ("dh", "mdh")), printed
         if suffix == "yaml":
             assert "joint_compliance:shoulder_lift_joint" in out.read_text(encoding="utf-8")
     with torch.no_grad():

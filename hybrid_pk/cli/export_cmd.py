@@ -11,7 +11,7 @@ import torch
 from hybrid_pk.cli.common import read_data
 from hybrid_pk.cli.options import add_model, add_out
 from hybrid_pk.effects import Conditions, conditions_from_data
-from hybrid_pk.io.dh_export import model_dh_table, write_dh_yaml
+from hybrid_pk.io.dh_export import inertial_note, model_dh_table, write_dh_yaml
 from hybrid_pk.io.export_summary import left_out, summary_lines
 from hybrid_pk.io.model_file import LoadedModel, load_model
 from hybrid_pk.io.ur_calibration import UR_ROOTS, write_ur_calibration
@@ -26,7 +26,9 @@ values) in one of these formats:
 
   dh              DH table, YAML: rows name a alpha d theta beta type lower upper
                   [m, rad], Rz(theta) Tz(d) Tx(a) Rx(alpha) Ry(beta); base (root ->
-                  frame 0) and flange (frame n -> end link) as {xyz [m], rpy [rad]}
+                  frame 0) and flange (frame n -> end link) as {xyz [m], rpy [rad]};
+                  where the links have mass, each row also holds mass com_x com_y com_z
+                  ixx ixy ixz iyy iyz izz [kg, m, kg m^2] in its frame i (import dh's)
   mdh             modified (Craig) DH, same file: Rx(alpha) Tx(a) Ry(beta) Rz(theta) Tz(d)
   urdf            the corrected URDF (joint offsets folded into the joint origins)
   ur-calibration  Universal Robots' kinematics YAML (ur_description): per joint
@@ -88,12 +90,8 @@ def run(args: argparse.Namespace) -> int:
     lines = [f"hybrid_pk export of {loaded.source} ({args.format})"]
     lines += summary_lines(left_out(loaded, q, cond), where)
     if args.format in ("dh", "mdh"):
-        if float(model.robot.segment_mass.sum()) > 0:
-            lines.append(
-                "the table carries the geometry, not the links' masses: read back "
-                "(hybrid-pk import dh) it has no static load for compliance or deflection "
-                "effects; keep the URDF (--format urdf) for those"
-            )
+        note = inertial_note(model.robot)
+        lines += [note] if note else []
         write_dh_yaml(model_dh_table(model, args.format), args.out, header=lines)
     elif args.format == "ur-calibration":
         _, note = write_ur_calibration(model, args.out, header=lines, root=args.ur_root)

@@ -27,6 +27,15 @@ exports its own table back. MDH frame ``k`` is the
 normal's frame at ``f``, DH frame ``k`` the same frame moved by ``Tx(a) Rx(alpha)
 Ry(beta)`` onto line ``k+1``; ``theta_i, d_i`` go from DH frame ``i-1`` to MDH frame
 ``i``, both on line ``i``. The DH and MDH tables hold the same numbers, grouped apart.
+
+Masses. Where the robot's moving links have mass, each row also holds its segment's
+inertial (mass, centre of mass, inertia about it) in table frame ``i`` — the frame
+``hybrid-pk import dh`` attaches row ``i``'s inertial to: ``dh`` frame ``i`` (the end of
+row ``i``, on line ``i+1``), ``mdh`` frame ``i`` (on line ``i``); both move with joint
+``i`` only, as segment ``i`` does. Read back, the table gives the same statics
+(``gravity_torques``). The root link's mass carries no joint load and has no row; masses on
+off-chain joints that a chain joint drives (:attr:`ChainSpec.branches`) ride on another
+axis than their row's and are not written (:func:`inertial_note` says so).
 """
 
 from __future__ import annotations
@@ -45,9 +54,10 @@ from hybrid_pk.effects.joint import JointOffset
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import matrix_to_rpy
 from hybrid_pk.robot.dh import rot, trans
-from hybrid_pk.robot.dh_table import CONVENTIONS, DHTable
+from hybrid_pk.robot.dh_table import CONVENTIONS, INERTIA_COLUMNS, DHTable
 
-__all__ = ["frame_entry", "geometric_model", "model_dh_table", "write_dh_yaml", "zero_frames"]
+__all__ = ["frame_entry", "geometric_model", "inertial_note", "model_dh_table"]
+__all__ += ["write_dh_yaml", "zero_frames"]
 
 # Below this length [m] two lines count as crossing (a = 0): far below any machining
 # tolerance, far above the float64 rounding of metre-sized chains (1e-16 m).
@@ -162,6 +172,7 @@ def model_dh_table(model: ExtendedModel, convention: str) -> DHTable:
         a, alpha, beta = normals[i] if convention == "dh" else normals[i - 1]
         rows.append([a, alpha, d, theta, beta])
     lower, upper = robot.joint_limits
+    table_frames = G if convention == "dh" else M
     if convention == "dh":
         base, flange = G[0], np.linalg.solve(G[n], end)
     else:
@@ -176,6 +187,47 @@ def model_dh_table(model: ExtendedModel, convention: str) -> DHTable:
         base=base,
         flange=flange,
         name=robot.name,
+        inertial=_inertials(robot, frames, table_frames),
+    )
+
+
+def _inertials(robot, frames: np.ndarray, table_frames: list) -> np.ndarray | None:
+    """``(n, 10)`` per row ``mass, com (3), ixx ixy ixz iyy iyz izz`` of segment ``i`` in
+    table frame ``i`` (``frames[i-1]``: the segment's own frame, at the same commanded
+    zero as ``table_frames``), or None where the table cannot carry the statics."""
+    mass = robot.segment_mass.detach().to(torch.float64).numpy()
+    com = robot.segment_com.detach().to(torch.float64).numpy()
+    if not mass[1:].sum() > 0 or robot.spec.branches:
+        return None
+    rows = np.zeros((robot.chain_dof, len(INERTIA_COLUMNS)))
+    for i in range(1, robot.chain_dof + 1):
+        if mass[i] <= 0:
+            continue  # a massless segment: an empty row (no <inertial>)
+        X = np.linalg.solve(table_frames[i], frames[i - 1])  # segment -> table frame i
+        R = X[:3, :3]
+        inertia = R @ robot.spec.segment_inertia[i] @ R.T
+        rows[i - 1] = [mass[i], *(R @ com[i] + X[:3, 3]), *inertia[np.triu_indices(3)]]
+    return rows
+
+
+def inertial_note(robot) -> str | None:
+    """The export summary's line on the links' masses (None: the robot has none)."""
+    moving = float(robot.segment_mass[1:].sum())
+    if not moving > 0:
+        return None
+    if robot.spec.branches:
+        names = ", ".join(b.joint for b in robot.spec.branches)
+        return (
+            "the table carries the geometry, not the links' masses: a mass off the chain "
+            f"(on {names}, driven by a chain joint) turns about an axis no row has, so no "
+            "row holds a mass; keep the URDF (--format urdf) for compliance or deflection "
+            "effects"
+        )
+    root = float(robot.segment_mass[0])
+    fixed = f"; the root link's {root:.4g} kg carries no joint load and has no row" if root else ""
+    return (
+        f"link masses written: each row's mass, centre of mass and inertia in its frame i "
+        f"({moving:.4g} kg moving), read back by hybrid-pk import dh{fixed}"
     )
 
 
@@ -207,6 +259,8 @@ def write_dh_yaml(table: DHTable, path: str | os.PathLike, header: list[str] = (
         row = {"name": name, "a": a, "alpha": alpha, "d": d, "theta": theta, "beta": beta}
         row.update(type=table.types[i], lower=_plain(table.lower[i]))
         row["upper"] = _plain(table.upper[i])
+        if table.inertial is not None:
+            row.update(zip(INERTIA_COLUMNS, (_plain(v) for v in table.inertial[i]), strict=True))
         rows.append(row)
     doc = {
         "convention": table.convention,

@@ -83,6 +83,9 @@ class ChainSpec:
         segment_mass: ``(n_chain + 1,)`` [kg] mass rigidly attached to each segment.
         segment_com: ``(n_chain + 1, 3)`` [m] centre of mass of each segment in its
             frame (zero where the segment has no mass).
+        segment_inertia: ``(n_chain + 1, 3, 3)`` [kg m²] inertia of each segment about
+            its centre of mass, in its frame's axes (the statics read only mass and
+            centre of mass; a DH export writes it beside them).
         branches: masses on off-chain joints that robot joints drive.
         ignored_mass: [kg] mass on other off-chain movable branches, not in the statics.
     """
@@ -106,6 +109,7 @@ class ChainSpec:
     segment_com: np.ndarray
     branches: tuple[BranchBody, ...] = ()
     ignored_mass: float = 0.0
+    segment_inertia: np.ndarray | None = None
 
     @property
     def dof(self) -> int:
@@ -297,6 +301,23 @@ def _mass(tree: _Tree, links: dict[str, np.ndarray]) -> tuple[float, np.ndarray]
     return mass, moment
 
 
+def _inertia(tree: _Tree, links: dict[str, np.ndarray], com: np.ndarray) -> np.ndarray:
+    """Inertia [kg m²] of ``links`` (name -> frame transform) about ``com``, in the
+    axes ``links`` are given in: each link's tensor turned into them, moved to ``com``
+    by the parallel-axis theorem."""
+    out = np.zeros((3, 3))
+    for name, T in links.items():
+        inertial = tree.model.link_map[name].inertial
+        if inertial is None or not inertial.mass:
+            continue
+        F = T if inertial.origin is None else T @ inertial.origin
+        own = np.zeros((3, 3)) if inertial.inertia is None else np.asarray(inertial.inertia)
+        d = F[:3, 3] - com
+        out += F[:3, :3] @ own @ F[:3, :3].T
+        out += float(inertial.mass) * ((d @ d) * np.eye(3) - np.outer(d, d))
+    return out
+
+
 def load_chain_spec(urdf: str | Path, end_link: str | None = None) -> ChainSpec:
     """Read a URDF into a :class:`ChainSpec` for the chain root -> ``end_link``.
 
@@ -325,6 +346,7 @@ def load_chain_spec(urdf: str | Path, end_link: str | None = None) -> ChainSpec:
     branches, branch_links = _branches(tree, segments, on_chain, leaders)
     counted = set(branch_links).union(*segments)
     mass, moment = (np.array(v) for v in zip(*(_mass(tree, s) for s in segments), strict=True))
+    com = np.divide(moment, mass[:, None], out=np.zeros_like(moment), where=mass[:, None] > 0)
     try:
         limits = np.array([_joint_limits(j) for j in independent]).reshape(-1, 2)
     except RobotModelError as exc:  # name the file, as every other URDF error does
@@ -346,11 +368,12 @@ def load_chain_spec(urdf: str | Path, end_link: str | None = None) -> ChainSpec:
         origins=np.stack(origins),
         axes=np.stack([_axis(tree, j) for j in chain]),
         segment_mass=mass,
-        segment_com=np.divide(
-            moment, mass[:, None], out=np.zeros_like(moment), where=mass[:, None] > 0
-        ),
+        segment_com=com,
         branches=tuple(branches),
         ignored_mass=_mass(tree, {n: np.eye(4) for n in tree.links if n not in counted})[0],
+        segment_inertia=np.stack(
+            [_inertia(tree, s, c) for s, c in zip(segments, com, strict=True)]
+        ),
     )
 
 
