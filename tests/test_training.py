@@ -160,6 +160,7 @@ def test_cli_train_writes_a_model_that_evaluate_reads(files, rx160, campaign, tm
     # the default stages on physics inputs were probed on blocked hold-out: the decision
     # printed, in the metadata and with each stage in the networks
     assert "blocked hold-out (" in captured.out
+    assert "a row counted once per family of blocks holding it" in captured.out
     assert "free against gated, per family of blocks" in captured.out
     blocked = loaded.metadata["training"]["blocked"]
     assert blocked

@@ -212,8 +212,9 @@ def _print_blocked(blocked: dict) -> None:
     first = next(iter(blocked.values()))
     physics = first["physics"]
     print(
-        f"blocked hold-out ({physics['rows']} rows: {', '.join(first['blocks'])}), "
-        f"physics {physics['position_mm']:.4g} mm:"
+        f"blocked hold-out ({physics['rows']} held-out rows, a row counted once per family "
+        f"of blocks holding it: {', '.join(first['blocks'])}), physics "
+        f"{physics['position_mm']:.4g} mm:"
     )
     for name, record in blocked.items():
         tried = ", ".join(
