@@ -251,9 +251,7 @@ def fit(
     sig_p, sig_r, iterations, converged, weights = _solve_reweighted(
         problem_at, data, sigmas, fixed, max_iter, progress, robust, weights, near
     )
-    # held at the given tool, or at the tool registered to a given base (it is not a
-    # guess on the registration's ridge then: the base pins it), else at the origin
-    given = frames is not None and (frames.tool is not None or frames.base is not None)
+    given = frames is not None and (frames.tool, frames.base) != (None, None)  # hold there
     held = held_prior(model, data, cond, blocks, prior, given)  # at this optimum
     R, R_start = None, None  # the factors of [J r] where the chord's check settled / not
     if held is prior:
