@@ -190,8 +190,13 @@ def test_refit_base_after_the_tracker_moved(calibrated, campaign, capsys, tmp_pa
         refitted,
     )
     assert rc == 0, err
-    assert "re-fitted the base frame(s)" in out
+    assert "re-fitted the base frame of" in out
     assert _evaluate(capsys, tmp_path, refitted, campaign["moved"])["position_mm"]["mean"] < 0.05
+    both = tmp_path / "m3.pt"
+    argv = ["calibrate", campaign["moved"], "--model", model, "--refit", "frames"]
+    rc, out, err = _run(capsys, *argv, "--out", both)
+    assert rc == 0, err
+    assert "re-fitted the base and tool frames of" in out  # not "the frames frame(s)"
 
     before, after = load_model(model).model, load_model(refitted).model
     assert torch.equal(after.effects[0].value, before.effects[0].value)  # effects kept

@@ -197,6 +197,25 @@ def test_cli_joint_and_pose_programs(tmp_path, capsys, rx160):
     assert pd.read_csv(out).loc[2, rx160.joint_names].isna().all()
 
 
+def test_cli_tells_how_to_state_an_assumed_payload_in_the_program(tmp_path, capsys, rx160):
+    """A compliant model on a program without a payload column: the note names the
+    PROGRAM column that states it, not a Python argument the user cannot pass."""
+    model_file = save_model(tmp_path / "model.pt", _real(rx160))
+    q_nom = _program(rx160, 4, seed=3)
+    program = write_joint_table(tmp_path / "program.csv", q_nom, rx160.joint_names)
+    argv = ["compensate", str(model_file), str(program), "--out", str(tmp_path / "c.csv")]
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    assert "solved at 0 kg; a payload column [kg] in PROGRAM states it" in text
+    assert "Conditions(" not in text
+    # with the column, nothing is assumed
+    table = pd.read_csv(program)
+    table["payload"] = 5.0
+    table.to_csv(program, index=False)
+    assert main(argv) == 0
+    assert "0 kg" not in capsys.readouterr().out
+
+
 def test_cli_hybrid_model_file(tmp_path, capsys, rx160):
     torch.manual_seed(0)
     q_box = rx160.sample_q(64, torch.Generator().manual_seed(1))

@@ -215,6 +215,29 @@ def test_ur_yaml_of_the_ur10(tmp_path, ur10):
     assert note is None  # its 12-digit pi/2 tilts tool0 by 5e-12 rad: rounding, not said
 
 
+def test_ur_root_is_taken_from_the_geometry(tmp_path, ur10, capsys):
+    """export --format ur-calibration without --ur-root: the shipped ur10 (arm along +x
+    at zero) is written as base_link, UR's DH table (along -x) as base_link_inertia, each
+    said; a --ur-root that contradicts the geometry is warned about."""
+    from tests.test_dh import UR10_DH, _table
+
+    from_dh = Robot.from_dh(_table(UR10_DH, "dh"), "dh")
+    for robot, root in ((ur10, "base_link"), (from_dh, "base_link_inertia")):
+        model = save_model(tmp_path / f"{root}.pt", ExtendedModel(robot))
+        argv = ["export", str(model), "--format", "ur-calibration", "--out"]
+        assert main([*argv, str(tmp_path / "auto.yaml")]) == 0
+        assert f"root link taken as {root}:" in capsys.readouterr().out
+        assert main([*argv, str(tmp_path / "given.yaml"), "--ur-root", root]) == 0
+        assert "warning" not in capsys.readouterr().out
+        body = [
+            (tmp_path / f).read_text().split("kinematics:")[1] for f in ("auto.yaml", "given.yaml")
+        ]
+        assert body[0] == body[1]
+        other = "base_link" if root == "base_link_inertia" else "base_link_inertia"
+        assert main([*argv, str(tmp_path / "other.yaml"), "--ur-root", other]) == 0
+        assert f"warning: --ur-root {other}, but" in capsys.readouterr().out
+
+
 def _rz(angle: np.ndarray) -> np.ndarray:
     T = np.zeros((len(angle), 4, 4))
     c, s = np.cos(angle), np.sin(angle)

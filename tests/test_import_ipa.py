@@ -144,6 +144,12 @@ def test_cli_prints_a_short_summary(capsys, tmp_path):
     assert "1495 rows" in out
     assert "temperature 21.62 .. 22.24 °C" in out
     assert "intrinsic 'XYZ'" in out
+    assert "detected" not in out
+    argv = ["import", "ipa", str(SERIES_B), "--out", str(tmp_path / "b.csv")]
+    assert main([*argv, "--convention", "auto"]) == 0
+    assert (
+        "intrinsic 'XYZ' (R = Rx(a) Ry(b) Rz(c)), detected on the file" in capsys.readouterr().out
+    )
 
 
 @needs_shared

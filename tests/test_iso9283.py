@@ -106,6 +106,14 @@ def test_summary_is_json_ready_and_flags_few_cycles(campaign):
     assert math.isclose(summary["sigma_pooled_mm"], NOISE_MM, rel_tol=0.3)
     assert math.isclose(summary["sigma_robust_mm"], NOISE_MM, rel_tol=0.3)
     assert any("fewer than the 30 cycles" in line for line in result.lines())
+    from hybrid_pk.report.evaluation_report import _iso_section
+
+    lines, _ = _iso_section(short, T_true[:15], "m.pt")
+    assert "5 repeated poses, 3 visits each" in "\n".join(lines)  # not "3-3 visits"
+    assert (
+        f"the median, which a bad visit does not inflate: {summary['sigma_robust_mm']:.4f} mm"
+        in ("\n".join(lines))
+    )
 
 
 def test_position_only_data_gives_position_figures_only(campaign):

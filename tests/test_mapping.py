@@ -272,7 +272,7 @@ def test_decreasing_time_is_an_error(tmp_path):
         ("j=J,x=X,y=Y", {}, "partial position"),
         ("j=J,x=X[parsec],y=Y,z=Z", {}, "unknown unit 'parsec'"),
         ("j=J,x=X[deg],y=Y,z=Z", {}, "expected a length unit"),
-        ("j=J,x=X,y=Y,z=Z,e1=A,e2=B,e3=C", {}, "need a sequence"),
+        ("j=J,x=X,y=Y,z=Z,e1=A,e2=B,e3=C", {}, "need a sequence, e.g. --euler XYZ"),
         ("j=J,x=X,y=Y,z=Z,e1=A,e2=B,e3=C", {"euler": "XYQ"}, "Euler sequence"),
         ("j=J,x", {}, "TARGET=SOURCE"),
         ("j=J,j=K,x=X,y=Y,z=Z", {}, "given twice"),

@@ -251,7 +251,7 @@ def fit(
     sig_p, sig_r, iterations, converged, weights = _solve_reweighted(
         problem_at, data, sigmas, fixed, max_iter, progress, robust, weights, near
     )
-    given = frames is not None and frames.tool is not None  # held there, else at origin
+    given = frames is not None and (frames.tool, frames.base) != (None, None)  # hold there
     held = held_prior(model, data, cond, blocks, prior, given)  # at this optimum
     R, R_start = None, None  # the factors of [J r] where the chord's check settled / not
     if held is prior:

@@ -6,7 +6,8 @@ the flange orientation barely varies) the Gaussian prior of
 that carry a comparable information, the fit still walks half-way to wherever the
 unmodelled errors push it. Here such a direction is *held*: a residual row whose
 information dwarfs the data's keeps the tool's part of it at the centre of the tool's
-prior (the end link's origin, or a given ``--tool``); the base follows the data to
+prior (the end link's origin, a given ``--tool``, or the tool registered to a given
+``--base``); the base follows the data to
 where that tool puts it. The directions are found at the optimum of the fit without
 the hold (:func:`hybrid_pk.calibration.fit.fit`), so neither they nor the held value
 depend on the start guess.
@@ -74,7 +75,8 @@ def _tool_rows(
     model: ExtendedModel, blocks: tuple[ParamBlock, ...], prior: PriorRows, tool_given: bool
 ) -> PriorRows:
     """Rows ``theta_frame - (centre - now) / scale``: the frame offsets from the
-    tool prior's centre (the end link's origin or the given ``--tool``) in scaled
+    tool prior's centre (the end link's origin, or with ``tool_given`` the prior's:
+    the given ``--tool`` or the tool registered to a given ``--base``) in scaled
     units (identity on the frame columns). The base's rows are centred where it is
     now; the hold weights give them no weight (:func:`held_prior`)."""
     centres = {}

@@ -72,8 +72,10 @@ def run_refit(args: argparse.Namespace, settings: FitSettings) -> int:
         urdf = urdf_target(args, refit=True)
         export_model_urdf(model, args, urdf)
 
+    frames = {"frames": "base and tool frames"}.get(which, f"{which} frame")
+    per_file = " (one set per file)" if args.frames_per_file else ""
     print(
-        f"re-fitted the {which} frame(s) of {args.model} ({robot.name}, "
+        f"re-fitted the {frames}{per_file} of {args.model} ({robot.name}, "
         f"{len(model.effects)} effect(s) kept"
         + (", residual networks kept" if loaded.has_networks else "")
         + f") on {data.n} rows from {len(data.sources)} file(s)"

@@ -49,6 +49,12 @@ The robot base frame is the one the calibration identified (MODEL's base frame).
 
 
 NAME = "compensate"
+# How a user of this command states each condition the IK would otherwise assume.
+_FIXES = {
+    "approach": "--approach + / - / JOINT=+,JOINT=- states how the robot approaches",
+    "temperature": "a temperature column [degC] in PROGRAM states it",
+    "payload": "a payload column [kg] in PROGRAM states it",
+}
 HELP = "correct a robot program's joint targets for the calibrated model"
 DESCRIPTION = _DESCRIPTION
 
@@ -118,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
         bar.stage(f"solving {program.n} row(s) on the model")
         comp = compensate_program(
             loaded, program, frame_set=k, box=args.box, options=options,
-            approach=parse_approach(args.approach), out=args.out,
+            approach=parse_approach(args.approach), out=args.out, fixes=_FIXES,
         )  # fmt: skip
     for line in comp.assumed:
         print(f"note: {line}")

@@ -14,7 +14,7 @@ from hybrid_pk.effects import Conditions, conditions_from_data
 from hybrid_pk.io.dh_export import inertial_note, model_dh_table, write_dh_yaml
 from hybrid_pk.io.export_summary import left_out, summary_lines
 from hybrid_pk.io.model_file import LoadedModel, load_model
-from hybrid_pk.io.ur_calibration import UR_ROOTS, write_ur_calibration
+from hybrid_pk.io.ur_calibration import UR_ROOTS, guess_ur_root, write_ur_calibration
 from hybrid_pk.io.urdf_export import export_urdf
 
 NAME = "export"
@@ -53,12 +53,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_out(p, metavar="FILE", help="output file (.yaml for dh, mdh and ur-calibration)")
     p.add_argument(
         "--ur-root",
-        choices=UR_ROOTS,
-        default=UR_ROOTS[0],
+        choices=("auto", *UR_ROOTS),
+        default="auto",
         help="ur-calibration: what MODEL's root link is in UR's description: "
         "base_link_inertia (the controller's base frame, DH frame 0: a robot imported from "
         "UR's DH table) or base_link (turned by pi about z: ur_description's URDFs, the "
-        "shipped ur10) (default: %(default)s)",
+        "shipped ur10); auto: base_link where the flange at zero joints lies along +x of "
+        "the root, else base_link_inertia (UR's arms stretch along -x of DH frame 0) "
+        "(default: %(default)s)",
     )
     p.add_argument(
         "--data",
@@ -94,7 +96,17 @@ def run(args: argparse.Namespace) -> int:
         lines += [note] if note else []
         write_dh_yaml(model_dh_table(model, args.format), args.out, header=lines)
     elif args.format == "ur-calibration":
-        _, note = write_ur_calibration(model, args.out, header=lines, root=args.ur_root)
+        root, x = guess_ur_root(model)
+        seen = f"at zero joints the flange is at x = {x:.4g} m, as UR's arms are in {root}"
+        if args.ur_root == "auto":
+            lines.append(f"root: {model.robot.name}'s root link taken as {root}: {seen}")
+        elif args.ur_root != root:
+            lines.append(
+                f"warning: --ur-root {args.ur_root}, but {seen}: the written arm may be "
+                "turned by pi about z"
+            )
+        root = root if args.ur_root == "auto" else args.ur_root
+        _, note = write_ur_calibration(model, args.out, header=lines, root=root)
         lines += [note] if note else []
     else:
         export_urdf(model, args.out, fold_joint_offsets=True)

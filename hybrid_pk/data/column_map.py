@@ -119,8 +119,8 @@ class ColumnMap:
         if "e1" in have:
             if self.euler is None:
                 raise DataError(
-                    'column map: Euler angles e1, e2, e3 need a sequence, e.g. "euler": '
-                    '"XYZ" (upper case intrinsic, lower case extrinsic)'
+                    "column map: Euler angles e1, e2, e3 need a sequence, e.g. --euler XYZ "
+                    '(a map file: "euler": "XYZ"; upper case intrinsic, lower case extrinsic)'
                 )
             try:
                 Rotation.from_euler(self.euler, [0.0, 0.0, 0.0])

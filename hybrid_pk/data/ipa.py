@@ -199,6 +199,7 @@ class IpaImport:
     temperature: tuple[float, float]  # min, max [°C]
     convention: str
     extra_columns: tuple[str, ...]
+    detected: bool = False  # convention found on the file (--convention auto)
 
     def summary(self) -> str:
         """A short human summary, one fact per line."""
@@ -207,7 +208,8 @@ class IpaImport:
             f"{self.source} -> {self.destination}: {self.n_rows} rows (row order kept, no t)",
             f"  temperature {lo:.2f} .. {hi:.2f} °C",
             f"  measurement_x,y,z [mm] -> x, y, z [m]; measurement_rx,ry,rz [deg] -> "
-            f"qw..qz as {describe_sequence(self.convention)}",
+            f"qw..qz as {describe_sequence(self.convention)}"
+            + (", detected on the file's joint angles" if self.detected else ""),
         ]
         if self.extra_columns:
             lines.append(f"  kept as extra columns: {', '.join(self.extra_columns)}")
@@ -232,15 +234,17 @@ def convert_ipa(
     if convention == "auto":
         required += GOAL_ANGLES
     raw = read_ipa_csv(src, required, optional=list(_STD_COLUMNS))
-    if convention == "auto":
+    detected = convention == "auto"
+    if detected:
         convention = _detect_on(raw).measurement.convention
     frame = ipa_to_frame(raw, convention)
     write_frame(dst, frame)
     extras = tuple(c for c in frame.columns if c.startswith("std_"))
     temp = frame["temperature"]
     return IpaImport(
-        str(src), str(dst), len(frame), (float(temp.min()), float(temp.max())), convention, extras
-    )
+        str(src), str(dst), len(frame), (float(temp.min()), float(temp.max())), convention, extras,
+        detected,
+    )  # fmt: skip
 
 
 # ----------------------------------------------------------------------------- conventions

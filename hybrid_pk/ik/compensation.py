@@ -35,6 +35,7 @@ the limits silently.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
 import torch
@@ -239,6 +240,7 @@ def compensate(
     options: IKOptions | None = None,
     reference: Tensor | None = None,
     approach: Approach = None,
+    fixes: Mapping[str, str] | None = None,
 ) -> Compensation:
     """Joints for every program row that put the real robot at the nominal pose.
 
@@ -258,6 +260,8 @@ def compensate(
         reference: joints the first pose row's branch is chosen near.
         approach: how backlash joints approach every row (``+1``, ``-1``, ``"mid"``,
             per joint; :mod:`~hybrid_pk.ik.conditions`), instead of the program order.
+        fixes: how a caller's user states each assumed condition (a column, a flag), for
+            the ``assumed`` notes; default: the Python arguments.
     """
     options = options or IKOptions()
     if (q_nominal is None) == (targets is None):
@@ -277,7 +281,7 @@ def compensate(
     ordered: list[str] = []
     if approach is None:
         cond, ordered = program_conditions(real, start, cond)
-    cond, assumed = resolve_conditions([real], cond, n, approach)
+    cond, assumed = resolve_conditions([real], cond, n, approach, fixes=fixes)
     nominal_model = as_ik_model(real, cond=cond, robot=robot, n_targets=n)
     solve = _Solver(real, robot, T, start, has_nominal, box, options)
     q, ok, cond, conflict = solve.in_order(cond, _backlash_joints(real, robot) if ordered else [])

@@ -39,7 +39,7 @@ from hybrid_pk.geometry import so3_log
 from hybrid_pk.io.dh_export import frame_entry, model_dh_table
 from hybrid_pk.robot.dh import dh_row_parts, rot, trans
 
-__all__ = ["UR_JOINTS", "UR_ROOTS", "ur_kinematics", "write_ur_calibration"]
+__all__ = ["UR_JOINTS", "UR_ROOTS", "guess_ur_root", "ur_kinematics", "write_ur_calibration"]
 
 # [m or rad] a residual below this is rounding, not a flange off the last axis: of the
 # construction (float64) or of the URDF's own text (12-digit angles: 5e-12 rad); no
@@ -78,6 +78,17 @@ def ur_kinematics(
     along = rot("z", twist) @ trans("z", float(F[2, 3]))  # commutes with Rz(q_6)
     entries[-1] = entries[-1] @ along
     return entries, np.linalg.solve(along, F)
+
+
+def guess_ur_root(model: ExtendedModel) -> tuple[str, float]:
+    """``(root, x)``: what the model's root link is in UR's description, from its
+    geometry, and the flange's x [m] at zero joints that tells. UR's DH table has a2, a3
+    < 0: at zero joints the stretched arm lies along -x of DH frame 0
+    (``base_link_inertia``), so along +x of ``base_link`` (turned by pi about ``z``)."""
+    with torch.no_grad():
+        zero = torch.zeros(1, model.robot.dof, dtype=torch.float64)
+        x = float(model.robot.fk(zero)[0, 0, 3])
+    return (UR_ROOTS[1] if x > 0 else UR_ROOTS[0]), x
 
 
 def _entry(T: np.ndarray) -> dict:

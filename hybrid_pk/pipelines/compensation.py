@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import pandas as pd
@@ -59,7 +60,7 @@ def read_program(path: str, robot: Robot) -> Program:
         unused = [c for c in rest.columns if c not in ("payload", "temperature")]
         notes = [f"{path}: joint targets used; columns {', '.join(unused)} are not"] * bool(unused)
         extra = {
-            c: torch.as_tensor(pd.to_numeric(rest[c], errors="raise").to_numpy(), dtype=F64)
+            c: torch.tensor(pd.to_numeric(rest[c], errors="raise").to_numpy(), dtype=F64)
             for c in ("payload", "temperature")
             if c in rest.columns
         }
@@ -82,10 +83,12 @@ def compensate_program(
     options: IKOptions | None = None,
     approach: Approach = None,
     out: str | os.PathLike | None = None,
+    fixes: Mapping[str, str] | None = None,
 ) -> Compensation:
     """The joints that put MODEL (``loaded``, base/tool frame set ``frame_set``) at the
     program's nominal poses; written to ``out`` (joints, residuals, status) if given.
-    The IK's assumptions are in the result's ``assumed``, not warned."""
+    The IK's assumptions are in the result's ``assumed``, not warned, each with how to
+    state it instead (``fixes``: the caller's words, e.g. a column of the program)."""
     model = loaded.model
     robot = model.robot
     group = torch.full((program.n,), frame_set, dtype=torch.long) if model.base.sets > 1 else None
@@ -99,6 +102,7 @@ def compensate_program(
         comp = compensate(
             real, robot, base=base, tool=tool, q_nominal=program.q_nominal,
             targets=program.targets, cond=cond, box=box, options=options, approach=approach,
+            fixes=fixes,
         )  # fmt: skip
     if out is not None:
         write_joint_table(out, comp.q, robot.joint_names, compensation_frame(comp))

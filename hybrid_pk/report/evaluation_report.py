@@ -75,13 +75,15 @@ def _iso_section(data: MeasuredData, T: Tensor, name: str) -> tuple[list[str], d
         for k, v in summary.items()
         if isinstance(v, dict) and set(v) == {"mean", "max"}
     ]
+    low, high = summary["cycles"]["min"], summary["cycles"]["max"]
     lines = [
         "## ISO 9283 pose accuracy and repeatability",
         "",
-        f"{summary['n_poses']} repeated poses, {summary['cycles']['min']}-"
-        f"{summary['cycles']['max']} visits each (ISO 9283 asks for "
+        f"{summary['n_poses']} repeated poses, {low if low == high else f'{low}-{high}'} "
+        "visits each (ISO 9283 asks for "
         f"{summary['iso_cycles']}); accuracy AP against the poses {name} predicts. "
-        f"Pooled noise level {summary['sigma_pooled_mm']:.4f} mm per axis.",
+        f"Pooled noise level {summary['sigma_pooled_mm']:.4f} mm per axis (from the median, "
+        f"which a bad visit does not inflate: {summary['sigma_robust_mm']:.4f} mm).",
         "",
         markdown_table(rows, ["figure", "mean over poses", "max over poses"], ["l", "r", "r"]),
         "",

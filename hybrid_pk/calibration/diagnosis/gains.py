@@ -212,16 +212,23 @@ def stop_warnings(steps: list[dict]) -> list[dict]:
 
 
 def cap_warnings(steps: list[dict]) -> list[dict]:
-    """A warning for a search that stopped at its limit with a significant candidate."""
-    return [
-        {
-            "cause": s["candidate"],
-            "why": f"still significant (score F {s['score_F']:.3g}, p {s['score_p']:.2g}) "
-            "and gaining the practical margin on the blocked hold-out "
-            f"when the search stopped at its limit of {s['capped']} "
-            f"cause{'s' if s['capped'] != 1 else ''}: the "
-            "data carry more causes than were named; --max-causes N names more",
-        }
-        for s in steps
-        if s.get("capped")
-    ]
+    """A warning for a search that stopped at its limit with a significant candidate;
+    causes taken out after it (settle, swaps) are counted, so the limit and the number
+    of named causes agree."""
+    out = []
+    for i, s in enumerate(steps):
+        if not s.get("capped"):
+            continue
+        taken = sum(1 for t in steps[i + 1 :] if t.get("removed"))
+        after = f" ({taken} of them taken out after it: {s['capped'] - taken} named)" * bool(taken)
+        out.append(
+            {
+                "cause": s["candidate"],
+                "why": f"still significant (score F {s['score_F']:.3g}, p {s['score_p']:.2g}) "
+                "and gaining the practical margin on the blocked hold-out "
+                f"when the search stopped at its limit of {s['capped']} "
+                f"cause{'s' if s['capped'] != 1 else ''}{after}: the "
+                "data carry more causes than were named; --max-causes N names more",
+            }
+        )
+    return out
