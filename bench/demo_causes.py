@@ -50,8 +50,8 @@ def one_seed(seed: int, n: int = 3000) -> dict:
     diag = diagnose(robot, calib, **DiagnosisSettings(seed=seed).keywords())  # the demo's
     seconds = time.perf_counter() - start
     rows = found_table(truth, diag)
-    false = [r[0] for r in rows if r[3] == "false positive"]
-    stand_ins = [r[0] for r in rows if str(r[3]).startswith("stands in")]
+    false = [r[0] for r in rows if r[-1] == "false positive"]  # the "named" column
+    stand_ins = [r[0] for r in rows if str(r[-1]).startswith("stands in")]
     js = diag.to_json()
     return {
         "seed": seed,
