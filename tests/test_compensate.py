@@ -116,6 +116,20 @@ def test_a_pose_beyond_the_real_reach_is_unreachable(rx160):
     )
     assert comp.status == ("unreachable",)
     assert "no solution within" in comp.note[0]
+    # the stretched elbow is singular: the reason is said
+    assert "near a singular configuration" in comp.note[0]
+
+
+def test_a_box_too_small_for_any_direction_is_not_called_singular(rx160):
+    """A 2 mrad joint offset with a 0.5 mrad box, in a well-conditioned program: the
+    rows are unreachable within the box, and nothing is said about singularity."""
+    real = _real(rx160, "joint_offset:joint_2=2e-3")
+    q_nom = _program(rx160, 5)
+    base, tool = _frames(real)
+    comp = compensate(real, rx160, base=base, tool=tool, q_nominal=q_nom, approach="mid",
+                      cond=_cond(q_nom), box=5e-4)  # fmt: skip
+    assert set(comp.status) == {"unreachable"}, comp.status
+    assert not any("singular" in n for n in comp.note), comp.note
 
 
 def test_pose_program_takes_the_branch_nearest_the_previous_row(rx160):

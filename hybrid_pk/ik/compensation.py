@@ -184,6 +184,28 @@ def _beyond_limits(ikm, q0, T, rows, box, options: IKOptions) -> tuple[Tensor, l
     return limited, notes
 
 
+def _singular_note(robot, q: Tensor, err_mm: float, err_deg: float, box: float) -> str:
+    """Why a row is unreachable when its nominal joints ``q`` are near a singular
+    configuration: a move of the whole ``box`` along the arm's strongest direction there
+    would reach the correction (the nominal model's error at the row), along its weakest
+    one not (the Jacobian's singular values, its velocity rows over the flange's
+    distance from the root). "" otherwise (a box too small for any direction, say)."""
+    with torch.no_grad():
+        J = robot.jacobian(q[None].to(F64))[0]
+        lever = float(robot.fk(q[None].to(F64))[0, :3, 3].norm().clamp_min(1e-3))  # [m]
+    J = torch.cat([J[:3] / lever, J[3:]])  # dimensionless per radian of joint motion
+    gains = torch.linalg.svdvals(J)
+    strongest, weakest = float(gains[0]), float(gains[-1])
+    need = 1e-3 * err_mm / lever + math.radians(err_deg)
+    if weakest * box >= need or strongest * box < need:
+        return ""
+    return (
+        f"; the nominal joints are near a singular configuration: along the arm's weakest "
+        f"direction there a joint move of {box:g} reaches {weakest * box:.2g} of the "
+        f"{need:.2g} the correction needs (rotation in rad, position over the flange's reach)"
+    )
+
+
 class _Solver:
     """Rows solved from their nominal joints within the box, on the model."""
 
@@ -300,6 +322,8 @@ def compensate(
         status[i], note[i] = "no_nominal_solution", "the nominal model has no solution"
     res_mm, res_deg = _errors(ikm, q, T)
     nom_mm, nom_deg = _errors(nominal_model, start, T)
+    for i in [i for i, s in enumerate(status) if s == "unreachable"]:
+        note[i] += _singular_note(robot, start[i], float(nom_mm[i]), float(nom_deg[i]), box)
     nan = torch.tensor(math.nan, dtype=F64)
     q = torch.where(has_nominal[:, None], q, nan)
     res_mm, res_deg = (torch.where(has_nominal, x, nan) for x in (res_mm, res_deg))
