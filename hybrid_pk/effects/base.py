@@ -161,8 +161,21 @@ class Effect(nn.Module):
         self.joint = joint
         init = torch.zeros(self.shape, dtype=robot.dtype)
         if value is not None:
-            init = torch.as_tensor(value, dtype=robot.dtype).reshape(self.shape).clone()
+            init = self._checked_value(value, init)
         self.value = nn.Parameter(init)
+
+    def _checked_value(self, value, like: Tensor) -> Tensor:
+        """``value`` as a finite tensor of the effect's shape, else a one-line error."""
+        what = f"{self.kind} value must be {tuple(self.shape) or 'a number'} [{self.unit}]"
+        try:
+            v = torch.as_tensor(value, dtype=like.dtype)
+        except (TypeError, ValueError, RuntimeError):
+            raise HybridPKError(f"{what}, got {value!r}") from None
+        if v.numel() != like.numel():
+            raise HybridPKError(f"{what}, got shape {tuple(v.shape)}")
+        if not torch.isfinite(v).all():
+            raise HybridPKError(f"{what}, finite, got {value!r}")
+        return v.reshape(self.shape).clone()
 
     @property
     def label(self) -> str:
