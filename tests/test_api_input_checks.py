@@ -1,6 +1,7 @@
 """Python API misuse gives a one-line error naming what is wrong (third tour, API user)."""
 
 import pytest
+import torch
 
 import hybrid_pk as hpk
 from hybrid_pk.errors import HybridPKError
@@ -28,3 +29,17 @@ def test_make_effect_value_checked(ur10, spec, value, said):
 def test_make_effect_value_kept(ur10):
     e = hpk.make_effect(ur10, "link_length:elbow_joint", [0.0, 0.0, 5e-4])
     assert e.value.tolist() == [0.0, 0.0, 5e-4]
+
+
+@pytest.mark.parametrize("bad", ["joint_offset:elbow_joint", None])
+def test_extended_model_refuses_non_effects(ur10, bad):
+    with pytest.raises(HybridPKError, match="effects must be Effect objects"):
+        hpk.ExtendedModel(ur10, [bad])
+
+
+def test_extended_model_takes_lists_and_checks_joint_count(ur10):
+    model = hpk.ExtendedModel(ur10, [hpk.make_effect(ur10, "joint_offset:elbow_joint", 1e-3)])
+    q = [0.1, -0.5, 0.7, 0.0, 0.3, 0.2]
+    assert torch.equal(model(q), model(torch.tensor(q, dtype=torch.float64)))
+    with pytest.raises(hpk.ShapeError, match=r"shape \(\*B, 6\).*found \(2, 5\)"):
+        model(torch.zeros(2, 5, dtype=torch.float64))

@@ -24,6 +24,7 @@ from hybrid_pk.effects.base import Effect
 from hybrid_pk.effects.conditions import Conditions
 from hybrid_pk.effects.gravity import Gravity
 from hybrid_pk.effects.warm_start import keep_start, kept_start
+from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import so3_exp, transform
 from hybrid_pk.robot import Robot
 from hybrid_pk.robot.chain import plain_inputs
@@ -120,6 +121,12 @@ class ExtendedModel(nn.Module):
         self.robot = robot
         self.base = RigidFrame(base, robot.dtype, frame_sets)
         self.tool = RigidFrame(tool, robot.dtype, frame_sets)
+        for e in effects:
+            if not isinstance(e, Effect):
+                raise HybridPKError(
+                    f"effects must be Effect objects (hybrid_pk.make_effect(robot, "
+                    f"'kind:joint', value)), got {type(e).__name__} {e!r}"
+                )
         self.effects = nn.ModuleList(effects)
         self.gravity = gravity or Gravity()
 
@@ -285,6 +292,7 @@ class ExtendedModel(nn.Module):
     def end_pose(self, q: Tensor, cond: Conditions | None = None) -> Tensor:
         """``(*B, 4, 4)`` flange pose in the robot root frame, with every effect."""
         cond = cond or Conditions()
+        q = self.robot._check_q(q)  # a list / array, or a wrong joint count, said up front
         params = self.kinematic_params(cond)
         gravity = self.gravity_root(cond) if self.loaded_effects() else None
         q_true = self.joint_values(q, cond, params, gravity)
