@@ -4,7 +4,7 @@ import pytest
 import torch
 
 import hybrid_pk as hpk
-from hybrid_pk.errors import HybridPKError
+from hybrid_pk.errors import DataError, HybridPKError
 
 
 @pytest.fixture(scope="module")
@@ -43,3 +43,8 @@ def test_extended_model_takes_lists_and_checks_joint_count(ur10):
     assert torch.equal(model(q), model(torch.tensor(q, dtype=torch.float64)))
     with pytest.raises(hpk.ShapeError, match=r"shape \(\*B, 6\).*found \(2, 5\)"):
         model(torch.zeros(2, 5, dtype=torch.float64))
+
+
+def test_diagnose_refuses_a_path(ur10):
+    with pytest.raises(DataError, match=r"data must be a MeasuredData.*got str"):
+        hpk.diagnose(ur10, "campaign.csv")

@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.data.measured import MeasuredData
+from hybrid_pk.errors import DataError
 
 __all__ = ["Conditions", "approach_direction", "conditions_from_data"]
 
@@ -68,6 +69,11 @@ def approach_direction(q: Tensor, file_index: Tensor | None = None) -> Tensor:
 def conditions_from_data(data: MeasuredData, frames_per_file: bool = False) -> Conditions:
     """Operating conditions of every row: payload, temperature, approach direction, and
     (with ``frames_per_file``) the file's own base/tool frame set."""
+    if not isinstance(data, MeasuredData):  # diagnose / fit / train given a path or array
+        raise DataError(
+            "data must be a MeasuredData (hpk.read_table_for(path, robot) reads a table), "
+            f"got {type(data).__name__}"
+        )
     return Conditions(
         payload=data.payload,
         temperature=data.temperature,
