@@ -48,3 +48,10 @@ def test_extended_model_takes_lists_and_checks_joint_count(ur10):
 def test_diagnose_refuses_a_path(ur10):
     with pytest.raises(DataError, match=r"data must be a MeasuredData.*got str"):
         hpk.diagnose(ur10, "campaign.csv")
+
+
+def test_pose_error_batches_must_match(ur10):
+    T = ur10.fk(ur10.sample_q(4)).detach()
+    with pytest.raises(hpk.ShapeError, match=r"T_measured batch \(4,\) and T_model batch \(3,\)"):
+        hpk.pose_error(T, T[:3])
+    assert hpk.pose_error(T, T[0]).position_mm.shape == (4,)  # one model pose broadcasts

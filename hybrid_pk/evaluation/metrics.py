@@ -52,6 +52,16 @@ def _check_transforms(name: str, T: Tensor) -> None:
         )
 
 
+def _check_batches(measured: torch.Size, model: torch.Size) -> None:
+    try:
+        torch.broadcast_shapes(measured, model)
+    except RuntimeError:
+        raise ShapeError(
+            f"T_measured batch {tuple(measured)} and T_model batch {tuple(model)} do not "
+            "match (one pose each per sample)"
+        ) from None
+
+
 def _check_points(name: str, p: Tensor) -> None:
     if p.ndim < 1 or p.shape[-1] != 3:
         raise ShapeError(f"{name}: expected points (*B, 3), got {tuple(p.shape)}")
@@ -98,6 +108,7 @@ def pose_error(T_measured: Tensor, T_model: Tensor) -> PoseError:
     """
     _check_transforms("T_measured", T_measured)
     _check_transforms("T_model", T_model)
+    _check_batches(T_measured.shape[:-2], T_model.shape[:-2])
     position = position_error_mm(T_measured[..., :3, 3], T_model[..., :3, 3])
     angle = rotation_angle(_relative_rotation(T_measured, T_model))
     return PoseError(position_mm=position, orientation_deg=torch.rad2deg(angle))
