@@ -55,3 +55,14 @@ def test_pose_error_batches_must_match(ur10):
     with pytest.raises(hpk.ShapeError, match=r"T_measured batch \(4,\) and T_model batch \(3,\)"):
         hpk.pose_error(T, T[:3])
     assert hpk.pose_error(T, T[0]).position_mm.shape == (4,)  # one model pose broadcasts
+
+
+def test_conditions_batch_and_direction_checked(ur10):
+    q = ur10.sample_q(4)
+    soft = hpk.ExtendedModel(ur10, [hpk.make_effect(ur10, "joint_compliance:elbow_joint", 1e-6)])
+    with pytest.raises(hpk.ShapeError, match=r"Conditions.payload has batch \(3,\), q has \(4,\)"):
+        soft(q, hpk.Conditions(payload=torch.full((3,), 5.0, dtype=torch.float64)))
+    assert soft(q, hpk.Conditions(payload=torch.tensor(5.0))).shape == (4, 4, 4)
+    play = hpk.ExtendedModel(ur10, [hpk.make_effect(ur10, "backlash:elbow_joint", 1e-3)])
+    with pytest.raises(HybridPKError, match=r"direction must be \(\*B, 6\).*found \(4, 5\)"):
+        play(q, hpk.Conditions(direction=torch.ones(4, 5)))

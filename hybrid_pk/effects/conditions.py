@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.data.measured import MeasuredData
-from hybrid_pk.errors import DataError
+from hybrid_pk.errors import DataError, ShapeError
 
 __all__ = ["Conditions", "approach_direction", "conditions_from_data"]
 
@@ -36,6 +36,20 @@ class Conditions:
 
     def subset(self, index: Tensor) -> Conditions:
         return Conditions(*(None if x is None else x[index] for x in self._fields()))
+
+    def check_batch(self, batch: torch.Size) -> None:
+        """One-line error when a condition's batch does not broadcast with ``q``'s."""
+        tails = {"payload": 0, "temperature": 0, "direction": 1, "group": 0}
+        for (name, tail), x in zip(tails.items(), self._fields(), strict=True):
+            if not isinstance(x, Tensor):
+                continue
+            try:
+                torch.broadcast_shapes(x.shape[: max(x.dim() - tail, 0)], batch)
+            except RuntimeError:
+                raise ShapeError(
+                    f"Conditions.{name} has batch {tuple(x.shape[: x.dim() - tail])}, q has "
+                    f"{tuple(batch)}: one value per sample (or one for all)"
+                ) from None
 
     def _fields(self) -> tuple[Tensor | None, ...]:
         return (self.payload, self.temperature, self.direction, self.group)

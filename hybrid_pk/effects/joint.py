@@ -205,6 +205,11 @@ class Backlash(Effect):
                 "Conditions(direction=...) with +1 / -1 / 0 (mid-play) per joint; the IK "
                 "functions take approach= instead"
             )
+        if cond.direction.shape[-1:] != q.shape[-1:]:
+            raise HybridPKError(
+                f"Conditions.direction must be (*B, {q.shape[-1]}): one +1 / -1 / 0 per "
+                f"joint, found {tuple(cond.direction.shape)}"
+            )
         d = cond.direction[..., self.joint_index].to(q.dtype)
         half = carried(0.5, self.value) * self.value  # see geometry.tangents
         return _add_to_joint(q, self.joint_index, half * carried(d, half))
