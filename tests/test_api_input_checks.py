@@ -5,6 +5,7 @@ import torch
 
 import hybrid_pk as hpk
 from hybrid_pk.errors import DataError, HybridPKError
+from tests.dh_reader import erd_root
 
 
 @pytest.fixture(scope="module")
@@ -66,3 +67,12 @@ def test_conditions_batch_and_direction_checked(ur10):
     play = hpk.ExtendedModel(ur10, [hpk.make_effect(ur10, "backlash:elbow_joint", 1e-3)])
     with pytest.raises(HybridPKError, match=r"direction must be \(\*B, 6\).*found \(4, 5\)"):
         play(q, hpk.Conditions(direction=torch.ones(4, 5)))
+
+
+def test_several_leaves_name_the_python_argument():
+    with pytest.raises(hpk.RobotModelError, match=r"end_link=.*"):
+        hpk.Robot.from_urdf(erd_root() / "panda_description" / "urdf" / "panda.urdf")
+    panda = hpk.Robot.from_urdf(
+        erd_root() / "panda_description" / "urdf" / "panda.urdf", end_link="panda_hand_tcp"
+    )
+    assert panda.fk(panda.sample_q(2)).shape == (2, 4, 4)

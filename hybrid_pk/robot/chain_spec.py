@@ -206,7 +206,7 @@ class _Tree:
         if len(leaves) != 1:
             raise RobotModelError(
                 f"{self.path}: the URDF has {len(leaves)} leaf links ({', '.join(leaves)}); "
-                "choose one with --end-link"
+                "choose one with --end-link (Python: Robot.from_urdf(path, end_link=...))"
             )
         return leaves[0]
 
