@@ -271,7 +271,20 @@ def register(cls: type[Effect]) -> type[Effect]:
 
 
 def make_effect(robot: Robot, spec: str, value=None) -> Effect:
-    """Effect from ``"kind:joint"`` or ``"kind"`` (e.g. ``"joint_offset:joint_2"``)."""
+    """Effect from ``"kind:joint"`` or ``"kind"`` (e.g. ``"joint_offset:joint_2"`` on rx160).
+
+    Args:
+        robot: the robot the effect acts on.
+        spec: effect kind and, for per-joint kinds, a joint name as in the URDF
+            (``robot.joint_names``; geometric kinds: ``robot.chain_joint_names``).
+        value: the effect's value in its unit (``EFFECTS[kind].unit``: ``rad`` for
+            ``joint_offset`` / ``backlash``, ``m`` for ``link_length``, ...), a number or
+            a sequence of the kind's ``shape`` (``link_length``: ``(3,)`` [m]); None: 0.
+
+    Raises:
+        HybridPKError: unknown kind, joint not of the robot, or a value of the wrong
+            shape or not finite.
+    """
     kind, _, joint = spec.partition(":")
     if kind not in EFFECTS:
         raise HybridPKError(f"unknown effect {kind!r}; known effects: {known_kinds()}")

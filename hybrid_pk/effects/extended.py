@@ -306,7 +306,11 @@ class ExtendedModel(nn.Module):
         return [e for e in self.effects if e.stage in ("compliance", "deflection")]
 
     def forward(self, q: Tensor, cond: Conditions | None = None) -> Tensor:
-        """``(*B, 4, 4)`` pose of the measured point/frame in the measurement frame."""
+        """``(*B, 4, 4)`` pose of the measured point/frame in the measurement frame [m].
+
+        ``q``: ``(*B, dof)`` commanded joints [rad or m] (a tensor, list or array);
+        ``cond``: :class:`Conditions` with fields of batch ``*B`` or broadcastable.
+        """
         T = self.end_pose(q, cond)
         group = None if cond is None else cond.group
         if group is None or self.base.sets == 1:

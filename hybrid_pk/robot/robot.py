@@ -236,7 +236,7 @@ class Robot(nn.Module):
         return q
 
     def fk(self, q: Tensor, params: KinematicParams | None = None) -> Tensor:
-        """Pose of the end link in the root frame (without derivatives: robot.chain.AlignedFK).
+        """Pose of the end link in the root frame; differentiable in ``q`` and parameters.
 
         Args:
             q: ``(*B, dof)`` joint values [rad or m].
