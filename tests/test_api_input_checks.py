@@ -76,3 +76,13 @@ def test_several_leaves_name_the_python_argument():
         erd_root() / "panda_description" / "urdf" / "panda.urdf", end_link="panda_hand_tcp"
     )
     assert panda.fk(panda.sample_q(2)).shape == (2, 4, 4)
+
+
+def test_fit_names_an_unknown_free_label(ur10):
+    data, _ = hpk.simulate_campaign(ur10, 30, "joint_offset:elbow_joint=1e-3", noise_mm=0.01)
+    model = hpk.ExtendedModel(ur10, [hpk.make_effect(ur10, "joint_offset:elbow_joint")])
+    with pytest.raises(HybridPKError, match="free: joint_ofset:elbow_joint not in this model"):
+        hpk.fit(model, data, free=["joint_ofset:elbow_joint", "base_frame.rotation"])
+    res = hpk.fit(model, data, free="base_frame.translation", covariance=False)  # one label
+    assert [b.label for b in res.blocks] == ["base_frame.translation"]
+

@@ -28,6 +28,7 @@ from hybrid_pk.calibration.twists import residual_columns
 from hybrid_pk.calibration.work import count as count_work
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
+from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import quat_to_matrix
 
 __all__ = ["ParamBlock", "Problem", "param_blocks"]
@@ -68,7 +69,14 @@ def param_blocks(
     for i, e in enumerate(model.effects):
         blocks.append(ParamBlock(f"effects.{i}.value", e.label, e.value.numel(), e.scale, e.unit))
     if free is not None:
-        wanted = set(free)
+        wanted = {free} if isinstance(free, str) else set(free)
+        known = {x for b in blocks for x in (b.label, b.name)} | set(frames)
+        known |= {label for label, _ in frames.values()}  # tool rotation dropped: no error
+        if wanted - known:
+            raise HybridPKError(
+                f"free: {', '.join(sorted(wanted - known))} not in this model; its blocks: "
+                + ", ".join(b.label for b in blocks)
+            )
         blocks = [b for b in blocks if b.label in wanted or b.name in wanted]
     return tuple(blocks)
 
