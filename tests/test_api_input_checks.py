@@ -86,3 +86,7 @@ def test_fit_names_an_unknown_free_label(ur10):
     res = hpk.fit(model, data, free="base_frame.translation", covariance=False)  # one label
     assert [b.label for b in res.blocks] == ["base_frame.translation"]
 
+
+def test_save_model_refuses_a_robot(ur10, tmp_path):
+    with pytest.raises(HybridPKError, match="save_model needs an ExtendedModel, got Robot"):
+        hpk.save_model(tmp_path / "m.pt", ur10)

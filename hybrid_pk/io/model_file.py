@@ -145,6 +145,8 @@ def save_model(
     Raises:
         ModelFileError: if the robot's URDF cannot be read or an entry is not storable.
     """
+    if not isinstance(model, ExtendedModel):  # a Robot: hpk.ExtendedModel(robot) wraps it
+        raise HybridPKError(f"save_model needs an ExtendedModel, got {type(model).__name__}")
     path = Path(path)
     robot = model.robot
     spec = robot.spec
