@@ -90,3 +90,13 @@ def test_fit_names_an_unknown_free_label(ur10):
 def test_save_model_refuses_a_robot(ur10, tmp_path):
     with pytest.raises(HybridPKError, match="save_model needs an ExtendedModel, got Robot"):
         hpk.save_model(tmp_path / "m.pt", ur10)
+
+
+def test_hybrid_takes_a_list_of_joints(ur10):
+    from hybrid_pk.training import train_hybrid
+
+    data, _ = hpk.simulate_campaign(ur10, 40, "joint_offset:elbow_joint=1e-3", noise_mm=0.01)
+    base = hpk.ExtendedModel(ur10, [hpk.make_effect(ur10, "joint_offset:elbow_joint", 1e-3)])
+    hybrid = train_hybrid(data, base, max_epochs=1, progress=False).hybrid
+    q = [0.1, -0.5, 0.7, 0.0, 0.3, 0.2]
+    assert torch.equal(hybrid(q), hybrid(torch.tensor(q, dtype=torch.float64)))
