@@ -100,3 +100,12 @@ def test_hybrid_takes_a_list_of_joints(ur10):
     hybrid = train_hybrid(data, base, max_epochs=1, progress=False).hybrid
     q = [0.1, -0.5, 0.7, 0.0, 0.3, 0.2]
     assert torch.equal(hybrid(q), hybrid(torch.tensor(q, dtype=torch.float64)))
+
+
+def test_data_of_another_robot_is_refused(ur10):
+    rx160 = hpk.Robot.from_urdf("rx160")
+    data, _ = hpk.simulate_campaign(rx160, 20, "joint_offset:joint_2=1e-3", noise_mm=0.01)
+    with pytest.raises(DataError, match=r"data has joints joint_1.*robot ur10 has shoulder_pan"):
+        hpk.diagnose(ur10, data)
+    with pytest.raises(DataError, match="a table of another robot"):
+        hpk.fit(hpk.ExtendedModel(ur10), data)

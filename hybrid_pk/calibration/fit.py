@@ -226,7 +226,7 @@ def fit(
             (iteratively re-weighted, noise from the median); None: least squares.
         weights: ``(N,)`` robust row weights to start from (e.g. a previous fit's).
     """
-    cond = cond or conditions_from_data(data)
+    cond = cond or conditions_from_data(data, robot=model.robot)
     position_only = data.quat is None
     blocks, prior, start = _frame_setup(model, data, cond, free, frames, covariance)
     rows_extra = join_rows(prior, extra)

@@ -80,13 +80,21 @@ def approach_direction(q: Tensor, file_index: Tensor | None = None) -> Tensor:
     return step.gather(0, last)
 
 
-def conditions_from_data(data: MeasuredData, frames_per_file: bool = False) -> Conditions:
+def conditions_from_data(
+    data: MeasuredData, frames_per_file: bool = False, robot=None
+) -> Conditions:
     """Operating conditions of every row: payload, temperature, approach direction, and
-    (with ``frames_per_file``) the file's own base/tool frame set."""
+    (with ``frames_per_file``) the file's own base/tool frame set. With ``robot``, the
+    data's joints must be the robot's (a table of another robot is refused)."""
     if not isinstance(data, MeasuredData):  # diagnose / fit / train given a path or array
         raise DataError(
             "data must be a MeasuredData (hpk.read_table_for(path, robot) reads a table), "
             f"got {type(data).__name__}"
+        )
+    if robot is not None and tuple(robot.joint_names) != tuple(data.joint_names):
+        raise DataError(
+            f"data has joints {', '.join(data.joint_names)}; robot {robot.name} has "
+            f"{', '.join(robot.joint_names)}: a table of another robot?"
         )
     return Conditions(
         payload=data.payload,

@@ -117,7 +117,7 @@ def diagnose(
     say = progress or (lambda _msg: None)
     robot.requires_grad_(False)
     budget = Budget()  # the optional stages' share of the main search's work
-    cond = conditions_from_data(data, frames_per_file)
+    cond = conditions_from_data(data, frames_per_file, robot)
     split = split_campaign(data, cond, holdout, seed)
 
     say("fitting base and tool frames to the nominal model")
