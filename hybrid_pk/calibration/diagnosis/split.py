@@ -38,7 +38,7 @@ class Split:
 def split_campaign(data: MeasuredData, cond: Conditions, holdout: float, seed: int) -> Split:
     """Random split keeping ``holdout`` (a fraction in (0, 1)) of the rows out of fits."""
     if not 0 < holdout < 1:
-        raise ValueError(f"--holdout must lie in (0, 1), got {holdout}")
+        raise ValueError(f"holdout (--holdout) must lie in (0, 1), got {holdout}")
     perm = torch.randperm(data.n, generator=torch.Generator().manual_seed(seed))
     n_hold = max(1, round(holdout * data.n))
     fit_rows, hold_rows = perm[n_hold:].sort().values, perm[:n_hold].sort().values
