@@ -109,3 +109,11 @@ def test_data_of_another_robot_is_refused(ur10):
         hpk.diagnose(ur10, data)
     with pytest.raises(DataError, match="a table of another robot"):
         hpk.fit(hpk.ExtendedModel(ur10), data)
+
+
+@pytest.mark.parametrize("grad", [False, True])
+def test_gravity_torques_payload_batch_checked(ur10, grad):
+    q = ur10.sample_q(4).requires_grad_(grad)  # plain (fast) path and autograd path
+    with pytest.raises(hpk.ShapeError, match=r"payload must be .* found \(3,\)"):
+        ur10.gravity_torques(q, payload=torch.ones(3, dtype=torch.float64))
+    assert ur10.gravity_torques(q, payload=torch.ones(4, dtype=torch.float64)).shape == (4, 6)

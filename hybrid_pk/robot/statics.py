@@ -26,6 +26,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from hybrid_pk.errors import ShapeError
 from hybrid_pk.geometry.batch_last import compose, rotate
 from hybrid_pk.robot.chain import ChainTerms, batch_last_terms, local_batch_last, plain_inputs
 
@@ -117,6 +118,14 @@ def gravity_values(robot, q, payload, gravity, params=None, derivative: bool = F
     :class:`~hybrid_pk.robot.Robot`) by :func:`statics_batch_last`, or None where that
     path does not apply: derivatives requested through the inputs (autograd, forward
     mode, torch.func), or off-chain bodies."""
+    if isinstance(payload, Tensor) and isinstance(q, Tensor):  # both paths: said once here
+        try:
+            torch.broadcast_shapes(payload.shape, q.shape[:-1])
+        except RuntimeError:
+            raise ShapeError(
+                f"payload must be a float or (*B,) [kg] for q of batch {tuple(q.shape[:-1])}, "
+                f"found {tuple(payload.shape)}"
+            ) from None
     if robot.spec.branches or not isinstance(q, Tensor):
         return None
     own = (robot.origin_xyz, robot.origin_rotvec, robot.axis) if params is None else params
