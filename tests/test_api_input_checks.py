@@ -117,3 +117,9 @@ def test_gravity_torques_payload_batch_checked(ur10, grad):
     with pytest.raises(hpk.ShapeError, match=r"payload must be .* found \(3,\)"):
         ur10.gravity_torques(q, payload=torch.ones(3, dtype=torch.float64))
     assert ur10.gravity_torques(q, payload=torch.ones(4, dtype=torch.float64)).shape == (4, 6)
+
+
+@pytest.mark.parametrize("bad", [{"tol_mm": -1.0}, {"tol_deg": 0.0}, {"max_iterations": 0}])
+def test_ik_options_refuse_non_positive_tolerances(bad):
+    with pytest.raises(hpk.ShapeError, match=f"IKOptions: {next(iter(bad))} must be > 0"):
+        hpk.IKOptions(**bad)

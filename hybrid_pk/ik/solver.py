@@ -81,6 +81,10 @@ class IKOptions:
     polish_mm: float | None = None
     polish_deg: float | None = None
 
+    def __post_init__(self) -> None:
+        if bad := [k for k in ("tol_mm", "tol_deg", "max_iterations") if not getattr(self, k) > 0]:
+            raise ShapeError(f"IKOptions: {', '.join(bad)} must be > 0, got {self!r}")
+
     def lm_settings(self, position_only: bool) -> LMSettings:
         """Iteration settings of :func:`~hybrid_pk.ik.batched_lm.batched_levenberg_marquardt`."""
         polish_mm = 0.1 * self.tol_mm if self.polish_mm is None else self.polish_mm
