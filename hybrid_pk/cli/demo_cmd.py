@@ -102,14 +102,11 @@ def print_summary(result: DemoResult) -> None:
             f"  {name:28s} position mean {p['mean']:.4f} mm (max {p['max']:.4f}), "
             f"orientation mean {o['mean']:.5f} deg"
         )
-    from hybrid_pk.effects import EFFECTS
-
     print("  injected (hidden until now) vs found:")
     found = {(c.effect, c.joint): c for c in result.diagnosis.causes}
     for e in result.truth["effects"]:
         c = found.get((e["effect"], e.get("joint")))
-        unit = EFFECTS[e["effect"]].unit
-        unit = "" if unit == "1" else f" {unit}"  # a ratio: no unit
+        unit = "" if e["unit"] == "1" else f" {e['unit']}"  # a ratio: no unit
         got = "NOT FOUND" if c is None else f"found {_shown(c.value)}{unit}"
         if e.get("unseen"):
             got += f" ({e['unseen']['words']})"

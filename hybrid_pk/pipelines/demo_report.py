@@ -44,7 +44,7 @@ def found_table(truth: dict, diag) -> list[list[object]]:
         rows.append(
             [
                 f"{e['effect']}:{e['joint']} (knee {e['tau0_Nm']:.0f} Nm)",
-                "rad/Nm",
+                e["unit"],
                 e["value"],
                 "-",
                 "outside the vocabulary",
