@@ -292,7 +292,7 @@ class ExtendedModel(nn.Module):
     def end_pose(self, q: Tensor, cond: Conditions | None = None) -> Tensor:
         """``(*B, 4, 4)`` flange pose in the robot root frame, with every effect."""
         cond = cond or Conditions()
-        q = self.robot._check_q(q)  # a list / array, or a wrong joint count, said up front
+        q = self.robot.check_q(q)  # a list / array, or a wrong joint count, said up front
         cond.check_batch(q.shape[:-1])
         params = self.kinematic_params(cond)
         gravity = self.gravity_root(cond) if self.loaded_effects() else None

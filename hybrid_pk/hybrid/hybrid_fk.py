@@ -243,7 +243,7 @@ class HybridFK(nn.Module):
 
     def end_pose(self, q: Tensor, cond: Conditions | None = None) -> Tensor:
         """``(*B, 4, 4)`` corrected flange pose in the robot root frame."""
-        q = self.base.robot._check_q(q)  # a list / array like Robot.fk
+        q = self.base.robot.check_q(q)  # a list / array like Robot.fk
         E = self.base.end_pose(q, cond)
         q = q.to(E.dtype)
         dp, dw = self.corrections(q)

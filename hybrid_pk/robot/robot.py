@@ -223,7 +223,8 @@ class Robot(nn.Module):
                 self._cache[key] = build(self.kinematic_params())
         return self._cache[key]
 
-    def _check_q(self, q: Tensor) -> Tensor:
+    def check_q(self, q: Tensor) -> Tensor:
+        """``q`` (a tensor, list or array) as a float tensor ``(*B, dof)``, else ShapeError."""
         if not isinstance(q, Tensor):
             q = torch.as_tensor(q, dtype=self.dtype, device=self.origin_xyz.device)
         if not q.is_floating_point():
@@ -246,7 +247,7 @@ class Robot(nn.Module):
         Returns:
             ``(*B, 4, 4)`` homogeneous transforms ``T_root_end`` [m].
         """
-        q = self.chain_q(self._check_q(q))
+        q = self.chain_q(self.check_q(q))
         if params is None and (T := self._no_grad_fk(self, q)) is not None:
             return T
         terms = self._terms(params, q.dtype, fold_tip=True)  # the tip costs no extra matmul
@@ -265,7 +266,7 @@ class Robot(nn.Module):
             joint ``i + 1`` (whose origin lies on that joint's axis), index ``n_chain``
             the end link.
         """
-        q = self.chain_q(self._check_q(q))
+        q = self.chain_q(self.check_q(q))
         terms = self._terms(params, q.dtype)
         local = local_transforms(q, terms, self.chain_revolute)
         frames = [local[..., 0, :, :]]
@@ -290,7 +291,7 @@ class Robot(nn.Module):
         Evaluated batch last (:func:`~hybrid_pk.robot.chain.pose_jacobian_batch_last`),
         differentiable.
         """
-        q = self.chain_q(self._check_q(q))
+        q = self.chain_q(self.check_q(q))
         terms = self._terms(params, q.dtype)
         batch = torch.broadcast_shapes(q.shape[:-1], terms.tip.shape[:-2])
         n = self.chain_dof
@@ -356,7 +357,7 @@ class Robot(nn.Module):
         Returns:
             ``(*B, dof)`` torques [Nm] (forces [N] for prismatic joints).
         """
-        q = self._check_q(q)
+        q = self.check_q(q)
         if (fast := gravity_values(self, q, payload, gravity, params)) is not None:
             return fast[0]
         frames = self.link_frames(q, params)
@@ -430,7 +431,7 @@ class Robot(nn.Module):
         """
         if frame not in ("root", "joint"):
             raise ValueError(f"frame must be 'root' or 'joint', got {frame!r}")
-        q = self._check_q(q)
+        q = self.check_q(q)
         frames = self.link_frames(q, params)
         g = self._gravity(gravity, frames)[..., None, :]
         mass_out, arm = self._subtree_loads(q, frames, payload)
