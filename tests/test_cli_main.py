@@ -36,3 +36,20 @@ def test_debug_shows_the_traceback(monkeypatch, tmp_path):
     monkeypatch.setattr(evaluate_cmd, "run", _fail_with(RuntimeError("boom")))
     with pytest.raises(RuntimeError, match="boom"):
         main(["--debug", "evaluate", "nominal:rx160", str(tmp_path / "d.csv")])
+
+
+@pytest.mark.parametrize("command", ["simulate", "plan"])
+def test_the_robot_as_a_flag_too(tmp_path, capsys, command):
+    """``simulate`` and ``plan`` name the robot first (the contract's ``ROBOT``); every
+    other command takes ``--robot ROBOT``, and a user who types that here is understood;
+    neither, or two different robots, is one line naming the fix."""
+    out = str(tmp_path / "t.csv")
+    assert main([command, "--robot", "rx160", "--n", "12", "--out", out, "--no-progress"]) == 0
+    assert (tmp_path / "t.csv").exists()
+    capsys.readouterr()
+    assert main([command, "--n", "12", "--out", out]) == 2
+    assert "the robot is missing: give ROBOT (or --robot ROBOT)" in capsys.readouterr().err
+    assert main([command, "ur10", "--robot", "rx160", "--n", "12", "--out", out]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert "two robots given" in err

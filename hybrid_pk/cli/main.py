@@ -18,7 +18,7 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-from hybrid_pk.cli.options import command_parser
+from hybrid_pk.cli.options import command_parser, resolve_robot
 from hybrid_pk.cli.progress import shown
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.threads import configure as configure_threads
@@ -62,6 +62,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        resolve_robot(args)
         configure_threads(getattr(args, "threads", None))
         with shown(not getattr(args, "no_progress", False)):
             return int(args.func(args) or 0)

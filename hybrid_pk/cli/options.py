@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 
+from hybrid_pk.errors import HybridPKError
 from hybrid_pk.robot import shipped_robots
 from hybrid_pk.threads import ENV as THREADS_ENV
 from hybrid_pk.threads import parse_threads
@@ -47,6 +48,7 @@ __all__ = [
     "add_seed",
     "add_threads",
     "command_parser",
+    "resolve_robot",
 ]
 
 ROBOT_HELP = f"shipped robot name ({', '.join(shipped_robots())}) or URDF path"
@@ -118,12 +120,26 @@ def add_robot(
     text = help or ROBOT_HELP
     if default is not None:
         text += " (default: %(default)s)"
-    if positional:
-        parser.add_argument("robot", metavar="ROBOT", help=text)
+    if positional:  # ROBOT or, as every other command takes it, --robot ROBOT
+        parser.add_argument("robot", metavar="ROBOT", nargs="?", help=text)
+        parser.add_argument("--robot", dest="robot_flag", metavar="ROBOT", help="same as ROBOT")
     else:
         parser.add_argument(
             "--robot", metavar="ROBOT", required=required, default=default, help=text
         )
+
+
+def resolve_robot(args: argparse.Namespace) -> None:
+    """Merge a positional ``ROBOT`` and ``--robot ROBOT`` (:func:`add_robot` with
+    ``positional``) into ``args.robot``; refuse neither, or two different robots."""
+    if not hasattr(args, "robot_flag"):
+        return
+    flag = args.__dict__.pop("robot_flag")
+    if args.robot is None and flag is None:
+        raise HybridPKError("the robot is missing: give ROBOT (or --robot ROBOT)")
+    if args.robot is not None and flag is not None and args.robot != flag:
+        raise HybridPKError(f"two robots given: ROBOT {args.robot!r} and --robot {flag!r}")
+    args.robot = args.robot or flag
 
 
 def add_end_link(parser: argparse.ArgumentParser) -> None:
