@@ -15,7 +15,9 @@ from hybrid_pk.cli.calibrate_output import (
     urdf_target,
 )
 from hybrid_pk.cli.common import (
+    TILT_NOTE_DEG,
     frame_parameter_count,
+    mounting_lines,
     read_data,
     stats_line,
 )
@@ -80,7 +82,9 @@ def run_refit(args: argparse.Namespace, settings: FitSettings) -> int:
         + (", residual networks kept" if loaded.has_networks else "")
         + f") on {data.n} rows from {len(data.sources)} file(s)"
     )
-    for line in frame_lines(model) + fit_lines(data, res):
+    # the mounting the re-fitted base implies (level-tracker: the new set-up's tilt); the
+    # note on a fixed mounting is _tilt_note's, against the model's own base
+    for line in frame_lines(model) + mounting_lines(model, check=False) + fit_lines(data, res):
         print(line)
     if result.verdict is not None:
         print(result.verdict.line())
@@ -97,12 +101,6 @@ def run_refit(args: argparse.Namespace, settings: FitSettings) -> int:
         print(after[2])
     print(f"wrote {args.out}" + (f" and {urdf}" if urdf else ""))
     return 0
-
-
-# [deg] a gravity effect whose gravity is off by this much points 1.7 % of its size
-# astray (sin 1°), about the relative std a compliance is fitted to in a campaign of a
-# few hundred poses: beyond it the mounting matters to the re-stationed model
-TILT_NOTE_DEG = 1.0
 
 
 def _tilt_note(up, after) -> str | None:

@@ -27,12 +27,14 @@ from hybrid_pk.robot import Robot
 
 __all__ = [
     "FRAME_LABELS",
+    "TILT_NOTE_DEG",
     "data_notes",
     "fit_frames",
     "flag_values",
     "frame_parameter_count",
     "frame_set_index",
     "frame_sets_for",
+    "gravity_note",
     "load_frozen_model",
     "load_robot",
     "mounting_lines",
@@ -44,11 +46,20 @@ __all__ = [
 ]
 
 
-def mounting_lines(model: ExtendedModel) -> list[str]:
+# [deg] a gravity effect whose gravity is off by this much points 1.7 % of its size
+# astray (sin 1°), about the relative std a compliance is fitted to in a campaign of a
+# few hundred poses: beyond it the mounting matters to the model
+TILT_NOTE_DEG = 1.0
+
+
+def mounting_lines(model: ExtendedModel, check: bool = True) -> list[str]:
     """One line per base frame set on the gravity the model's statics use (none when
-    the robot is the default upright one)."""
+    the robot is the default upright one), and with ``check`` the note of
+    :func:`gravity_note` where the stated gravity and the fitted base disagree."""
+    note = gravity_note(model) if check else None
+    lines = [] if note is None else [note]
     if model.gravity.is_default:
-        return []
+        return lines
     lines = []
     with torch.no_grad():
         T = model.base.matrix()
@@ -64,7 +75,34 @@ def mounting_lines(model: ExtendedModel) -> list[str]:
                 f"  gravity{tag} ({text}) m/s^2 in the robot root frame: root z axis "
                 f"{tilt:.1f} deg from upright ({model.gravity.describe()})"
             )
-    return lines
+    return lines + ([] if note is None else [note])
+
+
+def gravity_note(model: ExtendedModel) -> str | None:
+    """A note when the model's gravity effects take gravity fixed in the robot frame
+    (the default upright, or ``--gravity X,Y,Z``) and its fitted base frame turns that
+    gravity more than ``TILT_NOTE_DEG`` from the measurement frame's vertical: with a
+    levelled instrument (a total station, a levelled tracker) the mounting is then
+    stated wrongly, and the effects fitted under it stand in for the difference."""
+    loaded = [e.label for e in model.loaded_effects()]
+    if model.gravity.levelled or not loaded:
+        return None
+    with torch.no_grad():
+        R = model.base.matrix()[:, :3, :3]
+        g = torch.tensor(model.gravity.vector, dtype=R.dtype)
+        down = -(R @ g)[:, 2] / g.norm()  # cosine to the measurement frame's -z
+        angle = math.degrees(math.acos(float(down.clamp(-1.0, 1.0).min())))
+    if angle <= TILT_NOTE_DEG:
+        return None
+    stated = "upright, the default" if model.gravity.is_default else "--gravity"
+    return (
+        f"note: the gravity effects ({', '.join(loaded)}) take gravity as "
+        f"{model.gravity.describe()} ({stated}), which the fitted base frame turns "
+        f"{angle:.1f} deg from the measurement frame's vertical; if the instrument is "
+        "levelled (a total station, a levelled laser tracker), the mounting is stated "
+        "wrongly and the named causes may stand in for it: --gravity level-tracker "
+        "takes the mounting from the data"
+    )
 
 
 def load_robot(name: str, end_link: str | None = None) -> Robot:
