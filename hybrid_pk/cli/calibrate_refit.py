@@ -28,7 +28,7 @@ from hybrid_pk.errors import HybridPKError
 from hybrid_pk.io.model_file import LoadedModel, load_model, model_robot, save_model
 from hybrid_pk.pipelines.refit import refit
 
-__all__ = ["run_refit"]
+__all__ = ["run_refit", "spread_line"]
 
 
 def run_refit(args: argparse.Namespace, settings: FitSettings) -> int:
@@ -84,6 +84,7 @@ def run_refit(args: argparse.Namespace, settings: FitSettings) -> int:
     )
     # the mounting the re-fitted base implies (level-tracker: the new set-up's tilt); the
     # note on a fixed mounting is _tilt_note's, against the model's own base
+    print(spread_line(frames, res, data.n))
     for line in frame_lines(model) + mounting_lines(model, check=False) + fit_lines(data, res):
         print(line)
     if result.verdict is not None:
@@ -119,6 +120,20 @@ def _tilt_note(up, after) -> str | None:
         f"but its gravity effects ({', '.join(gravity_effects)}) keep the mounting they were "
         "calibrated with (gravity fixed in the robot frame); if the instrument is levelled, "
         "calibrate with --gravity level-tracker and they follow the tilt"
+    )
+
+
+def spread_line(frames: str, res, rows: int) -> str:
+    """How well ``rows`` rows fix the re-fitted frame(s): a least-squares fit of p
+    parameters spends p of its residuals' variance on them (the trace of its hat
+    matrix), so over the rows it moves a point by σ√(p/rows) RMS, σ the fit's noise per
+    coordinate (at most: orientation residuals, where measured, take a share)."""
+    p, sigma = res.n_params, res.sigma_pos_mm
+    added = sigma * math.sqrt(p / rows)
+    return (
+        f"  the {frames} ({p} parameters) from {rows} rows: the re-fit adds about "
+        f"{added:.3g} mm RMS at these rows, more beyond their spread (the fit's noise "
+        f"{sigma:.3g} mm per coordinate x sqrt({p}/{rows})); four times the rows halve it"
     )
 
 
