@@ -80,8 +80,8 @@ def test_no_note_where_the_mounting_agrees_or_does_not_matter(model):
     assert not any(line.startswith("note:") for line in mounting_lines(m))
 
 
-def test_the_re_stationing_prints_the_tilt_it_found(tmp_path, capsys):
-    from hybrid_pk.cli.main import main
+def _campaigns(tmp_path):
+    """An upright calibration campaign and 40 rows of the robot on an 8° tilted base."""
     from hybrid_pk.data import write_table
     from hybrid_pk.simulate import simulate_campaign
     from hybrid_pk.simulate.mounting import parse_mount
@@ -94,15 +94,25 @@ def test_the_re_stationing_prints_the_tilt_it_found(tmp_path, capsys):
     tilted, _ = simulate_campaign(
         robot, 40, soft, mount=parse_mount("tilt:8"), seed=2, tool=tool, **kw
     )
-    cal, moved = (
-        write_table(tmp_path / "cal.csv", upright),
-        write_table(tmp_path / "st.csv", tilted),
-    )
-    model = tmp_path / "m.pt"
+    return write_table(tmp_path / "cal.csv", upright), write_table(tmp_path / "st.csv", tilted)
+
+
+def _calibrated(tmp_path, cal, gravity: list[str]):
+    from hybrid_pk.cli.main import main
+
+    model = tmp_path / f"m{len(gravity)}.pt"
     argv = ["calibrate", str(cal), "--robot", "column_arm", "--end-link", "tool0",
-            "--effects", "joint_compliance:dsr_joint2", "--gravity", "level-tracker",
-            "--out", str(model), "--no-urdf"]  # fmt: skip
+            "--effects", "joint_compliance:dsr_joint2", "--out", str(model), "--no-urdf",
+            *gravity]  # fmt: skip
     assert main(argv) == 0
+    return model
+
+
+def test_the_re_stationing_prints_the_tilt_it_found(tmp_path, capsys):
+    from hybrid_pk.cli.main import main
+
+    cal, moved = _campaigns(tmp_path)
+    model = _calibrated(tmp_path, cal, ["--gravity", "level-tracker"])
     capsys.readouterr()
     argv = ["calibrate", str(moved), "--model", str(model), "--refit", "base",
             "--out", str(tmp_path / "r.pt"), "--no-urdf"]  # fmt: skip
@@ -110,3 +120,23 @@ def test_the_re_stationing_prints_the_tilt_it_found(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "root z axis 8.0 deg from upright (level-tracker)" in out, out
     assert "note:" not in out, out
+
+
+def test_evaluate_fit_frames_says_what_the_re_fit_says(tmp_path, capsys):
+    """``evaluate --fit-frames`` on the moved set-up, the re-stationing judged in one
+    step: the tilt found with ``level-tracker``, the note with a fixed mounting."""
+    from hybrid_pk.cli.main import main
+
+    cal, moved = _campaigns(tmp_path)
+    out = {}
+    for gravity in ([], ["--gravity", "level-tracker"]):
+        model = _calibrated(tmp_path, cal, gravity)
+        capsys.readouterr()
+        argv = ["evaluate", str(model), str(moved), "--fit-frames", "--json",
+                str(tmp_path / "e.json")]  # fmt: skip
+        assert main(argv) == 0
+        out[bool(gravity)] = capsys.readouterr().out
+    assert "note: the frames fitted to DATA tilt the robot by 8.0 deg" in out[False], out
+    assert "--gravity level-tracker" in out[False], out
+    assert "root z axis 8.0 deg from upright (level-tracker)" in out[True], out
+    assert "note:" not in out[True], out

@@ -15,11 +15,11 @@ from hybrid_pk.cli.calibrate_output import (
     urdf_target,
 )
 from hybrid_pk.cli.common import (
-    TILT_NOTE_DEG,
     frame_parameter_count,
     mounting_lines,
     read_data,
     stats_line,
+    tilt_note,
 )
 from hybrid_pk.cli.fit_settings import fit_lines, robust_summary
 from hybrid_pk.cli.progress import progress
@@ -83,13 +83,13 @@ def run_refit(args: argparse.Namespace, settings: FitSettings) -> int:
         + f") on {data.n} rows from {len(data.sources)} file(s)"
     )
     # the mounting the re-fitted base implies (level-tracker: the new set-up's tilt); the
-    # note on a fixed mounting is _tilt_note's, against the model's own base
+    # note on a fixed mounting is tilt_note's, against the model's own base
     print(spread_line(frames, res, data.n))
     for line in frame_lines(model) + mounting_lines(model, check=False) + fit_lines(data, res):
         print(line)
     if result.verdict is not None:
         print(result.verdict.line())
-    for note in (_tilt_note(up, model), _gross_warning(which, after[0])):
+    for note in (tilt_note(up, model, "the re-fitted base tilts"), _gross_warning(which, after[0])):
         if note:
             print(note)
     for i, (name, unit) in enumerate((("position", "mm"), ("orientation", "deg"))):
@@ -102,25 +102,6 @@ def run_refit(args: argparse.Namespace, settings: FitSettings) -> int:
         print(after[2])
     print(f"wrote {args.out}" + (f" and {urdf}" if urdf else ""))
     return 0
-
-
-def _tilt_note(up, after) -> str | None:
-    """A note when the re-fitted base tilts the robot (its z axis, was ``up`` in the
-    measurement frame) while its gravity effects assume a fixed mounting (``--gravity``
-    in the root frame)."""
-    gravity_effects = [e.label for e in after.loaded_effects()]
-    if after.gravity.levelled or not gravity_effects:
-        return None
-    z1 = after.base.matrix()[0, :3, 2].detach()
-    tilt = math.degrees(math.acos(max(-1.0, min(1.0, float(up.to(z1.dtype) @ z1)))))
-    if tilt <= TILT_NOTE_DEG:
-        return None
-    return (
-        f"note: the re-fitted base tilts the robot by {tilt:.1f} deg against the model's, "
-        f"but its gravity effects ({', '.join(gravity_effects)}) keep the mounting they were "
-        "calibrated with (gravity fixed in the robot frame); if the instrument is levelled, "
-        "calibrate with --gravity level-tracker and they follow the tilt"
-    )
 
 
 def spread_line(frames: str, res, rows: int) -> str:

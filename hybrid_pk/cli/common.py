@@ -41,6 +41,7 @@ __all__ = [
     "read_data",
     "read_json",
     "stats_line",
+    "tilt_note",
     "with_frame_sets",
     "write_json",
 ]
@@ -102,6 +103,26 @@ def gravity_note(model: ExtendedModel) -> str | None:
         "levelled (a total station, a levelled laser tracker), the mounting is stated "
         "wrongly and the named causes may stand in for it: --gravity level-tracker "
         "takes the mounting from the data"
+    )
+
+
+def tilt_note(up, after: ExtendedModel, subject: str) -> str | None:
+    """A note when ``subject`` (with its verb: "the re-fitted base tilts") tilts the
+    robot (its z axis, was ``up`` in the measurement frame) by more than
+    ``TILT_NOTE_DEG`` while its gravity effects assume a fixed mounting (``--gravity``
+    in the root frame)."""
+    gravity_effects = [e.label for e in after.loaded_effects()]
+    if after.gravity.levelled or not gravity_effects:
+        return None
+    z1 = after.base.matrix()[0, :3, 2].detach()
+    tilt = math.degrees(math.acos(max(-1.0, min(1.0, float(up.to(z1.dtype) @ z1)))))
+    if tilt <= TILT_NOTE_DEG:
+        return None
+    return (
+        f"note: {subject} the robot by {tilt:.1f} deg against the model's, "
+        f"but its gravity effects ({', '.join(gravity_effects)}) keep the mounting they were "
+        "calibrated with (gravity fixed in the robot frame); if the instrument is levelled, "
+        "calibrate with --gravity level-tracker and they follow the tilt"
     )
 
 
