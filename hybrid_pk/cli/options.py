@@ -92,8 +92,8 @@ def add_threads(parser: argparse.ArgumentParser) -> None:
         type=_threads,
         default=None,
         metavar="N",
-        help="torch threads: N, auto (the cores this process may use, one per 2,048 rows "
-        "of the work, at most OMP_NUM_THREADS) or torch (torch's own default); waiting "
+        help="torch threads: N, auto (the cores this process may use, one in the fits and "
+        "the diagnosis; at most OMP_NUM_THREADS) or torch (torch's own default); waiting "
         f"threads sleep instead of spinning (default: ${THREADS_ENV}, else auto)",
     )
 
