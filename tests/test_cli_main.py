@@ -32,6 +32,27 @@ def test_an_error_is_one_line(monkeypatch, capsys, tmp_path, exc, code, text):
     assert "Traceback" not in err
 
 
+@pytest.mark.parametrize(
+    ("argv", "text"),
+    [
+        (["diagnose", "d.csv", "--robot", "rx160"], "hybrid-pk diagnose: error: the following"),
+        (["simulate", "rx160", "--out", "x.csv", "--trajectory", "spiral"], "invalid choice"),
+        (["import", "ipa"], "hybrid-pk import ipa: error:"),
+        (["evaluate", "nominal:rx160", "d.csv", "--no-such-flag"], "unrecognized arguments"),
+    ],
+)
+def test_a_flag_error_is_one_line_too(capsys, argv, text):
+    # contract section 10: an error is one line on stderr and exit code 2; argparse's own
+    # errors (a missing or bad flag) printed the whole usage block before that line
+    with pytest.raises(SystemExit) as stop:
+        main(argv)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert text in err
+    assert "--help lists the options" in err
+
+
 def test_debug_shows_the_traceback(monkeypatch, tmp_path):
     monkeypatch.setattr(evaluate_cmd, "run", _fail_with(RuntimeError("boom")))
     with pytest.raises(RuntimeError, match="boom"):

@@ -126,11 +126,15 @@ def _gross_warning(which: str, position_mm) -> str | None:
     mean = float(position_mm.mean())
     if mean <= gross:
         return None
-    other = "" if which == "frames" else " (--refit frames re-fits both frames)"
+    refitted = (
+        "the base and tool frames"
+        if which == "frames"
+        else f"the {which} frame (--refit frames re-fits both frames)"
+    )
     return (
         f"warning: after the re-fit the model still misses these rows by {mean:.4g} mm "
-        f"(mean), more than small corrections make ({gross:g} mm): more changed than the "
-        f"{which} frame{other}, or the rows are not this robot's"
+        f"(mean), more than small corrections make ({gross:g} mm): more changed than "
+        f"{refitted}, or the rows are not this robot's"
     )
 
 

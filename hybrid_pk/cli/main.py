@@ -40,8 +40,18 @@ _COMMANDS = (
 )
 
 
+class _OneLineParser(argparse.ArgumentParser):
+    """argparse with the error policy of every other error: a missing or malformed
+    flag is one line on stderr and exit code 2 (argparse's usage block before it made
+    it a dozen); ``--help`` still shows the usage. Sub-command parsers inherit it."""
+
+    def error(self, message: str):
+        msg = " ".join(message.split())
+        self.exit(2, f"{self.prog}: error: {msg} ({self.prog} --help lists the options)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _OneLineParser(
         prog="hybrid-pk",
         description="Accurate, differentiable kinematics for serial robot arms: "
         "diagnose, calibrate, learn residuals, solve IK.",

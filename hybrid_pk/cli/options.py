@@ -57,9 +57,9 @@ _ROBOT_CHECK_HELP = "refuse a MODEL made for another robot than ROBOT"
 APPROACH_HELP = (
     "backlash: the side each joint approaches the target from, + (moving in the joint's "
     "positive direction), - or mid, for every backlash joint or per joint as "
-    "joint_3=+,joint_4=- (default: the mid-play model, half-way between both; a note "
-    "says so)"
+    "joint_3=+,joint_4=- (default: {default})"
 )
+APPROACH_DEFAULT_IK = "the mid-play model, half-way between both; a note says so"
 
 
 def command_parser(subparsers, name: str, *, help: str, description: str):
@@ -92,8 +92,8 @@ def add_threads(parser: argparse.ArgumentParser) -> None:
         type=_threads,
         default=None,
         metavar="N",
-        help="torch threads: N, auto (the cores this process may use, one per 2,048 rows "
-        "of the work, at most OMP_NUM_THREADS) or torch (torch's own default); waiting "
+        help="torch threads: N, auto (the cores this process may use, one in the fits and "
+        "the diagnosis; at most OMP_NUM_THREADS) or torch (torch's own default); waiting "
         f"threads sleep instead of spinning (default: ${THREADS_ENV}, else auto)",
     )
 
@@ -275,10 +275,11 @@ def add_progress(parser: argparse.ArgumentParser) -> None:
 # ----------------------------------------------------------------------------- targets
 
 
-def add_approach(parser: argparse.ArgumentParser) -> None:
+def add_approach(parser: argparse.ArgumentParser, default: str = APPROACH_DEFAULT_IK) -> None:
     """``--approach SPEC``: backlash approach direction of IK targets
-    (:func:`hybrid_pk.ik.parse_approach` reads it)."""
-    parser.add_argument("--approach", metavar="SPEC", help=APPROACH_HELP)
+    (:func:`hybrid_pk.ik.parse_approach` reads it); ``default`` says what the command
+    assumes without it."""
+    parser.add_argument("--approach", metavar="SPEC", help=APPROACH_HELP.format(default=default))
 
 
 def add_frame_set(parser: argparse.ArgumentParser) -> None:
