@@ -88,8 +88,7 @@ def unknown_flag_hint(commands: dict, command: str, unknown: Sequence[str]) -> s
         close = difflib.get_close_matches(flag, list(own._option_string_actions), n=1)
         if close:
             hints.append(f"{flag}: did you mean {close[0]}?")
-    tail = f"; see hybrid-pk {command} --help"
-    return f" ({'; '.join(hints)}{tail})" if hints else ""
+    return f" ({'; '.join(hints)})" if hints else ""  # the parser's error adds --help
 
 
 def main(argv: Sequence[str] | None = None) -> int:
