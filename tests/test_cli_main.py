@@ -74,3 +74,10 @@ def test_the_robot_as_a_flag_too(tmp_path, capsys, command):
     err = capsys.readouterr().err
     assert err.count("\n") == 1
     assert "two robots given" in err
+
+
+def test_import_errors_name_the_format(tmp_path, capsys):
+    """A runtime error of ``import ipa`` is prefixed as argparse prefixes its usage
+    errors, ``hybrid-pk import ipa:`` (was ``hybrid-pk import:``)."""
+    assert main(["import", "ipa", str(tmp_path / "none.csv"), "--out", str(tmp_path)]) == 2
+    assert capsys.readouterr().err.startswith("hybrid-pk import ipa: error: ")

@@ -68,6 +68,30 @@ def test_outliers_are_listed_by_file_and_one_based_row():
     assert listed[0]["orientation_deg"] is None
 
 
+def test_round_off_is_no_outlier():
+    """Rows simulated without noise fit to float64 round-off (~1e-13 mm): a row at 7
+    times the others' round-off was listed as an outlier (a noise-free 5-row UR10
+    diagnosis printed "1 outlier row(s) beyond 4 sigma: n3.csv:5 (7.32e-13)"). Below
+    ``NOISE_FLOOR_MM`` nothing is noise, so nothing is an outlier; a real one still is."""
+    n = 8
+    data = MeasuredData(
+        q=torch.zeros(n, 6, dtype=F64),
+        position=torch.zeros(n, 3, dtype=F64),
+        quat=None,
+        joint_names=tuple(f"j{i}" for i in range(6)),
+        file_index=torch.zeros(n, dtype=torch.long),
+        rows=torch.arange(1, n + 1),
+        sources=("n.csv",),
+    )
+    err = torch.full((n,), 1e-13, dtype=F64)
+    err[4] = 7.3e-13
+    ori = torch.full((n,), 5e-15, dtype=F64)
+    ori[4] = 3.7e-14
+    assert list_outliers(data, err, ori, sigma_pos_mm=1e-6, sigma_rot_rad=1e-9) == []
+    err[4] = 1e-4  # 100 nm among rows fitted to round-off: far beyond a nanometre's noise
+    assert [o["row"] for o in list_outliers(data, err, None, 1e-6, None)] == [5]
+
+
 def test_a_robust_frame_fit_ignores_wild_rows(rx160):
     data, _ = simulate_campaign(rx160, 120, "none", noise_mm=0.05, noise_deg=0.005, seed=3)
     dirty, bad = displace_rows(data, 0.03, torch.Generator().manual_seed(4), 5.0, 10.0)

@@ -31,7 +31,7 @@ from hybrid_pk.calibration.identifiability import FrameReport, frame_report
 from hybrid_pk.calibration.kept_poses import keep_poses, kept_poses
 from hybrid_pk.calibration.least_squares import levenberg_marquardt
 from hybrid_pk.calibration.problem import ParamBlock, Problem, param_blocks
-from hybrid_pk.calibration.robust import irls_update, rotation_noise, row_weights_vector
+from hybrid_pk.calibration.robust import irls_update, reestimated_noise, row_weights_vector
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data
 from hybrid_pk.evaluation.metrics import pose_error, position_error_mm
@@ -45,7 +45,6 @@ __all__ = [
     "initialise_frames",
     "model_errors",
     "predicted_poses",
-    "reestimated_noise",
 ]
 
 # First-pass noise levels, replaced by the estimates of the re-weighted pass.
@@ -387,30 +386,6 @@ def _solve_reweighted(
         if change < 0.05:
             break
     return sig_p, sig_r, iterations, converged, weights
-
-
-def reestimated_noise(
-    r: Tensor,
-    n_rows: int,
-    n_params: int,
-    sigmas: tuple[float, float],
-    fixed: tuple[float | None, float | None] = (None, None),
-    position_only: bool = False,
-) -> tuple[float, float]:
-    """Noise levels ``(sigma_pos_mm, sigma_rot_rad)`` that make the mean square of the
-    residuals ``r`` (computed under ``sigmas``) one per degree of freedom.
-
-    ``fixed`` levels (not None) are kept; so is the rotation level without orientation.
-    """
-    sig_p, sig_r = sigmas
-    n_pos = 3 * n_rows
-    dof_factor = r.numel() / max(r.numel() - n_params, 1)
-    new_p = fixed[0] or max(sig_p * float((r[:n_pos] ** 2).mean() * dof_factor) ** 0.5, 1e-6)
-    new_r = sig_r
-    if not position_only and fixed[1] is None:
-        rot = r[n_pos : 2 * n_pos]
-        new_r = rotation_noise(sig_r * float((rot**2).mean() * dof_factor) ** 0.5, new_p)
-    return new_p, new_r
 
 
 @torch.no_grad()

@@ -41,6 +41,7 @@ __all__ = [
     "DOWN_WEIGHT",
     "FAMILY_ALPHA",
     "LEVER_M",
+    "NOISE_FLOOR_MM",
     "OUTLIER_K",
     "ROBUST_LOSSES",
     "check_robust",
@@ -50,6 +51,7 @@ __all__ = [
     "list_outliers",
     "outlier_cut",
     "outlier_threshold",
+    "reestimated_noise",
     "robust_cost",
     "robust_noise",
     "robust_weights",
@@ -66,6 +68,13 @@ __all__ = [
 # below sigma_pos / LEVER_M the orientation is not measured but exact (rounding, a
 # simulation without orientation noise) and would outweigh every position row.
 LEVER_M = 2.0
+
+
+# The smallest position noise [mm] a fit or an outlier listing assumes: a nanometre, a
+# thousand times below any tracker's resolution and far above float64 round-off of
+# metre-scale positions (~1e-13 mm): rows simulated without noise are taken as measured
+# to 1 nm, so their round-off is neither a noise level nor an outlier.
+NOISE_FLOOR_MM = 1e-6
 
 
 def rotation_noise(sigma_rot_rad: float, sigma_pos_mm: float) -> float:
@@ -112,13 +121,14 @@ def outlier_threshold(dim: int, k: float = OUTLIER_K) -> float:
     return float(stats.chi2.isf(tail, dim))
 
 
-def _median_sigma(err: Tensor, given: float) -> float:
+def _median_sigma(err: Tensor, given: float, floor: float) -> float:
     """Per-coordinate noise from the median of the squared 3-D errors ``err (N,)``
-    against chi-square(3)'s; ``given`` where there are too few rows or no spread."""
+    against chi-square(3)'s, at least ``floor``; ``given`` where there are too few rows
+    or no spread."""
     if err.numel() < 5:  # a median of fewer rows says little
         return given
     s = math.sqrt(float(err.pow(2).median()) / chi2_quantile(0.5, 3))
-    return s if s > 0 else given
+    return max(s, floor) if s > 0 else given
 
 
 def row_d2(
@@ -129,12 +139,12 @@ def row_d2(
 ) -> tuple[Tensor, int]:
     """``(d2 (N,), dim)``: each row's squared noise-normalised distance for the outlier
     listing, with the noise levels from the medians of the rows (module docstring)."""
-    sp = _median_sigma(position_mm, sigma_pos_mm)
+    sp = _median_sigma(position_mm, sigma_pos_mm, NOISE_FLOOR_MM)
     d2 = (position_mm / sp) ** 2
     if orientation_deg is None or sigma_rot_rad is None:
         return d2, 3
     rot = torch.deg2rad(orientation_deg)
-    return d2 + (rot / _median_sigma(rot, sigma_rot_rad)) ** 2, 6
+    return d2 + (rot / _median_sigma(rot, sigma_rot_rad, rotation_noise(0.0, sp))) ** 2, 6
 
 
 def outlier_cut(d2: Tensor, dim: int, k: float = OUTLIER_K) -> float:
@@ -222,7 +232,7 @@ def irls_update(
     position_only = r.numel() == 3 * n_rows
     dof_factor = r.numel() / max(r.numel() - n_params, 1)
     f_p, f_r = robust_noise(r, n_rows, dof_factor)
-    new_p = fixed[0] or max(sig_p * f_p, 1e-6)
+    new_p = fixed[0] or max(sig_p * f_p, NOISE_FLOOR_MM)
     new_r = sig_r if position_only or fixed[1] is not None else rotation_noise(sig_r * f_r, new_p)
     change = (
         0.0
@@ -235,6 +245,32 @@ def irls_update(
         parts[1] *= sig_r / new_r
     new_w = robust_weights(row_distances(parts, n_rows), 3 if position_only else 6, loss)
     return new_p, new_r, new_w, max(change, float((new_w - weights).abs().max()) / 0.5)
+
+
+def reestimated_noise(
+    r: Tensor,
+    n_rows: int,
+    n_params: int,
+    sigmas: tuple[float, float],
+    fixed: tuple[float | None, float | None] = (None, None),
+    position_only: bool = False,
+) -> tuple[float, float]:
+    """Noise levels ``(sigma_pos_mm, sigma_rot_rad)`` that make the mean square of the
+    residuals ``r`` (computed under ``sigmas``) one per degree of freedom.
+
+    ``fixed`` levels (not None) are kept; so is the rotation level without orientation.
+    """
+    sig_p, sig_r = sigmas
+    n_pos = 3 * n_rows
+    dof_factor = r.numel() / max(r.numel() - n_params, 1)
+    new_p = fixed[0] or max(
+        sig_p * float((r[:n_pos] ** 2).mean() * dof_factor) ** 0.5, NOISE_FLOOR_MM
+    )
+    new_r = sig_r
+    if not position_only and fixed[1] is None:
+        rot = r[n_pos : 2 * n_pos]
+        new_r = rotation_noise(sig_r * float((rot**2).mean() * dof_factor) ** 0.5, new_p)
+    return new_p, new_r
 
 
 def list_outliers(

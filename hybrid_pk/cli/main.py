@@ -97,6 +97,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if unknown:  # as argparse would, with the flag's owner or its closest match named
         hint = unknown_flag_hint(args.commands, args.command, unknown)
         args.commands[args.command].error(f"unrecognized arguments: {' '.join(unknown)}{hint}")
+    name = f"import {args.format}" if args.command == "import" else args.command  # as argparse
     try:
         resolve_robot(args)
         configure_threads(getattr(args, "threads", None))
@@ -106,17 +107,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.debug:
             raise
         msg = " ".join(str(exc).split())  # one line, whatever the exception carried
-        print(f"hybrid-pk {args.command}: error: {msg}", file=sys.stderr)
+        print(f"hybrid-pk {name}: error: {msg}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"hybrid-pk {args.command}: interrupted", file=sys.stderr)
+        print(f"hybrid-pk {name}: interrupted", file=sys.stderr)
         return 130
     except Exception as exc:  # a bug, not bad input: still one line, the traceback on demand
         if args.debug:
             raise
         msg = " ".join(f"{type(exc).__name__}: {exc}".split())
         print(
-            f"hybrid-pk {args.command}: internal error: {msg} (rerun with --debug for the "
+            f"hybrid-pk {name}: internal error: {msg} (rerun with --debug for the "
             "traceback, and please report it)",
             file=sys.stderr,
         )

@@ -33,7 +33,8 @@ from hybrid_pk.calibration.diagnosis.statistics import (
     weighted_ssr,
 )
 from hybrid_pk.calibration.diagnosis.variants import shift_parameters, with_effects
-from hybrid_pk.calibration.fit import FitResult, fit, reestimated_noise
+from hybrid_pk.calibration.fit import FitResult, fit
+from hybrid_pk.calibration.robust import reestimated_noise
 from hybrid_pk.calibration.shared_jacobian import release_shared
 from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.data.measured import MeasuredData

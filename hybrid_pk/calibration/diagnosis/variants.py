@@ -14,8 +14,9 @@ from torch import Tensor
 
 from hybrid_pk.calibration.chord import Linearisation
 from hybrid_pk.calibration.diagnosis.statistics import weighted_residual
-from hybrid_pk.calibration.fit import FitResult, fit, reestimated_noise
+from hybrid_pk.calibration.fit import FitResult, fit
 from hybrid_pk.calibration.problem import param_blocks
+from hybrid_pk.calibration.robust import reestimated_noise
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, Effect, ExtendedModel, make_effect
 
