@@ -37,7 +37,9 @@ values) in one of these formats:
 beta is Hayati's parameter, non-zero only between consecutive axes within 45 degrees of
 parallel (where plain DH is singular). Effects a geometric file cannot carry
 (compliance, deflection, backlash, gear ratio, eccentricity, cyclic errors, residual
-networks) are listed with their size [mm, mrad] at the measured points: those of --data, else
+networks, and a thermal expansion: the file holds the geometry at 20 degC) are listed
+with their size [mm, mrad] at the measured points (a thermal expansion at their
+temperatures, or per K from 20 degC where they have none): those of --data, else
 the data files the model was calibrated on, else 1000 configurations drawn within the
 joint limits. 'hybrid-pk import dh' and Robot.from_dh read the dh / mdh files back.
 """

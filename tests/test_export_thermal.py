@@ -1,0 +1,73 @@
+"""``hybrid-pk export`` of a model with thermal expansion: the file holds the geometry at
+the reference temperature (20 °C), so the expansion away from it is listed as not
+carried, with its size; without temperatures (no data found) per kelvin, not a crash."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import torch
+
+from hybrid_pk.cli.main import main
+from hybrid_pk.effects import Conditions, ExtendedModel, make_effect
+from hybrid_pk.io.model_file import save_model
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+ALPHA = 1.2e-5  # [1/K] steel
+
+
+def _model(rx160, tmp_path: Path) -> tuple[ExtendedModel, Path]:
+    effects = [
+        make_effect(rx160, "thermal_expansion", ALPHA),
+        make_effect(rx160, "joint_offset:joint_2", 5e-4),
+    ]
+    model = ExtendedModel(rx160, effects)
+    model.requires_grad_(False)
+    return model, save_model(tmp_path / "thermal.pt", model)
+
+
+def _line(printed: str, label: str) -> str:
+    return next(line for line in printed.splitlines() if line.strip().startswith(label))
+
+
+def test_thermal_expansion_listed_at_the_data_temperatures(rx160, tmp_path, capsys):
+    """With data at 28 °C: the expansion is listed, sized as the move of the full model
+    without it at those rows; the file header says the geometry is written at 20 °C."""
+    model, path = _model(rx160, tmp_path)
+    q = rx160.sample_q(40, torch.Generator().manual_seed(2))
+    with torch.no_grad():
+        p = rx160.fk(q)[:, :3, 3].numpy()
+    table = pd.DataFrame(q.numpy(), columns=rx160.joint_names)
+    table[["x", "y", "z"]] = p
+    table["temperature"] = 28.0
+    data = tmp_path / "warm.csv"
+    table.to_csv(data, index=False)
+    out = tmp_path / "t.yaml"
+    argv = ["export", str(path), "--format", "dh", "--data", str(data), "--out", str(out)]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    line = _line(printed, "thermal_expansion")
+    assert "20 °C" in line, line
+    temp = torch.full((40,), 28.0, dtype=torch.float64)
+    cond = Conditions(temperature=temp)
+    others = model.with_effects([e for e in model.effects if e.kind != "thermal_expansion"])
+    with torch.no_grad():
+        moved = (model(q, cond) - others(q, cond))[:, :3, 3].norm(dim=-1).max() * 1000
+    assert float(moved) > 0.05  # 8 K x 1.2e-5 over a metre and more
+    assert f"{float(moved):.4g} mm max" in line, line
+    assert "thermal_expansion" in out.read_text(encoding="utf-8")
+
+
+def test_thermal_expansion_without_temperatures_is_sized_per_kelvin(rx160, tmp_path, capsys):
+    """No data found (the calibration files moved away): the export still writes the
+    file (before: 'thermal_expansion needs the temperature of each row'), and sizes the
+    expansion per kelvin from 20 °C."""
+    _, path = _model(rx160, tmp_path)
+    out = tmp_path / "t.yaml"
+    assert main(["export", str(path), "--format", "mdh", "--out", str(out)]) == 0
+    line = _line(capsys.readouterr().out, "thermal_expansion")
+    assert "per K" in line, line
+    assert out.is_file()
