@@ -453,3 +453,22 @@ def test_every_name_in_all_resolves(module):
     mod = importlib.import_module(module)
     missing = [name for name in mod.__all__ if not hasattr(mod, name)]
     assert missing == []
+
+
+def test_a_data_file_that_does_not_exist_is_named(tmp_path, capsys):
+    """read_table / read_table_for and every command reading DATA (evaluate, calibrate,
+    export --data) say 'FILE: file not found' (before: '[Errno 2] No such file or
+    directory: ...', the text of Python's OSError)."""
+    from hybrid_pk.cli.main import main
+
+    missing = tmp_path / "nothere.csv"
+    with pytest.raises(DataError, match=r"nothere\.csv: file not found"):
+        read_table(missing, **UR10)
+    for argv in (
+        ["evaluate", "nominal:rx160", str(missing)],
+        ["calibrate", str(missing), "--robot", "rx160", "--out", str(tmp_path / "m.pt")],
+    ):
+        assert main(argv) != 0
+        err = capsys.readouterr().err
+        assert "nothere.csv: file not found" in err, err
+        assert "Errno" not in err
