@@ -280,3 +280,24 @@ def _table_of(robot: Robot, q: torch.Tensor, tmp_path: Path) -> Path:
     path = tmp_path / "points.csv"
     frame.to_csv(path, index=False)
     return path
+
+
+def test_ur_format_of_an_arm_that_is_not_a_ur(tmp_path, rx160, capsys):
+    """An RX160 (axes 2-3 parallel, not 3-4) written as UR kinematics: a warning says it
+    is not laid out as a UR arm, and its root is written unturned, so the file rebuilds
+    its FK as it is (before: 'as UR's arms are in base_link', the shoulder turned by pi
+    about z without a word). A chain with mimic joints is refused as a UR file, not as
+    a DH table."""
+    model = save_model(tmp_path / "rx.pt", ExtendedModel(rx160))
+    out = tmp_path / "rx.yaml"
+    assert main(["export", str(model), "--format", "ur-calibration", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "warning: rx160 is not laid out as a UR arm" in printed, printed
+    q = rx160.sample_q(100, torch.Generator().manual_seed(8))
+    with torch.no_grad():
+        fk = rx160.fk(q).numpy()
+    assert np.abs(ur_pose(out, q.numpy()) - fk).max() < TOL
+    column = Robot.from_urdf(REPO / "urdf" / "column_arm.urdf", end_link="tool0")
+    model = save_model(tmp_path / "column.pt", ExtendedModel(column))
+    assert main(["export", str(model), "--format", "ur-calibration", "--out", str(out)]) != 0
+    assert "the UR calibration format holds 6 revolute joints" in capsys.readouterr().err

@@ -14,7 +14,12 @@ from hybrid_pk.effects import Conditions, conditions_from_data
 from hybrid_pk.io.dh_export import inertial_note, model_dh_table, write_dh_yaml
 from hybrid_pk.io.export_summary import left_out, summary_lines
 from hybrid_pk.io.model_file import LoadedModel, load_model
-from hybrid_pk.io.ur_calibration import UR_ROOTS, guess_ur_root, write_ur_calibration
+from hybrid_pk.io.ur_calibration import (
+    UR_ROOTS,
+    guess_ur_root,
+    not_ur_layout,
+    write_ur_calibration,
+)
 from hybrid_pk.io.urdf_export import export_urdf
 
 NAME = "export"
@@ -32,7 +37,8 @@ values) in one of these formats:
   mdh             modified (Craig) DH, same file: Rx(alpha) Tx(a) Ry(beta) Rz(theta) Tz(d)
   urdf            the corrected URDF (joint offsets folded into the joint origins)
   ur-calibration  Universal Robots' kinematics YAML (ur_description): per joint
-                  x y z [m] roll pitch yaw [rad] and a hash (--ur-root: the model's root)
+                  x y z [m] roll pitch yaw [rad] and a hash (--ur-root: the model's root);
+                  6 revolute joints; an arm not laid out as a UR is written unturned, warned
 
 beta is Hayati's parameter, non-zero only between consecutive axes within 45 degrees of
 parallel (where plain DH is singular). Effects a geometric file cannot carry
@@ -100,6 +106,14 @@ def run(args: argparse.Namespace) -> int:
     elif args.format == "ur-calibration":
         root, x = guess_ur_root(model)
         seen = f"at zero joints the flange is at x = {x:.4g} m, as UR's arms are in {root}"
+        other = not_ur_layout(model)
+        if other:
+            root, seen = UR_ROOTS[0], "not a UR arm, so its root is written unturned"
+            lines.append(
+                f"warning: {model.robot.name} is not laid out as a UR arm ({other}): UR's "
+                "description and driver read this format for UR arms; the file holds the "
+                "chain from its root link"
+            )
         if args.ur_root == "auto":
             lines.append(f"root: {model.robot.name}'s root link taken as {root}: {seen}")
         elif args.ur_root != root:
