@@ -288,3 +288,39 @@ def test_backlash_sides_are_those_of_the_corrected_program(rx160):
     with torch.no_grad():
         err = pose_error(base @ rx160.fk(q_nom) @ tool, real(comp.q, cond)).position_mm
     assert float(err[ok].max()) < 1e-3, err
+
+
+def test_cli_keeps_the_program_columns_and_warns_on_a_corrected_program(tmp_path, capsys, rx160):
+    """A joint program's other columns (line numbers, speeds, payload) are copied to
+    CORRECTED as they are (before: dropped, only the joints came back); a CORRECTED file
+    given as PROGRAM again is warned about (its joints would be corrected twice)."""
+    model = save_model(tmp_path / "m.pt", _real(rx160))
+    q = _program(rx160, n=5)
+    extra = pd.DataFrame({"line": [10, 20, 30, 40, 50], "speed": ["0.25", "0.5", "1", "v200", ""]})
+    write_joint_table(tmp_path / "p.csv", q, rx160.joint_names, extra)
+    argv = ["compensate", str(model), str(tmp_path / "p.csv"), "--no-progress", "--out"]
+    assert main([*argv, str(tmp_path / "c.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "copied to the output" in out, out
+    corrected = pd.read_csv(tmp_path / "c.csv", dtype=str, keep_default_na=False)
+    assert corrected["line"].tolist() == ["10", "20", "30", "40", "50"]
+    assert corrected["speed"].tolist() == ["0.25", "0.5", "1", "v200", ""]
+    assert list(corrected.columns).index("speed") < list(corrected.columns).index("status")
+    assert "warning" not in out
+    assert (
+        main(
+            [
+                "compensate",
+                str(model),
+                str(tmp_path / "c.csv"),
+                "--no-progress",
+                "--out",
+                str(tmp_path / "c2.csv"),
+            ]
+        )
+        == 0
+    )
+    out = capsys.readouterr().out
+    assert "is a compensate output" in out, out
+    again = pd.read_csv(tmp_path / "c2.csv")
+    assert list(again.columns).count("status") == 1

@@ -37,7 +37,8 @@ of every joint from the order of the corrected program (first row: mid-play) unl
 --approach states it (then every row is solved for that side: the program must
 approach its targets so).
 
-CORRECTED has one row per PROGRAM row, in order: the joint columns, residual_mm and
+CORRECTED has one row per PROGRAM row, in order: the joint columns, a joint program's
+other columns as they are (e.g. line numbers, speeds), residual_mm and
 residual_deg (the model's predicted error at those joints), status, nominal_mm and
 nominal_deg (the same for the uncorrected joints) and note. status is one of
 {", ".join(STATUSES)}; a row that is not ok keeps its nominal joints and the note
@@ -118,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
     with data_notes():
         program = read_program(args.program, robot)
     for line in program.notes:
-        print(f"note: {line}")
+        print(line if line.startswith("warning: ") else f"note: {line}")
     options = IKOptions(tol_mm=args.tol_mm, tol_deg=args.tol_deg)
     with progress("compensate", enabled=not args.no_progress) as bar:
         bar.stage(f"solving {program.n} row(s) on the model")

@@ -36,8 +36,9 @@ F64 = torch.float64
 @dataclass(frozen=True)
 class Program:
     """A robot program: nominal joint targets or flange poses (one of them), the
-    rows' payload [kg] and temperature [degC] where given, ``kind`` for the messages
-    and ``notes`` (columns left unused)."""
+    rows' payload [kg] and temperature [degC] where given, ``kind`` for the messages,
+    ``notes`` (columns left unused) and ``columns``: a joint program's other columns as
+    read (text), copied to the corrected program beside its joints."""
 
     q_nominal: Tensor | None
     targets: Tensor | None
@@ -45,6 +46,7 @@ class Program:
     temperature: Tensor | None = None
     kind: str = "joint targets"
     notes: list[str] = field(default_factory=list)
+    columns: pd.DataFrame | None = None
 
     @property
     def n(self) -> int:
@@ -58,13 +60,25 @@ def read_program(path: str, robot: Robot) -> Program:
     if has_joint_columns(path, robot.joint_names) or not has_joint_columns(path, ("x", "y", "z")):
         q, rest = read_joint_table(path, robot)
         unused = [c for c in rest.columns if c not in ("payload", "temperature")]
-        notes = [f"{path}: joint targets used; columns {', '.join(unused)} are not"] * bool(unused)
+        notes = [
+            f"{path}: joint targets used; columns {', '.join(unused)} are not (copied to the "
+            "output as they are)"
+        ] * bool(unused)
         extra = {
             c: torch.tensor(pd.to_numeric(rest[c], errors="raise").to_numpy(), dtype=F64)
             for c in ("payload", "temperature")
             if c in rest.columns
         }
-        return Program(q, None, extra.get("payload"), extra.get("temperature"), notes=notes)
+        if {"status", "nominal_mm"} <= set(rest.columns):  # what compensate writes
+            notes.append(
+                f"warning: {path} is a compensate output (columns status, nominal_mm): its "
+                "joints are corrected already, and corrected again they miss the targets by "
+                "the correction once more; give the nominal program"
+            )
+        columns = rest if len(rest.columns) else None
+        return Program(
+            q, None, extra.get("payload"), extra.get("temperature"), notes=notes, columns=columns
+        )
     data = read_table_for([path], robot, n_params=1, require_joints=False)
     if not data.has_orientation:
         raise HybridPKError(
@@ -86,7 +100,8 @@ def compensate_program(
     fixes: Mapping[str, str] | None = None,
 ) -> Compensation:
     """The joints that put MODEL (``loaded``, base/tool frame set ``frame_set``) at the
-    program's nominal poses; written to ``out`` (joints, residuals, status) if given.
+    program's nominal poses; written to ``out`` (joints, a joint program's other columns,
+    residuals, status) if given.
     The IK's assumptions are in the result's ``assumed``, not warned, each with how to
     state it instead (``fixes``: the caller's words, e.g. a column of the program)."""
     model = loaded.model
@@ -105,7 +120,11 @@ def compensate_program(
             fixes=fixes,
         )  # fmt: skip
     if out is not None:
-        write_joint_table(out, comp.q, robot.joint_names, compensation_frame(comp))
+        computed = compensation_frame(comp)
+        if program.columns is not None:  # the program's own columns; this run's replace
+            kept = program.columns.drop(columns=[c for c in computed if c in program.columns])
+            computed = pd.concat([kept.reset_index(drop=True), computed], axis=1)
+        write_joint_table(out, comp.q, robot.joint_names, computed)
     return comp
 
 
