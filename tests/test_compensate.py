@@ -324,3 +324,41 @@ def test_cli_keeps_the_program_columns_and_warns_on_a_corrected_program(tmp_path
     assert "is a compensate output" in out, out
     again = pd.read_csv(tmp_path / "c2.csv")
     assert list(again.columns).count("status") == 1
+
+
+def test_cli_controller_running_the_exported_geometry(tmp_path, capsys, rx160):
+    """A controller that runs the exported calibrated geometry (DH YAML): a program
+    computed with that table, compensated with --controller TABLE, puts the model at the
+    table's poses (B · table FK · X); without --controller the geometry is corrected a
+    second time and the model misses them by about the geometric correction."""
+    from hybrid_pk import Robot
+    from hybrid_pk.ik.compensation import nearest_branch
+
+    real = _real(rx160, "link_length:joint_3=4e-4,0,-3e-4", "axis_misalignment:joint_4=5e-4,0")
+    model = save_model(tmp_path / "m.pt", real)
+    table = tmp_path / "geometry.yaml"
+    assert main(["export", str(model), "--format", "dh", "--out", str(table)]) == 0
+    controller = Robot.from_dh(table)
+    start = torch.tensor([0.0, 0.3, 1.2, 0.0, 0.9, 0.0], dtype=F64)
+    with torch.no_grad():
+        line = controller.fk(start).repeat(8, 1, 1)
+    line[:, 0, 3] += torch.linspace(0.0, 0.1, 8, dtype=F64)
+    q = nearest_branch(controller, line, reference=start)
+    write_joint_table(tmp_path / "p.csv", q, rx160.joint_names)
+    B, X = _frames(real)
+    with torch.no_grad():
+        intended = B @ controller.fk(q) @ X
+    argv = ["compensate", str(model), str(tmp_path / "p.csv"), "--no-progress", "--out"]
+    missed = {}
+    for name, flags in (("controller", ["--controller", str(table)]), ("nominal", [])):
+        assert main([*argv, str(tmp_path / f"{name}.csv"), *flags]) == 0
+        corrected = torch.tensor(pd.read_csv(tmp_path / f"{name}.csv")[rx160.joint_names].values)
+        with torch.no_grad():
+            cond = Conditions(
+                payload=_cond(corrected).payload, direction=approach_direction(corrected)
+            )
+            reached = real(corrected, cond)
+        missed[name] = float(pose_error(intended, reached).position_mm.max())
+    capsys.readouterr()
+    assert missed["controller"] < 1e-3, missed  # the ok tolerance
+    assert missed["nominal"] > 0.1, missed  # the geometry corrected twice

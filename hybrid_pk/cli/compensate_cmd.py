@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 from collections import Counter
+from pathlib import Path
 
 from hybrid_pk.cli.common import data_notes, load_frozen_model
 from hybrid_pk.cli.options import (
@@ -19,6 +20,7 @@ from hybrid_pk.ik import IKOptions
 from hybrid_pk.ik.compensation import COMPENSATION_BOX, STATUSES, Compensation
 from hybrid_pk.ik.conditions import parse_approach
 from hybrid_pk.pipelines.compensation import compensate_program, read_program
+from hybrid_pk.robot import Robot
 
 _DESCRIPTION = f"""\
 Correct a robot program for the real robot: for each PROGRAM row, the joint values
@@ -46,6 +48,12 @@ says why (a joint beyond its limit, or no solution within --box): nothing is ben
 into the limits silently.
 
 The robot base frame is the one the calibration identified (MODEL's base frame).
+The intended pose of a joint row is where the controller's kinematics put the flange:
+MODEL's nominal URDF, or --controller FILE when the controller runs another model, such
+as the calibrated geometry of 'hybrid-pk export' (a DH / MDH YAML or a URDF): the
+program then moves by what that file cannot carry only. Compensating a program of a
+controller that runs the exported geometry without --controller corrects the geometry
+twice.
 """
 
 
@@ -82,6 +90,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--tol-deg", type=float, default=1e-3, metavar="DEG",
         help="largest predicted orientation error of an ok row [deg] (default 0.001)",
     )  # fmt: skip
+    p.add_argument(
+        "--controller",
+        metavar="FILE",
+        help="the kinematics the controller runs and the program was computed with: a URDF "
+        "or a DH / MDH YAML table, e.g. from 'hybrid-pk export' (then only what that file "
+        "cannot carry is corrected); default: MODEL's nominal URDF",
+    )
     add_frame_set(p)
     add_approach(p)
 
@@ -112,10 +127,29 @@ def _summary(comp: Compensation, args, robot, kind: str) -> list[str]:
     return lines
 
 
+def _controller(path: str, robot: Robot) -> Robot:
+    """The controller's kinematics (``--controller``): a URDF, or a DH / MDH table that
+    states its convention (YAML), with ``robot``'s joints in the same order."""
+    if not Path(path).is_file():
+        raise HybridPKError(f"--controller: file not found: {path}")
+    if Path(path).suffix.lower() in (".yaml", ".yml"):
+        controller = Robot.from_dh(path)
+    else:
+        controller = Robot.from_urdf(path, end_link=robot.end_link)
+    if controller.joint_names != robot.joint_names:
+        raise HybridPKError(
+            f"--controller: {path} has joints {', '.join(controller.joint_names)}; the model's "
+            f"{robot.name} has {', '.join(robot.joint_names)}"
+        )
+    controller.requires_grad_(False)
+    return controller
+
+
 def run(args: argparse.Namespace) -> int:
     if args.box <= 0 or args.tol_mm <= 0 or args.tol_deg <= 0:
         raise HybridPKError("--box, --tol-mm and --tol-deg must be positive")
     loaded, _model, robot, k = load_frozen_model(args)
+    controller = _controller(args.controller, robot) if args.controller else None
     with data_notes():
         program = read_program(args.program, robot)
     for line in program.notes:
@@ -126,6 +160,7 @@ def run(args: argparse.Namespace) -> int:
         comp = compensate_program(
             loaded, program, frame_set=k, box=args.box, options=options,
             approach=parse_approach(args.approach), out=args.out, fixes=_FIXES,
+            controller=controller,
         )  # fmt: skip
     for line in comp.assumed:
         print(f"note: {line}")

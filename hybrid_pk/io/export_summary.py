@@ -106,6 +106,7 @@ def summary_lines(items: list[LeftOut], where: str) -> list[str]:
     if not items:
         return ["every effect of the model is geometric: the export carries all of it"]
     return [
-        f"not carried by a geometric table (size at {where}; hybrid-pk compensate carries them):",
+        f"not carried by a geometric table (size at {where}; 'hybrid-pk compensate MODEL "
+        "PROGRAM --controller FILE' carries them for a controller running this file):",
         *(f"  {item.line()}" for item in items),
     ]

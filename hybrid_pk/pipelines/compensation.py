@@ -98,12 +98,15 @@ def compensate_program(
     approach: Approach = None,
     out: str | os.PathLike | None = None,
     fixes: Mapping[str, str] | None = None,
+    controller: Robot | None = None,
 ) -> Compensation:
     """The joints that put MODEL (``loaded``, base/tool frame set ``frame_set``) at the
     program's nominal poses; written to ``out`` (joints, a joint program's other columns,
     residuals, status) if given.
     The IK's assumptions are in the result's ``assumed``, not warned, each with how to
-    state it instead (``fixes``: the caller's words, e.g. a column of the program)."""
+    state it instead (``fixes``: the caller's words, e.g. a column of the program).
+    ``controller``: the kinematics the program was computed with and the intended poses
+    come from (default: MODEL's robot, the nominal URDF)."""
     model = loaded.model
     robot = model.robot
     group = torch.full((program.n,), frame_set, dtype=torch.long) if model.base.sets > 1 else None
@@ -115,7 +118,7 @@ def compensate_program(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IKAssumption)  # the caller reports comp.assumed
         comp = compensate(
-            real, robot, base=base, tool=tool, q_nominal=program.q_nominal,
+            real, controller or robot, base=base, tool=tool, q_nominal=program.q_nominal,
             targets=program.targets, cond=cond, box=box, options=options, approach=approach,
             fixes=fixes,
         )  # fmt: skip
