@@ -301,3 +301,20 @@ def test_ur_format_of_an_arm_that_is_not_a_ur(tmp_path, rx160, capsys):
     model = save_model(tmp_path / "column.pt", ExtendedModel(column))
     assert main(["export", str(model), "--format", "ur-calibration", "--out", str(out)]) != 0
     assert "the UR calibration format holds 6 revolute joints" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("fmt", "name", "want"),
+    [("urdf", "m.yaml", "writes XML"), ("ur-calibration", "m.urdf", "writes YAML")],
+)
+def test_an_output_name_that_does_not_fit_the_format_is_refused(
+    tmp_path, rx160, capsys, fmt, name, want
+):
+    """--format urdf into a .yaml (read back as a DH table by Robot.from_dh and compensate
+    --controller) or UR YAML into a .urdf: one line naming the suffixes, nothing written
+    (before: the file was written under the wrong name)."""
+    model = save_model(tmp_path / "rx.pt", ExtendedModel(rx160))
+    out = tmp_path / name
+    assert main(["export", str(model), "--format", fmt, "--out", str(out)]) != 0
+    assert want in capsys.readouterr().err
+    assert not out.exists()

@@ -11,6 +11,7 @@ import torch
 from hybrid_pk.cli.common import read_data
 from hybrid_pk.cli.options import add_model, add_out
 from hybrid_pk.effects import Conditions, conditions_from_data
+from hybrid_pk.errors import HybridPKError
 from hybrid_pk.io.dh_export import inertial_note, model_dh_table, write_dh_yaml
 from hybrid_pk.io.export_summary import left_out, summary_lines
 from hybrid_pk.io.model_file import LoadedModel, load_model
@@ -51,6 +52,10 @@ joint limits. 'hybrid-pk import dh' and Robot.from_dh read the dh / mdh files ba
 """
 
 _FORMATS = ("dh", "mdh", "urdf", "ur-calibration")
+_YAML = ((".yaml", ".yml"), "YAML")
+# the file names each format's readers expect: Robot.from_dh and compensate --controller
+# take a .yaml as a DH table and anything else as a URDF
+_SUFFIXES = {"dh": _YAML, "mdh": _YAML, "ur-calibration": _YAML, "urdf": ((".urdf", ".xml"), "XML")}
 _RANDOM_POINTS = 1000  # enough for a stable rms and max of a smooth effect over the workspace
 
 
@@ -58,7 +63,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """The flags of ``hybrid-pk export``."""
     add_model(p)
     p.add_argument("--format", required=True, choices=_FORMATS, help="output format")
-    add_out(p, metavar="FILE", help="output file (.yaml for dh, mdh and ur-calibration)")
+    add_out(
+        p, metavar="FILE", help="output file (.yaml for dh, mdh and ur-calibration, .urdf for urdf)"
+    )
     p.add_argument(
         "--ur-root",
         choices=("auto", *UR_ROOTS),
@@ -93,6 +100,12 @@ def _points(args: argparse.Namespace, loaded: LoadedModel) -> tuple[torch.Tensor
 
 
 def run(args: argparse.Namespace) -> int:
+    suffixes, kind = _SUFFIXES[args.format]
+    if Path(args.out).suffix.lower() not in suffixes:
+        raise HybridPKError(
+            f"{args.out}: --format {args.format} writes {kind}; name the file "
+            f"{' or '.join(f'*{x}' for x in suffixes)}"
+        )
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
     model = loaded.model
     model.requires_grad_(False)
