@@ -362,3 +362,23 @@ def test_cli_controller_running_the_exported_geometry(tmp_path, capsys, rx160):
     capsys.readouterr()
     assert missed["controller"] < 1e-3, missed  # the ok tolerance
     assert missed["nominal"] > 0.1, missed  # the geometry corrected twice
+
+
+@pytest.mark.parametrize(
+    ("cell", "message"),
+    [("abc", "row 2, column 'payload': text 'abc'"), ("", "row 2, column 'payload': empty"),
+     ("-1", "a payload is a mass >= 0 kg"), ("5000", "looks like grams")],
+)  # fmt: skip
+def test_cli_bad_payload_cells_of_a_program(tmp_path, capsys, rx160, cell, message):
+    """A program's payload column is checked as a measured table's is: one line with
+    file, row and column (before: pandas' 'Unable to parse string' without a place, an
+    empty cell made its row 'unreachable ... nan the correction needs', and -1 or 5000 kg
+    were used as they stood)."""
+    model = save_model(tmp_path / "m.pt", _real(rx160))
+    payload = pd.DataFrame({"payload": ["2", cell, "2"]})
+    write_joint_table(tmp_path / "p.csv", _program(rx160, n=3), rx160.joint_names, payload)
+    argv = ["compensate", str(model), str(tmp_path / "p.csv"), "--no-progress", "--out"]
+    assert main([*argv, str(tmp_path / "c.csv")]) != 0
+    err = capsys.readouterr().err
+    assert message in err, err
+    assert err.count("\n") == 1

@@ -472,3 +472,21 @@ def test_a_data_file_that_does_not_exist_is_named(tmp_path, capsys):
         err = capsys.readouterr().err
         assert "nothere.csv: file not found" in err, err
         assert "Errno" not in err
+
+
+@pytest.mark.parametrize(
+    ("column", "value", "message"),
+    [
+        ("payload", -2.0, "a payload is a mass >= 0 kg"),
+        ("payload", 5000.0, "looks like grams"),
+        ("temperature", 295.0, "looks like kelvin"),
+    ],
+)
+def test_payload_and_temperature_in_other_units_are_refused(tmp_path, column, value, message):
+    """A negative payload, a payload in grams (beyond the heaviest arm's 2.3 t) and a
+    temperature in kelvin name file, row and column (before: read as kg / degC; a 5 kg
+    payload written as 5000 made evaluate report a 36 deg mean orientation error)."""
+    frame = _frame(5, payload=np.full(5, 2.0), temperature=np.full(5, 22.0))
+    path = _csv(tmp_path, _set(frame, 3, column, value))
+    with pytest.raises(DataError, match=_where(path, 3, column) + ".*" + re.escape(message)):
+        read_table(path, **UR10)

@@ -13,11 +13,13 @@ import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
+import numpy as np
 import pandas as pd
 import torch
 from torch import Tensor
 
 from hybrid_pk.data import read_table_for
+from hybrid_pk.data.cells import check_conditions, numeric_column
 from hybrid_pk.data.joint_table import has_joint_columns, read_joint_table, write_joint_table
 from hybrid_pk.effects import Conditions
 from hybrid_pk.errors import HybridPKError
@@ -64,11 +66,13 @@ def read_program(path: str, robot: Robot) -> Program:
             f"{path}: joint targets used; columns {', '.join(unused)} are not (copied to the "
             "output as they are)"
         ] * bool(unused)
-        extra = {
-            c: torch.tensor(pd.to_numeric(rest[c], errors="raise").to_numpy(), dtype=F64)
+        values = {
+            c: numeric_column(str(path), rest[c], c)
             for c in ("payload", "temperature")
             if c in rest.columns
         }
+        check_conditions(str(path), values, np.arange(1, len(rest) + 1))
+        extra = {c: torch.tensor(v, dtype=F64) for c, v in values.items()}
         if {"status", "nominal_mm"} <= set(rest.columns):  # what compensate writes
             notes.append(
                 f"warning: {path} is a compensate output (columns status, nominal_mm): its "
