@@ -362,6 +362,9 @@ def test_cli_controller_running_the_exported_geometry(tmp_path, capsys, rx160):
     capsys.readouterr()
     assert missed["controller"] < 1e-3, missed  # the ok tolerance
     assert missed["nominal"] > 0.1, missed  # the geometry corrected twice
+    table.with_suffix(".csv").write_text("name,a,alpha,d,theta,type,lower,upper\n")
+    assert main([*argv, str(tmp_path / "x.csv"), "--controller", str(table.with_suffix(".csv"))])
+    assert "a CSV DH table does not state its convention" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(

@@ -132,7 +132,14 @@ def _controller(path: str, robot: Robot) -> Robot:
     states its convention (YAML), with ``robot``'s joints in the same order."""
     if not Path(path).is_file():
         raise HybridPKError(f"--controller: file not found: {path}")
-    if Path(path).suffix.lower() in (".yaml", ".yml"):
+    suffix = Path(path).suffix.lower()
+    if suffix == ".csv":
+        raise HybridPKError(
+            f"--controller: {path}: a CSV DH table does not state its convention; give a "
+            f"URDF ('hybrid-pk import dh {path} --convention dh|mdh --out ROBOT.urdf') or "
+            "the YAML table that export writes"
+        )
+    if suffix in (".yaml", ".yml"):
         controller = Robot.from_dh(path)
     else:
         controller = Robot.from_urdf(path, end_link=robot.end_link)
