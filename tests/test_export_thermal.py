@@ -1,6 +1,7 @@
-"""``hybrid-pk export`` of a model with thermal expansion: the file holds the geometry at
-the reference temperature (20 °C), so the expansion away from it is listed as not
-carried, with its size; without temperatures (no data found) per kelvin, not a crash."""
+"""``hybrid-pk export`` of what a file holds besides the geometry: a thermal expansion
+(the file holds the geometry at 20 °C, so the expansion away from it is listed as not
+carried, with its size; without temperatures per kelvin, not a crash) and the mounting
+(gravity: said, with the --gravity that gives it back)."""
 
 from __future__ import annotations
 
@@ -71,3 +72,21 @@ def test_thermal_expansion_without_temperatures_is_sized_per_kelvin(rx160, tmp_p
     line = _line(capsys.readouterr().out, "thermal_expansion")
     assert "per K" in line, line
     assert out.is_file()
+
+
+def test_a_mounted_model_says_its_mounting_is_not_in_the_file(rx160, tmp_path, capsys):
+    """A ceiling-mounted model (gravity +z in the root frame): every format says the
+    mounting is not carried and which --gravity gives it back (before: nothing, and the
+    DH table's masses read back as an upright robot's statics); an upright model has no
+    such line."""
+    from hybrid_pk.effects import Gravity
+
+    soft = [make_effect(rx160, "joint_compliance:joint_2", 2e-6)]
+    for gravity, said in ((Gravity((0.0, 0.0, 9.81)), True), (None, False)):
+        path = save_model(tmp_path / "m.pt", ExtendedModel(rx160, soft, gravity=gravity))
+        for fmt, suffix in (("dh", "yaml"), ("urdf", "urdf")):
+            out = tmp_path / f"t.{suffix}"
+            assert main(["export", str(path), "--format", fmt, "--out", str(out)]) == 0
+            printed = capsys.readouterr().out
+            assert ("mounting not carried" in printed) == said, printed
+            assert ("--gravity 0,0,9.81" in printed) == said

@@ -99,6 +99,20 @@ def _points(args: argparse.Namespace, loaded: LoadedModel) -> tuple[torch.Tensor
     return q, cond, f"{_RANDOM_POINTS} configurations within the joint limits (no data found)"
 
 
+def _mounting_line(model) -> list[str]:
+    """A line when MODEL's gravity is not the default (upright on the floor): no export
+    format holds it, and a robot read back from the file is statically upright."""
+    g = model.gravity
+    if g.is_default:
+        return []
+    flag = "level-tracker" if g.levelled else ",".join(f"{v:g}" for v in g.vector)
+    return [
+        f"mounting not carried: gravity {g.describe()}; a robot read back from this file "
+        f"stands upright: give --gravity {flag} again where its statics count (compliance, "
+        "deflection)"
+    ]
+
+
 def run(args: argparse.Namespace) -> int:
     suffixes, kind = _SUFFIXES[args.format]
     if Path(args.out).suffix.lower() not in suffixes:
@@ -112,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
     q, cond, where = _points(args, loaded)
     lines = [f"hybrid_pk export of {loaded.source} ({args.format})"]
     lines += summary_lines(left_out(loaded, q, cond), where)
+    lines += _mounting_line(model)
     if args.format in ("dh", "mdh"):
         note = inertial_note(model.robot)
         lines += [note] if note else []
