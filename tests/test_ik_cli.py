@@ -254,3 +254,7 @@ def test_targets_beyond_reach_say_which_frame_targets_are_in(tmp_path, rx160, ca
     rc, out, _ = _run(capsys, "ik", path, measured, "--out", tmp_path / "m.csv", "--no-progress")
     assert rc == 0
     assert "beyond the" not in out, out
+    # measured poses given to nominal:ROBOT (identity frames) say the converse
+    rc, out, _ = _run(capsys, "ik", "nominal:rx160", measured, "--out", tmp_path / "n.csv")
+    assert rc == 0
+    assert "nominal:ROBOT takes flange poses in the robot base frame" in out, out

@@ -187,10 +187,15 @@ def _beyond_reach(loaded, data, frame, k: int) -> None:
         return
     rows = ", ".join(str(int(i)) for i in far.nonzero()[:5, 0]) + (", ..." if far.sum() > 5 else "")
     span = f"{float(distance[far].min()):.3g}-{float(distance[far].max()):.3g} m"
+    if loaded.source.startswith("nominal:"):  # identity frames: targets in the base frame
+        why = "nominal:ROBOT takes flange poses in the robot base frame [m]; measured poses "
+        why += "in a tracker's frame go with a calibrated model file"
+    else:
+        why = "TARGETS are x y z of the measured point in the measurement frame (as the "
+        why += "calibration data's); flange poses in the robot base frame go with "
+        why += "nominal:ROBOT (or to compensate)"
     print(
         f"note: {int(far.sum())} failed target(s) (rows {rows}, 0-based) lie {span} from the "
         f"origin of the robot's root (the model's base frame), beyond the {reach:.3g} m its "
-        "links, joint travel and tool add up to: TARGETS are x y z of the measured point in "
-        "the measurement frame (as the calibration data's); flange poses in the robot base "
-        "frame go with nominal:ROBOT (or to compensate)"
+        f"links, joint travel and tool add up to: {why}"
     )
