@@ -385,3 +385,20 @@ def test_cli_bad_payload_cells_of_a_program(tmp_path, capsys, rx160, cell, messa
     err = capsys.readouterr().err
     assert message in err, err
     assert err.count("\n") == 1
+
+
+def test_a_pose_program_row_beyond_any_reach_says_in_which_frame(rx160):
+    """A flange pose 10 m from the robot's root (a tracker-frame or mm row in a pose
+    program): no_nominal_solution, and the note gives its distance beside the arm's reach
+    and the frame flange poses are in (before: only 'the nominal model has no solution');
+    a reachable row has no such note."""
+    real = _real(rx160)
+    base, tool = _frames(real)
+    with torch.no_grad():
+        targets = rx160.fk(_program(rx160, n=2, seed=3))
+    targets[1, :3, 3] += torch.tensor([10.0, 0.0, 0.0], dtype=F64)
+    comp = compensate(real, rx160, base=base, tool=tool, targets=targets, cond=_cond(targets[:, 0]))
+    assert comp.status[1] == "no_nominal_solution"
+    assert "beyond the" in comp.note[1], comp.note[1]
+    assert "robot base frame" in comp.note[1]
+    assert "beyond the" not in comp.note[0]

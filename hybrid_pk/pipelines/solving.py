@@ -27,6 +27,7 @@ from hybrid_pk.ik import (
     solve_ik,
     solve_ik_two_stage,
 )
+from hybrid_pk.ik.compensation import chain_reach
 from hybrid_pk.ik.conditions import Approach
 from hybrid_pk.ik.two_stage import DEFAULT_BOX
 from hybrid_pk.io.hybrid_file import load_hybrid, networks_used
@@ -154,11 +155,6 @@ def target_reach(
     with torch.no_grad():
         base, tool = model.base.matrix()[frame_set], model.tool.matrix()[frame_set]
         params = model.kinematic_params(Conditions(temperature=temp))
-        links = params.origin_xyz.to(torch.float64).norm(dim=-1).sum(-1).max()
-        lo, hi = robot.joint_limits
-        corners = robot.chain_q(torch.stack([lo, hi]).to(torch.float64)).abs().amax(0)
-        prismatic = torch.tensor([t == "prismatic" for t in robot.chain_joint_types])
-        travel = corners[prismatic].sum()
-        reach = float(links + travel + tool[:3, 3].norm())
+        reach = chain_reach(robot, params.origin_xyz) + float(tool[:3, 3].norm())
         distance = (data.position.to(torch.float64) - base[:3, 3]).norm(dim=-1)
     return distance, reach
