@@ -265,3 +265,21 @@ def test_a_joint_box_in_degrees_is_refused(tmp_path, capsys, rx160):
     lo, hi = (float(x[0]) for x in rx160.joint_limits)
     box.write_text(json.dumps({"joint_1": [round(lo, 2) - 0.005, round(hi, 2) + 0.005]}))
     assert main(base) == 0
+
+
+def test_a_truth_file_given_as_effects_names_its_effects(tmp_path, capsys):
+    """plan --effects CAMPAIGN.truth.json (simulate's file, where a diagnosis is wanted):
+    the error gives the truth's effects as the list to pass, or says they are hidden
+    (before: only 'has no causes list of a diagnosis JSON file')."""
+    for spec, want in (
+        ("joint_offset:joint_2=1e-3", "its effects as a list are joint_offset:joint_2"),
+        ("random:1", "whose effects are hidden"),
+    ):
+        out = tmp_path / "c.csv"
+        argv = ["simulate", "rx160", "--n", "5", "--effects", spec, "--out", str(out)]
+        assert main([*argv, "--no-progress"]) == 0
+        capsys.readouterr()
+        argv = ["plan", "rx160", "--n", "5", "--candidates", "40", "--seed", "0", "--out"]
+        argv += [str(tmp_path / "p.csv"), "--effects", f"{out}.truth.json"]
+        assert main(argv) == 2
+        assert want in capsys.readouterr().err
