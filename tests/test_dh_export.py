@@ -297,6 +297,11 @@ def test_ur_format_of_an_arm_that_is_not_a_ur(tmp_path, rx160, capsys):
     with torch.no_grad():
         fk = rx160.fk(q).numpy()
     assert np.abs(ur_pose(out, q.numpy()) - fk).max() < TOL
+    argv = ["export", str(model), "--format", "ur-calibration", "--ur-root", "base_link"]
+    assert main([*argv, "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "turned by pi about z as --ur-root base_link asks" in printed, printed
+    assert "warning: --ur-root" not in printed  # one warning, not a contradicting second
     column = Robot.from_urdf(REPO / "urdf" / "column_arm.urdf", end_link="tool0")
     model = save_model(tmp_path / "column.pt", ExtendedModel(column))
     assert main(["export", str(model), "--format", "ur-calibration", "--out", str(out)]) != 0

@@ -113,6 +113,30 @@ def _mounting_line(model) -> list[str]:
     ]
 
 
+def _ur_root(given: str, model, lines: list[str]) -> str:
+    """The root UR's file is written for (``--ur-root``, or taken from the geometry under
+    ``auto``); the lines that say how it was chosen go to ``lines``."""
+    other = not_ur_layout(model)
+    if other:
+        turned = ", turned by pi about z as --ur-root base_link asks" * (given == UR_ROOTS[1])
+        lines.append(
+            f"warning: {model.robot.name} is not laid out as a UR arm ({other}): UR's "
+            "description and driver read this format for UR arms; the file holds the chain "
+            f"from its root link{turned}"
+        )
+        return UR_ROOTS[0] if given == "auto" else given
+    root, x = guess_ur_root(model)
+    seen = f"at zero joints the flange is at x = {x:.4g} m, as UR's arms are in {root}"
+    if given == "auto":
+        lines.append(f"root: {model.robot.name}'s root link taken as {root}: {seen}")
+        return root
+    if given != root:
+        lines.append(
+            f"warning: --ur-root {given}, but {seen}: the written arm may be turned by pi about z"
+        )
+    return given
+
+
 def run(args: argparse.Namespace) -> int:
     suffixes, kind = _SUFFIXES[args.format]
     if Path(args.out).suffix.lower() not in suffixes:
@@ -132,24 +156,7 @@ def run(args: argparse.Namespace) -> int:
         lines += [note] if note else []
         write_dh_yaml(model_dh_table(model, args.format), args.out, header=lines)
     elif args.format == "ur-calibration":
-        root, x = guess_ur_root(model)
-        seen = f"at zero joints the flange is at x = {x:.4g} m, as UR's arms are in {root}"
-        other = not_ur_layout(model)
-        if other:
-            root, seen = UR_ROOTS[0], "not a UR arm, so its root is written unturned"
-            lines.append(
-                f"warning: {model.robot.name} is not laid out as a UR arm ({other}): UR's "
-                "description and driver read this format for UR arms; the file holds the "
-                "chain from its root link"
-            )
-        if args.ur_root == "auto":
-            lines.append(f"root: {model.robot.name}'s root link taken as {root}: {seen}")
-        elif args.ur_root != root:
-            lines.append(
-                f"warning: --ur-root {args.ur_root}, but {seen}: the written arm may be "
-                "turned by pi about z"
-            )
-        root = root if args.ur_root == "auto" else args.ur_root
+        root = _ur_root(args.ur_root, model, lines)
         _, note = write_ur_calibration(model, args.out, header=lines, root=root)
         lines += [note] if note else []
     else:
