@@ -324,6 +324,11 @@ def test_cli_keeps_the_program_columns_and_warns_on_a_corrected_program(tmp_path
     assert "is a compensate output" in out, out
     again = pd.read_csv(tmp_path / "c2.csv")
     assert list(again.columns).count("status") == 1
+    # CSV in, Parquet out: a column of numbers stays numbers, text stays text
+    assert main([*argv, str(tmp_path / "c.parquet")]) == 0
+    typed = pd.read_parquet(tmp_path / "c.parquet")
+    assert typed["line"].dtype == "float64"
+    assert typed["speed"].tolist() == ["0.25", "0.5", "1", "v200", ""]
 
 
 def test_cli_controller_running_the_exported_geometry(tmp_path, capsys, rx160):

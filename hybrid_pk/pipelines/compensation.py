@@ -12,6 +12,7 @@ import os
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -19,7 +20,8 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.data import read_table_for
-from hybrid_pk.data.cells import check_conditions, numeric_column
+from hybrid_pk.data.cells import check_conditions, numeric_column, to_float
+from hybrid_pk.data.files import PARQUET_SUFFIXES
 from hybrid_pk.data.joint_table import has_joint_columns, read_joint_table, write_joint_table
 from hybrid_pk.effects import Conditions
 from hybrid_pk.errors import HybridPKError
@@ -130,6 +132,8 @@ def compensate_program(
         computed = compensation_frame(comp)
         if program.columns is not None:  # the program's own columns; this run's replace
             kept = program.columns.drop(columns=[c for c in computed if c in program.columns])
+            if Path(out).suffix.lower() in PARQUET_SUFFIXES:  # typed: numbers as numbers
+                kept = kept.apply(_typed)
             computed = pd.concat([kept.reset_index(drop=True), computed], axis=1)
         write_joint_table(out, comp.q, robot.joint_names, computed)
     return comp
@@ -147,3 +151,11 @@ def compensation_frame(comp: Compensation) -> pd.DataFrame:
             "note": list(comp.note),
         }
     )
+
+
+def _typed(column: pd.Series) -> pd.Series:
+    """A CSV column read as text, as float64 where every cell is a finite number."""
+    values, unparsable = to_float(column)
+    if unparsable.any() or not np.isfinite(values).all():
+        return column
+    return pd.Series(values, index=column.index, name=column.name)
