@@ -96,7 +96,12 @@ def _points(args: argparse.Namespace, loaded: LoadedModel) -> tuple[torch.Tensor
     q = robot.sample_q(_RANDOM_POINTS, torch.Generator().manual_seed(0))
     # Backlash needs an approach direction: +1 for every joint (half the play each way).
     cond = Conditions(direction=torch.ones_like(q))
-    return q, cond, f"{_RANDOM_POINTS} configurations within the joint limits (no data found)"
+    listed = loaded.metadata.get("data") or []
+    why = "no data found"
+    if listed:  # recorded as given to calibrate: relative to where it ran
+        why = f"its calibration data {', '.join(map(str, listed))} not found from here; --data"
+        why += " gives measured points"
+    return q, cond, f"{_RANDOM_POINTS} configurations within the joint limits ({why})"
 
 
 def _mounting_line(model) -> list[str]:

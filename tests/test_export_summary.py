@@ -90,3 +90,14 @@ def test_a_mounted_model_says_its_mounting_is_not_in_the_file(rx160, tmp_path, c
             printed = capsys.readouterr().out
             assert ("mounting not carried" in printed) == said, printed
             assert ("--gravity 0,0,9.81" in printed) == said
+
+
+def test_calibration_data_not_found_is_named(rx160, tmp_path, capsys):
+    """export run where the model's calibration data (recorded as given to calibrate)
+    cannot be found: the summary names the file and --data (before: '(no data found)'
+    though the model names its data)."""
+    model = ExtendedModel(rx160, [make_effect(rx160, "joint_compliance:joint_2", 2e-6)])
+    path = save_model(tmp_path / "m.pt", model, metadata={"data": ["gone/campaign.csv"]})
+    assert main(["export", str(path), "--format", "dh", "--out", str(tmp_path / "t.yaml")]) == 0
+    printed = capsys.readouterr().out
+    assert "its calibration data gone/campaign.csv not found from here; --data" in printed
