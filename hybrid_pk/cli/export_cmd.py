@@ -48,7 +48,10 @@ networks, and a thermal expansion: the file holds the geometry at 20 degC) are l
 with their size [mm, mrad] at the measured points (a thermal expansion at their
 temperatures, or per K from 20 degC where they have none): those of --data, else
 the data files the model was calibrated on, else 1000 configurations drawn within the
-joint limits. 'hybrid-pk import dh' and Robot.from_dh read the dh / mdh files back.
+joint limits. No format holds the mounting (gravity other than upright): a line says
+which --gravity gives it back. 'hybrid-pk import dh' and Robot.from_dh read the dh / mdh
+files back; 'hybrid-pk compensate --controller FILE' corrects a program for what FILE
+cannot carry.
 """
 
 _FORMATS = ("dh", "mdh", "urdf", "ur-calibration")
