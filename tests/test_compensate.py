@@ -407,3 +407,16 @@ def test_a_pose_program_row_beyond_any_reach_says_in_which_frame(rx160):
     assert "beyond the" in comp.note[1], comp.note[1]
     assert "robot base frame" in comp.note[1]
     assert "beyond the" not in comp.note[0]
+
+
+def test_help_states_the_approach_default_compensate_uses(capsys):
+    # compensate takes backlash sides from the program's order; its --approach help said
+    # "default: the mid-play model", which is ik's default (shared help text)
+    with pytest.raises(SystemExit):
+        main(["compensate", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "default: the sides of the corrected program's own moves" in text
+    assert "default: the mid-play model" not in text
+    with pytest.raises(SystemExit):
+        main(["ik", "--help"])
+    assert "default: the mid-play model" in " ".join(capsys.readouterr().out.split())

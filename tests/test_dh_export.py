@@ -323,3 +323,13 @@ def test_an_output_name_that_does_not_fit_the_format_is_refused(
     assert main(["export", str(model), "--format", fmt, "--out", str(out)]) != 0
     assert want in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_mimic_chain_is_refused_naming_its_mimic_joints():
+    # the message listed every chain joint (dsr_joint1..6 too) as "mimic joints"
+    robot = Robot.from_urdf("column_arm", end_link="tool0")
+    with pytest.raises(Exception, match="mimic joints") as err:
+        model_dh_table(ExtendedModel(robot), "dh")
+    text = str(err.value)
+    assert "(column_middle_joint, column_top_joint)" in text
+    assert "dsr_joint1" not in text

@@ -98,7 +98,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "cannot carry is corrected); default: MODEL's nominal URDF",
     )
     add_frame_set(p)
-    add_approach(p)
+    add_approach(p, default="the sides of the corrected program's own moves; first row mid-play")
 
 
 def _summary(comp: Compensation, args, robot, kind: str) -> list[str]:
