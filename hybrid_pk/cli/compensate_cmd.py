@@ -109,7 +109,7 @@ def _summary(comp: Compensation, args, robot, kind: str) -> list[str]:
     if bool(ok.any()):
         before, after = comp.nominal_mm[ok], comp.residual_mm[ok]
         lines.append(
-            f"predicted error of the ok rows: nominal joints mean {float(before.mean()):.4g} mm"
+            f"predicted error of the ok rows: program joints mean {float(before.mean()):.4g} mm"
             f" / {float(comp.nominal_deg[ok].mean()):.4g} deg (max {float(before.max()):.4g} "
             f"mm) -> corrected max {float(after.max()):.3g} mm / "
             f"{float(comp.residual_deg[ok].max()):.3g} deg; largest joint correction "
