@@ -467,6 +467,7 @@ def test_a_data_file_that_does_not_exist_is_named(tmp_path, capsys):
     for argv in (
         ["evaluate", "nominal:rx160", str(missing)],
         ["calibrate", str(missing), "--robot", "rx160", "--out", str(tmp_path / "m.pt")],
+        ["diagnose", str(missing), "--robot", "rx160", "--json", str(tmp_path / "d.json")],
     ):
         assert main(argv) != 0
         err = capsys.readouterr().err
