@@ -137,6 +137,10 @@ def test_calibrate_recovers_the_joint_offset(calibrated):
     urdf = Path(f"{model}.urdf")
     assert "joint_offset:joint_3 = " in urdf.read_text()
     assert Robot.from_urdf(urdf).joint_names == loaded.model.robot.joint_names
+    # ... and the summary says the URDF reads true joint values (its offsets are comments),
+    # naming the two ways to fold them for a controller (before: 'wrote m.pt and m.pt.urdf')
+    assert "offsets of joint_3 are comments" in out, out
+    assert "--urdf-fold-offsets" in out
 
 
 def test_evaluate_writes_exactly_the_contract_json(calibrated, campaign, capsys, tmp_path):

@@ -290,6 +290,125 @@ def test_backlash_sides_are_those_of_the_corrected_program(rx160):
     assert float(err[ok].max()) < 1e-3, err
 
 
+def test_cli_keeps_the_program_columns_and_warns_on_a_corrected_program(tmp_path, capsys, rx160):
+    """A joint program's other columns (line numbers, speeds, payload) are copied to
+    CORRECTED as they are (before: dropped, only the joints came back); a CORRECTED file
+    given as PROGRAM again is warned about (its joints would be corrected twice)."""
+    model = save_model(tmp_path / "m.pt", _real(rx160))
+    q = _program(rx160, n=5)
+    extra = pd.DataFrame({"line": [10, 20, 30, 40, 50], "speed": ["0.25", "0.5", "1", "v200", ""]})
+    write_joint_table(tmp_path / "p.csv", q, rx160.joint_names, extra)
+    argv = ["compensate", str(model), str(tmp_path / "p.csv"), "--no-progress", "--out"]
+    assert main([*argv, str(tmp_path / "c.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "copied to the output" in out, out
+    corrected = pd.read_csv(tmp_path / "c.csv", dtype=str, keep_default_na=False)
+    assert corrected["line"].tolist() == ["10", "20", "30", "40", "50"]
+    assert corrected["speed"].tolist() == ["0.25", "0.5", "1", "v200", ""]
+    assert list(corrected.columns).index("speed") < list(corrected.columns).index("status")
+    assert "warning" not in out
+    assert (
+        main(
+            [
+                "compensate",
+                str(model),
+                str(tmp_path / "c.csv"),
+                "--no-progress",
+                "--out",
+                str(tmp_path / "c2.csv"),
+            ]
+        )
+        == 0
+    )
+    out = capsys.readouterr().out
+    assert "is a compensate output" in out, out
+    again = pd.read_csv(tmp_path / "c2.csv")
+    assert list(again.columns).count("status") == 1
+    # CSV in, Parquet out: a column of numbers stays numbers, text stays text
+    assert main([*argv, str(tmp_path / "c.parquet")]) == 0
+    typed = pd.read_parquet(tmp_path / "c.parquet")
+    assert typed["line"].dtype == "float64"
+    assert typed["speed"].tolist() == ["0.25", "0.5", "1", "v200", ""]
+
+
+def test_cli_controller_running_the_exported_geometry(tmp_path, capsys, rx160):
+    """A controller that runs the exported calibrated geometry (DH YAML): a program
+    computed with that table, compensated with --controller TABLE, puts the model at the
+    table's poses (B · table FK · X); without --controller the geometry is corrected a
+    second time and the model misses them by about the geometric correction."""
+    from hybrid_pk import Robot
+    from hybrid_pk.ik.compensation import nearest_branch
+
+    real = _real(rx160, "link_length:joint_3=4e-4,0,-3e-4", "axis_misalignment:joint_4=5e-4,0")
+    model = save_model(tmp_path / "m.pt", real)
+    table = tmp_path / "geometry.yaml"
+    assert main(["export", str(model), "--format", "dh", "--out", str(table)]) == 0
+    controller = Robot.from_dh(table)
+    start = torch.tensor([0.0, 0.3, 1.2, 0.0, 0.9, 0.0], dtype=F64)
+    with torch.no_grad():
+        line = controller.fk(start).repeat(8, 1, 1)
+    line[:, 0, 3] += torch.linspace(0.0, 0.1, 8, dtype=F64)
+    q = nearest_branch(controller, line, reference=start)
+    write_joint_table(tmp_path / "p.csv", q, rx160.joint_names)
+    B, X = _frames(real)
+    with torch.no_grad():
+        intended = B @ controller.fk(q) @ X
+    argv = ["compensate", str(model), str(tmp_path / "p.csv"), "--no-progress", "--out"]
+    missed = {}
+    for name, flags in (("controller", ["--controller", str(table)]), ("nominal", [])):
+        assert main([*argv, str(tmp_path / f"{name}.csv"), *flags]) == 0
+        corrected = torch.tensor(pd.read_csv(tmp_path / f"{name}.csv")[rx160.joint_names].values)
+        with torch.no_grad():
+            cond = Conditions(
+                payload=_cond(corrected).payload, direction=approach_direction(corrected)
+            )
+            reached = real(corrected, cond)
+        missed[name] = float(pose_error(intended, reached).position_mm.max())
+    assert "program joints mean" in capsys.readouterr().out  # the controller's, not nominal
+    assert missed["controller"] < 1e-3, missed  # the ok tolerance
+    assert missed["nominal"] > 0.1, missed  # the geometry corrected twice
+    table.with_suffix(".csv").write_text("name,a,alpha,d,theta,type,lower,upper\n")
+    assert main([*argv, str(tmp_path / "x.csv"), "--controller", str(table.with_suffix(".csv"))])
+    assert "a CSV DH table does not state its convention" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("cell", "message"),
+    [("abc", "row 2, column 'payload': text 'abc'"), ("", "row 2, column 'payload': empty"),
+     ("-1", "a payload is a mass >= 0 kg"), ("5000", "looks like grams")],
+)  # fmt: skip
+def test_cli_bad_payload_cells_of_a_program(tmp_path, capsys, rx160, cell, message):
+    """A program's payload column is checked as a measured table's is: one line with
+    file, row and column (before: pandas' 'Unable to parse string' without a place, an
+    empty cell made its row 'unreachable ... nan the correction needs', and -1 or 5000 kg
+    were used as they stood)."""
+    model = save_model(tmp_path / "m.pt", _real(rx160))
+    payload = pd.DataFrame({"payload": ["2", cell, "2"]})
+    write_joint_table(tmp_path / "p.csv", _program(rx160, n=3), rx160.joint_names, payload)
+    argv = ["compensate", str(model), str(tmp_path / "p.csv"), "--no-progress", "--out"]
+    assert main([*argv, str(tmp_path / "c.csv")]) != 0
+    err = capsys.readouterr().err
+    assert message in err, err
+    assert err.count("\n") == 1
+
+
+def test_a_pose_program_row_beyond_any_reach_says_in_which_frame(rx160):
+    """A flange pose 10 m from the robot's root (a tracker-frame or mm row in a pose
+    program): no_nominal_solution, and the note gives its distance beside the arm's reach
+    and the frame flange poses are in (before: only 'the nominal model has no solution');
+    a reachable row has no such note."""
+    real = _real(rx160)
+    base, tool = _frames(real)
+    with torch.no_grad():
+        targets = rx160.fk(_program(rx160, n=2, seed=3))
+    targets[1, :3, 3] += torch.tensor([10.0, 0.0, 0.0], dtype=F64)
+    comp = compensate(real, rx160, base=base, tool=tool, targets=targets, cond=_cond(targets[:, 0]))
+    assert comp.status[1] == "no_nominal_solution"
+    assert "beyond the" in comp.note[1], comp.note[1]
+    assert "robot base frame" in comp.note[1]
+    assert "beyond the" not in comp.note[0]
+
+
 def test_help_states_the_approach_default_compensate_uses(capsys):
     # compensate takes backlash sides from the program's order; its --approach help said
     # "default: the mid-play model", which is ik's default (shared help text)

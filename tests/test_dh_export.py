@@ -282,6 +282,49 @@ def _table_of(robot: Robot, q: torch.Tensor, tmp_path: Path) -> Path:
     return path
 
 
+def test_ur_format_of_an_arm_that_is_not_a_ur(tmp_path, rx160, capsys):
+    """An RX160 (axes 2-3 parallel, not 3-4) written as UR kinematics: a warning says it
+    is not laid out as a UR arm, and its root is written unturned, so the file rebuilds
+    its FK as it is (before: 'as UR's arms are in base_link', the shoulder turned by pi
+    about z without a word). A chain with mimic joints is refused as a UR file, not as
+    a DH table."""
+    model = save_model(tmp_path / "rx.pt", ExtendedModel(rx160))
+    out = tmp_path / "rx.yaml"
+    assert main(["export", str(model), "--format", "ur-calibration", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "warning: rx160 is not laid out as a UR arm" in printed, printed
+    q = rx160.sample_q(100, torch.Generator().manual_seed(8))
+    with torch.no_grad():
+        fk = rx160.fk(q).numpy()
+    assert np.abs(ur_pose(out, q.numpy()) - fk).max() < TOL
+    argv = ["export", str(model), "--format", "ur-calibration", "--ur-root", "base_link"]
+    assert main([*argv, "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "turned by pi about z as --ur-root base_link asks" in printed, printed
+    assert "warning: --ur-root" not in printed  # one warning, not a contradicting second
+    column = Robot.from_urdf(REPO / "urdf" / "column_arm.urdf", end_link="tool0")
+    model = save_model(tmp_path / "column.pt", ExtendedModel(column))
+    assert main(["export", str(model), "--format", "ur-calibration", "--out", str(out)]) != 0
+    assert "the UR calibration format holds 6 revolute joints" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("fmt", "name", "want"),
+    [("urdf", "m.yaml", "writes XML"), ("ur-calibration", "m.urdf", "writes YAML")],
+)
+def test_an_output_name_that_does_not_fit_the_format_is_refused(
+    tmp_path, rx160, capsys, fmt, name, want
+):
+    """--format urdf into a .yaml (read back as a DH table by Robot.from_dh and compensate
+    --controller) or UR YAML into a .urdf: one line naming the suffixes, nothing written
+    (before: the file was written under the wrong name)."""
+    model = save_model(tmp_path / "rx.pt", ExtendedModel(rx160))
+    out = tmp_path / name
+    assert main(["export", str(model), "--format", fmt, "--out", str(out)]) != 0
+    assert want in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_mimic_chain_is_refused_naming_its_mimic_joints():
     # the message listed every chain joint (dsr_joint1..6 too) as "mimic joints"
     robot = Robot.from_urdf("column_arm", end_link="tool0")

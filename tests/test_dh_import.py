@@ -199,3 +199,26 @@ def test_convention_must_be_given(tmp_path, capsys):
     assert "--convention dh|mdh" in err
     with pytest.raises(DataError, match="convention is not given"):
         Robot.from_dh(ROWS)
+
+
+def test_a_dh_table_given_as_robot_says_how_to_make_a_urdf(tmp_path, capsys):
+    """--robot TABLE.yaml (an exported DH table) where a URDF is expected: one line that
+    names import dh and Robot.from_dh (before: 'cannot parse URDF: Invalid input object:
+    NoneType' after yourdfpy's 'Using different parsing approach.'); Robot.from_dh still
+    reads the table."""
+    from hybrid_pk.effects import ExtendedModel
+    from hybrid_pk.io.dh_export import model_dh_table, write_dh_yaml
+
+    table = write_dh_yaml(
+        model_dh_table(ExtendedModel(Robot.from_urdf("rx160")), "dh"), tmp_path / "t.yaml"
+    )
+    data = tmp_path / "d.csv"
+    data.write_text("x,y,z\n0,0,1\n")
+    assert (
+        main(["diagnose", str(data), "--robot", str(table), "--json", str(tmp_path / "j.json")])
+        != 0
+    )
+    err = capsys.readouterr().err
+    assert "is a table, not a URDF" in err, err
+    assert "import dh" in err
+    assert Robot.from_dh(table).dof == 6

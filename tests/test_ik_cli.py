@@ -233,3 +233,28 @@ def test_ik_bad_target_table_names_row_and_column(tmp_path, capsys):
     assert rc == 2
     assert "row 2" in err
     assert "'y'" in err
+
+
+def test_targets_beyond_reach_say_which_frame_targets_are_in(tmp_path, rx160, capsys):
+    """Flange poses in the robot base frame given to a model whose base frame (the
+    tracker) lies 10 m away: every target fails, and a note says they lie beyond the
+    arm's reach and that TARGETS are in the measurement frame (before: only '3 of 3
+    target(s) failed'). Targets in the measurement frame solve, with no such note."""
+    model = ExtendedModel(rx160, [], base=transform(torch.eye(3, dtype=F64), _vec(10.0, 0, 0)))
+    path = save_model(tmp_path / "far.pt", model)
+    T = _targets(rx160, 3, seed=4)
+    flange = _write_targets(tmp_path / "flange.csv", T)
+    rc, out, _ = _run(capsys, "ik", path, flange, "--out", tmp_path / "s.csv", "--no-progress")
+    assert rc == 0
+    assert "3 of 3 target(s) failed" in out
+    assert "beyond the" in out, out
+    assert "measurement frame" in out, out
+    with torch.no_grad():
+        measured = _write_targets(tmp_path / "measured.csv", model(rx160.sample_q(3)))
+    rc, out, _ = _run(capsys, "ik", path, measured, "--out", tmp_path / "m.csv", "--no-progress")
+    assert rc == 0
+    assert "beyond the" not in out, out
+    # measured poses given to nominal:ROBOT (identity frames) say the converse
+    rc, out, _ = _run(capsys, "ik", "nominal:rx160", measured, "--out", tmp_path / "n.csv")
+    assert rc == 0
+    assert "nominal:ROBOT takes flange poses in the robot base frame" in out, out

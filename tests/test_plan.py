@@ -150,7 +150,7 @@ def test_joint_box_and_left_out_effects(rx160):
     ("kwargs", "message"),
     [
         ({"box": {"elbow": (0.0, 1.0)}}, "unknown joint 'elbow'"),
-        ({"box": {"joint_2": (5.0, 6.0)}}, "outside its limits"),
+        ({"box": {"joint_2": (5.0, 6.0)}}, "beyond its limits"),
         ({"candidates": 5}, "N <= candidates"),
         ({"criterion": "x"}, "unknown criterion"),
     ],
@@ -247,3 +247,39 @@ def test_plan_cli_warns_about_parameters_no_pose_separates(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "not identifiable" in out
     assert "no poses separate base_frame.rotation[2], joint_offset:joint_1" in out
+
+
+def test_a_joint_box_in_degrees_is_refused(tmp_path, capsys, rx160):
+    """--joint-box {"joint_1": [-90, 90]}: degrees, beyond the joint's limits by far: a
+    one-line error naming the limits and the unit (before: clipped to the limits without
+    a word, so the plan spanned the whole range). A box a rounding beyond a limit (within
+    the 2 % margin the box keeps) is clipped as before."""
+    box = tmp_path / "box.json"
+    base = ["plan", "rx160", "--n", "5", "--candidates", "40", "--seed", "0"]
+    base += ["--out", str(tmp_path / "p.csv"), "--no-progress", "--joint-box", str(box)]
+    box.write_text('{"joint_1": [-90, 90]}')
+    assert main(base) == 2
+    err = capsys.readouterr().err
+    assert "reaches beyond its limits" in err, err
+    assert "rad" in err
+    lo, hi = (float(x[0]) for x in rx160.joint_limits)
+    box.write_text(json.dumps({"joint_1": [round(lo, 2) - 0.005, round(hi, 2) + 0.005]}))
+    assert main(base) == 0
+
+
+def test_a_truth_file_given_as_effects_names_its_effects(tmp_path, capsys):
+    """plan --effects CAMPAIGN.truth.json (simulate's file, where a diagnosis is wanted):
+    the error gives the truth's effects as the list to pass, or says they are hidden
+    (before: only 'has no causes list of a diagnosis JSON file')."""
+    for spec, want in (
+        ("joint_offset:joint_2=1e-3", "its effects as a list are joint_offset:joint_2"),
+        ("random:1", "whose effects are hidden"),
+    ):
+        out = tmp_path / "c.csv"
+        argv = ["simulate", "rx160", "--n", "5", "--effects", spec, "--out", str(out)]
+        assert main([*argv, "--no-progress"]) == 0
+        capsys.readouterr()
+        argv = ["plan", "rx160", "--n", "5", "--candidates", "40", "--seed", "0", "--out"]
+        argv += [str(tmp_path / "p.csv"), "--effects", f"{out}.truth.json"]
+        assert main(argv) == 2
+        assert want in capsys.readouterr().err

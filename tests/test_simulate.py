@@ -309,6 +309,11 @@ def test_campaign_argument_errors(robots):
     thermal = [make_effect(robot, "thermal_expansion", 1e-5)]
     with pytest.raises(hpk.HybridPKError, match="needs a temperature"):
         simulate_campaign(robot, 5, thermal, noise_mm=0.0, temperature_range=None)
+    # beyond what the table reader takes back (grams, kelvin): refused here too
+    with pytest.raises(hpk.HybridPKError, match="no arm carries more than 2300 kg"):
+        simulate_campaign(robot, 5, "none", noise_mm=0.0, payload=5000.0)
+    with pytest.raises(hpk.HybridPKError, match="LO <= HI <= 100"):
+        simulate_campaign(robot, 5, "none", noise_mm=0.0, temperature_range=(290.0, 300.0))
 
 
 # ----------------------------------------------------------------------------- CLI

@@ -453,3 +453,41 @@ def test_every_name_in_all_resolves(module):
     mod = importlib.import_module(module)
     missing = [name for name in mod.__all__ if not hasattr(mod, name)]
     assert missing == []
+
+
+def test_a_data_file_that_does_not_exist_is_named(tmp_path, capsys):
+    """read_table / read_table_for and every command reading DATA (evaluate, calibrate,
+    export --data) say 'FILE: file not found' (before: '[Errno 2] No such file or
+    directory: ...', the text of Python's OSError)."""
+    from hybrid_pk.cli.main import main
+
+    missing = tmp_path / "nothere.csv"
+    with pytest.raises(DataError, match=r"nothere\.csv: file not found"):
+        read_table(missing, **UR10)
+    for argv in (
+        ["evaluate", "nominal:rx160", str(missing)],
+        ["calibrate", str(missing), "--robot", "rx160", "--out", str(tmp_path / "m.pt")],
+        ["diagnose", str(missing), "--robot", "rx160", "--json", str(tmp_path / "d.json")],
+    ):
+        assert main(argv) != 0
+        err = capsys.readouterr().err
+        assert "nothere.csv: file not found" in err, err
+        assert "Errno" not in err
+
+
+@pytest.mark.parametrize(
+    ("column", "value", "message"),
+    [
+        ("payload", -2.0, "a payload is a mass >= 0 kg"),
+        ("payload", 5000.0, "looks like grams"),
+        ("temperature", 295.0, "looks like kelvin"),
+    ],
+)
+def test_payload_and_temperature_in_other_units_are_refused(tmp_path, column, value, message):
+    """A negative payload, a payload in grams (beyond the heaviest arm's 2.3 t) and a
+    temperature in kelvin name file, row and column (before: read as kg / degC; a 5 kg
+    payload written as 5000 made evaluate report a 36 deg mean orientation error)."""
+    frame = _frame(5, payload=np.full(5, 2.0), temperature=np.full(5, 22.0))
+    path = _csv(tmp_path, _set(frame, 3, column, value))
+    with pytest.raises(DataError, match=_where(path, 3, column) + ".*" + re.escape(message)):
+        read_table(path, **UR10)

@@ -47,7 +47,7 @@ from hybrid_pk.effects import EFFECTS, Conditions, ExtendedModel, approach_direc
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import matrix_to_quat
 from hybrid_pk.robot import Robot
-from hybrid_pk.simulate.trajectories import joint_box
+from hybrid_pk.simulate.trajectories import LIMIT_MARGIN, joint_box
 
 __all__ = [
     "CRITERIA",
@@ -336,11 +336,13 @@ def _box(robot: Robot, box: Mapping[str, tuple[float, float]] | None) -> tuple[T
         j = robot.joint_names.index(name)
         if not (math.isfinite(a) and math.isfinite(b) and a < b):
             raise HybridPKError(f"joint box: {name} needs lower < upper, got [{a}, {b}]")
+        low, high = (float(x[j]) for x in robot.joint_limits)
+        slack = LIMIT_MARGIN * (high - low)  # the margin the box keeps anyway
         lo[j], hi[j] = max(lo[j], a), min(hi[j], b)
-        if lo[j] >= hi[j]:
+        if lo[j] >= hi[j] or a < low - slack or b > high + slack:
             raise HybridPKError(
-                f"joint box: {name} [{a}, {b}] lies outside its limits "
-                f"[{float(robot.joint_limits[0][j]):.4f}, {float(robot.joint_limits[1][j]):.4f}]"
+                f"joint box: {name} [{a:g}, {b:g}] reaches beyond its limits [{low:.4f}, "
+                f"{high:.4f}]: joint values are in rad (m for prismatic)"
             )
     return lo, hi
 

@@ -21,6 +21,7 @@ from hybrid_pk.cli.calibrate_output import (
     format_value,
     frame_lines,
     urdf_target,
+    wrote_line,
 )
 from hybrid_pk.cli.calibrate_refit import run_refit
 from hybrid_pk.cli.common import (
@@ -200,7 +201,7 @@ def _run_new(args: argparse.Namespace, settings: DiagnosisSettings) -> int:
     _print_summary(robot, data, diag, effects, model, res0, res)
     for line in transfer_lines(transfer, settings, data):
         print(line)
-    print(f"wrote {args.out}" + (f" and {urdf}" if urdf else ""))
+    print(wrote_line(args.out, model, args, urdf))
     return 0
 
 

@@ -10,6 +10,7 @@ from hybrid_pk.calibration.covariance import MAX_CONDITION
 from hybrid_pk.calibration.diagnosis import report_value
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.effects import ExtendedModel
+from hybrid_pk.effects.joint import JointOffset
 from hybrid_pk.evaluation.metrics import error_stats
 from hybrid_pk.geometry import matrix_to_rpy
 from hybrid_pk.io.urdf_export import export_urdf
@@ -24,6 +25,7 @@ __all__ = [
     "format_value",
     "frame_lines",
     "urdf_target",
+    "wrote_line",
 ]
 
 
@@ -144,4 +146,19 @@ def export_model_urdf(model: ExtendedModel, args: argparse.Namespace, target: Pa
         include_base=args.urdf_frames,
         include_tool=args.urdf_frames,
         fold_joint_offsets=args.urdf_fold_offsets,
+    )
+
+
+def wrote_line(out, model: ExtendedModel, args: argparse.Namespace, urdf: Path | None) -> str:
+    """``wrote MODEL and MODEL.urdf``; where the URDF lists joint offsets as comments
+    (not folded into the joint origins), it reads true joint values, not the commanded
+    ones a controller sends, and the line says so with the two ways to fold them."""
+    line = f"wrote {out}" + (f" and {urdf}" if urdf else "")
+    offsets = [e.joint for e in model.effects if isinstance(e, JointOffset)]
+    if urdf is None or not offsets or args.urdf_fold_offsets:
+        return line
+    return (
+        f"{line} (its joint offsets of {', '.join(offsets)} are comments, not in the joint "
+        "origins: it reads true joint values, not a controller's commanded ones; "
+        "--urdf-fold-offsets or 'hybrid-pk export MODEL --format urdf' folds them in)"
     )

@@ -13,6 +13,7 @@ from hybrid_pk.cli.calibrate_output import (
     export_model_urdf,
     frame_lines,
     urdf_target,
+    wrote_line,
 )
 from hybrid_pk.cli.common import (
     frame_parameter_count,
@@ -100,7 +101,7 @@ def run_refit(args: argparse.Namespace, settings: FitSettings) -> int:
         print(stats_line(f"{name} after [{unit}]", after[i]))
     if after[2]:
         print(after[2])
-    print(f"wrote {args.out}" + (f" and {urdf}" if urdf else ""))
+    print(wrote_line(args.out, model, args, urdf))
     return 0
 
 

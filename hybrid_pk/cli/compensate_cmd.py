@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 from collections import Counter
+from pathlib import Path
 
 from hybrid_pk.cli.common import data_notes, load_frozen_model
 from hybrid_pk.cli.options import (
@@ -19,6 +20,7 @@ from hybrid_pk.ik import IKOptions
 from hybrid_pk.ik.compensation import COMPENSATION_BOX, STATUSES, Compensation
 from hybrid_pk.ik.conditions import parse_approach
 from hybrid_pk.pipelines.compensation import compensate_program, read_program
+from hybrid_pk.robot import Robot
 
 _DESCRIPTION = f"""\
 Correct a robot program for the real robot: for each PROGRAM row, the joint values
@@ -37,7 +39,8 @@ of every joint from the order of the corrected program (first row: mid-play) unl
 --approach states it (then every row is solved for that side: the program must
 approach its targets so).
 
-CORRECTED has one row per PROGRAM row, in order: the joint columns, residual_mm and
+CORRECTED has one row per PROGRAM row, in order: the joint columns, a joint program's
+other columns as they are (e.g. line numbers, speeds), residual_mm and
 residual_deg (the model's predicted error at those joints), status, nominal_mm and
 nominal_deg (the same for the uncorrected joints) and note. status is one of
 {", ".join(STATUSES)}; a row that is not ok keeps its nominal joints and the note
@@ -45,6 +48,12 @@ says why (a joint beyond its limit, or no solution within --box): nothing is ben
 into the limits silently.
 
 The robot base frame is the one the calibration identified (MODEL's base frame).
+The intended pose of a joint row is where the controller's kinematics put the flange:
+MODEL's nominal URDF, or --controller FILE when the controller runs another model, such
+as the calibrated geometry of 'hybrid-pk export' (a DH / MDH YAML or a URDF): the
+program then moves by what that file cannot carry only. Compensating a program of a
+controller that runs the exported geometry without --controller corrects the geometry
+twice.
 """
 
 
@@ -81,6 +90,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--tol-deg", type=float, default=1e-3, metavar="DEG",
         help="largest predicted orientation error of an ok row [deg] (default 0.001)",
     )  # fmt: skip
+    p.add_argument(
+        "--controller",
+        metavar="FILE",
+        help="the kinematics the controller runs and the program was computed with: a URDF "
+        "or a DH / MDH YAML table, e.g. from 'hybrid-pk export' (then only what that file "
+        "cannot carry is corrected); default: MODEL's nominal URDF",
+    )
     add_frame_set(p)
     add_approach(p, default="the sides of the corrected program's own moves; first row mid-play")
 
@@ -93,7 +109,7 @@ def _summary(comp: Compensation, args, robot, kind: str) -> list[str]:
     if bool(ok.any()):
         before, after = comp.nominal_mm[ok], comp.residual_mm[ok]
         lines.append(
-            f"predicted error of the ok rows: nominal joints mean {float(before.mean()):.4g} mm"
+            f"predicted error of the ok rows: program joints mean {float(before.mean()):.4g} mm"
             f" / {float(comp.nominal_deg[ok].mean()):.4g} deg (max {float(before.max()):.4g} "
             f"mm) -> corrected max {float(after.max()):.3g} mm / "
             f"{float(comp.residual_deg[ok].max()):.3g} deg; largest joint correction "
@@ -111,20 +127,47 @@ def _summary(comp: Compensation, args, robot, kind: str) -> list[str]:
     return lines
 
 
+def _controller(path: str, robot: Robot) -> Robot:
+    """The controller's kinematics (``--controller``): a URDF, or a DH / MDH table that
+    states its convention (YAML), with ``robot``'s joints in the same order."""
+    if not Path(path).is_file():
+        raise HybridPKError(f"--controller: file not found: {path}")
+    suffix = Path(path).suffix.lower()
+    if suffix == ".csv":
+        raise HybridPKError(
+            f"--controller: {path}: a CSV DH table does not state its convention; give a "
+            f"URDF ('hybrid-pk import dh {path} --convention dh|mdh --out ROBOT.urdf') or "
+            "the YAML table that export writes"
+        )
+    if suffix in (".yaml", ".yml"):
+        controller = Robot.from_dh(path)
+    else:
+        controller = Robot.from_urdf(path, end_link=robot.end_link)
+    if controller.joint_names != robot.joint_names:
+        raise HybridPKError(
+            f"--controller: {path} has joints {', '.join(controller.joint_names)}; the model's "
+            f"{robot.name} has {', '.join(robot.joint_names)}"
+        )
+    controller.requires_grad_(False)
+    return controller
+
+
 def run(args: argparse.Namespace) -> int:
     if args.box <= 0 or args.tol_mm <= 0 or args.tol_deg <= 0:
         raise HybridPKError("--box, --tol-mm and --tol-deg must be positive")
     loaded, _model, robot, k = load_frozen_model(args)
+    controller = _controller(args.controller, robot) if args.controller else None
     with data_notes():
         program = read_program(args.program, robot)
     for line in program.notes:
-        print(f"note: {line}")
+        print(line if line.startswith("warning: ") else f"note: {line}")
     options = IKOptions(tol_mm=args.tol_mm, tol_deg=args.tol_deg)
     with progress("compensate", enabled=not args.no_progress) as bar:
         bar.stage(f"solving {program.n} row(s) on the model")
         comp = compensate_program(
             loaded, program, frame_set=k, box=args.box, options=options,
             approach=parse_approach(args.approach), out=args.out, fixes=_FIXES,
+            controller=controller,
         )  # fmt: skip
     for line in comp.assumed:
         print(f"note: {line}")

@@ -18,6 +18,7 @@ from hybrid_pk.cli.options import add_data, add_end_link, add_json, add_report, 
 from hybrid_pk.cli.progress import Progress
 from hybrid_pk.cli.settings_flags import add_config_flags, add_settings_flags
 from hybrid_pk.cli.transfer_check import append_to_report, transfer_check, transfer_lines
+from hybrid_pk.errors import DataError
 
 _DESCRIPTION = """\
 Diagnose a robot from measured poses: fit base and tool frames to the nominal URDF,
@@ -170,7 +171,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     for path in args.data:
         if not Path(path).is_file():
-            raise FileNotFoundError(f"no such data file: {path}")
+            raise DataError("file not found", file=str(path))  # as every table reader says
     robot = load_robot(args.robot, args.end_link)
     for c in settings.candidates or []:
         make_effect(robot, c)  # unknown effect or joint: a clear error now

@@ -38,5 +38,22 @@ def diagnosis_labels(path: str, flag: str = "--effects") -> list[str]:
     if not isinstance(causes, list) or not all(
         isinstance(c, dict) and isinstance(c.get("effect"), str) for c in causes
     ):
-        raise HybridPKError(f"{flag}: {path} has no 'causes' list of a diagnosis JSON file")
+        raise HybridPKError(
+            f"{flag}: {path} has no 'causes' list of a diagnosis JSON file{_truth_hint(doc)}"
+        )
     return [c["effect"] + (f":{c['joint']}" if c.get("joint") else "") for c in causes]
+
+
+def _truth_hint(doc) -> str:
+    """What to give instead when ``doc`` is a ``simulate`` truth file (its ``effects``
+    list, unless the campaign hides them)."""
+    if not (
+        isinstance(doc, dict) and "effects_spec" in doc and isinstance(doc.get("effects"), list)
+    ):
+        return ""
+    if doc.get("effects_hidden"):
+        return "; it is a simulate truth file whose effects are hidden: diagnose the campaign"
+    labels = [e["effect"] + (f":{e['joint']}" if e.get("joint") else "") for e in doc["effects"]]
+    return (
+        f"; it is a simulate truth file: its effects as a list are {','.join(labels) or '(none)'}"
+    )

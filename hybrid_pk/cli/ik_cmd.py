@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+import torch
+
 from hybrid_pk.cli.common import data_notes, load_frozen_model
 from hybrid_pk.cli.options import add_approach, add_frame_set, add_model, add_out, add_seed
 from hybrid_pk.cli.progress import progress
@@ -12,7 +14,7 @@ from hybrid_pk.data.table import write_frame
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.ik import IKOptions, parse_approach
 from hybrid_pk.ik.two_stage import DEFAULT_BOX
-from hybrid_pk.pipelines.solving import solve_targets
+from hybrid_pk.pipelines.solving import solve_targets, target_reach
 
 # The fixes of assumed conditions, as flags and columns.
 _FIXES = {
@@ -39,7 +41,9 @@ TARGETS), solution (0-based index among that target's solutions), one column per
 joint [rad, m for prismatic joints], position_error_mm [mm], orientation_error_deg
 [deg]. Two solutions are the same when every revolute joint agrees within 1e-3 rad
 modulo 2 pi (prismatic: 1e-6 m). A target with no solution within --tol-mm and
---tol-deg has no row and counts as failed.
+--tol-deg has no row and counts as failed; failed targets farther from the robot's
+root than its links, joint travel and tool add up to are named in a note (a table in
+another frame than the measurement frame).
 
 A model with backlash needs the side each joint approaches the target from: give it
 with --approach (+: moving in the joint's positive direction, -: negative, per joint
@@ -166,4 +170,32 @@ def _print_summary(args, loaded, robot, data, frame, two_stage: bool) -> None:
     tol = f"{args.tol_mm:g} mm" + (f" / {args.tol_deg:g} deg" if data.has_orientation else "")
     failed = n - frame["target"].nunique()
     print(f"{failed} of {n} target(s) failed (no solution within {tol} and the joint limits)")
+    if failed:
+        _beyond_reach(loaded, data, frame, args.frame_set or 0)
     print(f"wrote {args.out}")
+
+
+def _beyond_reach(loaded, data, frame, k: int) -> None:
+    """A note on the failed targets that no configuration reaches (farther from the
+    robot's root than its links, travel and tool add up to): the usual cause is a target
+    table in another frame than the model's measurement frame."""
+    distance, reach = target_reach(loaded, data, k)
+    failed = torch.ones(data.n, dtype=torch.bool)
+    failed[torch.as_tensor(frame["target"].unique(), dtype=torch.long)] = False
+    far = failed & (distance > reach)
+    if not bool(far.any()):
+        return
+    rows = ", ".join(str(int(i)) for i in far.nonzero()[:5, 0]) + (", ..." if far.sum() > 5 else "")
+    span = f"{float(distance[far].min()):.3g}-{float(distance[far].max()):.3g} m"
+    if loaded.source.startswith("nominal:"):  # identity frames: targets in the base frame
+        why = "nominal:ROBOT takes flange poses in the robot base frame [m]; measured poses "
+        why += "in a tracker's frame go with a calibrated model file"
+    else:
+        why = "TARGETS are x y z of the measured point in the measurement frame (as the "
+        why += "calibration data's); flange poses in the robot base frame go with "
+        why += "nominal:ROBOT (or to compensate)"
+    print(
+        f"note: {int(far.sum())} failed target(s) (rows {rows}, 0-based) lie {span} from the "
+        f"origin of the robot's root (the model's base frame), beyond the {reach:.3g} m its "
+        f"links, joint travel and tool add up to: {why}"
+    )

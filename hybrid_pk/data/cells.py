@@ -21,13 +21,17 @@ from hybrid_pk.data.measured import SkippedRow
 from hybrid_pk.errors import DataError
 
 __all__ = [
+    "MAX_PAYLOAD_KG",
     "MAX_POSITION_M",
+    "MAX_TEMPERATURE_C",
     "RowProblems",
     "cell_problem",
+    "check_conditions",
     "check_header_names",
     "check_time_order",
     "first_long_row",
     "missing_columns_error",
+    "numeric_column",
     "to_float",
 ]
 
@@ -35,6 +39,12 @@ __all__ = [
 # within a few tens of metres (the largest, e.g. Leica AT403, to 160 m diameter, but a
 # robot cell is never that far from the instrument).
 MAX_POSITION_M = 50.0
+# The heaviest industrial arm carries 2.3 t (FANUC M-2000iA/2300): a larger payload [kg]
+# is grams written as kg.
+MAX_PAYLOAD_KG = 2300.0
+# No robot runs at 100 °C (motor windings, grease and encoders are rated far below the
+# boiling point of water): a higher temperature [°C] is kelvin (or °F) written as °C.
+MAX_TEMPERATURE_C = 100.0
 
 
 def to_float(values: pd.Series) -> tuple[np.ndarray, np.ndarray]:
@@ -199,3 +209,43 @@ class RowProblems:
                 f"no valid rows: all {self.n} data rows have problems (first: {first})",
                 file=self.file,
             )
+
+
+def numeric_column(file: str, values: pd.Series, name: str) -> np.ndarray:
+    """The cells of column ``name`` as floats; a DataError at the first cell that is not
+    a finite number (file, 1-based row, column)."""
+    out, unparsable = to_float(values)
+    for k, (raw, v, bad) in enumerate(zip(values.to_numpy(object), out, unparsable, strict=True)):
+        why = cell_problem(raw, float(v), bool(bad))
+        if why:
+            raise DataError(why, file=file, row=k + 1, column=name)
+    return out
+
+
+def check_conditions(file: str, columns: dict[str, np.ndarray], rows: np.ndarray) -> None:
+    """Raise at the first payload below 0 kg or beyond :data:`MAX_PAYLOAD_KG` (grams), or
+    temperature beyond :data:`MAX_TEMPERATURE_C` (kelvin, °F): a unit problem of the file,
+    never skipped. ``rows``: the 1-based row of each value."""
+    checks = (
+        ("payload", lambda v: v < 0, "a payload is a mass >= 0 kg"),
+        (
+            "payload",
+            lambda v: v > MAX_PAYLOAD_KG,
+            f"looks like grams (no arm carries more than {MAX_PAYLOAD_KG:g} kg); the column "
+            "is kg: divide by 1000",
+        ),
+        (
+            "temperature",
+            lambda v: v > MAX_TEMPERATURE_C,
+            f"looks like kelvin or °F (no robot runs at {MAX_TEMPERATURE_C:g} °C); the column "
+            "is °C: subtract 273.15 from kelvin",
+        ),
+    )
+    for name, wrong, why in checks:
+        if name not in columns:
+            continue
+        bad = np.flatnonzero(wrong(columns[name]))
+        if bad.size:
+            k = int(bad[0])
+            value = f"{columns[name][k]:g}"
+            raise DataError(f"{value}: {why}", file=file, row=int(rows[k]), column=name)

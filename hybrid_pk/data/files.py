@@ -35,9 +35,12 @@ def load_cells(path: Path) -> pd.DataFrame:
     """Raw cells of a CSV (strings) or Parquet file (typed), after header checks.
 
     Raises:
-        DataError: empty file, duplicated or missing header, a data row longer than the
-            header (named by row), an unreadable file, an unknown extension.
+        DataError: no such file, an empty file, a duplicated or missing header, a data
+            row longer than the header (named by row), an unreadable file, an unknown
+            extension.
     """
+    if not Path(path).is_file():
+        raise DataError("file not found", file=str(path))
     suffix = path.suffix.lower()
     if suffix in CSV_SUFFIXES:
         frame = _load_csv(path)

@@ -31,6 +31,7 @@ import torch
 from hybrid_pk.data.cells import (
     MAX_POSITION_M,
     RowProblems,
+    check_conditions,
     check_time_order,
     missing_columns_error,
     to_float,
@@ -273,6 +274,7 @@ def _read_file(path: Path, spec: _JointSpec, skip: bool, require_joints: bool) -
 
     ok = problems.ok()
     _check_metres(file, columns, ok)
+    check_conditions(file, {c: v[ok] for c, v in columns.items()}, np.flatnonzero(ok) + 1)
     for j, name in enumerate(select.joints):
         _check_degrees(file, name, spec, j, columns[name], ok)
         _check_joint_mm(file, name, spec, j, columns[name], ok)

@@ -55,12 +55,28 @@ __all__ = [
     "COMPENSATION_BOX",
     "STATUSES",
     "Compensation",
+    "chain_reach",
     "compensate",
     "nearest_branch",
     "program_conditions",
 ]
 
 F64 = torch.float64
+
+
+def chain_reach(robot: Robot, origin_xyz: Tensor | None = None) -> float:
+    """[m] no joint values put the end link farther from the root origin (triangle
+    inequality): the lengths of the joint origins' translations (``origin_xyz (*, n+1,
+    3)``, the robot's own by default; the largest over a batch) plus the prismatic
+    joints' largest travel."""
+    xyz = robot.origin_xyz if origin_xyz is None else origin_xyz
+    links = xyz.detach().to(F64).norm(dim=-1).sum(-1).max()
+    lo, hi = robot.joint_limits
+    corners = robot.chain_q(torch.stack([lo, hi]).to(F64)).abs().amax(0)
+    prismatic = torch.tensor([t == "prismatic" for t in robot.chain_joint_types])
+    return float(links + corners[prismatic].sum())
+
+
 COMPENSATION_BOX = 0.1  # [rad] (or m) largest correction of a joint on the same branch
 STATUSES = ("ok", "joint_limit", "unreachable", "approach_conflict", "no_nominal_solution")
 _ORDER_PASSES = 4  # re-solves with the approach sides of the corrected program
@@ -318,8 +334,15 @@ def compensate(
                 status[i], note[i] = "joint_limit", why[k]
     for i in conflict.nonzero()[:, 0].tolist():
         status[i], note[i] = "approach_conflict", _CONFLICT
+    reach = chain_reach(robot)
     for i in (~has_nominal).nonzero()[:, 0].tolist():
         status[i], note[i] = "no_nominal_solution", "the nominal model has no solution"
+        far = float(g[i, :3, 3].norm())
+        if far > reach:  # a target no joint values reach: mm, or another frame
+            note[i] += (
+                f" ({far:.3g} m from the robot's root, beyond the {reach:.3g} m its links and "
+                "joint travel add up to: flange poses are in the robot base frame [m])"
+            )
     res_mm, res_deg = _errors(ikm, q, T)
     nom_mm, nom_deg = _errors(nominal_model, start, T)
     for i in [i for i, s in enumerate(status) if s == "unreachable"]:

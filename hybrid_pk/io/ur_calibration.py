@@ -36,10 +36,11 @@ import yaml
 from hybrid_pk.effects import ExtendedModel
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import so3_log
-from hybrid_pk.io.dh_export import frame_entry, model_dh_table
+from hybrid_pk.io.dh_export import frame_entry, model_dh_table, zero_frames
 from hybrid_pk.robot.dh import dh_row_parts, rot, trans
 
-__all__ = ["UR_JOINTS", "UR_ROOTS", "guess_ur_root", "ur_kinematics", "write_ur_calibration"]
+__all__ = ["UR_JOINTS", "UR_ROOTS", "guess_ur_root", "not_ur_layout", "ur_kinematics"]
+__all__ += ["write_ur_calibration"]
 
 # [m or rad] a residual below this is rounding, not a flange off the last axis: of the
 # construction (float64) or of the URDF's own text (12-digit angles: 5e-12 rad); no
@@ -47,6 +48,9 @@ __all__ = ["UR_JOINTS", "UR_ROOTS", "guess_ur_root", "ur_kinematics", "write_ur_
 _ROUNDING = 1e-9
 UR_ROOTS = ("base_link_inertia", "base_link")
 UR_JOINTS = ("shoulder", "upper_arm", "forearm", "wrist_1", "wrist_2", "wrist_3")
+# A UR arm's consecutive axes (1-2, 2-3, 3-4, 4-5, 5-6): shoulder, elbow and wrist 1
+# parallel, every other pair perpendicular.
+_UR_PARALLEL = (False, True, True, False, False)
 
 
 def ur_kinematics(
@@ -62,13 +66,8 @@ def ur_kinematics(
     """
     if root not in UR_ROOTS:
         raise HybridPKError(f"root {root!r}: give one of {', '.join(UR_ROOTS)}")
+    _check_six_revolute(model)
     table = model_dh_table(model, "mdh")
-    joints = (table.names, table.types)
-    if table.n != len(UR_JOINTS) or any(t == "prismatic" for t in table.types):
-        raise HybridPKError(
-            f"{model.robot.name}: the UR calibration format holds 6 revolute joints; this "
-            f"chain has {', '.join(f'{n} ({t})' for n, t in zip(*joints, strict=True))}"
-        )
     entries = [dh_row_parts("mdh", row, False)[0] for row in table.rows]
     # ur_description: base_link_inertia = base_link · Rz(pi).
     to_root = np.eye(4) if root == "base_link_inertia" else rot("z", -math.pi)
@@ -89,6 +88,37 @@ def guess_ur_root(model: ExtendedModel) -> tuple[str, float]:
         zero = torch.zeros(1, model.robot.dof, dtype=torch.float64)
         x = float(model.robot.fk(zero)[0, 0, 3])
     return (UR_ROOTS[1] if x > 0 else UR_ROOTS[0]), x
+
+
+def _check_six_revolute(model: ExtendedModel) -> None:
+    robot = model.robot
+    types, names = robot.chain_joint_types, robot.chain_joint_names
+    if len(types) != len(UR_JOINTS) or robot.has_mimic or "prismatic" in types:
+        mimic = " (mimic joints follow others)" if robot.has_mimic else ""
+        raise HybridPKError(
+            f"{robot.name}: the UR calibration format holds 6 revolute joints; this chain "
+            f"has {', '.join(f'{n} ({t})' for n, t in zip(names, types, strict=True))}{mimic}"
+        )
+
+
+def not_ur_layout(model: ExtendedModel) -> str | None:
+    """None for a 6-axis chain laid out as a UR arm (axes 2, 3 and 4 parallel, the other
+    consecutive pairs not), else what differs. A pair counts as parallel within 45°, the
+    split the DH export makes between plain DH and Hayati's parameters.
+
+    Raises:
+        HybridPKError: not a chain of 6 revolute joints.
+    """
+    _check_six_revolute(model)
+    _, axes = zero_frames(model)
+    pairs = []
+    for k in range(len(axes) - 1):
+        cos = abs(float(axes[k] @ axes[k + 1]))
+        pairs.append(float(np.linalg.norm(np.cross(axes[k], axes[k + 1]))) <= cos)
+    if tuple(pairs) == _UR_PARALLEL:
+        return None
+    seen = ", ".join(f"{k + 1}-{k + 2}" for k, par in enumerate(pairs) if par) or "none"
+    return f"parallel consecutive axes: {seen}; a UR arm's: 2-3, 3-4"
 
 
 def _entry(T: np.ndarray) -> dict:

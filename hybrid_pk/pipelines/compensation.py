@@ -12,12 +12,16 @@ import os
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import torch
 from torch import Tensor
 
 from hybrid_pk.data import read_table_for
+from hybrid_pk.data.cells import check_conditions, numeric_column, to_float
+from hybrid_pk.data.files import PARQUET_SUFFIXES
 from hybrid_pk.data.joint_table import has_joint_columns, read_joint_table, write_joint_table
 from hybrid_pk.effects import Conditions
 from hybrid_pk.errors import HybridPKError
@@ -36,8 +40,9 @@ F64 = torch.float64
 @dataclass(frozen=True)
 class Program:
     """A robot program: nominal joint targets or flange poses (one of them), the
-    rows' payload [kg] and temperature [degC] where given, ``kind`` for the messages
-    and ``notes`` (columns left unused)."""
+    rows' payload [kg] and temperature [degC] where given, ``kind`` for the messages,
+    ``notes`` (columns left unused) and ``columns``: a joint program's other columns as
+    read (text), copied to the corrected program beside its joints."""
 
     q_nominal: Tensor | None
     targets: Tensor | None
@@ -45,6 +50,7 @@ class Program:
     temperature: Tensor | None = None
     kind: str = "joint targets"
     notes: list[str] = field(default_factory=list)
+    columns: pd.DataFrame | None = None
 
     @property
     def n(self) -> int:
@@ -58,13 +64,27 @@ def read_program(path: str, robot: Robot) -> Program:
     if has_joint_columns(path, robot.joint_names) or not has_joint_columns(path, ("x", "y", "z")):
         q, rest = read_joint_table(path, robot)
         unused = [c for c in rest.columns if c not in ("payload", "temperature")]
-        notes = [f"{path}: joint targets used; columns {', '.join(unused)} are not"] * bool(unused)
-        extra = {
-            c: torch.tensor(pd.to_numeric(rest[c], errors="raise").to_numpy(), dtype=F64)
+        notes = [
+            f"{path}: joint targets used; columns {', '.join(unused)} are not (copied to the "
+            "output as they are)"
+        ] * bool(unused)
+        values = {
+            c: numeric_column(str(path), rest[c], c)
             for c in ("payload", "temperature")
             if c in rest.columns
         }
-        return Program(q, None, extra.get("payload"), extra.get("temperature"), notes=notes)
+        check_conditions(str(path), values, np.arange(1, len(rest) + 1))
+        extra = {c: torch.tensor(v, dtype=F64) for c, v in values.items()}
+        if {"status", "nominal_mm"} <= set(rest.columns):  # what compensate writes
+            notes.append(
+                f"warning: {path} is a compensate output (columns status, nominal_mm): its "
+                "joints are corrected already, and corrected again they miss the targets by "
+                "the correction once more; give the nominal program"
+            )
+        columns = rest if len(rest.columns) else None
+        return Program(
+            q, None, extra.get("payload"), extra.get("temperature"), notes=notes, columns=columns
+        )
     data = read_table_for([path], robot, n_params=1, require_joints=False)
     if not data.has_orientation:
         raise HybridPKError(
@@ -84,11 +104,15 @@ def compensate_program(
     approach: Approach = None,
     out: str | os.PathLike | None = None,
     fixes: Mapping[str, str] | None = None,
+    controller: Robot | None = None,
 ) -> Compensation:
     """The joints that put MODEL (``loaded``, base/tool frame set ``frame_set``) at the
-    program's nominal poses; written to ``out`` (joints, residuals, status) if given.
+    program's nominal poses; written to ``out`` (joints, a joint program's other columns,
+    residuals, status) if given.
     The IK's assumptions are in the result's ``assumed``, not warned, each with how to
-    state it instead (``fixes``: the caller's words, e.g. a column of the program)."""
+    state it instead (``fixes``: the caller's words, e.g. a column of the program).
+    ``controller``: the kinematics the program was computed with and the intended poses
+    come from (default: MODEL's robot, the nominal URDF)."""
     model = loaded.model
     robot = model.robot
     group = torch.full((program.n,), frame_set, dtype=torch.long) if model.base.sets > 1 else None
@@ -100,12 +124,18 @@ def compensate_program(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IKAssumption)  # the caller reports comp.assumed
         comp = compensate(
-            real, robot, base=base, tool=tool, q_nominal=program.q_nominal,
+            real, controller or robot, base=base, tool=tool, q_nominal=program.q_nominal,
             targets=program.targets, cond=cond, box=box, options=options, approach=approach,
             fixes=fixes,
         )  # fmt: skip
     if out is not None:
-        write_joint_table(out, comp.q, robot.joint_names, compensation_frame(comp))
+        computed = compensation_frame(comp)
+        if program.columns is not None:  # the program's own columns; this run's replace
+            kept = program.columns.drop(columns=[c for c in computed if c in program.columns])
+            if Path(out).suffix.lower() in PARQUET_SUFFIXES:  # typed: numbers as numbers
+                kept = kept.apply(_typed)
+            computed = pd.concat([kept.reset_index(drop=True), computed], axis=1)
+        write_joint_table(out, comp.q, robot.joint_names, computed)
     return comp
 
 
@@ -121,3 +151,11 @@ def compensation_frame(comp: Compensation) -> pd.DataFrame:
             "note": list(comp.note),
         }
     )
+
+
+def _typed(column: pd.Series) -> pd.Series:
+    """A CSV column read as text, as float64 where every cell is a finite number."""
+    values, unparsable = to_float(column)
+    if unparsable.any() or not np.isfinite(values).all():
+        return column
+    return pd.Series(values, index=column.index, name=column.name)

@@ -17,6 +17,7 @@ import torch
 
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
+from hybrid_pk.effects.geometric import REFERENCE_TEMPERATURE
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.ik import (
     IKAssumption,
@@ -26,12 +27,13 @@ from hybrid_pk.ik import (
     solve_ik,
     solve_ik_two_stage,
 )
+from hybrid_pk.ik.compensation import chain_reach
 from hybrid_pk.ik.conditions import Approach
 from hybrid_pk.ik.two_stage import DEFAULT_BOX
 from hybrid_pk.io.hybrid_file import load_hybrid, networks_used
 from hybrid_pk.io.model_file import LoadedModel
 
-__all__ = ["CHUNK", "IKJob", "solutions_frame", "solve_targets"]
+__all__ = ["CHUNK", "IKJob", "solutions_frame", "solve_targets", "target_reach"]
 
 CHUNK = 128  # targets per two-stage solve (the progress moves after each)
 
@@ -130,3 +132,29 @@ def solutions_frame(results: IKResult | list[IKResult]) -> pd.DataFrame:
         offset += part.counts.numel()
         frames.append(frame)
     return pd.concat(frames, ignore_index=True)
+
+
+def target_reach(
+    loaded: LoadedModel, data: MeasuredData, frame_set: int = 0
+) -> tuple[torch.Tensor, float]:
+    """``(distance (N,) [m] of each target point from the robot's root origin, in MODEL's
+    base frame; the reach [m] no configuration exceeds)``.
+
+    The reach is the sum of the lengths of the joint origins' translations (the model's
+    geometry, at the targets' temperatures or 20 °C), the prismatic joints' largest
+    travel and the tool offset: by the triangle inequality no joint values put the
+    measured point farther from the root origin, so a target beyond it is unreachable
+    whatever the solver does (typically a target in another frame than the model's
+    measurement frame).
+    """
+    model = loaded.model
+    robot = model.robot
+    temp = data.temperature
+    if temp is None:
+        temp = torch.full((data.n,), REFERENCE_TEMPERATURE, dtype=torch.float64)
+    with torch.no_grad():
+        base, tool = model.base.matrix()[frame_set], model.tool.matrix()[frame_set]
+        params = model.kinematic_params(Conditions(temperature=temp))
+        reach = chain_reach(robot, params.origin_xyz) + float(tool[:3, 3].norm())
+        distance = (data.position.to(torch.float64) - base[:3, 3]).norm(dim=-1)
+    return distance, reach

@@ -145,6 +145,11 @@ def shipped_robots() -> dict[str, Path]:
 def resolve_urdf(robot: str | Path) -> Path:
     """A URDF path, or the name of a shipped robot (``"rx160"``, ``"ur10"``), -> path."""
     p = Path(robot)
+    if p.suffix.lower() in (".yaml", ".yml", ".csv") and p.is_file():
+        raise RobotModelError(
+            f"{p} is a table, not a URDF: 'hybrid-pk import dh {p} --out ROBOT.urdf' makes a "
+            "URDF of a DH table (Python: Robot.from_dh)"
+        )
     if p.suffix.lower() == ".urdf" or p.exists():
         if not p.is_file():
             raise RobotModelError(f"URDF file not found: {p}")

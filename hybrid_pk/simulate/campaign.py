@@ -32,6 +32,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
+from hybrid_pk.data.cells import MAX_PAYLOAD_KG, MAX_TEMPERATURE_C
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, Effect, ExtendedModel, Gravity, approach_direction
 from hybrid_pk.errors import HybridPKError
@@ -174,10 +175,15 @@ def _check_args(
             raise HybridPKError(f"payload range must be 0 <= LO <= HI [kg], got {lo}, {hi}")
         if payload:
             raise HybridPKError("give a payload or a payload range, not both")
+    top = max(payload, payload_range[1] if payload_range else 0.0)
+    if top > MAX_PAYLOAD_KG:  # a table that no reader would take back
+        raise HybridPKError(f"payload {top:g} kg: no arm carries more than {MAX_PAYLOAD_KG:g} kg")
     if temperature_range is not None:
         lo, hi = temperature_range
-        if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
-            raise HybridPKError(f"temperature range must be LO <= HI [°C], got {lo}, {hi}")
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi <= MAX_TEMPERATURE_C):
+            raise HybridPKError(
+                f"temperature range must be LO <= HI <= {MAX_TEMPERATURE_C:g} [°C], got {lo}, {hi}"
+            )
 
 
 def _mounting(mount) -> Mount | None:
