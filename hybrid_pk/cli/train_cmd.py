@@ -100,10 +100,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--logdir", metavar="DIR", help="TensorBoard logs and checkpoints")
     add_seed(p, what="seed of the split, the initialisation and the shuffling")
     p.add_argument("--strategy", default="auto", help="Lightning strategy: auto or ddp")
-    p.add_argument("--devices", type=int, default=1, metavar="N", help="processes (default: 1)")
+    p.add_argument(
+        "--devices", type=_processes, default=1, metavar="N", help="processes (default: 1)"
+    )
     add_fit_frames(
         p, help="first fit only the base and tool frames of MODEL to DATA (nominal:ROBOT)"
     )
+
+
+def _processes(text: str) -> int:
+    """``--devices``: a count of training processes, at least one."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected at least 1 process, got {value}")
+    return value
 
 
 def _prepare(args, loaded, robot, sets: int):

@@ -29,6 +29,7 @@ from lightning.pytorch.loggers import TensorBoardLogger
 
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
+from hybrid_pk.errors import HybridPKError
 from hybrid_pk.hybrid.hybrid_fk import HybridFK
 from hybrid_pk.hybrid.nets import parse_arch
 from hybrid_pk.threads import requested_threads
@@ -244,6 +245,10 @@ def train_hybrid(
     settings["data"].update(datamodule or {})
     if max_epochs is not None:
         settings["trainer"]["max_epochs"] = int(max_epochs)
+    if not settings["trainer"]["max_epochs"] >= 1:  # 0 would store untrained networks
+        raise HybridPKError(
+            f"max_epochs must be at least 1, got {settings['trainer']['max_epochs']}"
+        )
     if patience != "preset":
         settings["trainer"]["patience"] = patience
     if callable(progress):

@@ -1,0 +1,74 @@
+"""``hybrid-pk train`` refuses bad settings and unusable output paths in one line,
+before any data is read or any network trained (a robotics user's tour, 2026-12-05)."""
+
+from __future__ import annotations
+
+import pytest
+
+from hybrid_pk.cli import train_cmd
+from hybrid_pk.cli.main import main
+from hybrid_pk.data import write_table
+from hybrid_pk.effects import ExtendedModel
+from hybrid_pk.errors import HybridPKError
+from hybrid_pk.io.model_file import save_model
+from hybrid_pk.simulate import simulate_campaign
+from hybrid_pk.training import train_hybrid
+
+
+@pytest.fixture(scope="module")
+def files(rx160, tmp_path_factory):
+    data, _ = simulate_campaign(rx160, 40, "none", noise_mm=0.0, known_frames=True, seed=2)
+    folder = tmp_path_factory.mktemp("train_checks")
+    table = folder / "campaign.csv"
+    write_table(table, data)
+    return data, table, save_model(folder / "base.pt", ExtendedModel(rx160))
+
+
+@pytest.fixture
+def no_training(monkeypatch):
+    """A training that is reached fails the test: the checks come first."""
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("trained although the input was bad")
+
+    monkeypatch.setattr(train_cmd, "train_job", refuse)
+
+
+@pytest.mark.parametrize(
+    ("flags", "named"),
+    [
+        (["--epochs", "0"], "--epochs"),  # before: 0 epochs, untrained networks written
+        (["--epochs", "-1"], "--epochs"),  # before: OverflowError, an 'internal error'
+        (["--batch-size", "0"], "--batch-size"),  # before: ZeroDivisionError
+        (["--patience", "-2"], "--patience"),  # before: accepted without a word
+        (["--lr", "0"], "--lr"),  # before: accepted, the networks never moved
+        (["--devices", "0"], "--devices"),  # before: ZeroDivisionError
+    ],
+)
+def test_out_of_range_flags_are_one_line_usage_errors(files, tmp_path, capsys, flags, named):
+    _, table, base = files
+    out = tmp_path / "h.pt"
+    with pytest.raises(SystemExit) as stop:  # argparse's usage error
+        main(["train", str(table), "--model", str(base), "--out", str(out), *flags])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert stop.value.code == 2
+    assert err.startswith("hybrid-pk train: error: argument " + named), err
+    assert "internal error" not in err
+    assert not out.exists()
+
+
+def test_a_yaml_with_zero_epochs_is_refused(files, tmp_path, capsys, no_training):
+    _, table, base = files
+    config = tmp_path / "zero.yaml"
+    config.write_text("trainer:\n  max_epochs: 0\n", encoding="utf-8")
+    args = ["train", str(table), "--model", str(base), "--config", str(config)]
+    code = main([*args, "--out", str(tmp_path / "h.pt")])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert code == 2
+    assert "--epochs (epochs): expected at least 1, got 0" in err
+
+
+def test_train_hybrid_refuses_zero_epochs(files, rx160):
+    data, _, _ = files
+    with pytest.raises(HybridPKError, match="max_epochs must be at least 1, got 0"):
+        train_hybrid(data, ExtendedModel(rx160), max_epochs=0, progress=False)
