@@ -72,3 +72,45 @@ def test_train_hybrid_refuses_zero_epochs(files, rx160):
     data, _, _ = files
     with pytest.raises(HybridPKError, match="max_epochs must be at least 1, got 0"):
         train_hybrid(data, ExtendedModel(rx160), max_epochs=0, progress=False)
+
+
+@pytest.mark.parametrize("flag", ["--out", "--logdir"])
+def test_an_output_under_a_file_is_refused_before_training(
+    files, tmp_path, capsys, flag, no_training
+):
+    _, table, base = files
+    paths = {"--out": str(tmp_path / "h.pt"), "--logdir": None}
+    paths[flag] = str(table / "sub")  # the table is a file: nothing can be made under it
+    args = ["train", str(table), "--model", str(base), "--out", paths["--out"]]
+    code = main(args + (["--logdir", paths["--logdir"]] if paths["--logdir"] else []))
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert len(err) == 1
+    assert (
+        err[0] == f"hybrid-pk train: error: {flag} {table / 'sub'}: {table} is a file, not a folder"
+    )
+
+
+def test_out_an_existing_folder_is_refused_before_training(files, tmp_path, capsys, no_training):
+    # before: the whole training ran, then "[Errno 21] Is a directory: '.../.x.abc' -> 'x'"
+    _, table, base = files
+    code = main(["train", str(table), "--model", str(base), "--out", str(tmp_path)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert err == [
+        f"hybrid-pk train: error: --out {tmp_path} is a folder; give a model file name, "
+        "e.g. hybrid.pt"
+    ]
+
+
+def test_logdir_an_existing_file_is_refused_before_training(files, capsys, no_training):
+    _, table, base = files
+    code = main(
+        ["train", str(table), "--model", str(base), "--out", "x.pt", "--logdir", str(table)]
+    )
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert (
+        err
+        == f"hybrid-pk train: error: --logdir {table} is a file; give a folder (TensorBoard logs)"
+    )
