@@ -100,12 +100,16 @@ def quiet_lightning() -> None:
 
 class EpochReport(Callback):
     """Calls ``say(text)`` after every epoch with the epoch count and the validation
-    mean errors: progress for a caller that draws its own display (the demo)."""
+    mean errors: progress for a caller that draws its own display (the demo).
+
+    At the end of the training epoch, after its validation: Lightning runs a callback's
+    ``on_validation_epoch_end`` before the module's, which logs the errors, so there
+    the line showed the epoch before's (none after the first)."""
 
     def __init__(self, say: Callable[[str], None]) -> None:
         self.say = say
 
-    def on_validation_epoch_end(self, trainer, pl_module) -> None:
+    def on_train_epoch_end(self, trainer, pl_module) -> None:
         metrics = trainer.callback_metrics
         errors = [
             f"{float(metrics[f'val/{key}_{unit}_mean']):.4g} {unit}"

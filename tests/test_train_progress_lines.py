@@ -1,0 +1,36 @@
+"""The one-line-per-epoch progress of a training (``hybrid-pk train`` off a terminal,
+the demo) shows each epoch's own validation errors."""
+
+from __future__ import annotations
+
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from hybrid_pk.effects import ExtendedModel
+from hybrid_pk.simulate import simulate_campaign
+from hybrid_pk.training import train_hybrid
+
+
+def test_each_epoch_line_carries_that_epochs_validation_error(rx160, tmp_path):
+    # before: the line of epoch k showed epoch k-1's errors, the first none at all
+    data, _ = simulate_campaign(
+        rx160, 60, "joint_offset:joint_2=8e-4", noise_mm=0.0, known_frames=True, seed=4
+    )
+    lines: list[str] = []
+    result = train_hybrid(
+        data,
+        ExtendedModel(rx160),
+        preset_name="joints",
+        model={"position_net": "mlp:16x2", "orientation_net": "mlp:16x2", "lr": 0.02},
+        datamodule={"batch_size": 16},
+        max_epochs=3,
+        seed=1,
+        logdir=tmp_path,
+        progress=lines.append,
+    )
+    events = EventAccumulator(str(result.logdir))
+    events.Reload()
+    logged = [e.value for e in events.Scalars("val/position_mm_mean")]
+    epochs = [line for line in lines if line.startswith("epoch ")]
+    assert len(logged) == len(epochs) == 3
+    for k, (line, value) in enumerate(zip(epochs, logged, strict=True)):
+        assert line.startswith(f"epoch {k + 1}/3, validation mean {value:.4g} mm / "), line
