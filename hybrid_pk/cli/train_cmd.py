@@ -223,6 +223,13 @@ def _print_summary(args, robot, data, result) -> None:
     for key, label in (("position_mm", "position [mm]"), ("orientation_deg", "orientation [deg]")):
         if key in result.best:
             print(f"  {label:<30} {result.base[key]:>12.5g} -> {result.best[key]:>8.5g}")
+    for key, name in (("position_mm", "position"), ("orientation_deg", "orientation")):
+        if key in result.best and not result.best[key] < result.base[key]:
+            print(
+                f"note: no epoch of the {name} networks beat the base model on the validation "
+                "rows: they are kept at zero (the base model's "
+                f"{name}); more rows or epochs may help"
+            )
     if len(hybrid.stages) > 1 or hybrid.coverage is not None:
         print(
             f"networks ({hybrid.input_label}) trusted near their training inputs (coverage), "
