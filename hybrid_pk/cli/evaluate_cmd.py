@@ -13,6 +13,7 @@ from hybrid_pk.cli.common import (
     write_json,
 )
 from hybrid_pk.cli.fit_settings import fit_lines, settings_of
+from hybrid_pk.cli.gross import gross_warning
 from hybrid_pk.cli.options import (
     add_data,
     add_fit_frames,
@@ -133,6 +134,9 @@ def _print_summary(args, loaded, robot, data, position, orientation) -> None:
             "warning: the model was calibrated on position-only data, so its tool "
             "orientation is unknown and part of the orientation errors; add --fit-frames"
         )
+    gross = gross_warning(args.model, float(position.mean()), bool(args.fit_frames))
+    if gross:
+        print(gross)
     verdict = loaded.networks.get("transfer") if loaded.has_networks else None
     if verdict:
         print(verdict_line(verdict))

@@ -9,7 +9,10 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+import torch
+
 from hybrid_pk.cli.common import frame_parameter_count, frame_sets_for, read_data
+from hybrid_pk.cli.gross import gross_warning
 from hybrid_pk.cli.options import (
     add_data,
     add_fit_frames,
@@ -20,6 +23,7 @@ from hybrid_pk.cli.options import (
 from hybrid_pk.cli.progress import progress
 from hybrid_pk.cli.settings_flags import add_settings_flags, given_values
 from hybrid_pk.errors import HybridPKError
+from hybrid_pk.evaluation.metrics import pose_error
 from hybrid_pk.hybrid.tuning import hybrid_tuning
 from hybrid_pk.io.model_file import NOMINAL_PREFIX, load_model, model_robot
 from hybrid_pk.pipelines.training import (
@@ -151,6 +155,13 @@ def _prepare(args, loaded, robot, sets: int):
         if args.fit_frames:
             bar.stage("fitting base and tool frames")
         cond, base = base_for_training(loaded, data, sets, args.fit_frames)
+    with torch.no_grad():
+        mean_mm = float(pose_error(data.T_measured(), base(data.q, cond)).position_mm.mean())
+    line = gross_warning(
+        "the base model", mean_mm, args.fit_frames, "; the networks would learn that mismatch"
+    )
+    if line and is_main_process():
+        print(line)
     return data, cond, base
 
 
