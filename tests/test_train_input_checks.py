@@ -135,3 +135,18 @@ def test_networks_no_epoch_improves_end_at_the_base_model(files, rx160, tmp_path
     assert float(dw.abs().max()) < 1e-12
     out = capsys.readouterr().out
     assert "note: no epoch of the position networks beat the base model" in out
+
+
+@pytest.mark.parametrize(
+    ("fade", "said"),
+    [
+        ("0", "(the base model beyond it)"),  # before: "(fading out beyond it)", with no fade
+        ("0.1", "(fading out within 0.1 x its size beyond it, then the base model)"),
+    ],
+)
+def test_the_box_line_says_what_lies_beyond_the_box(files, tmp_path, capsys, fade, said):
+    _, table, base = files
+    args = ["train", str(table), "--model", str(base), "--out", str(tmp_path / "h.pt")]
+    nets = ["--preset", "joints", "--position-net", "mlp:8x1", "--orientation-net", "none"]
+    assert main([*args, *nets, "--epochs", "1", "--fade", fade]) == 0
+    assert f"networks trusted inside the training box {said}: " in capsys.readouterr().out

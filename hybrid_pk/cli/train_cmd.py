@@ -251,7 +251,13 @@ def _print_summary(args, robot, data, result) -> None:
         box = ", ".join(
             f"{n} [{a:.3f}, {b:.3f}]" for n, a, b in zip(robot.joint_names, lo, hi, strict=True)
         )
-        print(f"networks trusted inside the training box (fading out beyond it): {box}")
+        fade = hybrid.box.fade
+        beyond = (
+            f"fading out within {fade:g} x its size beyond it, then the base model"
+            if fade > 0
+            else "the base model beyond it"
+        )
+        print(f"networks trusted inside the training box ({beyond}): {box}")
     else:
         print(f"networks ({hybrid.input_label}) applied everywhere (--trust none)")
     _print_blocked(result.blocked)
