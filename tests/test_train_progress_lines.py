@@ -34,3 +34,20 @@ def test_each_epoch_line_carries_that_epochs_validation_error(rx160, tmp_path):
     assert len(logged) == len(epochs) == 3
     for k, (line, value) in enumerate(zip(epochs, logged, strict=True)):
         assert line.startswith(f"epoch {k + 1}/3, validation mean {value:.4g} mm / "), line
+
+
+def test_the_probe_fits_show_progress_beside_lightnings_bar(rx160, capsys):
+    # before: on a terminal (Lightning's bar) the probe fits of the blocked hold-out,
+    # about as long as the training itself, ran without a word after the epoch bar
+    data, _ = simulate_campaign(
+        rx160, 80, "joint_offset:joint_2=8e-4", noise_mm=0.0, known_frames=True, seed=4
+    )
+    model = {"position_net": "mlp:16x2", "orientation_net": "mlp:16x2", "local_net": "mlp:8x1"}
+    result = train_hybrid(
+        data, ExtendedModel(rx160), model=model, datamodule={"batch_size": 32}, max_epochs=1,
+        seed=1, progress=True,
+    )  # fmt: skip
+    assert result.blocked
+    err = capsys.readouterr().err
+    assert "blocked hold-out 1/2: " in err
+    assert "(probe fit)" in err

@@ -321,7 +321,9 @@ def blocked_hold_out(
 ) -> dict:
     """Probe fits on blocked hold-out of ``dm``'s rows (:mod:`~hybrid_pk.training.blocked`),
     each with ``settings`` (a preset with overrides), that lift or keep the gate of each
-    of ``hybrid``'s gated stages. Returns ``{"<index>:<label>": record}``."""
+    of ``hybrid``'s gated stages. Returns ``{"<index>:<label>": record}``.
+    ``progress``: as in :func:`train_hybrid` (True: a line and Lightning's bar per
+    probe fit, which together take about as long as the training)."""
     if not any(stage.gate is not None for stage in hybrid.stages):
         return {}
     blocks = blocked_blocks(hybrid.base.robot, dm.train_targets.q, dm.files[0])
@@ -331,13 +333,16 @@ def blocked_hold_out(
         fit, check, held = fold_rows(dm.train_targets, dm.val_targets, fold, dm.files)
         if fit.n < 2 or check.n < 1 or not held:
             continue
+        text = f"blocked hold-out {k + 1}/{len(folds)}: {', '.join(b.label for b in fold)}"
         if callable(progress):
-            progress(f"blocked hold-out {k + 1}/{len(folds)}: {', '.join(b.label for b in fold)}")
+            progress(text)
+        elif progress:  # Lightning's bar (a terminal): the probe fits get their own bar
+            print(f"{text} (probe fit)", file=sys.stderr, flush=True)
         L.seed_everything(seed, workers=True, verbose=False)
         probe = HybridDataModule(batch_size=dm.batch_size, val_batch_size=dm.val_batch_size)
         probe.base, probe.train_targets, probe.val_targets = dm.base, fit, check
         module = HybridLitModule(**{**settings["model"], "blocked": False, "histogram_every": 0})
-        trainer = make_trainer(progress=False, **settings["trainer"])
+        trainer = make_trainer(progress=progress is True, **settings["trainer"])
         trainer.fit(module, datamodule=probe)
         probes.append((module.hybrid.eval(), held))
     if not probes:
