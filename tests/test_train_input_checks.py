@@ -150,3 +150,15 @@ def test_the_box_line_says_what_lies_beyond_the_box(files, tmp_path, capsys, fad
     nets = ["--preset", "joints", "--position-net", "mlp:8x1", "--orientation-net", "none"]
     assert main([*args, *nets, "--epochs", "1", "--fade", fade]) == 0
     assert f"networks trusted inside the training box {said}: " in capsys.readouterr().out
+
+
+def test_paper_networks_worse_than_the_base_are_not_said_kept_at_zero(files, tmp_path, capsys):
+    # the paper preset starts from random output layers: the base model is no candidate.
+    # Before: its summary said such networks were "kept at zero", which they are not
+    _, table, base = files
+    args = ["train", str(table), "--model", str(base), "--out", str(tmp_path / "h.pt")]
+    nets = ["--preset", "paper", "--position-net", "mlp:8x1", "--orientation-net", "none"]
+    assert main([*args, *nets, "--epochs", "1", "--seed", "3"]) == 0
+    out = capsys.readouterr().out
+    assert "warning: the position networks end worse than the base model on the validation" in out
+    assert "kept at zero" not in out

@@ -235,11 +235,21 @@ def _print_summary(args, robot, data, result) -> None:
         if key in result.best:
             print(f"  {label:<30} {result.base[key]:>12.5g} -> {result.best[key]:>8.5g}")
     for key, name in (("position_mm", "position"), ("orientation_deg", "orientation")):
-        if key in result.best and not result.best[key] < result.base[key]:
+        best, base_error = result.best.get(key), result.base.get(key)
+        if best is None or best < base_error:
+            continue
+        if best == base_error:  # the start, zero output layers, was kept
             print(
                 f"note: no epoch of the {name} networks beat the base model on the validation "
-                "rows: they are kept at zero (the base model's "
-                f"{name}); more rows or epochs may help"
+                f"rows: they are kept at zero (the base model's {name}); more rows or epochs "
+                "may help"
+            )
+        else:
+            print(
+                f"warning: the {name} networks end worse than the base model on the "
+                f"validation rows ({best:.5g} against {base_error:.5g} {key.split('_')[1]}): "
+                "their output layers start random (as in --preset paper), so the base model "
+                "was no candidate; more epochs or rows may help"
             )
     if len(hybrid.stages) > 1 or hybrid.coverage is not None:
         print(
