@@ -162,3 +162,16 @@ def test_paper_networks_worse_than_the_base_are_not_said_kept_at_zero(files, tmp
     out = capsys.readouterr().out
     assert "warning: the position networks end worse than the base model on the validation" in out
     assert "kept at zero" not in out
+
+
+def test_an_unknown_key_of_a_yaml_section_is_refused(files, tmp_path, capsys, no_training):
+    # before: "internal error: TypeError: HybridLitModule.__init__() got an unexpected
+    # keyword argument 'bogus'" after the data were read
+    _, table, base = files
+    config = tmp_path / "bad.yaml"
+    config.write_text("model:\n  lr: 0.01\n  bogus: 3\n", encoding="utf-8")
+    args = ["train", str(table), "--model", str(base), "--config", str(config)]
+    assert main([*args, "--out", str(tmp_path / "h.pt")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert f"error: config {config}: unknown model key(s) bogus; known: position_net," in err[0]
