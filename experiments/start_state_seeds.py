@@ -5,7 +5,8 @@ trained hybrid does on held-out rows? Over several seeds, two simulated RX160 ca
 learn). Each seed trains the default preset twice, with the start kept as a candidate
 (the rule of ``HybridLitModule.keep_start``) and without it (the rule before), and
 measures the mean position error of base and hybrid on the validation rows and on
-independent test rows of the same campaign.
+independent test rows of the same campaign, and prints the blocked hold-out's decision
+for each gated stage (its probe fits follow the same rule).
 
     OMP_NUM_THREADS=1 python experiments/start_state_seeds.py --seeds 0 1 2 3 4 5
 """
@@ -53,6 +54,7 @@ def run(case: str, seed: int, n: int, epochs: int, keep: bool) -> dict:
         "val_hybrid": result.best["position_mm"],
         "test_base": test_base,
         "test_hybrid": test_hybrid,
+        "modes": " ".join(r["mode"] for r in result.blocked.values()),
     }
 
 
@@ -64,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cases", nargs="+", default=list(BASES), choices=list(BASES))
     args = p.parse_args(argv)
     quiet_lightning()
-    print("case     seed rule   val base -> hybrid [mm]   test base -> hybrid [mm]")
+    print("case     seed rule   val base -> hybrid [mm]   test base -> hybrid [mm]   blocked")
     for case in args.cases:
         ratios: dict[str, list[float]] = {"before": [], "start kept": []}
         for seed in args.seeds:
@@ -73,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
                 ratios[rule].append(r["test_hybrid"] / r["test_base"])
                 print(
                     f"{case:<8} {seed:>4} {rule:<10} {r['val_base']:.5f} -> {r['val_hybrid']:.5f}"
-                    f"      {r['test_base']:.5f} -> {r['test_hybrid']:.5f}",
+                    f"      {r['test_base']:.5f} -> {r['test_hybrid']:.5f}   {r['modes']}",
                     flush=True,
                 )
         for rule, values in ratios.items():
