@@ -175,3 +175,17 @@ def test_an_unknown_key_of_a_yaml_section_is_refused(files, tmp_path, capsys, no
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1
     assert f"error: config {config}: unknown model key(s) bogus; known: position_net," in err[0]
+
+
+def test_a_gated_stage_says_the_physics_applies_beyond_its_joints(rx160, files, tmp_path, capsys):
+    # before: "local+q1: gated (gated); ..." and "1 epochs in"
+    _, _, base = files
+    data, _ = simulate_campaign(rx160, 200, "none", noise_mm=0.02, known_frames=True, seed=6)
+    table = write_table(tmp_path / "rows.csv", data)  # enough rows for the probe fits
+    args = ["train", str(table), "--model", str(base), "--out", str(tmp_path / "h.pt")]
+    nets = ["--position-net", "mlp:8x1", "--orientation-net", "none", "--local-net", "mlp:4x1"]
+    assert main([*args, *nets, "--refine-net", "mlp:4x1", "--epochs", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "(gated)" not in out
+    assert ": gated (the physics beyond its training joints); gated " in out
+    assert " 1 epoch in " in out

@@ -228,7 +228,7 @@ def _print_summary(args, robot, data, result) -> None:
     base = "nominal URDF" if args.model.startswith(NOMINAL_PREFIX) else args.model
     print(
         f"trained {', '.join(nets)} on {data.n} rows of {robot.name} over {base}: "
-        f"{result.epochs} epochs in {result.seconds:.1f} s"
+        f"{result.epochs} epoch{'' if result.epochs == 1 else 's'} in {result.seconds:.1f} s"
     )
     print("validation rows, mean error        base model ->   hybrid")
     for key, label in (("position_mm", "position [mm]"), ("orientation_deg", "orientation [deg]")):
@@ -293,7 +293,11 @@ def _print_blocked(blocked: dict) -> None:
             for m in ("gated", "free", "shrunk")
             if m in record
         )
-        where = "used beyond its training joints" if record["mode"] != "gated" else "gated"
+        where = (
+            "used beyond its training joints"
+            if record["mode"] != "gated"
+            else "the physics beyond its training joints"
+        )
         print(f"  {name.split(':', 1)[1]}: {record['mode']} ({where}); {tried}")
         families = record.get("families") or {}
         if families:
