@@ -56,3 +56,17 @@ def test_train_names_a_base_model_far_off_the_rows(tables, tmp_path, capsys):
     out = capsys.readouterr().out
     assert "warning: the base model misses these rows by " in out
     assert "the networks would learn that mismatch" in out
+
+
+def test_evaluate_says_when_data_is_the_file_the_model_was_fitted_on(tables, tmp_path, capsys):
+    # before: the errors on the calibration file itself were printed as any others
+    _, table = tables
+    model = tmp_path / "fitted.pt"
+    assert main(["calibrate", str(table["ur10"]), "--robot", "ur10", "--effects", "none",
+                 "--no-urdf", "--out", str(model)]) == 0  # fmt: skip
+    capsys.readouterr()
+    assert main(["evaluate", str(model), str(table["ur10"])]) == 0
+    out = capsys.readouterr().out
+    assert f"note: {model} was calibrated on {table['ur10']}: these errors are on its " in out
+    assert main(["evaluate", str(model), str(table["small"]), "--fit-frames"]) == 0
+    assert "fitting rows" not in capsys.readouterr().out
