@@ -51,3 +51,27 @@ def test_the_probe_fits_show_progress_beside_lightnings_bar(rx160, capsys):
     err = capsys.readouterr().err
     assert "blocked hold-out 1/2: " in err
     assert "(probe fit)" in err
+
+
+def test_the_figure_says_it_shows_the_best_networks(rx160, tmp_path, monkeypatch):
+    # before: "epoch 3" over the networks restored to their best epoch (UR10 Series B:
+    # the figure's 0.537 mm was epoch 1's, the last epoch had 0.779 mm)
+    from hybrid_pk.evaluation import plots
+
+    titles: list[str] = []
+    original = plots.error_histograms
+
+    def keep_title(*args, title=None, **kwargs):
+        titles.append(title)
+        return original(*args, title=title, **kwargs)
+
+    monkeypatch.setattr(plots, "error_histograms", keep_title)
+    data, _ = simulate_campaign(
+        rx160, 60, "joint_offset:joint_2=8e-4", noise_mm=0.0, known_frames=True, seed=4
+    )
+    model = {"position_net": "mlp:16x2", "orientation_net": "none", "blocked": False}
+    train_hybrid(
+        data, ExtendedModel(rx160), preset_name="joints", model=model, max_epochs=2,
+        logdir=tmp_path, progress=False,
+    )  # fmt: skip
+    assert titles == ["validation rows (n = 6), networks at their best of 2 epochs"]
