@@ -351,3 +351,15 @@ def test_calibrate_takes_the_causes_of_a_diagnosis_file(campaign, tmp_path, caps
     assert rc == 2
     assert "no 'causes' list" in err
     assert len(err.strip().splitlines()) == 1
+
+
+def test_gross_refit_warning_names_what_was_refitted():
+    # with --refit frames the warning read "more changed than the frames frame"
+    from hybrid_pk.cli.calibrate_refit import _gross_warning
+
+    both = _gross_warning("frames", torch.tensor([40.0, 42.0]))
+    assert "more changed than the base and tool frames, or" in both
+    assert "frames frame" not in both
+    tool = _gross_warning("tool", torch.tensor([40.0]))
+    assert "more changed than the tool frame (--refit frames re-fits both frames)" in tool
+    assert _gross_warning("base", torch.tensor([1.0])) is None

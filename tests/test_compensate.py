@@ -288,3 +288,16 @@ def test_backlash_sides_are_those_of_the_corrected_program(rx160):
     with torch.no_grad():
         err = pose_error(base @ rx160.fk(q_nom) @ tool, real(comp.q, cond)).position_mm
     assert float(err[ok].max()) < 1e-3, err
+
+
+def test_help_states_the_approach_default_compensate_uses(capsys):
+    # compensate takes backlash sides from the program's order; its --approach help said
+    # "default: the mid-play model", which is ik's default (shared help text)
+    with pytest.raises(SystemExit):
+        main(["compensate", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "default: the sides of the corrected program's own moves" in text
+    assert "default: the mid-play model" not in text
+    with pytest.raises(SystemExit):
+        main(["ik", "--help"])
+    assert "default: the mid-play model" in " ".join(capsys.readouterr().out.split())

@@ -280,3 +280,13 @@ def _table_of(robot: Robot, q: torch.Tensor, tmp_path: Path) -> Path:
     path = tmp_path / "points.csv"
     frame.to_csv(path, index=False)
     return path
+
+
+def test_mimic_chain_is_refused_naming_its_mimic_joints():
+    # the message listed every chain joint (dsr_joint1..6 too) as "mimic joints"
+    robot = Robot.from_urdf("column_arm", end_link="tool0")
+    with pytest.raises(Exception, match="mimic joints") as err:
+        model_dh_table(ExtendedModel(robot), "dh")
+    text = str(err.value)
+    assert "(column_middle_joint, column_top_joint)" in text
+    assert "dsr_joint1" not in text

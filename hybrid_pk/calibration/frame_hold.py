@@ -167,7 +167,9 @@ def held_prior(
         # would need more than HOLD_INFORMATION times the weight; the prior keeps it
         if along * along * HOLD_INFORMATION < 1.0:
             continue
-        data_info = float(v @ H @ v) / max(e, 1e-12) ** 2
+        # H = J^T J is positive semi-definite: a negative v H v is rounding (a direction
+        # the rows do not see at all), and with noise-free rows e is ~0, which made it -1e10
+        data_info = max(float(v @ H @ v), 0.0) / max(e, 1e-12) ** 2
         held.append(v_tool / along)
         weights.append(math.sqrt(HOLD_INFORMATION * (data_info + prior_info)))
     if not held:

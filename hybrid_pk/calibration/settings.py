@@ -154,7 +154,12 @@ class DiagnosisSettings(FitSettings):
         "F",
         check=in_open_unit,
     )
-    seed: int = setting(0, "seed of the hold-out split (default: {default})", "K")
+    seed: int = setting(
+        0,
+        "seed of the hold-out split, of the blocked hold-out's k-means starts and of the "
+        "--refit-rows rows (default: {default})",
+        "K",
+    )
     candidates: list[str] | None = setting(
         None,
         "comma-separated effects to consider, e.g. "

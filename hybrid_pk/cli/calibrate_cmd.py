@@ -112,8 +112,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         helps={
             "holdout": "fraction of rows (0 < F < 1) the diagnosis of --effects auto holds "
             "out to compare models; the final fit uses all rows (default: 0.2)",
-            "seed": "seed of the diagnosis hold-out split and of the --refit-rows rows "
-            "(default: 0)",
+            "seed": "seed of the diagnosis' hold-out split and blocks and of the "
+            "--refit-rows rows (default: 0)",
         },
     )  # fmt: skip
     add_config_flags(p, DiagnosisSettings)

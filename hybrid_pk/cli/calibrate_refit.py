@@ -16,8 +16,10 @@ from hybrid_pk.cli.calibrate_output import (
 )
 from hybrid_pk.cli.common import (
     frame_parameter_count,
+    mounting_lines,
     read_data,
     stats_line,
+    tilt_note,
 )
 from hybrid_pk.cli.fit_settings import fit_lines, robust_summary
 from hybrid_pk.cli.progress import progress
@@ -26,7 +28,7 @@ from hybrid_pk.errors import HybridPKError
 from hybrid_pk.io.model_file import LoadedModel, load_model, model_robot, save_model
 from hybrid_pk.pipelines.refit import refit
 
-__all__ = ["run_refit"]
+__all__ = ["run_refit", "spread_line"]
 
 
 def run_refit(args: argparse.Namespace, settings: FitSettings) -> int:
@@ -80,11 +82,14 @@ def run_refit(args: argparse.Namespace, settings: FitSettings) -> int:
         + (", residual networks kept" if loaded.has_networks else "")
         + f") on {data.n} rows from {len(data.sources)} file(s)"
     )
-    for line in frame_lines(model) + fit_lines(data, res):
+    # the mounting the re-fitted base implies (level-tracker: the new set-up's tilt); the
+    # note on a fixed mounting is tilt_note's, against the model's own base
+    print(spread_line(frames, res, data.n))
+    for line in frame_lines(model) + mounting_lines(model, check=False) + fit_lines(data, res):
         print(line)
     if result.verdict is not None:
         print(result.verdict.line())
-    for note in (_tilt_note(up, model), _gross_warning(which, after[0])):
+    for note in (tilt_note(up, model, "the re-fitted base tilts"), _gross_warning(which, after[0])):
         if note:
             print(note)
     for i, (name, unit) in enumerate((("position", "mm"), ("orientation", "deg"))):
@@ -99,28 +104,17 @@ def run_refit(args: argparse.Namespace, settings: FitSettings) -> int:
     return 0
 
 
-# [deg] a gravity effect whose gravity is off by this much points 1.7 % of its size
-# astray (sin 1°), about the relative std a compliance is fitted to in a campaign of a
-# few hundred poses: beyond it the mounting matters to the re-stationed model
-TILT_NOTE_DEG = 1.0
-
-
-def _tilt_note(up, after) -> str | None:
-    """A note when the re-fitted base tilts the robot (its z axis, was ``up`` in the
-    measurement frame) while its gravity effects assume a fixed mounting (``--gravity``
-    in the root frame)."""
-    gravity_effects = [e.label for e in after.loaded_effects()]
-    if after.gravity.levelled or not gravity_effects:
-        return None
-    z1 = after.base.matrix()[0, :3, 2].detach()
-    tilt = math.degrees(math.acos(max(-1.0, min(1.0, float(up.to(z1.dtype) @ z1)))))
-    if tilt <= TILT_NOTE_DEG:
-        return None
+def spread_line(frames: str, res, rows: int) -> str:
+    """How well ``rows`` rows fix the re-fitted frame(s): a least-squares fit of p
+    parameters spends p of its residuals' variance on them (the trace of its hat
+    matrix), so over the rows it moves a point by σ√(p/rows) RMS, σ the fit's noise per
+    coordinate (at most: orientation residuals, where measured, take a share)."""
+    p, sigma = res.n_params, res.sigma_pos_mm
+    added = sigma * math.sqrt(p / rows)
     return (
-        f"note: the re-fitted base tilts the robot by {tilt:.1f} deg against the model's, "
-        f"but its gravity effects ({', '.join(gravity_effects)}) keep the mounting they were "
-        "calibrated with (gravity fixed in the robot frame); if the instrument is levelled, "
-        "calibrate with --gravity level-tracker and they follow the tilt"
+        f"  the {frames} ({p} parameters) from {rows} rows: the re-fit adds about "
+        f"{added:.3g} mm RMS at these rows, more beyond their spread (the fit's noise "
+        f"{sigma:.3g} mm per coordinate x sqrt({p}/{rows})); four times the rows halve it"
     )
 
 
@@ -132,11 +126,15 @@ def _gross_warning(which: str, position_mm) -> str | None:
     mean = float(position_mm.mean())
     if mean <= gross:
         return None
-    other = "" if which == "frames" else " (--refit frames re-fits both frames)"
+    refitted = (
+        "the base and tool frames"
+        if which == "frames"
+        else f"the {which} frame (--refit frames re-fits both frames)"
+    )
     return (
         f"warning: after the re-fit the model still misses these rows by {mean:.4g} mm "
-        f"(mean), more than small corrections make ({gross:g} mm): more changed than the "
-        f"{which} frame{other}, or the rows are not this robot's"
+        f"(mean), more than small corrections make ({gross:g} mm): more changed than "
+        f"{refitted}, or the rows are not this robot's"
     )
 
 

@@ -27,28 +27,40 @@ from hybrid_pk.robot import Robot
 
 __all__ = [
     "FRAME_LABELS",
+    "TILT_NOTE_DEG",
     "data_notes",
     "fit_frames",
     "flag_values",
     "frame_parameter_count",
     "frame_set_index",
     "frame_sets_for",
+    "gravity_note",
     "load_frozen_model",
     "load_robot",
     "mounting_lines",
     "read_data",
     "read_json",
     "stats_line",
+    "tilt_note",
     "with_frame_sets",
     "write_json",
 ]
 
 
-def mounting_lines(model: ExtendedModel) -> list[str]:
+# [deg] a gravity effect whose gravity is off by this much points 1.7 % of its size
+# astray (sin 1°), about the relative std a compliance is fitted to in a campaign of a
+# few hundred poses: beyond it the mounting matters to the model
+TILT_NOTE_DEG = 1.0
+
+
+def mounting_lines(model: ExtendedModel, check: bool = True) -> list[str]:
     """One line per base frame set on the gravity the model's statics use (none when
-    the robot is the default upright one)."""
+    the robot is the default upright one), and with ``check`` the note of
+    :func:`gravity_note` where the stated gravity and the fitted base disagree."""
+    note = gravity_note(model) if check else None
+    lines = [] if note is None else [note]
     if model.gravity.is_default:
-        return []
+        return lines
     lines = []
     with torch.no_grad():
         T = model.base.matrix()
@@ -64,7 +76,54 @@ def mounting_lines(model: ExtendedModel) -> list[str]:
                 f"  gravity{tag} ({text}) m/s^2 in the robot root frame: root z axis "
                 f"{tilt:.1f} deg from upright ({model.gravity.describe()})"
             )
-    return lines
+    return lines + ([] if note is None else [note])
+
+
+def gravity_note(model: ExtendedModel) -> str | None:
+    """A note when the model's gravity effects take gravity fixed in the robot frame
+    (the default upright, or ``--gravity X,Y,Z``) and its fitted base frame turns that
+    gravity more than ``TILT_NOTE_DEG`` from the measurement frame's vertical: with a
+    levelled instrument (a total station, a levelled tracker) the mounting is then
+    stated wrongly, and the effects fitted under it stand in for the difference."""
+    loaded = [e.label for e in model.loaded_effects()]
+    if model.gravity.levelled or not loaded:
+        return None
+    with torch.no_grad():
+        R = model.base.matrix()[:, :3, :3]
+        g = torch.tensor(model.gravity.vector, dtype=R.dtype)
+        down = -(R @ g)[:, 2] / g.norm()  # cosine to the measurement frame's -z
+        angle = math.degrees(math.acos(float(down.clamp(-1.0, 1.0).min())))
+    if angle <= TILT_NOTE_DEG:
+        return None
+    stated = "upright, the default" if model.gravity.is_default else "--gravity"
+    return (
+        f"note: the gravity effects ({', '.join(loaded)}) take gravity as "
+        f"{model.gravity.describe()} ({stated}), which the fitted base frame turns "
+        f"{angle:.1f} deg from the measurement frame's vertical; if the instrument is "
+        "levelled (a total station, a levelled laser tracker), the mounting is stated "
+        "wrongly and the named causes may stand in for it: --gravity level-tracker "
+        "takes the mounting from the data"
+    )
+
+
+def tilt_note(up, after: ExtendedModel, subject: str) -> str | None:
+    """A note when ``subject`` (with its verb: "the re-fitted base tilts") tilts the
+    robot (its z axis, was ``up`` in the measurement frame) by more than
+    ``TILT_NOTE_DEG`` while its gravity effects assume a fixed mounting (``--gravity``
+    in the root frame)."""
+    gravity_effects = [e.label for e in after.loaded_effects()]
+    if after.gravity.levelled or not gravity_effects:
+        return None
+    z1 = after.base.matrix()[0, :3, 2].detach()
+    tilt = math.degrees(math.acos(max(-1.0, min(1.0, float(up.to(z1.dtype) @ z1)))))
+    if tilt <= TILT_NOTE_DEG:
+        return None
+    return (
+        f"note: {subject} the robot by {tilt:.1f} deg against the model's, "
+        f"but its gravity effects ({', '.join(gravity_effects)}) keep the mounting they were "
+        "calibrated with (gravity fixed in the robot frame); if the instrument is levelled, "
+        "calibrate with --gravity level-tracker and they follow the tilt"
+    )
 
 
 def load_robot(name: str, end_link: str | None = None) -> Robot:

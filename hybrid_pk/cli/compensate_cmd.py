@@ -82,7 +82,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="largest predicted orientation error of an ok row [deg] (default 0.001)",
     )  # fmt: skip
     add_frame_set(p)
-    add_approach(p)
+    add_approach(p, default="the sides of the corrected program's own moves; first row mid-play")
 
 
 def _summary(comp: Compensation, args, robot, kind: str) -> list[str]:

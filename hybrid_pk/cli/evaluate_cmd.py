@@ -8,8 +8,10 @@ from hybrid_pk.calibration.settings import FitSettings
 from hybrid_pk.cli.common import (
     frame_parameter_count,
     frame_sets_for,
+    mounting_lines,
     read_data,
     stats_line,
+    tilt_note,
     write_json,
 )
 from hybrid_pk.cli.fit_settings import fit_lines, settings_of
@@ -86,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
         bar.stage("reading data")
         n_params = frame_parameter_count(sets, False) if args.fit_frames else None
         data = read_data(args.data, robot, n_params=n_params, skip_bad_rows=args.skip_bad_rows)
+        up = loaded.model.base.matrix()[0, :3, 2].detach().clone()  # the fit moves it
         res = evaluate_model(
             loaded, data, model_label=args.model, sets=sets, fit_frames=args.fit_frames,
             priors=settings.priors(loaded.model if loaded.frames_fitted else None)
@@ -96,8 +99,12 @@ def run(args: argparse.Namespace) -> int:
             write_json(args.json, res.summary)
 
     _print_summary(args, res.loaded, robot, data, res.position, res.orientation)
-    for line in fit_lines(data, res.frame_fit) if res.frame_fit is not None else []:
-        print(line)
+    if res.frame_fit is not None:  # as calibrate --refit: the mounting the fitted base implies
+        lines = mounting_lines(res.loaded.model, check=False) + fit_lines(data, res.frame_fit)
+        if loaded.frames_fitted:
+            lines.append(tilt_note(up, res.loaded.model, "the frames fitted to DATA tilt"))
+        for line in filter(None, lines):
+            print(line)
     if args.json:
         print(f"wrote {args.json}")
     if res.report:

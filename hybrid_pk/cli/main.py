@@ -14,11 +14,12 @@ error`` line and exit code 1. A traceback is shown only with ``--debug``.
 from __future__ import annotations
 
 import argparse
+import difflib
 import importlib
 import sys
 from collections.abc import Sequence
 
-from hybrid_pk.cli.options import command_parser
+from hybrid_pk.cli.options import command_parser, resolve_robot
 from hybrid_pk.cli.progress import shown
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.threads import configure as configure_threads
@@ -39,8 +40,18 @@ _COMMANDS = (
 )
 
 
+class _OneLineParser(argparse.ArgumentParser):
+    """argparse with the error policy of every other error: a missing or malformed
+    flag is one line on stderr and exit code 2 (argparse's usage block before it made
+    it a dozen); ``--help`` still shows the usage. Sub-command parsers inherit it."""
+
+    def error(self, message: str):
+        msg = " ".join(message.split())
+        self.exit(2, f"{self.prog}: error: {msg} ({self.prog} --help lists the options)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _OneLineParser(
         prog="hybrid-pk",
         description="Accurate, differentiable kinematics for serial robot arms: "
         "diagnose, calibrate, learn residuals, solve IK.",
@@ -55,13 +66,40 @@ def build_parser() -> argparse.ArgumentParser:
         p = command_parser(sub, module.NAME, help=module.HELP, description=module.DESCRIPTION)
         module.add_arguments(p)
         p.set_defaults(func=module.run)
+    parser.set_defaults(commands=sub.choices)  # for the hint on an unknown flag
     return parser
+
+
+def unknown_flag_hint(commands: dict, command: str, unknown: Sequence[str]) -> str:
+    """For each unknown ``--flag`` of ``command``: the other commands that take it (a
+    flag of ``simulate`` tried on ``diagnose``), else the closest flag of its own."""
+    own = commands[command]
+    hints = []
+    for token in unknown:
+        if not token.startswith("--"):
+            continue
+        flag = token.split("=")[0]
+        others = [
+            n for n, p in commands.items() if n != command and flag in p._option_string_actions
+        ]
+        if others:
+            hints.append(f"{flag} is a flag of {', '.join(others)}, not of {command}")
+            continue
+        close = difflib.get_close_matches(flag, list(own._option_string_actions), n=1)
+        if close:
+            hints.append(f"{flag}: did you mean {close[0]}?")
+    tail = f"; see hybrid-pk {command} --help"
+    return f" ({'; '.join(hints)}{tail})" if hints else ""
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # as argparse would, with the flag's owner or its closest match named
+        hint = unknown_flag_hint(args.commands, args.command, unknown)
+        args.commands[args.command].error(f"unrecognized arguments: {' '.join(unknown)}{hint}")
     try:
+        resolve_robot(args)
         configure_threads(getattr(args, "threads", None))
         with shown(not getattr(args, "no_progress", False)):
             return int(args.func(args) or 0)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 
+from hybrid_pk.errors import HybridPKError
 from hybrid_pk.robot import shipped_robots
 from hybrid_pk.threads import ENV as THREADS_ENV
 from hybrid_pk.threads import parse_threads
@@ -47,6 +48,7 @@ __all__ = [
     "add_seed",
     "add_threads",
     "command_parser",
+    "resolve_robot",
 ]
 
 ROBOT_HELP = f"shipped robot name ({', '.join(shipped_robots())}) or URDF path"
@@ -55,9 +57,9 @@ _ROBOT_CHECK_HELP = "refuse a MODEL made for another robot than ROBOT"
 APPROACH_HELP = (
     "backlash: the side each joint approaches the target from, + (moving in the joint's "
     "positive direction), - or mid, for every backlash joint or per joint as "
-    "joint_3=+,joint_4=- (default: the mid-play model, half-way between both; a note "
-    "says so)"
+    "joint_3=+,joint_4=- (default: {default})"
 )
+APPROACH_DEFAULT_IK = "the mid-play model, half-way between both; a note says so"
 
 
 def command_parser(subparsers, name: str, *, help: str, description: str):
@@ -90,8 +92,8 @@ def add_threads(parser: argparse.ArgumentParser) -> None:
         type=_threads,
         default=None,
         metavar="N",
-        help="torch threads: N, auto (the cores this process may use, one per 2,048 rows "
-        "of the work, at most OMP_NUM_THREADS) or torch (torch's own default); waiting "
+        help="torch threads: N, auto (the cores this process may use, one in the fits and "
+        "the diagnosis; at most OMP_NUM_THREADS) or torch (torch's own default); waiting "
         f"threads sleep instead of spinning (default: ${THREADS_ENV}, else auto)",
     )
 
@@ -118,12 +120,26 @@ def add_robot(
     text = help or ROBOT_HELP
     if default is not None:
         text += " (default: %(default)s)"
-    if positional:
-        parser.add_argument("robot", metavar="ROBOT", help=text)
+    if positional:  # ROBOT or, as every other command takes it, --robot ROBOT
+        parser.add_argument("robot", metavar="ROBOT", nargs="?", help=text)
+        parser.add_argument("--robot", dest="robot_flag", metavar="ROBOT", help="same as ROBOT")
     else:
         parser.add_argument(
             "--robot", metavar="ROBOT", required=required, default=default, help=text
         )
+
+
+def resolve_robot(args: argparse.Namespace) -> None:
+    """Merge a positional ``ROBOT`` and ``--robot ROBOT`` (:func:`add_robot` with
+    ``positional``) into ``args.robot``; refuse neither, or two different robots."""
+    if not hasattr(args, "robot_flag"):
+        return
+    flag = args.__dict__.pop("robot_flag")
+    if args.robot is None and flag is None:
+        raise HybridPKError("the robot is missing: give ROBOT (or --robot ROBOT)")
+    if args.robot is not None and flag is not None and args.robot != flag:
+        raise HybridPKError(f"two robots given: ROBOT {args.robot!r} and --robot {flag!r}")
+    args.robot = args.robot or flag
 
 
 def add_end_link(parser: argparse.ArgumentParser) -> None:
@@ -259,10 +275,11 @@ def add_progress(parser: argparse.ArgumentParser) -> None:
 # ----------------------------------------------------------------------------- targets
 
 
-def add_approach(parser: argparse.ArgumentParser) -> None:
+def add_approach(parser: argparse.ArgumentParser, default: str = APPROACH_DEFAULT_IK) -> None:
     """``--approach SPEC``: backlash approach direction of IK targets
-    (:func:`hybrid_pk.ik.parse_approach` reads it)."""
-    parser.add_argument("--approach", metavar="SPEC", help=APPROACH_HELP)
+    (:func:`hybrid_pk.ik.parse_approach` reads it); ``default`` says what the command
+    assumes without it."""
+    parser.add_argument("--approach", metavar="SPEC", help=APPROACH_HELP.format(default=default))
 
 
 def add_frame_set(parser: argparse.ArgumentParser) -> None:

@@ -214,6 +214,28 @@ def _check_degrees(
         )
 
 
+def _check_joint_mm(
+    file: str, name: str, spec: _JointSpec, j: int, values: np.ndarray, ok: np.ndarray
+) -> None:
+    """Raise if a prismatic joint column holds mm: most rows beyond its limits in metres,
+    every row within them in mm (a file-level problem, never skipped)."""
+    lo, hi = spec.lower[j], spec.upper[j]
+    if spec.types[j] != "prismatic" or not ok.any() or not (np.isfinite(lo) and np.isfinite(hi)):
+        return
+    v = values[ok]
+    beyond = (v < lo - _LIMIT_TOL) | (v > hi + _LIMIT_TOL)
+    m = v / 1000.0
+    if np.mean(beyond) > 0.5 and np.all((m >= lo - _LIMIT_TOL) & (m <= hi + _LIMIT_TOL)):
+        k = int(np.argmax(np.abs(v)))
+        raise DataError(
+            f"looks like mm (max {abs(v[k]):.1f}); prismatic joints are metres: divide by "
+            f"1000 (limits [{lo:.4g}, {hi:.4g}] m)",
+            file=file,
+            row=int(np.flatnonzero(ok)[k]) + 1,
+            column=name,
+        )
+
+
 def _check_metres(file: str, columns: dict[str, np.ndarray], ok: np.ndarray) -> None:
     """Raise if the position columns hold mm (or cm): a file-level problem, never skipped."""
     if not ok.any() or any(c not in columns for c in POSITION_COLUMNS):
@@ -253,6 +275,7 @@ def _read_file(path: Path, spec: _JointSpec, skip: bool, require_joints: bool) -
     _check_metres(file, columns, ok)
     for j, name in enumerate(select.joints):
         _check_degrees(file, name, spec, j, columns[name], ok)
+        _check_joint_mm(file, name, spec, j, columns[name], ok)
     _note_limits(columns, select.joints, spec, ok, problems)
     if select.quat:
         norm = np.sqrt(sum(columns[c] ** 2 for c in QUAT_COLUMNS))

@@ -78,9 +78,10 @@ def zero_frames(model: ExtendedModel) -> tuple[np.ndarray, np.ndarray]:
     model = geometric_model(model)  # joint offsets only: q0 is what they make of zero
     robot = model.robot
     if robot.has_mimic:
+        mimic = [name for name in robot.chain_joint_names if name not in robot.joint_names]
         raise HybridPKError(
             f"{robot.name}: a DH table has one row per joint; this chain has mimic joints "
-            f"({', '.join(robot.chain_joint_names)}): export it as a URDF"
+            f"({', '.join(mimic)}): export it as a URDF"
         )
     temp = torch.tensor(REFERENCE_TEMPERATURE, dtype=robot.dtype)
     with torch.no_grad():

@@ -19,7 +19,7 @@ error (a misaligned wrist axis) is explained, it leaks into every joint's ``e`` 
 hides a smaller periodic error.
 
 Whether a chosen order is resolved (no other order predicts the held-out blocks nearly
-as well) is decided on the full model: :mod:`.cyclic_resolution`.
+as well) is decided on the full model: :mod:`.settle`.
 """
 
 from __future__ import annotations

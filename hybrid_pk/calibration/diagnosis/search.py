@@ -98,7 +98,7 @@ def diagnose(
         robot: nominal robot (not modified).
         data: measured rows, in acquisition order (backlash reads the order).
         holdout: fraction of rows kept out of every fit and used to compare models.
-        seed: seed of the hold-out split.
+        seed: seed of the hold-out split and of the blocked hold-out's k-means starts.
         candidates: effect labels to consider (default :func:`candidate_labels`).
         alpha: family-wise false-positive rate of the F-tests per step.
         max_causes: stop after this many causes.
