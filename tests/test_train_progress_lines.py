@@ -3,9 +3,12 @@ the demo) shows each epoch's own validation errors."""
 
 from __future__ import annotations
 
+import pytest
+import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from hybrid_pk.effects import ExtendedModel
+from hybrid_pk.effects import ExtendedModel, conditions_from_data
+from hybrid_pk.evaluation.metrics import pose_error
 from hybrid_pk.simulate import simulate_campaign
 from hybrid_pk.training import train_hybrid
 
@@ -75,3 +78,32 @@ def test_the_figure_says_it_shows_the_best_networks(rx160, tmp_path, monkeypatch
         logdir=tmp_path, progress=False,
     )  # fmt: skip
     assert titles == ["validation rows (n = 6), networks at their best of 2 epochs"]
+
+
+def test_the_reported_validation_error_is_the_returned_models(rx160):
+    # before: the summary and the file's metadata gave the fit's best epoch with every
+    # stage gated, not the model written after the blocked hold-out freed stages (UR10
+    # Series B, 3 epochs: 0.5372 mm reported, 0.5329 mm for the model written)
+    from hybrid_pk.training.datamodule import HybridDataModule
+    from hybrid_pk.training.run import validation_errors
+
+    data, _ = simulate_campaign(
+        rx160, 200, "joint_offset:joint_2=8e-4", noise_mm=0.02, known_frames=True, seed=4
+    )
+    model = {"position_net": "mlp:16x2", "orientation_net": "mlp:16x2", "local_net": "mlp:8x1"}
+    result = train_hybrid(
+        data, ExtendedModel(rx160), model=model, datamodule={"batch_size": 32}, max_epochs=2,
+        seed=1, progress=False,
+    )  # fmt: skip
+    assert result.blocked
+    dm = HybridDataModule.from_measured(
+        data, ExtendedModel(rx160), seed=1, batch_size=32, val_fraction=0.1
+    )
+    # the returned model's own poses on the validation rows, by the evaluation's metric
+    rows = torch.stack([(data.q - q).abs().sum(-1).argmin() for q in dm.val_targets.q])
+    val = data.subset(rows)
+    with torch.no_grad():
+        predicted = result.hybrid(val.q, conditions_from_data(val))
+    error = pose_error(val.T_measured(), predicted)
+    assert result.final["position_mm"] == pytest.approx(float(error.position_mm.mean()), rel=1e-6)
+    assert result.final == validation_errors(result.hybrid, dm.val_targets)

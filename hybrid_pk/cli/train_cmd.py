@@ -233,7 +233,7 @@ def _print_summary(args, robot, data, result) -> None:
     print("validation rows, mean error        base model ->   hybrid")
     for key, label in (("position_mm", "position [mm]"), ("orientation_deg", "orientation [deg]")):
         if key in result.best:
-            print(f"  {label:<30} {result.base[key]:>12.5g} -> {result.best[key]:>8.5g}")
+            print(f"  {label:<30} {result.base[key]:>12.5g} -> {result.final[key]:>8.5g}")
     for key, name in (("position_mm", "position"), ("orientation_deg", "orientation")):
         best, base_error = result.best.get(key), result.base.get(key)
         if best is None or best < base_error:

@@ -31,6 +31,7 @@ from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.hybrid.hybrid_fk import HybridFK
+from hybrid_pk.hybrid.losses import corrected_orientation_errors_deg, corrected_position_errors_mm
 from hybrid_pk.hybrid.nets import parse_arch
 from hybrid_pk.threads import requested_threads
 from hybrid_pk.training.blocked import blocked_blocks, blocked_check, fold_rows, probe_folds
@@ -127,6 +128,9 @@ class TrainResult:
     Attributes:
         hybrid: the trained model (eval mode), each network at its best validation state.
         best: best validation mean errors, ``position_mm`` / ``orientation_deg``.
+        final: the validation mean errors of ``hybrid`` as returned, same keys: after the
+            blocked hold-out freed or kept each stage's gate (``best`` is the fit's own,
+            every stage gated to its training joints).
         base: the base model's validation mean errors, same keys.
         epochs: epochs run.
         seconds: wall time of the fit [s].
@@ -147,6 +151,7 @@ class TrainResult:
     is_global_zero: bool
     settings: dict = field(default_factory=dict)
     blocked: dict = field(default_factory=dict)
+    final: dict = field(default_factory=dict)
 
 
 def make_trainer(
@@ -285,9 +290,12 @@ def train_hybrid(
         torch.set_num_threads(previous)
     seconds = time.perf_counter() - start
     hybrid = hybrid.eval()
+    best = module.best_metrics()
+    final = validation_errors(hybrid, dm.val_targets) if blocked else dict(best)
     return TrainResult(
         hybrid=hybrid,
-        best=module.best_metrics(),
+        best=best,
+        final=final,
         base=module.base_metrics(),
         epochs=trainer.current_epoch,
         seconds=seconds,
@@ -296,6 +304,20 @@ def train_hybrid(
         settings=settings,
         blocked=blocked,
     )
+
+
+@torch.no_grad()
+def validation_errors(hybrid: HybridFK, rows) -> dict[str, float]:
+    """Mean position [mm] / orientation [deg] errors of ``hybrid`` on validation targets
+    ``rows`` (:class:`~hybrid_pk.hybrid.losses.ResidualTargets`), keys as
+    :attr:`TrainResult.best`."""
+    dp, dw = hybrid.corrections(rows.q)
+    out = {
+        "position_mm": float(corrected_position_errors_mm(rows.position, rows.lever, dp, dw).mean())
+    }
+    if rows.rotation is not None:
+        out["orientation_deg"] = float(corrected_orientation_errors_deg(rows.rotation, dw).mean())
+    return out
 
 
 def _preset_inputs_for(robot, module: dict, given: dict) -> list[str]:
