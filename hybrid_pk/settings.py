@@ -27,6 +27,7 @@ from hybrid_pk.errors import HybridPKError
 __all__ = [
     "Active",
     "Checked",
+    "at_least_one",
     "flag_name",
     "in_open_unit",
     "non_negative",
@@ -68,6 +69,12 @@ def non_negative(value: float) -> str | None:
     if not 0.0 <= value < math.inf:
         return f"expected a finite value >= 0, got {value:g}"
     return None
+
+
+def at_least_one(value: int) -> str | None:
+    """What is wrong with a count of something that must happen at least once (epochs,
+    rows per step)."""
+    return None if value >= 1 else f"expected at least 1, got {value}"
 
 
 def positive(value: float) -> str | None:

@@ -15,6 +15,7 @@ from hybrid_pk.cli.common import (
     write_json,
 )
 from hybrid_pk.cli.fit_settings import fit_lines, settings_of
+from hybrid_pk.cli.gross import fitted_on_note, gross_warning
 from hybrid_pk.cli.options import (
     add_data,
     add_fit_frames,
@@ -140,6 +141,12 @@ def _print_summary(args, loaded, robot, data, position, orientation) -> None:
             "warning: the model was calibrated on position-only data, so its tool "
             "orientation is unknown and part of the orientation errors; add --fit-frames"
         )
+    for line in (
+        gross_warning(args.model, float(position.mean()), bool(args.fit_frames)),
+        fitted_on_note(args.model, loaded.metadata, data.sources),
+    ):
+        if line:
+            print(line)
     verdict = loaded.networks.get("transfer") if loaded.has_networks else None
     if verdict:
         print(verdict_line(verdict))

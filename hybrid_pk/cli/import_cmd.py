@@ -108,6 +108,13 @@ def _destinations(sources: list[Path], out: Path, table_format: str) -> list[Pat
 def _run_ipa(args: argparse.Namespace) -> int:
     sources = [Path(s) for s in args.sources]
     for src in sources:
+        if src.is_dir():
+            found = sorted(str(p) for p in src.rglob("measurements_*.csv"))
+            raise DataError(
+                "is a folder; give its IPA measurement files: "
+                + (" ".join(found) if found else "none found (measurements_*.csv)"),
+                file=str(src),
+            )
         if not src.is_file():
             raise DataError("no such file", file=str(src))
     for src, dst in zip(

@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
+
+import torch
 
 from hybrid_pk.cli.common import frame_parameter_count, frame_sets_for, read_data
+from hybrid_pk.cli.gross import gross_warning
 from hybrid_pk.cli.options import (
     add_data,
     add_fit_frames,
@@ -18,6 +23,7 @@ from hybrid_pk.cli.options import (
 from hybrid_pk.cli.progress import progress
 from hybrid_pk.cli.settings_flags import add_settings_flags, given_values
 from hybrid_pk.errors import HybridPKError
+from hybrid_pk.evaluation.metrics import pose_error
 from hybrid_pk.hybrid.tuning import hybrid_tuning
 from hybrid_pk.io.model_file import NOMINAL_PREFIX, load_model, model_robot
 from hybrid_pk.pipelines.training import (
@@ -100,10 +106,43 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--logdir", metavar="DIR", help="TensorBoard logs and checkpoints")
     add_seed(p, what="seed of the split, the initialisation and the shuffling")
     p.add_argument("--strategy", default="auto", help="Lightning strategy: auto or ddp")
-    p.add_argument("--devices", type=int, default=1, metavar="N", help="processes (default: 1)")
+    p.add_argument(
+        "--devices", type=_processes, default=1, metavar="N", help="processes (default: 1)"
+    )
     add_fit_frames(
         p, help="first fit only the base and tool frames of MODEL to DATA (nominal:ROBOT)"
     )
+
+
+def _processes(text: str) -> int:
+    """``--devices``: a count of training processes, at least one."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected at least 1 process, got {value}")
+    return value
+
+
+def _check_writable(path: str | None, flag: str, folder: bool) -> None:
+    """Refuse, before any training, an output the command could not write at its end:
+    a file where a folder is needed or the other way round, a parent that is a file, a
+    folder without write permission (the nearest one that exists; the rest is made)."""
+    if path is None:
+        return
+    target = Path(path)
+    if target.exists() and target.is_dir() != folder:
+        what = "a folder" if target.is_dir() else "a file"
+        need = "a folder (TensorBoard logs)" if folder else "a model file name, e.g. hybrid.pt"
+        raise HybridPKError(f"{flag} {path} is {what}; give {need}")
+    parent = target.absolute().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise HybridPKError(f"{flag} {path}: {parent} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise HybridPKError(f"{flag} {path}: the folder {parent} is not writable")
 
 
 def _prepare(args, loaded, robot, sets: int):
@@ -116,6 +155,13 @@ def _prepare(args, loaded, robot, sets: int):
         if args.fit_frames:
             bar.stage("fitting base and tool frames")
         cond, base = base_for_training(loaded, data, sets, args.fit_frames)
+    with torch.no_grad():
+        mean_mm = float(pose_error(data.T_measured(), base(data.q, cond)).position_mm.mean())
+    line = gross_warning(
+        "the base model", mean_mm, args.fit_frames, "; the networks would learn that mismatch"
+    )
+    if line and is_main_process():
+        print(line)
     return data, cond, base
 
 
@@ -142,6 +188,8 @@ def run(args: argparse.Namespace) -> int:
     quiet_lightning()  # after the import: Lightning sets its logger up when imported
     settings = train_settings(given_values(args, TrainSettings), args.config)
     training_sections(settings, args.config)  # checked before any data is read
+    _check_writable(args.out, "--out", folder=False)
+    _check_writable(args.logdir, "--logdir", folder=True)
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
     robot = model_robot(loaded)
     robot.requires_grad_(False)
@@ -180,12 +228,29 @@ def _print_summary(args, robot, data, result) -> None:
     base = "nominal URDF" if args.model.startswith(NOMINAL_PREFIX) else args.model
     print(
         f"trained {', '.join(nets)} on {data.n} rows of {robot.name} over {base}: "
-        f"{result.epochs} epochs in {result.seconds:.1f} s"
+        f"{result.epochs} epoch{'' if result.epochs == 1 else 's'} in {result.seconds:.1f} s"
     )
     print("validation rows, mean error        base model ->   hybrid")
     for key, label in (("position_mm", "position [mm]"), ("orientation_deg", "orientation [deg]")):
         if key in result.best:
-            print(f"  {label:<30} {result.base[key]:>12.5g} -> {result.best[key]:>8.5g}")
+            print(f"  {label:<30} {result.base[key]:>12.5g} -> {result.final[key]:>8.5g}")
+    for key, name in (("position_mm", "position"), ("orientation_deg", "orientation")):
+        best, base_error = result.best.get(key), result.base.get(key)
+        if best is None or best < base_error:
+            continue
+        if best == base_error:  # the start, zero output layers, was kept
+            print(
+                f"note: no epoch of the {name} networks beat the base model on the validation "
+                f"rows: they are kept at zero (the base model's {name}); more rows or epochs "
+                "may help"
+            )
+        else:
+            print(
+                f"warning: the {name} networks end worse than the base model on the "
+                f"validation rows ({best:.5g} against {base_error:.5g} {key.split('_')[1]}): "
+                "their output layers start random (as in --preset paper), so the base model "
+                "was no candidate; more epochs or rows may help"
+            )
     if len(hybrid.stages) > 1 or hybrid.coverage is not None:
         print(
             f"networks ({hybrid.input_label}) trusted near their training inputs (coverage), "
@@ -196,7 +261,13 @@ def _print_summary(args, robot, data, result) -> None:
         box = ", ".join(
             f"{n} [{a:.3f}, {b:.3f}]" for n, a, b in zip(robot.joint_names, lo, hi, strict=True)
         )
-        print(f"networks trusted inside the training box (fading out beyond it): {box}")
+        fade = hybrid.box.fade
+        beyond = (
+            f"fading out within {fade:g} x its size beyond it, then the base model"
+            if fade > 0
+            else "the base model beyond it"
+        )
+        print(f"networks trusted inside the training box ({beyond}): {box}")
     else:
         print(f"networks ({hybrid.input_label}) applied everywhere (--trust none)")
     _print_blocked(result.blocked)
@@ -222,7 +293,11 @@ def _print_blocked(blocked: dict) -> None:
             for m in ("gated", "free", "shrunk")
             if m in record
         )
-        where = "used beyond its training joints" if record["mode"] != "gated" else "gated"
+        where = (
+            "used beyond its training joints"
+            if record["mode"] != "gated"
+            else "the physics beyond its training joints"
+        )
         print(f"  {name.split(':', 1)[1]}: {record['mode']} ({where}); {tried}")
         families = record.get("families") or {}
         if families:

@@ -21,7 +21,7 @@ from hybrid_pk.errors import HybridPKError
 from hybrid_pk.hybrid.builder import HybridSettings, check_trust
 from hybrid_pk.hybrid.nets import parse_arch
 from hybrid_pk.hybrid.tuning import HybridTuning
-from hybrid_pk.settings import parse_settings
+from hybrid_pk.settings import at_least_one, non_negative, parse_settings, positive
 
 __all__ = ["MODULE_FIELDS", "TrainSettings", "field_help"]
 
@@ -34,10 +34,16 @@ MODULE_FIELDS = (
 )  # fmt: skip
 
 
-def _help(text: str, metavar: str | None = None, switch: str | None = None) -> dict:
-    """A field's help (``{...}`` filled from the HybridSettings defaults), its metavar
-    and, for a boolean, the ``--no-X`` switch that turns it off."""
-    return {"help": text.format(**dataclasses.asdict(_S)), "metavar": metavar, "switch": switch}
+def _help(text: str, metavar: str | None = None, switch: str | None = None, check=None) -> dict:
+    """A field's help (``{...}`` filled from the HybridSettings defaults), its metavar,
+    for a boolean the ``--no-X`` switch that turns it off, and its range ``check``
+    (what is wrong with a value, or None: the flag's usage error, :meth:`check`)."""
+    return {
+        "help": text.format(**dataclasses.asdict(_S)),
+        "metavar": metavar,
+        "switch": switch,
+        "check": check,
+    }
 
 
 @dataclass
@@ -59,13 +65,23 @@ class TrainSettings:
     )
     epochs: int | None = field(
         default=None,
-        metadata=_help("maximum training epochs of the networks (default: preset)", "N"),
+        metadata=_help(
+            "maximum training epochs of the networks (default: preset)", "N", check=at_least_one
+        ),
     )
-    batch_size: int | None = field(default=None, metadata=_help("training rows per step", "N"))
-    lr: float | None = field(default=None, metadata=_help("(peak) learning rate", "LR"))
+    batch_size: int | None = field(
+        default=None, metadata=_help("training rows per step", "N", check=at_least_one)
+    )
+    lr: float | None = field(
+        default=None, metadata=_help("(peak) learning rate", "LR", check=positive)
+    )
     patience: int | None = field(
         default=None,
-        metadata=_help("early stopping after N epochs without validation gain (0: off)", "N"),
+        metadata=_help(
+            "early stopping after N epochs without validation gain (0: off)",
+            "N",
+            check=non_negative,
+        ),
     )
     val_fraction: float | None = field(
         default=None,
@@ -158,8 +174,15 @@ class TrainSettings:
         """Ranges and forms, before any data is read.
 
         Raises:
-            HybridPKError: a fade, coverage ratio, trust or architecture out of range.
+            HybridPKError: a fade, coverage ratio, trust or architecture out of range,
+                epochs or a batch size below 1, a learning rate not above 0, a negative
+                patience (from a YAML; the flags' usage error says it first).
         """
+        for f in dataclasses.fields(self):
+            check, value = f.metadata.get("check"), getattr(self, f.name)
+            why = None if check is None or value is None else check(value)
+            if why:
+                raise HybridPKError(f"--{f.name.replace('_', '-')} ({f.name}): {why}")
         if self.fade is not None and not 0 <= self.fade <= 10:  # 10: the whole joint range
             raise HybridPKError(f"--fade must be between 0 and 10, got {self.fade}")
         if self.coverage_ratio is not None and not self.coverage_ratio > 1:

@@ -146,8 +146,8 @@ def _networks_section(out: Path, trained) -> list[str]:
         f"epochs in {trained.seconds:.0f} s on the calibration rows, on top of the "
         f"extended model. Validation mean error: base model "
         f"{trained.base['position_mm']:.4f} mm / {trained.base['orientation_deg']:.5f} deg, "
-        f"with the networks {trained.best['position_mm']:.4f} mm / "
-        f"{trained.best['orientation_deg']:.5f} deg. Curves: `tensorboard --logdir "
+        f"with the networks {trained.final['position_mm']:.4f} mm / "
+        f"{trained.final['orientation_deg']:.5f} deg. Curves: `tensorboard --logdir "
         f"{(out / 'tensorboard').as_posix()}`.",
         "",
     ]

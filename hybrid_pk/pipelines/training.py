@@ -156,7 +156,7 @@ def train_job(
         "epochs": result.epochs,
         "seconds": round(result.seconds, 3),
         "validation_base": result.base,
-        "validation_hybrid": result.best,
+        "validation_hybrid": result.final,  # the model as written (after the gates)
         "blocked": result.blocked,
         "logdir": result.logdir,
     }

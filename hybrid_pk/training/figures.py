@@ -60,7 +60,9 @@ def log_error_figure(module, rows: ResidualTargets) -> Path | None:
         after,
         ("base model", "hybrid"),
         folder / "error_distribution.png",
-        title=f"validation rows (n = {rows.n}), epoch {module.current_epoch}",
+        # the networks restored to their best state, not those of the last epoch
+        title=f"validation rows (n = {rows.n}), networks at their best of "
+        f"{module.current_epoch} epochs",
     )
     writer.add_image(FIGURE_TAG, imread(path)[..., :3], module.global_step, dataformats="HWC")
     writer.flush()

@@ -13,7 +13,9 @@ hybrid error distributions, :func:`~hybrid_pk.training.figures.log_error_figure`
 
 Each network keeps its own best state (lowest validation mean error of its quantity)
 and both are restored at the end of the fit: the paper trains the two networks as
-separate models with their own early stopping.
+separate models with their own early stopping. With zero output layers (``zero_init``)
+the start, the base model, is a candidate too: a network that no epoch makes better
+than the base model on the validation rows ends at zero.
 """
 
 from __future__ import annotations
@@ -163,6 +165,16 @@ class HybridLitModule(L.LightningModule):
         )
         if val.rotation is not None:
             self._base_val["orientation"] = corrected_orientation_errors_deg(val.rotation, zero)
+        self.keep_start()
+
+    def keep_start(self) -> None:
+        """With zero output layers the start is the base model: a candidate for the
+        best state like every epoch, so networks that no epoch makes better than the
+        base model on the validation rows end at zero (the base model), not at their
+        least bad epoch."""
+        if self.hparams.zero_init:
+            for k, errors in self._base_val.items():
+                self._keep_best(k, float(errors.mean()))
 
     def settings(self, has_orientation: bool = True) -> HybridSettings:
         """The :class:`~hybrid_pk.hybrid.builder.HybridSettings` of these arguments."""

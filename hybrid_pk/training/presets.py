@@ -100,6 +100,20 @@ def _init_args(section) -> dict:
     return dict(section.get("init_args", section))
 
 
+def _check_keys(path, section: str, values: dict, cls) -> None:
+    """Refuse keys of a section that its Lightning class does not take (before: a
+    TypeError from its constructor after the data were read, an 'internal error')."""
+    import inspect
+
+    known = [n for n in inspect.signature(cls.__init__).parameters if n != "self"]
+    unknown = sorted(set(values) - set(known) - {"seed"})
+    if unknown:
+        raise HybridPKError(
+            f"config {path}: unknown {section} key(s) {', '.join(unknown)}; known: "
+            f"{', '.join(known)}"
+        )
+
+
 def settings_from_config(path: str | Path) -> dict[str, dict]:
     """The ``model`` / ``data`` / ``trainer`` settings of a LightningCLI YAML config.
 
@@ -109,7 +123,8 @@ def settings_from_config(path: str | Path) -> dict[str, dict]:
     ``hybrid-pk train`` reads (:func:`hybrid_pk.pipelines.training.train_settings`).
 
     Raises:
-        HybridPKError: the file cannot be read or is not a mapping.
+        HybridPKError: the file cannot be read or is not a mapping, or a ``model`` /
+            ``data`` key is no argument of the Lightning module / datamodule.
     """
     import yaml
 
@@ -122,6 +137,11 @@ def settings_from_config(path: str | Path) -> dict[str, dict]:
     model = _init_args(cfg.get("model"))
     data = {k: v for k, v in _init_args(cfg.get("data")).items() if k not in ("data", "model")}
     data.pop("seed", None)
+    from hybrid_pk.training.datamodule import HybridDataModule
+    from hybrid_pk.training.lightning_module import HybridLitModule
+
+    _check_keys(path, "model", model, HybridLitModule)
+    _check_keys(path, "data", data, HybridDataModule)
     raw = cfg.get("trainer") or {}
     trainer: dict = {"patience": None}
     if "max_epochs" in raw:

@@ -29,7 +29,9 @@ from lightning.pytorch.loggers import TensorBoardLogger
 
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
+from hybrid_pk.errors import HybridPKError
 from hybrid_pk.hybrid.hybrid_fk import HybridFK
+from hybrid_pk.hybrid.losses import corrected_orientation_errors_deg, corrected_position_errors_mm
 from hybrid_pk.hybrid.nets import parse_arch
 from hybrid_pk.threads import requested_threads
 from hybrid_pk.training.blocked import blocked_blocks, blocked_check, fold_rows, probe_folds
@@ -99,12 +101,16 @@ def quiet_lightning() -> None:
 
 class EpochReport(Callback):
     """Calls ``say(text)`` after every epoch with the epoch count and the validation
-    mean errors: progress for a caller that draws its own display (the demo)."""
+    mean errors: progress for a caller that draws its own display (the demo).
+
+    At the end of the training epoch, after its validation: Lightning runs a callback's
+    ``on_validation_epoch_end`` before the module's, which logs the errors, so there
+    the line showed the epoch before's (none after the first)."""
 
     def __init__(self, say: Callable[[str], None]) -> None:
         self.say = say
 
-    def on_validation_epoch_end(self, trainer, pl_module) -> None:
+    def on_train_epoch_end(self, trainer, pl_module) -> None:
         metrics = trainer.callback_metrics
         errors = [
             f"{float(metrics[f'val/{key}_{unit}_mean']):.4g} {unit}"
@@ -122,6 +128,9 @@ class TrainResult:
     Attributes:
         hybrid: the trained model (eval mode), each network at its best validation state.
         best: best validation mean errors, ``position_mm`` / ``orientation_deg``.
+        final: the validation mean errors of ``hybrid`` as returned, same keys: after the
+            blocked hold-out freed or kept each stage's gate (``best`` is the fit's own,
+            every stage gated to its training joints).
         base: the base model's validation mean errors, same keys.
         epochs: epochs run.
         seconds: wall time of the fit [s].
@@ -142,6 +151,7 @@ class TrainResult:
     is_global_zero: bool
     settings: dict = field(default_factory=dict)
     blocked: dict = field(default_factory=dict)
+    final: dict = field(default_factory=dict)
 
 
 def make_trainer(
@@ -244,6 +254,10 @@ def train_hybrid(
     settings["data"].update(datamodule or {})
     if max_epochs is not None:
         settings["trainer"]["max_epochs"] = int(max_epochs)
+    if not settings["trainer"]["max_epochs"] >= 1:  # 0 would store untrained networks
+        raise HybridPKError(
+            f"max_epochs must be at least 1, got {settings['trainer']['max_epochs']}"
+        )
     if patience != "preset":
         settings["trainer"]["patience"] = patience
     if callable(progress):
@@ -276,9 +290,12 @@ def train_hybrid(
         torch.set_num_threads(previous)
     seconds = time.perf_counter() - start
     hybrid = hybrid.eval()
+    best = module.best_metrics()
+    final = validation_errors(hybrid, dm.val_targets) if blocked else dict(best)
     return TrainResult(
         hybrid=hybrid,
-        best=module.best_metrics(),
+        best=best,
+        final=final,
         base=module.base_metrics(),
         epochs=trainer.current_epoch,
         seconds=seconds,
@@ -287,6 +304,20 @@ def train_hybrid(
         settings=settings,
         blocked=blocked,
     )
+
+
+@torch.no_grad()
+def validation_errors(hybrid: HybridFK, rows) -> dict[str, float]:
+    """Mean position [mm] / orientation [deg] errors of ``hybrid`` on validation targets
+    ``rows`` (:class:`~hybrid_pk.hybrid.losses.ResidualTargets`), keys as
+    :attr:`TrainResult.best`."""
+    dp, dw = hybrid.corrections(rows.q)
+    out = {
+        "position_mm": float(corrected_position_errors_mm(rows.position, rows.lever, dp, dw).mean())
+    }
+    if rows.rotation is not None:
+        out["orientation_deg"] = float(corrected_orientation_errors_deg(rows.rotation, dw).mean())
+    return out
 
 
 def _preset_inputs_for(robot, module: dict, given: dict) -> list[str]:
@@ -312,7 +343,9 @@ def blocked_hold_out(
 ) -> dict:
     """Probe fits on blocked hold-out of ``dm``'s rows (:mod:`~hybrid_pk.training.blocked`),
     each with ``settings`` (a preset with overrides), that lift or keep the gate of each
-    of ``hybrid``'s gated stages. Returns ``{"<index>:<label>": record}``."""
+    of ``hybrid``'s gated stages. Returns ``{"<index>:<label>": record}``.
+    ``progress``: as in :func:`train_hybrid` (True: a line and Lightning's bar per
+    probe fit, which together take about as long as the training)."""
     if not any(stage.gate is not None for stage in hybrid.stages):
         return {}
     blocks = blocked_blocks(hybrid.base.robot, dm.train_targets.q, dm.files[0])
@@ -322,13 +355,16 @@ def blocked_hold_out(
         fit, check, held = fold_rows(dm.train_targets, dm.val_targets, fold, dm.files)
         if fit.n < 2 or check.n < 1 or not held:
             continue
+        text = f"blocked hold-out {k + 1}/{len(folds)}: {', '.join(b.label for b in fold)}"
         if callable(progress):
-            progress(f"blocked hold-out {k + 1}/{len(folds)}: {', '.join(b.label for b in fold)}")
+            progress(text)
+        elif progress:  # Lightning's bar (a terminal): the probe fits get their own bar
+            print(f"{text} (probe fit)", file=sys.stderr, flush=True)
         L.seed_everything(seed, workers=True, verbose=False)
         probe = HybridDataModule(batch_size=dm.batch_size, val_batch_size=dm.val_batch_size)
         probe.base, probe.train_targets, probe.val_targets = dm.base, fit, check
         module = HybridLitModule(**{**settings["model"], "blocked": False, "histogram_every": 0})
-        trainer = make_trainer(progress=False, **settings["trainer"])
+        trainer = make_trainer(progress=progress is True, **settings["trainer"])
         trainer.fit(module, datamodule=probe)
         probes.append((module.hybrid.eval(), held))
     if not probes:
