@@ -30,6 +30,7 @@ __all__ = [
     "as_array",
     "binned_median",
     "error_histograms",
+    "legend_below",
     "new_figure",
     "save_figure",
     "thin",
@@ -61,6 +62,14 @@ def save_figure(fig: Figure, path: str | Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=DPI)
     return path
+
+
+def legend_below(ax, **kwargs):
+    """The legend of ``ax`` under its x label, centred: inside the axes a legend covers
+    the bars or points it names (the constrained layout makes room for it)."""
+    return ax.legend(
+        fontsize="small", loc="upper center", bbox_to_anchor=(0.5, -0.16), **kwargs
+    )
 
 
 def thin(n: int) -> np.ndarray:
@@ -106,12 +115,12 @@ def error_histograms(
     """
     pos = [as_array(before[0]), as_array(after[0])]
     ori = [as_array(before[1]), as_array(after[1])]
-    panels = [("position error [mm]", pos)]
+    panels = [("position error [mm]", "mm", pos)]
     if all(o is not None for o in ori):
-        panels.append(("orientation error [deg]", ori))
-    fig = new_figure(5.0 * len(panels) + 1.0, 4.0)
+        panels.append(("orientation error [deg]", "deg", ori))
+    fig = new_figure(5.0 * len(panels) + 1.0, 4.6)  # room for the legends below
     axes = fig.subplots(1, len(panels), squeeze=False)[0]
-    for ax, (xlabel, values) in zip(axes, panels, strict=True):
+    for ax, (xlabel, unit, values) in zip(axes, panels, strict=True):
         hi = max(float(np.max(v)) for v in values)
         means = [float(np.mean(v)) for v in values]
         # Errors an order of magnitude apart share no linear axis: use log bins then.
@@ -131,11 +140,11 @@ def error_histograms(
                 alpha=0.6,
                 color=color,
                 edgecolor=color,
-                label=f"{label}: mean {np.mean(v):.3g}, RMS {rms:.3g}",
+                label=f"{label}: mean {np.mean(v):.3g} {unit}, RMS {rms:.3g} {unit}",
             )
         ax.set_xlabel(xlabel)
         ax.set_ylabel("samples")
-        ax.legend(fontsize="small")
+        legend_below(ax)
     if title:
         fig.suptitle(title)
     return save_figure(fig, path)
