@@ -47,3 +47,46 @@ def test_error_histograms_legend_below_with_units(monkeypatch, tmp_path):
     pos, ori = (ax.get_legend() for ax in fig.axes)
     assert all(t.get_text().endswith(" mm") for t in pos.get_texts())
     assert all(t.get_text().endswith(" deg") for t in ori.get_texts())
+
+
+def _campaign(n: int = 200):
+    """Measured rows of the RX160 (exact poses, 0.01 mm noise) and two models' poses."""
+    import torch
+
+    from hybrid_pk import Robot
+    from hybrid_pk.data.measured import MeasuredData
+    from hybrid_pk.geometry import matrix_to_quat
+
+    robot = Robot.from_urdf("rx160")
+    g = torch.Generator().manual_seed(0)
+    q = robot.sample_q(n, g)
+    T = robot.fk(q)
+    data = MeasuredData(
+        q=q,
+        position=T[:, :3, 3] + 1e-5 * torch.randn(n, 3, generator=g, dtype=T.dtype),
+        quat=matrix_to_quat(T[:, :3, :3]),
+        joint_names=robot.joint_names,
+        file_index=torch.zeros(n, dtype=torch.long),
+        rows=torch.arange(1, n + 1),
+        sources=("simulated",),
+    )
+    off = T.clone()
+    off[:, :3, 3] += 1e-3  # a model 1.7 mm off
+    return data, {"nominal + frames": off, "extended (physics)": T}
+
+
+def test_evaluation_figures_titled_with_rows_and_legends_clear(monkeypatch, tmp_path):
+    import hybrid_pk.report.evaluation_report as report
+
+    data, predictions = _campaign()
+    along = keep_figures(monkeypatch, report)
+    hists = keep_figures(monkeypatch, eval_plots)
+    report.write_evaluation_report(tmp_path, data, predictions)
+    (fig,) = along
+    assert f"({data.n} rows)" in fig.get_suptitle()
+    assert fig.legends and not any(ax.get_legend() for ax in fig.axes)
+    fig.canvas.draw()
+    box = fig.legends[0].get_window_extent()
+    assert not any(box.overlaps(ax.get_window_extent()) for ax in fig.axes if ax.get_visible())
+    (hist,) = hists
+    assert f"errors on {data.n} rows" in hist.get_suptitle()

@@ -37,7 +37,7 @@ def _along_joints(errors: Mapping[str, Tensor], data: MeasuredData, path: Path) 
     dof = q.shape[1]
     cols = min(dof, 3)
     rows = -(-dof // cols)
-    fig = new_figure(4.0 * cols, 3.0 * rows)
+    fig = new_figure(4.0 * cols, 3.0 * rows + 0.8)  # + title and legend
     axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).ravel()
     for j in range(dof):
         ax = axes[j]
@@ -54,7 +54,9 @@ def _along_joints(errors: Mapping[str, Tensor], data: MeasuredData, path: Path) 
         ax.set_ylabel("mean position error [mm]")
     for ax in axes[dof:]:
         ax.set_visible(False)
-    axes[0].legend(fontsize="x-small")
+    # One legend for all panels, under them: inside the first panel it covered its curves.
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="outside lower center", ncols=3)
+    fig.suptitle(f"mean position error in 20 bins of each joint ({data.n} rows)")
     return save_figure(fig, path)
 
 
@@ -139,7 +141,13 @@ def write_evaluation_report(
         lines += ["## Error distributions (like Fig. 4 of Ojer et al. 2024)", ""]
         for later in names[1:]:
             png = out / f"histogram_{_slug(names[0])}_vs_{_slug(later)}.png"
-            error_histograms(errors[names[0]], errors[later], [names[0], later], png)
+            error_histograms(
+                errors[names[0]],
+                errors[later],
+                [names[0], later],
+                png,
+                title=f"errors on {data.n} rows: {names[0]} vs {later}",
+            )
             lines += [image(png, f"errors of {names[0]} and {later}", out), ""]
     png = _along_joints({n: e[0] for n, e in errors.items()}, data, out / "error_along_joints.png")
     lines += [
