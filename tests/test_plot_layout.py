@@ -8,7 +8,7 @@ import pytest
 
 pytest.importorskip("matplotlib")
 
-import hybrid_pk.evaluation.plots as eval_plots  # noqa: E402
+import hybrid_pk.evaluation.plots as eval_plots
 
 
 def keep_figures(monkeypatch, module) -> list:
@@ -84,9 +84,35 @@ def test_evaluation_figures_titled_with_rows_and_legends_clear(monkeypatch, tmp_
     report.write_evaluation_report(tmp_path, data, predictions)
     (fig,) = along
     assert f"({data.n} rows)" in fig.get_suptitle()
-    assert fig.legends and not any(ax.get_legend() for ax in fig.axes)
+    assert fig.legends
+    assert not any(ax.get_legend() for ax in fig.axes)
     fig.canvas.draw()
     box = fig.legends[0].get_window_extent()
     assert not any(box.overlaps(ax.get_window_extent()) for ax in fig.axes if ax.get_visible())
     (hist,) = hists
     assert f"errors on {data.n} rows" in hist.get_suptitle()
+
+
+def test_outlier_plot_titled_threshold_in_view_legend_clear(monkeypatch, tmp_path):
+    import hybrid_pk.report.limits as limits
+    from hybrid_pk import Robot
+    from hybrid_pk.effects import ExtendedModel
+
+    data, _ = _campaign()
+
+    class Diagnosis:  # what outlier_plot reads of a diagnosis
+        def __init__(self):
+            noise = {"position_mm": 0.01, "orientation_rad": 1e-5}
+            self.identifiability = {"noise_estimate": noise}
+            self.model = ExtendedModel(Robot.from_urdf("rx160"), []).double()
+
+    figures = keep_figures(monkeypatch, limits)
+    limits.outlier_plot(Diagnosis(), data, tmp_path)
+    (fig,) = figures
+    (ax,) = fig.axes
+    assert_legends_clear(fig)
+    assert f"all {data.n} rows" in ax.get_title()
+    threshold = [ln.get_ydata()[0] for ln in ax.get_lines() if ln.get_linestyle() == "--"]
+    assert threshold
+    assert ax.get_ylim()[1] > 1.1 * threshold[0]
+    assert "threshold" in " ".join(t.get_text() for t in ax.get_legend().get_texts())

@@ -67,9 +67,7 @@ def save_figure(fig: Figure, path: str | Path) -> Path:
 def legend_below(ax, **kwargs):
     """The legend of ``ax`` under its x label, centred: inside the axes a legend covers
     the bars or points it names (the constrained layout makes room for it)."""
-    return ax.legend(
-        fontsize="small", loc="upper center", bbox_to_anchor=(0.5, -0.16), **kwargs
-    )
+    return ax.legend(fontsize="small", loc="upper center", bbox_to_anchor=(0.5, -0.16), **kwargs)
 
 
 def thin(n: int) -> np.ndarray:

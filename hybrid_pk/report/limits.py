@@ -7,12 +7,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from matplotlib.ticker import NullFormatter, ScalarFormatter
 
 from hybrid_pk.calibration.fit import model_errors
 from hybrid_pk.calibration.robust import outlier_cut, row_d2
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import conditions_from_data
-from hybrid_pk.evaluation.plots import LAW_COLOR, new_figure, save_figure
+from hybrid_pk.evaluation.plots import LAW_COLOR, legend_below, new_figure, save_figure
 from hybrid_pk.report.markdown import image, markdown_table
 
 __all__ = ["detectable_section", "outlier_plot"]
@@ -77,15 +78,24 @@ def outlier_plot(diagnosis, data: MeasuredData, out: Path) -> list[str]:
     d = np.sqrt(d2.numpy())
     rows = np.arange(1, data.n + 1)
     bad = d2.numpy() > cut
-    fig = new_figure(8.0, 3.6)
+    thr = float(np.sqrt(cut))
+    fig = new_figure(8.0, 4.0)
     ax = fig.subplots()
     ax.scatter(rows[~bad], d[~bad], s=4, lw=0, color=POINT_COLOR, rasterized=True, label="rows")
-    ax.scatter(rows[bad], d[bad], s=10, lw=0, color=OUTLIER_COLOR, label="listed")
-    ax.axhline(float(np.sqrt(cut)), color=LAW_COLOR, ls="--", lw=1.0, label="threshold")
+    ax.scatter(rows[bad], d[bad], s=10, lw=0, color=OUTLIER_COLOR, label="listed as outliers")
+    ax.axhline(thr, color=LAW_COLOR, ls="--", lw=1.0, label=f"threshold {thr:.3g}")
     ax.set_yscale("log")
+    # plain numbers on the log axis (4 reads better than 4 x 10^0); the threshold in view
+    ax.yaxis.set_major_formatter(ScalarFormatter())
+    ax.yaxis.set_minor_formatter(NullFormatter())
+    ax.set_ylim(top=1.3 * max(thr, float(d.max())))
     ax.set_xlabel("row (order of the data)")
-    ax.set_ylabel("error / noise (sigma)")
-    ax.legend(loc="upper right", fontsize=8)
+    ax.set_ylabel(f"√(Σ (error / noise)²) over {dim} coordinates")
+    ax.set_title(
+        f"extended model, all {data.n} rows: {int(bad.sum())} above the outlier threshold",
+        fontsize="medium",
+    )
+    legend_below(ax, ncols=3)
     path = save_figure(fig, out / "outliers.png")
     return [
         image(path, "every row's error in noise units, listed outliers and the threshold", out),
