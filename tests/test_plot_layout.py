@@ -116,3 +116,54 @@ def test_outlier_plot_titled_threshold_in_view_legend_clear(monkeypatch, tmp_pat
     assert threshold
     assert ax.get_ylim()[1] > 1.1 * threshold[0]
     assert "threshold" in " ".join(t.get_text() for t in ax.get_legend().get_texts())
+
+
+def _periodic_evidence(amplitude_mrad: float):
+    """Phase-folded evidence of a sinusoid of ``amplitude_mrad`` in 0.03 mrad noise."""
+    from hybrid_pk.evaluation.plots import binned_median
+    from hybrid_pk.report.evidence import Evidence
+
+    rng = np.random.default_rng(1)
+    x = rng.uniform(0.0, 360.0, 1500)
+    y = amplitude_mrad * np.sin(np.radians(x)) + rng.normal(0.0, 0.03, x.size)
+    curve_x = np.linspace(0.0, 360.0, 181)
+    mx, my = binned_median(x, y)
+    return Evidence(
+        label="cyclic_error_17:joint_2",
+        title="cyclic_error_17:joint_2; blocked hold-out gain 0.0004 mm",
+        x=x,
+        y=y,
+        weight=np.ones_like(x),
+        rows=np.arange(x.size),
+        x_label="phase 17·θ mod 360° of joint_2 [deg]",
+        y_label="equivalent angle error of joint_2 [mrad]",
+        curve_x=curve_x,
+        curve_y=amplitude_mrad * np.sin(np.radians(curve_x)),
+        median_x=mx,
+        median_y=my,
+        value=amplitude_mrad * 1e-3,
+        points_value=amplitude_mrad * 1e-3,
+        unit="rad",
+        law="a sinusoid",
+    )
+
+
+def test_a_law_lost_in_the_scatter_gets_a_zoom_in_finer_units(monkeypatch, tmp_path):
+    import hybrid_pk.report.plots as plots
+
+    figures = keep_figures(monkeypatch, plots)
+    plots.evidence_plot(_periodic_evidence(0.0035), tmp_path / "small.png")  # 3.5 µrad
+    plots.evidence_plot(_periodic_evidence(0.2), tmp_path / "large.png")
+    small, large = figures
+    points, zoom = small.axes
+    assert zoom.get_ylabel().endswith("[µrad]")
+    # the zoom spans the law and its medians: the 3.5 µrad curve fills a good part of it
+    bottom, top = zoom.get_ylim()
+    assert 2 * 3.5 > 0.2 * (top - bottom)
+    assert len(large.axes) == 1  # a law that fills its axes needs none
+    for fig in figures:
+        assert len(fig.legends) == 1
+        fig.canvas.draw()
+        box = fig.legends[0].get_window_extent()
+        assert not any(box.overlaps(ax.get_window_extent()) for ax in fig.axes)
+    assert "blocked hold-out gain" in points.get_title()

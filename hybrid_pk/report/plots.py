@@ -41,8 +41,10 @@ def evidence_plot(evidence, path: str | Path) -> Path:
     direction) a strip plot with box plots per level.
     """
     ev = evidence
-    fig = new_figure(7.0, 5.2)  # room for the legend below the axes
-    ax = fig.subplots()
+    zoom = _needs_zoom(ev)
+    # room for the legend below the axes (and for the zoom under the points)
+    fig = new_figure(7.0, 8.2 if zoom else 5.2)
+    ax, zoom_ax = fig.subplots(2, 1, height_ratios=[3, 2]) if zoom else (fig.subplots(), None)
     idx = thin(ev.x.size)
     law_label = f"diagnosed law: {ev.law}"
     if ev.categorical:
@@ -97,10 +99,65 @@ def evidence_plot(evidence, path: str | Path) -> Path:
         fontsize="small",
         bbox={"facecolor": "white", "alpha": 0.8, "lw": 0},
     )
-    # Below the axes: inside, the long law label covered the fitted-law text or points.
-    ax.legend(fontsize="small", loc="upper center", bbox_to_anchor=(0.5, -0.14))
     _clip_y(ax, ev.y, ev.curve_y)
+    if zoom_ax is not None:
+        _zoom_panel(zoom_ax, ev)
+    # Below the axes: inside, the long law label covered the fitted-law text or points.
+    fig.legend(*ax.get_legend_handles_labels(), fontsize="small", loc="outside lower center")
     return save_figure(fig, path)
+
+
+# Below a tenth of the axis (about 0.4 in on the page) a law or a trend of the medians is
+# a flat line: whether the data carry it is then shown on a panel of its own.
+ZOOM_SHARE = 0.1
+FINER = {"[mrad]": "[µrad]", "[mm]": "[µm]"}  # the zoom's unit, 1000 times finer
+
+
+def _needs_zoom(ev) -> bool:
+    """Whether the law and the binned medians of a continuous evidence plot span less
+    than :data:`ZOOM_SHARE` of the points' range (a 3.5 µrad sinusoid in ±80 µrad)."""
+    if ev.categorical or ev.y.size < 20 or ev.median_y.size < 2:
+        return False
+    lo, hi = np.percentile(ev.y, [0.5, 99.5])
+    curve = np.asarray(ev.curve_y, float)
+    span = max(np.ptp(curve), np.abs(curve).max(), np.ptp(ev.median_y), np.abs(ev.median_y).max())
+    return bool(span < ZOOM_SHARE * (hi - lo))
+
+
+def median_errors(x: np.ndarray, y: np.ndarray, bins: int):
+    """``(x_median, y_median, standard error of y_median)`` in ``bins`` equal-count
+    bins of ``x`` (the bins of :func:`binned_median`); the error of a median is
+    √(π/2) σ / √n, σ from the bin's median absolute deviation (1.4826 MAD for normal
+    noise), so one wild row does not widen it."""
+    parts = np.array_split(np.argsort(x, kind="stable"), bins)
+    mx = np.array([np.median(x[p]) for p in parts])
+    my = np.array([np.median(y[p]) for p in parts])
+    mad = np.array([np.median(np.abs(y[p] - m)) for p, m in zip(parts, my, strict=True)])
+    size = np.array([p.size for p in parts])
+    return mx, my, math.sqrt(math.pi / 2) * 1.4826 * mad / np.sqrt(size)
+
+
+def _zoom_panel(ax, ev) -> None:
+    """The law and the binned medians with their standard errors, on a scale they fill:
+    the reader sees whether the medians trace the law or scatter round zero."""
+    unit = next((u for u in FINER if ev.y_label.endswith(u)), None)
+    scale, label = (1e3, ev.y_label[: -len(unit)] + FINER[unit]) if unit else (1.0, ev.y_label)
+    mx, my, se = median_errors(ev.x, ev.y, ev.median_y.size)
+    ax.plot(ev.curve_x, scale * ev.curve_y, color=LAW_COLOR, lw=2.5)
+    ax.errorbar(mx, scale * my, yerr=scale * se, fmt="o", color=MEDIAN_COLOR, ms=5, capsize=3)
+    ax.axhline(0.0, color="grey", lw=0.6)
+    ax.set_xlim(
+        ev.curve_x.min() - 0.02 * np.ptp(ev.curve_x), ev.curve_x.max() + 0.02 * np.ptp(ev.curve_x)
+    )
+    ax.set_xlabel(ev.x_label)
+    ax.set_ylabel(label)
+    lo, hi = np.percentile(ev.y, [0.5, 99.5])
+    bottom, top = ax.get_ylim()
+    ax.set_title(
+        "zoom: law and binned medians ± their standard error (the points above spread "
+        f"{(hi - lo) / ((top - bottom) / scale):.0f}x wider)",
+        fontsize="small",
+    )
 
 
 def _clip_y(ax, y: np.ndarray, curve: np.ndarray) -> None:
