@@ -167,3 +167,29 @@ def test_a_law_lost_in_the_scatter_gets_a_zoom_in_finer_units(monkeypatch, tmp_p
         box = fig.legends[0].get_window_extent()
         assert not any(box.overlaps(ax.get_window_extent()) for ax in fig.axes)
     assert "blocked hold-out gain" in points.get_title()
+
+
+def test_identifiability_counts_ambiguities_as_the_console_does():
+    from types import SimpleNamespace
+
+    from hybrid_pk.cli.diagnose_cmd import ambiguous_lines
+    from hybrid_pk.report.diagnosis_report import _identifiability
+
+    frame = {"effects": ["joint_offset:joint_1", "base_frame"], "why": "exactly as base_frame"}
+    pairs = [
+        {"effects": [f"cyclic_error_{a}:joint_2", f"cyclic_error_{b}:joint_2"], "why": "close",
+         "order_not_resolved": "joint_2"}
+        for a, b in [(3, 4), (3, 17), (17, 18)]
+    ]  # fmt: skip
+    diagnosis = SimpleNamespace(
+        identifiability={"noise_estimate": {"position_mm": 0.01}},
+        ambiguous=[frame, *pairs],
+    )
+    text = "\n".join(_identifiability(diagnosis))
+    assert "ambiguous (1):" in ambiguous_lines(diagnosis.ambiguous)
+    assert "1 ambiguous group(s)" in text  # was 4: the order pairs counted as groups
+    groups = text[text.index("### Ambiguous groups") : text.index("Periodic errors")]
+    assert "base_frame" in groups
+    assert "cyclic_error" not in groups
+    assert "- joint_2: 3, 4, 17, 18 per turn" in text
+    assert "| cyclic_error_17:joint_2, cyclic_error_18:joint_2 | close |" in text

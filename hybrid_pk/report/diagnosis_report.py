@@ -273,9 +273,10 @@ def _identifiability(diagnosis) -> list[str]:
             f"condition number {fmt(cond)} > {LARGE_CONDITION_NUMBER:g}: some fitted "
             "parameters trade off against each other in this data"
         )
-    if diagnosis.ambiguous:
+    orders, others = order_groups(diagnosis.ambiguous)
+    if others:  # counted as the console counts them; the cyclic orders per joint below
         warnings.append(
-            f"{len(diagnosis.ambiguous)} ambiguous group(s): this data cannot tell "
+            f"{len(others)} ambiguous group(s): this data cannot tell "
             "their members apart (see below)"
         )
     lines += [f"> **Warning:** {w}." for w in warnings]
@@ -283,16 +284,19 @@ def _identifiability(diagnosis) -> list[str]:
         lines.append("")
     lines += [markdown_table(rows, ["quantity", "value"], ["l", "r"])]
     lines += ["### Ambiguous groups", ""]
-    if diagnosis.ambiguous:
-        amb = [[", ".join(a["effects"]), a["why"]] for a in diagnosis.ambiguous]
+    if others:
+        amb = [[", ".join(a["effects"]), a["why"]] for a in others]
         lines.append(markdown_table(amb, ["effects", "why"], ["l", "l"]))
     else:
         lines += ["None.", ""]
-    orders, _ = order_groups(diagnosis.ambiguous)
     if orders:
         lines += ["Periodic errors whose order the rows do not resolve (none is named; the "
                   "data show a periodic error at the joint, not at which order):", ""]  # fmt: skip
         lines += [f"- {j}: {', '.join(map(str, o))} per turn" for j, o in orders.items()] + [""]
+        pairs = [a for a in diagnosis.ambiguous if a not in others]
+        lines += ["The pairs of orders, by their blocked hold-out:", ""]
+        amb = [[", ".join(a["effects"]), a["why"]] for a in pairs]
+        lines.append(markdown_table(amb, ["orders", "why"], ["l", "l"]))
     unobservable = ident.get("unobservable_candidates") or []
     lines += [
         "### Unobservable candidates",
@@ -418,11 +422,10 @@ def write_diagnosis_report(
         if det:  # 'none' never comes without what the data could have shown
             lines += [f"With {100 * det['power']:.0f} % power: {det['summary']}.", ""]
     if diagnosis.ambiguous:
-        lines += [
-            f"Ambiguities: {len(diagnosis.ambiguous)} group(s), see "
-            "[Identifiability](#identifiability).",
-            "",
-        ]
+        orders, others = order_groups(diagnosis.ambiguous)
+        told = [f"{len(others)} group(s)"] if others else []
+        told += [f"periodic orders not resolved at {len(orders)} joint(s)"] if orders else []
+        lines += [f"Ambiguities: {', '.join(told)}, see [Identifiability](#identifiability).", ""]
     lines += _evidence_section(diagnosis, data, out, progress)
     if progress is not None:
         progress("plots of what is left")
