@@ -193,3 +193,28 @@ def test_identifiability_counts_ambiguities_as_the_console_does():
     assert "cyclic_error" not in groups
     assert "- joint_2: 3, 4, 17, 18 per turn" in text
     assert "| cyclic_error_17:joint_2, cyclic_error_18:joint_2 | close |" in text
+
+
+def test_a_long_evidence_title_and_law_stay_on_the_page(monkeypatch, tmp_path):
+    import dataclasses
+
+    import hybrid_pk.report.plots as plots
+
+    figures = keep_figures(monkeypatch, plots)
+    title = (
+        "link_length:elbow_joint = (-0.000258, 0.000182, 0.0012) ± (1.1e-05, 2.4e-05, "
+        "1.8e-05) m; blocked hold-out gain 0.261 mm"
+    )
+    law = "residual = displacement of the effect, both without what a change of the base " * 2
+    ev = dataclasses.replace(_periodic_evidence(0.2), title=title, law=law)
+    plots.evidence_plot(ev, tmp_path / "long.png")
+    (fig,) = figures
+    fig.canvas.draw()
+    page = fig.bbox
+    (ax,) = fig.axes
+    for artist in (ax.title, fig.legends[0]):
+        box = artist.get_window_extent()
+        assert page.x0 <= box.x0, artist
+        assert box.x1 <= page.x1, artist
+    assert ax.title.get_text().splitlines()[-1] == "blocked hold-out gain 0.261 mm"
+    assert ax.get_position().width > 0.7  # the axes keep the page's width

@@ -7,6 +7,7 @@ object API on the Agg canvas, no pyplot).
 from __future__ import annotations
 
 import math
+import textwrap
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -34,6 +35,19 @@ def _measured_points(ax, x: np.ndarray, y: np.ndarray, size: float, alpha: float
     )
 
 
+# Characters per line that fit the 7 in wide figure: a medium (10 pt) title, a small
+# (8 pt) legend entry. Longer ones ran off the page and squeezed the axes.
+TITLE_CHARS, LEGEND_CHARS = 90, 100
+
+
+def wrap_title(title: str) -> str:
+    """``title`` in lines of at most :data:`TITLE_CHARS`: one line when it fits, else a
+    line per '; ' part (the value, then the gain), a part too long wrapped itself."""
+    if len(title) <= TITLE_CHARS:
+        return title
+    return "\n".join(p for chunk in title.split("; ") for p in textwrap.wrap(chunk, TITLE_CHARS))
+
+
 def evidence_plot(evidence, path: str | Path) -> Path:
     """Points, binned median and the fitted law of one cause (an ``Evidence``).
 
@@ -46,7 +60,7 @@ def evidence_plot(evidence, path: str | Path) -> Path:
     fig = new_figure(7.0, 8.2 if zoom else 5.2)
     ax, zoom_ax = fig.subplots(2, 1, height_ratios=[3, 2]) if zoom else (fig.subplots(), None)
     idx = thin(ev.x.size)
-    law_label = f"diagnosed law: {ev.law}"
+    law_label = textwrap.fill(f"diagnosed law: {ev.law}", LEGEND_CHARS)
     if ev.categorical:
         levels = np.unique(ev.x)
         rng = np.random.default_rng(0)  # jitter only; deterministic figures
@@ -86,7 +100,7 @@ def evidence_plot(evidence, path: str | Path) -> Path:
     ax.axhline(0.0, color="grey", lw=0.6)
     ax.set_xlabel(ev.x_label)
     ax.set_ylabel(ev.y_label)
-    ax.set_title(ev.title, fontsize="medium")
+    ax.set_title(wrap_title(ev.title), fontsize="medium")
     text = f"law fitted to the points alone: {ev.points_value:.4g} {ev.unit}"
     if ev.nominal_points_value is not None:
         text += f"\nin the nominal model's residual: {ev.nominal_points_value:.4g} {ev.unit}"
