@@ -218,3 +218,24 @@ def test_a_long_evidence_title_and_law_stay_on_the_page(monkeypatch, tmp_path):
         assert box.x1 <= page.x1, artist
     assert ax.title.get_text().splitlines()[-1] == "blocked hold-out gain 0.261 mm"
     assert ax.get_position().width > 0.7  # the axes keep the page's width
+
+
+def test_residual_scan_says_what_its_marks_are(monkeypatch, tmp_path):
+    import hybrid_pk.report.plots as plots
+
+    figures = keep_figures(monkeypatch, plots)
+    rng = np.random.default_rng(2)
+    plots.residual_scan(
+        {f"joint_{k} [deg]": rng.uniform(-90, 90, 300) for k in range(1, 6)},
+        {"position error [mm]": rng.rayleigh(0.05, 300)},
+        tmp_path / "scan.png",
+        reference={"position error [mm]": 0.06},
+        title="extended model, 300 hold-out rows: no structure found",
+    )
+    (fig,) = figures
+    (legend,) = fig.legends
+    texts = [t.get_text() for t in legend.get_texts()]
+    assert texts == ["rows", "binned median", "mean error the noise estimate alone gives"]
+    fig.canvas.draw()
+    box = legend.get_window_extent()
+    assert not any(box.overlaps(ax.get_window_extent()) for ax in fig.axes if ax.get_visible())

@@ -203,7 +203,7 @@ def _what_is_left(diagnosis, data, robot: Robot, out: Path, ext) -> list[str]:
         errors,
         out / "residual_left.png",
         reference,
-        title=f"extended model, hold-out rows: {verdict}",
+        title=f"extended model, {test.n} hold-out rows: {verdict}",
     )
     corr = un.get("neighbour_correlation")
     text = structured_paragraph(un)

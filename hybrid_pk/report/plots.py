@@ -205,7 +205,7 @@ def residual_scan(
     names, rows = list(variables), list(errors)
     ncol = min(len(names), 4)
     nrow_per = math.ceil(len(names) / ncol)
-    fig = new_figure(3.2 * ncol + 0.5, 2.6 * nrow_per * len(rows) + 0.6)
+    fig = new_figure(3.2 * ncol + 0.5, 2.6 * nrow_per * len(rows) + 0.9)  # + the legend
     axes = fig.subplots(nrow_per * len(rows), ncol, squeeze=False)
     for r, err_label in enumerate(rows):
         e = as_array(errors[err_label])
@@ -213,16 +213,24 @@ def residual_scan(
         for k, name in enumerate(names):
             ax = axes[r * nrow_per + k // ncol][k % ncol]
             x = as_array(variables[name])
-            ax.scatter(x[idx], e[idx], s=4, alpha=0.35, lw=0, color=POINT_COLOR, rasterized=True)
+            ax.scatter(
+                x[idx], e[idx], s=4, alpha=0.35, lw=0, color=POINT_COLOR, rasterized=True,
+                label="rows",
+            )  # fmt: skip
             mx, my = binned_median(x, e)
-            ax.plot(mx, my, "o-", color=MEDIAN_COLOR, ms=3, lw=1.0)
+            ax.plot(mx, my, "o-", color=MEDIAN_COLOR, ms=3, lw=1.0, label="binned median")
             if reference and err_label in reference:
-                ax.axhline(reference[err_label], color=LAW_COLOR, ls="--", lw=1.0)
+                ax.axhline(
+                    reference[err_label], color=LAW_COLOR, ls="--", lw=1.0,
+                    label="mean error the noise estimate alone gives",
+                )  # fmt: skip
             ax.set_xlabel(name)
             if k % ncol == 0:
                 ax.set_ylabel(err_label)
         for k in range(len(names), nrow_per * ncol):
             axes[r * nrow_per + k // ncol][k % ncol].set_visible(False)
+    # what the dots, the line and the dashed level are: said once, under the panels
+    fig.legend(*axes[0][0].get_legend_handles_labels(), loc="outside lower center", ncols=3)
     if title:
         fig.suptitle(title)
     return save_figure(fig, path)
