@@ -110,6 +110,13 @@ def test_summary_is_json_ready_and_flags_few_cycles(campaign):
 
     lines, _ = _iso_section(short, T_true[:15], "m.pt")
     assert "5 repeated poses, 3 visits each" in "\n".join(lines)  # not "3-3 visits"
+    figures = [
+        ln.split(" | ")[0].lstrip("| ")
+        for ln in "\n".join(lines).splitlines()
+        if ln.startswith(("| AP", "| RP"))
+    ]
+    assert figures[0] == "AP_p [mm]"  # was "AP_p_mm", after RP_l_mm and the RP angles
+    assert [f[:2] for f in figures] == sorted(f[:2] for f in figures)  # accuracy, then RP
     assert (
         f"the median, which a bad visit does not inflate: {summary['sigma_robust_mm']:.4f} mm"
         in ("\n".join(lines))

@@ -60,6 +60,16 @@ def _along_joints(errors: Mapping[str, Tensor], data: MeasuredData, path: Path) 
     return save_figure(fig, path)
 
 
+def _iso_figure(value) -> bool:
+    return isinstance(value, dict) and set(value) == {"mean", "max"}
+
+
+def _iso_name(key: str) -> str:
+    """``AP_p_mm`` -> ``AP_p [mm]``: the figure as ISO 9283 names it, its unit apart."""
+    head, _, unit = key.rpartition("_")
+    return f"{head} [{unit}]" if unit in ("mm", "deg") else key
+
+
 def _iso_section(data: MeasuredData, T: Tensor, name: str) -> tuple[list[str], dict | None]:
     try:
         result = iso9283(data, T)
@@ -72,11 +82,10 @@ def _iso_section(data: MeasuredData, T: Tensor, name: str) -> tuple[list[str], d
             "",
         ], None
     summary = result.summary()
-    rows = [
-        [k, v["mean"], v["max"]]
-        for k, v in summary.items()
-        if isinstance(v, dict) and set(v) == {"mean", "max"}
-    ]
+    rows = sorted(
+        ([_iso_name(k), v["mean"], v["max"]] for k, v in summary.items() if _iso_figure(v)),
+        key=lambda row: not row[0].startswith("AP"),  # accuracy first, as ISO 9283 lists
+    )
     low, high = summary["cycles"]["min"], summary["cycles"]["max"]
     lines = [
         "## ISO 9283 pose accuracy and repeatability",
