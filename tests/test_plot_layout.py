@@ -239,3 +239,18 @@ def test_residual_scan_says_what_its_marks_are(monkeypatch, tmp_path):
     fig.canvas.draw()
     box = legend.get_window_extent()
     assert not any(box.overlaps(ax.get_window_extent()) for ax in fig.axes if ax.get_visible())
+
+
+def test_demo_ik_table_gives_joint_units():
+    import pandas as pd
+
+    from hybrid_pk.pipelines.demo_report import _ik_section
+
+    frame = pd.DataFrame(
+        [{"target": 0, "solution": 0, "lift": 0.5, "joint_1": 1.0,
+          "position_error_mm": 1e-9, "orientation_error_deg": 1e-10}]
+    )  # fmt: skip
+    ik = {"frame": frame, "targets": 1, "solutions": 1, "per_target": [1], "failed": 0,
+          "seconds": 0.1}  # fmt: skip
+    text = "\n".join(_ik_section(ik, ["lift", "joint_1"], ["prismatic", "revolute"]))
+    assert "| target | solution | lift [m] | joint_1 [rad] | position error [mm] |" in text

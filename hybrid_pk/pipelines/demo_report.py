@@ -93,7 +93,7 @@ def write_demo_report(
         *_errors_section(out, results, evaluation_report),
         *_causes_section(out, truth, diag, diag_report),
         *_networks_section(out, trained),
-        *_ik_section(ik, list(diag.model.robot.joint_names)),
+        *_ik_section(ik, diag.model.robot.joint_names, diag.model.robot.joint_types),
     ]
     path = out / "report.md"
     path.write_text("\n".join(lines), encoding="utf-8")
@@ -153,7 +153,11 @@ def _networks_section(out: Path, trained) -> list[str]:
     ]
 
 
-def _ik_section(ik: dict, joints: list[str]) -> list[str]:
+def _ik_section(ik: dict, joints: list[str], types: list[str]) -> list[str]:
+    """The IK solutions, one row each; joint columns in rad (m for a prismatic joint)."""
+    units = [
+        f"{j} [{'m' if t == 'prismatic' else 'rad'}]" for j, t in zip(joints, types, strict=True)
+    ]
     rows = [
         [int(r["target"]), int(r["solution"]), *(fmt(r[j], 4) for j in joints),
          r["position_error_mm"], r["orientation_error_deg"]]
@@ -169,7 +173,7 @@ def _ik_section(ik: dict, joints: list[str]) -> list[str]:
         "",
         markdown_table(
             rows,
-            ["target", "solution", *joints, "position error [mm]", "orientation error [deg]"],
+            ["target", "solution", *units, "position error [mm]", "orientation error [deg]"],
         ),
         "",
     ]
