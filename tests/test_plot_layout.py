@@ -47,6 +47,11 @@ def test_error_histograms_legend_below_with_units(monkeypatch, tmp_path):
     pos, ori = (ax.get_legend() for ax in fig.axes)
     assert all(t.get_text().endswith(" mm") for t in pos.get_texts())
     assert all(t.get_text().endswith(" deg") for t in ori.get_texts())
+    eval_plots.error_histograms(  # few rows: a bin holds 1-3 of them
+        (rng.rayleigh(1.0, 30), None), (rng.rayleigh(0.9, 30), None), ("a", "b"), tmp_path / "s.png"
+    )
+    ticks = figures[-1].axes[0].get_yticks()
+    assert np.array_equal(ticks, np.round(ticks))  # sample counts (was 0.5, 1.5, ...)
 
 
 def _campaign(n: int = 200):

@@ -18,6 +18,7 @@ from hybrid_pk.errors import HybridPKError
 try:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
 except ImportError as exc:  # pragma: no cover - depends on the installation
     raise HybridPKError("reports need matplotlib: pip install matplotlib") from exc
 
@@ -142,6 +143,7 @@ def error_histograms(
             )
         ax.set_xlabel(xlabel)
         ax.set_ylabel("samples")
+        ax.yaxis.set_major_locator(MaxNLocator(integer=True))  # counts: no 2.5 samples
         legend_below(ax)
     if title:
         fig.suptitle(title)
