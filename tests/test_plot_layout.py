@@ -259,3 +259,19 @@ def test_demo_ik_table_gives_joint_units():
           "seconds": 0.1}  # fmt: skip
     text = "\n".join(_ik_section(ik, ["lift", "joint_1"], ["prismatic", "revolute"]))
     assert "| target | solution | lift [m] | joint_1 [rad] | position error [mm] |" in text
+
+
+def test_demo_compares_a_sinusoid_by_its_amplitude():
+    from types import SimpleNamespace
+
+    from hybrid_pk.pipelines.demo_report import found_table
+
+    truth = {
+        "effects": [{"effect": "cyclic_error_17", "joint": "j2", "value": [3e-5, 4e-5]}],
+        "unmodelled": [],
+    }
+    cause = SimpleNamespace(effect="cyclic_error_17", joint="j2", value=5.01e-5, unit="rad")
+    extra = SimpleNamespace(effect="gear_ratio", joint="j3", value=1e-4, unit="1")
+    rows = found_table(truth, SimpleNamespace(causes=[cause, extra]))
+    assert rows[0][2] == "(3e-05, 4e-05), amplitude 5e-05"  # was the bare (a, b)
+    assert rows[1][2:] == ["(not injected)", 1e-4, "false positive"]

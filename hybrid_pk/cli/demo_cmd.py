@@ -18,6 +18,7 @@ from hybrid_pk.pipelines.demo import (
     DemoResult,
     run_demo,
 )
+from hybrid_pk.pipelines.demo_report import NOT_INJECTED, found_table, injected_text
 
 _DESCRIPTION = """\
 The whole pipeline on a simulated laser-tracker campaign: simulate hidden effects ->
@@ -85,13 +86,6 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _shown(value) -> str:
-    """A value or vector to 4 significant digits (the printed summary)."""
-    if isinstance(value, list | tuple):
-        return "(" + ", ".join(f"{float(v):.4g}" for v in value) + ")"
-    return f"{float(value):.4g}"
-
-
 def print_summary(result: DemoResult) -> None:
     """The demo's printed summary: held-out errors, injected vs found, IK, run time."""
     print(f"demo: {result.n_rows} simulated poses of {result.robot}, results in {result.out}/")
@@ -107,15 +101,21 @@ def print_summary(result: DemoResult) -> None:
     for e in result.truth["effects"]:
         c = found.get((e["effect"], e.get("joint")))
         unit = "" if e["unit"] == "1" else f" {e['unit']}"  # a ratio: no unit
-        got = "NOT FOUND" if c is None else f"found {_shown(c.value)}{unit}"
+        got = "NOT FOUND" if c is None else f"found {injected_text(c.value)}{unit}"
         if e.get("unseen"):
             got += f" ({e['unseen']['words']})"
-        print(f"    {e['effect']}:{e.get('joint')} = {_shown(e['value'])}{unit}  ->  {got}")
+        shown = injected_text(e["value"], None if c is None else c.value)
+        print(f"    {e['effect']}:{e.get('joint')} = {shown}{unit}  ->  {got}")
     for e in result.truth["unmodelled"]:
         print(
-            f"    {e['effect']}:{e['joint']} = {_shown(e['value'])} (outside the vocabulary: "
-            "left to the networks)"
+            f"    {e['effect']}:{e['joint']} = {injected_text(e['value'])} (outside the "
+            "vocabulary: left to the networks)"
         )
+    # named but not injected, as the report's table says them (not hidden from the console)
+    for label, unit, injected, value, why in found_table(result.truth, result.diagnosis):
+        if injected == NOT_INJECTED:
+            unit = "" if unit == "1" else f" {unit}"
+            print(f"    also named: {label} = {injected_text(value)}{unit}: {why}")
     ik = result.ik
     print(
         f"  IK on the hybrid model: {ik['solutions']} solutions for {ik['targets']} targets, "

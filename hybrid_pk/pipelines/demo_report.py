@@ -3,12 +3,13 @@ gets wrong on held-out rows, the IK solutions, and how long each stage took."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 from hybrid_pk.calibration.diagnosis.unseen import seen_error
 from hybrid_pk.report.markdown import fmt, image, markdown_table, stats_table
 
-__all__ = ["found_table", "run_time_line", "write_demo_report"]
+__all__ = ["NOT_INJECTED", "found_table", "injected_text", "run_time_line", "write_demo_report"]
 
 
 def run_time_line(stage_seconds: dict[str, float], seconds: float) -> str:
@@ -19,6 +20,21 @@ def run_time_line(stage_seconds: dict[str, float], seconds: float) -> str:
         if s >= 0.05
     ]
     return f"Run time {seconds:.0f} s" + (f" ({', '.join(parts)})." if parts else ".")
+
+
+NOT_INJECTED = "(not injected)"  # the injected cell of a cause named but not injected
+
+
+def injected_text(value, found=None) -> str:
+    """An injected value as the summary shows it (4 digits); a sinusoid's ``(a, b)``
+    with its amplitude √(a² + b²) when the diagnosis gives an amplitude (``found`` a
+    number), so the two can be compared as printed."""
+    if not isinstance(value, list | tuple):
+        return f"{float(value):.4g}"
+    text = "(" + ", ".join(f"{float(v):.4g}" for v in value) + ")"
+    if len(value) == 2 and found is not None and not isinstance(found, list | tuple):
+        text += f", amplitude {math.hypot(*map(float, value)):.4g}"
+    return text
 
 
 def found_table(truth: dict, diag) -> list[list[object]]:
@@ -37,7 +53,8 @@ def found_table(truth: dict, diag) -> list[list[object]]:
             within = "" if err is None else f", the part the data see within {100 * err:.2g} %"
             named = f"{named}{within} ({unseen['words']})"
         value = "-" if c is None else c.value
-        rows.append([f"{e['effect']}:{e.get('joint')}", EFFECTS[e["effect"]].unit, e["value"],
+        injected = injected_text(e["value"], None if c is None else c.value)
+        rows.append([f"{e['effect']}:{e.get('joint')}", EFFECTS[e["effect"]].unit, injected,
                      value, named])  # fmt: skip
     unmodelled_joints = {e["joint"] for e in truth["unmodelled"]}
     for e in truth["unmodelled"]:
@@ -56,7 +73,7 @@ def found_table(truth: dict, diag) -> list[list[object]]:
             if joint in unmodelled_joints
             else "false positive"
         )
-        rows.append([f"{effect}:{joint}", c.unit, "(not injected)", c.value, why])
+        rows.append([f"{effect}:{joint}", c.unit, NOT_INJECTED, c.value, why])
     return rows
 
 
