@@ -275,3 +275,19 @@ def test_demo_compares_a_sinusoid_by_its_amplitude():
     rows = found_table(truth, SimpleNamespace(causes=[cause, extra]))
     assert rows[0][2] == "(3e-05, 4e-05), amplitude 5e-05"  # was the bare (a, b)
     assert rows[1][2:] == ["(not injected)", 1e-4, "false positive"]
+
+
+def test_the_law_in_the_legend_is_not_broken_inside_a_formula(monkeypatch, tmp_path):
+    import dataclasses
+
+    import hybrid_pk.report.plots as plots
+
+    figures = keep_figures(monkeypatch, plots)
+    law = (
+        "θ_true - θ = a sin 17θ + b cos 17θ: a sinusoid of 17 cycles per turn, amplitude √(a² + b²)"
+    )
+    ev = dataclasses.replace(_periodic_evidence(0.2), law=law)
+    plots.evidence_plot(ev, tmp_path / "law.png")
+    texts = [t.get_text() for t in figures[0].legends[0].get_texts()]
+    (label,) = [t for t in texts if t.startswith("diagnosed law")]
+    assert all(line.count("(") == line.count(")") for line in label.splitlines()), label

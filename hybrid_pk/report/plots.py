@@ -60,7 +60,9 @@ def evidence_plot(evidence, path: str | Path) -> Path:
     fig = new_figure(7.0, 8.2 if zoom else 5.2)
     ax, zoom_ax = fig.subplots(2, 1, height_ratios=[3, 2]) if zoom else (fig.subplots(), None)
     idx = thin(ev.x.size)
-    law_label = textwrap.fill(f"diagnosed law: {ev.law}", LEGEND_CHARS)
+    # ' + ' held together (no-break spaces): a line break inside √(a² + b²) split the formula
+    law = ev.law.replace(" + ", "\u00a0+\u00a0")
+    law_label = textwrap.fill(f"diagnosed law: {law}", LEGEND_CHARS)
     if ev.categorical:
         levels = np.unique(ev.x)
         rng = np.random.default_rng(0)  # jitter only; deterministic figures
