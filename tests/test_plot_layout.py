@@ -121,6 +121,11 @@ def test_outlier_plot_titled_threshold_in_view_legend_clear(monkeypatch, tmp_pat
     assert threshold
     assert ax.get_ylim()[1] > 1.1 * threshold[0]
     assert "threshold" in " ".join(t.get_text() for t in ax.get_legend().get_texts())
+    low, high = ax.get_ylim()
+    labelled = [
+        t for t in ax.get_yticklabels() if t.get_text() and low <= t.get_position()[1] <= high
+    ]
+    assert len(labelled) >= 3  # a log axis read by its numbers (was one label, '1.0')
 
 
 def _periodic_evidence(amplitude_mrad: float):

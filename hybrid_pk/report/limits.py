@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from matplotlib.ticker import NullFormatter, ScalarFormatter
+from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
 from hybrid_pk.calibration.fit import model_errors
 from hybrid_pk.calibration.robust import outlier_cut, row_d2
@@ -86,7 +86,8 @@ def outlier_plot(diagnosis, data: MeasuredData, out: Path) -> list[str]:
     ax.axhline(thr, color=LAW_COLOR, ls="--", lw=1.0, label=f"threshold {thr:.3g}")
     ax.set_yscale("log")
     # plain numbers on the log axis (4 reads better than 4 x 10^0); the threshold in view
-    ax.yaxis.set_major_formatter(ScalarFormatter())
+    ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))  # 1-2-5: labels each decade
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
     ax.yaxis.set_minor_formatter(NullFormatter())
     ax.set_ylim(top=1.3 * max(thr, float(d.max())))
     ax.set_xlabel("row (order of the data)")
