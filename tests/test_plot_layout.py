@@ -296,3 +296,11 @@ def test_the_law_in_the_legend_is_not_broken_inside_a_formula(monkeypatch, tmp_p
     texts = [t.get_text() for t in figures[0].legends[0].get_texts()]
     (label,) = [t for t in texts if t.startswith("diagnosed law")]
     assert all(line.count("(") == line.count(")") for line in label.splitlines()), label
+
+
+def test_a_ratio_is_written_without_its_unit_one():
+    from hybrid_pk.report.markdown import value_with_std, with_unit
+
+    assert value_with_std(3.497e-4, 8.8e-7, "1") == "0.0003497 ± 8.8e-07"  # was '… 8.8e-07 1'
+    assert value_with_std(2e-6, 1e-8, "rad/Nm") == "2e-06 ± 1e-08 rad/Nm"
+    assert with_unit("2.85e-05", "1") == "2.85e-05"

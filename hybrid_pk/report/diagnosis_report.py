@@ -33,7 +33,14 @@ from hybrid_pk.report.findings import (
     structured_paragraph,
 )
 from hybrid_pk.report.limits import detectable_section, outlier_plot
-from hybrid_pk.report.markdown import fmt, image, markdown_table, stats_table, value_with_std
+from hybrid_pk.report.markdown import (
+    fmt,
+    image,
+    markdown_table,
+    stats_table,
+    value_with_std,
+    with_unit,
+)
 from hybrid_pk.report.plots import evidence_plot, residual_scan
 from hybrid_pk.robot import Robot
 
@@ -154,15 +161,16 @@ def _evidence_section(diagnosis, data, out: Path, say=None) -> list[str]:
             continue
         lines += [
             f"Law: {ev.law}. Diagnosed value {value_with_std(cause.value, cause.std, cause.unit)};"
-            f" the same law fitted to the plotted points alone gives {fmt(ev.points_value)} "
-            f"{ev.unit} ({ev.x.size} points).",
+            " the same law fitted to the plotted points alone gives "
+            f"{with_unit(fmt(ev.points_value), ev.unit)} ({ev.x.size} points).",
             "",
         ]
         if ev.nominal_points_value is not None and ev.value != 0:
             share = 100.0 * ev.nominal_points_value / ev.value
             lines += [
-                f"In the nominal model's residual the law shows {fmt(ev.nominal_points_value)} "
-                f"{ev.unit} ({share:.0f} % of the diagnosed value): the frames fitted "
+                "In the nominal model's residual the law shows "
+                f"{with_unit(fmt(ev.nominal_points_value), ev.unit)} ({share:.0f} % of the "
+                "diagnosed value): the frames fitted "
                 "without the cause absorb the rest.",
                 "",
             ]

@@ -58,6 +58,7 @@ from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.plots import binned_median
 from hybrid_pk.report.evidence_deflection import deflection_evidence
 from hybrid_pk.report.evidence_periodic import gain_text, phase_folded
+from hybrid_pk.report.markdown import with_unit
 
 __all__ = [
     "Evidence",
@@ -193,8 +194,8 @@ def _value_text(cause) -> str:
     if isinstance(value, list):
         vals = ", ".join(f"{v:.3g}" for v in value)
         stds = ", ".join(f"{s:.2g}" for s in std)
-        return f"({vals}) ± ({stds}) {cause.unit}"
-    return f"{value:.4g} ± {std:.2g} {cause.unit}"
+        return with_unit(f"({vals}) ± ({stds})", cause.unit)
+    return with_unit(f"{value:.4g} ± {std:.2g}", cause.unit)
 
 
 def cause_evidence(

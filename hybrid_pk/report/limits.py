@@ -14,7 +14,7 @@ from hybrid_pk.calibration.robust import outlier_cut, row_d2
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import conditions_from_data
 from hybrid_pk.evaluation.plots import LAW_COLOR, legend_below, new_figure, save_figure
-from hybrid_pk.report.markdown import image, markdown_table
+from hybrid_pk.report.markdown import image, markdown_table, with_unit
 
 __all__ = ["detectable_section", "outlier_plot"]
 
@@ -32,7 +32,7 @@ def detectable_section(diagnosis) -> list[str]:
         if w is None or d["value"] > w["value"]:
             worst[d["family"]] = d
     rows = [
-        [f, d["joint"] or "-", f"{d['value']:.3g} {d['unit']}", d["mm_rms"], _set_by(d)]
+        [f, d["joint"] or "-", with_unit(f"{d['value']:.3g}", d["unit"]), d["mm_rms"], _set_by(d)]
         for f, d in sorted(worst.items(), key=lambda kv: -kv[1]["mm_rms"])
     ]
     lines = ["## What these data cannot show", ""]

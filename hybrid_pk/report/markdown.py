@@ -11,7 +11,7 @@ import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-__all__ = ["fmt", "image", "markdown_table", "stats_table", "value_with_std"]
+__all__ = ["fmt", "image", "markdown_table", "stats_table", "value_with_std", "with_unit"]
 
 # Rows of :func:`stats_table`: (key in the stats dict, row label).
 _STAT_ROWS = (("mean", "mean"), ("rms", "RMS"), ("p95", "p95"), ("max", "max"))
@@ -36,10 +36,16 @@ def fmt(x: object, digits: int = 4) -> str:
     return str(x)
 
 
+def with_unit(text: str, unit: str = "") -> str:
+    """``text unit``; a ratio's unit ``1`` left out (``3.5e-04 ± 8.8e-07 1`` read as a
+    digit more)."""
+    return f"{text} {unit}".rstrip() if unit and unit != "1" else text
+
+
 def value_with_std(value: object, std: object, unit: str = "", digits: int = 4) -> str:
-    """``1.998e-06 ± 6.6e-10 rad/Nm``; vectors as ``(a, b, c) ± (sa, sb, sc) m``."""
-    text = f"{fmt(value, digits)} ± {fmt(std, 2)}"
-    return f"{text} {unit}".rstrip() if unit else text
+    """``1.998e-06 ± 6.6e-10 rad/Nm``; vectors as ``(a, b, c) ± (sa, sb, sc) m``; a
+    ratio (unit ``1``) without a unit."""
+    return with_unit(f"{fmt(value, digits)} ± {fmt(std, 2)}", unit)
 
 
 def _cell(x: object) -> str:

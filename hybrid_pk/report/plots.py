@@ -22,6 +22,7 @@ from hybrid_pk.evaluation.plots import (
     save_figure,
     thin,
 )
+from hybrid_pk.report.markdown import with_unit
 
 __all__ = ["evidence_plot", "residual_scan"]
 
@@ -103,9 +104,10 @@ def evidence_plot(evidence, path: str | Path) -> Path:
     ax.set_xlabel(ev.x_label)
     ax.set_ylabel(ev.y_label)
     ax.set_title(wrap_title(ev.title), fontsize="medium")
-    text = f"law fitted to the points alone: {ev.points_value:.4g} {ev.unit}"
+    text = with_unit(f"law fitted to the points alone: {ev.points_value:.4g}", ev.unit)
     if ev.nominal_points_value is not None:
-        text += f"\nin the nominal model's residual: {ev.nominal_points_value:.4g} {ev.unit}"
+        nominal = f"in the nominal model's residual: {ev.nominal_points_value:.4g}"
+        text += "\n" + with_unit(nominal, ev.unit)
     ax.text(
         0.01,
         0.99,
