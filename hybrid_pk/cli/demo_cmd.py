@@ -107,9 +107,10 @@ def print_summary(result: DemoResult) -> None:
         shown = injected_text(e["value"], None if c is None else c.value)
         print(f"    {e['effect']}:{e.get('joint')} = {shown}{unit}  ->  {got}")
     for e in result.truth["unmodelled"]:
+        value = f"{injected_text(e['value'])} {e['unit']}"
         print(
-            f"    {e['effect']}:{e['joint']} = {injected_text(e['value'])} (outside the "
-            "vocabulary: left to the networks)"
+            f"    {e['effect']}:{e['joint']} = {value} "
+            "(outside the vocabulary: left to the networks)"
         )
     # named but not injected, as the report's table says them (not hidden from the console)
     for label, unit, injected, value, why in found_table(result.truth, result.diagnosis):
