@@ -96,6 +96,10 @@ def test_evaluation_figures_titled_with_rows_and_legends_clear(monkeypatch, tmp_
     assert not any(box.overlaps(ax.get_window_extent()) for ax in fig.axes if ax.get_visible())
     (hist,) = hists
     assert f"errors on {data.n} rows" in hist.get_suptitle()
+    # 1.7 mm against 0.016 mm: a log axis, else the better model lies flat on the floor
+    assert all(ax.get_yscale() == "log" for ax in fig.axes if ax.get_visible())
+    styles = [line.get_linestyle() for line in fig.axes[0].get_lines()]
+    assert len(set(styles)) == len(predictions)  # an equal pair of curves stays in view
 
 
 def test_outlier_plot_titled_threshold_in_view_legend_clear(monkeypatch, tmp_path):

@@ -26,6 +26,7 @@ __all__ = [
     "AFTER_COLOR",
     "BEFORE_COLOR",
     "LAW_COLOR",
+    "LOG_SCALE_RATIO",
     "MAX_POINTS",
     "MEDIAN_COLOR",
     "as_array",
@@ -37,6 +38,9 @@ __all__ = [
     "thin",
 ]
 
+# Errors about an order of magnitude apart share no linear axis (the smaller lie flat on
+# its floor): histograms and curves go to a log scale beyond this ratio of their means.
+LOG_SCALE_RATIO = 8
 MAX_POINTS = 6000  # scatter plots draw at most this many points (evenly spread rows)
 DPI = 110
 BEFORE_COLOR, AFTER_COLOR, LAW_COLOR, MEDIAN_COLOR = "#d95f02", "#1b9e77", "#c0392b", "black"
@@ -122,8 +126,7 @@ def error_histograms(
     for ax, (xlabel, unit, values) in zip(axes, panels, strict=True):
         hi = max(float(np.max(v)) for v in values)
         means = [float(np.mean(v)) for v in values]
-        # Errors an order of magnitude apart share no linear axis: use log bins then.
-        log = min(means) > 0 and max(means) / min(means) > 8
+        log = min(means) > 0 and max(means) / min(means) > LOG_SCALE_RATIO
         if log:
             lo = min(float(np.percentile(v[v > 0], 0.5)) for v in values if (v > 0).any())
             bins = np.geomspace(lo, hi * 1.02, 51)

@@ -9,19 +9,26 @@ where the data has repeated poses. Used by ``evaluate --report`` and ``demo``.
 
 from __future__ import annotations
 
+import itertools
 import json
 from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 import torch
+from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 from torch import Tensor
 
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.errors import DataError
 from hybrid_pk.evaluation.iso9283 import iso9283
 from hybrid_pk.evaluation.metrics import evaluate_json, row_errors
-from hybrid_pk.evaluation.plots import error_histograms, new_figure, save_figure
+from hybrid_pk.evaluation.plots import (
+    LOG_SCALE_RATIO,
+    error_histograms,
+    new_figure,
+    save_figure,
+)
 from hybrid_pk.report.markdown import image, markdown_table, stats_table
 
 __all__ = ["write_evaluation_report"]
@@ -38,20 +45,30 @@ def _along_joints(errors: Mapping[str, Tensor], data: MeasuredData, path: Path) 
     cols = min(dof, 3)
     rows = -(-dof // cols)
     fig = new_figure(4.0 * cols, 3.0 * rows + 0.8)  # + title and legend
+    overall = [float(e.detach().double().mean()) for e in errors.values()]
+    log = min(overall) > 0 and max(overall) / min(overall) > LOG_SCALE_RATIO
     axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).ravel()
     for j in range(dof):
         ax = axes[j]
         edges = np.linspace(q[:, j].min(), q[:, j].max(), 21)
         which = np.clip(np.digitize(q[:, j], edges) - 1, 0, 19)
         centres = 0.5 * (edges[1:] + edges[:-1])
-        for name, e in errors.items():
+        # own line styles: a model equal to another (hybrid = extended) stays in view
+        for (name, e), style in zip(
+            errors.items(), itertools.cycle(("-", "--", ":")), strict=False
+        ):
             v = e.detach().cpu().numpy()
             counts = np.bincount(which, minlength=20)
             sums = np.bincount(which, weights=v, minlength=20)
             means = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
-            ax.plot(centres, means, "o-", ms=3, label=name)
+            ax.plot(centres, means, marker="o", ls=style, ms=3, label=name)
         ax.set_xlabel(f"{data.joint_names[j]} [rad]")
-        ax.set_ylabel("mean position error [mm]")
+        ax.set_ylabel("mean position error [mm]" + (" (log scale)" if log else ""))
+        if log:  # 1-2-5 ticks in plain numbers: every panel labelled within its range
+            ax.set_yscale("log")
+            ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+            ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+            ax.yaxis.set_minor_formatter(NullFormatter())
     for ax in axes[dof:]:
         ax.set_visible(False)
     # One legend for all panels, under them: inside the first panel it covered its curves.
