@@ -139,12 +139,12 @@ def run(args: argparse.Namespace) -> int:
     for note in job.notes:
         print(f"note: {note}")
     write_frame(args.out, job.frame)
-    _print_summary(args, loaded, robot, data, job.frame, job.two_stage)
+    _print_summary(args, loaded, robot, data, job)
     return 0
 
 
-def _print_summary(args, loaded, robot, data, frame, two_stage: bool) -> None:
-    n = data.n
+def _print_summary(args, loaded, robot, data, job) -> None:
+    n, frame, two_stage = data.n, job.frame, job.two_stage
     kind = "nominal URDF" if loaded.source.startswith("nominal:") else "model"
     if two_stage:
         kind += " (two stages: kinematics + frames, then the full model)"
@@ -171,8 +171,29 @@ def _print_summary(args, loaded, robot, data, frame, two_stage: bool) -> None:
     failed = n - frame["target"].nunique()
     print(f"{failed} of {n} target(s) failed (no solution within {tol} and the joint limits)")
     if failed:
+        _closest(job, data.has_orientation)
         _beyond_reach(loaded, data, frame, args.frame_set or 0)
     print(f"wrote {args.out}")
+
+
+def _closest(job, has_orientation: bool) -> None:
+    """How near the solver came to each failed target (its best start), e.g. a measured
+    pose of a stretched arm a few micrometres beyond the model's reach."""
+    if job.closest_mm is None:
+        return
+    failed = torch.ones(job.closest_mm.numel(), dtype=torch.bool)
+    failed[torch.as_tensor(job.frame["target"].unique(), dtype=torch.long)] = False
+    rows = failed.nonzero()[:, 0]
+    parts = []
+    for i in rows[:5].tolist():
+        part = f"{i}: {float(job.closest_mm[i]):.3g} mm"
+        parts.append(part + (f" / {float(job.closest_deg[i]):.3g} deg" if has_orientation else ""))
+    more = f", ... (largest {float(job.closest_mm[rows].max()):.3g} mm)" if rows.numel() > 5 else ""
+    print(
+        f"note: closest the solver came to the failed target(s), row (0-based): "
+        f"{', '.join(parts)}{more}; a target that misses by micrometres lies just beyond the "
+        "reach (a stretched arm) or a limit: --tol-mm / --tol-deg accept it"
+    )
 
 
 def _beyond_reach(loaded, data, frame, k: int) -> None:

@@ -31,12 +31,12 @@ from hybrid_pk.ik.batched_lm import batched_levenberg_marquardt
 from hybrid_pk.ik.conditions import Approach, resolve_conditions
 from hybrid_pk.ik.dedup import distinct_mask
 from hybrid_pk.ik.forward_model import IKModel, as_ik_model
+from hybrid_pk.ik.packing import pack
 from hybrid_pk.ik.result import IKResult
 from hybrid_pk.ik.solver import (
     IKOptions,
     check_solutions,
     make_result,
-    pack,
     prepare_targets,
     solve_and_check,
     solve_ik,
@@ -289,7 +289,14 @@ def _replace_targets(result: IKResult, index: Tensor, other: IKResult) -> IKResu
         out[index, : b.shape[1]] = b
         parts.append(out.reshape(*batch, k, *tail))
     q, pos, ori, valid = parts
-    return replace(result, q=q, position_error_mm=pos, orientation_error_deg=ori, valid=valid)
+    closest = {}
+    for name in ("closest_mm", "closest_deg"):
+        mine, theirs = getattr(result, name), getattr(other, name)
+        if mine is not None and theirs is not None:
+            closest[name] = mine.reshape(n).index_copy(0, index, theirs.reshape(-1)).reshape(batch)
+    return replace(
+        result, q=q, position_error_mm=pos, orientation_error_deg=ori, valid=valid, **closest
+    )
 
 
 def wang_baseline(
