@@ -123,7 +123,38 @@ def prepare_targets(targets: Tensor) -> tuple[Tensor, tuple[int, ...], bool]:
     bad = ~torch.isfinite(T).all(-1).all(-1)
     if bool(bad.any()):
         raise ShapeError(f"IK target {int(bad.nonzero()[0])} (flat index) is not finite")
+    if not position_only:
+        _check_rotations(T)
     return T, batch, position_only
+
+
+# [-] largest |R^T R - I| of a target rotation: float32 poses from a chain of products
+# are orthonormal to ~1e-6, and a defect of 1e-5 rad is already half the default
+# orientation tolerance (1e-3 deg = 1.7e-5 rad), which it would blur.
+ROTATION_TOL = 1e-5
+
+
+def _check_rotations(T: Tensor) -> None:
+    """One-line error for target poses that are not rigid transforms."""
+    R = T[:, :3, :3]
+    eye = torch.eye(3, dtype=T.dtype)
+    defect = (R.transpose(-1, -2) @ R - eye).abs().amax((-1, -2))
+    bottom = (T[:, 3] - T.new_tensor([0.0, 0.0, 0.0, 1.0])).abs().amax(-1)
+    for bad, what in (
+        (
+            defect > ROTATION_TOL,
+            lambda i: f"|R^T R - I| = {float(defect[i]):.3g} > {ROTATION_TOL:g}",
+        ),
+        (torch.linalg.det(R) < 0, lambda i: "det R = -1 (a reflection)"),
+        (bottom > ROTATION_TOL, lambda i: f"last row {T[i, 3].tolist()} is not [0, 0, 0, 1]"),
+    ):
+        if bool(bad.any()):
+            i = int(bad.nonzero()[0])
+            raise ShapeError(
+                f"IK target {i} (flat index) is not a pose: its rotation must be a proper "
+                f"rotation matrix and its last row [0, 0, 0, 1]; {what(i)} ({int(bad.sum())} "
+                "such target(s))"
+            )
 
 
 def check_solutions(
