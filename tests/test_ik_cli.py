@@ -214,6 +214,9 @@ def test_ik_help_states_units(capsys):
         (["--seeds", "0"], "--seeds must be at least 1"),
         (["--tol-mm", "0"], "must be positive"),
         (["--robot", "ur10"], "not 'ur10'"),
+        # before: --box -1 / nan solved as if no box were given, without a word
+        (["--box", "-1"], "--box must be > 0"),
+        (["--box", "nan"], "--box must be > 0"),
     ],
 )
 def test_ik_errors_are_one_line(tmp_path, capsys, argv, message):
@@ -314,3 +317,16 @@ def test_two_stage_ik_says_how_near_it_came(tmp_path, capsys):
     rc, out, _ = _run(capsys, "ik", path, targets, "--out", tmp_path / "s.csv", "--no-progress")
     assert rc == 0
     assert f"1: {float(res.closest_mm[1]):.3g} mm" in out, out
+
+
+@pytest.mark.parametrize("box", [0.0, -0.1, float("nan")])
+def test_two_stage_ik_refuses_a_box_that_is_not_positive(box):
+    """solve_ik_two_stage(box=-0.1) gave lower > upper boxes and fell back to the direct
+    solve without a word; now a one-line error before any work."""
+    from hybrid_pk.errors import ShapeError
+    from hybrid_pk.ik import solve_ik_two_stage
+
+    robot = Robot.from_urdf("ur10")
+    model = ExtendedModel(robot, [make_effect(robot, "joint_offset:elbow_joint", 2e-3)])
+    with pytest.raises(ShapeError, match="box half-width must be > 0"):
+        solve_ik_two_stage(robot, model, _targets(robot, 1, seed=1), box=box)

@@ -113,6 +113,8 @@ def run(args: argparse.Namespace) -> int:
         raise HybridPKError(f"--seeds must be at least 1, got {args.seeds}")
     if args.tol_mm <= 0 or args.tol_deg <= 0:
         raise HybridPKError("--tol-mm and --tol-deg must be positive")
+    if not args.box > 0:  # NaN included
+        raise HybridPKError(f"--box must be > 0 [rad, m for prismatic joints], got {args.box}")
     loaded, _model, robot, k = load_frozen_model(args)
     data = _read_targets(args.targets, robot)
     options = IKOptions(
