@@ -330,3 +330,30 @@ def test_two_stage_ik_refuses_a_box_that_is_not_positive(box):
     model = ExtendedModel(robot, [make_effect(robot, "joint_offset:elbow_joint", 2e-3)])
     with pytest.raises(ShapeError, match="box half-width must be > 0"):
         solve_ik_two_stage(robot, model, _targets(robot, 1, seed=1), box=box)
+
+
+def test_targets_at_singular_configurations_are_named(tmp_path, capsys):
+    """The UR10 home pose (-pi, -pi/2, 0, -pi/2, 0, 0: elbow stretched, wrist_2 = 0) and a
+    pose with wrist_2 = 1e-4 have solutions that the tolerance does not pin down to the
+    1e-3 rad that tells solutions apart (before: 1 and 7-10 rows listed as if distinct
+    branches, without a word); a regular pose (wrist_2 = 0.7) gets no such note."""
+    robot = Robot.from_urdf("ur10")
+    q = torch.tensor(
+        [
+            [-torch.pi, -torch.pi / 2, 0.0, -torch.pi / 2, 0.0, 0.0],
+            [0.3, -1.0, 1.0, 0.5, 1e-4, 0.2],
+            [0.3, -1.0, 1.0, 0.5, 0.7, 0.2],
+        ],
+        dtype=F64,
+    )
+    with torch.no_grad():
+        T = robot.fk(q)
+    both = _write_targets(tmp_path / "t.csv", T)
+    rc, out, _ = _run(capsys, "ik", "nominal:ur10", both, "--out", tmp_path / "s.csv")
+    assert rc == 0
+    line = next(ln for ln in out.splitlines() if "singular configuration" in ln)
+    assert "2 target(s) (rows 0, 1, 0-based)" in line, line
+    regular = _write_targets(tmp_path / "r.csv", T[2:])
+    rc, out, _ = _run(capsys, "ik", "nominal:ur10", regular, "--out", tmp_path / "r_s.csv")
+    assert rc == 0
+    assert "singular configuration" not in out.replace(str(tmp_path), "")
