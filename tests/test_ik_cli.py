@@ -217,6 +217,9 @@ def test_ik_help_states_units(capsys):
         # before: --box -1 / nan solved as if no box were given, without a word
         (["--box", "-1"], "--box must be > 0"),
         (["--box", "nan"], "--box must be > 0"),
+        # before: 'IKOptions: tol_mm must be > 0, got IKOptions(tol_mm=nan, ...)'
+        (["--tol-mm", "nan"], "--tol-mm and --tol-deg must be positive, got nan mm"),
+        (["--max-iterations", "0"], "--max-iterations must be at least 1"),
     ],
 )
 def test_ik_errors_are_one_line(tmp_path, capsys, argv, message):

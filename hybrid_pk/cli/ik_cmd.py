@@ -112,8 +112,12 @@ def _read_targets(path: str, robot):
 def run(args: argparse.Namespace) -> int:
     if args.seeds < 1:
         raise HybridPKError(f"--seeds must be at least 1, got {args.seeds}")
-    if args.tol_mm <= 0 or args.tol_deg <= 0:
-        raise HybridPKError("--tol-mm and --tol-deg must be positive")
+    if not (args.tol_mm > 0 and args.tol_deg > 0):  # NaN included
+        raise HybridPKError(
+            f"--tol-mm and --tol-deg must be positive, got {args.tol_mm:g} mm, {args.tol_deg:g} deg"
+        )
+    if args.max_iterations < 1:
+        raise HybridPKError(f"--max-iterations must be at least 1, got {args.max_iterations}")
     if not args.box > 0:  # NaN included
         raise HybridPKError(f"--box must be > 0 [rad, m for prismatic joints], got {args.box}")
     loaded, _model, robot, k = load_frozen_model(args)
