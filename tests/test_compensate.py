@@ -420,3 +420,17 @@ def test_help_states_the_approach_default_compensate_uses(capsys):
     with pytest.raises(SystemExit):
         main(["ik", "--help"])
     assert "default: the mid-play model" in " ".join(capsys.readouterr().out.split())
+
+
+@pytest.mark.parametrize("flag", ["--box", "--tol-mm", "--tol-deg"])
+def test_cli_refuses_nan_box_and_tolerances(tmp_path, capsys, rx160, flag):
+    """NaN passes 'box <= 0': before, --box nan reached the solver and --tol-mm nan gave
+    'IKOptions: tol_mm must be > 0, got IKOptions(tol_mm=nan, ...)'; now the flags' own
+    one-line error that 0 and negative values already had."""
+    model_file = save_model(tmp_path / "model.pt", _real(rx160))
+    program = write_joint_table(tmp_path / "p.csv", _program(rx160, 2), rx160.joint_names)
+    argv = ["compensate", str(model_file), str(program), "--out", str(tmp_path / "c.csv")]
+    assert main([*argv, flag, "nan"]) == 2
+    err = capsys.readouterr().err
+    assert "--box, --tol-mm and --tol-deg must be positive, got" in err
+    assert len([ln for ln in err.splitlines() if "error:" in ln]) == 1

@@ -322,6 +322,25 @@ def test_invalid_inputs_raise(robots):
         solve_ik(lambda q: robot.fk(q), torch.eye(4, dtype=F64))
 
 
+def test_targets_that_are_not_poses_are_refused_in_one_line(robots):
+    """A rotation scaled by 1.01 or a wrong last row was solved as if it were the
+    nearest pose (before: 8 'solutions' with orientation errors 1e-8 deg from a matrix no
+    pose has), a reflection failed without a word; now a one-line error names the
+    target."""
+    robot = robots["rx160"]
+    with torch.no_grad():
+        T = robot.fk(robot.sample_q(3, torch.Generator().manual_seed(3))).to(F64)
+    assert solve_ik(robot, T.float(), seeds=4).q.shape[0] == 3  # float32 poses pass
+    scaled, mirrored, bottom = T.clone(), T.clone(), T.clone()
+    scaled[1, :3, :3] *= 1.01
+    mirrored[2, :3, 0] *= -1
+    bottom[0, 3, 0] = 1.0
+    for bad, why in ((scaled, r"R\^T R - I"), (mirrored, "reflection"), (bottom, "last row")):
+        with pytest.raises(ShapeError, match=f"is not a pose.*{why}") as info:
+            solve_ik(robot, bad, seeds=4)
+        assert "\n" not in str(info.value)
+
+
 # ----------------------------------------------------------------------------- dedup / seeds
 
 

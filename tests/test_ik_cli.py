@@ -214,6 +214,12 @@ def test_ik_help_states_units(capsys):
         (["--seeds", "0"], "--seeds must be at least 1"),
         (["--tol-mm", "0"], "must be positive"),
         (["--robot", "ur10"], "not 'ur10'"),
+        # before: --box -1 / nan solved as if no box were given, without a word
+        (["--box", "-1"], "--box must be > 0"),
+        (["--box", "nan"], "--box must be > 0"),
+        # before: 'IKOptions: tol_mm must be > 0, got IKOptions(tol_mm=nan, ...)'
+        (["--tol-mm", "nan"], "--tol-mm and --tol-deg must be positive, got nan mm"),
+        (["--max-iterations", "0"], "--max-iterations must be at least 1"),
     ],
 )
 def test_ik_errors_are_one_line(tmp_path, capsys, argv, message):
@@ -258,3 +264,99 @@ def test_targets_beyond_reach_say_which_frame_targets_are_in(tmp_path, rx160, ca
     rc, out, _ = _run(capsys, "ik", "nominal:rx160", measured, "--out", tmp_path / "n.csv")
     assert rc == 0
     assert "nominal:ROBOT takes flange poses in the robot base frame" in out, out
+
+
+def _beyond_stretched(robot: Robot, beyond: list[float]) -> torch.Tensor:
+    """Poses of the UR10 with its elbow stretched and the upper arm horizontal (the
+    farthest the wrist gets), each moved ``beyond`` [m] farther along the arm."""
+    q = _vec(0.3, 0.0, 0.0, 0.0, 0.7, 0.2)[None]
+    with torch.no_grad():
+        frames, T = robot.link_frames(q)[0], robot.fk(q)
+    along = frames[3, :3, 3] - frames[1, :3, 3]
+    T = T.repeat(len(beyond), 1, 1)
+    T[:, :3, 3] += _vec(*beyond)[:, None] * along / along.norm()
+    return T
+
+
+def test_targets_just_beyond_reach_say_by_how_much(tmp_path, capsys):
+    """A measured pose of a stretched arm lies micrometres beyond the nominal reach: the
+    API's closest_mm and the command say how near the solver came (before: a bare '2 of 3
+    target(s) failed', and nothing in IKResult)."""
+    from hybrid_pk.ik import solve_ik
+
+    robot = Robot.from_urdf("ur10")
+    T = _beyond_stretched(robot, [0.0, 5e-6, 1e-4])
+    res = solve_ik(robot, T)
+    assert res.failed.tolist() == [False, True, True]
+    # the best start misses by at most the distance beyond the reach, and not by nothing
+    assert 1e-3 < float(res.closest_mm[1]) <= 5e-3 + 1e-6
+    assert 1e-2 < float(res.closest_mm[2]) <= 0.1 + 1e-6
+    assert float(res.closest_mm[0]) <= res.tol_mm  # a solved target: its best solution
+    assert bool(torch.isfinite(res.closest_deg).all())
+    targets = _write_targets(tmp_path / "t.csv", T)
+    rc, out, _ = _run(capsys, "ik", "nominal:ur10", targets, "--out", tmp_path / "s.csv")
+    assert rc == 0
+    assert "2 of 3 target(s) failed" in out
+    line = next(ln for ln in out.splitlines() if ln.startswith("note: closest"))
+    assert f"1: {float(res.closest_mm[1]):.3g} mm" in line, line
+    assert f"2: {float(res.closest_mm[2]):.3g} mm" in line, line
+
+
+def test_two_stage_ik_says_how_near_it_came(tmp_path, capsys):
+    """On a calibrated model (two stages, direct fall-back for failures) a target beyond
+    the reach gets closest_mm from the direct solve; solved targets their best solution."""
+    from hybrid_pk.ik import solve_ik_two_stage
+
+    robot = Robot.from_urdf("ur10")
+    model = ExtendedModel(robot, [make_effect(robot, "joint_offset:elbow_joint", 2e-3)])
+    model.requires_grad_(False)
+    T = _beyond_stretched(robot, [-0.05, 1e-4])
+    res = solve_ik_two_stage(robot, model, T)
+    assert res.failed.tolist() == [False, True]
+    assert float(res.closest_mm[0]) <= res.tol_mm
+    assert 1e-2 < float(res.closest_mm[1]) <= 0.1 + 1e-6
+    path = save_model(tmp_path / "m.pt", model)
+    targets = _write_targets(tmp_path / "t.csv", T)
+    rc, out, _ = _run(capsys, "ik", path, targets, "--out", tmp_path / "s.csv", "--no-progress")
+    assert rc == 0
+    assert f"1: {float(res.closest_mm[1]):.3g} mm" in out, out
+
+
+@pytest.mark.parametrize("box", [0.0, -0.1, float("nan")])
+def test_two_stage_ik_refuses_a_box_that_is_not_positive(box):
+    """solve_ik_two_stage(box=-0.1) gave lower > upper boxes and fell back to the direct
+    solve without a word; now a one-line error before any work."""
+    from hybrid_pk.errors import ShapeError
+    from hybrid_pk.ik import solve_ik_two_stage
+
+    robot = Robot.from_urdf("ur10")
+    model = ExtendedModel(robot, [make_effect(robot, "joint_offset:elbow_joint", 2e-3)])
+    with pytest.raises(ShapeError, match="box half-width must be > 0"):
+        solve_ik_two_stage(robot, model, _targets(robot, 1, seed=1), box=box)
+
+
+def test_targets_at_singular_configurations_are_named(tmp_path, capsys):
+    """The UR10 home pose (-pi, -pi/2, 0, -pi/2, 0, 0: elbow stretched, wrist_2 = 0) and a
+    pose with wrist_2 = 1e-4 have solutions that the tolerance does not pin down to the
+    1e-3 rad that tells solutions apart (before: 1 and 7-10 rows listed as if distinct
+    branches, without a word); a regular pose (wrist_2 = 0.7) gets no such note."""
+    robot = Robot.from_urdf("ur10")
+    q = torch.tensor(
+        [
+            [-torch.pi, -torch.pi / 2, 0.0, -torch.pi / 2, 0.0, 0.0],
+            [0.3, -1.0, 1.0, 0.5, 1e-4, 0.2],
+            [0.3, -1.0, 1.0, 0.5, 0.7, 0.2],
+        ],
+        dtype=F64,
+    )
+    with torch.no_grad():
+        T = robot.fk(q)
+    both = _write_targets(tmp_path / "t.csv", T)
+    rc, out, _ = _run(capsys, "ik", "nominal:ur10", both, "--out", tmp_path / "s.csv")
+    assert rc == 0
+    line = next(ln for ln in out.splitlines() if "singular configuration" in ln)
+    assert "2 target(s) (rows 0, 1, 0-based)" in line, line
+    regular = _write_targets(tmp_path / "r.csv", T[2:])
+    rc, out, _ = _run(capsys, "ik", "nominal:ur10", regular, "--out", tmp_path / "r_s.csv")
+    assert rc == 0
+    assert "singular configuration" not in out.replace(str(tmp_path), "")

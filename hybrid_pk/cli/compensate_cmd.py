@@ -153,8 +153,11 @@ def _controller(path: str, robot: Robot) -> Robot:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.box <= 0 or args.tol_mm <= 0 or args.tol_deg <= 0:
-        raise HybridPKError("--box, --tol-mm and --tol-deg must be positive")
+    if not (args.box > 0 and args.tol_mm > 0 and args.tol_deg > 0):  # NaN included
+        raise HybridPKError(
+            f"--box, --tol-mm and --tol-deg must be positive, got {args.box:g} rad, "
+            f"{args.tol_mm:g} mm, {args.tol_deg:g} deg"
+        )
     loaded, _model, robot, k = load_frozen_model(args)
     controller = _controller(args.controller, robot) if args.controller else None
     with data_notes():

@@ -13,6 +13,7 @@ from hybrid_pk.data import read_table_for
 from hybrid_pk.data.table import write_frame
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.ik import IKOptions, parse_approach
+from hybrid_pk.ik.dedup import REVOLUTE_TOL
 from hybrid_pk.ik.two_stage import DEFAULT_BOX
 from hybrid_pk.pipelines.solving import solve_targets, target_reach
 
@@ -111,8 +112,14 @@ def _read_targets(path: str, robot):
 def run(args: argparse.Namespace) -> int:
     if args.seeds < 1:
         raise HybridPKError(f"--seeds must be at least 1, got {args.seeds}")
-    if args.tol_mm <= 0 or args.tol_deg <= 0:
-        raise HybridPKError("--tol-mm and --tol-deg must be positive")
+    if not (args.tol_mm > 0 and args.tol_deg > 0):  # NaN included
+        raise HybridPKError(
+            f"--tol-mm and --tol-deg must be positive, got {args.tol_mm:g} mm, {args.tol_deg:g} deg"
+        )
+    if args.max_iterations < 1:
+        raise HybridPKError(f"--max-iterations must be at least 1, got {args.max_iterations}")
+    if not args.box > 0:  # NaN included
+        raise HybridPKError(f"--box must be > 0 [rad, m for prismatic joints], got {args.box}")
     loaded, _model, robot, k = load_frozen_model(args)
     data = _read_targets(args.targets, robot)
     options = IKOptions(
@@ -139,12 +146,12 @@ def run(args: argparse.Namespace) -> int:
     for note in job.notes:
         print(f"note: {note}")
     write_frame(args.out, job.frame)
-    _print_summary(args, loaded, robot, data, job.frame, job.two_stage)
+    _print_summary(args, loaded, robot, data, job)
     return 0
 
 
-def _print_summary(args, loaded, robot, data, frame, two_stage: bool) -> None:
-    n = data.n
+def _print_summary(args, loaded, robot, data, job) -> None:
+    n, frame, two_stage = data.n, job.frame, job.two_stage
     kind = "nominal URDF" if loaded.source.startswith("nominal:") else "model"
     if two_stage:
         kind += " (two stages: kinematics + frames, then the full model)"
@@ -167,12 +174,67 @@ def _print_summary(args, loaded, robot, data, frame, two_stage: bool) -> None:
             "listed are samples of it (one per start that converged apart), not distinct "
             "branches" + ("" if data.has_orientation else "; orientation columns fix more")
         )
+    if n_sol:
+        _singular(robot, frame, args, data.has_orientation)
     tol = f"{args.tol_mm:g} mm" + (f" / {args.tol_deg:g} deg" if data.has_orientation else "")
     failed = n - frame["target"].nunique()
     print(f"{failed} of {n} target(s) failed (no solution within {tol} and the joint limits)")
     if failed:
+        _closest(job, data.has_orientation)
         _beyond_reach(loaded, data, frame, args.frame_set or 0)
     print(f"wrote {args.out}")
+
+
+def _singular(robot, frame, args, has_orientation: bool) -> None:
+    """A note on targets solved at or near a singular configuration (stretched elbow,
+    wrist_2 = 0, ...): where the smallest singular value of the flange Jacobian (rotation
+    rows weighted like the solver's) times the distinctness tolerance (1e-3 rad) is below
+    the position tolerance, solutions within tolerance are not isolated at that
+    resolution, and rows of one target may sample one family or branch."""
+    fixed = 6 if has_orientation else 3
+    if robot.dof > fixed:  # a family anyway, said by the redundancy note
+        return
+    q = torch.tensor(frame[robot.joint_names].to_numpy(), dtype=robot.dtype)
+    with torch.no_grad():
+        J = robot.jacobian(q).to(torch.float64)
+    J = (
+        torch.cat([J[:, :3], IKOptions.rotation_weight * J[:, 3:]], 1)
+        if has_orientation
+        else J[:, :3]
+    )
+    sigma = torch.linalg.svdvals(J)[:, -1]  # [m/rad]
+    near = sigma * REVOLUTE_TOL < args.tol_mm * 1e-3
+    if not bool(near.any()):
+        return
+    targets = sorted({int(t) for t in frame["target"].to_numpy()[near.numpy()]})
+    rows = ", ".join(map(str, targets[:5])) + (", ..." if len(targets) > 5 else "")
+    print(
+        f"note: {len(targets)} target(s) (rows {rows}, 0-based) are reached at or near a "
+        f"singular configuration (smallest Jacobian singular value {float(sigma[near].min()):.2g} "
+        f"m/rad): joint changes beyond the {REVOLUTE_TOL:g} rad that tells solutions apart "
+        "stay within the tolerance there, so their rows may be samples of one family or "
+        "branch, not distinct branches"
+    )
+
+
+def _closest(job, has_orientation: bool) -> None:
+    """How near the solver came to each failed target (its best start), e.g. a measured
+    pose of a stretched arm a few micrometres beyond the model's reach."""
+    if job.closest_mm is None:
+        return
+    failed = torch.ones(job.closest_mm.numel(), dtype=torch.bool)
+    failed[torch.as_tensor(job.frame["target"].unique(), dtype=torch.long)] = False
+    rows = failed.nonzero()[:, 0]
+    parts = []
+    for i in rows[:5].tolist():
+        part = f"{i}: {float(job.closest_mm[i]):.3g} mm"
+        parts.append(part + (f" / {float(job.closest_deg[i]):.3g} deg" if has_orientation else ""))
+    more = f", ... (largest {float(job.closest_mm[rows].max()):.3g} mm)" if rows.numel() > 5 else ""
+    print(
+        f"note: closest the solver came to the failed target(s), row (0-based): "
+        f"{', '.join(parts)}{more}; a target that misses by micrometres lies just beyond the "
+        "reach (a stretched arm) or a limit: --tol-mm / --tol-deg accept it"
+    )
 
 
 def _beyond_reach(loaded, data, frame, k: int) -> None:

@@ -33,6 +33,12 @@ class IKResult:
         tol_deg: orientation tolerance [deg].
         position_only: True when the targets had no orientation.
         info: diagnostics (seeds, iterations, evaluations, stages, ...).
+        closest_mm: ``(*B,)`` [mm] position error of the start that came closest to
+            each target (least Levenberg-Marquardt cost, limits respected): for a
+            failed target, by how much the solver missed it (e.g. a target a few
+            micrometres beyond the reach of a stretched arm); NaN where not measured.
+        closest_deg: ``(*B,)`` [deg] orientation error of that start (NaN for
+            position-only targets).
     """
 
     q: Tensor
@@ -44,6 +50,8 @@ class IKResult:
     tol_deg: float
     position_only: bool = False
     info: dict = field(default_factory=dict)
+    closest_mm: Tensor | None = None
+    closest_deg: Tensor | None = None
 
     @property
     def batch_shape(self) -> tuple[int, ...]:

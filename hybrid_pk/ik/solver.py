@@ -28,6 +28,7 @@ from hybrid_pk.ik.batched_lm import LMOutput, LMSettings, batched_levenberg_marq
 from hybrid_pk.ik.conditions import Approach, resolve_conditions
 from hybrid_pk.ik.dedup import PRISMATIC_TOL, REVOLUTE_TOL, distinct_mask
 from hybrid_pk.ik.forward_model import IKModel, as_ik_model
+from hybrid_pk.ik.packing import concat_padded, pack
 from hybrid_pk.ik.result import IKResult
 from hybrid_pk.ik.seeds import quasi_random_seeds, seed_box
 from hybrid_pk.ik.two_precision import solve_two_precisions
@@ -35,11 +36,9 @@ from hybrid_pk.ik.two_precision import solve_two_precisions
 __all__ = [
     "IKOptions",
     "check_solutions",
-    "concat_padded",
-    "lexicographic_order",
+    "closest_attempt",
     "make_result",
     "no_autograd",
-    "pack",
     "plain",
     "prepare_targets",
     "solve_and_check",
@@ -124,7 +123,38 @@ def prepare_targets(targets: Tensor) -> tuple[Tensor, tuple[int, ...], bool]:
     bad = ~torch.isfinite(T).all(-1).all(-1)
     if bool(bad.any()):
         raise ShapeError(f"IK target {int(bad.nonzero()[0])} (flat index) is not finite")
+    if not position_only:
+        _check_rotations(T)
     return T, batch, position_only
+
+
+# [-] largest |R^T R - I| of a target rotation: float32 poses from a chain of products
+# are orthonormal to ~1e-6, and a defect of 1e-5 rad is already half the default
+# orientation tolerance (1e-3 deg = 1.7e-5 rad), which it would blur.
+ROTATION_TOL = 1e-5
+
+
+def _check_rotations(T: Tensor) -> None:
+    """One-line error for target poses that are not rigid transforms."""
+    R = T[:, :3, :3]
+    eye = torch.eye(3, dtype=T.dtype)
+    defect = (R.transpose(-1, -2) @ R - eye).abs().amax((-1, -2))
+    bottom = (T[:, 3] - T.new_tensor([0.0, 0.0, 0.0, 1.0])).abs().amax(-1)
+    for bad, what in (
+        (
+            defect > ROTATION_TOL,
+            lambda i: f"|R^T R - I| = {float(defect[i]):.3g} > {ROTATION_TOL:g}",
+        ),
+        (torch.linalg.det(R) < 0, lambda i: "det R = -1 (a reflection)"),
+        (bottom > ROTATION_TOL, lambda i: f"last row {T[i, 3].tolist()} is not [0, 0, 0, 1]"),
+    ):
+        if bool(bad.any()):
+            i = int(bad.nonzero()[0])
+            raise ShapeError(
+                f"IK target {i} (flat index) is not a pose: its rotation must be a proper "
+                f"rotation matrix and its last row [0, 0, 0, 1]; {what(i)} ({int(bad.sum())} "
+                "such target(s))"
+            )
 
 
 def check_solutions(
@@ -237,62 +267,19 @@ def solve_and_check(
     return out, ok, pos, ori
 
 
-def lexicographic_order(q: Tensor, valid: Tensor) -> Tensor:
-    """``(N, K)`` slot order per target: valid first, then by joint values."""
-    order = torch.arange(q.shape[1], device=q.device).expand(q.shape[0], -1)
-    for j in reversed(range(q.shape[-1])):
-        key = torch.take_along_dim(q[..., j], order, 1)
-        order = torch.take_along_dim(order, torch.argsort(key, dim=1, stable=True), 1)
-    key = torch.take_along_dim((~valid).to(torch.int8), order, 1)
-    return torch.take_along_dim(order, torch.argsort(key, dim=1, stable=True), 1)
-
-
-def pack(
-    q: Tensor, pos: Tensor, ori: Tensor, keep: Tensor
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Sort each target's kept slots first and cut to the largest count.
-
-    Args:
-        q: ``(N, K, dof)``; pos, ori, keep: ``(N, K)``.
-
-    Returns:
-        ``q (N, K', dof)``, ``pos``, ``ori``, ``valid`` with NaN in unused slots.
-    """
-    k = int(keep.sum(-1).max()) if keep.numel() else 0
-    # Only the first k slots of each target are returned: sort just those (the kept
-    # slots first, in their order, then padding) instead of all K seeds.
-    first = torch.argsort((~keep).to(torch.int8), dim=1, stable=True)[:, :k]
-    keep_k = torch.take_along_dim(keep, first, 1)
-    sub = lexicographic_order(torch.take_along_dim(q, first[..., None], 1), keep_k)
-    order = torch.take_along_dim(first, sub, 1)
-    valid = torch.take_along_dim(keep, order, 1)
-    q = torch.take_along_dim(q, order[..., None], 1)
-    pos = torch.take_along_dim(pos, order, 1)
-    ori = torch.take_along_dim(ori, order, 1)
-    nan = torch.tensor(math.nan, dtype=q.dtype, device=q.device)
-    return (
-        torch.where(valid[..., None], q, nan),
-        torch.where(valid, pos, nan),
-        torch.where(valid, ori, nan),
-        valid,
-    )
-
-
-def concat_padded(parts: list[tuple[Tensor, ...]], dof: int) -> tuple[Tensor, ...]:
-    """Concatenate packed ``(q, pos, ori, valid)`` chunks along targets, NaN-padded."""
-    if not parts:  # no targets at all
-        empty = torch.zeros(0, 0, dtype=F64)
-        return empty.reshape(0, 0, dof), empty, empty, empty.bool()
-    k = max((p[0].shape[1] for p in parts), default=0)
-    out_q, out_p, out_o, out_v = [], [], [], []
-    for q, pos, ori, valid in parts:
-        pad = k - q.shape[1]
-        n = q.shape[0]
-        out_q.append(torch.cat([q, q.new_full((n, pad, dof), math.nan)], 1))
-        out_p.append(torch.cat([pos, pos.new_full((n, pad), math.nan)], 1))
-        out_o.append(torch.cat([ori, ori.new_full((n, pad), math.nan)], 1))
-        out_v.append(torch.cat([valid, valid.new_zeros(n, pad)], 1))
-    return torch.cat(out_q), torch.cat(out_p), torch.cat(out_o), torch.cat(out_v)
+def closest_attempt(out: LMOutput, shape: tuple[int, int], options: IKOptions, position_only: bool):
+    """``(N,)`` position [mm] and orientation [deg] errors of each target's start with
+    the least Levenberg-Marquardt cost (the solver's own weighting), of ``S`` starts
+    each (``shape = (N, S)``): how near the solver came, also where nothing passed."""
+    pos = out.position_error.reshape(shape).to(F64)
+    rot = out.rotation_error.reshape(shape).to(F64)
+    cost = pos.square()
+    if not position_only:
+        cost = cost + (options.rotation_weight * rot).square()
+    best = cost.nan_to_num(math.inf).argmin(-1, keepdim=True)
+    mm = torch.take_along_dim(pos, best, 1)[:, 0] * 1e3
+    deg = torch.rad2deg(torch.take_along_dim(rot, best, 1)[:, 0])
+    return mm, torch.full_like(deg, math.nan) if position_only else deg
 
 
 def make_result(
@@ -302,9 +289,16 @@ def make_result(
     options: IKOptions,
     position_only: bool,
     info: dict,
+    closest: tuple[Tensor, Tensor] | None = None,
 ) -> IKResult:
     q, pos, ori, valid = concat_padded(parts, ikm.dof)
     k = q.shape[1]
+    if closest is None:  # refinement, baselines: the best solution (NaN where none)
+        p, o = (torch.cat([x, x.new_full((x.shape[0], 1), math.nan)], 1) for x in (pos, ori))
+        cost = (p * 1e-3).square() + (options.rotation_weight * o.deg2rad()).square()
+        cost = p if position_only else cost
+        best = cost.nan_to_num(math.inf).argmin(-1, keepdim=True)  # the NaN column if none
+        closest = p.gather(1, best)[:, 0], o.gather(1, best)[:, 0]
     return IKResult(
         q=q.reshape(*batch, k, ikm.dof),
         position_error_mm=pos.reshape(*batch, k),
@@ -315,6 +309,8 @@ def make_result(
         tol_deg=options.tol_deg,
         position_only=position_only,
         info=info,
+        closest_mm=closest[0].reshape(batch),
+        closest_deg=closest[1].reshape(batch),
     )
 
 
@@ -409,7 +405,7 @@ def solve_ik(
     s_per = start.shape[1]
     settings = options.lm_settings(position_only)
     per_batch = max(1, options.batch_size // s_per)
-    parts, iterations, evaluations = [], 0, 0
+    parts, near, iterations, evaluations = [], [], 0, 0
     t0 = time.perf_counter()
     for lo in range(0, n, per_batch):
         hi = min(n, lo + per_batch)
@@ -432,6 +428,7 @@ def solve_ik(
                 options.prismatic_tol,
             )
             parts.append(plain(*pack(q, pos.reshape(shape), ori.reshape(shape), keep)))
+        near.append(closest_attempt(out, shape, options, position_only))
         iterations += int(out.iterations.sum())
         evaluations += out.evaluations
         if progress is not None:
@@ -444,4 +441,5 @@ def solve_ik(
         "evaluations": evaluations,
         "seconds": time.perf_counter() - t0,
     }
-    return make_result(parts, batch, ikm, options, position_only, info)
+    closest = tuple(torch.cat(c) for c in zip(*near, strict=True)) if near else None
+    return make_result(parts, batch, ikm, options, position_only, info, closest)

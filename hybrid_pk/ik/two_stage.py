@@ -31,12 +31,12 @@ from hybrid_pk.ik.batched_lm import batched_levenberg_marquardt
 from hybrid_pk.ik.conditions import Approach, resolve_conditions
 from hybrid_pk.ik.dedup import distinct_mask
 from hybrid_pk.ik.forward_model import IKModel, as_ik_model
+from hybrid_pk.ik.packing import pack
 from hybrid_pk.ik.result import IKResult
 from hybrid_pk.ik.solver import (
     IKOptions,
     check_solutions,
     make_result,
-    pack,
     prepare_targets,
     solve_and_check,
     solve_ik,
@@ -86,6 +86,17 @@ def _scatter(n: int, k: int, rows: Tensor, slots: Tensor, *values: Tensor) -> li
     return out
 
 
+def _checked_box(box: float | Tensor) -> Tensor:
+    """The refinement box half-width as a tensor; one line for one that is not > 0."""
+    half = torch.as_tensor(box, dtype=F64)
+    if not bool((half > 0).all()):  # NaN included
+        raise ShapeError(
+            f"box: the refinement box half-width must be > 0 [rad, m for prismatic joints], "
+            f"got {box}"
+        )
+    return half
+
+
 def refine_ik(
     model,
     targets: Tensor,
@@ -124,7 +135,7 @@ def refine_ik(
     q_init, valid = _initial(initial, n, ikm.dof)
     rows, slots = valid.nonzero(as_tuple=True)
     q0 = q_init[rows, slots]
-    half = torch.as_tensor(box, dtype=F64).expand(ikm.dof)
+    half = _checked_box(box).expand(ikm.dof)
     lower = torch.maximum(q0 - half, ikm.lower)
     upper = torch.minimum(q0 + half, ikm.upper)
     t0 = time.perf_counter()
@@ -204,6 +215,7 @@ def solve_ik_two_stage(
     cond, assumed = resolve_conditions([cheap, expensive], cond, n_flat, approach)
     if robot is None and not isinstance(expensive, Robot | ExtendedModel):
         raise HybridPKError("two-stage IK on a callable model needs robot= or a Robot cheap model")
+    _checked_box(box)  # before the first stage's work
     coarse = _coarse_options(options, coarse_tol_mm, coarse_tol_deg)
     first = solve_ik(
         cheap,
@@ -289,7 +301,14 @@ def _replace_targets(result: IKResult, index: Tensor, other: IKResult) -> IKResu
         out[index, : b.shape[1]] = b
         parts.append(out.reshape(*batch, k, *tail))
     q, pos, ori, valid = parts
-    return replace(result, q=q, position_error_mm=pos, orientation_error_deg=ori, valid=valid)
+    closest = {}
+    for name in ("closest_mm", "closest_deg"):
+        mine, theirs = getattr(result, name), getattr(other, name)
+        if mine is not None and theirs is not None:
+            closest[name] = mine.reshape(n).index_copy(0, index, theirs.reshape(-1)).reshape(batch)
+    return replace(
+        result, q=q, position_error_mm=pos, orientation_error_deg=ori, valid=valid, **closest
+    )
 
 
 def wang_baseline(

@@ -47,6 +47,8 @@ class IKJob:
     frame: pd.DataFrame
     two_stage: bool
     notes: list[str] = field(default_factory=list)
+    closest_mm: torch.Tensor | None = None  # (N,) IKResult.closest_mm of every target
+    closest_deg: torch.Tensor | None = None
 
 
 def _expensive(loaded: LoadedModel, model: ExtendedModel):
@@ -107,7 +109,7 @@ def solve_targets(
         started(n, expensive is not None)
     if expensive is None:
         result = solve_ik(cheap, targets, extra_seeds=extra, progress=progress, **common)
-        return IKJob(solutions_frame(result), False, list(notes))
+        return IKJob(solutions_frame(result), False, list(notes), *_closest([result]))
     parts = []
     for lo in range(0, n, CHUNK):
         rows = torch.arange(lo, min(n, lo + CHUNK))
@@ -118,7 +120,15 @@ def solve_targets(
             )
         )  # fmt: skip
         progress(rows.numel())
-    return IKJob(solutions_frame(parts), True, list(notes))
+    return IKJob(solutions_frame(parts), True, list(notes), *_closest(parts))
+
+
+def _closest(results: list[IKResult]) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(N,)`` closest position [mm] and orientation [deg] errors of the chunks."""
+    return tuple(torch.cat([getattr(r, a).reshape(-1) for r in results]) for a in _CLOSEST)
+
+
+_CLOSEST = ("closest_mm", "closest_deg")
 
 
 def solutions_frame(results: IKResult | list[IKResult]) -> pd.DataFrame:
