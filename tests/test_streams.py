@@ -12,7 +12,12 @@ import torch
 
 from hybrid_pk.cli.main import main
 from hybrid_pk.data import read_table_for
-from hybrid_pk.data.streams import estimate_time_offset, interpolate_poses, synchronise
+from hybrid_pk.data.streams import (
+    OffsetEstimate,
+    estimate_time_offset,
+    interpolate_poses,
+    synchronise,
+)
 from hybrid_pk.effects import ExtendedModel, make_effect
 from hybrid_pk.errors import DataError
 from hybrid_pk.geometry import matrix_to_quat, quat_to_matrix, so3_exp
@@ -119,6 +124,27 @@ def test_streams_that_never_overlap_are_an_error(ur10):
     t_r, q, t_m, pos, _, _ = simulate_streams(ur10, 0.0, duration=3.0)
     with pytest.raises(DataError, match="do not overlap"):
         estimate_time_offset(t_r, q, t_m + 100.0, pos, ur10, max_offset=1.0)
+
+
+def test_streams_in_other_time_units_name_both_spans(ur10):
+    # a robot stream written in ms but read as s: the error shows the two spans
+    t_r, q, t_m, pos, _, _ = simulate_streams(ur10, 0.0, duration=3.0)
+    with pytest.raises(DataError, match="do not overlap") as info:
+        estimate_time_offset(1e3 * t_r, q, t_m, pos, ur10, max_offset=1.0)
+    message = str(info.value)
+    assert "robot t 0" in message, message
+    assert "tracker t -0.5" in message, message
+    assert "\n" not in message
+
+
+def test_offset_summary_beyond_max_offset_says_so_and_prints_no_nan():
+    est = OffsetEstimate(2.4998, 1.22, 0.045, 0.030, math.nan, (2.48, 2.52), 880, 1.0)
+    line = est.summary()
+    assert "nan" not in line, line
+    assert "beyond the 1 s" in line, line
+    inside = OffsetEstimate(0.037, 0.101, 1.0, 0.030, 1.95, (0.0, 0.2), 880, 1.0).summary()
+    assert "1.950 -> 0.030 mm" in inside, inside
+    assert "beyond" not in inside, inside
 
 
 def test_decreasing_robot_time_is_an_error_with_row(ur10):
