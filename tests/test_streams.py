@@ -181,3 +181,21 @@ def test_cli_import_streams_estimates_offset_and_writes_table(ur10, tmp_path, ca
     assert data.t is not None
     assert data.has_orientation
     assert data.n == len(t_r)
+
+
+def test_cli_repeated_time_stamp_names_file_row_and_column(ur10, tmp_path, capsys):
+    """A tracker sample logged twice (same t): before, 'row 1001, column 'tracker t':
+    tracker t: time stamps must increase' without the file; now the file, its row and
+    column t, on one line."""
+    t_r, q, t_m, pos, _, _ = simulate_streams(ur10, 0.0, duration=2.0)
+    joints = pd.DataFrame(q, columns=ur10.joint_names)
+    joints.insert(0, "t", t_r)
+    robot_csv, tracker_csv = tmp_path / "robot.csv", tmp_path / "tracker.csv"
+    joints.to_csv(robot_csv, index=False)
+    tracker = pd.DataFrame({"t": t_m, "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2]})
+    pd.concat([tracker.iloc[:1000], tracker.iloc[999:]]).to_csv(tracker_csv, index=False)
+    argv = ["import", "streams", str(robot_csv), str(tracker_csv), "--robot", "ur10"]
+    assert main([*argv, "--out", str(tmp_path / "table.csv"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert f"{tracker_csv}, row 1001, column 't'" in err, err
+    assert err.count("\n") == 1, err

@@ -323,7 +323,25 @@ def _read_streams(args: argparse.Namespace, names: list[str]):
         missing = [c for c in needed if c not in table.frame]
         if missing:
             raise DataError(f"the {label} stream map gives no {', '.join(missing)}", file=str(path))
+        _stamps_increase(table, path)
     return rs, ts
+
+
+def _stamps_increase(table, path) -> None:
+    """A stream's time stamps strictly increase: a repeated one (a sample logged twice)
+    would pair one time with two poses; the error names the file's row."""
+    t = table.frame["t"].to_numpy()
+    same = (t[1:] <= t[:-1]).nonzero()[0]
+    if same.size:
+        k = int(same[0]) + 1
+        rows = table.rows
+        raise DataError(
+            f"time stamp {t[k]:.9g} s repeats that of row {int(rows[k - 1])} (a sample "
+            "logged twice?); a stream's time stamps must increase",
+            file=str(path),
+            row=int(rows[k]),
+            column="t",
+        )
 
 
 def _run_streams(args: argparse.Namespace) -> int:
