@@ -199,3 +199,32 @@ def test_cli_repeated_time_stamp_names_file_row_and_column(ur10, tmp_path, capsy
     err = capsys.readouterr().err
     assert f"{tracker_csv}, row 1001, column 't'" in err, err
     assert err.count("\n") == 1, err
+
+
+def test_cli_streams_carry_temperature_and_refuse_kelvin(ur10, tmp_path, capsys):
+    """A robot stream with a temperature column [°C]: before, dropped without a word
+    unless a map named it; now carried into the table. A tracker stream's column in
+    kelvin: before, written as it was; now a one-line error naming file, row, column."""
+    t_r, q, t_m, pos, _, _ = simulate_streams(ur10, 0.0, duration=2.0)
+    joints = pd.DataFrame(q, columns=ur10.joint_names)
+    joints.insert(0, "t", t_r)
+    joints["temperature"] = np.linspace(20.0, 24.0, len(t_r))
+    robot_csv, tracker_csv = tmp_path / "robot.csv", tmp_path / "tracker.csv"
+    joints.to_csv(robot_csv, index=False)
+    tracker = pd.DataFrame({"t": t_m, "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2]})
+    tracker.to_csv(tracker_csv, index=False)
+    dst = tmp_path / "table.csv"
+    argv = ["import", "streams", str(robot_csv), str(tracker_csv), "--robot", "ur10"]
+    argv += ["--out", str(dst), "--no-progress"]
+    assert main(argv) == 0
+    data = read_table_for(dst, ur10)
+    assert data.temperature is not None
+    assert float(data.temperature.min()) >= 20.0
+    assert float(data.temperature.max()) <= 24.0
+    tracker["temperature"] = 293.15
+    tracker.to_csv(tracker_csv, index=False)
+    capsys.readouterr()
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"{tracker_csv}, row 1, column 'temperature'" in err, err
+    assert "kelvin" in err, err

@@ -257,8 +257,9 @@ orientations by SLERP); robot rows outside the tracker stream or in a tracker ga
 (beam break) are left out and reported. The table keeps t (robot clock, s).
 
 ROBOT_STREAM: t [s] and one column per joint (names as in the URDF) [rad];
-TRACKER_STREAM: t [s], x y z [m], optional qw qx qy qz. Other layouts: give a column
-map per stream (--robot-map, --tracker-map; see 'hybrid-pk import columns -h').
+TRACKER_STREAM: t [s], x y z [m], optional qw qx qy qz; a temperature column [°C] of
+either stream is carried. Other layouts: give a column map per stream (--robot-map,
+--tracker-map; see 'hybrid-pk import columns -h').
 """
 
 
@@ -303,17 +304,20 @@ def _stream_map(spec: str | None, args, prefix: str, default_columns: list[str])
 
 def _read_streams(args: argparse.Namespace, names: list[str]):
     """The robot and tracker streams as mapped tables, each checked for its columns."""
+    from hybrid_pk.data.cells import check_conditions
     from hybrid_pk.data.mapping import read_mapped
 
-    rmap = _stream_map(args.robot_map, args, "robot_", ["t", *names])
+    robot_cols = ["t", *names]
+    if args.robot_map is None:  # a temperature column is carried, as from the tracker
+        robot_cols += _present(args, "robot_", args.robot_stream, ["temperature"])
+    rmap = _stream_map(args.robot_map, args, "robot_", robot_cols)
     rs = read_mapped(args.robot_stream, rmap)
     tracker_cols = ["t", "x", "y", "z"]
     if args.tracker_map is None:
-        from hybrid_pk.data.mapping import source_columns
-
-        probe = _stream_map(None, args, "tracker_", ["t"])
-        if "qw" in source_columns(args.tracker_stream, probe):
-            tracker_cols += ["qw", "qx", "qy", "qz"]
+        extra = _present(args, "tracker_", args.tracker_stream, ["qw", "temperature"])
+        tracker_cols += (["qw", "qx", "qy", "qz"] if "qw" in extra else []) + [
+            c for c in extra if c != "qw"
+        ]
     tmap = _stream_map(args.tracker_map, args, "tracker_", tracker_cols)
     ts = read_mapped(args.tracker_stream, tmap)
     for label, table, path, needed in (
@@ -324,7 +328,18 @@ def _read_streams(args: argparse.Namespace, names: list[str]):
         if missing:
             raise DataError(f"the {label} stream map gives no {', '.join(missing)}", file=str(path))
         _stamps_increase(table, path)
+        if "temperature" in table.frame:  # kelvin or °F: one line naming file and row
+            temperature = table.frame["temperature"].to_numpy()
+            check_conditions(str(path), {"temperature": temperature}, table.rows)
     return rs, ts
+
+
+def _present(args: argparse.Namespace, prefix: str, path, wanted: list[str]) -> list[str]:
+    """Those of ``wanted`` that the stream file's header has."""
+    from hybrid_pk.data.mapping import source_columns
+
+    header = source_columns(path, _stream_map(None, args, prefix, ["t"]))
+    return [c for c in wanted if c in header]
 
 
 def _stamps_increase(table, path) -> None:
