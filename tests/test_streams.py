@@ -209,6 +209,7 @@ def test_cli_streams_carry_temperature_and_refuse_kelvin(ur10, tmp_path, capsys)
     joints = pd.DataFrame(q, columns=ur10.joint_names)
     joints.insert(0, "t", t_r)
     joints["temperature"] = np.linspace(20.0, 24.0, len(t_r))
+    joints["payload"] = 2.0  # not carried by a stream import: named, not dropped silently
     robot_csv, tracker_csv = tmp_path / "robot.csv", tmp_path / "tracker.csv"
     joints.to_csv(robot_csv, index=False)
     tracker = pd.DataFrame({"t": t_m, "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2]})
@@ -217,6 +218,7 @@ def test_cli_streams_carry_temperature_and_refuse_kelvin(ur10, tmp_path, capsys)
     argv = ["import", "streams", str(robot_csv), str(tracker_csv), "--robot", "ur10"]
     argv += ["--out", str(dst), "--no-progress"]
     assert main(argv) == 0
+    assert f"note: {robot_csv}: column(s) payload not carried" in capsys.readouterr().out
     data = read_table_for(dst, ur10)
     assert data.temperature is not None
     assert float(data.temperature.min()) >= 20.0

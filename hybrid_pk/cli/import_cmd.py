@@ -309,15 +309,16 @@ def _read_streams(args: argparse.Namespace, names: list[str]):
 
     robot_cols = ["t", *names]
     if args.robot_map is None:  # a temperature column is carried, as from the tracker
-        robot_cols += _present(args, "robot_", args.robot_stream, ["temperature"])
+        robot_cols += _present(args, "robot_", args.robot_stream, ["temperature"], robot_cols)
     rmap = _stream_map(args.robot_map, args, "robot_", robot_cols)
     rs = read_mapped(args.robot_stream, rmap)
     tracker_cols = ["t", "x", "y", "z"]
     if args.tracker_map is None:
-        extra = _present(args, "tracker_", args.tracker_stream, ["qw", "temperature"])
-        tracker_cols += (["qw", "qx", "qy", "qz"] if "qw" in extra else []) + [
-            c for c in extra if c != "qw"
-        ]
+        quat = ["qw", "qx", "qy", "qz"]
+        extra = _present(
+            args, "tracker_", args.tracker_stream, ["qw", "temperature"], tracker_cols + quat
+        )
+        tracker_cols += (quat if "qw" in extra else []) + [c for c in extra if c != "qw"]
     tmap = _stream_map(args.tracker_map, args, "tracker_", tracker_cols)
     ts = read_mapped(args.tracker_stream, tmap)
     for label, table, path, needed in (
@@ -334,11 +335,15 @@ def _read_streams(args: argparse.Namespace, names: list[str]):
     return rs, ts
 
 
-def _present(args: argparse.Namespace, prefix: str, path, wanted: list[str]) -> list[str]:
-    """Those of ``wanted`` that the stream file's header has."""
+def _present(args, prefix: str, path, wanted: list[str], used: list[str]) -> list[str]:
+    """Those of ``wanted`` that the stream file's header has; its columns that are
+    neither ``used`` nor wanted are named once as not carried."""
     from hybrid_pk.data.mapping import source_columns
 
     header = source_columns(path, _stream_map(None, args, prefix, ["t"]))
+    left = [c for c in header if c not in used and c not in wanted]
+    if left:
+        print(f"note: {path}: column(s) {', '.join(left)} not carried into the table")
     return [c for c in wanted if c in header]
 
 
