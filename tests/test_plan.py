@@ -262,6 +262,8 @@ def test_a_joint_box_in_degrees_is_refused(tmp_path, capsys, rx160):
     err = capsys.readouterr().err
     assert "reaches beyond its limits" in err, err
     assert "rad" in err
+    assert str(box) in err, err  # the file named (before: only 'joint box: joint_1 ...')
+    assert err.count("\n") == 1, err
     lo, hi = (float(x[0]) for x in rx160.joint_limits)
     box.write_text(json.dumps({"joint_1": [round(lo, 2) - 0.005, round(hi, 2) + 0.005]}))
     assert main(base) == 0

@@ -12,7 +12,12 @@ import torch
 
 from hybrid_pk.cli.main import main
 from hybrid_pk.data import read_table_for
-from hybrid_pk.data.streams import estimate_time_offset, interpolate_poses, synchronise
+from hybrid_pk.data.streams import (
+    OffsetEstimate,
+    estimate_time_offset,
+    interpolate_poses,
+    synchronise,
+)
 from hybrid_pk.effects import ExtendedModel, make_effect
 from hybrid_pk.errors import DataError
 from hybrid_pk.geometry import matrix_to_quat, quat_to_matrix, so3_exp
@@ -121,6 +126,27 @@ def test_streams_that_never_overlap_are_an_error(ur10):
         estimate_time_offset(t_r, q, t_m + 100.0, pos, ur10, max_offset=1.0)
 
 
+def test_streams_in_other_time_units_name_both_spans(ur10):
+    # a robot stream written in ms but read as s: the error shows the two spans
+    t_r, q, t_m, pos, _, _ = simulate_streams(ur10, 0.0, duration=3.0)
+    with pytest.raises(DataError, match="do not overlap") as info:
+        estimate_time_offset(1e3 * t_r, q, t_m, pos, ur10, max_offset=1.0)
+    message = str(info.value)
+    assert "robot t 0" in message, message
+    assert "tracker t -0.5" in message, message
+    assert "\n" not in message
+
+
+def test_offset_summary_beyond_max_offset_says_so_and_prints_no_nan():
+    est = OffsetEstimate(2.4998, 1.22, 0.045, 0.030, math.nan, (2.48, 2.52), 880, 1.0)
+    line = est.summary()
+    assert "nan" not in line, line
+    assert "beyond the 1 s" in line, line
+    inside = OffsetEstimate(0.037, 0.101, 1.0, 0.030, 1.95, (0.0, 0.2), 880, 1.0).summary()
+    assert "1.950 -> 0.030 mm" in inside, inside
+    assert "beyond" not in inside, inside
+
+
 def test_decreasing_robot_time_is_an_error_with_row(ur10):
     t_r, q, t_m, pos, _, _ = simulate_streams(ur10, 0.0, duration=2.0)
     t_r[10] = t_r[8]
@@ -155,3 +181,52 @@ def test_cli_import_streams_estimates_offset_and_writes_table(ur10, tmp_path, ca
     assert data.t is not None
     assert data.has_orientation
     assert data.n == len(t_r)
+
+
+def test_cli_repeated_time_stamp_names_file_row_and_column(ur10, tmp_path, capsys):
+    """A tracker sample logged twice (same t): before, 'row 1001, column 'tracker t':
+    tracker t: time stamps must increase' without the file; now the file, its row and
+    column t, on one line."""
+    t_r, q, t_m, pos, _, _ = simulate_streams(ur10, 0.0, duration=2.0)
+    joints = pd.DataFrame(q, columns=ur10.joint_names)
+    joints.insert(0, "t", t_r)
+    robot_csv, tracker_csv = tmp_path / "robot.csv", tmp_path / "tracker.csv"
+    joints.to_csv(robot_csv, index=False)
+    tracker = pd.DataFrame({"t": t_m, "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2]})
+    pd.concat([tracker.iloc[:1000], tracker.iloc[999:]]).to_csv(tracker_csv, index=False)
+    argv = ["import", "streams", str(robot_csv), str(tracker_csv), "--robot", "ur10"]
+    assert main([*argv, "--out", str(tmp_path / "table.csv"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert f"{tracker_csv}, row 1001, column 't'" in err, err
+    assert err.count("\n") == 1, err
+
+
+def test_cli_streams_carry_temperature_and_refuse_kelvin(ur10, tmp_path, capsys):
+    """A robot stream with a temperature column [°C]: before, dropped without a word
+    unless a map named it; now carried into the table. A tracker stream's column in
+    kelvin: before, written as it was; now a one-line error naming file, row, column."""
+    t_r, q, t_m, pos, _, _ = simulate_streams(ur10, 0.0, duration=2.0)
+    joints = pd.DataFrame(q, columns=ur10.joint_names)
+    joints.insert(0, "t", t_r)
+    joints["temperature"] = np.linspace(20.0, 24.0, len(t_r))
+    joints["payload"] = 2.0  # not carried by a stream import: named, not dropped silently
+    robot_csv, tracker_csv = tmp_path / "robot.csv", tmp_path / "tracker.csv"
+    joints.to_csv(robot_csv, index=False)
+    tracker = pd.DataFrame({"t": t_m, "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2]})
+    tracker.to_csv(tracker_csv, index=False)
+    dst = tmp_path / "table.csv"
+    argv = ["import", "streams", str(robot_csv), str(tracker_csv), "--robot", "ur10"]
+    argv += ["--out", str(dst), "--no-progress"]
+    assert main(argv) == 0
+    assert f"note: {robot_csv}: column(s) payload not carried" in capsys.readouterr().out
+    data = read_table_for(dst, ur10)
+    assert data.temperature is not None
+    assert float(data.temperature.min()) >= 20.0
+    assert float(data.temperature.max()) <= 24.0
+    tracker["temperature"] = 293.15
+    tracker.to_csv(tracker_csv, index=False)
+    capsys.readouterr()
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"{tracker_csv}, row 1, column 'temperature'" in err, err
+    assert "kelvin" in err, err

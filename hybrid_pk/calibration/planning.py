@@ -325,23 +325,26 @@ def travel_order(q: Tensor) -> Tensor:
     return torch.tensor(order)
 
 
-def _box(robot: Robot, box: Mapping[str, tuple[float, float]] | None) -> tuple[Tensor, Tensor]:
-    """The joint limits (2 % margin, as simulated campaigns use), cut to ``box``."""
+def box_bounds(
+    robot: Robot, box: Mapping[str, tuple[float, float]] | None, where: str = "joint box"
+) -> tuple[Tensor, Tensor]:
+    """The joint limits (2 % margin, as simulated campaigns use), cut to ``box``; errors
+    start with ``where`` (the ``--joint-box`` file on the command line)."""
     lo, hi = (x.to(F64).clone() for x in joint_box(robot))
     for name, (a, b) in (box or {}).items():
         if name not in robot.joint_names:
             raise HybridPKError(
-                f"joint box: unknown joint {name!r}; joints: {', '.join(robot.joint_names)}"
+                f"{where}: unknown joint {name!r}; joints: {', '.join(robot.joint_names)}"
             )
         j = robot.joint_names.index(name)
         if not (math.isfinite(a) and math.isfinite(b) and a < b):
-            raise HybridPKError(f"joint box: {name} needs lower < upper, got [{a}, {b}]")
+            raise HybridPKError(f"{where}: {name} needs lower < upper, got [{a}, {b}]")
         low, high = (float(x[j]) for x in robot.joint_limits)
         slack = LIMIT_MARGIN * (high - low)  # the margin the box keeps anyway
         lo[j], hi[j] = max(lo[j], a), min(hi[j], b)
         if lo[j] >= hi[j] or a < low - slack or b > high + slack:
             raise HybridPKError(
-                f"joint box: {name} [{a:g}, {b:g}] reaches beyond its limits [{low:.4f}, "
+                f"{where}: {name} [{a:g}, {b:g}] reaches beyond its limits [{low:.4f}, "
                 f"{high:.4f}]: joint values are in rad (m for prismatic)"
             )
     return lo, hi
@@ -405,7 +408,7 @@ def plan_poses(
     model = ExtendedModel(robot, [make_effect(robot, e) for e in kept], tool=tool)
     model.requires_grad_(False)
     blocks = param_blocks(model, None, position_only)
-    lo, hi = _box(robot, box)
+    lo, hi = box_bounds(robot, box)
     gen = torch.Generator().manual_seed(int(seed))
     report = progress or (lambda _stage, _step=None: None)
     q_cand = lo + torch.rand(candidates, robot.dof, generator=gen, dtype=F64) * (hi - lo)

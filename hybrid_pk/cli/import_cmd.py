@@ -257,8 +257,9 @@ orientations by SLERP); robot rows outside the tracker stream or in a tracker ga
 (beam break) are left out and reported. The table keeps t (robot clock, s).
 
 ROBOT_STREAM: t [s] and one column per joint (names as in the URDF) [rad];
-TRACKER_STREAM: t [s], x y z [m], optional qw qx qy qz. Other layouts: give a column
-map per stream (--robot-map, --tracker-map; see 'hybrid-pk import columns -h').
+TRACKER_STREAM: t [s], x y z [m], optional qw qx qy qz; a temperature column [°C] of
+either stream is carried. Other layouts: give a column map per stream (--robot-map,
+--tracker-map; see 'hybrid-pk import columns -h').
 """
 
 
@@ -303,17 +304,21 @@ def _stream_map(spec: str | None, args, prefix: str, default_columns: list[str])
 
 def _read_streams(args: argparse.Namespace, names: list[str]):
     """The robot and tracker streams as mapped tables, each checked for its columns."""
+    from hybrid_pk.data.cells import check_conditions
     from hybrid_pk.data.mapping import read_mapped
 
-    rmap = _stream_map(args.robot_map, args, "robot_", ["t", *names])
+    robot_cols = ["t", *names]
+    if args.robot_map is None:  # a temperature column is carried, as from the tracker
+        robot_cols += _present(args, "robot_", args.robot_stream, ["temperature"], robot_cols)
+    rmap = _stream_map(args.robot_map, args, "robot_", robot_cols)
     rs = read_mapped(args.robot_stream, rmap)
     tracker_cols = ["t", "x", "y", "z"]
     if args.tracker_map is None:
-        from hybrid_pk.data.mapping import source_columns
-
-        probe = _stream_map(None, args, "tracker_", ["t"])
-        if "qw" in source_columns(args.tracker_stream, probe):
-            tracker_cols += ["qw", "qx", "qy", "qz"]
+        quat = ["qw", "qx", "qy", "qz"]
+        extra = _present(
+            args, "tracker_", args.tracker_stream, ["qw", "temperature"], tracker_cols + quat
+        )
+        tracker_cols += (quat if "qw" in extra else []) + [c for c in extra if c != "qw"]
     tmap = _stream_map(args.tracker_map, args, "tracker_", tracker_cols)
     ts = read_mapped(args.tracker_stream, tmap)
     for label, table, path, needed in (
@@ -323,7 +328,40 @@ def _read_streams(args: argparse.Namespace, names: list[str]):
         missing = [c for c in needed if c not in table.frame]
         if missing:
             raise DataError(f"the {label} stream map gives no {', '.join(missing)}", file=str(path))
+        _stamps_increase(table, path)
+        if "temperature" in table.frame:  # kelvin or °F: one line naming file and row
+            temperature = table.frame["temperature"].to_numpy()
+            check_conditions(str(path), {"temperature": temperature}, table.rows)
     return rs, ts
+
+
+def _present(args, prefix: str, path, wanted: list[str], used: list[str]) -> list[str]:
+    """Those of ``wanted`` that the stream file's header has; its columns that are
+    neither ``used`` nor wanted are named once as not carried."""
+    from hybrid_pk.data.mapping import source_columns
+
+    header = source_columns(path, _stream_map(None, args, prefix, ["t"]))
+    left = [c for c in header if c not in used and c not in wanted]
+    if left:
+        print(f"note: {path}: column(s) {', '.join(left)} not carried into the table")
+    return [c for c in wanted if c in header]
+
+
+def _stamps_increase(table, path) -> None:
+    """A stream's time stamps strictly increase: a repeated one (a sample logged twice)
+    would pair one time with two poses; the error names the file's row."""
+    t = table.frame["t"].to_numpy()
+    same = (t[1:] <= t[:-1]).nonzero()[0]
+    if same.size:
+        k = int(same[0]) + 1
+        rows = table.rows
+        raise DataError(
+            f"time stamp {t[k]:.9g} s repeats that of row {int(rows[k - 1])} (a sample "
+            "logged twice?); a stream's time stamps must increase",
+            file=str(path),
+            row=int(rows[k]),
+            column="t",
+        )
 
 
 def _run_streams(args: argparse.Namespace) -> int:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 
-from hybrid_pk.calibration.planning import CRITERIA, Plan
+from hybrid_pk.calibration.planning import CRITERIA, Plan, box_bounds
 from hybrid_pk.cli.common import flag_values, load_robot, read_json, write_json
 from hybrid_pk.cli.effect_lists import effect_labels
 from hybrid_pk.cli.options import (
@@ -177,6 +177,8 @@ def run(args: argparse.Namespace) -> int:
     spec = args.effects.strip()
     labels = [] if spec == "none" else effect_labels(spec)
     box = read_joint_box(args.joint_box) if args.joint_box else None
+    if box:
+        box_bounds(robot, box, where=f"--joint-box {args.joint_box}")  # names the file
     with progress("plan", total=2, enabled=not args.no_progress) as bar:
         res = plan_to_file(
             robot, args.n, labels, args.out, box=box, progress=bar.report,

@@ -67,6 +67,7 @@ class OffsetEstimate:
         coarse_residual_mm: the same at ``coarse``.
         bounds: [s] interval of the refinement search.
         n_rows: robot rows used by the refinement.
+        max_offset: [s] the largest |offset| the cross-correlation searched.
     """
 
     offset: float
@@ -76,15 +77,27 @@ class OffsetEstimate:
     coarse_residual_mm: float
     bounds: tuple[float, float]
     n_rows: int
+    max_offset: float = math.inf
 
     def summary(self) -> str:
-        """One line for humans."""
-        return (
+        """One line for humans; says when the offset lies beyond ``max_offset``."""
+        before = (
+            f"{self.coarse_residual_mm:.3f} -> "
+            if math.isfinite(self.coarse_residual_mm)
+            else "(at the coarse offset these rows leave the tracker stream) "
+        )
+        line = (
             f"time offset {1e3 * self.offset:.3f} ms (tracker = robot + offset): speed "
             f"correlation {self.correlation:.3f} at {1e3 * self.coarse:.1f} ms, registration "
-            f"residual {self.coarse_residual_mm:.3f} -> {self.residual_mm:.3f} mm RMS "
-            f"({self.n_rows} rows)"
+            f"residual {before}{self.residual_mm:.3f} mm RMS ({self.n_rows} rows)"
         )
+        if abs(self.offset) > self.max_offset:
+            line += (
+                f"; note: beyond the {self.max_offset:g} s searched by the speed "
+                "correlation (max_offset): the registration search walked out to it; "
+                "check the residual against the tracker's noise"
+            )
+        return line
 
 
 def _correlation(a: np.ndarray, b: np.ndarray) -> float:
@@ -117,8 +130,10 @@ def _best_lag(
         scores[i] = _correlation(v_robot[inside][keep], other[keep])
     if not np.isfinite(scores).any():
         raise DataError(
-            "the robot and tracker streams do not overlap in time for any offset searched; "
-            "check both time columns and max_offset"
+            "the robot and tracker streams do not overlap in time for any offset searched: "
+            f"robot t {grid[0]:.6g}..{grid[-1]:.6g} s, tracker t {t_tr[0]:.6g}.."
+            f"{t_tr[-1]:.6g} s, offsets {lags[0]:.6g}..{lags[-1]:.6g} s (tracker = robot "
+            "+ offset); check both time columns (units: a ms column read as s) and max_offset"
         )
     i = int(np.argmax(scores))
     lag = float(lags[i])
@@ -357,4 +372,5 @@ def estimate_time_offset(
         coarse_residual_mm=search.cost(coarse, pick, frames),
         bounds=(float(lo), float(hi)),
         n_rows=len(pick),
+        max_offset=float(max_offset),
     )
