@@ -173,7 +173,8 @@ def restation(
     return {**errors, "ratio": ratio, "what": what, "hidden": hidden, "named": named}
 
 
-def _seeds(text: str) -> list[int]:
+def seed_list(text: str) -> list[int]:
+    """Seeds written ``A-B`` (inclusive) or ``A,B,...``."""
     if "-" in text:
         lo, hi = (int(s) for s in text.split("-"))
         return list(range(lo, hi + 1))
@@ -196,7 +197,7 @@ def main(argv=None) -> int:
         f"|{extra} hidden (x{args.scale:g}) |"
     )
     print("|---|---|---|---|---|---|" + ("---|---|" if hybrid else ""))
-    for seed in _seeds(args.seeds):
+    for seed in seed_list(args.seeds):
         with tempfile.TemporaryDirectory() as tmp:
             r = restation(
                 lambda s=seed: np.random.default_rng(s), seed, Path(tmp), args.scale,

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 import hybrid_pk as hpk
-from experiments.restation import column_arm, hidden_effects
+from experiments.restation import column_arm, hidden_effects, seed_list
 from hybrid_pk.cli.common import gravity_note
 from hybrid_pk.effects import Gravity
 from hybrid_pk.simulate import simulate_campaign
@@ -54,13 +54,6 @@ def _cause(c) -> str:
     return f"{c.effect}:{c.joint} {size:.3g} {c.unit} ({'-' if gain is None else f'{gain:.2f}'} mm)"
 
 
-def _seed_list(text: str) -> list[int]:
-    if "-" in text:
-        lo, hi = (int(s) for s in text.split("-"))
-        return list(range(lo, hi + 1))
-    return [int(s) for s in text.split(",")]
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--seeds", default="1-5", help="seeds, 'A-B' or 'A,B,...'")
@@ -75,7 +68,7 @@ def main(argv=None) -> int:
         "level-tracker | note | hidden |"
     )
     print("|---|---|---|---|---|---|")
-    for seed in _seed_list(args.seeds):
+    for seed in seed_list(args.seeds):
         cells = one_seed(seed, args.tilt, args.noise, args.rows, args.scale)
         print("| " + " | ".join(cells) + " |", flush=True)
     return 0

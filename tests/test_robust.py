@@ -49,16 +49,26 @@ def test_weights_costs_and_thresholds():
         assert stats.chi2.sf(outlier_threshold(dim), dim) == pytest.approx(6.334e-5, rel=1e-3)
 
 
-def test_outliers_are_listed_by_file_and_one_based_row():
-    n = 50
-    data = MeasuredData(
+def _rows(file_index: torch.Tensor, rows: torch.Tensor, sources: tuple[str, ...]) -> MeasuredData:
+    """Rows of a 6-joint robot, all zero, from ``sources`` (only the bookkeeping matters)."""
+    n = len(rows)
+    return MeasuredData(
         q=torch.zeros(n, 6, dtype=F64),
         position=torch.zeros(n, 3, dtype=F64),
         quat=None,
         joint_names=tuple(f"j{i}" for i in range(6)),
-        file_index=torch.tensor([0] * 25 + [1] * 25),
-        rows=torch.cat([torch.arange(1, 26), torch.arange(1, 26)]),
-        sources=("a.csv", "b.csv"),
+        file_index=file_index,
+        rows=rows,
+        sources=sources,
+    )
+
+
+def test_outliers_are_listed_by_file_and_one_based_row():
+    n = 50
+    data = _rows(
+        torch.tensor([0] * 25 + [1] * 25),
+        torch.cat([torch.arange(1, 26), torch.arange(1, 26)]),
+        ("a.csv", "b.csv"),
     )
     err = torch.full((n,), 0.05, dtype=F64)
     err[30], err[3] = 3.0, 0.5  # [mm] file b row 6, file a row 4
@@ -74,15 +84,7 @@ def test_round_off_is_no_outlier():
     diagnosis printed "1 outlier row(s) beyond 4 sigma: n3.csv:5 (7.32e-13)"). Below
     ``NOISE_FLOOR_MM`` nothing is noise, so nothing is an outlier; a real one still is."""
     n = 8
-    data = MeasuredData(
-        q=torch.zeros(n, 6, dtype=F64),
-        position=torch.zeros(n, 3, dtype=F64),
-        quat=None,
-        joint_names=tuple(f"j{i}" for i in range(6)),
-        file_index=torch.zeros(n, dtype=torch.long),
-        rows=torch.arange(1, n + 1),
-        sources=("n.csv",),
-    )
+    data = _rows(torch.zeros(n, dtype=torch.long), torch.arange(1, n + 1), ("n.csv",))
     err = torch.full((n,), 1e-13, dtype=F64)
     err[4] = 7.3e-13
     ori = torch.full((n,), 5e-15, dtype=F64)
