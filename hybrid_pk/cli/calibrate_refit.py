@@ -7,7 +7,6 @@ import argparse
 import math
 
 from hybrid_pk.calibration.settings import FitSettings
-from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.cli.calibrate_output import (
     error_summary,
     export_model_urdf,
@@ -23,6 +22,7 @@ from hybrid_pk.cli.common import (
     tilt_note,
 )
 from hybrid_pk.cli.fit_settings import fit_lines, robust_summary
+from hybrid_pk.cli.gross import gross_warning
 from hybrid_pk.cli.progress import progress
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.errors import HybridPKError
@@ -123,19 +123,16 @@ def _gross_warning(which: str, position_mm) -> str | None:
     """A warning when the re-fitted model still misses the rows by more than small
     corrections explain (the diagnosis' ``gross_error_mm``): more moved than the
     re-fitted frame, or the rows are not this robot's."""
-    gross = diagnosis_tuning().gross_error_mm
-    mean = float(position_mm.mean())
-    if mean <= gross:
-        return None
     refitted = (
         "the base and tool frames"
         if which == "frames"
         else f"the {which} frame (--refit frames re-fits both frames)"
     )
-    return (
-        f"warning: after the re-fit the model still misses these rows by {mean:.4g} mm "
-        f"(mean), more than small corrections make ({gross:g} mm): more changed than "
-        f"{refitted}, or the rows are not this robot's"
+    return gross_warning(
+        "after the re-fit the model still",
+        float(position_mm.mean()),
+        True,
+        cause=f"more changed than {refitted}, or the rows are not this robot's",
     )
 
 
