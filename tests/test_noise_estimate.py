@@ -142,5 +142,9 @@ def test_the_margin_line_says_how_the_noise_was_found():
     assert "fit's sigma 0.22 mm" in text
     assert "(--min-gain-mm)" in margin_text({**carry, "rule": "--min-gain-mm"})
     assert margin_text({**carry, "blocks": None}) is None  # no blocks: no margin used
+    # three digits, as every other line that names the margin (the steps, settle)
+    assert margin_text({**carry, "min_gain_mm": 0.001922124}).startswith(
+        "practical margin 0.00192 mm"
+    )
     # the check's size is the tuning's, not a fixed 50
     assert "/ sqrt(2 x 200)" in margin_text({**carry, "check_rows": 200})

@@ -102,6 +102,23 @@ def test_evaluation_figures_titled_with_rows_and_legends_clear(monkeypatch, tmp_
     assert len(set(styles)) == len(predictions)  # an equal pair of curves stays in view
 
 
+def test_evaluation_along_joints_in_degrees_like_the_diagnosis(monkeypatch, tmp_path):
+    """With the robot's joint types the along-joints axes read degrees (the diagnosis'
+    evidence unit) and span the joints' ranges in degrees; without them, rad."""
+    import hybrid_pk.report.evaluation_report as report
+
+    data, predictions = _campaign()
+    along = keep_figures(monkeypatch, report)
+    report.write_evaluation_report(tmp_path / "a", data, predictions, joint_types=["revolute"] * 6)
+    report.write_evaluation_report(tmp_path / "b", data, predictions)
+    deg, rad = along
+    assert all(ax.get_xlabel().endswith("[deg]") for ax in deg.axes if ax.get_visible())
+    assert all(ax.get_xlabel().endswith("[rad]") for ax in rad.axes if ax.get_visible())
+    span = float(data.q[:, 0].max() - data.q[:, 0].min())
+    x = deg.axes[0].get_lines()[0].get_xdata()
+    assert max(x) - min(x) > 0.8 * span * 180 / np.pi  # bin centres: 19 of 20 bin widths
+
+
 def test_outlier_plot_titled_threshold_in_view_legend_clear(monkeypatch, tmp_path):
     import hybrid_pk.report.limits as limits
     from hybrid_pk import Robot

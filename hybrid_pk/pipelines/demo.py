@@ -304,6 +304,7 @@ def _evaluate(out: Path, nominal, model, hybrid, split: _Split):
         predictions,
         title="Held-out evaluation",
         intro=f"{test.n} rows of the campaign that no diagnosis, calibration or training step saw.",
+        joint_types=model.robot.joint_types,
     )
     (out / "evaluation.json").write_text(json.dumps(results, indent=2))
     return report, results

@@ -137,4 +137,6 @@ def _report(path, label: str, loaded, data, cond: Conditions, sets: int, T, nomi
         "the nominal URDF whose base and tool frames were fitted to these same rows: "
         "what a user gets without calibration."
     )
-    return write_evaluation_report(path, data, predictions, intro=intro)[0]
+    return write_evaluation_report(
+        path, data, predictions, intro=intro, joint_types=robot.joint_types
+    )[0]

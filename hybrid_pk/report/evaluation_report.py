@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import itertools
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -38,9 +38,17 @@ def _slug(text: str) -> str:
     return "".join(c if c.isalnum() else "_" for c in text).strip("_").lower()
 
 
-def _along_joints(errors: Mapping[str, Tensor], data: MeasuredData, path: Path) -> Path:
-    """Binned mean position error of every model against every joint."""
-    q = data.q.detach().cpu().numpy()
+def _along_joints(
+    errors: Mapping[str, Tensor], data: MeasuredData, path: Path, joint_types=None
+) -> Path:
+    """Binned mean position error of every model against every joint: revolute joints
+    in degrees and prismatic ones in mm where ``joint_types`` are known (as the
+    diagnosis report draws them), the table's rad and m otherwise."""
+    q = data.q.detach().cpu().numpy().copy()
+    units = ["rad"] * q.shape[1]
+    for j, kind in enumerate(joint_types or ()):
+        q[:, j] *= 1000.0 if kind == "prismatic" else 180.0 / np.pi
+        units[j] = "mm" if kind == "prismatic" else "deg"
     dof = q.shape[1]
     cols = min(dof, 3)
     rows = -(-dof // cols)
@@ -62,7 +70,7 @@ def _along_joints(errors: Mapping[str, Tensor], data: MeasuredData, path: Path) 
             sums = np.bincount(which, weights=v, minlength=20)
             means = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
             ax.plot(centres, means, marker="o", ls=style, ms=3, label=name)
-        ax.set_xlabel(f"{data.joint_names[j]} [rad]")
+        ax.set_xlabel(f"{data.joint_names[j]} [{units[j]}]")
         ax.set_ylabel("mean position error [mm]" + (" (log scale)" if log else ""))
         if log:  # 1-2-5 ticks in plain numbers: every panel labelled within its range
             ax.set_yscale("log")
@@ -126,6 +134,7 @@ def write_evaluation_report(
     *,
     title: str = "Evaluation",
     intro: str = "",
+    joint_types: Sequence[str] | None = None,
 ) -> tuple[Path, dict[str, dict]]:
     """Write ``out/report.md`` (+ PNGs, ``evaluation.json``) comparing models on ``data``.
 
@@ -136,6 +145,8 @@ def write_evaluation_report(
             order of the table (the first is the baseline of the histograms).
         title: heading.
         intro: paragraph under the heading.
+        joint_types: the robot's ``"revolute"`` / ``"prismatic"`` per joint: the
+            along-joints figure then reads degrees and mm (None: rad and m).
 
     Returns:
         ``(path of report.md, {model label: contract-5 errors})``; ``evaluation.json``
@@ -175,7 +186,9 @@ def write_evaluation_report(
                 title=f"errors on {data.n} rows: {names[0]} vs {later}",
             )
             lines += [image(png, f"errors of {names[0]} and {later}", out), ""]
-    png = _along_joints({n: e[0] for n, e in errors.items()}, data, out / "error_along_joints.png")
+    png = _along_joints(
+        {n: e[0] for n, e in errors.items()}, data, out / "error_along_joints.png", joint_types
+    )
     lines += [
         "## Error along each joint",
         "",

@@ -97,7 +97,7 @@ def margin_text(carry_over: dict | None) -> str | None:
         if noise.get("sigma_mm") is not None
         else f"the fit's sigma {fit_sigma:.2g} mm (no pair of poses to compare)"
     )
-    head = f"practical margin {carry_over['min_gain_mm']:.2g} mm"
+    head = f"practical margin {carry_over['min_gain_mm']:.3g} mm"
     if carry_over["rule"] == "--min-gain-mm":
         return f"{head} (--min-gain-mm); noise: {how}"
     sigma, rows = carry_over["noise_position_mm"], carry_over["check_rows"]
