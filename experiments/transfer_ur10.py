@@ -19,11 +19,19 @@ model is made by the public command line (``hybrid-pk``, called in-process throu
    re-fit decides on its rows alone whether its networks are used
    (:mod:`hybrid_pk.pipelines.network_rule`); the verdict is reported.
 
+A third direction, ``pan`` (on request), stands for another *region* of the same robot
+(issue 27's held-back UR10 region: joint 1 turned where no training row was, frames
+re-fitted on 50 of its rows): the model is made on the rows of both series whose
+shoulder pan angle lies above the ``--pan-share`` quantile of Series A's
+(``--frames-per-file``), and carried to Series A's rows below it as to a new set-up
+(frames re-fitted on ``--refit-rows`` of them, judged on the rest).
+
 Writes ``OUT/results.json`` and ``OUT/results.md``; model files already in OUT are kept.
 Run from the repository root::
 
     nice -n 10 python experiments/transfer_ur10.py --out /tmp/ur10_transfer
     python experiments/transfer_ur10.py --out /tmp/ur10_tq --rows 2000 --epochs 20 --no-hybrid
+    python experiments/transfer_ur10.py --out /tmp/ur10_pan --directions pan
 """
 
 from __future__ import annotations
@@ -58,11 +66,20 @@ def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_data(p)
     p.add_argument("--out", type=Path, required=True, help="output directory (created)")
-    p.add_argument("--directions", default="A->B,B->A", help="from A->B, B->A (default: both)")
+    p.add_argument(
+        "--directions", default="A->B,B->A", help="from A->B, B->A, pan (default: A->B,B->A)"
+    )
+    p.add_argument(
+        "--pan-share",
+        type=float,
+        default=0.25,
+        help="pan direction: Series A's lowest share of shoulder pan angles is the new region",
+    )
     p.add_argument(
         "--rows",
         type=int,
-        help="fit on at most this many random rows of the fit series (default: all)",
+        help="fit on at most this many random rows of the fit series (pan: of each series) "
+        "(default: all)",
     )
     p.add_argument(
         "--refit-rows",
@@ -83,6 +100,31 @@ def parse_args(argv=None) -> argparse.Namespace:
 def write_rows(path: Path, data: MeasuredData, rows: np.ndarray) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     return write_table(path, data.subset(np.sort(rows)))
+
+
+def pan_files(out: Path, series: dict, args) -> dict:
+    """The ``pan`` direction's rows: both series above the pan threshold (one file
+    each; at most ``--rows`` random ones of each), Series A's rows below it split into
+    re-fit and judged rows."""
+    rng = np.random.default_rng(args.seed)
+    d = out / "pan"
+    j = series["A"].joint_names.index("shoulder_pan_joint")
+    below = float(np.quantile(series["A"].q[:, j].numpy(), args.pan_share))
+    fit = []
+    for key in ("A", "B"):
+        above = np.flatnonzero(series[key].q[:, j].numpy() >= below)
+        if args.rows is not None and args.rows < above.size:
+            above = rng.choice(above, size=args.rows, replace=False)
+        fit.append(write_rows(d / "fit" / f"{SERIES[key][1]}.parquet", series[key], above))
+    new = series["A"].subset(np.flatnonzero(series["A"].q[:, j].numpy() < below))
+    perm = rng.permutation(new.n)
+    name = f"{SERIES['A'][1]}_pan_below.parquet"
+    return {
+        "fit": fit,
+        "refit": write_rows(d / "refit" / name, new, perm[: args.refit_rows]),
+        "judge": write_rows(d / "judge" / name, new, perm[args.refit_rows :]),
+        "pan_below_rad": below,
+    }
 
 
 def direction_files(out: Path, series: dict, fit: str, judge: str, args) -> dict[str, Path]:
@@ -111,20 +153,22 @@ def direction_files(out: Path, series: dict, fit: str, judge: str, args) -> dict
 
 def fit_models(d: Path, files: dict, args, log: dict) -> list[str]:
     """Diagnosis and the models of the fit series; a model file already there is kept."""
+    fit_files = files["fit"] if isinstance(files["fit"], list) else [files["fit"]]
+    per_file = ["--frames-per-file"] if len(fit_files) > 1 else []
     diagnosis = d / "diagnosis.json"
     if args.effects:
         diagnosis = args.effects
     elif not diagnosis.exists():
-        run(["diagnose", files["fit"], "--robot", "ur10", "--seed", args.seed,
+        run(["diagnose", *fit_files, "--robot", "ur10", "--seed", args.seed, *per_file,
              "--json", diagnosis, "--report", d / "diagnosis_report"], log)  # fmt: skip
-    calibrate = ["calibrate", files["fit"], "--robot", "ur10", "--no-urdf"]
+    calibrate = ["calibrate", *fit_files, "--robot", "ur10", "--no-urdf", *per_file]
     keys = ["nominal_frames", "extended"] + ([] if args.no_hybrid else ["hybrid"])
     if not (d / "nominal_frames.pt").exists():
         run([*calibrate, "--effects", "none", "--out", d / "nominal_frames.pt"], log)
     if not (d / "extended.pt").exists():
         run([*calibrate, "--effects", diagnosis, "--out", d / "extended.pt"], log)
     if "hybrid" in keys and not (d / "hybrid.pt").exists():
-        train = ["train", files["fit"], "--model", d / "extended.pt", "--out", d / "hybrid.pt"]
+        train = ["train", *fit_files, "--model", d / "extended.pt", "--out", d / "hybrid.pt"]
         train += ["--seed", args.seed, "--logdir", d / "runs", "--no-progress"]
         train += [] if args.epochs is None else ["--epochs", args.epochs]
         run(train, log)
@@ -147,12 +191,16 @@ def judge_models(d: Path, files: dict, keys: list[str], log: dict) -> dict:
 def direction(out: Path, series: dict, robot: Robot, name: str, args, log: dict) -> dict:
     """Fit on one series, carry to the other (``name`` ``A->B`` or ``B->A``)."""
     fit, _, judge = name.partition("->")
-    d = out / f"{fit}_to_{judge}"
-    files = direction_files(out, series, fit, judge, args)
+    if name == "pan":
+        d, files = out / "pan", pan_files(out, series, args)
+    else:
+        d, files = out / f"{fit}_to_{judge}", direction_files(out, series, fit, judge, args)
     keys = fit_models(d, files, args, log)
     evaluated = judge_models(d, files, keys, log)
+    fit_files = files["fit"] if isinstance(files["fit"], list) else [files["fit"]]
     return {
-        "fit_rows": read_rows([files["fit"]], robot).n,
+        "fit_rows": read_rows(fit_files, robot).n,
+        "pan_below_rad": files.get("pan_below_rad"),
         "refit_rows": args.refit_rows,
         "judged_rows": evaluated[keys[0]]["n"],
         "causes": args.effects.split(",")
@@ -166,18 +214,25 @@ def direction(out: Path, series: dict, robot: Robot, name: str, args, log: dict)
 
 def write_markdown(results: dict, path: Path) -> None:
     lines = [
-        "# The shared UR10 as two set-ups",
+        "# The shared UR10 carried to another set-up or region",
         "",
         f"`{results['command']}`",
         "",
-        "Fitted on one series alone (defaults), frames re-fitted on random rows of the "
-        "other, judged on the rest of it. Position error [mm].",
+        "Fitted on one series alone (A->B, B->A) or on the rows of both above a shoulder "
+        "pan angle (pan), with the defaults; frames re-fitted on random rows of the other "
+        "series or of Series A below that angle, judged on the rest of them. Position "
+        "error [mm].",
     ]
     for name, res in results["directions"].items():
         lines += [
             "",
             f"## {name}: fitted on {res['fit_rows']} rows, frames re-fitted on "
-            f"{res['refit_rows']}, judged on {res['judged_rows']}",
+            f"{res['refit_rows']}, judged on {res['judged_rows']}"
+            + (
+                ""
+                if res.get("pan_below_rad") is None
+                else f" (Series A, shoulder pan < {res['pan_below_rad']:.3f} rad)"
+            ),
             "",
             f"Causes of the extended model: {', '.join(map(str, res['causes'])) or 'none'}",
             "",
@@ -217,8 +272,8 @@ def main(argv=None) -> int:
     series = {k: read_rows([f], robot) for k, f in import_series(out, args.data, log).items()}
     results["rows_of"] = {k: d.n for k, d in series.items()}
     for name in (s.strip() for s in args.directions.split(",") if s.strip()):
-        if name not in ("A->B", "B->A"):
-            raise SystemExit(f"unknown direction {name!r}: A->B or B->A")
+        if name not in ("A->B", "B->A", "pan"):
+            raise SystemExit(f"unknown direction {name!r}: A->B, B->A or pan")
         results["directions"][name] = direction(out, series, robot, name, args, log)
         results["seconds_total"] = time.perf_counter() - t_start
         results["log"] = log

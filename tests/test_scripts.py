@@ -89,19 +89,26 @@ def test_real_ur10_diagnoses_each_split_on_its_own_fit_rows_only(tmp_path):
 
 def test_transfer_ur10_carries_each_series_to_the_other(tmp_path):
     """experiments/transfer_ur10.py on 400 rows of each fit series, one epoch, named
-    effects (no diagnosis): both directions, frames re-fitted on 50 rows of the other
-    series, judged on the rest of it."""
+    effects (no diagnosis): both directions and the pan region (joint 1 turned where no
+    fit row was), frames re-fitted on 50 rows of the other series or region, judged on
+    the rest of it."""
     from experiments import transfer_ur10
 
     out = tmp_path / "transfer"
-    argv = ["--out", str(out), "--rows", "400", "--epochs", "1"]
+    argv = ["--out", str(out), "--rows", "400", "--epochs", "1", "--directions", "A->B,B->A,pan"]
     argv += ["--effects", "link_length:elbow_joint,link_length:wrist_1_joint"]
     assert transfer_ur10.main(argv) == 0
     results = json.loads((out / "results.json").read_text())
+    below = results["directions"]["pan"]["pan_below_rad"]
+    ur10 = transfer_ur10.Robot.from_urdf("ur10")
+    series = transfer_ur10.read_rows([out / "series" / "measurements_grid.parquet"], ur10)
+    new_region = int((series.q[:, 0] < below).sum())  # Series A below the pan angle
+    assert 0.2 * series.n < new_region < 0.3 * series.n  # --pan-share 0.25 of Series A
     judged = {"A->B": results["rows_of"]["B"] - 50, "B->A": results["rows_of"]["A"] - 50}
+    judged["pan"] = new_region - 50
     for name, res in results["directions"].items():
         assert res["judged_rows"] == judged[name]
-        assert res["fit_rows"] == 400
+        assert res["fit_rows"] == (800 if name == "pan" else 400)  # pan: 400 of each
         assert set(res["models"]) == {k for k, _ in transfer_ur10.MODELS}
         # the link lengths carry over: they beat nominal + frames on the other series
         assert res["models"]["extended"]["mean"] < res["models"]["nominal_frames"]["mean"]
