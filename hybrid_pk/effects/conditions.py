@@ -13,6 +13,7 @@ from torch import Tensor
 
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.errors import DataError, ShapeError
+from hybrid_pk.geometry.shapes import broadcast_shapes
 
 __all__ = ["Conditions", "approach_direction", "conditions_from_data"]
 
@@ -44,7 +45,7 @@ class Conditions:
             if not isinstance(x, Tensor):
                 continue
             try:
-                torch.broadcast_shapes(x.shape[: max(x.dim() - tail, 0)], batch)
+                broadcast_shapes(x.shape[: max(x.dim() - tail, 0)], batch)
             except RuntimeError:
                 raise ShapeError(
                     f"Conditions.{name} has batch {tuple(x.shape[: x.dim() - tail])}, q has "

@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.errors import ShapeError
-from hybrid_pk.geometry import rotation_angle, so3_log
+from hybrid_pk.geometry import broadcast_shapes, rotation_angle, so3_log
 
 if TYPE_CHECKING:
     from hybrid_pk.data.measured import MeasuredData
@@ -54,7 +54,7 @@ def _check_transforms(name: str, T: Tensor) -> None:
 
 def _check_batches(measured: torch.Size, model: torch.Size) -> None:
     try:
-        torch.broadcast_shapes(measured, model)
+        broadcast_shapes(measured, model)
     except RuntimeError:
         raise ShapeError(
             f"T_measured batch {tuple(measured)} and T_model batch {tuple(model)} do not "

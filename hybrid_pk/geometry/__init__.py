@@ -17,5 +17,6 @@ from hybrid_pk.geometry.rotations import so3_log as so3_log
 from hybrid_pk.geometry.rotations import transform as transform
 from hybrid_pk.geometry.rotations import transform_inverse as transform_inverse
 from hybrid_pk.geometry.rotations import vee_antisym as vee_antisym
+from hybrid_pk.geometry.shapes import broadcast_shapes as broadcast_shapes
 
-__all__ = list(rotations.__all__)
+__all__ = [*rotations.__all__, "broadcast_shapes"]

@@ -13,6 +13,7 @@ import functools
 import torch
 from torch import Tensor
 
+from hybrid_pk.geometry.shapes import broadcast_shapes
 from hybrid_pk.geometry.tangents import carried
 
 __all__ = [
@@ -217,7 +218,7 @@ def matrix_to_quat(R: Tensor) -> Tensor:
 
 def transform(R: Tensor, p: Tensor) -> Tensor:
     """Homogeneous transform from rotation ``(*B, 3, 3)`` and translation ``(*B, 3)`` [m]."""
-    batch = torch.broadcast_shapes(R.shape[:-2], p.shape[:-1])
+    batch = broadcast_shapes(R.shape[:-2], p.shape[:-1])
     top = torch.cat([R.expand(*batch, 3, 3), p.expand(*batch, 3).unsqueeze(-1)], -1)
     bottom = torch.zeros(*batch, 1, 4, dtype=top.dtype, device=top.device)
     bottom[..., 0, 3] = 1

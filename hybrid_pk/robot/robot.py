@@ -18,7 +18,7 @@ import torch
 from torch import Tensor, nn
 
 from hybrid_pk.errors import ShapeError
-from hybrid_pk.geometry import so3_exp
+from hybrid_pk.geometry import broadcast_shapes, so3_exp
 from hybrid_pk.robot.chain import (
     AlignedFK,
     ChainTerms,
@@ -274,7 +274,7 @@ class Robot(nn.Module):
             frames.append(frames[-1] @ local[..., i, :, :])
         frames.append(frames[-1] @ terms.tip)
         if terms.tip.dim() > 2:  # per-sample parameters: frames may broadcast wider than q
-            shape = torch.broadcast_shapes(*(f.shape for f in frames))
+            shape = broadcast_shapes(*(f.shape for f in frames))
             frames = [f.expand(shape) for f in frames]
         return torch.stack(frames, -3)
 
@@ -293,7 +293,7 @@ class Robot(nn.Module):
         """
         q = self.chain_q(self.check_q(q))
         terms = self._terms(params, q.dtype)
-        batch = torch.broadcast_shapes(q.shape[:-1], terms.tip.shape[:-2])
+        batch = broadcast_shapes(q.shape[:-1], terms.tip.shape[:-2])
         n = self.chain_dof
         qt = q.expand(*batch, n).reshape(-1, n).T
         _, _, J = pose_jacobian_batch_last(batch_last_terms(terms, batch), qt, self.chain_revolute)

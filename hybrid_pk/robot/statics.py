@@ -28,6 +28,7 @@ from torch import Tensor
 
 from hybrid_pk.errors import ShapeError
 from hybrid_pk.geometry.batch_last import compose, rotate
+from hybrid_pk.geometry.shapes import broadcast_shapes
 from hybrid_pk.robot.chain import ChainTerms, batch_last_terms, local_batch_last, plain_inputs
 
 __all__ = ["gravity_values", "statics_batch_last"]
@@ -120,7 +121,7 @@ def gravity_values(robot, q, payload, gravity, params=None, derivative: bool = F
     mode, torch.func), or off-chain bodies."""
     if isinstance(payload, Tensor) and isinstance(q, Tensor):  # both paths: said once here
         try:
-            torch.broadcast_shapes(payload.shape, q.shape[:-1])
+            broadcast_shapes(payload.shape, q.shape[:-1])
         except RuntimeError:
             raise ShapeError(
                 f"payload must be a float or (*B,) [kg] for q of batch {tuple(q.shape[:-1])}, "
@@ -139,7 +140,7 @@ def gravity_values(robot, q, payload, gravity, params=None, derivative: bool = F
     pay = torch.as_tensor(payload, dtype=dt)
     terms = robot.chain_terms(dt, params)
     per_sample = terms.M0.dim() > 3
-    batch = torch.broadcast_shapes(
+    batch = broadcast_shapes(
         q.shape[:-1], g.shape[:-1], pay.shape, terms.tip.shape[:-2] if per_sample else ()
     )
     n = robot.chain_dof
