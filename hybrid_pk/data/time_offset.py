@@ -23,6 +23,7 @@ from hybrid_pk.data.interpolation import (
     interpolate_poses,
     stream_times,
 )
+from hybrid_pk.data.point_frames import PointFrames
 from hybrid_pk.errors import DataError
 from hybrid_pk.geometry.registration import register_frames
 
@@ -149,48 +150,6 @@ def _rotations(quat: np.ndarray, dtype: torch.dtype) -> torch.Tensor:
     return torch.as_tensor(Rotation.from_quat(quat[:, [1, 2, 3, 0]]).as_matrix(), dtype=dtype)
 
 
-class _PointFrames:
-    """Least-squares base frame and tool point from positions: ``p ≈ R_B (R_F p_X + p_F) + p_B``.
-
-    Gauss-Newton from a closed-form registration, warm-started at each call so the
-    residual is the converged least-squares value (a smooth function of the offset).
-    """
-
-    def __init__(self, T_end: torch.Tensor, guess: tuple[torch.Tensor, torch.Tensor]) -> None:
-        T = T_end.double().numpy()
-        self.R_F, self.p_F = T[:, :3, :3], T[:, :3, 3]
-        base, tool = (g.double().numpy() for g in guess)
-        self.R_B, self.p_B = base[:3, :3], base[:3, 3]
-        self.p_X = tool[:3, 3]
-
-    def rms_mm(self, p: np.ndarray, iterations: int = 8) -> float:
-        R_B, p_B, p_X = self.R_B.copy(), self.p_B.copy(), self.p_X.copy()
-        k = len(p)
-        for _ in range(iterations):
-            a = np.einsum("kij,j->ki", self.R_F, p_X) + self.p_F
-            b = a @ R_B.T
-            r = b + p_B - p
-            J = np.zeros((k, 3, 9))
-            J[:, 0, 1], J[:, 0, 2] = b[:, 2], -b[:, 1]  # -[b]x: d(R_B a) for R_B <- exp(w) R_B
-            J[:, 1, 0], J[:, 1, 2] = -b[:, 2], b[:, 0]
-            J[:, 2, 0], J[:, 2, 1] = b[:, 1], -b[:, 0]
-            J[:, :, 3:6] = np.eye(3)
-            J[:, :, 6:9] = R_B @ self.R_F
-            Jf, rf = J.reshape(-1, 9), r.reshape(-1)
-            step = -np.linalg.solve(Jf.T @ Jf, Jf.T @ rf)
-            w = step[:3]
-            angle = float(np.linalg.norm(w))
-            if angle > 0:
-                K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]]) / angle
-                R_B = (np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K) @ R_B
-            p_B, p_X = p_B + step[3:6], p_X + step[6:9]
-            if float(np.abs(step).max()) < 1e-12:
-                break
-        a = np.einsum("kij,j->ki", self.R_F, p_X) + self.p_F
-        r = a @ R_B.T + p_B - p
-        return 1e3 * math.sqrt(float((r * r).sum(-1).mean()))
-
-
 class _OffsetSearch:
     """Both streams on common ground: speed profiles on uniform grids, the robot rows
     usable near an offset, and the registration residual as a function of the offset."""
@@ -256,19 +215,19 @@ class _OffsetSearch:
         count = min(self.refine_points, len(usable))
         return usable[np.unique(np.linspace(0, len(usable) - 1, count).round().astype(int))]
 
-    def cost(self, offset: float, pick: np.ndarray, frames: _PointFrames) -> float:
+    def cost(self, offset: float, pick: np.ndarray, frames: PointFrames) -> float:
         """RMS registration residual [mm] of rows ``pick`` at ``offset``."""
         times = self.t_r[pick] + offset
         p, _, _ = interpolate_poses(self.t_m, self.pos, None, times, self.max_gap)
         return frames.rms_mm(p)
 
-    def registered(self, offset: float, pick: np.ndarray) -> _PointFrames:
+    def registered(self, offset: float, pick: np.ndarray) -> PointFrames:
         """Frames registered on rows ``pick`` at ``offset`` (the warm start of ``cost``)."""
         times = self.t_r[pick] + offset
         p, qq, _ = interpolate_poses(self.t_m, self.pos, self.quat, times, self.max_gap)
         R = None if qq is None else _rotations(qq, self.T_all.dtype)
         T = self.T_all[pick]
-        return _PointFrames(T, register_frames(T, torch.as_tensor(p), R))
+        return PointFrames.from_guess(T, register_frames(T, torch.as_tensor(p), R))
 
     def refine(self, centre: float, half_width: float):
         """Bounded search of ``cost``, re-centred while the minimum sits on a bound.
