@@ -17,6 +17,7 @@ import torch
 from scipy.optimize import minimize_scalar
 from scipy.spatial.transform import Rotation
 
+from hybrid_pk.data.clock_jump import ClockJump, find_clock_jumps
 from hybrid_pk.data.interpolation import (
     GAP_FACTOR,
     checked_array,
@@ -27,7 +28,7 @@ from hybrid_pk.data.point_frames import PointFrames
 from hybrid_pk.errors import DataError
 from hybrid_pk.geometry.registration import register_frames
 
-__all__ = ["OffsetEstimate", "estimate_time_offset", "speed_profile"]
+__all__ = ["OffsetEstimate", "check_clock_jumps", "estimate_time_offset", "speed_profile"]
 
 GRID_DT = 1e-3  # [s] resampling step of the speed profiles
 SMOOTH_S = 0.02  # [s] box filter and difference span of the speed profiles
@@ -69,6 +70,7 @@ class OffsetEstimate:
         bounds: [s] interval of the refinement search.
         n_rows: robot rows used by the refinement.
         max_offset: [s] the largest |offset| the cross-correlation searched.
+        jumps: steps of the offset inside the streams (:mod:`~hybrid_pk.data.clock_jump`).
     """
 
     offset: float
@@ -79,6 +81,7 @@ class OffsetEstimate:
     bounds: tuple[float, float]
     n_rows: int
     max_offset: float = math.inf
+    jumps: tuple[ClockJump, ...] = ()
 
     def summary(self) -> str:
         """One line for humans; says when the offset lies beyond ``max_offset``."""
@@ -229,6 +232,14 @@ class _OffsetSearch:
         T = self.T_all[pick]
         return PointFrames.from_guess(T, register_frames(T, torch.as_tensor(p), R))
 
+    def jumps(self, offset: float, pick: np.ndarray, frames: PointFrames) -> tuple[ClockJump, ...]:
+        """Steps of the offset inside the streams, at the frames registered on ``pick``."""
+        p, _, _ = interpolate_poses(self.t_m, self.pos, None, self.t_r[pick] + offset, self.max_gap)
+        pose = frames.fit(p)
+        return find_clock_jumps(
+            self.t_r, self.T_all, self.t_m, self.pos, offset, pose, self.max_gap
+        )
+
     def refine(self, centre: float, half_width: float):
         """Bounded search of ``cost``, re-centred while the minimum sits on a bound.
 
@@ -323,6 +334,7 @@ def estimate_time_offset(
     # disagreement of the two coarse stages.
     half_width = max(refine_window, 1.5 * abs(coarse - lag0))
     res, (lo, hi), pick, frames = search.refine(coarse, half_width)
+    jumps = search.jumps(float(res.x), pick, frames)
     return OffsetEstimate(
         offset=float(res.x),
         coarse=float(coarse),
@@ -332,4 +344,24 @@ def estimate_time_offset(
         bounds=(float(lo), float(hi)),
         n_rows=len(pick),
         max_offset=float(max_offset),
+        jumps=jumps,
     )
+
+
+def check_clock_jumps(
+    robot_t: Any, q: Any, tracker_t: Any, position: Any, robot: Any, offset: float, quat: Any = None
+) -> tuple[ClockJump, ...]:
+    """Steps of a known ``offset`` [s] inside the streams (:mod:`~hybrid_pk.data.clock_jump`);
+    the arguments as in :func:`estimate_time_offset`. :func:`estimate_time_offset` runs the
+    same test at its own estimate (``OffsetEstimate.jumps``)."""
+    t_r, q, t_m, pos, quat_np = _checked_streams(robot_t, q, tracker_t, position, quat)
+    with torch.no_grad():
+        T_all = robot.fk(torch.as_tensor(q, dtype=robot.dtype)).double()
+    search = _OffsetSearch(
+        t_r, T_all, t_m, pos, quat_np, smooth=SMOOTH_S, grid_dt=GRID_DT, refine_points=REFINE_POINTS
+    )
+    try:
+        pick = search.rows_near(float(offset), 0.0)
+    except DataError:  # under 10 rows overlap: nothing to test (synchronise says why)
+        return ()
+    return search.jumps(float(offset), pick, search.registered(float(offset), pick))
