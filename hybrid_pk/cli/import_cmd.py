@@ -255,6 +255,10 @@ minimises the closed-form frame registration residual) unless --offset is given.
 The tracker poses are then interpolated at the robot times (positions linearly,
 orientations by SLERP); robot rows outside the tracker stream or in a tracker gap
 (beam break) are left out and reported. The table keeps t (robot clock, s).
+A clock jump inside the streams (the offset stepping between two rows) is a
+warning naming the robot stream's row and the offsets before and after it
+(significance: two-sided z, Bonferroni over the rows tried, alpha 0.001); the
+table keeps one offset: split the streams there.
 
 ROBOT_STREAM: t [s] and one column per joint (names as in the URDF) [rad];
 TRACKER_STREAM: t [s], x y z [m], optional qw qx qy qz; a temperature column [°C] of
@@ -369,7 +373,7 @@ def _run_streams(args: argparse.Namespace) -> int:
 
     from hybrid_pk.cli.common import load_robot
     from hybrid_pk.cli.progress import progress
-    from hybrid_pk.data.streams import estimate_time_offset, synchronise
+    from hybrid_pk.data.streams import check_clock_jumps, estimate_time_offset, synchronise
     from hybrid_pk.data.table import write_table
 
     if args.every < 1:
@@ -391,9 +395,12 @@ def _run_streams(args: argparse.Namespace) -> int:
                 t_r, q, t_m, pos, robot, quat=quat, max_offset=args.max_offset
             )
         print(est.summary())
-        offset = est.offset
+        offset, jumps = est.offset, est.jumps
     else:
         offset = args.offset
+        jumps = check_clock_jumps(t_r, q, t_m, pos, robot, offset, quat=quat)
+    for jump in jumps:  # the table keeps one offset: the user splits the streams
+        print(f"warning: {jump.summary(str(args.robot_stream), rs.rows)}")
     temperature = rs.frame["temperature"].to_numpy() if "temperature" in rs.frame else None
     tracker_temperature = ts.frame["temperature"].to_numpy() if "temperature" in ts.frame else None
     sync = synchronise(

@@ -8,7 +8,8 @@
 - importers: :mod:`~hybrid_pk.data.mapping` (any export through a column map),
   :mod:`~hybrid_pk.data.ipa` (the published UR10 laser-tracker data),
   :mod:`~hybrid_pk.data.streams` (a robot joint stream and a tracker stream on two
-  clocks).
+  clocks; the offset in :mod:`~hybrid_pk.data.time_offset`, clock jumps inside the
+  streams in :mod:`~hybrid_pk.data.clock_jump`).
 """
 
 from hybrid_pk.data import table

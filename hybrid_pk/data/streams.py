@@ -31,7 +31,10 @@ so the tracker sample of robot row ``k`` is the one at ``t_k + offset``.
    break) are left out and reported. The result keeps ``t`` (robot clock).
 
 The offset is a constant: a clock rate difference (drift) of the two devices is not
-modelled; over long campaigns estimate the offset per segment.
+modelled; over long campaigns estimate the offset per segment. A step of the offset
+inside the streams (a clock jump) is tested for at the estimate (or at a given offset:
+:func:`check_clock_jumps`) and reported with the row and the offsets of both parts
+(:mod:`hybrid_pk.data.clock_jump`).
 """
 
 from __future__ import annotations
@@ -41,18 +44,26 @@ from typing import Any
 
 import numpy as np
 
+from hybrid_pk.data.clock_jump import ClockJump
 from hybrid_pk.data.interpolation import (
     checked_array,
     interpolate_poses,
     stream_times,
 )
 from hybrid_pk.data.measured import MeasuredData
-from hybrid_pk.data.time_offset import OffsetEstimate, estimate_time_offset, speed_profile
+from hybrid_pk.data.time_offset import (
+    OffsetEstimate,
+    check_clock_jumps,
+    estimate_time_offset,
+    speed_profile,
+)
 from hybrid_pk.errors import DataError
 
 __all__ = [
+    "ClockJump",
     "OffsetEstimate",
     "SyncResult",
+    "check_clock_jumps",
     "estimate_time_offset",
     "interpolate_poses",
     "speed_profile",

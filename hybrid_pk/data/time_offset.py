@@ -17,16 +17,18 @@ import torch
 from scipy.optimize import minimize_scalar
 from scipy.spatial.transform import Rotation
 
+from hybrid_pk.data.clock_jump import ClockJump, find_clock_jumps
 from hybrid_pk.data.interpolation import (
     GAP_FACTOR,
     checked_array,
     interpolate_poses,
     stream_times,
 )
+from hybrid_pk.data.point_frames import PointFrames
 from hybrid_pk.errors import DataError
 from hybrid_pk.geometry.registration import register_frames
 
-__all__ = ["OffsetEstimate", "estimate_time_offset", "speed_profile"]
+__all__ = ["OffsetEstimate", "check_clock_jumps", "estimate_time_offset", "speed_profile"]
 
 GRID_DT = 1e-3  # [s] resampling step of the speed profiles
 SMOOTH_S = 0.02  # [s] box filter and difference span of the speed profiles
@@ -68,6 +70,7 @@ class OffsetEstimate:
         bounds: [s] interval of the refinement search.
         n_rows: robot rows used by the refinement.
         max_offset: [s] the largest |offset| the cross-correlation searched.
+        jumps: steps of the offset inside the streams (:mod:`~hybrid_pk.data.clock_jump`).
     """
 
     offset: float
@@ -78,6 +81,7 @@ class OffsetEstimate:
     bounds: tuple[float, float]
     n_rows: int
     max_offset: float = math.inf
+    jumps: tuple[ClockJump, ...] = ()
 
     def summary(self) -> str:
         """One line for humans; says when the offset lies beyond ``max_offset``."""
@@ -149,48 +153,6 @@ def _rotations(quat: np.ndarray, dtype: torch.dtype) -> torch.Tensor:
     return torch.as_tensor(Rotation.from_quat(quat[:, [1, 2, 3, 0]]).as_matrix(), dtype=dtype)
 
 
-class _PointFrames:
-    """Least-squares base frame and tool point from positions: ``p ≈ R_B (R_F p_X + p_F) + p_B``.
-
-    Gauss-Newton from a closed-form registration, warm-started at each call so the
-    residual is the converged least-squares value (a smooth function of the offset).
-    """
-
-    def __init__(self, T_end: torch.Tensor, guess: tuple[torch.Tensor, torch.Tensor]) -> None:
-        T = T_end.double().numpy()
-        self.R_F, self.p_F = T[:, :3, :3], T[:, :3, 3]
-        base, tool = (g.double().numpy() for g in guess)
-        self.R_B, self.p_B = base[:3, :3], base[:3, 3]
-        self.p_X = tool[:3, 3]
-
-    def rms_mm(self, p: np.ndarray, iterations: int = 8) -> float:
-        R_B, p_B, p_X = self.R_B.copy(), self.p_B.copy(), self.p_X.copy()
-        k = len(p)
-        for _ in range(iterations):
-            a = np.einsum("kij,j->ki", self.R_F, p_X) + self.p_F
-            b = a @ R_B.T
-            r = b + p_B - p
-            J = np.zeros((k, 3, 9))
-            J[:, 0, 1], J[:, 0, 2] = b[:, 2], -b[:, 1]  # -[b]x: d(R_B a) for R_B <- exp(w) R_B
-            J[:, 1, 0], J[:, 1, 2] = -b[:, 2], b[:, 0]
-            J[:, 2, 0], J[:, 2, 1] = b[:, 1], -b[:, 0]
-            J[:, :, 3:6] = np.eye(3)
-            J[:, :, 6:9] = R_B @ self.R_F
-            Jf, rf = J.reshape(-1, 9), r.reshape(-1)
-            step = -np.linalg.solve(Jf.T @ Jf, Jf.T @ rf)
-            w = step[:3]
-            angle = float(np.linalg.norm(w))
-            if angle > 0:
-                K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]]) / angle
-                R_B = (np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K) @ R_B
-            p_B, p_X = p_B + step[3:6], p_X + step[6:9]
-            if float(np.abs(step).max()) < 1e-12:
-                break
-        a = np.einsum("kij,j->ki", self.R_F, p_X) + self.p_F
-        r = a @ R_B.T + p_B - p
-        return 1e3 * math.sqrt(float((r * r).sum(-1).mean()))
-
-
 class _OffsetSearch:
     """Both streams on common ground: speed profiles on uniform grids, the robot rows
     usable near an offset, and the registration residual as a function of the offset."""
@@ -256,19 +218,27 @@ class _OffsetSearch:
         count = min(self.refine_points, len(usable))
         return usable[np.unique(np.linspace(0, len(usable) - 1, count).round().astype(int))]
 
-    def cost(self, offset: float, pick: np.ndarray, frames: _PointFrames) -> float:
+    def cost(self, offset: float, pick: np.ndarray, frames: PointFrames) -> float:
         """RMS registration residual [mm] of rows ``pick`` at ``offset``."""
         times = self.t_r[pick] + offset
         p, _, _ = interpolate_poses(self.t_m, self.pos, None, times, self.max_gap)
         return frames.rms_mm(p)
 
-    def registered(self, offset: float, pick: np.ndarray) -> _PointFrames:
+    def registered(self, offset: float, pick: np.ndarray) -> PointFrames:
         """Frames registered on rows ``pick`` at ``offset`` (the warm start of ``cost``)."""
         times = self.t_r[pick] + offset
         p, qq, _ = interpolate_poses(self.t_m, self.pos, self.quat, times, self.max_gap)
         R = None if qq is None else _rotations(qq, self.T_all.dtype)
         T = self.T_all[pick]
-        return _PointFrames(T, register_frames(T, torch.as_tensor(p), R))
+        return PointFrames.from_guess(T, register_frames(T, torch.as_tensor(p), R))
+
+    def jumps(self, offset: float, pick: np.ndarray, frames: PointFrames) -> tuple[ClockJump, ...]:
+        """Steps of the offset inside the streams, at the frames registered on ``pick``."""
+        p, _, _ = interpolate_poses(self.t_m, self.pos, None, self.t_r[pick] + offset, self.max_gap)
+        pose = frames.fit(p)
+        return find_clock_jumps(
+            self.t_r, self.T_all, self.t_m, self.pos, offset, pose, self.max_gap
+        )
 
     def refine(self, centre: float, half_width: float):
         """Bounded search of ``cost``, re-centred while the minimum sits on a bound.
@@ -364,6 +334,7 @@ def estimate_time_offset(
     # disagreement of the two coarse stages.
     half_width = max(refine_window, 1.5 * abs(coarse - lag0))
     res, (lo, hi), pick, frames = search.refine(coarse, half_width)
+    jumps = search.jumps(float(res.x), pick, frames)
     return OffsetEstimate(
         offset=float(res.x),
         coarse=float(coarse),
@@ -373,4 +344,24 @@ def estimate_time_offset(
         bounds=(float(lo), float(hi)),
         n_rows=len(pick),
         max_offset=float(max_offset),
+        jumps=jumps,
     )
+
+
+def check_clock_jumps(
+    robot_t: Any, q: Any, tracker_t: Any, position: Any, robot: Any, offset: float, quat: Any = None
+) -> tuple[ClockJump, ...]:
+    """Steps of a known ``offset`` [s] inside the streams (:mod:`~hybrid_pk.data.clock_jump`);
+    the arguments as in :func:`estimate_time_offset`. :func:`estimate_time_offset` runs the
+    same test at its own estimate (``OffsetEstimate.jumps``)."""
+    t_r, q, t_m, pos, quat_np = _checked_streams(robot_t, q, tracker_t, position, quat)
+    with torch.no_grad():
+        T_all = robot.fk(torch.as_tensor(q, dtype=robot.dtype)).double()
+    search = _OffsetSearch(
+        t_r, T_all, t_m, pos, quat_np, smooth=SMOOTH_S, grid_dt=GRID_DT, refine_points=REFINE_POINTS
+    )
+    try:
+        pick = search.rows_near(float(offset), 0.0)
+    except DataError:  # under 10 rows overlap: nothing to test (synchronise says why)
+        return ()
+    return search.jumps(float(offset), pick, search.registered(float(offset), pick))
