@@ -32,7 +32,7 @@ from hybrid_pk.geometry import vee_antisym
 from hybrid_pk.robot import Robot
 from hybrid_pk.robot.kernel import ChainKernel
 
-__all__ = ["IKModel", "as_ik_model", "autograd_pose_jacobian"]
+__all__ = ["IKModel", "as_ik_model", "autograd_pose_jacobian", "no_autograd", "plain"]
 
 PoseFn = Callable[[Tensor, Tensor], Tensor]
 PoseJacobianFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
@@ -243,3 +243,16 @@ def as_ik_model(
         analytic=a.analytic,
         batch_last=a.batch_last,
     )
+
+
+def no_autograd(ikm: IKModel):
+    """The chain kernel needs no autograd at all: inference mode skips the view and
+    version bookkeeping of the iteration's many small tensor operations (~15 % of an
+    IK call, bench/ik.py); other models may need autograd for their Jacobian. Only for
+    pure tensor work: a model's caches filled in it would be inference tensors."""
+    return torch.inference_mode() if ikm.batch_last is not None else torch.no_grad()
+
+
+def plain(*values):
+    """``values`` with inference tensors copied into ordinary ones (others as they are)."""
+    return tuple(v.clone() if isinstance(v, Tensor) and v.is_inference() else v for v in values)

@@ -27,8 +27,9 @@ from hybrid_pk.geometry import transform
 from hybrid_pk.ik.batched_lm import LMOutput, LMSettings, batched_levenberg_marquardt
 from hybrid_pk.ik.conditions import Approach, resolve_conditions
 from hybrid_pk.ik.dedup import PRISMATIC_TOL, REVOLUTE_TOL, distinct_mask
-from hybrid_pk.ik.forward_model import IKModel, as_ik_model
+from hybrid_pk.ik.forward_model import IKModel, as_ik_model, no_autograd, plain
 from hybrid_pk.ik.packing import concat_padded, pack
+from hybrid_pk.ik.polish import NEAR_FACTOR, polish, within
 from hybrid_pk.ik.result import IKResult
 from hybrid_pk.ik.seeds import quasi_random_seeds, seed_box
 from hybrid_pk.ik.two_precision import solve_two_precisions
@@ -197,19 +198,6 @@ def check_solutions(
     return ok, pos, ori
 
 
-def no_autograd(ikm: IKModel):
-    """The chain kernel needs no autograd at all: inference mode skips the view and
-    version bookkeeping of the iteration's many small tensor operations (~15 % of an
-    IK call, bench/ik.py); other models may need autograd for their Jacobian. Only for
-    pure tensor work: a model's caches filled in it would be inference tensors."""
-    return torch.inference_mode() if ikm.batch_last is not None else torch.no_grad()
-
-
-def plain(*values):
-    """``values`` with inference tensors copied into ordinary ones (others as they are)."""
-    return tuple(v.clone() if isinstance(v, Tensor) and v.is_inference() else v for v in values)
-
-
 def solve_and_check(
     ikm: IKModel,
     q0: Tensor,
@@ -224,7 +212,9 @@ def solve_and_check(
     within ``bounds = (lower, upper)``, then :func:`check_solutions` of the results.
 
     Returns:
-        ``(out, ok, pos, ori)``: the LM result and the checks of ``out.q``.
+        ``(out, ok, pos, ori)``: the LM result with the verified solutions (and the
+        ends it gave up on near one) polished onto their branch
+        (:mod:`~hybrid_pk.ik.polish`), and the checks of ``out.q``.
     """
     T_target = T_all[rows]
     # The chain kernel evaluates in float32 too: the coarse iterations in float32.
@@ -247,24 +237,30 @@ def solve_and_check(
     # float32 rounding of problems that stopped there) is evaluated afresh: the others
     # fail that evaluation anyway. Not in inference mode: the model's own caches (chain
     # constants) must stay ordinary tensors, usable by autograd later.
-    near = out.position_error <= 2e-3 * options.tol_mm
-    if not position_only:
-        near &= out.rotation_error <= 2 * math.radians(options.tol_deg)
+    near = within(out, 2.0, options.tol_mm, options.tol_deg, position_only)
+    # The ends the damped iteration gave up on near a solution: polishing may settle
+    # them on a branch (hybrid_pk.ik.polish).
+    stalled = within(out, NEAR_FACTOR, options.tol_mm, options.tol_deg, position_only)
+
+    def check(q: Tensor, candidate: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        return check_solutions(ikm, q, rows, T_target, position_only, options, candidate)
+
     if m is None:
-        ok, pos, ori = check_solutions(ikm, out.q, rows, T_target, position_only, options, near)
-        return out, ok, pos, ori
+        checked = check(out.q, near)
+        return polish(ikm, out, checked, stalled, rows, T_target, bounds, settings, check)
     # An arrival merged into another start of its target (same cell) is the same solution
     # as that start's finished one, which the reduction keeps instead: it is checked only
     # where that one fails.
-    ok, pos, ori = check_solutions(
-        ikm, out.q, rows, T_target, position_only, options, near & (m < 0)
-    )
+    ok, pos, ori = check(out.q, near & (m < 0))
     retry = near & (m >= 0) & ~ok.index_select(0, m.clamp_min(0))
     if bool(retry.any()):
-        ok2, pos2, ori2 = check_solutions(ikm, out.q, rows, T_target, position_only, options, retry)
+        ok2, pos2, ori2 = check(out.q, retry)
         ok |= ok2
         pos, ori = torch.where(retry, pos2, pos), torch.where(retry, ori2, ori)
-    return out, ok, pos, ori
+    # Verified solutions are pinned to their branch only to tol / sigma: polished onto it
+    # before the reduction to distinct solutions (hybrid_pk.ik.polish).
+    stalled &= m < 0  # a merged arrival: its cell's finished one stands for it
+    return polish(ikm, out, (ok, pos, ori), stalled, rows, T_target, bounds, settings, check)
 
 
 def closest_attempt(out: LMOutput, shape: tuple[int, int], options: IKOptions, position_only: bool):
