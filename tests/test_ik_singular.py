@@ -110,3 +110,42 @@ def test_every_branch_once_near_joint_limits(name, seed):
     lo, hi = robot.joint_limits
     q = result.q[result.valid]
     assert bool(((q >= lo) & (q <= hi)).all())
+
+
+def test_targets_at_singular_configurations_are_flagged_in_python():
+    """``IKResult.near_singular`` says what the ``ik`` note says (before: only the CLI
+    said it): the UR10 home pose (elbow stretched, wrist_2 = 0) and wrist_2 = 1e-4 are
+    flagged, wrist_2 = 0.7 and an unreachable target (no solution) are not; the
+    two-stage solver carries the flag too."""
+    from hybrid_pk.effects import ExtendedModel, make_effect
+    from hybrid_pk.ik import solve_ik_two_stage
+
+    robot = hpk.Robot.from_urdf("ur10")
+    robot.requires_grad_(False)
+    q = torch.tensor(
+        [
+            [-math.pi, -math.pi / 2, 0.0, -math.pi / 2, 0.0, 0.0],
+            [0.3, -1.0, 1.0, 0.5, 1e-4, 0.2],
+            [0.3, -1.0, 1.0, 0.5, 0.7, 0.2],
+        ],
+        dtype=torch.float64,
+    )
+    with torch.no_grad():
+        T = robot.fk(q)
+    far = T[2].clone()
+    far[:3, 3] = torch.tensor([5.0, 0.0, 0.0], dtype=torch.float64)  # beyond the reach
+    T = torch.cat([T, far[None]])
+    result = solve_ik(robot, T, seeds=32)
+    assert result.near_singular.tolist() == [True, True, False, False]
+    sigma = result.smallest_singular_value
+    assert sigma.shape == (4,)
+    assert bool(torch.isnan(sigma[3]))
+    moved_m = sigma * 1e-3  # [m] pose change of a 1e-3 rad joint change along the weakest
+    assert float(moved_m[2]) >= result.tol_mm * 1e-3 > float(moved_m[1])
+    model = ExtendedModel(robot, [make_effect(robot, "joint_offset:elbow_joint", 2e-4)])
+    model.requires_grad_(False)
+    with torch.no_grad():
+        T2 = model(q).reshape(3, 4, 4)
+    two = solve_ik_two_stage(robot, model, T2.reshape(3, 1, 4, 4), seeds=32)
+    assert two.near_singular.shape == (3, 1)
+    assert two.near_singular[:, 0].tolist() == [True, True, False]

@@ -27,7 +27,13 @@ from hybrid_pk.geometry import transform
 from hybrid_pk.ik.batched_lm import LMOutput, LMSettings, batched_levenberg_marquardt
 from hybrid_pk.ik.conditions import Approach, resolve_conditions
 from hybrid_pk.ik.dedup import PRISMATIC_TOL, REVOLUTE_TOL, distinct_mask
-from hybrid_pk.ik.forward_model import IKModel, as_ik_model, no_autograd, plain
+from hybrid_pk.ik.forward_model import (
+    IKModel,
+    as_ik_model,
+    least_singular_values,
+    no_autograd,
+    plain,
+)
 from hybrid_pk.ik.packing import concat_padded, pack
 from hybrid_pk.ik.polish import NEAR_FACTOR, polish, within
 from hybrid_pk.ik.result import IKResult
@@ -39,8 +45,6 @@ __all__ = [
     "check_solutions",
     "closest_attempt",
     "make_result",
-    "no_autograd",
-    "plain",
     "prepare_targets",
     "solve_and_check",
     "solve_ik",
@@ -295,6 +299,7 @@ def make_result(
         cost = p if position_only else cost
         best = cost.nan_to_num(math.inf).argmin(-1, keepdim=True)  # the NaN column if none
         closest = p.gather(1, best)[:, 0], o.gather(1, best)[:, 0]
+    sigma = least_singular_values(ikm, q, valid, options.rotation_weight, position_only)
     return IKResult(
         q=q.reshape(*batch, k, ikm.dof),
         position_error_mm=pos.reshape(*batch, k),
@@ -307,6 +312,9 @@ def make_result(
         info=info,
         closest_mm=closest[0].reshape(batch),
         closest_deg=closest[1].reshape(batch),
+        # within the tolerance the joints move by more than the distinctness tolerance
+        near_singular=(sigma * options.revolute_tol < options.tol_mm * 1e-3).reshape(batch),
+        smallest_singular_value=sigma.reshape(batch),
     )
 
 
