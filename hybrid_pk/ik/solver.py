@@ -5,9 +5,10 @@ Targets × seeds are solved as one batch by
 projection, per-problem damping and early exit; float32 down to near a solution and
 float64 to finish where the model has the chain kernel,
 :mod:`~hybrid_pk.ik.two_precision`). Every candidate is then checked by a fresh forward
-evaluation of the model against the tolerances and the joint limits, and the survivors
-are reduced to distinct solutions (contract section 6). A target none of whose seeds
-passes is a failure: the solver never returns a solution it has not verified.
+evaluation of the model against the tolerances and the joint limits, polished onto its
+exact branch (:mod:`~hybrid_pk.ik.polish`), and the survivors are reduced to distinct
+solutions (contract section 6). A target none of whose seeds passes is a failure: the
+solver never returns a solution it has not verified.
 """
 
 from __future__ import annotations
