@@ -32,6 +32,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.ik.batched_lm import LMOutput, LMSettings
+from hybrid_pk.ik.dedup import PRISMATIC_TOL, REVOLUTE_TOL
 from hybrid_pk.ik.forward_model import IKModel, no_autograd, plain
 from hybrid_pk.ik.lm_algebra import pose_residual
 
@@ -49,10 +50,11 @@ _MARGIN = 100.0
 # Relative singular-value cut of the least-squares step (non-square Jacobians: position
 # only, redundant arms): directions weaker than this times the strongest are round-off.
 _RCOND = 1e-12
-# [rad, m] a last step below this: the iteration settled (on a branch, or on the least
-# squares point of a target a little out of reach); a thousandth of the distinctness
-# tolerance (1e-3 rad), far below what the reduction to distinct solutions resolves.
-_SETTLED = 1e-6
+# A last step below this fraction of the distinctness tolerances (1e-3 rad, 1e-6 m) in
+# every joint: the iteration settled (on a branch, or on the least-squares point of a
+# target a little out of reach), far below what the reduction to distinct solutions
+# resolves.
+_SETTLED = 1e-3
 # Unverified ends within this many times the tolerances are polished too (and count
 # once settled): near a singular configuration the damped solver gives up in a curved
 # valley at a few to ~100 times the tolerances, within Gauss-Newton's reach of the
@@ -87,7 +89,9 @@ def gauss_newton(
 
     Returns:
         The best iterate ``(P, dof)`` (least cost, the start included), its cost and the
-        start's cost ``(P,)`` [m^2], and the number of configurations evaluated.
+        start's cost ``(P,)`` [m^2], ``settled (P,)`` bool (at the cost floor, or the
+        last step below ``_SETTLED`` of the distinctness tolerances), and the number of
+        configurations evaluated.
     """
     P, dof = q.shape
     w, pos_only = settings.rotation_weight, settings.position_only
@@ -98,7 +102,7 @@ def gauss_newton(
     floor = (torch.finfo(F64).eps * _MARGIN * reach) ** 2
     qt = q.T.contiguous()
     best, best_cost, start_cost = qt, None, None
-    evaluations, last = 0, torch.zeros_like(qt[0])
+    evaluations, last = 0, torch.zeros_like(qt)
     for step in range(_STEPS + 1):
         R, p, J = ikm.evaluate(qt, rows)
         evaluations += P
@@ -123,9 +127,10 @@ def gauss_newton(
         clamped = torch.minimum(torch.maximum(q_new, lo), hi)
         wrapped = lo + torch.remainder(q_new - lo, _TWO_PI)  # same pose, into the box
         q_next = torch.where(per & (clamped != q_new), wrapped, clamped)
-        last = (q_next - qt).abs().amax(0)
+        last = (q_next - qt).abs()
         qt = q_next
-    settled = (best_cost <= floor) | (last <= _SETTLED)
+    settle = torch.where(ikm.revolute, _SETTLED * REVOLUTE_TOL, _SETTLED * PRISMATIC_TOL)
+    settled = (best_cost <= floor) | (last <= settle.to(last)[:, None]).all(0)
     return best.T.contiguous(), best_cost, start_cost, settled, evaluations
 
 
