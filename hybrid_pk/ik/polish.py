@@ -13,14 +13,16 @@ plain Gauss-Newton steps can: the first leaves the valley, the next ones come ba
 the exact branch with quadratic convergence (UR10, wrist_2 2e-5 rad from 0, sigma
 6e-6 m/rad: 1.4e-2 rad from the branch, then 4e-5, 2e-9, 5e-12).
 
-So every verified solution gets a few undamped Gauss-Newton steps in float64 (joints
-clamped into the box, a joint whose box spans 2 pi wrapped), and its best iterate
-(least cost, the solver's weighting) replaces it where that is better and passes the
-fresh check; a solution then sits within about ``1e-14 m / sigma`` of the exact branch,
-and the deduplication's 1e-3 rad separates branches wherever ``sigma`` exceeds ~1e-10
-m/rad. A start in no branch's reach (a local minimum of the error within the tolerance,
-at a nearly singular Jacobian) stays as it was, or lands on a branch another start
-found (then the reduction drops it as the same solution).
+So every verified solution, and every end the solver gave up on near one
+(``NEAR_FACTOR``), gets a few undamped Gauss-Newton steps in float64 (joints clamped
+into the box, a joint whose box spans 2 pi wrapped), and its best iterate (least cost,
+the solver's weighting) replaces it where that is better and passes the fresh check
+(an unverified end's only once the steps settled). A solution then sits within about
+``1e-14 m / sigma`` of the exact branch, and the deduplication's 1e-3 rad separates
+branches wherever ``sigma`` exceeds ~1e-10 m/rad. A start in no branch's reach (a
+local minimum of the error within the tolerance, at a nearly singular Jacobian) stays
+as it was, or lands on a branch another start found (then the reduction drops it as
+the same solution).
 """
 
 from __future__ import annotations
@@ -42,7 +44,8 @@ F64 = torch.float64
 _TWO_PI = 2 * math.pi
 # Steps per solution: from 1e-2 rad off the branch along a curved valley, out, back and
 # two quadratic steps reach float64's floor (see the module docstring); two more for a
-# step clamped at a joint limit. All problems stop early once at the floor.
+# step clamped at a joint limit. The steps stop once every problem is at the floor or
+# settled.
 _STEPS = 6
 # Cost floor [m^2]: (a hundred times float64's resolution at the targets' distance from
 # the origin)^2; below it a step only moves round-off.
@@ -55,20 +58,22 @@ _RCOND = 1e-12
 # target a little out of reach), far below what the reduction to distinct solutions
 # resolves.
 _SETTLED = 1e-3
-# Unverified ends within this many times the tolerances are polished too (and count
-# once settled): near a singular configuration the damped solver gives up in a curved
-# valley at a few to ~100 times the tolerances, within Gauss-Newton's reach of the
-# branch; further out an end is no nearer a solution than a seed. (UR10 / RX160 with
-# wrist_2 / joint_5 within 1e-5..1e-3 rad of 0, 1,187 branches: x10 finds 18 fewer
-# than x100, x1000 none more.)
-NEAR_FACTOR = 100.0
+# Unverified ends within this many times the errors from which the solver polishes
+# (LMSettings.accept_*: a tenth of the tolerances by default, so 100x the tolerances;
+# in the two-stage solver's first stage the final ones, not its coarse tolerances) are
+# polished too, and count once settled: near a singular configuration the damped solver
+# gives up in a curved valley at a few to ~100 times the tolerances, within
+# Gauss-Newton's reach of the branch; further out an end is no nearer a solution than a
+# seed. (UR10 / RX160 with wrist_2 / joint_5 within 1e-5..1e-3 rad of 0, 1,187
+# branches: 10x the tolerances finds 18 fewer than 100x, 1000x none more.)
+NEAR_FACTOR = 1000.0
 
 
-def within(out: LMOutput, factor: float, tol_mm: float, tol_deg: float, position_only: bool):
-    """``(P,)`` bool: ends of ``out`` within ``factor`` times the tolerances [mm, deg]."""
-    near = out.position_error <= factor * 1e-3 * tol_mm
+def within(out: LMOutput, position: float, rotation: float, position_only: bool) -> Tensor:
+    """``(P,)`` bool: ends of ``out`` within ``position`` [m] and ``rotation`` [rad]."""
+    near = out.position_error <= position
     if not position_only:
-        near &= out.rotation_error <= factor * math.radians(tol_deg)
+        near &= out.rotation_error <= rotation
     return near
 
 
@@ -102,9 +107,18 @@ def gauss_newton(
     floor = (torch.finfo(F64).eps * _MARGIN * reach) ** 2
     qt = q.T.contiguous()
     best, best_cost, start_cost = qt, None, None
-    evaluations, last = 0, torch.zeros_like(qt)
+    settle = torch.where(ikm.revolute, _SETTLED * REVOLUTE_TOL, _SETTLED * PRISMATIC_TOL)
+    settle = settle.to(qt)[:, None]
+    evaluations, last = 0, torch.full_like(qt, math.inf)
     for step in range(_STEPS + 1):
-        R, p, J = ikm.evaluate(qt, rows)
+        # Once every step settled only the cost is needed: the pose alone (an autograd
+        # model's Jacobian costs six reverse passes more).
+        final = step == _STEPS or bool((last <= settle).all())
+        if final:
+            T = ikm.pose(qt.T, rows).to(F64)
+            R, p, J = T[:, :3, :3].permute(1, 2, 0), T[:, :3, 3].T, None
+        else:
+            R, p, J = ikm.evaluate(qt, rows)
         evaluations += P
         dp, dr, cost, _, _ = pose_residual(R, p, R_t, p_t, w, pos_only)
         cost = cost[0]
@@ -113,24 +127,24 @@ def gauss_newton(
         else:
             better = cost < best_cost  # NaN compares False
             best, best_cost = torch.where(better, qt, best), torch.where(better, cost, best_cost)
-        if step == _STEPS or bool((best_cost <= floor).all()):
+        settled = (best_cost <= floor) | (last <= settle).all(0)
+        if final or bool(settled.all()):
             break
         e = dp if pos_only else torch.cat([dp, dr])
         Jw = J[:3] if pos_only else torch.cat([J[:3], w * J[3:]])
         A, b = Jw.permute(2, 0, 1), e.T[..., None]  # (P, m, dof), (P, m, 1)
         if A.shape[1] == dof:
             dq, info = torch.linalg.solve_ex(A, b)
-            dq = torch.where((info == 0)[:, None, None], dq, 0.0)
+            failed = (info != 0) | ~torch.isfinite(dq).all((1, 2))  # an exactly singular J
         else:
             dq = torch.linalg.lstsq(A, b, rcond=_RCOND, driver="gelsy").solution
-        q_new = qt + dq[..., 0].T.nan_to_num(0.0, 0.0, 0.0)
+            failed = ~torch.isfinite(dq).all((1, 2))
+        q_new = qt + torch.where(failed, 0.0, dq[..., 0].T)
         clamped = torch.minimum(torch.maximum(q_new, lo), hi)
         wrapped = lo + torch.remainder(q_new - lo, _TWO_PI)  # same pose, into the box
         q_next = torch.where(per & (clamped != q_new), wrapped, clamped)
-        last = (q_next - qt).abs()
+        last = torch.where(failed, math.inf, (q_next - qt).abs())  # a failed step never settles
         qt = q_next
-    settle = torch.where(ikm.revolute, _SETTLED * REVOLUTE_TOL, _SETTLED * PRISMATIC_TOL)
-    settled = (best_cost <= floor) | (last <= settle.to(last)[:, None]).all(0)
     return best.T.contiguous(), best_cost, start_cost, settled, evaluations
 
 

@@ -242,10 +242,10 @@ def solve_and_check(
     # float32 rounding of problems that stopped there) is evaluated afresh: the others
     # fail that evaluation anyway. Not in inference mode: the model's own caches (chain
     # constants) must stay ordinary tensors, usable by autograd later.
-    near = within(out, 2.0, options.tol_mm, options.tol_deg, position_only)
-    # The ends the damped iteration gave up on near a solution: polishing may settle
-    # them on a branch (hybrid_pk.ik.polish).
-    stalled = within(out, NEAR_FACTOR, options.tol_mm, options.tol_deg, position_only)
+    near = within(out, 2e-3 * options.tol_mm, 2 * math.radians(options.tol_deg), position_only)
+    # Ends the damped iteration gave up on near a solution (hybrid_pk.ik.polish).
+    far = NEAR_FACTOR * settings.accept_position, NEAR_FACTOR * settings.accept_rotation
+    stalled = within(out, *far, position_only)
 
     def check(q: Tensor, candidate: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         return check_solutions(ikm, q, rows, T_target, position_only, options, candidate)
