@@ -276,11 +276,11 @@ def smallest_singular_value(
     smallest of its ``min(6, dof)``: how near the task directions are to losing one."""
     if q.shape[0] == 0:
         return q.new_zeros(0, dtype=torch.float64)
-    with torch.no_grad():
-        _, J = ikm.pose_and_jacobian(q, rows)
-    J = J.detach().to(torch.float64)
-    J = J[:, :3] if position_only else torch.cat([J[:, :3], rotation_weight * J[:, 3:]], 1)
-    return torch.linalg.svdvals(J)[:, -1]
+    with no_autograd(ikm):  # the batch-last path: the chain kernel where there is one
+        J = ikm.evaluate(q.T.to(torch.float64).contiguous(), rows)[2].permute(2, 0, 1)
+        J = J[:, :3] if position_only else torch.cat([J[:, :3], rotation_weight * J[:, 3:]], 1)
+        sigma = torch.linalg.svdvals(J)[:, -1]
+    return plain(sigma)[0]
 
 
 def least_singular_values(

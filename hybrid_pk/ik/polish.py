@@ -111,10 +111,11 @@ def gauss_newton(
     settle = settle.to(qt)[:, None]
     evaluations, last = 0, torch.full_like(qt, math.inf)
     for step in range(_STEPS + 1):
-        # Once every step settled only the cost is needed: the pose alone (an autograd
-        # model's Jacobian costs six reverse passes more).
+        # Once every step settled only the cost is needed: the pose alone where the
+        # Jacobian costs more (autograd: six reverse passes; the chain kernel gives both
+        # at half the cost of the pose alone).
         final = step == _STEPS or bool((last <= settle).all())
-        if final:
+        if final and ikm.batch_last is None:
             T = ikm.pose(qt.T, rows).to(F64)
             R, p, J = T[:, :3, :3].permute(1, 2, 0), T[:, :3, 3].T, None
         else:
