@@ -175,7 +175,7 @@ def _print_summary(args, loaded, robot, data, job) -> None:
             "branches" + ("" if data.has_orientation else "; orientation columns fix more")
         )
     if n_sol:
-        _singular(robot, frame, args, data.has_orientation)
+        _singular(robot, job, data.has_orientation)
     tol = f"{args.tol_mm:g} mm" + (f" / {args.tol_deg:g} deg" if data.has_orientation else "")
     failed = n - frame["target"].nunique()
     print(f"{failed} of {n} target(s) failed (no solution within {tol} and the joint limits)")
@@ -185,35 +185,26 @@ def _print_summary(args, loaded, robot, data, job) -> None:
     print(f"wrote {args.out}")
 
 
-def _singular(robot, frame, args, has_orientation: bool) -> None:
+def _singular(robot, job, has_orientation: bool) -> None:
     """A note on targets solved at or near a singular configuration (stretched elbow,
-    wrist_2 = 0, ...): where the smallest singular value of the flange Jacobian (rotation
-    rows weighted like the solver's) times the distinctness tolerance (1e-3 rad) is below
-    the position tolerance, solutions within tolerance are not isolated at that
-    resolution, and rows of one target may sample one family or branch."""
+    wrist_2 = 0, ...): ``IKResult.near_singular``, where the smallest singular value of
+    the model's Jacobian (rotation rows weighted like the solver's) times the
+    distinctness tolerance (1e-3 rad) is below the position tolerance."""
     fixed = 6 if has_orientation else 3
-    if robot.dof > fixed:  # a family anyway, said by the redundancy note
+    if robot.dof > fixed or job.near_singular is None:  # a family anyway: redundancy note
         return
-    q = torch.tensor(frame[robot.joint_names].to_numpy(), dtype=robot.dtype)
-    with torch.no_grad():
-        J = robot.jacobian(q).to(torch.float64)
-    J = (
-        torch.cat([J[:, :3], IKOptions.rotation_weight * J[:, 3:]], 1)
-        if has_orientation
-        else J[:, :3]
-    )
-    sigma = torch.linalg.svdvals(J)[:, -1]  # [m/rad]
-    near = sigma * REVOLUTE_TOL < args.tol_mm * 1e-3
-    if not bool(near.any()):
+    targets = job.near_singular.nonzero()[:, 0].tolist()
+    if not targets:
         return
-    targets = sorted({int(t) for t in frame["target"].to_numpy()[near.numpy()]})
+    sigma = float(job.smallest_singular_value[targets].min())
     rows = ", ".join(map(str, targets[:5])) + (", ..." if len(targets) > 5 else "")
     print(
         f"note: {len(targets)} target(s) (rows {rows}, 0-based) are reached at or near a "
-        f"singular configuration (smallest Jacobian singular value {float(sigma[near].min()):.2g} "
-        f"m/rad): joint changes beyond the {REVOLUTE_TOL:g} rad that tells solutions apart "
-        "stay within the tolerance there, so their rows may be samples of one family or "
-        "branch, not distinct branches"
+        f"singular configuration (smallest Jacobian singular value {sigma:.2g} m/rad): a "
+        f"pose change within the tolerance moves the joints there by more than the "
+        f"{REVOLUTE_TOL:g} rad that tells solutions apart; solutions are polished onto "
+        "their exact branch, but rows of such a target may be samples of one singular "
+        "family instead, and a measured pose's noise moves its branches by more than that"
     )
 
 

@@ -1,7 +1,8 @@
 """Inverse kinematics: every distinct solution of a pose, on nominal and hybrid models.
 
 - :func:`solve_ik`: batched projected Levenberg–Marquardt over targets × quasi-random
-  seeds, verified and deduplicated (contract section 6) into an :class:`IKResult`.
+  seeds, verified, polished onto the exact branch (:mod:`~hybrid_pk.ik.polish`) and
+  deduplicated (contract section 6) into an :class:`IKResult`.
 - :func:`solve_ik_two_stage` / :func:`refine_ik`: the paper's IK for expensive
   (hybrid) models: branches on the cheap model, refinement in a box on the accurate one.
 - :func:`batched_levenberg_marquardt`: the solver core, many tiny box-constrained pose

@@ -19,6 +19,7 @@ batch-last layout (see ``hybrid_pk.geometry.batch_last``).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, fields
 from typing import NamedTuple
@@ -32,7 +33,15 @@ from hybrid_pk.geometry import vee_antisym
 from hybrid_pk.robot import Robot
 from hybrid_pk.robot.kernel import ChainKernel
 
-__all__ = ["IKModel", "as_ik_model", "autograd_pose_jacobian"]
+__all__ = [
+    "IKModel",
+    "as_ik_model",
+    "autograd_pose_jacobian",
+    "least_singular_values",
+    "no_autograd",
+    "plain",
+    "smallest_singular_value",
+]
 
 PoseFn = Callable[[Tensor, Tensor], Tensor]
 PoseJacobianFn = Callable[[Tensor, Tensor], tuple[Tensor, Tensor]]
@@ -243,3 +252,45 @@ def as_ik_model(
         analytic=a.analytic,
         batch_last=a.batch_last,
     )
+
+
+def no_autograd(ikm: IKModel):
+    """The chain kernel needs no autograd at all: inference mode skips the view and
+    version bookkeeping of the iteration's many small tensor operations (~15 % of an
+    IK call, bench/ik.py); other models may need autograd for their Jacobian. Only for
+    pure tensor work: a model's caches filled in it would be inference tensors."""
+    return torch.inference_mode() if ikm.batch_last is not None else torch.no_grad()
+
+
+def plain(*values):
+    """``values`` with inference tensors copied into ordinary ones (others as they are)."""
+    return tuple(v.clone() if isinstance(v, Tensor) and v.is_inference() else v for v in values)
+
+
+def smallest_singular_value(
+    ikm: IKModel, q: Tensor, rows: Tensor, rotation_weight: float, position_only: bool
+) -> Tensor:
+    """``(M,)`` [m/rad] smallest singular value of the Jacobian at ``q (M, dof)``: its
+    velocity rows and its angular rows times ``rotation_weight`` [m/rad] (the solver's
+    weighting; velocity rows only for position-only targets). Of a redundant arm the
+    smallest of its ``min(6, dof)``: how near the task directions are to losing one."""
+    if q.shape[0] == 0:
+        return q.new_zeros(0, dtype=torch.float64)
+    with no_autograd(ikm):  # the batch-last path: the chain kernel where there is one
+        J = ikm.evaluate(q.T.to(torch.float64).contiguous(), rows)[2].permute(2, 0, 1)
+        J = J[:, :3] if position_only else torch.cat([J[:, :3], rotation_weight * J[:, 3:]], 1)
+        sigma = torch.linalg.svdvals(J)[:, -1]
+    return plain(sigma)[0]
+
+
+def least_singular_values(
+    ikm: IKModel, q: Tensor, valid: Tensor, rotation_weight: float, position_only: bool
+) -> Tensor:
+    """``(N,)`` [m/rad] per target the least :func:`smallest_singular_value` of its
+    solutions ``q (N, K, dof)`` (slots ``valid (N, K)``; NaN for none); target ``i``'s
+    configurations are evaluated as row ``i`` (its conditions)."""
+    target, slot = valid.nonzero(as_tuple=True)
+    s = smallest_singular_value(ikm, q[target, slot], target, rotation_weight, position_only)
+    out = torch.full((q.shape[0],), math.inf, dtype=torch.float64)
+    out = out.scatter_reduce(0, target, s, "amin")
+    return out.masked_fill(~valid.any(1), math.nan)

@@ -39,6 +39,18 @@ class IKResult:
             micrometres beyond the reach of a stretched arm); NaN where not measured.
         closest_deg: ``(*B,)`` [deg] orientation error of that start (NaN for
             position-only targets).
+        near_singular: ``(*B,)`` bool, targets with a solution at or near a singular
+            configuration (stretched or folded elbow, aligned wrist axes): where
+            ``smallest_singular_value`` times the distinctness tolerance (1e-3 rad) is
+            below ``tol_mm``. A pose change within the tolerance moves the joints there
+            by more than 1e-3 rad: solutions are polished onto their exact branch, but
+            some may be samples of a singular family instead (several within
+            tolerance, none at a branch), and the branches move by more than the
+            tolerance with the target (a measured pose's noise). False for failures.
+        smallest_singular_value: ``(*B,)`` [m/rad] the least, over the target's
+            solutions, of the smallest singular value of the model's Jacobian (angular
+            rows weighted by ``IKOptions.rotation_weight``; velocity rows only for
+            position-only targets); NaN for failures.
     """
 
     q: Tensor
@@ -52,6 +64,8 @@ class IKResult:
     info: dict = field(default_factory=dict)
     closest_mm: Tensor | None = None
     closest_deg: Tensor | None = None
+    near_singular: Tensor | None = None
+    smallest_singular_value: Tensor | None = None
 
     @property
     def batch_shape(self) -> tuple[int, ...]:

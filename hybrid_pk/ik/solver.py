@@ -5,9 +5,10 @@ Targets × seeds are solved as one batch by
 projection, per-problem damping and early exit; float32 down to near a solution and
 float64 to finish where the model has the chain kernel,
 :mod:`~hybrid_pk.ik.two_precision`). Every candidate is then checked by a fresh forward
-evaluation of the model against the tolerances and the joint limits, and the survivors
-are reduced to distinct solutions (contract section 6). A target none of whose seeds
-passes is a failure: the solver never returns a solution it has not verified.
+evaluation of the model against the tolerances and the joint limits, polished onto its
+exact branch (:mod:`~hybrid_pk.ik.polish`), and the survivors are reduced to distinct
+solutions (contract section 6). A target none of whose seeds passes is a failure: the
+solver never returns a solution it has not verified.
 """
 
 from __future__ import annotations
@@ -27,8 +28,15 @@ from hybrid_pk.geometry import transform
 from hybrid_pk.ik.batched_lm import LMOutput, LMSettings, batched_levenberg_marquardt
 from hybrid_pk.ik.conditions import Approach, resolve_conditions
 from hybrid_pk.ik.dedup import PRISMATIC_TOL, REVOLUTE_TOL, distinct_mask
-from hybrid_pk.ik.forward_model import IKModel, as_ik_model
+from hybrid_pk.ik.forward_model import (
+    IKModel,
+    as_ik_model,
+    least_singular_values,
+    no_autograd,
+    plain,
+)
 from hybrid_pk.ik.packing import concat_padded, pack
+from hybrid_pk.ik.polish import NEAR_FACTOR, polish, within
 from hybrid_pk.ik.result import IKResult
 from hybrid_pk.ik.seeds import quasi_random_seeds, seed_box
 from hybrid_pk.ik.two_precision import solve_two_precisions
@@ -38,8 +46,6 @@ __all__ = [
     "check_solutions",
     "closest_attempt",
     "make_result",
-    "no_autograd",
-    "plain",
     "prepare_targets",
     "solve_and_check",
     "solve_ik",
@@ -197,19 +203,6 @@ def check_solutions(
     return ok, pos, ori
 
 
-def no_autograd(ikm: IKModel):
-    """The chain kernel needs no autograd at all: inference mode skips the view and
-    version bookkeeping of the iteration's many small tensor operations (~15 % of an
-    IK call, bench/ik.py); other models may need autograd for their Jacobian. Only for
-    pure tensor work: a model's caches filled in it would be inference tensors."""
-    return torch.inference_mode() if ikm.batch_last is not None else torch.no_grad()
-
-
-def plain(*values):
-    """``values`` with inference tensors copied into ordinary ones (others as they are)."""
-    return tuple(v.clone() if isinstance(v, Tensor) and v.is_inference() else v for v in values)
-
-
 def solve_and_check(
     ikm: IKModel,
     q0: Tensor,
@@ -224,7 +217,9 @@ def solve_and_check(
     within ``bounds = (lower, upper)``, then :func:`check_solutions` of the results.
 
     Returns:
-        ``(out, ok, pos, ori)``: the LM result and the checks of ``out.q``.
+        ``(out, ok, pos, ori)``: the LM result with the verified solutions (and the
+        ends it gave up on near one) polished onto their branch
+        (:mod:`~hybrid_pk.ik.polish`), and the checks of ``out.q``.
     """
     T_target = T_all[rows]
     # The chain kernel evaluates in float32 too: the coarse iterations in float32.
@@ -247,24 +242,30 @@ def solve_and_check(
     # float32 rounding of problems that stopped there) is evaluated afresh: the others
     # fail that evaluation anyway. Not in inference mode: the model's own caches (chain
     # constants) must stay ordinary tensors, usable by autograd later.
-    near = out.position_error <= 2e-3 * options.tol_mm
-    if not position_only:
-        near &= out.rotation_error <= 2 * math.radians(options.tol_deg)
+    near = within(out, 2e-3 * options.tol_mm, 2 * math.radians(options.tol_deg), position_only)
+    # Ends the damped iteration gave up on near a solution (hybrid_pk.ik.polish).
+    far = NEAR_FACTOR * settings.accept_position, NEAR_FACTOR * settings.accept_rotation
+    stalled = within(out, *far, position_only)
+
+    def check(q: Tensor, candidate: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        return check_solutions(ikm, q, rows, T_target, position_only, options, candidate)
+
     if m is None:
-        ok, pos, ori = check_solutions(ikm, out.q, rows, T_target, position_only, options, near)
-        return out, ok, pos, ori
+        checked = check(out.q, near)
+        return polish(ikm, out, checked, stalled, rows, T_target, bounds, settings, check)
     # An arrival merged into another start of its target (same cell) is the same solution
     # as that start's finished one, which the reduction keeps instead: it is checked only
     # where that one fails.
-    ok, pos, ori = check_solutions(
-        ikm, out.q, rows, T_target, position_only, options, near & (m < 0)
-    )
+    ok, pos, ori = check(out.q, near & (m < 0))
     retry = near & (m >= 0) & ~ok.index_select(0, m.clamp_min(0))
     if bool(retry.any()):
-        ok2, pos2, ori2 = check_solutions(ikm, out.q, rows, T_target, position_only, options, retry)
+        ok2, pos2, ori2 = check(out.q, retry)
         ok |= ok2
         pos, ori = torch.where(retry, pos2, pos), torch.where(retry, ori2, ori)
-    return out, ok, pos, ori
+    # Verified solutions are pinned to their branch only to tol / sigma: polished onto it
+    # before the reduction to distinct solutions (hybrid_pk.ik.polish).
+    stalled &= m < 0  # a merged arrival: its cell's finished one stands for it
+    return polish(ikm, out, (ok, pos, ori), stalled, rows, T_target, bounds, settings, check)
 
 
 def closest_attempt(out: LMOutput, shape: tuple[int, int], options: IKOptions, position_only: bool):
@@ -299,6 +300,7 @@ def make_result(
         cost = p if position_only else cost
         best = cost.nan_to_num(math.inf).argmin(-1, keepdim=True)  # the NaN column if none
         closest = p.gather(1, best)[:, 0], o.gather(1, best)[:, 0]
+    sigma = least_singular_values(ikm, q, valid, options.rotation_weight, position_only)
     return IKResult(
         q=q.reshape(*batch, k, ikm.dof),
         position_error_mm=pos.reshape(*batch, k),
@@ -311,6 +313,9 @@ def make_result(
         info=info,
         closest_mm=closest[0].reshape(batch),
         closest_deg=closest[1].reshape(batch),
+        # within the tolerance the joints move by more than the distinctness tolerance
+        near_singular=(sigma * options.revolute_tol < options.tol_mm * 1e-3).reshape(batch),
+        smallest_singular_value=sigma.reshape(batch),
     )
 
 

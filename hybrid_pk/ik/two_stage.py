@@ -302,7 +302,7 @@ def _replace_targets(result: IKResult, index: Tensor, other: IKResult) -> IKResu
         parts.append(out.reshape(*batch, k, *tail))
     q, pos, ori, valid = parts
     closest = {}
-    for name in ("closest_mm", "closest_deg"):
+    for name in ("closest_mm", "closest_deg", "near_singular", "smallest_singular_value"):
         mine, theirs = getattr(result, name), getattr(other, name)
         if mine is not None and theirs is not None:
             closest[name] = mine.reshape(n).index_copy(0, index, theirs.reshape(-1)).reshape(batch)

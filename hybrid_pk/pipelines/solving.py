@@ -49,6 +49,8 @@ class IKJob:
     notes: list[str] = field(default_factory=list)
     closest_mm: torch.Tensor | None = None  # (N,) IKResult.closest_mm of every target
     closest_deg: torch.Tensor | None = None
+    near_singular: torch.Tensor | None = None  # (N,) IKResult.near_singular
+    smallest_singular_value: torch.Tensor | None = None  # (N,) [m/rad]
 
 
 def _expensive(loaded: LoadedModel, model: ExtendedModel):
@@ -109,7 +111,7 @@ def solve_targets(
         started(n, expensive is not None)
     if expensive is None:
         result = solve_ik(cheap, targets, extra_seeds=extra, progress=progress, **common)
-        return IKJob(solutions_frame(result), False, list(notes), *_closest([result]))
+        return IKJob(solutions_frame(result), False, list(notes), *_per_target([result]))
     parts = []
     for lo in range(0, n, CHUNK):
         rows = torch.arange(lo, min(n, lo + CHUNK))
@@ -120,15 +122,15 @@ def solve_targets(
             )
         )  # fmt: skip
         progress(rows.numel())
-    return IKJob(solutions_frame(parts), True, list(notes), *_closest(parts))
+    return IKJob(solutions_frame(parts), True, list(notes), *_per_target(parts))
 
 
-def _closest(results: list[IKResult]) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(N,)`` closest position [mm] and orientation [deg] errors of the chunks."""
-    return tuple(torch.cat([getattr(r, a).reshape(-1) for r in results]) for a in _CLOSEST)
+def _per_target(results: list[IKResult]) -> tuple[torch.Tensor, ...]:
+    """``(N,)`` each of the chunks' :data:`_PER_TARGET` fields, in IKJob's order."""
+    return tuple(torch.cat([getattr(r, a).reshape(-1) for r in results]) for a in _PER_TARGET)
 
 
-_CLOSEST = ("closest_mm", "closest_deg")
+_PER_TARGET = ("closest_mm", "closest_deg", "near_singular", "smallest_singular_value")
 
 
 def solutions_frame(results: IKResult | list[IKResult]) -> pd.DataFrame:
