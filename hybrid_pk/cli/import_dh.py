@@ -15,7 +15,8 @@ HELP = f"""\
 Write the URDF of a Denavit-Hartenberg table, one row per joint in chain order.
 
 Columns (CSV header, or YAML keys of a 'joints' list): {", ".join(DH_COLUMNS)}
-  lengths a, d [m]; angles alpha, theta [rad] (theta: the joint's zero offset);
+  lengths a, d [m] (beyond 5 m: refused as mm); angles alpha, theta [rad] (theta:
+  the joint's zero offset);
   type revolute | continuous | prismatic; lower, upper [rad or m].
 Optional: beta [rad] (Hayati's tilt about y for parallel consecutive axes);
   {", ".join(INERTIA_COLUMNS)} [kg, m, kg m^2]: the link's inertial in the

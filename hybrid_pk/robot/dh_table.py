@@ -50,8 +50,11 @@ _ANGLES = ("alpha", "theta", "beta")
 # rotate +-2 pi, some wrists more): beyond two turns a limit is read as degrees.
 _MAX_ANGLE = 2 * math.pi * (1 + 1e-9)
 _MAX_LIMIT = 4 * math.pi * (1 + 1e-9)
-# No arm link is 100 m long: such a length is a millimetre figure.
-_MAX_LENGTH = 100.0
+# The longest industrial arms reach under 5 m (4.7 m: the longest-reach heavy arms), and
+# no link is longer than its arm's reach: a DH length, centre of mass, base or flange
+# offset beyond 5 m is a figure in millimetres (89.159 for UR5's 0.089159 m), cm or inches.
+_MAX_LENGTH = 5.0
+_LENGTHS = ("a", "d", "com_x", "com_y", "com_z")
 
 
 @dataclass
@@ -165,14 +168,16 @@ def _check_units(key: str, value: float, kind: str, where: str, i: int) -> None:
             row=i,
             column=key,
         )
-    if key in ("a", "d") and abs(value) > _MAX_LENGTH:
-        raise DataError(
-            f"{value:g} m is no link length: the column is in metres (write "
-            f"{value / 1000:g} for {value:g} mm)",
-            file=where,
-            row=i,
-            column=key,
-        )
+    if key in _LENGTHS and abs(value) > _MAX_LENGTH:
+        raise DataError(_too_long(value), file=where, row=i, column=key)
+
+
+def _too_long(value: float) -> str:
+    return (
+        f"{value:g} m is longer than any arm's link (the longest industrial arms reach "
+        f"under {_MAX_LENGTH:g} m): the column is in metres, write {value / 1000:g} for "
+        f"{value:g} mm"
+    )
 
 
 def _row(row: dict, where: str, i: int, inertial: bool) -> tuple:
@@ -208,6 +213,8 @@ def _row(row: dict, where: str, i: int, inertial: bool) -> tuple:
     extra = None
     if inertial:
         extra = [_number(row, k, where, i, 0.0) for k in INERTIA_COLUMNS]
+        for key, value in zip(INERTIA_COLUMNS[1:4], extra[1:4], strict=True):
+            _check_units(key, value, kind, where, i)
         if extra[0] < 0:
             raise DataError(f"negative mass {extra[0]:g} kg", file=where, row=i, column="mass")
     return name, kind, values, *bounds, extra
@@ -226,15 +233,23 @@ def _frame(value, key: str, where: str) -> np.ndarray:
         except (TypeError, ValueError):
             xyz = rpy = []
         if len(xyz) == 3 and len(rpy) == 3:
+            _check_offset(xyz, key, where)
             return pose_matrix(xyz, rpy)
     arr = np.asarray(value, dtype=np.float64) if not isinstance(value, Mapping) else None
     if arr is not None and arr.shape == (4, 4):
+        _check_offset(arr[:3, 3], key, where)
         return arr.copy()
     raise DataError(
         f"{key} must be {{xyz: [x, y, z] (m), rpy: [roll, pitch, yaw] (rad)}} or a 4x4 matrix",
         file=where,
         column=key,
     )
+
+
+def _check_offset(xyz, key: str, where: str) -> None:
+    for axis, value in zip("xyz", xyz, strict=True):
+        if abs(value) > _MAX_LENGTH:
+            raise DataError(f"{axis}: {_too_long(value)}", file=where, column=key)
 
 
 def read_dh_table(
