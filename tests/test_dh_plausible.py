@@ -167,3 +167,14 @@ def test_centre_of_mass_and_flange_in_mm(tmp_path):
     base[0, 3] = 1500.0  # a pedestal offset in mm
     with pytest.raises(DataError, match="column 'base': x: 1500 m"):
         Robot.from_dh(_rows("kuka_kr6_r900"), "dh", base=base)
+
+
+def test_prismatic_limit_in_mm(tmp_path, capsys):
+    """A 6 m track on a KR6 with its upper limit in mm (6000): before, a 6 km travel was
+    read without a word; now one line naming row 1, column 'upper' and 6 m."""
+    track = {"name": "track", "a": 0, "alpha": -H, "d": 0, "theta": 0, "type": "prismatic"}
+    rows = [track | {"lower": 0.0, "upper": 6000.0}, *_rows("kuka_kr6_r900")]
+    with pytest.raises(DataError, match=r"row 1, column 'upper': 6000 m .* write 6 for 6000 mm"):
+        Robot.from_dh(rows, "dh")
+    rows[0]["upper"] = 6.0
+    assert Robot.from_dh(rows, "dh").dof == 7

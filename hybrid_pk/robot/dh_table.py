@@ -55,6 +55,9 @@ _MAX_LIMIT = 4 * math.pi * (1 + 1e-9)
 # offset beyond 5 m is a figure in millimetres (89.159 for UR5's 0.089159 m), cm or inches.
 _MAX_LENGTH = 5.0
 _LENGTHS = ("a", "d", "com_x", "com_y", "com_z")
+# A robot track runs tens of metres, and no instrument measures a robot farther than
+# 50 m (the bound the data tables keep for positions): a prismatic limit beyond is mm.
+_MAX_TRAVEL = 50.0
 
 
 @dataclass
@@ -164,6 +167,14 @@ def _check_units(key: str, value: float, kind: str, where: str, i: int) -> None:
         raise DataError(
             f"{value:g} is not a joint limit in radians (beyond two turns): write "
             f"{math.radians(value):.10g} for {value:g} degrees",
+            file=where,
+            row=i,
+            column=key,
+        )
+    if key in ("lower", "upper") and kind == "prismatic" and abs(value) > _MAX_TRAVEL:
+        raise DataError(
+            f"{value:g} m is no joint travel (robot tracks run tens of metres): the "
+            f"prismatic joint's limits are in metres, write {value / 1000:g} for {value:g} mm",
             file=where,
             row=i,
             column=key,
