@@ -62,6 +62,11 @@ __all__ += ["write_dh_yaml", "zero_frames"]
 # Below this length [m] two lines count as crossing (a = 0): far below any machining
 # tolerance, far above the float64 rounding of metre-sized chains (1e-16 m).
 _COINCIDENT = 1e-12
+# Written values are rounded to decimal places beyond which only the round-off of
+# turning the chain's frames is left, no measurable quantity (0.42, not 0.4199999999999998;
+# 0, not 6.6e-20): lengths [m] and angles [rad] to 12 (_COINCIDENT: a picometre, a
+# picoradian), inertias [kg m^2] to 15 (1 g at 1 um; an arm link's is above 1e-6).
+_DIGITS, _INERTIA_DIGITS = 12, 15
 
 
 def geometric_model(model: ExtendedModel) -> ExtendedModel:
@@ -235,11 +240,15 @@ def inertial_note(robot) -> str | None:
 def frame_entry(T: np.ndarray) -> dict:
     """``{xyz: [m], rpy: [rad]}`` (URDF roll-pitch-yaw) of a ``(4, 4)`` transform."""
     rpy = matrix_to_rpy(torch.as_tensor(T[:3, :3], dtype=torch.float64)).tolist()
-    return {"xyz": [_plain(v) for v in T[:3, 3]], "rpy": [_plain(v) for v in rpy]}
+    return {
+        "xyz": [_plain(v, _DIGITS) for v in T[:3, 3]],
+        "rpy": [_plain(v, _DIGITS) for v in rpy],
+    }
 
 
-def _plain(x: float) -> float:
-    return float(x) + 0.0  # a Python float, never -0.0
+def _plain(x: float, digits: int | None = None) -> float:
+    """A Python float, never -0.0, rounded to ``digits`` decimal places if given."""
+    return (float(x) if digits is None else round(float(x), digits)) + 0.0
 
 
 def write_dh_yaml(table: DHTable, path: str | os.PathLike, header: list[str] = ()) -> Path:
@@ -256,12 +265,14 @@ def write_dh_yaml(table: DHTable, path: str | os.PathLike, header: list[str] = (
         )
     rows = []
     for i, name in enumerate(table.names):
-        a, alpha, d, theta, beta = (_plain(v) for v in table.rows[i])
+        a, alpha, d, theta, beta = (_plain(v, _DIGITS) for v in table.rows[i])
         row = {"name": name, "a": a, "alpha": alpha, "d": d, "theta": theta, "beta": beta}
         row.update(type=table.types[i], lower=_plain(table.lower[i]))
         row["upper"] = _plain(table.upper[i])
         if table.inertial is not None:
-            row.update(zip(INERTIA_COLUMNS, (_plain(v) for v in table.inertial[i]), strict=True))
+            digits = (None, *(_DIGITS,) * 3, *(_INERTIA_DIGITS,) * 6)  # the mass as given
+            values = (_plain(v, k) for v, k in zip(table.inertial[i], digits, strict=True))
+            row.update(zip(INERTIA_COLUMNS, values, strict=True))
         rows.append(row)
     doc = {
         "convention": table.convention,

@@ -1,0 +1,62 @@
+"""An exported DH table holds the calibrated numbers without the round-off of turning
+the chain's frames: 0.42, not 0.4199999999999998; 0, not 6.6e-20 (a zero inertia turned
+came out as 2.3e-33 kg m^2), while it still carries the geometry to 1e-9 m."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import yaml
+
+from hybrid_pk import Robot
+from hybrid_pk.effects import ExtendedModel, make_effect
+from hybrid_pk.io.dh_export import geometric_model, model_dh_table, write_dh_yaml
+from hybrid_pk.robot.dh_table import INERTIA_COLUMNS
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+H = math.pi / 2
+# KUKA KR 6 R900's published DH table [m, rad] with link masses and centres of mass
+# (no inertia columns): a, alpha, d, theta, mass, com.
+KR6 = [
+    (0.025, -H, 0.4, 0.0, 12.0, (0.0, 0.0, 0.1)),
+    (0.455, 0.0, 0.0, -H, 9.0, (-0.23, 0.0, 0.05)),
+    (0.035, -H, 0.0, 0.0, 6.0, (0.0, -0.02, 0.0)),
+    (0.0, H, 0.42, 0.0, 3.0, (0.0, 0.08, 0.0)),
+    (0.0, -H, 0.0, 0.0, 1.5, (0.0, 0.0, 0.0)),
+    (0.0, 0.0, 0.08, 0.0, 0.3, (0.0, 0.0, -0.01)),
+]
+
+
+def _kr6() -> Robot:
+    rows = [
+        {"name": f"a{i}", "a": a, "alpha": al, "d": d, "theta": th, "type": "revolute"}
+        | {"lower": -2.9, "upper": 2.9, "mass": m, "com_x": c[0], "com_y": c[1], "com_z": c[2]}
+        for i, (a, al, d, th, m, c) in enumerate(KR6, start=1)
+    ]
+    return Robot.from_dh(rows, "dh")
+
+
+@pytest.mark.parametrize("convention", ["dh", "mdh"])
+def test_exported_numbers_carry_no_roundoff(tmp_path, convention):
+    robot = _kr6()
+    effects = [
+        make_effect(robot, "joint_offset:a2", 6e-4),
+        make_effect(robot, "link_length:a3", [5e-4, 0.0, -3e-4]),
+    ]
+    model = ExtendedModel(robot, effects)
+    path = write_dh_yaml(model_dh_table(model, convention), tmp_path / "t.yaml")
+    doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+    values = [v for f in ("base", "flange") for k in ("xyz", "rpy") for v in doc[f][k]]
+    for row in doc["joints"]:
+        values += [row[k] for k in ("a", "alpha", "d", "theta", "beta")]
+        values += [row[k] for k in INERTIA_COLUMNS[1:4]]
+        assert all(row[k] == round(row[k], 15) for k in INERTIA_COLUMNS[4:]), row
+    assert all(v == round(v, 12) for v in values), values  # before: 6.6e-20, 0.4199999999999998
+    assert doc["joints"][3]["d"] == 0.42  # before: 0.4199999999999998
+    q = robot.sample_q(500, torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        gap = (Robot.from_dh(path).fk(q) - geometric_model(model).end_pose(q))[:, :3, 3]
+    assert float(gap.norm(dim=-1).max()) < 1e-9
