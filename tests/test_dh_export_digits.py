@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -30,9 +31,11 @@ KR6 = [
 ]
 
 
-def _kr6() -> Robot:
+def _kr6(half_pi: float = H) -> Robot:
+    """The table, pi/2 written as ``half_pi`` (1.5708 in hand-converted tables)."""
     rows = [
-        {"name": f"a{i}", "a": a, "alpha": al, "d": d, "theta": th, "type": "revolute"}
+        {"name": f"a{i}", "a": a, "alpha": round(al / H) * half_pi, "d": d}
+        | {"theta": round(th / H) * half_pi, "type": "revolute"}
         | {"lower": -2.9, "upper": 2.9, "mass": m, "com_x": c[0], "com_y": c[1], "com_z": c[2]}
         for i, (a, al, d, th, m, c) in enumerate(KR6, start=1)
     ]
@@ -60,3 +63,23 @@ def test_exported_numbers_carry_no_roundoff(tmp_path, convention):
     with torch.no_grad():
         gap = (Robot.from_dh(path).fk(q) - geometric_model(model).end_pose(q))[:, :3, 3]
     assert float(gap.norm(dim=-1).max()) < 1e-9
+
+
+@pytest.mark.parametrize("half_pi", [H, 1.5708])
+def test_normals_keep_their_direction_through_a_calibration(half_pi):
+    """A KR6 imported from its DH table (theta2 = -pi/2 puts link 2 upright, square to
+    the reference axis) exported as MDH: the nominal table is the textbook one (a2 =
+    +0.455, theta2 = -pi/2, theta3 = 0; before: a = -0.455, theta2 = +pi/2, theta3 = pi,
+    round-off's choice), and the calibrated table keeps those directions (before: a
+    jumped from -0.455 to +0.455 and theta3 from pi to -0.001, as if the calibration had
+    turned the link over)."""
+    robot = _kr6(half_pi)
+    nominal = model_dh_table(ExtendedModel(robot), "mdh").rows
+    assert nominal[2, 0] == pytest.approx(0.455, abs=1e-12)
+    assert nominal[1, 3] == pytest.approx(-half_pi, abs=1e-12)
+    assert nominal[2, 3] == pytest.approx(0.0, abs=1e-12)
+    for offset in (6e-4, -6e-4):
+        effects = [make_effect(robot, "joint_offset:a2", offset)]
+        effects.append(make_effect(robot, "link_length:a3", [5e-4, 0.0, -3e-4]))
+        calibrated = model_dh_table(ExtendedModel(robot, effects), "mdh").rows
+        assert np.abs(calibrated - nominal).max() < 5e-3, calibrated - nominal

@@ -62,6 +62,10 @@ __all__ += ["write_dh_yaml", "zero_frames"]
 # Below this length [m] two lines count as crossing (a = 0): far below any machining
 # tolerance, far above the float64 rounding of metre-sized chains (1e-16 m).
 _COINCIDENT = 1e-12
+# A reference x within 1e-4 rad of perpendicular to a normal does not tell which way the
+# normal points (a table's pi/2 written as 1.5708 is 4e-6 rad off a tie: round-off would
+# decide it): such a normal points from one axis to the next instead.
+_TIE = 1e-4
 # Written values are rounded to decimal places beyond which only the round-off of
 # turning the chain's frames is left, no measurable quantity (0.42, not 0.4199999999999998;
 # 0, not 6.6e-20): lengths [m] and angles [rad] to 12 (_COINCIDENT: a picometre, a
@@ -102,8 +106,10 @@ def zero_frames(model: ExtendedModel) -> tuple[np.ndarray, np.ndarray]:
     return frames, axes
 
 
-def _normal(pA, zA, pB, zB, ref_point, ref_x) -> tuple[np.ndarray, np.ndarray, tuple]:
-    """Normal from line A to line B: ``(foot f on A, unit x, (a, alpha, beta))``."""
+def _normal(pA, zA, pB, zB, ref_point, ref_x, sign_x) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """Normal from line A to line B: ``(foot f on A, unit x, (a, alpha, beta))``; ``x``
+    points along ``sign_x`` unless that is (nearly) perpendicular to it: then from A
+    towards B (``a >= 0``, the textbooks' rule)."""
     c = np.cross(zA, zB)
     s, cos = np.linalg.norm(c), float(zA @ zB)
     if s > abs(cos):  # plain DH: the common normal
@@ -112,7 +118,7 @@ def _normal(pA, zA, pB, zB, ref_point, ref_x) -> tuple[np.ndarray, np.ndarray, t
         t = (b * e - d) / (1 - b * b)  # foot on A of the shortest segment between lines
         f = pA + t * zA
         x = c / s
-        if x @ ref_x < 0:
+        if x @ sign_x < -_TIE or (abs(x @ sign_x) <= _TIE and x @ (pB - pA) < 0):
             x = -x
         g = pB + ((f - pB) @ zB) * zB  # foot on B: same a for either end of the segment
         beta_free = False
@@ -122,7 +128,7 @@ def _normal(pA, zA, pB, zB, ref_point, ref_x) -> tuple[np.ndarray, np.ndarray, t
         v = g - f
         if np.linalg.norm(v) > _COINCIDENT:
             x = v / np.linalg.norm(v)
-            if x @ ref_x < 0:
+            if x @ sign_x < -_TIE:
                 x = -x
         else:
             x = _perpendicular(zA, ref_x)
@@ -149,13 +155,13 @@ def _frame(origin, x, z) -> np.ndarray:
     return T
 
 
-def model_dh_table(model: ExtendedModel, convention: str) -> DHTable:
-    """The geometric part of ``model`` as a ``"dh"`` or ``"mdh"`` table (module docstring)."""
-    if convention not in CONVENTIONS:
-        raise HybridPKError(f"convention {convention!r}: give dh or mdh")
-    robot = model.robot
+def _table_frames(model: ExtendedModel, convention: str, guide: list | None = None) -> tuple:
+    """``(frames, M, G, normals)``: the zero frames, per normal ``k`` the frame at its foot
+    on line ``k`` (``M``), the one at its end (``G``) and ``(a, alpha, beta)``. ``guide``:
+    the ``x`` of another table's normals (the nominal robot's), whose directions these
+    keep; else the reference frames' ``x`` decide them."""
     frames, axes = zero_frames(model)
-    n = robot.chain_dof
+    n = model.robot.chain_dof
     root, end = np.eye(4), frames[n]
     points = [root[:3, 3], *frames[:n, :3, 3], end[:3, 3]]
     lines = list(zip(points, [root[:3, 2], *axes, end[:3, 2]], strict=True))
@@ -167,10 +173,26 @@ def model_dh_table(model: ExtendedModel, convention: str) -> DHTable:
         # joint whose URDF frame the convention's frame k would be.
         inner = joint_frames[k] if convention == "mdh" else joint_frames[k + 1]
         ref = root if k == 0 else end if k == n else inner
-        f, x, nrm = _normal(*lines[k], *lines[k + 1], ref[:3, 3], ref[:3, 0])
+        sign = ref[:3, 0] if guide is None else guide[k]
+        f, x, nrm = _normal(*lines[k], *lines[k + 1], ref[:3, 3], ref[:3, 0], sign)
         M.append(_frame(f, x, lines[k][1]))
         G.append(M[-1] @ trans("x", nrm[0]) @ rot("x", nrm[1]) @ rot("y", nrm[2]))
         normals.append(nrm)
+    return frames, M, G, normals
+
+
+def model_dh_table(model: ExtendedModel, convention: str) -> DHTable:
+    """The geometric part of ``model`` as a ``"dh"`` or ``"mdh"`` table (module docstring)."""
+    if convention not in CONVENTIONS:
+        raise HybridPKError(f"convention {convention!r}: give dh or mdh")
+    robot = model.robot
+    n = robot.chain_dof
+    guide = None
+    if geometric_model(model).effects:  # each normal points as in the nominal robot's table
+        _, nominal, _, _ = _table_frames(ExtendedModel(robot), convention)
+        guide = [T[:3, 0] for T in nominal]
+    frames, M, G, normals = _table_frames(model, convention, guide)
+    end = frames[n]
     rows = []
     for i in range(1, n + 1):
         step = np.linalg.solve(G[i - 1], M[i])  # Rz(theta) Tz(d) along line i
