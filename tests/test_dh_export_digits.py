@@ -12,8 +12,10 @@ import torch
 import yaml
 
 from hybrid_pk import Robot
+from hybrid_pk.cli.main import main
 from hybrid_pk.effects import ExtendedModel, make_effect
 from hybrid_pk.io.dh_export import geometric_model, model_dh_table, write_dh_yaml
+from hybrid_pk.io.model_file import save_model
 from hybrid_pk.robot.dh_table import INERTIA_COLUMNS
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -83,3 +85,28 @@ def test_normals_keep_their_direction_through_a_calibration(half_pi):
         effects.append(make_effect(robot, "link_length:a3", [5e-4, 0.0, -3e-4]))
         calibrated = model_dh_table(ExtendedModel(robot, effects), "mdh").rows
         assert np.abs(calibrated - nominal).max() < 5e-3, calibrated - nominal
+
+
+def test_export_names_the_cells_the_calibration_changed(tmp_path, capsys):
+    """`export --format dh` lists each cell that differs from the nominal robot's table
+    with its change (before: only what the file cannot carry; the numbers a controller
+    has to take were left to a diff by hand); a model without geometric effects says
+    its table is the nominal one."""
+    robot = _kr6()
+    effects = [make_effect(robot, "joint_offset:a2", 6e-4)]
+    effects.append(make_effect(robot, "link_length:a3", [5e-4, 0.0, -3e-4]))
+    for name, model in (("cal", ExtendedModel(robot, effects)), ("nom", ExtendedModel(robot))):
+        save_model(tmp_path / f"{name}.pt", model)
+        out = tmp_path / f"{name}.yaml"
+        assert (
+            main(["export", str(tmp_path / f"{name}.pt"), "--format", "dh", "--out", str(out)]) == 0
+        )
+    printed = capsys.readouterr().out
+    assert "changed from the nominal dh's dh table [m, rad]:" in printed
+    changed = [
+        line.split(":")[0].strip() for line in printed.splitlines() if line.startswith("  a")
+    ]
+    assert changed == ["a2", "a3"], printed  # a1, a4-a6 as nominal
+    assert "theta -1.57079633 -> -1.56909743 (+0.0017)" in printed  # offset + link_length
+    assert "unchanged from the nominal dh's dh table" in printed
+    assert "changed from the nominal" in (tmp_path / "cal.yaml").read_text(encoding="utf-8")

@@ -57,7 +57,7 @@ from hybrid_pk.robot.dh import rot, trans
 from hybrid_pk.robot.dh_table import CONVENTIONS, INERTIA_COLUMNS, DHTable
 
 __all__ = ["frame_entry", "geometric_model", "inertial_note", "model_dh_table"]
-__all__ += ["write_dh_yaml", "zero_frames"]
+__all__ += ["table_changes", "write_dh_yaml", "zero_frames"]
 
 # Below this length [m] two lines count as crossing (a = 0): far below any machining
 # tolerance, far above the float64 rounding of metre-sized chains (1e-16 m).
@@ -66,6 +66,9 @@ _COINCIDENT = 1e-12
 # normal points (a table's pi/2 written as 1.5708 is 4e-6 rad off a tie: round-off would
 # decide it): such a normal points from one axis to the next instead.
 _TIE = 1e-4
+# A table cell that moved less than a nanometre / nanoradian from the nominal robot's is
+# the round-off of the two extractions, not the calibration (whose stds are micrometres).
+_CHANGED = 1e-9
 # Written values are rounded to decimal places beyond which only the round-off of
 # turning the chain's frames is left, no measurable quantity (0.42, not 0.4199999999999998;
 # 0, not 6.6e-20): lengths [m] and angles [rad] to 12 (_COINCIDENT: a picometre, a
@@ -257,6 +260,31 @@ def inertial_note(robot) -> str | None:
         f"link masses written: each row's mass, centre of mass and inertia in its frame i "
         f"({moving:.4g} kg moving), read back by hybrid-pk import dh{fixed}"
     )
+
+
+def table_changes(model: ExtendedModel, table: DHTable) -> list[str]:
+    """Lines naming every cell of ``table`` (``model``'s, :func:`model_dh_table`) that
+    differs from the nominal robot's table in the same convention: the numbers a
+    controller's table has to take, with their change [m, rad]."""
+    nominal = model_dh_table(ExtendedModel(model.robot), table.convention)
+    diff = table.rows - nominal.rows
+    diff[:, [1, 3, 4]] = (diff[:, [1, 3, 4]] + math.pi) % (2 * math.pi) - math.pi
+    lines = []
+    for i, name in enumerate(table.names):
+        cells = [
+            f"{key} {_plain(nominal.rows[i, k], _DIGITS):.9g} -> "
+            f"{_plain(table.rows[i, k], _DIGITS):.9g} ({diff[i, k]:+.3g})"
+            for k, key in enumerate(("a", "alpha", "d", "theta", "beta"))
+            if abs(diff[i, k]) > _CHANGED
+        ]
+        lines += [f"  {name}: {', '.join(cells)}"] if cells else []
+    for key in ("base", "flange"):
+        moved = np.abs(getattr(table, key) - getattr(nominal, key)).max()
+        lines += [f"  {key}: moved (up to {moved:.3g} in its matrix)"] if moved > _CHANGED else []
+    if not lines:
+        return [f"unchanged from the nominal {model.robot.name}'s {table.convention} table"]
+    head = f"changed from the nominal {model.robot.name}'s {table.convention} table [m, rad]:"
+    return [head, *lines]
 
 
 def frame_entry(T: np.ndarray) -> dict:
