@@ -19,7 +19,7 @@ import pandas as pd
 import torch
 from torch import Tensor
 
-from hybrid_pk.data.cells import cell_problem, to_float
+from hybrid_pk.data.cells import cell_problem, check_joint_unit, to_float
 from hybrid_pk.data.files import load_cells, write_frame
 from hybrid_pk.errors import DataError
 
@@ -44,14 +44,16 @@ def read_joint_table(path: str | os.PathLike, robot) -> tuple[Tensor, pd.DataFra
 
     Args:
         path: table with one column per joint of ``robot`` (``joint_names``).
-        robot: anything with ``joint_names`` and ``joint_limits``.
+        robot: anything with ``joint_names`` and ``joint_limits`` (and ``joint_types``:
+            a revolute column in degrees or a prismatic one in mm is named as such).
 
     Returns:
         ``q (N, dof)`` float64 [rad, m] and the table's other columns.
 
     Raises:
-        DataError: missing joint column, a cell that is not a finite number, or a
-            value outside the joint limits (file, 1-based row and column).
+        DataError: missing joint column, a cell that is not a finite number, a column
+            in degrees or mm, or a value outside the joint limits (file, 1-based row and
+            column).
     """
     path = Path(path)
     file = str(path)
@@ -79,6 +81,8 @@ def read_joint_table(path: str | os.PathLike, robot) -> tuple[Tensor, pd.DataFra
             k = int(np.argmax(bad))
             what = cell_problem(frame[name].iloc[k], values[k], bool(unparsable[k]))
             raise DataError(what, file=file, row=k + 1, column=name)
+        kind = robot.joint_types[j] if hasattr(robot, "joint_types") else "revolute"
+        check_joint_unit(file, name, kind, lower[j], upper[j], values, ~bad)
         out = (values < lower[j] - _LIMIT_TOL) | (values > upper[j] + _LIMIT_TOL)
         if out.any():
             k = int(np.argmax(out))
