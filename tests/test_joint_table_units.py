@@ -51,3 +51,37 @@ def test_prismatic_program_in_mm(tmp_path):
     pd.DataFrame(q, columns=robot.joint_names).to_csv(path, index=False)
     with pytest.raises(DataError, match=rf"column '{robot.joint_names[j]}': looks like mm"):
         read_joint_table(path, robot)
+
+
+def test_compensate_reads_and_writes_a_program_in_degrees(tmp_path, capsys):
+    """`compensate --angle-unit deg`: a controller's program in degrees is corrected as
+    the same program in radians is, and written back in degrees, its other columns kept
+    (before: no such flag; the program had to be converted both ways by hand)."""
+    robot = Robot.from_urdf("rx160")
+    model = tmp_path / "m.pt"
+    effects = "joint_offset:joint_2=8e-4; joint_offset:joint_3=-5e-4"
+    argv = ["simulate", "rx160", "--n", "30", "--noise-mm", "0.01", "--seed", "3"]
+    assert main([*argv, "--effects", effects, "--out", str(tmp_path / "c.csv")]) == 0
+    argv = ["calibrate", str(tmp_path / "c.csv"), "--robot", "rx160", "--no-urdf"]
+    assert (
+        main([*argv, "--effects", "joint_offset:joint_2,joint_offset:joint_3", "--out", str(model)])
+        == 0
+    )
+    rad = _program(tmp_path, robot, 1.0)
+    deg = tmp_path / "program_deg.csv"
+    frame = pd.read_csv(rad)
+    frame[robot.joint_names] = np.degrees(frame[robot.joint_names])
+    frame.to_csv(deg, index=False)
+    outs = {}
+    for unit, path in (("rad", rad), ("deg", deg)):
+        outs[unit] = tmp_path / f"out_{unit}.csv"
+        argv = ["compensate", str(model), str(path), "--out", str(outs[unit]), "--no-progress"]
+        assert main([*argv, "--angle-unit", unit]) == 0
+    capsys.readouterr()
+    a, b = pd.read_csv(outs["deg"]), pd.read_csv(outs["rad"])
+    assert (
+        np.abs(np.radians(a[robot.joint_names].values) - b[robot.joint_names].values).max() < 1e-12
+    )
+    assert np.abs(a[robot.joint_names].values - frame[robot.joint_names].values).max() > 1e-3
+    assert list(a["line"]) == list(range(10, 30))
+    assert (a["status"] == "ok").all()
