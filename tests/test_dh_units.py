@@ -126,3 +126,12 @@ def test_file_and_given_units_must_agree(tmp_path):
     with pytest.raises(DataError, match="states length unit 'mm', but 'cm' was given"):
         Robot.from_dh(path, units={"length": "cm"})
     _same_robot(Robot.from_dh(path, units={"length": "mm"}), Robot.from_dh(SI, "dh"))
+
+
+def test_limits_in_the_wrong_order_are_named_as_written():
+    """Before: 'lower limit 0.785398 is not below upper limit -3.31613' for a table read
+    in degrees (45, -190): the converted figures, not the cells."""
+    rows = _rows(1, 1)
+    rows[1]["lower"], rows[1]["upper"] = 45, -190
+    with pytest.raises(DataError, match="row 2, column 'upper': lower limit 45 deg is not below"):
+        Robot.from_dh(rows, "dh", units={"length": "mm", "angle": "deg"})

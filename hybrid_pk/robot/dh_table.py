@@ -288,8 +288,12 @@ def _row(row: dict, where: str, i: int, inertial: bool, units: TableUnits) -> tu
         if math.isfinite(value):
             _check_units(key, value, kind, where, i, units)
     if not bounds[0] < bounds[1]:
+        f = units.factor("lower", kind)
+        lo, hi = (
+            f"{b / f:g} {units.length if kind == 'prismatic' else units.angle}" for b in bounds
+        )
         raise DataError(
-            f"lower limit {bounds[0]:g} is not below upper limit {bounds[1]:g}",
+            f"lower limit {lo} is not below upper limit {hi}",
             file=where,
             row=i,
             column="upper",
