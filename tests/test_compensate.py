@@ -248,7 +248,9 @@ def test_cli_hybrid_model_file(tmp_path, capsys, rx160):
     ("content", "message"),
     [
         ("x,y,z\n1,0,1\n", "needs the flange orientation"),
-        ("joint_1,joint_2,joint_3,joint_4,joint_5,joint_6\n0,0,0,0,9,0\n", "joint limits"),
+        ("joint_1,joint_2,joint_3,joint_4,joint_5,joint_6\n0,0,0,0,3,0\n", "joint limits"),
+        # 9 on joint_5 (limits -1.83, 2.09 rad) is 9 degrees: named as a pose table does
+        ("joint_1,joint_2,joint_3,joint_4,joint_5,joint_6\n0,0,0,0,9,0\n", "looks like degrees"),
         # a UR joint program for the RX160 model: its joints are named, not x, y, z
         (
             "shoulder_pan_joint,shoulder_lift_joint,elbow_joint\n0,0,0\n",

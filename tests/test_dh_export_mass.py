@@ -29,9 +29,9 @@ from tests.test_dh_export import _random_model
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
-# Relative to the largest torque: the table and the URDF carry every float by its
-# shortest exact text, only the base / flange roll-pitch-yaw round (1e-16 rad), so the
-# loads agree to rounding (5e-16 measured); 1e-9 is the geometry's own acceptance.
+# Relative to the largest torque: the URDF carries every float by its shortest exact
+# text, the table rounds lengths and angles to 1e-12 and inertias to 1e-15 kg m^2, so
+# the loads agree to that rounding; 1e-9 is the geometry's own acceptance.
 REL = 1e-9
 
 

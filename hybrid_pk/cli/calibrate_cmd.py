@@ -43,7 +43,7 @@ from hybrid_pk.cli.options import ROBOT_HELP, add_data, add_end_link, add_out, a
 from hybrid_pk.cli.progress import progress
 from hybrid_pk.cli.settings_flags import add_config_flags, add_settings_flags
 from hybrid_pk.cli.transfer_check import transfer_check, transfer_lines
-from hybrid_pk.effects import make_effect
+from hybrid_pk.effects import make_effect, unloaded_reason
 from hybrid_pk.effects.vocabulary import vocabulary_units
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import error_stats
@@ -220,6 +220,9 @@ def _print_summary(robot, data, diag, effects, model, res0, res) -> None:
         )
         for amb in diag.ambiguous:
             print(f"  ambiguous: {' / '.join(amb['effects'])}")
+        unloaded = unloaded_reason(robot, data.payload, "move nothing and were not tested")
+        if unloaded:
+            print(f"note: {unloaded}")
     if effects:
         print(f"  {'effect':<34} {'value':>22}   {'+- std (1 sigma)':<24} unit")
         for row in effects:

@@ -97,6 +97,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "or a DH / MDH YAML table, e.g. from 'hybrid-pk export' (then only what that file "
         "cannot carry is corrected); default: MODEL's nominal URDF",
     )
+    p.add_argument(
+        "--angle-unit",
+        choices=("rad", "deg"),
+        default="rad",
+        help="unit of a joint program's revolute joints, read and written (default rad; a "
+        "controller's program: deg); prismatic joints are metres",
+    )
     add_frame_set(p)
     add_approach(p, default="the sides of the corrected program's own moves; first row mid-play")
 
@@ -161,7 +168,7 @@ def run(args: argparse.Namespace) -> int:
     loaded, _model, robot, k = load_frozen_model(args)
     controller = _controller(args.controller, robot) if args.controller else None
     with data_notes():
-        program = read_program(args.program, robot)
+        program = read_program(args.program, robot, args.angle_unit)
     for line in program.notes:
         print(line if line.startswith("warning: ") else f"note: {line}")
     options = IKOptions(tol_mm=args.tol_mm, tol_deg=args.tol_deg)

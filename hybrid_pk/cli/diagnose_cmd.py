@@ -164,7 +164,7 @@ def run(args: argparse.Namespace) -> int:
     from hybrid_pk.calibration.diagnosis import diagnose
     from hybrid_pk.calibration.diagnosis.result import cause_labels
     from hybrid_pk.calibration.diagnosis.stability import seed_stability, stability_lines
-    from hybrid_pk.effects import make_effect
+    from hybrid_pk.effects import make_effect, unloaded_reason
 
     settings = settings_of(args, DiagnosisSettings)
     if print_settings(args, settings):
@@ -215,6 +215,9 @@ def run(args: argparse.Namespace) -> int:
     doc["stability"] = stability
     out.write_text(json.dumps(_finite(doc), indent=2) + "\n", encoding="utf-8")
     lines = summary_lines(result, seconds, settings.stability)
+    unloaded = unloaded_reason(robot, data.payload, "move nothing and were not tested")
+    if unloaded:
+        lines.append(f"note: {unloaded}")
     lines += transfer_lines(transfer, settings, data)
     lines += [] if stability is None else stability_lines(stability)
     print("\n".join(lines))

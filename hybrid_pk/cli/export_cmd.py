@@ -12,7 +12,7 @@ from hybrid_pk.cli.common import read_data
 from hybrid_pk.cli.options import add_model, add_out
 from hybrid_pk.effects import Conditions, conditions_from_data
 from hybrid_pk.errors import HybridPKError
-from hybrid_pk.io.dh_export import inertial_note, model_dh_table, write_dh_yaml
+from hybrid_pk.io.dh_export import inertial_note, model_dh_table, table_changes, write_dh_yaml
 from hybrid_pk.io.export_summary import left_out, summary_lines
 from hybrid_pk.io.model_file import LoadedModel, load_model
 from hybrid_pk.io.ur_calibration import (
@@ -162,7 +162,9 @@ def run(args: argparse.Namespace) -> int:
     if args.format in ("dh", "mdh"):
         note = inertial_note(model.robot)
         lines += [note] if note else []
-        write_dh_yaml(model_dh_table(model, args.format), args.out, header=lines)
+        table = model_dh_table(model, args.format)
+        lines += table_changes(model, table)
+        write_dh_yaml(table, args.out, header=lines)
     elif args.format == "ur-calibration":
         root = _ur_root(args.ur_root, model, lines)
         _, note = write_ur_calibration(model, args.out, header=lines, root=root)

@@ -9,13 +9,16 @@ from pathlib import Path
 from hybrid_pk.cli.options import add_out
 from hybrid_pk.robot.dh import ROOT_LINK, TIP_LINK, dh_urdf
 from hybrid_pk.robot.dh_table import CONVENTIONS, DH_COLUMNS, INERTIA_COLUMNS, read_dh_table
+from hybrid_pk.units import UNITS
 
 TEXT = "a robot maker's DH / modified-DH table (CSV or YAML) -> URDF"
 HELP = f"""\
 Write the URDF of a Denavit-Hartenberg table, one row per joint in chain order.
 
 Columns (CSV header, or YAML keys of a 'joints' list): {", ".join(DH_COLUMNS)}
-  lengths a, d [m]; angles alpha, theta [rad] (theta: the joint's zero offset);
+  lengths a, d [m] (beyond 5 m: refused as mm); angles alpha, theta [rad] (theta:
+  the joint's zero offset); a datasheet's mm and degrees: --length-unit mm
+  --angle-unit deg (or 'units: {{length: mm, angle: deg}}' in the YAML);
   type revolute | continuous | prismatic; lower, upper [rad or m].
 Optional: beta [rad] (Hayati's tilt about y for parallel consecutive axes);
   {", ".join(INERTIA_COLUMNS)} [kg, m, kg m^2]: the link's inertial in the
@@ -41,12 +44,26 @@ def add_options(parser: argparse.ArgumentParser) -> None:
         help="dh (standard) or mdh (modified, Craig); required unless the YAML states it",
     )
     parser.add_argument("--name", help="robot name (default: the file's, else its stem)")
+    lengths = [u for u, (q, _, _) in UNITS.items() if q == "length"]
+    parser.add_argument(
+        "--length-unit",
+        choices=lengths,
+        help="unit of a, d, the centres of mass, prismatic limits and base / flange xyz "
+        "(default m; inertias in kg per its square)",
+    )
+    parser.add_argument(
+        "--angle-unit",
+        choices=[u for u, (q, _, _) in UNITS.items() if q == "angle"],
+        help="unit of alpha, theta, beta, revolute limits and base / flange rpy (default rad)",
+    )
     add_out(parser, metavar="ROBOT.urdf", help="URDF file to write")
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    table = read_dh_table(args.table, args.convention, name=args.name)
+    given = {"length": args.length_unit, "angle": args.angle_unit}
+    units = {k: v for k, v in given.items() if v is not None} or None
+    table = read_dh_table(args.table, args.convention, name=args.name, units=units)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(dh_urdf(table), encoding="utf-8")

@@ -28,6 +28,7 @@ __all__ = [
     "cell_problem",
     "check_conditions",
     "check_header_names",
+    "check_joint_unit",
     "check_time_order",
     "first_long_row",
     "missing_columns_error",
@@ -249,3 +250,50 @@ def check_conditions(file: str, columns: dict[str, np.ndarray], rows: np.ndarray
             k = int(bad[0])
             value = f"{columns[name][k]:g}"
             raise DataError(f"{value}: {why}", file=file, row=int(rows[k]), column=name)
+
+
+# Slack on joint limits [rad or m] for values written with fewer digits than the URDF.
+_LIMIT_TOL = 1e-9
+_TWO_PI = 2 * math.pi
+
+
+def check_joint_unit(
+    file: str, name: str, kind: str, lo: float, hi: float, values: np.ndarray, ok: np.ndarray
+) -> None:
+    """Raise if joint ``name``'s column (of type ``kind``, limits ``lo``, ``hi`` [rad or
+    m]) holds degrees (revolute) or mm (prismatic): a file-level problem, never skipped.
+    ``ok``: the rows to judge."""
+    if not ok.any():
+        return
+    v = values[ok]
+    mag = np.abs(v)
+    k = int(np.argmax(mag))
+    row = int(np.flatnonzero(ok)[k]) + 1
+    if kind == "revolute" and mag[k] > _TWO_PI + 0.01:
+        lo = lo if np.isfinite(lo) else -_TWO_PI
+        hi = hi if np.isfinite(hi) else _TWO_PI
+        rad = np.deg2rad(v)
+        if not np.all((rad >= lo - _LIMIT_TOL) & (rad <= hi + _LIMIT_TOL)):
+            return  # not plausible as degrees either: the limits check reports the rows
+        # A few large values may be typos in a radian column; degrees are large in most
+        # rows (or far beyond anything the joint can reach in radians).
+        if np.mean(mag > _TWO_PI) > 0.5 or mag[k] > 2 * max(abs(lo), abs(hi)):
+            raise DataError(
+                f"looks like degrees (max {mag[k]:.1f}); convert to rad "
+                f"(limits [{lo:.4g}, {hi:.4g}] rad)",
+                file=file,
+                row=row,
+                column=name,
+            )
+    if kind != "prismatic" or not (np.isfinite(lo) and np.isfinite(hi)):
+        return
+    beyond = (v < lo - _LIMIT_TOL) | (v > hi + _LIMIT_TOL)
+    m = v / 1000.0
+    if np.mean(beyond) > 0.5 and np.all((m >= lo - _LIMIT_TOL) & (m <= hi + _LIMIT_TOL)):
+        raise DataError(
+            f"looks like mm (max {mag[k]:.1f}); prismatic joints are metres: divide by "
+            f"1000 (limits [{lo:.4g}, {hi:.4g}] m)",
+            file=file,
+            row=row,
+            column=name,
+        )

@@ -19,11 +19,12 @@ import pandas as pd
 import torch
 from torch import Tensor
 
-from hybrid_pk.data.cells import cell_problem, to_float
+from hybrid_pk.data.cells import cell_problem, check_joint_unit, to_float
 from hybrid_pk.data.files import load_cells, write_frame
 from hybrid_pk.errors import DataError
+from hybrid_pk.units import UNITS
 
-__all__ = ["has_joint_columns", "read_joint_table", "write_joint_table"]
+__all__ = ["angle_factors", "has_joint_columns", "read_joint_table", "write_joint_table"]
 
 _LIMIT_TOL = 1e-9  # [rad or m] slack for values written with fewer digits than the URDF
 
@@ -39,19 +40,35 @@ def has_joint_columns(path: str | os.PathLike, joint_names: Sequence[str]) -> bo
     return any(name in _load(Path(path)).columns for name in joint_names)
 
 
-def read_joint_table(path: str | os.PathLike, robot) -> tuple[Tensor, pd.DataFrame]:
-    """Joint values of every row, checked against ``robot``'s limits.
+def angle_factors(robot, angle_unit: str = "rad") -> np.ndarray:
+    """``(dof,)`` per joint: radians per ``angle_unit`` for a revolute or continuous joint
+    (a controller's program in degrees), 1 for a prismatic one (metres)."""
+    if UNITS.get(angle_unit, ("",))[0] != "angle":
+        known = ", ".join(u for u, q in UNITS.items() if q[0] == "angle")
+        raise DataError(f"angle unit {angle_unit!r}: one of {known}")
+    kinds = getattr(robot, "joint_types", ["revolute"] * len(robot.joint_names))
+    return np.array([1.0 if k == "prismatic" else UNITS[angle_unit][1] for k in kinds])
+
+
+def read_joint_table(
+    path: str | os.PathLike, robot, angle_unit: str = "rad"
+) -> tuple[Tensor, pd.DataFrame]:
+    """Joint values of every row [rad, m], checked against ``robot``'s limits.
 
     Args:
         path: table with one column per joint of ``robot`` (``joint_names``).
-        robot: anything with ``joint_names`` and ``joint_limits``.
+        robot: anything with ``joint_names`` and ``joint_limits`` (and ``joint_types``:
+            a revolute column in degrees or a prismatic one in mm is named as such).
+        angle_unit: the unit of the revolute columns (``"deg"``: a controller's
+            program), converted to rad; prismatic columns are metres.
 
     Returns:
         ``q (N, dof)`` float64 [rad, m] and the table's other columns.
 
     Raises:
-        DataError: missing joint column, a cell that is not a finite number, or a
-            value outside the joint limits (file, 1-based row and column).
+        DataError: missing joint column, a cell that is not a finite number, a column
+            in degrees or mm, or a value outside the joint limits (file, 1-based row and
+            column).
     """
     path = Path(path)
     file = str(path)
@@ -71,20 +88,26 @@ def read_joint_table(path: str | os.PathLike, robot) -> tuple[Tensor, pd.DataFra
             file=file,
         )
     lower, upper = (torch.as_tensor(x, dtype=torch.float64).numpy() for x in robot.joint_limits)
+    factors = angle_factors(robot, angle_unit)
     q = np.empty((len(frame), len(names)))
     for j, name in enumerate(names):
         values, unparsable = to_float(frame[name])
+        values = values * factors[j]
         bad = ~np.isfinite(values) | unparsable
         if bad.any():
             k = int(np.argmax(bad))
             what = cell_problem(frame[name].iloc[k], values[k], bool(unparsable[k]))
             raise DataError(what, file=file, row=k + 1, column=name)
+        kind = robot.joint_types[j] if hasattr(robot, "joint_types") else "revolute"
+        if angle_unit == "rad":  # a column in another unit than stated
+            check_joint_unit(file, name, kind, lower[j], upper[j], values, ~bad)
         out = (values < lower[j] - _LIMIT_TOL) | (values > upper[j] + _LIMIT_TOL)
         if out.any():
             k = int(np.argmax(out))
             raise DataError(
-                f"{values[k]:.6g} lies outside the joint limits [{lower[j]:.6g}, "
-                f"{upper[j]:.6g}] (joint values are in rad, m for prismatic joints)",
+                f"{values[k] / factors[j]:.6g} lies outside the joint limits "
+                f"[{lower[j] / factors[j]:.6g}, {upper[j] / factors[j]:.6g}] (joint values "
+                f"are in {angle_unit}, m for prismatic joints)",
                 file=file,
                 row=k + 1,
                 column=name,

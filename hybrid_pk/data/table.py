@@ -17,7 +17,6 @@ dropped silently.
 from __future__ import annotations
 
 import difflib
-import math
 import os
 import warnings
 from collections.abc import Sequence
@@ -32,6 +31,7 @@ from hybrid_pk.data.cells import (
     MAX_POSITION_M,
     RowProblems,
     check_conditions,
+    check_joint_unit,
     check_time_order,
     missing_columns_error,
     to_float,
@@ -62,7 +62,6 @@ JOINT_TYPES = ("revolute", "continuous", "prismatic")
 QUAT_NORM_TOL = 1e-6
 # Slack on joint limits [rad or m] for values written with fewer digits than the URDF.
 _LIMIT_TOL = 1e-9
-_TWO_PI = 2 * math.pi
 
 
 class DataWarning(UserWarning):
@@ -186,57 +185,6 @@ def _note_limits(
         )
 
 
-def _check_degrees(
-    file: str, name: str, spec: _JointSpec, j: int, values: np.ndarray, ok: np.ndarray
-) -> None:
-    """Raise if a revolute joint column holds degrees: a file-level problem, never skipped."""
-    if spec.types[j] != "revolute" or not ok.any():
-        return
-    v = values[ok]
-    mag = np.abs(v)
-    k = int(np.argmax(mag))
-    if mag[k] <= _TWO_PI + 0.01:
-        return
-    lo = spec.lower[j] if np.isfinite(spec.lower[j]) else -_TWO_PI
-    hi = spec.upper[j] if np.isfinite(spec.upper[j]) else _TWO_PI
-    rad = np.deg2rad(v)
-    if not np.all((rad >= lo - _LIMIT_TOL) & (rad <= hi + _LIMIT_TOL)):
-        return  # not plausible as degrees either: the limits check reports the rows
-    # A few large values may be typos in a radian column; degrees are large in most rows
-    # (or far beyond anything the joint can reach in radians).
-    if np.mean(mag > _TWO_PI) > 0.5 or mag[k] > 2 * max(abs(lo), abs(hi)):
-        row = int(np.flatnonzero(ok)[k]) + 1
-        raise DataError(
-            f"looks like degrees (max {mag[k]:.1f}); convert to rad "
-            f"(limits [{lo:.4g}, {hi:.4g}] rad)",
-            file=file,
-            row=row,
-            column=name,
-        )
-
-
-def _check_joint_mm(
-    file: str, name: str, spec: _JointSpec, j: int, values: np.ndarray, ok: np.ndarray
-) -> None:
-    """Raise if a prismatic joint column holds mm: most rows beyond its limits in metres,
-    every row within them in mm (a file-level problem, never skipped)."""
-    lo, hi = spec.lower[j], spec.upper[j]
-    if spec.types[j] != "prismatic" or not ok.any() or not (np.isfinite(lo) and np.isfinite(hi)):
-        return
-    v = values[ok]
-    beyond = (v < lo - _LIMIT_TOL) | (v > hi + _LIMIT_TOL)
-    m = v / 1000.0
-    if np.mean(beyond) > 0.5 and np.all((m >= lo - _LIMIT_TOL) & (m <= hi + _LIMIT_TOL)):
-        k = int(np.argmax(np.abs(v)))
-        raise DataError(
-            f"looks like mm (max {abs(v[k]):.1f}); prismatic joints are metres: divide by "
-            f"1000 (limits [{lo:.4g}, {hi:.4g}] m)",
-            file=file,
-            row=int(np.flatnonzero(ok)[k]) + 1,
-            column=name,
-        )
-
-
 def _check_metres(file: str, columns: dict[str, np.ndarray], ok: np.ndarray) -> None:
     """Raise if the position columns hold mm (or cm): a file-level problem, never skipped."""
     if not ok.any() or any(c not in columns for c in POSITION_COLUMNS):
@@ -276,8 +224,7 @@ def _read_file(path: Path, spec: _JointSpec, skip: bool, require_joints: bool) -
     _check_metres(file, columns, ok)
     check_conditions(file, {c: v[ok] for c, v in columns.items()}, np.flatnonzero(ok) + 1)
     for j, name in enumerate(select.joints):
-        _check_degrees(file, name, spec, j, columns[name], ok)
-        _check_joint_mm(file, name, spec, j, columns[name], ok)
+        check_joint_unit(file, name, spec.types[j], spec.lower[j], spec.upper[j], columns[name], ok)
     _note_limits(columns, select.joints, spec, ok, problems)
     if select.quat:
         norm = np.sqrt(sum(columns[c] ** 2 for c in QUAT_COLUMNS))

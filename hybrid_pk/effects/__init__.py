@@ -14,6 +14,7 @@ from hybrid_pk.effects.extended import ExtendedModel as ExtendedModel
 from hybrid_pk.effects.extended import RigidFrame as RigidFrame
 from hybrid_pk.effects.gravity import Gravity as Gravity
 from hybrid_pk.effects.gravity import parse_gravity as parse_gravity
+from hybrid_pk.effects.gravity import unloaded_reason as unloaded_reason
 
 __all__ = [
     "EFFECTS",
@@ -27,4 +28,5 @@ __all__ = [
     "effect_joint_names",
     "make_effect",
     "parse_gravity",
+    "unloaded_reason",
 ]

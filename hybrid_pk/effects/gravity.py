@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.robot import STANDARD_GRAVITY
 
-__all__ = ["GRAVITY_FRAMES", "LEVEL_TRACKER", "Gravity", "parse_gravity"]
+__all__ = ["GRAVITY_FRAMES", "LEVEL_TRACKER", "Gravity", "parse_gravity", "unloaded_reason"]
 
 LEVEL_TRACKER = "level-tracker"
 GRAVITY_FRAMES = ("root", "measurement")
@@ -117,3 +117,19 @@ def parse_gravity(text: str | None) -> Gravity:
             f"{','.join(f'{v / max(norm, 1e-12) * STANDARD_GRAVITY:.3g}' for v in values)})"
         )
     return Gravity(tuple(values), "root")
+
+
+def unloaded_reason(robot, payload, so: str = "move nothing") -> str | None:
+    """Why gravity loads no joint of ``robot`` in rows carrying ``payload`` [kg] (a
+    tensor, or None: no payload column), or None where it loads one: then joint
+    compliance and the deflection effects ``so`` (move no point: a DH table without
+    masses), and what to give."""
+    moving = float(robot.segment_mass[1:].sum()) + sum(b.mass for b in robot.spec.branches)
+    if moving > 0 or (payload is not None and float(payload.abs().max()) > 0):
+        return None
+    return (
+        f"gravity loads no joint: {robot.name}'s moving links carry no mass and the rows "
+        f"no payload, so joint compliance and deflection {so} (give the links' "
+        "masses: a DH table's mass, com_x, com_y, com_z columns or a URDF's <inertial>; "
+        "or measure with a payload column)"
+    )

@@ -57,11 +57,23 @@ from hybrid_pk.robot.dh import rot, trans
 from hybrid_pk.robot.dh_table import CONVENTIONS, INERTIA_COLUMNS, DHTable
 
 __all__ = ["frame_entry", "geometric_model", "inertial_note", "model_dh_table"]
-__all__ += ["write_dh_yaml", "zero_frames"]
+__all__ += ["table_changes", "write_dh_yaml", "zero_frames"]
 
 # Below this length [m] two lines count as crossing (a = 0): far below any machining
 # tolerance, far above the float64 rounding of metre-sized chains (1e-16 m).
 _COINCIDENT = 1e-12
+# A reference x within 1e-4 rad of perpendicular to a normal does not tell which way the
+# normal points (a table's pi/2 written as 1.5708 is 4e-6 rad off a tie: round-off would
+# decide it): such a normal points from one axis to the next instead.
+_TIE = 1e-4
+# A table cell that moved less than a nanometre / nanoradian from the nominal robot's is
+# the round-off of the two extractions, not the calibration (whose stds are micrometres).
+_CHANGED = 1e-9
+# Written values are rounded to decimal places beyond which only the round-off of
+# turning the chain's frames is left, no measurable quantity (0.42, not 0.4199999999999998;
+# 0, not 6.6e-20): lengths [m] and angles [rad] to 12 (_COINCIDENT: a picometre, a
+# picoradian), inertias [kg m^2] to 15 (1 g at 1 um; an arm link's is above 1e-6).
+_DIGITS, _INERTIA_DIGITS = 12, 15
 
 
 def geometric_model(model: ExtendedModel) -> ExtendedModel:
@@ -97,8 +109,10 @@ def zero_frames(model: ExtendedModel) -> tuple[np.ndarray, np.ndarray]:
     return frames, axes
 
 
-def _normal(pA, zA, pB, zB, ref_point, ref_x) -> tuple[np.ndarray, np.ndarray, tuple]:
-    """Normal from line A to line B: ``(foot f on A, unit x, (a, alpha, beta))``."""
+def _normal(pA, zA, pB, zB, ref_point, ref_x, sign_x) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """Normal from line A to line B: ``(foot f on A, unit x, (a, alpha, beta))``; ``x``
+    points along ``sign_x`` unless that is (nearly) perpendicular to it: then from A
+    towards B (``a >= 0``, the textbooks' rule)."""
     c = np.cross(zA, zB)
     s, cos = np.linalg.norm(c), float(zA @ zB)
     if s > abs(cos):  # plain DH: the common normal
@@ -107,7 +121,7 @@ def _normal(pA, zA, pB, zB, ref_point, ref_x) -> tuple[np.ndarray, np.ndarray, t
         t = (b * e - d) / (1 - b * b)  # foot on A of the shortest segment between lines
         f = pA + t * zA
         x = c / s
-        if x @ ref_x < 0:
+        if x @ sign_x < -_TIE or (abs(x @ sign_x) <= _TIE and x @ (pB - pA) < 0):
             x = -x
         g = pB + ((f - pB) @ zB) * zB  # foot on B: same a for either end of the segment
         beta_free = False
@@ -117,7 +131,7 @@ def _normal(pA, zA, pB, zB, ref_point, ref_x) -> tuple[np.ndarray, np.ndarray, t
         v = g - f
         if np.linalg.norm(v) > _COINCIDENT:
             x = v / np.linalg.norm(v)
-            if x @ ref_x < 0:
+            if x @ sign_x < -_TIE:
                 x = -x
         else:
             x = _perpendicular(zA, ref_x)
@@ -144,13 +158,13 @@ def _frame(origin, x, z) -> np.ndarray:
     return T
 
 
-def model_dh_table(model: ExtendedModel, convention: str) -> DHTable:
-    """The geometric part of ``model`` as a ``"dh"`` or ``"mdh"`` table (module docstring)."""
-    if convention not in CONVENTIONS:
-        raise HybridPKError(f"convention {convention!r}: give dh or mdh")
-    robot = model.robot
+def _table_frames(model: ExtendedModel, convention: str, guide: list | None = None) -> tuple:
+    """``(frames, M, G, normals)``: the zero frames, per normal ``k`` the frame at its foot
+    on line ``k`` (``M``), the one at its end (``G``) and ``(a, alpha, beta)``. ``guide``:
+    the ``x`` of another table's normals (the nominal robot's), whose directions these
+    keep; else the reference frames' ``x`` decide them."""
     frames, axes = zero_frames(model)
-    n = robot.chain_dof
+    n = model.robot.chain_dof
     root, end = np.eye(4), frames[n]
     points = [root[:3, 3], *frames[:n, :3, 3], end[:3, 3]]
     lines = list(zip(points, [root[:3, 2], *axes, end[:3, 2]], strict=True))
@@ -162,10 +176,26 @@ def model_dh_table(model: ExtendedModel, convention: str) -> DHTable:
         # joint whose URDF frame the convention's frame k would be.
         inner = joint_frames[k] if convention == "mdh" else joint_frames[k + 1]
         ref = root if k == 0 else end if k == n else inner
-        f, x, nrm = _normal(*lines[k], *lines[k + 1], ref[:3, 3], ref[:3, 0])
+        sign = ref[:3, 0] if guide is None else guide[k]
+        f, x, nrm = _normal(*lines[k], *lines[k + 1], ref[:3, 3], ref[:3, 0], sign)
         M.append(_frame(f, x, lines[k][1]))
         G.append(M[-1] @ trans("x", nrm[0]) @ rot("x", nrm[1]) @ rot("y", nrm[2]))
         normals.append(nrm)
+    return frames, M, G, normals
+
+
+def model_dh_table(model: ExtendedModel, convention: str) -> DHTable:
+    """The geometric part of ``model`` as a ``"dh"`` or ``"mdh"`` table (module docstring)."""
+    if convention not in CONVENTIONS:
+        raise HybridPKError(f"convention {convention!r}: give dh or mdh")
+    robot = model.robot
+    n = robot.chain_dof
+    guide = None
+    if geometric_model(model).effects:  # each normal points as in the nominal robot's table
+        _, nominal, _, _ = _table_frames(ExtendedModel(robot), convention)
+        guide = [T[:3, 0] for T in nominal]
+    frames, M, G, normals = _table_frames(model, convention, guide)
+    end = frames[n]
     rows = []
     for i in range(1, n + 1):
         step = np.linalg.solve(G[i - 1], M[i])  # Rz(theta) Tz(d) along line i
@@ -232,14 +262,43 @@ def inertial_note(robot) -> str | None:
     )
 
 
+def table_changes(model: ExtendedModel, table: DHTable) -> list[str]:
+    """Lines naming every cell of ``table`` (``model``'s, :func:`model_dh_table`) that
+    differs from the nominal robot's table in the same convention: the numbers a
+    controller's table has to take, with their change [m, rad]."""
+    nominal = model_dh_table(ExtendedModel(model.robot), table.convention)
+    diff = table.rows - nominal.rows
+    diff[:, [1, 3, 4]] = (diff[:, [1, 3, 4]] + math.pi) % (2 * math.pi) - math.pi
+    lines = []
+    for i, name in enumerate(table.names):
+        cells = [
+            f"{key} {_plain(nominal.rows[i, k], _DIGITS):.9g} -> "
+            f"{_plain(table.rows[i, k], _DIGITS):.9g} ({diff[i, k]:+.3g})"
+            for k, key in enumerate(("a", "alpha", "d", "theta", "beta"))
+            if abs(diff[i, k]) > _CHANGED
+        ]
+        lines += [f"  {name}: {', '.join(cells)}"] if cells else []
+    for key in ("base", "flange"):
+        moved = np.abs(getattr(table, key) - getattr(nominal, key)).max()
+        lines += [f"  {key}: moved (up to {moved:.3g} in its matrix)"] if moved > _CHANGED else []
+    if not lines:
+        return [f"unchanged from the nominal {model.robot.name}'s {table.convention} table"]
+    head = f"changed from the nominal {model.robot.name}'s {table.convention} table [m, rad]:"
+    return [head, *lines]
+
+
 def frame_entry(T: np.ndarray) -> dict:
     """``{xyz: [m], rpy: [rad]}`` (URDF roll-pitch-yaw) of a ``(4, 4)`` transform."""
     rpy = matrix_to_rpy(torch.as_tensor(T[:3, :3], dtype=torch.float64)).tolist()
-    return {"xyz": [_plain(v) for v in T[:3, 3]], "rpy": [_plain(v) for v in rpy]}
+    return {
+        "xyz": [_plain(v, _DIGITS) for v in T[:3, 3]],
+        "rpy": [_plain(v, _DIGITS) for v in rpy],
+    }
 
 
-def _plain(x: float) -> float:
-    return float(x) + 0.0  # a Python float, never -0.0
+def _plain(x: float, digits: int | None = None) -> float:
+    """A Python float, never -0.0, rounded to ``digits`` decimal places if given."""
+    return (float(x) if digits is None else round(float(x), digits)) + 0.0
 
 
 def write_dh_yaml(table: DHTable, path: str | os.PathLike, header: list[str] = ()) -> Path:
@@ -256,12 +315,14 @@ def write_dh_yaml(table: DHTable, path: str | os.PathLike, header: list[str] = (
         )
     rows = []
     for i, name in enumerate(table.names):
-        a, alpha, d, theta, beta = (_plain(v) for v in table.rows[i])
+        a, alpha, d, theta, beta = (_plain(v, _DIGITS) for v in table.rows[i])
         row = {"name": name, "a": a, "alpha": alpha, "d": d, "theta": theta, "beta": beta}
         row.update(type=table.types[i], lower=_plain(table.lower[i]))
         row["upper"] = _plain(table.upper[i])
         if table.inertial is not None:
-            row.update(zip(INERTIA_COLUMNS, (_plain(v) for v in table.inertial[i]), strict=True))
+            digits = (None, *(_DIGITS,) * 3, *(_INERTIA_DIGITS,) * 6)  # the mass as given
+            values = (_plain(v, k) for v, k in zip(table.inertial[i], digits, strict=True))
+            row.update(zip(INERTIA_COLUMNS, values, strict=True))
         rows.append(row)
     doc = {
         "convention": table.convention,

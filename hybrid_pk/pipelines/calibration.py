@@ -23,7 +23,15 @@ from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.calibration.settings import DiagnosisSettings
 from hybrid_pk.data import MeasuredData
-from hybrid_pk.effects import Conditions, Effect, ExtendedModel, conditions_from_data, make_effect
+from hybrid_pk.effects import (
+    Conditions,
+    Effect,
+    ExtendedModel,
+    conditions_from_data,
+    make_effect,
+    unloaded_reason,
+)
+from hybrid_pk.errors import HybridPKError
 from hybrid_pk.robot import Robot
 
 __all__ = [
@@ -116,12 +124,16 @@ def calibrate(
         keywords = settings.keywords() | {"frames": priors, "gravity": gravity}
         diag = diagnose(robot, data, frames_per_file=frames_per_file, progress=progress, **keywords)
         labels = cause_labels(diag)
+    start = _start_effects(robot, list(labels), diag.model if diag else None)
+    model = ExtendedModel(robot, start, frame_sets=sets, gravity=gravity)
+    unloaded = unloaded_reason(robot, data.payload)
+    if unloaded and model.loaded_effects():
+        loaded = ", ".join(e.label for e in model.loaded_effects())
+        raise HybridPKError(f"{loaded} cannot be sized: {unloaded}")
     stage("fitting frames to the nominal robot")
     nominal = ExtendedModel(robot, frame_sets=sets, gravity=gravity)
     res0 = refit_frames(nominal, data, cond, priors=priors, robust=robust)
     stage("fitting frames and effects")
-    start = _start_effects(robot, list(labels), diag.model if diag else None)
-    model = ExtendedModel(robot, start, frame_sets=sets, gravity=gravity)
     initialise_with_priors(model, data, cond, priors)
     res = fit(model, data, cond=cond, frames=priors, robust=robust, weights=res0.weights)
     return CalibrationResult(model, nominal, res, res0, list(labels), diag, cond)

@@ -19,10 +19,9 @@ import pandas as pd
 import torch
 from torch import Tensor
 
-from hybrid_pk.data import read_table_for
+from hybrid_pk.data import joint_table, read_table_for
 from hybrid_pk.data.cells import check_conditions, numeric_column, to_float
 from hybrid_pk.data.files import PARQUET_SUFFIXES
-from hybrid_pk.data.joint_table import has_joint_columns, read_joint_table, write_joint_table
 from hybrid_pk.effects import Conditions
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.ik import IKOptions
@@ -41,8 +40,9 @@ F64 = torch.float64
 class Program:
     """A robot program: nominal joint targets or flange poses (one of them), the
     rows' payload [kg] and temperature [degC] where given, ``kind`` for the messages,
-    ``notes`` (columns left unused) and ``columns``: a joint program's other columns as
-    read (text), copied to the corrected program beside its joints."""
+    ``notes`` (columns left unused), ``columns``: a joint program's other columns as
+    read (text), copied to the corrected program beside its joints, and ``angle_unit``:
+    that of its revolute joints, the corrected program's too (``q_nominal`` is in rad)."""
 
     q_nominal: Tensor | None
     targets: Tensor | None
@@ -51,18 +51,21 @@ class Program:
     kind: str = "joint targets"
     notes: list[str] = field(default_factory=list)
     columns: pd.DataFrame | None = None
+    angle_unit: str = "rad"
 
     @property
     def n(self) -> int:
         return (self.q_nominal if self.q_nominal is not None else self.targets).shape[0]
 
 
-def read_program(path: str, robot: Robot) -> Program:
-    """The program ``path``: joint targets (one column per joint) or flange poses."""
+def read_program(path: str, robot: Robot, angle_unit: str = "rad") -> Program:
+    """The program ``path``: joint targets (one column per joint, revolute ones in
+    ``angle_unit``) or flange poses."""
     # Joint targets when a joint column is there, or when no x, y, z are (a program of
     # another robot's joints: the missing joint columns are the error to name).
-    if has_joint_columns(path, robot.joint_names) or not has_joint_columns(path, ("x", "y", "z")):
-        q, rest = read_joint_table(path, robot)
+    has = joint_table.has_joint_columns
+    if has(path, robot.joint_names) or not has(path, ("x", "y", "z")):
+        q, rest = joint_table.read_joint_table(path, robot, angle_unit)
         unused = [c for c in rest.columns if c not in ("payload", "temperature")]
         notes = [
             f"{path}: joint targets used; columns {', '.join(unused)} are not (copied to the "
@@ -83,8 +86,9 @@ def read_program(path: str, robot: Robot) -> Program:
             )
         columns = rest if len(rest.columns) else None
         return Program(
-            q, None, extra.get("payload"), extra.get("temperature"), notes=notes, columns=columns
-        )
+            q, None, extra.get("payload"), extra.get("temperature"), notes=notes,
+            columns=columns, angle_unit=angle_unit,
+        )  # fmt: skip
     data = read_table_for([path], robot, n_params=1, require_joints=False)
     if not data.has_orientation:
         raise HybridPKError(
@@ -135,7 +139,8 @@ def compensate_program(
             if Path(out).suffix.lower() in PARQUET_SUFFIXES:  # typed: numbers as numbers
                 kept = kept.apply(_typed)
             computed = pd.concat([kept.reset_index(drop=True), computed], axis=1)
-        write_joint_table(out, comp.q, robot.joint_names, computed)
+        q = comp.q / torch.as_tensor(joint_table.angle_factors(robot, program.angle_unit))
+        joint_table.write_joint_table(out, q, robot.joint_names, computed)
     return comp
 
 

@@ -20,7 +20,7 @@ from hybrid_pk.calibration.fit import fit
 from hybrid_pk.calibration.frames import MAX_TOOL_TRANSLATION_M, FrameSpec
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.data.table import write_table
-from hybrid_pk.effects import ExtendedModel, conditions_from_data
+from hybrid_pk.effects import ExtendedModel, conditions_from_data, make_effect, unloaded_reason
 from hybrid_pk.errors import DataError
 from hybrid_pk.pipelines.calibration import FRAME_LABELS
 from hybrid_pk.robot import Robot
@@ -133,10 +133,21 @@ def unseen_lines(robot, data, truth: dict) -> list[str]:
 
     if data.n < 3:
         return []
+    entries, lines = truth["effects"], []
+    unloaded = unloaded_reason(robot, data.payload)
+    if unloaded:  # what moves nothing is not absorbed by the frames: it is not there
+        labels = [
+            e["effect"] if e.get("joint") is None else f"{e['effect']}:{e['joint']}"
+            for e in entries
+        ]
+        injected = ExtendedModel(robot, [make_effect(robot, label) for label in labels])
+        loaded = {e.label for e in injected.loaded_effects()}
+        lines = [f"note: {', '.join(sorted(loaded))}: {unloaded}"] if loaded else []
+        entries = [e for e, label in zip(entries, labels, strict=True) if label not in loaded]
     frames = {k: torch.tensor(truth[f"{k}_frame"], dtype=torch.float64) for k in ("base", "tool")}
     nominal = ExtendedModel(robot, **frames)
-    marked = mark_unseen(nominal, data, conditions_from_data(data), truth["effects"])
-    return [
+    marked = mark_unseen(nominal, data, conditions_from_data(data), entries)
+    return lines + [
         f"note: {e['effect']}:{e.get('joint')} ({e['unseen']['words']}): no diagnosis of "
         "these data can find that part"
         for e in marked

@@ -178,6 +178,7 @@ def from_dh(
     name: str | None = None,
     base=None,
     flange=None,
+    units=None,
     dtype: torch.dtype = torch.float64,
 ):
     """Robot from a DH or modified-DH table (``Robot.from_dh``).
@@ -191,10 +192,12 @@ def from_dh(
         name: robot name (default the file's, else its stem).
         base: ``(4, 4)`` or ``{xyz, rpy}``: root link -> table frame 0 (default identity).
         flange: table frame ``n`` -> end link ``flange`` (default identity).
+        units: the units the table is written in, ``{"length": "mm", "angle": "deg"}``
+            (default m and rad; a YAML file may state them as ``units``).
         dtype: floating dtype of the robot's parameters.
 
     Raises:
         DataError: a bad table, naming file, row and column.
     """
-    checked = read_dh_table(table, convention, name=name, base=base, flange=flange)
+    checked = read_dh_table(table, convention, name=name, base=base, flange=flange, units=units)
     return cls.from_urdf(_stored(dh_urdf(checked), checked.name), end_link=TIP_LINK, dtype=dtype)

@@ -30,12 +30,14 @@ import pandas as pd
 import yaml
 
 from hybrid_pk.errors import DataError
+from hybrid_pk.units import UNITS
 
 __all__ = [
     "CONVENTIONS",
     "DH_COLUMNS",
     "INERTIA_COLUMNS",
     "DHTable",
+    "TableUnits",
     "pose_matrix",
     "read_dh_table",
 ]
@@ -50,8 +52,66 @@ _ANGLES = ("alpha", "theta", "beta")
 # rotate +-2 pi, some wrists more): beyond two turns a limit is read as degrees.
 _MAX_ANGLE = 2 * math.pi * (1 + 1e-9)
 _MAX_LIMIT = 4 * math.pi * (1 + 1e-9)
-# No arm link is 100 m long: such a length is a millimetre figure.
-_MAX_LENGTH = 100.0
+# The longest industrial arms reach under 5 m (4.7 m: the longest-reach heavy arms), and
+# no link is longer than its arm's reach: a DH length, centre of mass, base or flange
+# offset beyond 5 m is a figure in millimetres (89.159 for UR5's 0.089159 m), cm or inches.
+_MAX_LENGTH = 5.0
+_LENGTHS = ("a", "d", "com_x", "com_y", "com_z")
+# A robot track runs tens of metres, and no instrument measures a robot farther than
+# 50 m (the bound the data tables keep for positions): a prismatic limit beyond is mm.
+_MAX_TRAVEL = 50.0
+
+
+@dataclass(frozen=True)
+class TableUnits:
+    """The units a table is written in: ``length`` for ``a``, ``d``, the centres of mass,
+    prismatic limits and the ``xyz`` of ``base`` / ``flange`` (inertias in kg per its
+    square), ``angle`` for ``alpha``, ``theta``, ``beta``, revolute limits and ``rpy``
+    (datasheets print mm and degrees). Masses are kg."""
+
+    length: str = "m"
+    angle: str = "rad"
+
+    def factor(self, key: str, kind: str = "revolute") -> float:
+        """Into m, rad or kg m^2 for column ``key`` of a joint of type ``kind``."""
+        length, angle = UNITS[self.length][1], UNITS[self.angle][1]
+        if key in ("lower", "upper"):
+            return length if kind == "prismatic" else angle
+        if key in _LENGTHS:
+            return length
+        if key in _ANGLES:
+            return angle
+        return length**2 if key in INERTIA_COLUMNS[4:] else 1.0
+
+    @classmethod
+    def parse(cls, given, stated, where: str) -> TableUnits:
+        """From the ``units`` argument (``{"length": "mm", "angle": "deg"}``) and the
+        YAML file's ``units``; they must agree where both name a quantity."""
+        found = {}
+        for source, what in ((stated, "the file's"), (given, "the given")):
+            if source is None:
+                continue
+            if not isinstance(source, Mapping) or set(source) - {"length", "angle"}:
+                raise DataError(
+                    f"{what} units {source!r}: write {{length: m|mm|cm|um|in, angle: rad|deg}}",
+                    file=where,
+                    column="units",
+                )
+            for quantity, unit in source.items():
+                if UNITS.get(str(unit), ("",))[0] != quantity:
+                    known = ", ".join(u for u, q in UNITS.items() if q[0] == quantity)
+                    raise DataError(
+                        f"{quantity} unit {unit!r}: one of {known}", file=where, column="units"
+                    )
+                if found.get(quantity, unit) != unit:
+                    raise DataError(
+                        f"the file states {quantity} unit {found[quantity]!r}, but {unit!r} "
+                        "was given",
+                        file=where,
+                        column="units",
+                    )
+                found[quantity] = str(unit)
+        return cls(**found)
 
 
 @dataclass
@@ -148,35 +208,61 @@ def _number(row: dict, key: str, where: str, i: int, default: float | None = Non
     return value
 
 
-def _check_units(key: str, value: float, kind: str, where: str, i: int) -> None:
+def _check_units(
+    key: str, value: float, kind: str, where: str, i: int, units: TableUnits = TableUnits()
+) -> None:
+    """``value`` (in m / rad) of column ``key``: refused where it cannot be one of an arm's
+    (a figure in another unit), with the figure as written."""
+    written = value / units.factor(key, kind)
     if key in _ANGLES and abs(value) > _MAX_ANGLE:
         raise DataError(
-            f"{value:g} is not an angle in radians (beyond one turn): the column is in "
-            f"radians, write {math.radians(value):.10g} for {value:g} degrees",
-            file=where,
-            row=i,
-            column=key,
+            _turns(written, units, "an angle", "one turn"), file=where, row=i, column=key
         )
     if key in ("lower", "upper") and kind != "prismatic" and abs(value) > _MAX_LIMIT:
-        raise DataError(
-            f"{value:g} is not a joint limit in radians (beyond two turns): write "
-            f"{math.radians(value):.10g} for {value:g} degrees",
-            file=where,
-            row=i,
-            column=key,
-        )
-    if key in ("a", "d") and abs(value) > _MAX_LENGTH:
-        raise DataError(
-            f"{value:g} m is no link length: the column is in metres (write "
-            f"{value / 1000:g} for {value:g} mm)",
-            file=where,
-            row=i,
-            column=key,
-        )
+        why = _turns(written, units, "a joint limit", "two turns")
+        raise DataError(why, file=where, row=i, column=key)
+    if key in ("lower", "upper") and kind == "prismatic" and abs(value) > _MAX_TRAVEL:
+        why = f"{_as_written(written, units)} no joint travel (robot tracks run tens of metres)"
+        raise DataError(why + _mm_hint(written, units), file=where, row=i, column=key)
+    if key in _LENGTHS and abs(value) > _MAX_LENGTH:
+        raise DataError(_too_long(written, units), file=where, row=i, column=key)
 
 
-def _row(row: dict, where: str, i: int, inertial: bool) -> tuple:
-    """``(name, type, [a, alpha, d, theta, beta], lower, upper, inertial or None)``."""
+def _as_written(written: float, units: TableUnits) -> str:
+    if units.length == "m":
+        return f"{written:g} m is"
+    return f"{written:g} {units.length} is {written * units.factor('a'):g} m:"
+
+
+def _mm_hint(written: float, units: TableUnits) -> str:
+    if units.length != "m":
+        return ""
+    return (
+        f": the column is in metres, write {written / 1000:g} for {written:g} mm, or read "
+        "the table in mm (--length-unit mm)"
+    )
+
+
+def _turns(written: float, units: TableUnits, what: str, bound: str) -> str:
+    if units.angle != "rad":
+        return f"{written:g} {units.angle} is not {what} (beyond {bound})"
+    return (
+        f"{written:g} is not {what} in radians (beyond {bound}): write "
+        f"{math.radians(written):.10g} for {written:g} degrees, or read the table in "
+        "degrees (--angle-unit deg)"
+    )
+
+
+def _too_long(written: float, units: TableUnits = TableUnits()) -> str:
+    return (
+        f"{_as_written(written, units)} longer than any arm's link (the longest industrial "
+        f"arms reach under {_MAX_LENGTH:g} m){_mm_hint(written, units)}"
+    )
+
+
+def _row(row: dict, where: str, i: int, inertial: bool, units: TableUnits) -> tuple:
+    """``(name, type, [a, alpha, d, theta, beta], lower, upper, inertial or None)`` in
+    m, rad, kg."""
     if not isinstance(row, Mapping):
         raise DataError(f"a row must map column names to values, found {row!r}", file=where, row=i)
     name = str(row.get("name", "")).strip()
@@ -190,24 +276,33 @@ def _row(row: dict, where: str, i: int, inertial: bool) -> tuple:
             row=i,
             column="type",
         )
-    values = [_number(row, k, where, i, 0.0 if k == "beta" else None) for k in _ROW_KEYS]
+    values = [
+        _number(row, k, where, i, 0.0 if k == "beta" else None) * units.factor(k, kind)
+        for k in _ROW_KEYS
+    ]
     bounds = [-math.inf, math.inf]  # a continuous joint has none (URDF ignores them too)
     if kind != "continuous":
-        bounds = [_number(row, key, where, i) for key in ("lower", "upper")]
+        bounds = [_number(row, k, where, i) * units.factor(k, kind) for k in ("lower", "upper")]
     checked = (*_ROW_KEYS, "lower", "upper")
     for key, value in zip(checked, (*values, *bounds), strict=True):
         if math.isfinite(value):
-            _check_units(key, value, kind, where, i)
+            _check_units(key, value, kind, where, i, units)
     if not bounds[0] < bounds[1]:
+        f = units.factor("lower", kind)
+        lo, hi = (
+            f"{b / f:g} {units.length if kind == 'prismatic' else units.angle}" for b in bounds
+        )
         raise DataError(
-            f"lower limit {bounds[0]:g} is not below upper limit {bounds[1]:g}",
+            f"lower limit {lo} is not below upper limit {hi}",
             file=where,
             row=i,
             column="upper",
         )
     extra = None
     if inertial:
-        extra = [_number(row, k, where, i, 0.0) for k in INERTIA_COLUMNS]
+        extra = [_number(row, k, where, i, 0.0) * units.factor(k) for k in INERTIA_COLUMNS]
+        for key, value in zip(INERTIA_COLUMNS[1:4], extra[1:4], strict=True):
+            _check_units(key, value, kind, where, i, units)
         if extra[0] < 0:
             raise DataError(f"negative mass {extra[0]:g} kg", file=where, row=i, column="mass")
     return name, kind, values, *bounds, extra
@@ -216,19 +311,22 @@ def _row(row: dict, where: str, i: int, inertial: bool) -> tuple:
 _ROW_KEYS = ("a", "alpha", "d", "theta", "beta")
 
 
-def _frame(value, key: str, where: str) -> np.ndarray:
+def _frame(value, key: str, where: str, units: TableUnits = TableUnits()) -> np.ndarray:
+    """``{xyz, rpy}`` in the table's units, or a ``(4, 4)`` matrix [m]."""
     if value is None:
         return np.eye(4)
     if isinstance(value, Mapping):
         try:
-            xyz = [float(v) for v in value.get("xyz", (0, 0, 0))]
-            rpy = [float(v) for v in value.get("rpy", (0, 0, 0))]
+            xyz = [float(v) * units.factor("a") for v in value.get("xyz", (0, 0, 0))]
+            rpy = [float(v) * units.factor("alpha") for v in value.get("rpy", (0, 0, 0))]
         except (TypeError, ValueError):
             xyz = rpy = []
         if len(xyz) == 3 and len(rpy) == 3:
+            _check_offset(xyz, key, where, units)
             return pose_matrix(xyz, rpy)
     arr = np.asarray(value, dtype=np.float64) if not isinstance(value, Mapping) else None
     if arr is not None and arr.shape == (4, 4):
+        _check_offset(arr[:3, 3], key, where)
         return arr.copy()
     raise DataError(
         f"{key} must be {{xyz: [x, y, z] (m), rpy: [roll, pitch, yaw] (rad)}} or a 4x4 matrix",
@@ -237,13 +335,21 @@ def _frame(value, key: str, where: str) -> np.ndarray:
     )
 
 
+def _check_offset(xyz, key: str, where: str, units: TableUnits = TableUnits()) -> None:
+    for axis, value in zip("xyz", xyz, strict=True):
+        if abs(value) > _MAX_LENGTH:
+            written = value / units.factor("a")
+            raise DataError(f"{axis}: {_too_long(written, units)}", file=where, column=key)
+
+
 def read_dh_table(
     source,
     convention: str | None = None,
     *,
     name: str | None = None,
-    base=None,
-    flange=None,
+    base: np.ndarray | Mapping | None = None,
+    flange: np.ndarray | Mapping | None = None,
+    units: Mapping[str, str] | None = None,
 ) -> DHTable:
     """Read and check a DH table.
 
@@ -253,7 +359,11 @@ def read_dh_table(
         convention: ``"dh"`` or ``"mdh"``; required unless the YAML file states it (and
             must then agree with it).
         name: robot name (default the file's ``name``, else the file stem).
-        base, flange: ``(4, 4)`` or ``{xyz, rpy}``, replacing the file's.
+        base, flange: ``(4, 4)`` [m] or ``{xyz, rpy}`` (the table's units), replacing
+            the file's.
+        units: ``{"length": "mm", "angle": "deg"}`` (either key; default m and rad):
+            the units the table is written in (:class:`TableUnits`), as a YAML file's
+            ``units`` may state them; the table returned is in m, rad, kg.
 
     Raises:
         DataError: naming the file, row (1-based, in table order) and column.
@@ -281,6 +391,7 @@ def read_dh_table(
             file=where,
             column="convention",
         )
+    table_units = TableUnits.parse(units, head.get("units"), where)
     if not records:
         raise DataError("the DH table has no rows", file=where)
     keys = set().union(*(r.keys() for r in records if isinstance(r, Mapping)))
@@ -299,7 +410,7 @@ def read_dh_table(
                 column=missing[0],
             )
     inertial = any(k in keys for k in INERTIA_COLUMNS)
-    parsed = [_row(r, where, i, inertial) for i, r in enumerate(records, start=1)]
+    parsed = [_row(r, where, i, inertial, table_units) for i, r in enumerate(records, start=1)]
     names = [p[0] for p in parsed]
     for i, n in enumerate(names[1:], start=2):
         if n in names[: i - 1]:
@@ -312,8 +423,10 @@ def read_dh_table(
         lower=np.array([p[3] for p in parsed]),
         upper=np.array([p[4] for p in parsed]),
         inertial=np.array([p[5] for p in parsed]) if inertial else None,
-        base=_frame(base if base is not None else head.get("base"), "base", where),
-        flange=_frame(flange if flange is not None else head.get("flange"), "flange", where),
+        base=_frame(base if base is not None else head.get("base"), "base", where, table_units),
+        flange=_frame(
+            flange if flange is not None else head.get("flange"), "flange", where, table_units
+        ),
         name=str(name or head.get("name") or (Path(where).stem if where != "<table>" else "dh")),
         source=where,
     )
