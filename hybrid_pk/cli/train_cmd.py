@@ -81,7 +81,8 @@ YAML (train/configs/*.yaml) over the preset. Networks: D1, D4, D4w, D4W, Rw, Rd,
 B1-B4, mlp, mlp:WIDTHxDEPTH, or none.
 
 --logdir DIR writes TensorBoard logs (losses, mean/p95 position [mm] and orientation
-[deg] errors, error histograms, a Fig.-4-like figure) and checkpoints.
+[deg] errors per epoch, error histograms; the model as written after the blocked
+hold-out: written/* scalars and a Fig.-4-like figure) and checkpoints.
 --strategy ddp --devices N trains in N processes (DDP; CPU: gloo).
 """
 

@@ -145,6 +145,9 @@ class HybridLitModule(L.LightningModule):
         self._train_sums: dict[str, float] = {}
         self._base_val: dict[str, Tensor] = {}
         self._best: dict[str, tuple[float, dict]] = {}
+        # False: the caller draws the figure itself, after decisions that change the
+        # model (train_hybrid's blocked hold-out)
+        self.figure_at_end = True
 
     # ------------------------------------------------------------------ construction
     def setup(self, stage: str) -> None:
@@ -344,8 +347,9 @@ class HybridLitModule(L.LightningModule):
             for stage, state in zip(self.hybrid.stages, states, strict=True):
                 if state is not None:
                     getattr(stage, name).load_state_dict(state)
-        if self.trainer.is_global_zero and self.trainer.datamodule is not None:
-            log_error_figure(self, self.trainer.datamodule.val_targets)
+        dm = self.trainer.datamodule
+        if self.figure_at_end and self.trainer.is_global_zero and dm is not None:
+            log_error_figure(self, dm.val_targets)
 
     # ------------------------------------------------------------------ logging
     def _tensorboard(self):

@@ -36,6 +36,7 @@ from hybrid_pk.hybrid.nets import parse_arch
 from hybrid_pk.threads import requested_threads
 from hybrid_pk.training.blocked import blocked_blocks, blocked_check, fold_rows, probe_folds
 from hybrid_pk.training.datamodule import HybridDataModule
+from hybrid_pk.training.figures import log_written_model
 from hybrid_pk.training.lightning_module import HybridLitModule
 from hybrid_pk.training.presets import full_model_settings, preset
 
@@ -277,6 +278,7 @@ def train_hybrid(
     archs = [settings["model"]["position_net"], settings["model"]["orientation_net"]]
     fixed = requested_threads()  # --threads / HYBRID_PK_THREADS (hybrid_pk.threads)
     threads = threads or (fixed if isinstance(fixed, int) else None) or auto_threads(archs)
+    module.figure_at_end = False  # drawn below, of the model the decisions leave
     start = time.perf_counter()
     try:
         if threads:
@@ -292,6 +294,8 @@ def train_hybrid(
     hybrid = hybrid.eval()
     best = module.best_metrics()
     final = validation_errors(hybrid, dm.val_targets) if blocked else dict(best)
+    if trainer.is_global_zero:
+        log_written_model(module, dm.val_targets, blocked)
     return TrainResult(
         hybrid=hybrid,
         best=best,
