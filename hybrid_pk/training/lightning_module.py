@@ -47,6 +47,7 @@ from hybrid_pk.hybrid.losses import (
 )
 from hybrid_pk.hybrid.nets import parse_arch
 from hybrid_pk.training.figures import log_error_figure
+from hybrid_pk.training.resume import RECORD, data_digest, schedule_conflict
 
 __all__ = ["OPTIMIZERS", "SCHEDULERS", "HybridLitModule"]
 
@@ -145,6 +146,7 @@ class HybridLitModule(L.LightningModule):
         self._train_sums: dict[str, float] = {}
         self._base_val: dict[str, Tensor] = {}
         self._best: dict[str, tuple[float, dict]] = {}
+        self._record: dict = {}  # what a checkpoint says of its run (resume.RECORD)
         # False: the caller draws the figure itself, after decisions that change the
         # model (train_hybrid's blocked hold-out)
         self.figure_at_end = True
@@ -169,6 +171,8 @@ class HybridLitModule(L.LightningModule):
         if val.rotation is not None:
             self._base_val["orientation"] = corrected_orientation_errors_deg(val.rotation, zero)
         self.keep_start()
+        self._record = {"data": data_digest(train, val), "rows": [train.n, val.n]}
+        self._record["batch_size"] = dm.batch_size
 
     def keep_start(self) -> None:
         """With zero output layers the start is the base model: a candidate for the
@@ -240,8 +244,10 @@ class HybridLitModule(L.LightningModule):
         else:
             opt = torch.optim.AdamW(params, lr=hp.lr, weight_decay=hp.weight_decay)
         steps = max(int(self.trainer.estimated_stepping_batches), 1)
+        self._record["schedule_steps"] = 0
         if hp.scheduler == "none" or steps < 4:  # a schedule needs a few steps
             return opt
+        self._record |= {"schedule_steps": steps, "scheduler": hp.scheduler}
         if hp.scheduler == "cosine":
             sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=steps)
         else:  # warm-up over 10 % of the steps (at least 2), then cosine annealing
@@ -350,6 +356,33 @@ class HybridLitModule(L.LightningModule):
         dm = self.trainer.datamodule
         if self.figure_at_end and self.trainer.is_global_zero and dm is not None:
             log_error_figure(self, dm.val_targets)
+
+    # ------------------------------------------------------------------ checkpoints
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        """The run's record (:mod:`~hybrid_pk.training.resume`): its data, epochs,
+        schedule and processes, each network's best state so far and the random state
+        (the next epoch's shuffle is drawn from it)."""
+        checkpoint[RECORD] = {
+            **self._record,
+            "max_epochs": int(self.trainer.max_epochs),
+            "world_size": int(self.trainer.world_size),
+            "best": self._best,
+            "rng": torch.get_rng_state(),
+        }
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        """Go on from ``checkpoint``: the best states so far and the random state; a
+        run whose schedule ends before ``max_epochs`` is refused (one line)."""
+        record = checkpoint.get(RECORD)
+        if record is None:
+            return
+        if self.trainer is not None and self.trainer.max_epochs is not None:
+            done = {**record, "epochs_done": int(checkpoint.get("epoch", -1)) + 1}
+            why = schedule_conflict(done, int(self.trainer.max_epochs), "max_epochs")
+            if why:
+                raise HybridPKError(f"cannot resume from this checkpoint: {why}")
+        self._best = record["best"]
+        torch.set_rng_state(record["rng"])
 
     # ------------------------------------------------------------------ logging
     def _tensorboard(self):
