@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -156,6 +157,16 @@ def test_resume_with_nothing_to_resume_is_one_line(campaign, rx160, tmp_path):
         _train(campaign, rx160, tmp_path, resume=True, progress=False)
     with pytest.raises(HybridPKError, match="--resume needs the --logdir DIR"):
         _train(campaign, rx160, None, resume=True, progress=False)
+
+
+def test_resume_takes_the_newest_run_not_an_older_one(runs, campaign, rx160, tmp_path):
+    # before: the newest run with a checkpoint, here the older one (version_0), was
+    # resumed when the newest (version_1) stopped before its first epoch ended
+    logdir = tmp_path / "logs"
+    shutil.copytree(runs[4], logdir)
+    (logdir / "version_1").mkdir()
+    with pytest.raises(HybridPKError, match=r"nothing to resume in .*version_1, the newest run"):
+        _train(campaign, rx160, logdir, resume=True, progress=False)
 
 
 def test_without_a_schedule_a_resumed_run_may_train_longer(campaign, rx160, tmp_path):

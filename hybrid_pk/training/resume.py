@@ -86,20 +86,24 @@ def schedule_conflict(record: dict, max_epochs: int, option: str) -> str | None:
 
 
 def _last_checkpoint(logdir: str | Path) -> tuple[Path, int]:
-    """``logdir``'s newest ``version_K/checkpoints/last.ckpt`` and its K."""
-    folder = Path(logdir)
-    found = []
-    for path in folder.glob("version_*/checkpoints/last.ckpt"):
-        match = _VERSION.match(path.parent.parent.name)
-        if match:
-            found.append((int(match.group(1)), path))
-    if not found:
+    """The ``last.ckpt`` of ``logdir``'s newest run (``version_K``, the highest K) and K."""
+    versions = [
+        (int(m.group(1)), p)
+        for p in Path(logdir).glob("version_*")
+        if (m := _VERSION.match(p.name))
+    ]
+    if not versions:
         raise HybridPKError(
-            f"--resume: nothing to resume in {logdir} (no version_*/checkpoints/last.ckpt; "
-            "checkpoints are written after each epoch of a run with --logdir): run without "
-            "--resume"
+            f"--resume: nothing to resume in {logdir} (no version_K run folder; checkpoints "
+            "are written after each epoch of a run with --logdir): run without --resume"
         )
-    version, path = max(found)
+    version, folder = max(versions)
+    path = folder / "checkpoints" / "last.ckpt"
+    if not path.is_file():
+        raise HybridPKError(
+            f"--resume: nothing to resume in {folder}, the newest run in {logdir} (no "
+            "checkpoints/last.ckpt: stopped before its first epoch ended): run without --resume"
+        )
     return path, version
 
 
