@@ -48,12 +48,13 @@ def _train(data, robot, logdir, **kwargs):
     return train_hybrid(data, ExtendedModel(robot), logdir=logdir, **kwargs)
 
 
-def _interrupt_after(epoch: int):
+def _interrupt_after(epoch: int | None, line: str | None = None):
     """A progress callable that presses Ctrl-C (raises KeyboardInterrupt, as Python's
-    SIGINT handler does) when epoch ``epoch`` ends, before its checkpoint."""
+    SIGINT handler does) when epoch ``epoch`` ends, before its checkpoint, or at the
+    progress ``line`` starting so."""
 
     def say(text: str) -> None:
-        if text.startswith(f"epoch {epoch}/"):
+        if text.startswith(line or f"epoch {epoch}/"):
             raise KeyboardInterrupt
 
     return say
@@ -177,6 +178,27 @@ def test_without_a_schedule_a_resumed_run_may_train_longer(campaign, rx160, tmp_
     )
     assert (first.epochs, longer.epochs, longer.resumed[1]) == (2, 4, 2)
     assert len(_scalars(longer.logdir, "val/position_mm_mean")) == 4
+
+
+def test_ctrl_c_in_the_probe_fits_resumes_to_them_and_a_cut_checkpoint_is_one_line(
+    campaign, rx160, tmp_path
+):
+    stop = _interrupt_after(None, "blocked hold-out 2/")
+    with pytest.raises(TrainingInterrupted, match=r"in the blocked hold-out's probe fits") as cut:
+        _train(campaign, rx160, tmp_path, max_epochs=2, progress=stop)
+    assert "(2 of 2 epochs done): rerun the same command with --resume" in str(cut.value)
+    lines: list[str] = []
+    resumed = _train(campaign, rx160, tmp_path, resume=True, progress=lines.append)
+    assert lines[0].endswith("last.ckpt: 2 of 2 epochs done")
+    assert [t.split(":")[0] for t in lines[1:]] == ["blocked hold-out 1/2", "blocked hold-out 2/2"]
+    assert resumed.blocked
+    assert resumed.resumed[1] == 2
+    last = tmp_path / "version_0" / "checkpoints" / "last.ckpt"
+    last.write_bytes(last.read_bytes()[:1000])  # a job killed while writing it
+    with pytest.raises(HybridPKError, match=r"last.ckpt cannot be read \(") as refused:
+        _train(campaign, rx160, tmp_path, resume=True, progress=False)
+    assert "\n" not in str(refused.value)
+    assert len(str(refused.value)) < 400
 
 
 def test_ctrl_c_without_logdir_says_nothing_was_kept(campaign, rx160):

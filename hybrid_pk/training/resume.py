@@ -111,10 +111,11 @@ def _read(path: Path) -> dict:
     try:  # the user's own checkpoint, written by Lightning (pickled hyperparameters)
         checkpoint = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:  # a file cut short by a killed job: any unpickling error
+        why = str(exc).split(". ")[0]  # torch's zip errors go on for several sentences
         raise HybridPKError(
-            f"--resume: {path} cannot be read ({type(exc).__name__}: {exc}); a job killed "
-            "while writing it leaves it cut short: remove it to resume from the epoch's "
-            "other checkpoint (epoch=*.ckpt, rename it last.ckpt) or start a new run"
+            f"--resume: {path} cannot be read ({type(exc).__name__}: {why}); a job killed "
+            "while writing it leaves it cut short: rename the best epoch's "
+            "checkpoints/epoch=*.ckpt to last.ckpt to resume from there, or start a new run"
         ) from None
     if not isinstance(checkpoint, dict) or RECORD not in checkpoint:
         raise HybridPKError(
