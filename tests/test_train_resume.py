@@ -201,6 +201,18 @@ def test_ctrl_c_in_the_probe_fits_resumes_to_them_and_a_cut_checkpoint_is_one_li
     assert len(str(refused.value)) < 400
 
 
+def test_a_run_stopped_early_resumes_to_no_more_epochs(rx160, tmp_path):
+    # before: the resumed run trained one epoch past the early stop (4 against 3)
+    noise, _ = simulate_campaign(rx160, 200, "", noise_mm=0.02, known_frames=True, seed=4)
+    model = {**NETS, "scheduler": "none", "blocked": False}
+    kwargs = {"model": model, "max_epochs": 20, "patience": 2, "progress": False}
+    first = _train(noise, rx160, tmp_path, **kwargs)
+    assert first.epochs < 20  # stopped early
+    resumed = _train(noise, rx160, tmp_path, resume=True, **kwargs)
+    assert resumed.epochs == first.epochs
+    assert resumed.best == first.best
+
+
 def test_ctrl_c_without_logdir_says_nothing_was_kept(campaign, rx160):
     with pytest.raises(TrainingInterrupted, match=r"no checkpoint kept .*--logdir DIR"):
         _train(campaign, rx160, None, max_epochs=EPOCHS, progress=_interrupt_after(1))

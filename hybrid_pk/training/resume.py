@@ -170,11 +170,22 @@ def find_resume_point(
             "and --devices"
         )
     done = int(checkpoint.get("epoch", -1)) + 1  # saved after that epoch's validation
+    if _stopped_early(checkpoint):  # complete: another epoch would be one too many
+        return ResumePoint(path, version, done, done)
     asked = int(record["max_epochs"]) if max_epochs is None else int(max_epochs)
     why = schedule_conflict({**record, "epochs_done": done}, asked, "--epochs")
     if why:
         raise HybridPKError(f"{where} ({done} of {record['max_epochs']} epochs done): {why}")
     return ResumePoint(path, version, done, asked)
+
+
+def _stopped_early(checkpoint: dict) -> bool:
+    """Whether the run's early stopping had ended it (Lightning's EarlyStopping state)."""
+    states = checkpoint.get("callbacks") or {}
+    return any(
+        key.startswith("EarlyStopping") and int(state.get("stopped_epoch", 0)) > 0
+        for key, state in states.items()
+    )
 
 
 def interruption(exc: BaseException, trainer, stage: str) -> BaseException:
