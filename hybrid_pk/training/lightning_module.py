@@ -9,7 +9,13 @@ Logged (TensorBoard): ``train/loss``, ``train/position_mm``, ``train/orientation
 ``val/orientation_deg_{mean,p95}``, ``val/score`` (hybrid / base mean error, summed
 over position and orientation: what early stopping watches); histograms of
 the validation errors; at the end of the fit a Fig.-4-like figure (base model vs
-hybrid error distributions, :func:`~hybrid_pk.training.figures.log_error_figure`).
+hybrid error distributions, :func:`~hybrid_pk.training.figures.log_error_figure`;
+:func:`~hybrid_pk.training.train_hybrid` draws it itself after the blocked hold-out,
+of the model as written).
+
+A checkpoint carries the run's record (:mod:`~hybrid_pk.training.resume`): the best
+states so far, the random state and what a resume checks, so a resumed fit ends as an
+uninterrupted one.
 
 Each network keeps its own best state (lowest validation mean error of its quantity)
 and both are restored at the end of the fit: the paper trains the two networks as
