@@ -153,6 +153,14 @@ def test_lightning_ckpt_path_with_more_epochs_is_refused_in_one_line(runs, campa
         trainer.fit(module, datamodule=dm, ckpt_path=last)
 
 
+def test_a_checkpoint_loads_into_a_module_outside_a_fit(runs):
+    # before: on_load_checkpoint asked self.trainer, which raises outside a fit
+    last = torch.load(runs[4] / "version_0" / "checkpoints" / "last.ckpt", weights_only=False)
+    module = HybridLitModule(**last["hyper_parameters"])
+    module.on_load_checkpoint(last)
+    assert set(module.best_metrics()) == {"position_mm", "orientation_deg"}
+
+
 def test_resume_with_nothing_to_resume_is_one_line(campaign, rx160, tmp_path):
     with pytest.raises(HybridPKError, match=r"nothing to resume in .*: run without --resume"):
         _train(campaign, rx160, tmp_path, resume=True, progress=False)

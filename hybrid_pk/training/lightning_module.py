@@ -382,9 +382,10 @@ class HybridLitModule(L.LightningModule):
         record = checkpoint.get(RECORD)
         if record is None:
             return
-        if self.trainer is not None and self.trainer.max_epochs is not None:
+        trainer = self._trainer  # None when loaded outside a fit (the property raises)
+        if trainer is not None and trainer.max_epochs is not None:
             done = {**record, "epochs_done": int(checkpoint.get("epoch", -1)) + 1}
-            why = schedule_conflict(done, int(self.trainer.max_epochs), "max_epochs")
+            why = schedule_conflict(done, int(trainer.max_epochs), "max_epochs")
             if why:
                 raise HybridPKError(f"cannot resume from this checkpoint: {why}")
         self._best = record["best"]
