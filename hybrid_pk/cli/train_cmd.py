@@ -116,7 +116,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--model, --seed and settings; its epochs unless --epochs)",
     )
     add_seed(p, what="seed of the split, the initialisation and the shuffling")
-    p.add_argument("--strategy", default="auto", help="Lightning strategy: auto or ddp")
+    p.add_argument("--strategy", default="auto", choices=("auto", "ddp"), help="Lightning strategy")
     p.add_argument(
         "--devices", type=_processes, default=1, metavar="N", help="processes (default: 1)"
     )
