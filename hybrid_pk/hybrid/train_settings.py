@@ -92,9 +92,7 @@ class TrainSettings:
     val_fraction: float | None = field(
         default=None,
         metadata=_help(
-            "share of the rows held out for validation (default: preset)",
-            "F",
-            check=in_open_unit,
+            "share of rows held out for validation (default: preset)", "F", check=in_open_unit
         ),
     )
     input_range: Literal["data", "limits"] | None = field(
