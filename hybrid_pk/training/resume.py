@@ -49,12 +49,15 @@ class ResumePoint:
         version: the ``version_K`` folder of the logdir it belongs to (logging goes on there).
         epochs_done: epochs completed when it was written.
         max_epochs: the epochs the resumed run trains to.
+        step: the training steps done (TensorBoard drops what the interrupted run
+            logged from there on: the epoch that is run again).
     """
 
     path: Path
     version: int
     epochs_done: int
     max_epochs: int
+    step: int = 0
 
 
 def data_digest(train, val) -> str:
@@ -171,12 +174,12 @@ def find_resume_point(
         )
     done = int(checkpoint.get("epoch", -1)) + 1  # saved after that epoch's validation
     if _stopped_early(checkpoint):  # complete: another epoch would be one too many
-        return ResumePoint(path, version, done, done)
+        return ResumePoint(path, version, done, done, int(checkpoint["global_step"]))
     asked = int(record["max_epochs"]) if max_epochs is None else int(max_epochs)
     why = schedule_conflict({**record, "epochs_done": done}, asked, "--epochs")
     if why:
         raise HybridPKError(f"{where} ({done} of {record['max_epochs']} epochs done): {why}")
-    return ResumePoint(path, version, done, asked)
+    return ResumePoint(path, version, done, asked, int(checkpoint["global_step"]))
 
 
 def _stopped_early(checkpoint: dict) -> bool:

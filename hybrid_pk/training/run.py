@@ -171,7 +171,7 @@ def make_trainer(
     devices: int = 1,
     num_nodes: int = 1,
     batches_per_epoch: int | None = None,
-    version: int | None = None,
+    resumed: dict | None = None,
 ) -> L.Trainer:
     """A CPU Lightning trainer with our callbacks and (with ``logdir``) TensorBoard.
 
@@ -186,14 +186,18 @@ def make_trainer(
         devices: processes (CPU devices) per node.
         num_nodes: machines.
         batches_per_epoch: training steps per epoch, if known (logging interval).
-        version: log to ``logdir/version_<version>`` (a resumed run's); None: a new one.
+        resumed: a resumed run's ``{"version": K, "purge_step": S}``: log to
+            ``logdir/version_K``, TensorBoard dropping its events from step S on;
+            None: a new ``version_K``.
     """
     callbacks: list = []
     if patience is not None:
         callbacks.append(EarlyStopping(monitor=MONITOR, mode="min", patience=int(patience)))
     logger = False
     if logdir is not None:
-        logger = TensorBoardLogger(str(logdir), name="", version=version, default_hp_metric=False)
+        logger = TensorBoardLogger(
+            str(logdir), name="", default_hp_metric=False, **(resumed or {"version": None})
+        )
         callbacks.append(LearningRateMonitor(logging_interval="epoch"))
         callbacks.append(ModelCheckpoint(monitor=MONITOR, mode="min"))  # the best epoch
         # every epoch's end, what --resume continues from (Lightning's save_last writes
@@ -284,7 +288,7 @@ def train_hybrid(
         strategy=strategy,
         devices=devices,
         batches_per_epoch=math.ceil(dm.train_targets.n / (dm.batch_size * devices)),
-        version=None if point is None else point.version,
+        resumed=None if point is None else {"version": point.version, "purge_step": point.step},
         **settings["trainer"],
     )
     previous = torch.get_num_threads()
