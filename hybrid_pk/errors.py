@@ -31,6 +31,15 @@ class InvalidFrame(RobotModelError):
         self.valid = valid
 
 
+class TrainingInterrupted(HybridPKError):
+    """A training stopped by Ctrl-C (SIGINT) or SIGTERM; the message says what was kept
+    and how to continue. ``exit_code``: 130 (SIGINT) or 143 (SIGTERM), the shell's."""
+
+    def __init__(self, message: str, exit_code: int) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+
+
 class DataError(HybridPKError):
     """Bad measured data. ``file``, ``row`` (1-based data row) and ``column`` locate it."""
 

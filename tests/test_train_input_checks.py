@@ -46,6 +46,9 @@ def no_training(monkeypatch):
         (["--patience", "-2"], "--patience"),  # before: accepted without a word
         (["--lr", "0"], "--lr"),  # before: accepted, the networks never moved
         (["--devices", "0"], "--devices"),  # before: ZeroDivisionError
+        # before: refused after the data was read, without the flag's name
+        (["--val-fraction", "1.5"], "--val-fraction"),
+        (["--strategy", "foo"], "--strategy"),  # before: Lightning's error, after the data
     ],
 )
 def test_out_of_range_flags_are_one_line_usage_errors(files, tmp_path, capsys, flags, named):

@@ -20,7 +20,7 @@ from hybrid_pk.io.hybrid_file import load_hybrid, predict_poses
 from hybrid_pk.io.model_file import load_model, save_model
 from hybrid_pk.simulate import simulate_campaign
 from hybrid_pk.training import PRESETS, train_hybrid
-from hybrid_pk.training.figures import FIGURE_TAG
+from hybrid_pk.training.figures import FIGURE_TAG, WRITTEN_TAGS
 from hybrid_pk.training.presets import settings_from_config
 
 REPO = Path(__file__).resolve().parents[1]
@@ -88,6 +88,21 @@ def test_tensorboard_has_scalars_histograms_and_the_figure(fitted):
     assert FIGURE_TAG in tags["images"]
     assert (Path(fitted.logdir) / "error_distribution.png").is_file()
     assert any((Path(fitted.logdir) / "checkpoints").glob("*.ckpt"))
+
+
+def test_the_figure_and_written_scalars_show_the_model_as_written(fitted):
+    # before: the figure was drawn when the fit ended, every stage gated, and the blocked
+    # hold-out then freed stages: the file's model was in no figure or scalar
+    assert {r["mode"] for r in fitted.blocked.values()} != {"gated"}  # a decision changed it
+    events = EventAccumulator(fitted.logdir, size_guidance={"scalars": 0, "images": 0})
+    events.Reload()
+    assert set(WRITTEN_TAGS) <= set(events.Tags()["scalars"])
+    written = {k: events.Scalars(f"written/{k}_mean")[-1].value for k in fitted.final}
+    assert written == pytest.approx(fitted.final, rel=1e-6)
+    assert written["position_mm"] != pytest.approx(fitted.best["position_mm"], rel=1e-6)
+    images = events.Images(FIGURE_TAG)
+    assert len(images) == 1  # one figure, drawn with the written scalars
+    assert images[0].step == events.Scalars("written/position_mm_mean")[-1].step
 
 
 def test_same_seed_same_networks_other_seed_differs(rx160, campaign):

@@ -22,7 +22,7 @@ from hybrid_pk.cli.options import (
 )
 from hybrid_pk.cli.progress import progress
 from hybrid_pk.cli.settings_flags import add_settings_flags, given_values
-from hybrid_pk.errors import HybridPKError
+from hybrid_pk.errors import HybridPKError, TrainingInterrupted
 from hybrid_pk.evaluation.metrics import pose_error
 from hybrid_pk.hybrid.tuning import hybrid_tuning
 from hybrid_pk.io.model_file import NOMINAL_PREFIX, load_model, model_robot
@@ -81,7 +81,12 @@ YAML (train/configs/*.yaml) over the preset. Networks: D1, D4, D4w, D4W, Rw, Rd,
 B1-B4, mlp, mlp:WIDTHxDEPTH, or none.
 
 --logdir DIR writes TensorBoard logs (losses, mean/p95 position [mm] and orientation
-[deg] errors, error histograms, a Fig.-4-like figure) and checkpoints.
+[deg] errors per epoch, error histograms; the model as written after the blocked
+hold-out: written/* scalars and a Fig.-4-like figure) and a checkpoint after every
+epoch. An interrupted run (Ctrl-C, SIGTERM) keeps the last one and says so; the same
+command with --resume continues it in the same version_K folder. A one-cycle learning
+rate ends at the epochs it was started for: --resume with other --epochs is refused
+(--preset paper, no schedule, may be given more).
 --strategy ddp --devices N trains in N processes (DDP; CPU: gloo).
 """
 
@@ -104,8 +109,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "top-level tuning: mapping sets the hybrid's tuning constants",
     )
     p.add_argument("--logdir", metavar="DIR", help="TensorBoard logs and checkpoints")
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the interrupted run whose checkpoints are in --logdir DIR (same DATA, "
+        "--model, --seed and settings; its epochs unless --epochs)",
+    )
     add_seed(p, what="seed of the split, the initialisation and the shuffling")
-    p.add_argument("--strategy", default="auto", help="Lightning strategy: auto or ddp")
+    p.add_argument("--strategy", default="auto", choices=("auto", "ddp"), help="Lightning strategy")
     p.add_argument(
         "--devices", type=_processes, default=1, metavar="N", help="processes (default: 1)"
     )
@@ -174,7 +185,7 @@ def _epoch_progress(args) -> Iterator[object]:
         yield not args.no_progress
         return
     with progress("train") as bar:
-        bar.stage("training the residual networks")
+        bar.stage(f"{'resuming' if args.resume else 'training'} the residual networks")
         yield bar
 
 
@@ -190,6 +201,8 @@ def run(args: argparse.Namespace) -> int:
     training_sections(settings, args.config)  # checked before any data is read
     _check_writable(args.out, "--out", folder=False)
     _check_writable(args.logdir, "--logdir", folder=True)
+    if args.resume and args.logdir is None:
+        raise HybridPKError("--resume needs the --logdir DIR of the run to continue")
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
     robot = model_robot(loaded)
     robot.requires_grad_(False)
@@ -197,12 +210,17 @@ def run(args: argparse.Namespace) -> int:
     data, cond, base = _prepare(args, loaded, robot, sets)
     if loaded.has_networks and is_main_process():
         print(f"note: {args.model} already has residual networks; they are replaced")
-    with _epoch_progress(args) as shown:
-        job = train_job(
-            loaded, data, cond, base, model_label=args.model, out=args.out, settings=settings,
-            config=args.config, fit_frames=args.fit_frames, seed=args.seed, logdir=args.logdir,
-            progress=shown, strategy=args.strategy, devices=args.devices,
-        )  # fmt: skip
+    try:
+        with _epoch_progress(args) as shown:
+            job = train_job(
+                loaded, data, cond, base, model_label=args.model, out=args.out,
+                settings=settings, config=args.config, fit_frames=args.fit_frames,
+                seed=args.seed, logdir=args.logdir, progress=shown, strategy=args.strategy,
+                devices=args.devices, resume=args.resume,
+            )  # fmt: skip
+    except TrainingInterrupted as exc:  # what was kept and how to go on, one line
+        print(f"hybrid-pk train: {exc}", file=sys.stderr)
+        return exc.exit_code
     if job.out is None:
         return 0
     _print_summary(args, robot, data, job.result)
@@ -226,9 +244,11 @@ def _print_summary(args, robot, data, result) -> None:
             where = "" if len(hybrid.stages) == 1 else f" [{stage.label}]"
             nets.append(f"{name}{where} {head.arch} ({count_parameters(head):,} parameters)")
     base = "nominal URDF" if args.model.startswith(NOMINAL_PREFIX) else args.model
+    resumed = "" if result.resumed is None else f", resumed after {result.resumed[1]},"
     print(
         f"trained {', '.join(nets)} on {data.n} rows of {robot.name} over {base}: "
-        f"{result.epochs} epoch{'' if result.epochs == 1 else 's'} in {result.seconds:.1f} s"
+        f"{result.epochs} epoch{'' if result.epochs == 1 else 's'}{resumed} in "
+        f"{result.seconds:.1f} s"
     )
     print("validation rows, mean error        base model ->   hybrid")
     for key, label in (("position_mm", "position [mm]"), ("orientation_deg", "orientation [deg]")):

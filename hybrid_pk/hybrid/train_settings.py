@@ -21,7 +21,13 @@ from hybrid_pk.errors import HybridPKError
 from hybrid_pk.hybrid.builder import HybridSettings, check_trust
 from hybrid_pk.hybrid.nets import parse_arch
 from hybrid_pk.hybrid.tuning import HybridTuning
-from hybrid_pk.settings import at_least_one, non_negative, parse_settings, positive
+from hybrid_pk.settings import (
+    at_least_one,
+    in_open_unit,
+    non_negative,
+    parse_settings,
+    positive,
+)
 
 __all__ = ["MODULE_FIELDS", "TrainSettings", "field_help"]
 
@@ -85,7 +91,9 @@ class TrainSettings:
     )
     val_fraction: float | None = field(
         default=None,
-        metadata=_help("share of the rows held out for validation (default: preset)", "F"),
+        metadata=_help(
+            "share of rows held out for validation (default: preset)", "F", check=in_open_unit
+        ),
     )
     input_range: Literal["data", "limits"] | None = field(
         default=None, metadata=_help("input normalisation range")

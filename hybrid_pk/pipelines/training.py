@@ -121,6 +121,7 @@ def train_job(
     progress: bool | Callable[[str], None] = True,
     strategy: str = "auto",
     devices: int = 1,
+    resume: bool = False,
 ) -> TrainJob:
     """Train the residual networks over ``base`` (:func:`base_for_training`) and write
     ``out``: MODEL (``loaded``, named ``model_label`` in the record) plus the networks.
@@ -128,7 +129,7 @@ def train_job(
     Args:
         settings: the preset and what differs from it (default: the ``fast`` preset);
             ``config`` a LightningCLI YAML read first (:func:`training_sections`).
-        seed, logdir, progress, strategy, devices: as in
+        seed, logdir, progress, strategy, devices, resume: as in
             :func:`~hybrid_pk.training.train_hybrid`.
     """
     from hybrid_pk.io.hybrid_file import save_hybrid
@@ -142,7 +143,7 @@ def train_job(
             data, base, cond, preset_name=preset, model=model_over, datamodule=data_over,
             max_epochs=trainer_over.get("max_epochs"),
             patience=trainer_over.get("patience", "preset"), seed=seed, logdir=logdir,
-            progress=progress, strategy=strategy, devices=devices,
+            progress=progress, strategy=strategy, devices=devices, resume=resume,
         )  # fmt: skip
     frames_fitted = loaded.frames_fitted or fit_frames
     metadata = {k: v for k, v in loaded.metadata.items() if k != "created"}
@@ -154,6 +155,9 @@ def train_job(
         "preset": preset,
         "seed": seed,
         "epochs": result.epochs,
+        "resumed": None
+        if result.resumed is None
+        else {"checkpoint": result.resumed[0], "epochs_done": result.resumed[1]},
         "seconds": round(result.seconds, 3),
         "validation_base": result.base,
         "validation_hybrid": result.final,  # the model as written (after the gates)

@@ -9,7 +9,13 @@ Logged (TensorBoard): ``train/loss``, ``train/position_mm``, ``train/orientation
 ``val/orientation_deg_{mean,p95}``, ``val/score`` (hybrid / base mean error, summed
 over position and orientation: what early stopping watches); histograms of
 the validation errors; at the end of the fit a Fig.-4-like figure (base model vs
-hybrid error distributions, :func:`~hybrid_pk.training.figures.log_error_figure`).
+hybrid error distributions, :func:`~hybrid_pk.training.figures.log_error_figure`;
+:func:`~hybrid_pk.training.train_hybrid` draws it itself after the blocked hold-out,
+of the model as written).
+
+A checkpoint carries the run's record (:mod:`~hybrid_pk.training.resume`): the best
+states so far, the random state and what a resume checks, so a resumed fit ends as an
+uninterrupted one.
 
 Each network keeps its own best state (lowest validation mean error of its quantity)
 and both are restored at the end of the fit: the paper trains the two networks as
@@ -47,6 +53,7 @@ from hybrid_pk.hybrid.losses import (
 )
 from hybrid_pk.hybrid.nets import parse_arch
 from hybrid_pk.training.figures import log_error_figure
+from hybrid_pk.training.resume import RECORD, data_digest, schedule_conflict
 
 __all__ = ["OPTIMIZERS", "SCHEDULERS", "HybridLitModule"]
 
@@ -145,6 +152,10 @@ class HybridLitModule(L.LightningModule):
         self._train_sums: dict[str, float] = {}
         self._base_val: dict[str, Tensor] = {}
         self._best: dict[str, tuple[float, dict]] = {}
+        self._record: dict = {}  # what a checkpoint says of its run (resume.RECORD)
+        # False: the caller draws the figure itself, after decisions that change the
+        # model (train_hybrid's blocked hold-out)
+        self.figure_at_end = True
 
     # ------------------------------------------------------------------ construction
     def setup(self, stage: str) -> None:
@@ -166,6 +177,8 @@ class HybridLitModule(L.LightningModule):
         if val.rotation is not None:
             self._base_val["orientation"] = corrected_orientation_errors_deg(val.rotation, zero)
         self.keep_start()
+        self._record = {"data": data_digest(train, val), "rows": [train.n, val.n]}
+        self._record["batch_size"] = dm.batch_size
 
     def keep_start(self) -> None:
         """With zero output layers the start is the base model: a candidate for the
@@ -237,8 +250,10 @@ class HybridLitModule(L.LightningModule):
         else:
             opt = torch.optim.AdamW(params, lr=hp.lr, weight_decay=hp.weight_decay)
         steps = max(int(self.trainer.estimated_stepping_batches), 1)
+        self._record["schedule_steps"] = 0
         if hp.scheduler == "none" or steps < 4:  # a schedule needs a few steps
             return opt
+        self._record |= {"schedule_steps": steps, "scheduler": hp.scheduler}
         if hp.scheduler == "cosine":
             sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=steps)
         else:  # warm-up over 10 % of the steps (at least 2), then cosine annealing
@@ -344,8 +359,37 @@ class HybridLitModule(L.LightningModule):
             for stage, state in zip(self.hybrid.stages, states, strict=True):
                 if state is not None:
                     getattr(stage, name).load_state_dict(state)
-        if self.trainer.is_global_zero and self.trainer.datamodule is not None:
-            log_error_figure(self, self.trainer.datamodule.val_targets)
+        dm = self.trainer.datamodule
+        if self.figure_at_end and self.trainer.is_global_zero and dm is not None:
+            log_error_figure(self, dm.val_targets)
+
+    # ------------------------------------------------------------------ checkpoints
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        """The run's record (:mod:`~hybrid_pk.training.resume`): its data, epochs,
+        schedule and processes, each network's best state so far and the random state
+        (the next epoch's shuffle is drawn from it)."""
+        checkpoint[RECORD] = {
+            **self._record,
+            "max_epochs": int(self.trainer.max_epochs),
+            "world_size": int(self.trainer.world_size),
+            "best": self._best,
+            "rng": torch.get_rng_state(),
+        }
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        """Go on from ``checkpoint``: the best states so far and the random state; a
+        run whose schedule ends before ``max_epochs`` is refused (one line)."""
+        record = checkpoint.get(RECORD)
+        if record is None:
+            return
+        trainer = self._trainer  # None when loaded outside a fit (the property raises)
+        if trainer is not None and trainer.max_epochs is not None:
+            done = {**record, "epochs_done": int(checkpoint.get("epoch", -1)) + 1}
+            why = schedule_conflict(done, int(trainer.max_epochs), "max_epochs")
+            if why:
+                raise HybridPKError(f"cannot resume from this checkpoint: {why}")
+        self._best = record["best"]
+        torch.set_rng_state(record["rng"])
 
     # ------------------------------------------------------------------ logging
     def _tensorboard(self):

@@ -36,8 +36,10 @@ from hybrid_pk.hybrid.nets import parse_arch
 from hybrid_pk.threads import requested_threads
 from hybrid_pk.training.blocked import blocked_blocks, blocked_check, fold_rows, probe_folds
 from hybrid_pk.training.datamodule import HybridDataModule
+from hybrid_pk.training.figures import log_written_model
 from hybrid_pk.training.lightning_module import HybridLitModule
 from hybrid_pk.training.presets import full_model_settings, preset
+from hybrid_pk.training.resume import data_digest, find_resume_point, interruption
 
 __all__ = [
     "MONITOR",
@@ -52,6 +54,7 @@ __all__ = [
 ]
 
 MONITOR = "val/score"
+LAST = "last"  # checkpoints/last.ckpt
 # Networks no wider than this train on one thread: their layers are too small for a
 # parallel region to pay off, and on a busy machine each region waits for the other
 # thread to be scheduled (measured: 70 x slower steps with 2 threads at load 4 on 2
@@ -97,6 +100,8 @@ def quiet_lightning() -> None:
     warnings.filterwarnings("ignore", message=".*LeafSpec.*", category=DeprecationWarning)
     warnings.filterwarnings("ignore", message=".*LeafSpec.*", category=FutureWarning)
     warnings.filterwarnings("ignore", message=r".*distributed\.nn\.functional\.all_gather.*")
+    # a resumed run writes into its own checkpoint folder (--resume)
+    warnings.filterwarnings("ignore", message=r"Checkpoint directory .* exists and is not empty")
 
 
 class EpochReport(Callback):
@@ -140,6 +145,7 @@ class TrainResult:
         blocked: the blocked hold-out test of each stage with a joint-space gate
             (``"<index>:<label>"`` -> record, see
             :func:`~hybrid_pk.training.blocked.blocked_check`); empty when not run.
+        resumed: (checkpoint, epochs it had done) of a resumed run, else None.
     """
 
     hybrid: HybridFK
@@ -152,6 +158,7 @@ class TrainResult:
     settings: dict = field(default_factory=dict)
     blocked: dict = field(default_factory=dict)
     final: dict = field(default_factory=dict)
+    resumed: tuple[str, int] | None = None
 
 
 def make_trainer(
@@ -164,6 +171,7 @@ def make_trainer(
     devices: int = 1,
     num_nodes: int = 1,
     batches_per_epoch: int | None = None,
+    resumed: dict | None = None,
 ) -> L.Trainer:
     """A CPU Lightning trainer with our callbacks and (with ``logdir``) TensorBoard.
 
@@ -178,15 +186,23 @@ def make_trainer(
         devices: processes (CPU devices) per node.
         num_nodes: machines.
         batches_per_epoch: training steps per epoch, if known (logging interval).
+        resumed: a resumed run's ``{"version": K, "purge_step": S}``: log to
+            ``logdir/version_K``, TensorBoard dropping its events from step S on;
+            None: a new ``version_K``.
     """
     callbacks: list = []
     if patience is not None:
         callbacks.append(EarlyStopping(monitor=MONITOR, mode="min", patience=int(patience)))
     logger = False
     if logdir is not None:
-        logger = TensorBoardLogger(str(logdir), name="", default_hp_metric=False)
+        logger = TensorBoardLogger(
+            str(logdir), name="", default_hp_metric=False, **(resumed or {"version": None})
+        )
         callbacks.append(LearningRateMonitor(logging_interval="epoch"))
-        callbacks.append(ModelCheckpoint(monitor=MONITOR, mode="min", save_last=True))
+        callbacks.append(ModelCheckpoint(monitor=MONITOR, mode="min"))  # the best epoch
+        # every epoch's end, what --resume continues from (Lightning's save_last writes
+        # only when the monitored score improved)
+        callbacks.append(ModelCheckpoint(filename=LAST, enable_version_counter=False))
     if callable(progress):
         callbacks.append(EpochReport(progress))
     elif progress:
@@ -224,6 +240,7 @@ def train_hybrid(
     strategy: str = "auto",
     devices: int = 1,
     threads: int | None = None,
+    resume: bool = False,
 ) -> TrainResult:
     """Train the residual networks of a :class:`HybridFK` on ``data`` over ``base``.
 
@@ -247,51 +264,53 @@ def train_hybrid(
         threads: torch threads during the fit; None: the count fixed by ``--threads`` /
             ``HYBRID_PK_THREADS``, else one for networks up to
             :data:`SINGLE_THREAD_WIDTH` wide, torch's setting for wider ones.
+        resume: continue the run whose last checkpoint is in ``logdir`` (same data,
+            seed and settings; ``max_epochs`` None: the run's own; a one-cycle run
+            cannot be given other epochs): :mod:`~hybrid_pk.training.resume`.
+
+    Raises:
+        TrainingInterrupted: Ctrl-C or SIGTERM; the message names the checkpoint kept
+            and how to resume.
     """
     settings = preset(preset_name)
-    settings["model"] = full_model_settings({**settings["model"], **(model or {})})
-    settings["notes"] = _preset_inputs_for(base.robot, settings["model"], model or {})
-    settings["data"].update(datamodule or {})
-    if max_epochs is not None:
-        settings["trainer"]["max_epochs"] = int(max_epochs)
-    if not settings["trainer"]["max_epochs"] >= 1:  # 0 would store untrained networks
-        raise HybridPKError(
-            f"max_epochs must be at least 1, got {settings['trainer']['max_epochs']}"
-        )
-    if patience != "preset":
-        settings["trainer"]["patience"] = patience
+    _override(settings, base, model, datamodule, max_epochs, patience)
     if callable(progress):
         quiet_lightning()
     L.seed_everything(seed, workers=True, verbose=False)
     dm = HybridDataModule.from_measured(data, base, cond, seed=seed, **settings["data"])
     module = HybridLitModule(**settings["model"])
+    point = _resume_point(dm, module, logdir, devices, max_epochs, progress) if resume else None
+    if point is not None:
+        settings["trainer"]["max_epochs"] = point.max_epochs
     trainer = make_trainer(
         logdir=logdir,
         progress=progress,
         strategy=strategy,
         devices=devices,
         batches_per_epoch=math.ceil(dm.train_targets.n / (dm.batch_size * devices)),
+        resumed=None if point is None else {"version": point.version, "purge_step": point.step},
         **settings["trainer"],
     )
     previous = torch.get_num_threads()
-    archs = [settings["model"]["position_net"], settings["model"]["orientation_net"]]
-    fixed = requested_threads()  # --threads / HYBRID_PK_THREADS (hybrid_pk.threads)
-    threads = threads or (fixed if isinstance(fixed, int) else None) or auto_threads(archs)
-    start = time.perf_counter()
+    threads = threads or _fit_threads(settings)
+    probing = settings["model"].get("blocked", True) and trainer.world_size == 1
+    module.figure_at_end = False  # drawn below, of the model the decisions leave
+    start, stage = time.perf_counter(), "training"
     try:
         if threads:
             torch.set_num_threads(threads)
-        trainer.fit(module, datamodule=dm)
-        hybrid = module.hybrid.eval()
-        blocked = {}
-        if settings["model"].get("blocked", True) and trainer.world_size == 1:
-            blocked = blocked_hold_out(hybrid, dm, settings, seed, progress)
+        trainer.fit(module, datamodule=dm, ckpt_path=None if point is None else point.path)
+        hybrid, stage = module.hybrid.eval(), "blocked"
+        blocked = blocked_hold_out(hybrid, dm, settings, seed, progress) if probing else {}
+    except (KeyboardInterrupt, SystemExit) as exc:  # Lightning exits on Ctrl-C and SIGTERM
+        raise interruption(exc, trainer, stage) from None
     finally:
         torch.set_num_threads(previous)
     seconds = time.perf_counter() - start
-    hybrid = hybrid.eval()
     best = module.best_metrics()
     final = validation_errors(hybrid, dm.val_targets) if blocked else dict(best)
+    if trainer.is_global_zero:
+        log_written_model(module, dm.val_targets, blocked)
     return TrainResult(
         hybrid=hybrid,
         best=best,
@@ -303,7 +322,48 @@ def train_hybrid(
         is_global_zero=trainer.is_global_zero,
         settings=settings,
         blocked=blocked,
+        resumed=None if point is None else (str(point.path), point.epochs_done),
     )
+
+
+def _fit_threads(settings: dict) -> int | None:
+    """Threads of a fit not given any: ``--threads`` / ``HYBRID_PK_THREADS``
+    (:mod:`hybrid_pk.threads`), else :func:`auto_threads` of the networks."""
+    archs = [settings["model"]["position_net"], settings["model"]["orientation_net"]]
+    fixed = requested_threads()
+    return (fixed if isinstance(fixed, int) else None) or auto_threads(archs)
+
+
+def _override(settings, base, model, datamodule, max_epochs, patience) -> None:
+    """Apply :func:`train_hybrid`'s overrides to the preset ``settings`` (in place)."""
+    settings["model"] = full_model_settings({**settings["model"], **(model or {})})
+    settings["notes"] = _preset_inputs_for(base.robot, settings["model"], model or {})
+    settings["data"].update(datamodule or {})
+    if max_epochs is not None:
+        settings["trainer"]["max_epochs"] = int(max_epochs)
+    if not settings["trainer"]["max_epochs"] >= 1:  # 0 would store untrained networks
+        raise HybridPKError(
+            f"max_epochs must be at least 1, got {settings['trainer']['max_epochs']}"
+        )
+    if patience != "preset":
+        settings["trainer"]["patience"] = patience
+
+
+def _resume_point(dm, module, logdir, devices, max_epochs, progress):
+    """The checked :class:`~hybrid_pk.training.resume.ResumePoint` of a resumed run, said."""
+    digest = data_digest(dm.train_targets, dm.val_targets)
+    batches = (dm.batch_size, devices)
+    point = find_resume_point(logdir, digest, dict(module.hparams), batches, max_epochs)
+    _say(progress, f"resuming {point.path}: {point.epochs_done} of {point.max_epochs} epochs done")
+    return point
+
+
+def _say(progress: bool | Callable[[str], None], text: str) -> None:
+    """A line of progress: to ``progress`` (a callable), else on stderr (with a bar)."""
+    if callable(progress):
+        progress(text)
+    elif progress:
+        print(text, file=sys.stderr, flush=True)
 
 
 @torch.no_grad()
