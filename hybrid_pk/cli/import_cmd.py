@@ -251,7 +251,9 @@ laser tracker (about 3 kHz), recorded on two clocks:
     tracker time = robot time + offset
 
 The offset is estimated (speed-profile cross-correlation, then the offset that
-minimises the closed-form frame registration residual) unless --offset is given.
+minimises the closed-form frame registration residual, scanned over all of
+--max-offset) unless --offset is given; a residual over 100 times the noise the
+streams show is a warning naming both files.
 The tracker poses are then interpolated at the robot times (positions linearly,
 orientations by SLERP); robot rows outside the tracker stream or in a tracker gap
 (beam break) are left out and reported. The table keeps t (robot clock, s).
@@ -395,6 +397,9 @@ def _run_streams(args: argparse.Namespace) -> int:
                 t_r, q, t_m, pos, robot, quat=quat, max_offset=args.max_offset
             )
         print(est.summary())
+        warning = est.residual_warning(f"{args.robot_stream}, {args.tracker_stream}")
+        if warning:
+            print(f"warning: {warning}")
         offset, jumps = est.offset, est.jumps
     else:
         offset = args.offset

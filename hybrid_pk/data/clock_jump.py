@@ -47,7 +47,15 @@ from scipy.stats import norm
 from hybrid_pk.data.interpolation import interpolate_poses
 from hybrid_pk.data.point_frames import PointFrames
 
-__all__ = ["ALPHA", "MAX_JUMPS", "WINDOW", "ClockJump", "find_clock_jumps", "step_scores"]
+__all__ = [
+    "ALPHA",
+    "MAX_JUMPS",
+    "WINDOW",
+    "ClockJump",
+    "find_clock_jumps",
+    "noise_rms",
+    "step_scores",
+]
 
 # Rows on either side of a candidate jump: 2 x 16 rows x 3 coordinates = 96 equations
 # for 7 unknowns, over 0.3 s at 110 Hz, short enough that a model error is a straight
@@ -265,6 +273,23 @@ class _JumpSearch:
             if cuts:
                 offsets, std, pose = self.refit(cuts, offsets, pose, v, ok)
         return offsets, std
+
+
+def noise_rms(
+    streams: tuple[np.ndarray, torch.Tensor, np.ndarray, np.ndarray],
+    offset: float,
+    pose: tuple[np.ndarray, np.ndarray, np.ndarray],
+    max_gap: float,
+) -> float:
+    """[m] RMS length of the noise of one residual vector that the rows show at ``offset``
+    (``streams = (robot_t, T_end, tracker_t, position)`` and the rest as in
+    :func:`find_clock_jumps`): ``sqrt(3 mean σ_k²)`` of the noise model above, white in
+    three coordinates; inf with too few rows to tell."""
+    search = _JumpSearch(*streams, max_gap)
+    r, v, ok = search.residuals(np.full(len(streams[0]), float(offset)), pose)
+    if not ok.any():
+        return float("inf")
+    return float(np.sqrt(3 * noise_variance(r, v, ok)[ok].mean()))
 
 
 def find_clock_jumps(

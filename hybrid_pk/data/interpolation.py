@@ -75,16 +75,16 @@ def interpolate_poses(
     hi = np.clip(k, 1, len(tracker_t) - 1)
     gap = tracker_t[hi] - tracker_t[hi - 1]
     valid = inside & (gap <= max_gap)
+    # from the two samples around each query: np.interp on a column would copy the
+    # whole stream (millions of rows) at every call
+    lo, up = hi[valid] - 1, hi[valid]
+    u = (times[valid] - tracker_t[lo]) / (tracker_t[up] - tracker_t[lo])
     pos = np.full((len(times), 3), np.nan)
-    pos[valid] = np.stack(
-        [np.interp(times[valid], tracker_t, position[:, c]) for c in range(3)], -1
-    )
+    pos[valid] = position[lo] + u[:, None] * (position[up] - position[lo])
     out_q = None
     if quat is not None:
         out_q = np.full((len(times), 4), np.nan)
-        lo = hi[valid] - 1
-        u = (times[valid] - tracker_t[lo]) / (tracker_t[hi[valid]] - tracker_t[lo])
-        out_q[valid] = slerp(quat[lo], quat[hi[valid]], u)
+        out_q[valid] = slerp(quat[lo], quat[up], u)
     return pos, out_q, valid
 
 

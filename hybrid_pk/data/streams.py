@@ -24,6 +24,13 @@ so the tracker sample of robot row ``k`` is the one at ``t_k + offset``.
      no pair of frames can absorb. The coarse stage is repeated once with the tool
      point of a registration at the first estimate, whose speed has the tracker's
      shape; the search window covers the two coarse estimates' disagreement.
+   - scan: the speed of a slow path correlates over a broad peak that the tool point's
+     distance from the flange can move by most of the search (0.96 s for 0.23 s true),
+     so the registration residual is also scanned over all of ``±max_offset`` (one step
+     per refinement window, few rows, warm-started fits); its lowest minima are refined
+     like the correlation's value, and the lowest refined residual is the estimate.
+     ``OffsetEstimate.residual_warning`` is one line when that residual exceeds 100
+     times the noise the rows show (:func:`~hybrid_pk.data.clock_jump.noise_rms`).
 
 2. :func:`synchronise` interpolates the tracker stream at the robot times: positions
    linearly, orientations by SLERP (at 3 kHz the tracker moves ~0.1 mm between

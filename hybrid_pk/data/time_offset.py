@@ -17,7 +17,7 @@ import torch
 from scipy.optimize import minimize_scalar
 from scipy.spatial.transform import Rotation
 
-from hybrid_pk.data.clock_jump import ClockJump, find_clock_jumps
+from hybrid_pk.data.clock_jump import ClockJump, find_clock_jumps, noise_rms
 from hybrid_pk.data.interpolation import (
     GAP_FACTOR,
     checked_array,
@@ -33,6 +33,17 @@ __all__ = ["OffsetEstimate", "check_clock_jumps", "estimate_time_offset", "speed
 GRID_DT = 1e-3  # [s] resampling step of the speed profiles
 SMOOTH_S = 0.02  # [s] box filter and difference span of the speed profiles
 REFINE_POINTS = 1500  # robot rows used by the registration refinement (evenly spaced)
+# Robot rows per offset of the residual scan: 900 equations for 9 unknowns; an offset in
+# another basin leaves a residual of mm (speed x error) against µm of noise, so a fifth
+# of the refinement's rows tells the basins apart at a fifth of its cost per fit.
+SCAN_POINTS = 300
+# Lowest minima of the scan that are refined: a path that repeats itself makes basins of
+# similar depth one period apart; the true one and its neighbours on either side.
+CANDIDATES = 3
+# Residual over noise above which the offset is questioned: an uncalibrated arm's absolute
+# error (~1 mm, ISO 9283 accuracy of industrial arms) is ~100 times a tracker's ~10 µm
+# noise; more than that is more than a nominal model leaves.
+NOISE_RATIO = 100.0
 
 
 def speed_profile(t: np.ndarray, p: np.ndarray, grid: np.ndarray, smooth: float) -> np.ndarray:
@@ -71,6 +82,8 @@ class OffsetEstimate:
         n_rows: robot rows used by the refinement.
         max_offset: [s] the largest |offset| the cross-correlation searched.
         jumps: steps of the offset inside the streams (:mod:`~hybrid_pk.data.clock_jump`).
+        noise_mm: RMS length [mm] of the residual's noise that the rows show at ``offset``
+            (:func:`~hybrid_pk.data.clock_jump.noise_rms`); NaN if not estimated.
     """
 
     offset: float
@@ -82,6 +95,7 @@ class OffsetEstimate:
     n_rows: int
     max_offset: float = math.inf
     jumps: tuple[ClockJump, ...] = ()
+    noise_mm: float = math.nan
 
     def summary(self) -> str:
         """One line for humans; says when the offset lies beyond ``max_offset``."""
@@ -102,6 +116,20 @@ class OffsetEstimate:
                 "check the residual against the tracker's noise"
             )
         return line
+
+    def residual_warning(self, source: str) -> str:
+        """One line when ``residual_mm`` exceeds :data:`NOISE_RATIO` times ``noise_mm``
+        (naming ``source``, the streams); empty otherwise."""
+        if not (self.residual_mm > NOISE_RATIO * self.noise_mm):  # NaN noise: no test
+            return ""
+        return (
+            f"{source}: the registration residual at the time offset, {self.residual_mm:.3f} "
+            f"mm RMS, is {self.residual_mm / self.noise_mm:.0f} times the noise the streams "
+            f"show ({1e3 * self.noise_mm:.1f} µm RMS, second differences along the path; "
+            f"warning above {NOISE_RATIO:g}x): a wrong offset (beyond --max-offset, or "
+            "another basin of the residual) or a nominal model far off the robot; give "
+            "the offset with --offset to compare"
+        )
 
 
 def _correlation(a: np.ndarray, b: np.ndarray) -> float:
@@ -148,6 +176,14 @@ def _best_lag(
     return lag, float(scores[i])
 
 
+def _lowest_minima(scan: np.ndarray, lags: np.ndarray, count: int) -> list[float]:
+    """The lags of the ``count`` lowest local minima of ``scan`` (NaN: no value)."""
+    value = np.where(np.isfinite(scan), scan, np.inf)
+    pad = np.concatenate([[np.inf], value, [np.inf]])
+    found = np.flatnonzero(np.isfinite(value) & (value <= pad[:-2]) & (value <= pad[2:]))
+    return [float(lags[i]) for i in found[np.argsort(value[found])][:count]]
+
+
 def _rotations(quat: np.ndarray, dtype: torch.dtype) -> torch.Tensor:
     """``(K, 4)`` ``(w, x, y, z)`` -> ``(K, 3, 3)`` rotation matrices."""
     return torch.as_tensor(Rotation.from_quat(quat[:, [1, 2, 3, 0]]).as_matrix(), dtype=dtype)
@@ -177,6 +213,7 @@ class _OffsetSearch:
         self.min_overlap = max(int(0.25 * len(self.grid_r)), 10)
         self.step = max(5 * grid_dt, smooth / 4)
         self.max_gap = GAP_FACTOR * float(np.median(np.diff(t_m)))
+        self.gaps = np.flatnonzero(np.diff(t_m) > self.max_gap)  # tracker rows before a gap
 
     def robot_speed(self, tool_point: np.ndarray | None = None) -> np.ndarray:
         """Speed profile of the flange, or of ``tool_point`` [m] on the flange."""
@@ -198,18 +235,24 @@ class _OffsetSearch:
         fine = np.arange(lag - 2 * step, lag + 2 * step + self.grid_dt / 2, self.grid_dt)
         return _best_lag(*args, fine, self.min_overlap)
 
-    def rows_near(self, centre: float, half_width: float) -> np.ndarray:
-        """Robot rows whose tracker time stays inside the stream and away from gaps for
-        every offset in ``centre ± half_width`` (a fixed set: the cost does not jump)."""
+    def usable(self, centre: float, half_width: float) -> np.ndarray:
+        """All robot rows whose tracker time stays inside the stream and away from gaps
+        for every offset in ``centre ± half_width``."""
         t_r, t_m = self.t_r, self.t_m
         lo, hi = centre - half_width, centre + half_width
         usable = np.flatnonzero((t_r + lo >= t_m[0]) & (t_r + hi <= t_m[-1]))
-        gaps = np.flatnonzero(np.diff(t_m) > self.max_gap)
+        gaps = self.gaps
         if gaps.size and usable.size:
             g0, g1 = t_m[gaps], t_m[gaps + 1]
             first = np.clip(np.searchsorted(g1, t_r[usable] + lo, side="right"), 0, gaps.size - 1)
             touches = (g0[first] < t_r[usable] + hi) & (g1[first] > t_r[usable] + lo)
             usable = usable[~touches]
+        return usable
+
+    def rows_near(self, centre: float, half_width: float) -> np.ndarray:
+        """``refine_points`` of :meth:`usable`, evenly spaced (a fixed set for the whole
+        interval: the cost does not jump)."""
+        usable = self.usable(centre, half_width)
         if len(usable) < 10:
             raise DataError(
                 f"only {len(usable)} robot rows overlap the tracker stream (away from gaps) "
@@ -232,13 +275,40 @@ class _OffsetSearch:
         T = self.T_all[pick]
         return PointFrames.from_guess(T, register_frames(T, torch.as_tensor(p), R))
 
-    def jumps(self, offset: float, pick: np.ndarray, frames: PointFrames) -> tuple[ClockJump, ...]:
-        """Steps of the offset inside the streams, at the frames registered on ``pick``."""
+    def scan(self, lags: np.ndarray, start: float, pose: tuple) -> np.ndarray:
+        """RMS registration residual [mm] at each of ``lags`` (increasing), on
+        :data:`SCAN_POINTS` rows overlapping the tracker there; NaN where fewer than a
+        quarter of the robot rows overlap (a short overlap fits many offsets).
+
+        Walks out from the lag nearest ``start`` [s] in both directions, each fit
+        warm-started at its neighbour's (first at ``pose``, registered near ``start``):
+        a few Gauss-Newton steps each, whatever the length of the streams.
+        """
+        out = np.full(len(lags), np.nan)
+        first = int(np.argmin(np.abs(lags - start)))
+        for order in (range(first, len(lags)), range(first - 1, -1, -1)):
+            pose_i = pose
+            for i in order:
+                usable = self.usable(float(lags[i]), 0.0)
+                if len(usable) < max(len(self.t_r) // 4, 10):
+                    continue
+                count = min(SCAN_POINTS, len(usable))
+                pick = usable[np.unique(np.linspace(0, len(usable) - 1, count).round().astype(int))]
+                times = self.t_r[pick] + lags[i]
+                p, _, _ = interpolate_poses(self.t_m, self.pos, None, times, self.max_gap)
+                local = PointFrames(self.T_all[pick], pose_i)
+                pose_i = local.fit(p)
+                r = local.points(*pose_i) - p
+                out[i] = 1e3 * math.sqrt(float((r * r).sum(-1).mean()))
+        return out
+
+    def check(self, offset: float, pick: np.ndarray, frames: PointFrames):
+        """``(jumps, noise [m])`` at the frames registered on ``pick``: the steps of the
+        offset inside the streams and the noise the residuals show (:func:`noise_rms`)."""
         p, _, _ = interpolate_poses(self.t_m, self.pos, None, self.t_r[pick] + offset, self.max_gap)
-        pose = frames.fit(p)
-        return find_clock_jumps(
-            self.t_r, self.T_all, self.t_m, self.pos, offset, pose, self.max_gap
-        )
+        streams, pose = (self.t_r, self.T_all, self.t_m, self.pos), frames.fit(p)
+        jumps = find_clock_jumps(*streams, offset, pose, self.max_gap)
+        return jumps, noise_rms(streams, offset, pose, self.max_gap)
 
     def refine(self, centre: float, half_width: float):
         """Bounded search of ``cost``, re-centred while the minimum sits on a bound.
@@ -330,11 +400,19 @@ def estimate_time_offset(
     frames = search.registered(lag0, search.rows_near(lag0, 0.0))
     v_point = search.robot_speed(frames.p_X)
     coarse, corr = search.correlate(v_point, lag0, min(max_offset, 10 * refine_window))
-    # Refine: bounded search of the registration residual; the window covers the
-    # disagreement of the two coarse stages.
-    half_width = max(refine_window, 1.5 * abs(coarse - lag0))
-    res, (lo, hi), pick, frames = search.refine(coarse, half_width)
-    jumps = search.jumps(float(res.x), pick, frames)
+    # The speed of a slow path correlates over a broad peak that a far tool point moves
+    # by up to the whole search (0.96 s for 0.23 s true): scan the registration residual
+    # over all of it, one grid step per refinement window, and refine the lowest minima.
+    lags = np.linspace(-max_offset, max_offset, 2 * math.ceil(max_offset / refine_window) + 1)
+    scan = search.scan(lags, coarse, frames.pose)
+    centres = [(c, refine_window) for c in _lowest_minima(scan, lags, CANDIDATES)]
+    # and the correlation's value, its window covering the two coarse stages' disagreement
+    # (its search may walk beyond max_offset, where the scan does not reach)
+    if all(abs(coarse - c) > refine_window for c, _ in centres):
+        centres.append((coarse, max(refine_window, 1.5 * abs(coarse - lag0))))
+    refined = [search.refine(c, w) for c, w in centres]
+    res, (lo, hi), pick, frames = min(refined, key=lambda found: found[0].fun)
+    jumps, noise = search.check(float(res.x), pick, frames)
     return OffsetEstimate(
         offset=float(res.x),
         coarse=float(coarse),
@@ -345,6 +423,7 @@ def estimate_time_offset(
         n_rows=len(pick),
         max_offset=float(max_offset),
         jumps=jumps,
+        noise_mm=1e3 * noise,
     )
 
 
@@ -364,4 +443,4 @@ def check_clock_jumps(
         pick = search.rows_near(float(offset), 0.0)
     except DataError:  # under 10 rows overlap: nothing to test (synchronise says why)
         return ()
-    return search.jumps(float(offset), pick, search.registered(float(offset), pick))
+    return search.check(float(offset), pick, search.registered(float(offset), pick))[0]
