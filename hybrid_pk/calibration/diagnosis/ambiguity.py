@@ -1,6 +1,7 @@
 """Ambiguity: effects that the data cannot tell apart from a frame or from each other.
 
-Four kinds, each an entry ``{"effects": [a, b], "why": ...}`` of the diagnosis:
+Four kinds, each an entry ``{"effects": [a, b], "why": ...}`` of the diagnosis (a
+fifth, a candidate that named causes together stand in for: :mod:`.stand_ins`):
 
 - a candidate whose signature lies inside what the fitted frames explain (no data of
   this kind can separate them);

@@ -33,7 +33,7 @@ from torch import Tensor
 from hybrid_pk.calibration.diagnosis.blocked import position_channel, whole_campaign
 from hybrid_pk.calibration.diagnosis.carryover import Carry
 from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic
-from hybrid_pk.calibration.diagnosis.selection import RANK_TOLERANCE, score_candidates
+from hybrid_pk.calibration.diagnosis.selection import RANK_TOLERANCE, Scores, score_candidates
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.variants import with_effects
 from hybrid_pk.calibration.fit import FitResult
@@ -95,8 +95,10 @@ def detection_limits(
     alpha: float,
     progress: Callable[[str], None] | None = None,
     carry: Carry | None = None,
-) -> list[dict]:
-    """The detection limit of every candidate of ``pool`` not in the model.
+) -> tuple[list[dict], Scores | None]:
+    """The detection limit of every candidate of ``pool`` not in the model, and the
+    scoring it comes from (None without candidates; its factor serves
+    :func:`.stand_ins.group_stand_ins`).
 
     ``carry``: the search's blocked hold-out; its blocks screen the cyclic orders as
     the search does (without it every order is scored).
@@ -109,7 +111,7 @@ def detection_limits(
     chosen = {e.label for e in model.effects}
     pool = [c for c in pool if c not in chosen]
     if not pool:
-        return []
+        return [], None
     # as the search does: the best cyclic orders per joint are scored, the others count
     folds, margin = (None, 0.0) if carry is None else (carry.folds, carry.margin(res))
     pool, screened = screen_cyclic(model, split, pool, res.weights, folds, margin)
@@ -119,8 +121,9 @@ def detection_limits(
     scores = score_candidates(
         model, res, pool, split, alpha, False, progress=progress, screened=screened, carry=whole
     )
+    scores.near = None  # no refit steps from this scoring: its rows are not needed
     if not scores.scored:
-        return []
+        return [], scores
     level = scores.threshold
     columns = _position_columns(model, [sc.label for sc in scores.scored], split)
     # the margin binds only where blocks decide: its lambda along any direction
@@ -160,7 +163,7 @@ def detection_limits(
                 "set_by": set_by,
             }
         )
-    return out
+    return out, scores
 
 
 def _margin_noncentrality(margin: float, res: FitResult, per_row: int, rows: int) -> float:

@@ -9,7 +9,8 @@
    a cause with a near-duplicate is swapped for it where the data then need fewer
    causes (:mod:`.swaps`).
 4. Ambiguity (:mod:`.ambiguity`): candidates equivalent to a fitted frame, chosen
-   causes whose correction another candidate could make, correlated estimates.
+   causes whose correction another candidate could make, correlated estimates, and
+   (:mod:`.stand_ins`) candidates not named that named causes together could mimic.
 5. Each cause's gain is measured by leaving it out (refit without it) on the
    hold-out rows (:mod:`.gains`). What remains is tested for structure: residuals of
    neighbouring configurations (in joint space) correlate when a smooth error is left
@@ -55,6 +56,7 @@ from hybrid_pk.calibration.diagnosis.selection import (
 )
 from hybrid_pk.calibration.diagnosis.settle import entry_rivals, settle, unresolved_entry
 from hybrid_pk.calibration.diagnosis.split import Split, split_campaign
+from hybrid_pk.calibration.diagnosis.stand_ins import group_stand_ins, kept_stand_ins
 from hybrid_pk.calibration.diagnosis.structural import structural_check
 from hybrid_pk.calibration.diagnosis.swaps import prefer_fewer_causes
 from hybrid_pk.calibration.diagnosis.variants import with_effects, without_effect
@@ -137,8 +139,7 @@ def diagnose(
     )
     model, res, blocked_gains, unresolved = settle(model, res, split, carry, steps, say)
 
-    say("detection limits of the candidates not named")
-    detectable = detection_limits(model, res, pool, split, alpha, say, carry)
+    detectable, stand_ins = _not_named(model, res, pool, split, (alpha, carry), say)
     say("measuring each cause's gain")
     errors = model_errors(model, split.test, split.cond_hold)
     causes = measure_causes(
@@ -148,6 +149,7 @@ def diagnose(
         model, res, (causes, flagged, pool), split, (carry, nominal_model), say, budget
     )
     ambiguous += correlated_groups(res) + unresolved
+    ambiguous += kept_stand_ins(stand_ins, causes)
     return Diagnosis(
         outliers=outliers_json(model, data, frames_per_file, res),
         robust=robust_json(res, data, split),
@@ -173,6 +175,17 @@ def diagnose(
         steps=steps,
         rival_stories=stories,
     )
+
+
+def _not_named(model, res, pool, split, tests, say):
+    """The detection limits of the candidates not named and, from the same factor of
+    the final model's and their columns, those that named causes together stand in
+    for (:mod:`.stand_ins`). ``tests``: ``(alpha, carry)``."""
+    say("detection limits of the candidates not named")
+    detectable, final = detection_limits(model, res, pool, split, tests[0], say, tests[1])
+    if final is None:
+        return detectable, []
+    return detectable, group_stand_ins(final, [e.label for e in model.effects])
 
 
 def _optional_findings(model, res, named, split, refs, say, budget):

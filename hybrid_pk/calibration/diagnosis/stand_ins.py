@@ -1,0 +1,124 @@
+"""Group stand-ins: a candidate not named that two or more named causes together mimic.
+
+The pairwise checks of :mod:`.ambiguity` compare one candidate with one cause; after
+the first step a candidate inside the current model's columns is dropped silently
+(:data:`.selection.EQUIVALENCE_FRACTION`). A joint offset of a Panda's joint 4, for
+one, moves the point as the next joint's axis misalignment and link length do
+together (exactly; neither alone makes all of it), so the search may name the pair and
+no entry says that the offset would explain the same.
+
+At the final model, on the factor of the Jacobian that the detection limits build
+(:func:`.power.detection_limits`: the model's columns, frames included, and every
+candidate not named), each candidate's signature and each named cause's columns are
+projected off the frames. A candidate whose every identifiable direction lies inside
+the span of the named causes (|cosine| of the worst direction above the tuning's
+``ambiguity_cosine``, as the pairwise check) is listed with the causes it needs there:
+causes are dropped one at a time while the rest hold it nearly as closely
+(:func:`_smallest_group`); a candidate that one cause holds without the others' help
+is left to the pairwise checks. Nothing is refitted and no cause or value changes.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from hybrid_pk.calibration.diagnosis.ambiguity import projector_residual
+from hybrid_pk.calibration.diagnosis.selection import RANK_TOLERANCE, Scores
+from hybrid_pk.calibration.tuning import diagnosis_tuning
+
+__all__ = ["group_stand_ins", "kept_stand_ins"]
+
+
+def group_stand_ins(scores: Scores, named: list[str]) -> list[dict]:
+    """Ambiguity entries ``{"effects": [candidate, *group], "stood_in_by": group,
+    "why"}`` of the candidates of ``scores`` (a scoring at the final model) that the
+    named causes ``named`` together could stand in for (each member needed:
+    :func:`_smallest_group`)."""
+    if scores.R is None or len(named) < 2:
+        return []
+    J = scores.R[:, :-1]
+    frames, causes, candidates, start = [], {}, [], 0
+    for b in scores.blocks:
+        cols, start = J[:, start : start + b.size], start + b.size
+        if start > scores.n_current:
+            candidates.append((b.label, cols))
+        elif b.label in named:
+            causes[b.label] = cols
+        else:
+            frames.append(cols)
+    Qf = _basis(torch.cat(frames, 1)) if frames else J[:, :0]
+    spans = {c: projector_residual(cols, Qf) for c, cols in causes.items()}
+    everything = _basis(torch.cat(list(spans.values()), 1))
+    least = diagnosis_tuning().ambiguity_cosine
+    out = []
+    for label, cols in candidates:
+        U = _basis(projector_residual(cols, Qf), float(cols.norm()))
+        if U.shape[1] == 0 or float(torch.linalg.svdvals(everything.T @ U).min()) <= least:
+            continue  # inside the frames (the frame check's) or outside the causes' span
+        group = _smallest_group(U, spans)
+        if group is not None:
+            alone = {c: _held(U, spans, [c]) for c in group}
+            out.append(_entry(label, group, _held(U, spans, group), alone))
+    return out
+
+
+def kept_stand_ins(entries: list[dict], causes: list) -> list[dict]:
+    """The entries whose stand-in group is still among the reported ``causes``
+    (:class:`.result.Cause`: the structural check may turn a cause into a finding)."""
+    named = {c.effect if c.joint is None else f"{c.effect}:{c.joint}" for c in causes}
+    return [e for e in entries if set(e["stood_in_by"]) <= named]
+
+
+def _basis(cols: Tensor, norm: float | None = None) -> Tensor:
+    """Orthonormal basis of the directions of ``cols`` above :data:`RANK_TOLERANCE` of
+    ``norm`` (default their own norm), each column scaled to unit norm first (a
+    group's columns carry different units)."""
+    if norm is None:
+        cols = cols / cols.norm(dim=0).clamp_min(1e-300)
+        norm = float(cols.norm())
+    U, S, _ = torch.linalg.svd(cols, full_matrices=False)
+    return U[:, S > RANK_TOLERANCE * max(norm, 1e-300)]
+
+
+def _held(U: Tensor, spans: dict[str, Tensor], group: list[str]) -> float:
+    """|cosine| of ``U``'s worst direction with the span of ``group``'s columns."""
+    Q = _basis(torch.cat([spans[c] for c in group], 1))
+    return float(torch.linalg.svdvals(Q.T @ U).min()) if Q.shape[1] else 0.0
+
+
+def _smallest_group(U: Tensor, spans: dict[str, Tensor]) -> list[str] | None:
+    """The causes whose span holds ``U`` (cosine above the tuning's
+    ``ambiguity_cosine``) and that it needs; None unless two or more. From all of them,
+    the cause whose loss leaves the least of ``U`` outside is dropped while the rest
+    leave at most twice what the group does or half the share a lookalike may leave
+    (``1 - ambiguity_cosine ** 2``): a needed cause explains at least half of what the
+    others leave, and enough to move the pairwise checks' verdict."""
+    least = diagnosis_tuning().ambiguity_cosine
+    allowed = 1.0 - least**2
+    group = list(spans)
+    outside = 1.0 - _held(U, spans, group) ** 2
+    if outside >= allowed:
+        return None
+    while len(group) > 1:
+        left, drop = min((1.0 - _held(U, spans, [x for x in group if x != c]) ** 2, c)
+                         for c in group)  # fmt: skip
+        if left > max(2 * outside, allowed / 2):
+            break
+        group.remove(drop)
+        outside = left
+    return group if len(group) > 1 else None
+
+
+def _entry(label: str, group: list[str], cos: float, alone: dict[str, float]) -> dict:
+    """The ambiguity entry of ``label``, which ``group`` together stands in for
+    (``alone``: each member's own |cosine| with it)."""
+    together = " + ".join(group)
+    each = ", ".join(f"{c} {v:.4f}" for c, v in alone.items())
+    return {
+        "effects": [label, *group],
+        "stood_in_by": group,
+        "why": f"{label} (not named) moves the measured pose as {together} do together "
+        f"(|cos| = {cos:.4f} beside the frames; alone: {each}): the data cannot "
+        f"tell it from their combination, it may be the physical cause they stand in for",
+    }
