@@ -200,6 +200,23 @@ def test_offset_summary_beyond_max_offset_says_so_and_prints_no_nan():
     inside = OffsetEstimate(0.037, 0.101, 1.0, 0.030, 1.95, (0.0, 0.2), 880, 1.0).summary()
     assert "1.950 -> 0.030 mm" in inside, inside
     assert "beyond" not in inside, inside
+    assert "away from the correlation's peak" not in inside, inside
+
+
+def test_summary_says_when_the_scan_moved_the_offset_off_the_correlation_peak(ur10):
+    """Seed 123: the speed correlation peaks at ~958 ms for 232 ms true (a tool point far
+    from the flange); the residual scan finds the offset, and the line says why it lies
+    away from the correlation value it prints. A stream where both agree says nothing."""
+    rng = np.random.default_rng(100 + 123)
+    offset = float(rng.uniform(-0.3, 0.3))
+    t_r, q, t_m, pos, quat, _ = simulate_streams(ur10, offset, seed=123, noise_mm=0.005)
+    est = estimate_time_offset(t_r, q, t_m, pos, ur10, quat=quat)
+    assert abs(est.offset - offset) < 2e-3, est.summary()
+    if abs(est.coarse - offset) > 0.1:  # the case the line is for
+        assert "away from the correlation's peak" in est.summary(), est.summary()
+    t_r, q, t_m, pos, quat, _ = simulate_streams(ur10, 0.0373)
+    near = estimate_time_offset(t_r, q, t_m, pos, ur10, quat=quat)
+    assert "away from the correlation's peak" not in near.summary(), near.summary()
 
 
 def test_decreasing_robot_time_is_an_error_with_row(ur10):
