@@ -92,7 +92,11 @@ def unknown_flag_hint(commands: dict, command: str, unknown: Sequence[str]) -> s
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    try:
+        parser = build_parser()  # imports every command: seconds on a loaded machine
+    except KeyboardInterrupt:
+        print("hybrid-pk: interrupted while starting", file=sys.stderr)
+        return 130
     args, unknown = parser.parse_known_args(argv)
     if unknown:  # as argparse would, with the flag's owner or its closest match named
         hint = unknown_flag_hint(args.commands, args.command, unknown)
