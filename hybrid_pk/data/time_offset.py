@@ -109,11 +109,8 @@ class OffsetEstimate:
             f"correlation {self.correlation:.3f} at {1e3 * self.coarse:.1f} ms, registration "
             f"residual {before}{self.residual_mm:.3f} mm RMS ({self.n_rows} rows)"
         )
-        if not self.bounds[0] <= self.coarse <= self.bounds[1]:
-            line += (
-                "; the registration residual's scan placed it away from the correlation's "
-                "peak (a slow path's broad peak, shifted by a tool point far from the flange)"
-            )
+        if not self.bounds[0] <= self.coarse <= self.bounds[1]:  # a broad peak, shifted
+            line += "; the registration residual's scan placed it away from the correlation's peak"
         if abs(self.offset) > self.max_offset:
             line += (
                 f"; note: beyond the {self.max_offset:g} s searched by the speed "
