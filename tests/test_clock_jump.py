@@ -9,14 +9,13 @@ with the offsets of both parts, and streams without a jump raise nothing.
 from __future__ import annotations
 
 import numpy as np
-import pandas as pd
 import pytest
 from scipy.stats import norm
 
 from hybrid_pk.cli.main import main
 from hybrid_pk.data.clock_jump import step_scores
 from hybrid_pk.data.streams import estimate_time_offset
-from tests.test_streams import ROBOT_HZ, simulate_streams
+from tests.test_streams import ROBOT_HZ, simulate_streams, write_streams
 
 OFFSET = 0.0373  # [s] tracker = robot + offset
 
@@ -103,12 +102,7 @@ def test_step_z_of_white_noise_is_standard_normal():
 def test_cli_import_streams_warns_of_a_clock_jump_with_file_and_row(ur10, tmp_path, capsys):
     t_r, q, t_m, pos, _, _ = simulate_streams(ur10, OFFSET, duration=8.0, seed=2)
     q[400:] = q[399:-1].copy()  # the joints one sample late from the 401st row on
-    joints = pd.DataFrame(q, columns=ur10.joint_names)
-    joints.insert(0, "t", t_r)
-    robot_csv, tracker_csv = tmp_path / "robot.csv", tmp_path / "tracker.csv"
-    joints.to_csv(robot_csv, index=False)
-    tracker = pd.DataFrame({"t": t_m, "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2]})
-    tracker.to_csv(tracker_csv, index=False)
+    robot_csv, tracker_csv = write_streams(tmp_path, ur10.joint_names, t_r, q, t_m, pos)
     argv = ["import", "streams", str(robot_csv), str(tracker_csv), "--robot", "ur10"]
     argv += ["--out", str(tmp_path / "table.csv"), "--no-progress"]
     for extra in ([], ["--offset", str(OFFSET)]):  # estimated, and given

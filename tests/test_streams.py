@@ -61,6 +61,17 @@ def simulate_streams(
     return t_r, joint_path(t_true, seed), t_m, pos.numpy(), quat.numpy(), (base, tool, true)
 
 
+def write_streams(folder, joint_names, t_r, q, t_m, pos):
+    """``folder/robot.csv`` (t and the joints) and ``folder/tracker.csv`` (t, x, y, z)."""
+    joints = pd.DataFrame(q, columns=joint_names)
+    joints.insert(0, "t", t_r)
+    robot_csv, tracker_csv = folder / "robot.csv", folder / "tracker.csv"
+    joints.to_csv(robot_csv, index=False)
+    tracker = pd.DataFrame({"t": t_m, "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2]})
+    tracker.to_csv(tracker_csv, index=False)
+    return robot_csv, tracker_csv
+
+
 def test_offset_recovered_within_1ms_with_full_poses(ur10):
     offset = 0.0373
     t_r, q, t_m, pos, quat, _ = simulate_streams(ur10, offset)
@@ -114,12 +125,7 @@ def test_residual_far_above_the_noise_is_one_warning_line(ur10):
 def test_cli_residual_far_above_the_noise_warns_naming_both_files(ur10, tmp_path, capsys):
     t_r, q, t_m, pos, _, _ = simulate_streams(ur10, 0.0373, seed=3)
     q[:, 1] += math.radians(5.0)  # shoulder lift 5° off: a nominal model far off
-    joints = pd.DataFrame(q, columns=ur10.joint_names)
-    joints.insert(0, "t", t_r)
-    robot_csv, tracker_csv = tmp_path / "robot.csv", tmp_path / "tracker.csv"
-    joints.to_csv(robot_csv, index=False)
-    tracker = pd.DataFrame({"t": t_m, "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2]})
-    tracker.to_csv(tracker_csv, index=False)
+    robot_csv, tracker_csv = write_streams(tmp_path, ur10.joint_names, t_r, q, t_m, pos)
     argv = ["import", "streams", str(robot_csv), str(tracker_csv), "--robot", "ur10"]
     assert main([*argv, "--out", str(tmp_path / "table.csv"), "--no-progress"]) == 0
     lines = [x for x in capsys.readouterr().out.splitlines() if x.startswith("warning")]
