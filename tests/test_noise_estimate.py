@@ -148,3 +148,8 @@ def test_the_margin_line_says_how_the_noise_was_found():
     )
     # the check's size is the tuning's, not a fixed 50
     assert "/ sqrt(2 x 200)" in margin_text({**carry, "check_rows": 200})
+    # the entry rule is named where the search used it (a JSON of today's diagnose)
+    assert "standard error over the blocks" not in text
+    assert margin_text({**carry, "entry": "..."}).endswith(
+        "; to enter, a gain also above its standard error over the blocks"
+    )

@@ -339,6 +339,24 @@ class Blocked:
         part = (lambda s: s.position) if position_channel() else (lambda s: s.total)
         return self.sigmas[0] * _rms_drop(part(without), part(with_it), without.rows)
 
+    def gain_se_mm(self, without: BlockedScore, with_it: BlockedScore) -> float:
+        """Standard error [mm] of :meth:`gain_mm` over the held-out blocks: the
+        delete-one-block jackknife of the pooled gain (each block left out of both
+        sums in turn). It holds what the model leaves out as well as the noise: a gain
+        one block gives and another takes back has a standard error as large as
+        itself. 0 with fewer than two blocks."""
+        i = 1 if position_channel() else 0
+        a, b = [f[i] for f in without.per_fold], [f[i] for f in with_it.per_fold]
+        n = [f[2] for f in without.per_fold]
+        k = len(n)
+        if k < 2:
+            return 0.0
+        rest = [
+            _rms_drop(sum(a) - a[j], sum(b) - b[j], sum(n) - n[j]) for j in range(k)
+        ]  # fmt: skip
+        mean = sum(rest) / k
+        return self.sigmas[0] * math.sqrt((k - 1) / k * sum((g - mean) ** 2 for g in rest))
+
     def rms_mm(self, score: BlockedScore) -> float:
         """The blocked RMS error [mm] of ``score`` in the carry-over channel (what
         :meth:`gain_mm` takes differences of)."""

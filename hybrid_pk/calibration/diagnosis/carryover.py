@@ -76,6 +76,9 @@ class Carry:
             )
             + " on rows held out in blocks (regions of joint space, whole files); each "
             "block predicted by a linearised refit on the others (every measured component)",
+            "entry": "a candidate enters when its blocked gain reaches the margin and its "
+            "own standard error over the blocks (delete-one-block jackknife: the "
+            "one-standard-error rule); a cause stays while it gains the margin",
             "channel": "position" if position_channel() else "pose",
             "blocks": None if self.folds is None else self.folds.description,
         }
@@ -98,10 +101,14 @@ def margin_text(carry_over: dict | None) -> str | None:
         else f"the fit's sigma {fit_sigma:.2g} mm (no pair of poses to compare)"
     )
     head = f"practical margin {carry_over['min_gain_mm']:.3g} mm"
+    # a JSON written before the entry rule has no "entry": its search had none
+    entry = "; to enter, a gain also above its standard error over the blocks" * (
+        "entry" in carry_over
+    )
     if carry_over["rule"] == "--min-gain-mm":
-        return f"{head} (--min-gain-mm); noise: {how}"
+        return f"{head} (--min-gain-mm); noise: {how}{entry}"
     sigma, rows = carry_over["noise_position_mm"], carry_over["check_rows"]
-    return f"{head} = noise {sigma:.2g} mm / sqrt(2 x {rows}); noise: {how}"
+    return f"{head} = noise {sigma:.2g} mm / sqrt(2 x {rows}); noise: {how}{entry}"
 
 
 def linearise(

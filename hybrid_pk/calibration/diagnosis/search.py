@@ -51,6 +51,7 @@ from hybrid_pk.calibration.diagnosis.result import (
 from hybrid_pk.calibration.diagnosis.rivals import rival_stories
 from hybrid_pk.calibration.diagnosis.selection import (
     candidate_labels,
+    carry_record,
     score_candidates,
     try_candidate,
 )
@@ -357,10 +358,13 @@ def _why_stop(scores, aside: set[str]) -> str:
         )
     if best.p >= scores.threshold:
         return "best remaining candidate is not significant"
-    gain = max(scores.carry.get(s.label, 0.0) for s in scores.scored if s.p < scores.threshold)
+    sig = [s.label for s in scores.scored if s.p < scores.threshold]
+    top = max(sig, key=lambda s: scores.carry.get(s, 0.0))
+    gain, se = scores.carry.get(top, 0.0), scores.carry_se.get(top, 0.0)
     return (
-        "no significant candidate gains the practical margin on the blocked hold-out "
-        f"(best {gain:.3g} mm < {scores.margin:.3g} mm)"
+        "no significant candidate gains the practical margin and its own standard "
+        f"error over the blocks on the blocked hold-out (best {gain:.3g} mm, standard "
+        f"error {se:.3g} mm, margin {scores.margin:.3g} mm)"
     )
 
 
@@ -433,7 +437,7 @@ def _untested(best, scores, why: str) -> dict:
         "why": why,
     }
     if scores.blocked is not None:
-        out.update({"blocked_gain_mm": scores.carry[best.label], "min_gain_mm": scores.margin})
+        out.update(carry_record(scores, best.label))
     return out
 
 

@@ -143,6 +143,8 @@ class Scores:
             (:func:`.blocked.cell_factors`), for the Gauss–Newton start of a refit.
         blocked, margin, carry: the cell Grams of the blocked hold-out, the practical
             margin [mm] and each candidate's blocked gain [mm] (empty without blocks).
+        carry_se: each candidate's jackknife standard error of that gain over the
+            blocks [mm] (:meth:`.blocked.Blocked.gain_se_mm`).
         near: the Jacobian's rows, where the chosen candidate's refit steps from
             (:mod:`hybrid_pk.calibration.chord`; released by :func:`try_candidate`).
     """
@@ -158,6 +160,7 @@ class Scores:
     blocked: Blocked | None = None
     margin: float = 0.0
     carry: dict[str, float] = field(default_factory=dict)
+    carry_se: dict[str, float] = field(default_factory=dict)
     near: Linearisation | None = None
 
     @property
@@ -166,8 +169,16 @@ class Scores:
         return sorted(self.scored, key=lambda sc: (not self.eligible(sc), sc.bic_gain))
 
     def eligible(self, sc: CandidateScore) -> bool:
-        """Significant and, with blocks, gaining the practical margin on them."""
-        return sc.p < self.threshold and self.carry.get(sc.label, self.margin) >= self.margin
+        """Significant and, with blocks, gaining what :meth:`carries` asks."""
+        return sc.p < self.threshold and self.carries(sc.label)
+
+    def carries(self, label: str) -> bool:
+        """Whether a candidate's blocked gain reaches the practical margin and its own
+        standard error over the blocks (one-standard-error rule of cross-validation:
+        a cause enters on a gain the blocks agree on; it stays while it gains the
+        margin, :func:`.carryover.weakest`). True without blocks."""
+        gain = self.carry.get(label)
+        return gain is None or gain >= max(self.margin, self.carry_se.get(label, 0.0))
 
     @property
     def signatures(self) -> dict[str, Tensor]:
@@ -240,6 +251,7 @@ def score_candidates(
         withs = blocked.each(current, [sc.label for sc in out.scored])
         for sc, with_it in zip(out.scored, withs, strict=True):
             out.carry[sc.label] = blocked.gain_mm(base, with_it)
+            out.carry_se[sc.label] = blocked.gain_se_mm(base, with_it)
     return out
 
 
@@ -312,7 +324,7 @@ def try_candidate(
         "threshold": scores.threshold,
     }
     if scores.blocked is not None:
-        step.update({"blocked_gain_mm": scores.carry[label], "min_gain_mm": scores.margin})
+        step.update(carry_record(scores, label))
     new = with_effects(model, [make_effect(model.robot, label)])
     # (a robust fit's cost is its IRLS sum; its F-test compares robust costs)
     ssr_old = res.cost if res.cost is not None and res.robust is None else _ssr(model, split, res)
@@ -355,14 +367,23 @@ def try_candidate(
             "holdout_score_after": new_hold,
         }
     )
-    carries = scores.carry.get(label, scores.margin) >= scores.margin
     step["accepted"] = p_fit < scores.threshold and d_bic < 0 and new_hold < current_hold
-    step["accepted"] = step["accepted"] and carries
+    step["accepted"] = step["accepted"] and scores.carries(label)
     if not step["accepted"]:
         step["why"] = "refit not significant, BIC not lower, or hold-out not better"
     else:
         release_shared()  # the model moves on: no question is asked at its point again
     return new, new_res, step
+
+
+def carry_record(scores: Scores, label: str) -> dict:
+    """A step record's blocked gain of candidate ``label``, its standard error and the
+    margin."""
+    return {
+        "blocked_gain_mm": scores.carry[label],
+        "blocked_gain_se_mm": scores.carry_se.get(label, 0.0),
+        "min_gain_mm": scores.margin,
+    }
 
 
 def _ssr(model: ExtendedModel, split: Split, res: FitResult) -> float:
