@@ -21,6 +21,7 @@ from hybrid_pk.data.measured import SkippedRow
 from hybrid_pk.errors import DataError
 
 __all__ = [
+    "LIMIT_SLACK",
     "MAX_PAYLOAD_KG",
     "MAX_POSITION_M",
     "MAX_TEMPERATURE_C",
@@ -253,7 +254,7 @@ def check_conditions(file: str, columns: dict[str, np.ndarray], rows: np.ndarray
 
 
 # Slack on joint limits [rad or m] for values written with fewer digits than the URDF.
-_LIMIT_TOL = 1e-9
+LIMIT_SLACK = 1e-9
 _TWO_PI = 2 * math.pi
 
 
@@ -273,7 +274,7 @@ def check_joint_unit(
         lo = lo if np.isfinite(lo) else -_TWO_PI
         hi = hi if np.isfinite(hi) else _TWO_PI
         rad = np.deg2rad(v)
-        if not np.all((rad >= lo - _LIMIT_TOL) & (rad <= hi + _LIMIT_TOL)):
+        if not np.all((rad >= lo - LIMIT_SLACK) & (rad <= hi + LIMIT_SLACK)):
             return  # not plausible as degrees either: the limits check reports the rows
         # A few large values may be typos in a radian column; degrees are large in most
         # rows (or far beyond anything the joint can reach in radians).
@@ -287,9 +288,9 @@ def check_joint_unit(
             )
     if kind != "prismatic" or not (np.isfinite(lo) and np.isfinite(hi)):
         return
-    beyond = (v < lo - _LIMIT_TOL) | (v > hi + _LIMIT_TOL)
+    beyond = (v < lo - LIMIT_SLACK) | (v > hi + LIMIT_SLACK)
     m = v / 1000.0
-    if np.mean(beyond) > 0.5 and np.all((m >= lo - _LIMIT_TOL) & (m <= hi + _LIMIT_TOL)):
+    if np.mean(beyond) > 0.5 and np.all((m >= lo - LIMIT_SLACK) & (m <= hi + LIMIT_SLACK)):
         raise DataError(
             f"looks like mm (max {mag[k]:.1f}); prismatic joints are metres: divide by "
             f"1000 (limits [{lo:.4g}, {hi:.4g}] m)",

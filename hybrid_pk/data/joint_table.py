@@ -19,14 +19,12 @@ import pandas as pd
 import torch
 from torch import Tensor
 
-from hybrid_pk.data.cells import cell_problem, check_joint_unit, to_float
+from hybrid_pk.data.cells import LIMIT_SLACK, cell_problem, check_joint_unit, to_float
 from hybrid_pk.data.files import load_cells, write_frame
 from hybrid_pk.errors import DataError
 from hybrid_pk.units import UNITS
 
 __all__ = ["angle_factors", "has_joint_columns", "read_joint_table", "write_joint_table"]
-
-_LIMIT_TOL = 1e-9  # [rad or m] slack for values written with fewer digits than the URDF
 
 
 def _load(path: Path) -> pd.DataFrame:
@@ -101,7 +99,7 @@ def read_joint_table(
         kind = robot.joint_types[j] if hasattr(robot, "joint_types") else "revolute"
         if angle_unit == "rad":  # a column in another unit than stated
             check_joint_unit(file, name, kind, lower[j], upper[j], values, ~bad)
-        out = (values < lower[j] - _LIMIT_TOL) | (values > upper[j] + _LIMIT_TOL)
+        out = (values < lower[j] - LIMIT_SLACK) | (values > upper[j] + LIMIT_SLACK)
         if out.any():
             k = int(np.argmax(out))
             raise DataError(

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from hybrid_pk.data.cells import (
+    LIMIT_SLACK,
     MAX_POSITION_M,
     RowProblems,
     check_conditions,
@@ -60,8 +61,6 @@ __all__ = [
 JOINT_TYPES = ("revolute", "continuous", "prismatic")
 
 QUAT_NORM_TOL = 1e-6
-# Slack on joint limits [rad or m] for values written with fewer digits than the URDF.
-_LIMIT_TOL = 1e-9
 
 
 class DataWarning(UserWarning):
@@ -174,7 +173,7 @@ def _note_limits(
             continue
         v = columns[name]
         unit = "m" if kind == "prismatic" else "rad"
-        out = ok & ((v < lo - _LIMIT_TOL) | (v > hi + _LIMIT_TOL))
+        out = ok & ((v < lo - LIMIT_SLACK) | (v > hi + LIMIT_SLACK))
         problems.note(
             out,
             name,
