@@ -42,3 +42,28 @@ def test_entry_needs_the_margin_and_the_standard_error():
     assert not s.carries("c")  # consistent, below the margin
     assert s.carries("d")  # at its standard error
     assert s.carries("no blocks")  # not scored on blocks: the F-test alone decides
+
+
+def test_every_entry_and_cause_carries_its_standard_error():
+    """A simulated RX160 campaign (the sizes of ``bench/diagnose.py --case rx160``, on
+    fewer rows): each accepted step entered above its standard error over the blocks,
+    each cause reports its own (JSON and the printed line)."""
+    import hybrid_pk as hpk
+    from hybrid_pk.calibration.diagnosis.search import diagnose
+    from hybrid_pk.cli.diagnose_cmd import summary_lines
+    from hybrid_pk.simulate import simulate_campaign
+
+    robot = hpk.Robot.from_urdf("rx160")
+    robot.requires_grad_(False)
+    effects = "joint_offset:joint_3=4e-4; joint_compliance:joint_2=1.5e-6"
+    data, _ = simulate_campaign(robot, 800, effects, noise_mm=0.02, payload=20.0, seed=1)
+    diag = diagnose(robot, data, seed=0)
+    named = {f"{c.effect}:{c.joint}" for c in diag.causes}
+    assert {"joint_offset:joint_3", "joint_compliance:joint_2"} <= named, named
+    for step in diag.to_json()["selection"]:
+        if step.get("accepted") and "blocked_gain_mm" in step:
+            assert step["blocked_gain_mm"] >= step["blocked_gain_se_mm"] >= 0.0, step
+    for c in diag.causes:
+        assert c.to_json()["blocked_holdout_gain_se_mm"] >= 0.0
+    text = "\n".join(summary_lines(diag))
+    assert f"blocked hold-out {diag.causes[0].blocked_holdout_gain_mm:.3g} ± " in text

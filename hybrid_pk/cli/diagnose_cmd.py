@@ -120,7 +120,10 @@ def summary_lines(diagnosis, seconds: float | None = None, runs: int = 1) -> lis
             if c.orientation_gain_deg is not None:
                 gain += f", {c.orientation_gain_deg:.3g} deg"
             if c.blocked_holdout_gain_mm is not None:
-                gain += f"; blocked hold-out {c.blocked_holdout_gain_mm:.3g} mm"
+                gain += f"; blocked hold-out {c.blocked_holdout_gain_mm:.3g}"
+                if getattr(c, "blocked_holdout_gain_se_mm", None) is not None:
+                    gain += f" ± {c.blocked_holdout_gain_se_mm:.2g}"
+                gain += " mm"
                 if c.blocked_blocks is not None:
                     gain += f" ({c.blocked_blocks['gained']} of {c.blocked_blocks['of']} blocks)"
             if getattr(c, "own_range_gain_mm", None) is not None:

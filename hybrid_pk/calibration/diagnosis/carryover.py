@@ -164,15 +164,19 @@ def linearise(
 
 def removal_gains(blocked: Blocked, effects: list[str], gone=()) -> dict[str, dict]:
     """Per effect of ``effects``: the blocked gain [mm] of keeping it (the model without
-    it, re-fitted per block, against the model with all), with its position [mm] and
-    orientation [deg] parts. ``gone``: effects of the linearisation that the model no
-    longer has (set to zero)."""
+    it, re-fitted per block, against the model with all), its standard error over the
+    blocks [mm], with its position [mm] and orientation [deg] parts. ``gone``: effects
+    of the linearisation that the model no longer has (set to zero)."""
     full = blocked.of(effects, gone)
     out = {}
     for label in effects:
         rest = [e for e in effects if e != label]
         without = blocked.of(rest, [label, *gone])
-        out[label] = {"gain_mm": blocked.gain_mm(without, full), **blocked.parts(without, full)}
+        out[label] = {
+            "gain_mm": blocked.gain_mm(without, full),
+            "se_mm": blocked.gain_se_mm(without, full),
+            **blocked.parts(without, full),
+        }
     return out
 
 

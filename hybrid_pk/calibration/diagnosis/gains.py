@@ -153,6 +153,7 @@ def _add_gains(cause: Cause, models, res: FitResult, split: Split, blocked: dict
     cause.random_holdout_gain_mm = rms_drop(split.test, split.cond_hold, full_hold)
     if blocked is not None:
         cause.blocked_holdout_gain_mm = blocked["gain_mm"]
+        cause.blocked_holdout_gain_se_mm = blocked.get("se_mm")
         cause.blocked_position_gain_mm = blocked["position_mm"]
         cause.blocked_orientation_gain_deg = blocked.get("orientation_deg")
         cause.blocked_blocks = {"gained": blocked["blocks_gained"], "of": blocked["blocks"]}

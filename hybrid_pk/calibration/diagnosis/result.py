@@ -42,6 +42,7 @@ class Cause:
     in_sample_gain_mm: float | None = None
     random_holdout_gain_mm: float | None = None
     blocked_holdout_gain_mm: float | None = None
+    blocked_holdout_gain_se_mm: float | None = None
     blocked_position_gain_mm: float | None = None
     blocked_orientation_gain_deg: float | None = None
     blocked_blocks: dict[str, int] | None = None
@@ -72,6 +73,7 @@ class Cause:
             "in_sample_gain_mm",
             "random_holdout_gain_mm",
             "blocked_holdout_gain_mm",
+            "blocked_holdout_gain_se_mm",
             "blocked_position_gain_mm",
             "blocked_orientation_gain_deg",
             "blocked_blocks",
