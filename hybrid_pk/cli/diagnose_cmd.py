@@ -246,9 +246,13 @@ def ambiguous_lines(ambiguous: list[dict]) -> list[str]:
 
 def _ambiguous_line(entry: dict) -> str:
     """One ambiguity entry: the effects, or a periodic cause not resolved over its
-    joint's range with its own-range gain, or a candidate named causes stand in for."""
+    joint's range with its own-range gain, or a candidate named causes stand in for
+    (or that was named in place of one of them)."""
     if entry.get("stood_in_by"):
         return f"  {entry['effects'][0]} ~ {' + '.join(entry['stood_in_by'])} (together)"
+    if entry.get("named_in_place_of"):
+        label, group = entry["effects"][0], " + ".join(entry["group"])
+        return f"  {label} ~ {group} (together; named in place of {entry['named_in_place_of']})"
     if not entry.get("not_resolved_over_range"):
         return f"  {' ~ '.join(entry['effects'])}"
     own = entry["own_range"]

@@ -2,7 +2,8 @@
 
 The main search (frames, forward selection with elimination, each cause's gain) is the
 diagnosis; the stages after it that only add a finding (the swaps for fewer causes, the
-search for a structural error, the check of a search that stopped at its limit) get,
+swaps of a named group for the one cause it stands in for, the search for a structural
+error, the check of a search that stopped at its limit) get,
 together, a share (the tuning's ``optional_share``) of the main search's work. Work is
 counted, not timed (:mod:`hybrid_pk.calibration.work`: model evaluations of one row, a
 Jacobian row weighing one per column): the same campaign is cut at the same step on an

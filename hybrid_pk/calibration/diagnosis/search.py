@@ -10,7 +10,9 @@
    causes (:mod:`.swaps`).
 4. Ambiguity (:mod:`.ambiguity`): candidates equivalent to a fitted frame, chosen
    causes whose correction another candidate could make, correlated estimates, and
-   (:mod:`.stand_ins`) candidates not named that named causes together could mimic.
+   (:mod:`.stand_ins`) candidates not named that named causes together could mimic;
+   such a candidate is named in place of one of them where the swap rule keeps it
+   (:mod:`.group_swaps`).
 5. Each cause's gain is measured by leaving it out (refit without it) on the
    hold-out rows (:mod:`.gains`). What remains is tested for structure: residuals of
    neighbouring configurations (in joint space) correlate when a smooth error is left
@@ -32,13 +34,13 @@ from hybrid_pk.calibration.diagnosis.gains import (
     range_warnings,
     stop_warnings,
 )
+from hybrid_pk.calibration.diagnosis.group_swaps import final_model
 from hybrid_pk.calibration.diagnosis.leftovers import outliers_json, robust_json, unexplained_json
 from hybrid_pk.calibration.diagnosis.noise import measurement_noise
 from hybrid_pk.calibration.diagnosis.plausibility import implausibility, plausibility_warnings
 from hybrid_pk.calibration.diagnosis.power import (
     check_determined,
     detectable_json,
-    detection_limits,
     frame_parameters,
 )
 from hybrid_pk.calibration.diagnosis.regions import make_folds
@@ -55,9 +57,9 @@ from hybrid_pk.calibration.diagnosis.selection import (
     score_candidates,
     try_candidate,
 )
-from hybrid_pk.calibration.diagnosis.settle import entry_rivals, settle, unresolved_entry
+from hybrid_pk.calibration.diagnosis.settle import entry_rivals, unresolved_entry
 from hybrid_pk.calibration.diagnosis.split import Split, split_campaign
-from hybrid_pk.calibration.diagnosis.stand_ins import group_stand_ins, kept_stand_ins
+from hybrid_pk.calibration.diagnosis.stand_ins import kept_stand_ins
 from hybrid_pk.calibration.diagnosis.structural import structural_check
 from hybrid_pk.calibration.diagnosis.swaps import prefer_fewer_causes
 from hybrid_pk.calibration.diagnosis.variants import with_effects, without_effect
@@ -138,19 +140,18 @@ def diagnose(
     model, res, steps, ambiguous, unobservable = _select(
         model, res, pool, split, (alpha, carry, budget), max_causes, say, flagged
     )
-    model, res, blocked_gains, unresolved = settle(model, res, split, carry, steps, say)
-
-    detectable, stand_ins = _not_named(model, res, pool, split, (alpha, carry), say)
+    final = final_model(model, res, pool, split, (alpha, carry, budget), steps, say)
+    model, res = final.model, final.res
     say("measuring each cause's gain")
     errors = model_errors(model, split.test, split.cond_hold)
     causes = measure_causes(
-        model, res, split, steps, alpha, errors, progress=say, blocked=blocked_gains
+        model, res, split, steps, alpha, errors, progress=say, blocked=final.gains
     )
     causes, structural, stories = _optional_findings(
         model, res, (causes, flagged, pool), split, (carry, nominal_model), say, budget
     )
-    ambiguous += correlated_groups(res) + unresolved
-    ambiguous += kept_stand_ins(stand_ins, causes)
+    ambiguous += correlated_groups(res) + final.unresolved
+    ambiguous += kept_stand_ins(final.stand_ins, causes)
     return Diagnosis(
         outliers=outliers_json(model, data, frames_per_file, res),
         robust=robust_json(res, data, split),
@@ -159,7 +160,7 @@ def diagnose(
         warnings=_warnings(causes, data, steps, robot, budget),
         carry_over=carry.rule(res),
         budget=budget.to_json(),
-        detectable=detectable_json(model, detectable, res.sigma_pos_mm, carry.margin(res)),
+        detectable=detectable_json(model, final.detectable, res.sigma_pos_mm, carry.margin(res)),
         robot=robot.name,
         n_samples=data.n,
         n_holdout=split.test.n,
@@ -176,17 +177,6 @@ def diagnose(
         steps=steps,
         rival_stories=stories,
     )
-
-
-def _not_named(model, res, pool, split, tests, say):
-    """The detection limits of the candidates not named and, from the same factor of
-    the final model's and their columns, those that named causes together stand in
-    for (:mod:`.stand_ins`). ``tests``: ``(alpha, carry)``."""
-    say("detection limits of the candidates not named")
-    detectable, final = detection_limits(model, res, pool, split, tests[0], say, tests[1])
-    if final is None:
-        return detectable, []
-    return detectable, group_stand_ins(final, [e.label for e in model.effects])
 
 
 def _optional_findings(model, res, named, split, refs, say, budget):

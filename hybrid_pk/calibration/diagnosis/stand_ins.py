@@ -15,7 +15,9 @@ the span of the named causes (|cosine| of the worst direction above the tuning's
 ``ambiguity_cosine``, as the pairwise check) is listed with the causes it needs there:
 causes are dropped one at a time while the rest hold it nearly as closely
 (:func:`_smallest_group`); a candidate that one cause holds without the others' help
-is left to the pairwise checks. Nothing is refitted and no cause or value changes.
+is left to the pairwise checks. Nothing is refitted here; :mod:`.group_swaps` tries the
+candidate in place of each member of its group, and where it names the candidate,
+:func:`swapped_stand_ins` lists the old group as what still stands in for it.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from hybrid_pk.calibration.diagnosis.ambiguity import projector_residual
 from hybrid_pk.calibration.diagnosis.selection import RANK_TOLERANCE, Scores
 from hybrid_pk.calibration.tuning import diagnosis_tuning
 
-__all__ = ["group_stand_ins", "kept_stand_ins"]
+__all__ = ["group_stand_ins", "kept_stand_ins", "swapped_stand_ins"]
 
 
 def group_stand_ins(scores: Scores, named: list[str]) -> list[dict]:
@@ -37,37 +39,78 @@ def group_stand_ins(scores: Scores, named: list[str]) -> list[dict]:
     :func:`_smallest_group`)."""
     if scores.R is None or len(named) < 2:
         return []
-    J = scores.R[:, :-1]
-    frames, causes, candidates, start = [], {}, [], 0
-    for b in scores.blocks:
-        cols, start = J[:, start : start + b.size], start + b.size
-        if start > scores.n_current:
-            candidates.append((b.label, cols))
-        elif b.label in named:
-            causes[b.label] = cols
-        else:
-            frames.append(cols)
-    Qf = _basis(torch.cat(frames, 1)) if frames else J[:, :0]
-    spans = {c: projector_residual(cols, Qf) for c, cols in causes.items()}
-    everything = _basis(torch.cat(list(spans.values()), 1))
+    cols, norms = _off_frames(scores, named)
+    causes = {c: v for c, v in cols.items() if c in named}
+    everything = _basis(torch.cat(list(causes.values()), 1))
     least = diagnosis_tuning().ambiguity_cosine
     out = []
-    for label, cols in candidates:
-        U = _basis(projector_residual(cols, Qf), float(cols.norm()))
+    for label in (c for c in cols if c not in named):
+        U = _basis(cols[label], norms[label])
         if U.shape[1] == 0 or float(torch.linalg.svdvals(everything.T @ U).min()) <= least:
             continue  # inside the frames (the frame check's) or outside the causes' span
-        group = _smallest_group(U, spans)
+        group = _smallest_group(U, causes)
         if group is not None:
-            alone = {c: _held(U, spans, [c]) for c in group}
-            out.append(_entry(label, group, _held(U, spans, group), alone))
+            alone = {c: _held(U, causes, [c]) for c in group}
+            out.append(_entry(label, group, _held(U, causes, group), alone))
     return out
 
 
+def swapped_stand_ins(scores: Scores, named: list[str], swaps: list[dict]) -> list[dict]:
+    """Ambiguity entries ``{"effects": [candidate, *group], "group": group,
+    "named_in_place_of": member, "why"}`` of the group swaps ``swaps`` (``{"candidate",
+    "group", "replaced", "simpler"}``: the candidate a named group stood in for, named
+    in place of one member) whose old group still stands in for the candidate in
+    ``scores`` (a scoring at the model after the swaps, whose causes are ``named``: the
+    candidate among them, the member not): every direction of the candidate, beside
+    the frames, within the group's span at |cosine| above the tuning's
+    ``ambiguity_cosine``."""
+    if scores.R is None or not swaps:
+        return []
+    cols, norms = _off_frames(scores, named)
+    out = []
+    for swap in swaps:
+        label, group = swap["candidate"], swap["group"]
+        if label not in named or not set(group) <= set(cols):
+            continue  # no longer named, or a member not scored here: nothing to compare
+        U = _basis(cols[label], norms[label])
+        cos = _held(U, cols, group)
+        if U.shape[1] and cos > diagnosis_tuning().ambiguity_cosine:
+            out.append(_swapped_entry(label, group, swap["replaced"], cos, swap["simpler"]))
+    return out
+
+
+def _off_frames(scores: Scores, named) -> tuple[dict[str, Tensor], dict[str, float]]:
+    """Columns of ``scores``' factor, by label, of the ``named`` causes and of the
+    candidates, projected off the frames' (the current model's other columns), and
+    their norms before that."""
+    J = scores.R[:, :-1]
+    frames, cols, start = [], {}, 0
+    for b in scores.blocks:
+        block, start = J[:, start : start + b.size], start + b.size
+        if start > scores.n_current or b.label in named:
+            cols[b.label] = block
+        else:
+            frames.append(block)
+    Qf = _basis(torch.cat(frames, 1)) if frames else J[:, :0]
+    return (
+        {c: projector_residual(v, Qf) for c, v in cols.items()},
+        {c: float(v.norm()) for c, v in cols.items()},
+    )
+
+
 def kept_stand_ins(entries: list[dict], causes: list) -> list[dict]:
-    """The entries whose stand-in group is still among the reported ``causes``
+    """The entries whose stand-in group (or, after a group swap, the candidate and the
+    group's members kept) are still among the reported ``causes``
     (:class:`.result.Cause`: the structural check may turn a cause into a finding)."""
     named = {c.effect if c.joint is None else f"{c.effect}:{c.joint}" for c in causes}
-    return [e for e in entries if set(e["stood_in_by"]) <= named]
+    return [e for e in entries if set(_needs_named(e)) <= named]
+
+
+def _needs_named(entry: dict) -> list[str]:
+    """The effects of a stand-in entry that must be named for it to hold."""
+    if "stood_in_by" in entry:
+        return entry["stood_in_by"]
+    return [e for e in entry["effects"] if e != entry["named_in_place_of"]]
 
 
 def _basis(cols: Tensor, norm: float | None = None) -> Tensor:
@@ -121,4 +164,18 @@ def _entry(label: str, group: list[str], cos: float, alone: dict[str, float]) ->
         "why": f"{label} (not named) moves the measured pose as {together} do together "
         f"(|cos| = {cos:.4f} beside the frames; alone: {each}): the data cannot "
         f"tell it from their combination, it may be the physical cause they stand in for",
+    }
+
+
+def _swapped_entry(label: str, group: list[str], member: str, cos: float, simpler: str) -> dict:
+    """The ambiguity entry of ``label``, named in place of ``member`` of ``group``, which
+    still together stands in for it."""
+    together = " + ".join(group)
+    return {
+        "effects": [label, *group],
+        "group": group,
+        "named_in_place_of": member,
+        "why": f"{label} moves the measured pose as {together} do together (|cos| = "
+        f"{cos:.4f} beside the frames): the data cannot tell them apart; {label} is named "
+        f"in place of {member} ({simpler}, the same fit)",
     }

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import NamedTuple
 
 from hybrid_pk.calibration.chord import Linearisation
 from hybrid_pk.calibration.diagnosis.carryover import Carry, linearise, weakest
@@ -36,7 +37,21 @@ from hybrid_pk.calibration.diagnosis.variants import refit_without, with_effects
 from hybrid_pk.calibration.fit import FitResult, fit
 from hybrid_pk.effects import ExtendedModel, make_effect
 
-__all__ = ["prefer_fewer_causes"]
+__all__ = ["Swap", "best_swap", "prefer_fewer_causes", "record_swap"]
+
+
+class Swap(NamedTuple):
+    """A swap the rule keeps: ``alternative`` in place of ``chosen``, the BIC change,
+    the model and fit after backward elimination, the causes it removed and its
+    removal steps."""
+
+    chosen: str
+    alternative: str
+    d_bic: float
+    model: ExtendedModel
+    res: FitResult
+    removed: set[str]
+    removals: list[dict]
 
 
 def prefer_fewer_causes(
@@ -62,8 +77,7 @@ def prefer_fewer_causes(
 
     Returns the (possibly) simpler model and its fit.
     """
-    alpha, carry = tests
-    model, res = _drop_split_duplicates(model, res, pairs, split, carry, steps, say)
+    model, res = _drop_split_duplicates(model, res, pairs, split, tests[1], steps, say)
     chosen_causes = list(dict.fromkeys(c for c, _ in pairs))
     for k, chosen in enumerate(chosen_causes):
         if k and budget is not None and budget.spent():
@@ -73,33 +87,56 @@ def prefer_fewer_causes(
         if chosen not in labels or len(labels) < 2:
             continue
         alternatives = [a for c, a in pairs if c == chosen and a not in labels]
-        # what every swap of this cause must match, and the Jacobian its refit steps with
-        blocked, near = _blocked_near(model, res, split, carry, alternatives, say)
-        current = (weighted_ssr(model, split.train, split.cond_fit, res), blocked)
-        best = None  # (d_bic, alternative, model, fit, removed, removal steps)
-        for alternative in alternatives:
-            swap = (chosen, alternative)
-            trial = _swapped(model, res, current, swap, split, (alpha, carry), say, near)
-            if trial is not None and (best is None or trial[0] < best[0]):
-                best = trial
+        best = best_swap(model, res, [(chosen, a) for a in alternatives], split, tests, say)
         if best is None:
             continue
-        _, alternative, trial, trial_res, removed, removals = best
-        chosen_step = next(s for s in steps if s["candidate"] == chosen and s.get("accepted"))
-        step = {"candidate": alternative, "replaces": chosen, "accepted": True}
-        step.update(_evidence(trial, trial_res, alternative, split, chosen_step["threshold"]))
+        alternative, removed = best.alternative, best.removed
         simpler = "fewer causes" if removed else "fewer parameters"
-        step["why"] = (
+        why = (
             f"{alternative} alone does what {chosen} needed {', '.join(sorted(removed))} for"
             if removed
             else f"{alternative} does what {chosen} does with fewer parameters"
         ) + f": {simpler}, the same fit"
-        chosen_step["accepted"] = False
-        chosen_step["why"] = f"replaced by {alternative} ({simpler}, the same fit)"
-        steps.append(step)
-        steps.extend(removals)
-        model, res = trial, trial_res
+        model, res = record_swap(steps, best, split, why)
     return model, res
+
+
+def best_swap(
+    model: ExtendedModel, res: FitResult, swaps: list[tuple[str, str]], split: Split, tests, say
+) -> Swap | None:
+    """The best (lowest BIC) of the ``(chosen, alternative)`` swaps of ``model`` that the
+    swap rule keeps (:func:`_swapped`), or None when it keeps none. ``tests``:
+    ``(alpha, carry)``: the F-tests' level, the blocked hold-out's blocks and margin;
+    ``say``: the progress callback."""
+    alternatives = list(dict.fromkeys(a for _, a in swaps))
+    # what every swap must match, and the Jacobian its refit steps with
+    blocked, near = _blocked_near(model, res, split, tests[1], alternatives, say)
+    current = (weighted_ssr(model, split.train, split.cond_fit, res), blocked)
+    best = None
+    for swap in swaps:
+        trial = _swapped(model, res, current, swap, split, tests, say, near)
+        if trial is not None and (best is None or trial.d_bic < best.d_bic):
+            best = trial
+    return best
+
+
+def record_swap(
+    steps: list[dict], swap: Swap, split: Split, why: str
+) -> tuple[ExtendedModel, FitResult]:
+    """Record ``swap`` in ``steps`` (its step, ``why`` it was kept, and the removals that
+    followed it; the step that chose the replaced cause marked as replaced), and return
+    its model and fit."""
+    chosen, alternative = swap.chosen, swap.alternative
+    chosen_step = next(s for s in steps if s["candidate"] == chosen and s.get("accepted"))
+    step = {"candidate": alternative, "replaces": chosen, "accepted": True}
+    step.update(_evidence(swap.model, swap.res, alternative, split, chosen_step["threshold"]))
+    step["why"] = why
+    simpler = "fewer causes" if swap.removed else "fewer parameters"
+    chosen_step["accepted"] = False
+    chosen_step["why"] = f"replaced by {alternative} ({simpler}, the same fit)"
+    steps.append(step)
+    steps.extend(swap.removals)
+    return swap.model, swap.res
 
 
 def _blocked(model, res, split, carry, say):
@@ -168,13 +205,12 @@ def _drop_split_duplicates(model, res, pairs, split, carry, steps, say):
 
 
 def _swapped(model, res, current, swap, split, tests, say, near=None):
-    """``(BIC change, alternative, model, fit, removed, removal steps)`` of ``model``
-    with ``alternative`` in place of ``chosen`` (``swap``) after backward elimination,
-    or None when that is implausible, leaves neither fewer causes nor fewer
-    parameters, or fits worse than ``current`` (``model``'s weighted SSR and blocked
-    score): a higher BIC, or a blocked hold-out the current model predicts better by
-    the practical margin. ``near``: a Jacobian of ``model`` with ``alternative``'s
-    columns, that the refit steps with."""
+    """The :class:`Swap` of ``model`` with ``alternative`` in place of ``chosen``
+    (``swap``) after backward elimination, or None when that is implausible, leaves
+    neither fewer causes nor fewer parameters, or fits worse than ``current``
+    (``model``'s weighted SSR and blocked score): a higher BIC, or a blocked hold-out
+    the current model predicts better by the practical margin. ``near``: a Jacobian of
+    ``model`` with ``alternative``'s columns, that the refit steps with."""
     (chosen, alternative), (alpha, carry) = swap, tests
     say(f"trying {alternative} in place of {chosen}")
     trial = with_effects(without_effect(model, chosen), [make_effect(model.robot, alternative)])
@@ -203,7 +239,7 @@ def _swapped(model, res, current, swap, split, tests, say, near=None):
         score_cur, blocked = blocked_cur
         if blocked.gain_mm(score_new, score_cur) >= carry.margin(res):
             return None  # the current causes carry over better by the margin
-    return d_bic, alternative, trial, trial_res, removed, removals
+    return Swap(chosen, alternative, d_bic, trial, trial_res, removed, removals)
 
 
 def _evidence(
