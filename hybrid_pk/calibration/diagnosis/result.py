@@ -42,13 +42,13 @@ class Cause:
     in_sample_gain_mm: float | None = None
     random_holdout_gain_mm: float | None = None
     blocked_holdout_gain_mm: float | None = None
-    blocked_holdout_gain_se_mm: float | None = None
     blocked_position_gain_mm: float | None = None
     blocked_orientation_gain_deg: float | None = None
     blocked_blocks: dict[str, int] | None = None
     fitted_range_rad: list[float] | None = None
     own_range_gain_mm: float | None = None
     own_range: dict | None = None
+    blocked_holdout_gain_se_mm: float | None = None  # its jackknife standard error
     # components whose split with other parameters the data do not determine at all:
     # ``{"component": k, "with": [parameter names]}`` (their value and std are the
     # minimum-norm solution's, not a measurement)
