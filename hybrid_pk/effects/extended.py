@@ -177,7 +177,7 @@ class ExtendedModel(nn.Module):
     def kinematic_params(self, cond: Conditions):
         params = self.robot.kinematic_params()
         for e in self.effects:
-            if e.stage == "geometry":
+            if e.stage == "geometry" and not e.inert():  # candidates at zero: no copies
                 params = e.apply_params(params, cond)
         return params
 
@@ -185,7 +185,7 @@ class ExtendedModel(nn.Module):
         """Joint values after the joint-space effects, before compliance: ``q_kin``."""
         cond = cond or Conditions()
         for e in self.effects:
-            if e.stage == "joint":
+            if e.stage == "joint" and not e.inert():  # candidates at zero: q itself
                 q = e.apply_q(q, cond)
         return q
 
