@@ -3,6 +3,7 @@ the same values, bit for bit (a diagnosis scores ~80 of them at every step)."""
 
 import torch
 
+from hybrid_pk.calibration.loaded_jacobian import loaded_state
 from hybrid_pk.effects import Conditions, ExtendedModel, make_effect
 
 # fitted causes (non-zero) and candidates of every built-in joint and geometric law
@@ -48,3 +49,20 @@ def test_candidates_at_zero_leave_joint_values_and_parameters_bit_for_bit(ur10):
         for a, b in zip(plain.kinematic_params(cond), scored.kinematic_params(cond), strict=True):
             assert torch.equal(a, b)
         assert torch.equal(plain(q, cond), scored(q, cond))
+
+
+def test_loaded_state_hands_on_the_wrench_frames_where_nothing_bends(ur10):
+    q = ur10.sample_q(32, torch.Generator().manual_seed(4))
+    cond = Conditions(payload=torch.full((32,), 5.0, dtype=torch.float64))
+    model = ExtendedModel(ur10, [make_effect(ur10, "tilt_compliance:elbow_joint")])
+    with torch.no_grad():
+        params, gravity, q_star, wrenches, bent, frames = loaded_state(model, q, cond)
+        assert bent is params  # the tilt at zero bends nothing
+        assert torch.equal(frames, ur10.link_frames(q_star, params))
+        load = (q_star, cond.payload, gravity, params, "joint")
+        assert torch.equal(ur10.static_wrenches(*load, frames), wrenches)
+        assert torch.equal(ur10.static_wrenches(*load), wrenches)
+        model.effects[0].value.fill_(1e-6)
+        *_, bent, frames = loaded_state(model, q, cond)
+        assert bent is not params
+        assert frames is None  # bent: the pose needs frames of its own

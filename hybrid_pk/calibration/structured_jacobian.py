@@ -114,7 +114,7 @@ class StructuredJacobian:
         model, robot = self.model, self.model.robot
         group = cond.group if model.base.sets > 1 else None
         with torch.no_grad():
-            params, gravity, q_star, wrenches, bent = loaded_state(model, q, cond)
+            params, gravity, q_star, wrenches, bent, frames = loaded_state(model, q, cond)
             E = robot.fk(q_star, params=bent)
             if group is None:
                 B, X = model.base.matrix()[0], model.tool.matrix()[0]
@@ -125,21 +125,21 @@ class StructuredJacobian:
         R_B = B[..., :3, :3]
         cols: dict[str, Tensor] = {}
         if any(b.name.startswith(("base.", "tool.")) for b in self.blocks):
-            frames = frame_twists(model.base, model.tool, group, T_BE, T)
+            own = frame_twists(model.base, model.tool, group, T_BE, T)
             gravity_path = levelled_gravity_twists(model, q, cond, B, X, T)
             if gravity_path is not None:  # a levelled tracker's gravity turns with the base
-                frames["base.rotvec"] = frames["base.rotvec"] + gravity_path
+                own["base.rotvec"] = own["base.rotvec"] + gravity_path
             scale = {b.name: b.scale for b in self.blocks}
-            cols.update({k: v * scale.get(k, 1.0) for k, v in frames.items()})
+            cols.update({k: v * scale.get(k, 1.0) for k, v in own.items()})
         if self.joint:
             dq = self._joint_derivatives(q, cond, q_star, params, key, gravity)
             lever = (E @ X)[:, :3, 3] - E[:, :3, 3]
             tw = point_joint_twists(robot.jacobian(q_star, params=bent), lever, R_B) @ dq
             cols.update(self._split(self.joint, tw))
-        # the link frames at q*, for the geometric and the deflection blocks alike
-        frames = (
-            robot.link_frames(q_star, params=bent) if self.geometry or self.deflection else None
-        )
+        # the link frames at q*, for the geometric and the deflection blocks alike (those
+        # of the static wrenches where nothing bends)
+        if (self.geometry or self.deflection) and frames is None:
+            frames = robot.link_frames(q_star, params=bent)
         if self.geometry:
             state = (q_star, params, E, B, X, T, bent, wrenches)
             cols.update(self._geometry_twists(cond, state, frames))
@@ -392,7 +392,7 @@ def point_jacobian(model: ExtendedModel, q: Tensor, cond: Conditions) -> Tensor:
     ``(I + C dg/dq)^-1`` and the geometric Jacobian at the true joint values (the
     deflection's bending held, a second-order term)."""
     robot = model.robot
-    params, gravity, q_star, _, bent = loaded_state(model, q, cond)
+    params, gravity, q_star, _, bent, _ = loaded_state(model, q, cond)
     E = robot.fk(q_star, params=bent)
     group = cond.group if model.base.sets > 1 else None
     B = model.base.matrix()[0] if group is None else model.base.matrix(group)

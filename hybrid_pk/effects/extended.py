@@ -262,12 +262,15 @@ class ExtendedModel(nn.Module):
             last = change
         return q
 
-    def static_wrenches(self, q_true: Tensor, params, cond: Conditions, gravity=None) -> Tensor:
-        """``(*B, n_chain, 6)`` holding wrench of every chain joint, in its own frame."""
+    def static_wrenches(
+        self, q_true: Tensor, params, cond: Conditions, gravity=None, frames=None
+    ) -> Tensor:
+        """``(*B, n_chain, 6)`` holding wrench of every chain joint, in its own frame
+        (``frames``: the robot's link frames at ``q_true`` and ``params``, if computed)."""
         payload = 0.0 if cond.payload is None else cond.payload
         g = self.gravity_root(cond) if gravity is None else gravity
         return self.robot.static_wrenches(
-            q_true, payload=payload, gravity=g, params=params, frame="joint"
+            q_true, payload=payload, gravity=g, params=params, frame="joint", frames=frames
         )
 
     def deflected_params(
