@@ -3,8 +3,11 @@ the same values, bit for bit (a diagnosis scores ~80 of them at every step)."""
 
 import torch
 
+from hybrid_pk.calibration.least_squares import jacobian
 from hybrid_pk.calibration.loaded_jacobian import loaded_state
-from hybrid_pk.effects import Conditions, ExtendedModel, make_effect
+from hybrid_pk.calibration.problem import Problem, param_blocks
+from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data, make_effect
+from hybrid_pk.simulate import simulate_campaign
 
 # fitted causes (non-zero) and candidates of every built-in joint and geometric law
 CAUSES = {
@@ -66,3 +69,25 @@ def test_loaded_state_hands_on_the_wrench_frames_where_nothing_bends(ur10):
         *_, bent, frames = loaded_state(model, q, cond)
         assert bent is not params
         assert frames is None  # bent: the pose needs frames of its own
+
+
+def test_columns_of_zero_candidates_match_forward_mode(ur10):
+    """The shortcuts taken at zero (a deflection's left Jacobian of exp(0) = I, a thermal
+    expansion's origins that do not turn, its one direction pushed forward without
+    batching) give the columns forward mode through the whole model gives."""
+    zero = ["tilt_compliance:elbow_joint", "tilt_compliance:wrist_1_joint", "thermal_expansion"]
+    fitted = [make_effect(ur10, k, v) for k, v in CAUSES.items() if "compliance" not in k]
+    model = ExtendedModel(ur10, fitted + [make_effect(ur10, c) for c in CANDIDATES + zero])
+    data, _ = simulate_campaign(
+        ur10, 40, [], noise_mm=0.0, payload=8.0, temperature_range=(18.0, 27.0), seed=5
+    )
+    cond = conditions_from_data(data, False)
+    problem = Problem(
+        model, data, cond, param_blocks(model, None, False), 0.03, 2e-4, chunk_rows=16
+    )
+    theta = torch.zeros_like(problem.x0)
+    r_ref, J_ref = jacobian(problem.residual, theta)
+    r, J = problem.jacobian(theta)
+    assert torch.equal(r, r_ref)
+    err = (J - J_ref).norm(dim=0) / J_ref.norm(dim=0).clamp_min(1e-12)
+    assert float(err.max()) < 1e-9, float(err.max())  # no compliance: every column exact

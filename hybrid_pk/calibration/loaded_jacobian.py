@@ -91,7 +91,9 @@ def deflection_twists(
             [e.rotation_per_unit(wrenches[..., i, :], q_chain, k) for k in range(2)], -1
         )  # (n, 3, 2)
         F = frames[:, i]
-        omega = F[:, :3, :3] @ so3_left_jacobian(w) @ unit  # (n, 3, 2), root frame
+        turn = F[:, :3, :3]  # J_l(0) = I exactly: a candidate at zero skips the product
+        turn = turn @ so3_left_jacobian(w) if bool(w.any()) else turn
+        omega = turn @ unit  # (n, 3, 2), root frame
         pivot_root = F[:, :3, 3] + (F[:, :3, :3] @ pivot[..., None])[..., 0]
         lever = (point - pivot_root)[:, :, None].expand_as(omega)
         v = torch.linalg.cross(omega, lever, dim=1)

@@ -201,7 +201,10 @@ class StructuredJacobian:
             d_xyz, d_rot, d_axis = self._origins[1]  # every chunk's, at these values
         else:
             with torch.no_grad():  # values of the other effects plain: shared where they can be
-                d_xyz, d_rot, d_axis = torch.func.vmap(along)(eye)
+                if size == 1:  # one direction (an expansion per row): no batching to pay for
+                    d_xyz, d_rot, d_axis = (d[None] for d in along(eye[0]))
+                else:
+                    d_xyz, d_rot, d_axis = torch.func.vmap(along)(eye)
             if (d_xyz.dim(), d_rot.dim(), d_axis.dim()) == (3, 4, 3):  # no row dimension
                 self._origins = (key, (d_xyz, d_rot, d_axis))
         tw = geometry_twists(maps, params.origin_rot, d_xyz, d_rot)

@@ -164,7 +164,10 @@ def geometry_twists(maps: Tensor, origin_rot: Tensor, d_xyz: Tensor, d_rot: Tens
 def _origin_twists(maps: Tensor, origin_rot: Tensor, d_xyz: Tensor, d_rot: Tensor) -> Tensor:
     """:func:`geometry_twists` without the split into shared and per-row directions."""
     k = d_xyz.shape[0]
-    w_local = vee(d_rot @ origin_rot.transpose(-1, -2))  # parent-frame angular rates
+    if d_xyz.dim() == 4 and not bool(d_rot.any()):  # per row, no origin turns (an expansion)
+        w_local = torch.zeros_like(d_xyz)  # what the product gives, without n (dof + 1) of them
+    else:
+        w_local = vee(d_rot @ origin_rot.transpose(-1, -2))  # parent-frame angular rates
     D = torch.cat([d_xyz, w_local], -1)  # (k, *P, n_orig, 6)
     if D.dim() == 3:  # shared parameters: one matrix for every row
         return maps @ D.reshape(k, -1).T
