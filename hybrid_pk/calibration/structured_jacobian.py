@@ -254,8 +254,14 @@ class StructuredJacobian:
         model, robot = self.model, self.model.robot
         n, dof = q.shape
         payload = 0.0 if cond.payload is None else cond.payload
-        with torch.no_grad():
-            g = robot.gravity_torques(q_star, payload=payload, gravity=gravity, params=params)
+        c = self._compliance()
+        settles = c is not None and bool((c != 0).any())
+        g = G = None
+        if settles:  # the torques come with dg/dq where that is computed afresh
+            g, G = _gravity_jacobian(robot, q_star, payload, params, key, gravity)
+        if g is None:
+            with torch.no_grad():
+                g = robot.gravity_torques(q_star, payload=payload, gravity=gravity, params=params)
         kin = [b for b in self.joint if self.effects[b.name].stage == "joint"]
         size = sum(b.size for b in self.joint)
         # compliance columns zero, filled below
@@ -269,10 +275,7 @@ class StructuredJacobian:
                 start += b.size
         else:  # some effect couples joints: every direction through all
             dq = self._coupled_derivatives(q, cond, kin, g)
-        c = self._compliance()
-        if c is not None and bool((c != 0).any()):
-            # q* = q_kin - C g(q*)  =>  (I + C dg/dq) dq* = dq_kin - dC g
-            G = _gravity_jacobian(robot, q_star, payload, params, key, gravity)
+        if settles:  # q* = q_kin - C g(q*)  =>  (I + C dg/dq) dq* = dq_kin - dC g
             M = torch.eye(dof, dtype=q.dtype) + c.to(q.dtype)[:, None] * G
             dq = torch.linalg.solve(M, dq)
         return dq
@@ -348,8 +351,9 @@ _GRAVITY_JACOBIANS: dict[int, tuple] = {}
 GRAVITY_REUSE_RAD = 1e-4
 
 
-def _gravity_jacobian(robot, q_star: Tensor, payload, params, key, gravity) -> Tensor:
-    """``dg/dq (n, dof, dof)`` at ``q_star``, reused from an earlier call where valid."""
+def _gravity_jacobian(robot, q_star: Tensor, payload, params, key, gravity):
+    """``(g, dg/dq (n, dof, dof))`` at ``q_star``: ``dg/dq`` reused from an earlier call
+    where valid, the torques ``g (n, dof)`` where they came with it (else None)."""
     store = None
     if key is not None:
         data_q, start, stop = key
@@ -369,11 +373,12 @@ def _gravity_jacobian(robot, q_star: Tensor, payload, params, key, gravity) -> T
         rows = slice(start, stop)
         if bool(valid[rows].all()):
             if float((q_kept[rows] - q_star).abs().max()) <= GRAVITY_REUSE_RAD:
-                return G_kept[rows]
+                return None, G_kept[rows]
 
+    tau = None
     closed = gravity_values(robot, q_star, payload, gravity, params, derivative=True)
     if closed is not None:
-        G = closed[1]
+        tau, G = closed
     else:  # off-chain bodies: forward mode through the differentiable statics
 
         def grav(d: Tensor) -> Tensor:
@@ -384,7 +389,7 @@ def _gravity_jacobian(robot, q_star: Tensor, payload, params, key, gravity) -> T
         G = jacobian(grav, torch.zeros(dof, dtype=q_star.dtype))[1].reshape(-1, dof, dof)
     if store is not None:
         q_kept[rows], G_kept[rows], valid[rows] = q_star, G, True
-    return G
+    return tau, G
 
 
 @torch.no_grad()
@@ -414,6 +419,6 @@ def point_jacobian(model: ExtendedModel, q: Tensor, cond: Conditions) -> Tensor:
     c = StructuredJacobian(model, ())._compliance()
     if c is not None and bool((c != 0).any()):
         payload = 0.0 if cond.payload is None else cond.payload
-        G = _gravity_jacobian(robot, q_star, payload, params, None, gravity)
+        G = _gravity_jacobian(robot, q_star, payload, params, None, gravity)[1]
         dq = torch.linalg.solve(torch.eye(q.shape[-1], dtype=q.dtype) + c[:, None] * G, dq)
     return tw[:, :3, :] @ dq
