@@ -46,12 +46,8 @@ def _effect_derivatives(effect, q: Tensor, cond: Conditions, j: int, block):
     closed = getattr(effect, "joint_derivatives", None)
     if closed is not None:
         with torch.no_grad():
-            # at zero (a candidate scored) a built-in map adds 0 x something finite to
-            # its joint: q itself (up to the sign of a zero); one that reads a condition
-            # still runs, for its error where the rows lack it, and so does a plug-in
-            built_in = type(effect).__module__.startswith("hybrid_pk.effects.")
-            zero = built_in and effect.needs is None and not bool(effect.value.detach().any())
-            out = q if zero else effect.apply_q(q, cond)
+            # at zero (a candidate scored) a built-in map passes q itself: Effect.inert
+            out = q if effect.inert() else effect.apply_q(q, cond)
             along, own = closed(q, cond, 0.0 if block is None else block.scale)
         return out, along, own if block is not None else None
     wrapper, value = _Apply(effect), effect.value.detach()

@@ -38,20 +38,23 @@ __all__ = ["deflection_twists", "levelled_gravity_twists", "loaded_state"]
 @torch.no_grad()
 def loaded_state(model: ExtendedModel, q: Tensor, cond: Conditions):
     """Everything the structured Jacobian linearises about, at the current values:
-    ``(params, gravity, q_star, wrenches, params_bent)``.
+    ``(params, gravity, q_star, wrenches, params_bent, frames)``.
 
     ``gravity`` is the root-frame vector (per row with a levelled tracker and several
     base frames); ``wrenches`` the joint-frame static wrenches at ``q_star`` (None
-    without deflection effects); ``params_bent`` the parameters the pose uses.
+    without deflection effects); ``params_bent`` the parameters the pose uses;
+    ``frames`` the link frames at ``q_star`` and ``params_bent`` where the wrenches
+    needed them and nothing bends (None otherwise: not computed here).
     """
     params = model.kinematic_params(cond)
     gravity = model.gravity_root(cond)
     q_star = model.joint_values(q, cond, params, gravity)
-    wrenches = None
+    wrenches = frames = None
     if any(e.stage == "deflection" for e in model.effects):
-        wrenches = model.static_wrenches(q_star, params, cond, gravity)
+        frames = model.robot.link_frames(q_star, params)
+        wrenches = model.static_wrenches(q_star, params, cond, gravity, frames=frames)
     bent = model.deflected_params(q_star, params, cond, gravity, wrenches)
-    return params, gravity, q_star, wrenches, bent
+    return params, gravity, q_star, wrenches, bent, frames if bent is params else None
 
 
 @torch.no_grad()
@@ -88,7 +91,9 @@ def deflection_twists(
             [e.rotation_per_unit(wrenches[..., i, :], q_chain, k) for k in range(2)], -1
         )  # (n, 3, 2)
         F = frames[:, i]
-        omega = F[:, :3, :3] @ so3_left_jacobian(w) @ unit  # (n, 3, 2), root frame
+        turn = F[:, :3, :3]  # J_l(0) = I exactly: a candidate at zero skips the product
+        turn = turn @ so3_left_jacobian(w) if bool(w.any()) else turn
+        omega = turn @ unit  # (n, 3, 2), root frame
         pivot_root = F[:, :3, 3] + (F[:, :3, :3] @ pivot[..., None])[..., 0]
         lever = (point - pivot_root)[:, :, None].expand_as(omega)
         v = torch.linalg.cross(omega, lever, dim=1)

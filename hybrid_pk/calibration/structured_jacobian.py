@@ -114,7 +114,7 @@ class StructuredJacobian:
         model, robot = self.model, self.model.robot
         group = cond.group if model.base.sets > 1 else None
         with torch.no_grad():
-            params, gravity, q_star, wrenches, bent = loaded_state(model, q, cond)
+            params, gravity, q_star, wrenches, bent, frames = loaded_state(model, q, cond)
             E = robot.fk(q_star, params=bent)
             if group is None:
                 B, X = model.base.matrix()[0], model.tool.matrix()[0]
@@ -125,21 +125,21 @@ class StructuredJacobian:
         R_B = B[..., :3, :3]
         cols: dict[str, Tensor] = {}
         if any(b.name.startswith(("base.", "tool.")) for b in self.blocks):
-            frames = frame_twists(model.base, model.tool, group, T_BE, T)
+            own = frame_twists(model.base, model.tool, group, T_BE, T)
             gravity_path = levelled_gravity_twists(model, q, cond, B, X, T)
             if gravity_path is not None:  # a levelled tracker's gravity turns with the base
-                frames["base.rotvec"] = frames["base.rotvec"] + gravity_path
+                own["base.rotvec"] = own["base.rotvec"] + gravity_path
             scale = {b.name: b.scale for b in self.blocks}
-            cols.update({k: v * scale.get(k, 1.0) for k, v in frames.items()})
+            cols.update({k: v * scale.get(k, 1.0) for k, v in own.items()})
         if self.joint:
             dq = self._joint_derivatives(q, cond, q_star, params, key, gravity)
             lever = (E @ X)[:, :3, 3] - E[:, :3, 3]
             tw = point_joint_twists(robot.jacobian(q_star, params=bent), lever, R_B) @ dq
             cols.update(self._split(self.joint, tw))
-        # the link frames at q*, for the geometric and the deflection blocks alike
-        frames = (
-            robot.link_frames(q_star, params=bent) if self.geometry or self.deflection else None
-        )
+        # the link frames at q*, for the geometric and the deflection blocks alike (those
+        # of the static wrenches where nothing bends)
+        if (self.geometry or self.deflection) and frames is None:
+            frames = robot.link_frames(q_star, params=bent)
         if self.geometry:
             state = (q_star, params, E, B, X, T, bent, wrenches)
             cols.update(self._geometry_twists(cond, state, frames))
@@ -201,7 +201,10 @@ class StructuredJacobian:
             d_xyz, d_rot, d_axis = self._origins[1]  # every chunk's, at these values
         else:
             with torch.no_grad():  # values of the other effects plain: shared where they can be
-                d_xyz, d_rot, d_axis = torch.func.vmap(along)(eye)
+                if size == 1:  # one direction (an expansion per row): no batching to pay for
+                    d_xyz, d_rot, d_axis = (d[None] for d in along(eye[0]))
+                else:
+                    d_xyz, d_rot, d_axis = torch.func.vmap(along)(eye)
             if (d_xyz.dim(), d_rot.dim(), d_axis.dim()) == (3, 4, 3):  # no row dimension
                 self._origins = (key, (d_xyz, d_rot, d_axis))
         tw = geometry_twists(maps, params.origin_rot, d_xyz, d_rot)
@@ -251,8 +254,14 @@ class StructuredJacobian:
         model, robot = self.model, self.model.robot
         n, dof = q.shape
         payload = 0.0 if cond.payload is None else cond.payload
-        with torch.no_grad():
-            g = robot.gravity_torques(q_star, payload=payload, gravity=gravity, params=params)
+        c = self._compliance()
+        settles = c is not None and bool((c != 0).any())
+        g = G = None
+        if settles:  # the torques come with dg/dq where that is computed afresh
+            g, G = _gravity_jacobian(robot, q_star, payload, params, key, gravity)
+        if g is None:
+            with torch.no_grad():
+                g = robot.gravity_torques(q_star, payload=payload, gravity=gravity, params=params)
         kin = [b for b in self.joint if self.effects[b.name].stage == "joint"]
         size = sum(b.size for b in self.joint)
         # compliance columns zero, filled below
@@ -266,10 +275,7 @@ class StructuredJacobian:
                 start += b.size
         else:  # some effect couples joints: every direction through all
             dq = self._coupled_derivatives(q, cond, kin, g)
-        c = self._compliance()
-        if c is not None and bool((c != 0).any()):
-            # q* = q_kin - C g(q*)  =>  (I + C dg/dq) dq* = dq_kin - dC g
-            G = _gravity_jacobian(robot, q_star, payload, params, key, gravity)
+        if settles:  # q* = q_kin - C g(q*)  =>  (I + C dg/dq) dq* = dq_kin - dC g
             M = torch.eye(dof, dtype=q.dtype) + c.to(q.dtype)[:, None] * G
             dq = torch.linalg.solve(M, dq)
         return dq
@@ -345,8 +351,9 @@ _GRAVITY_JACOBIANS: dict[int, tuple] = {}
 GRAVITY_REUSE_RAD = 1e-4
 
 
-def _gravity_jacobian(robot, q_star: Tensor, payload, params, key, gravity) -> Tensor:
-    """``dg/dq (n, dof, dof)`` at ``q_star``, reused from an earlier call where valid."""
+def _gravity_jacobian(robot, q_star: Tensor, payload, params, key, gravity):
+    """``(g, dg/dq (n, dof, dof))`` at ``q_star``: ``dg/dq`` reused from an earlier call
+    where valid, the torques ``g (n, dof)`` where they came with it (else None)."""
     store = None
     if key is not None:
         data_q, start, stop = key
@@ -366,11 +373,12 @@ def _gravity_jacobian(robot, q_star: Tensor, payload, params, key, gravity) -> T
         rows = slice(start, stop)
         if bool(valid[rows].all()):
             if float((q_kept[rows] - q_star).abs().max()) <= GRAVITY_REUSE_RAD:
-                return G_kept[rows]
+                return None, G_kept[rows]
 
+    tau = None
     closed = gravity_values(robot, q_star, payload, gravity, params, derivative=True)
     if closed is not None:
-        G = closed[1]
+        tau, G = closed
     else:  # off-chain bodies: forward mode through the differentiable statics
 
         def grav(d: Tensor) -> Tensor:
@@ -381,7 +389,7 @@ def _gravity_jacobian(robot, q_star: Tensor, payload, params, key, gravity) -> T
         G = jacobian(grav, torch.zeros(dof, dtype=q_star.dtype))[1].reshape(-1, dof, dof)
     if store is not None:
         q_kept[rows], G_kept[rows], valid[rows] = q_star, G, True
-    return G
+    return tau, G
 
 
 @torch.no_grad()
@@ -392,7 +400,7 @@ def point_jacobian(model: ExtendedModel, q: Tensor, cond: Conditions) -> Tensor:
     ``(I + C dg/dq)^-1`` and the geometric Jacobian at the true joint values (the
     deflection's bending held, a second-order term)."""
     robot = model.robot
-    params, gravity, q_star, _, bent = loaded_state(model, q, cond)
+    params, gravity, q_star, _, bent, _ = loaded_state(model, q, cond)
     E = robot.fk(q_star, params=bent)
     group = cond.group if model.base.sets > 1 else None
     B = model.base.matrix()[0] if group is None else model.base.matrix(group)
@@ -411,6 +419,6 @@ def point_jacobian(model: ExtendedModel, q: Tensor, cond: Conditions) -> Tensor:
     c = StructuredJacobian(model, ())._compliance()
     if c is not None and bool((c != 0).any()):
         payload = 0.0 if cond.payload is None else cond.payload
-        G = _gravity_jacobian(robot, q_star, payload, params, None, gravity)
+        G = _gravity_jacobian(robot, q_star, payload, params, None, gravity)[1]
         dq = torch.linalg.solve(torch.eye(q.shape[-1], dtype=q.dtype) + c[:, None] * G, dq)
     return tw[:, :3, :] @ dq

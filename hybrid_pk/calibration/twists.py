@@ -63,7 +63,6 @@ def frame_twists(
     """
     n, sets = T.shape[0], base.sets
     g = torch.zeros(n, dtype=torch.long, device=T.device) if group is None else group
-    onehot = torch.nn.functional.one_hot(g, sets).to(T.dtype)  # (n, G)
     _, w_b = frame_rotation_derivatives(base)
     _, w_x = frame_rotation_derivatives(tool)
     eye = torch.eye(3, dtype=T.dtype, device=T.device).expand(n, 3, 3)
@@ -78,10 +77,14 @@ def frame_twists(
         "tool.dp": torch.cat([R_BE, zero], 1),
         "tool.rotvec": torch.cat([zero, R_BE @ w_x[g]], 1),
     }
-    return {
-        name: (tw[:, :, None, :] * onehot[:, None, :, None]).reshape(n, 6, 3 * sets)
-        for name, tw in own.items()
-    }
+    if sets == 1:
+        return own
+    rows, out = torch.arange(n, device=T.device), {}
+    for name, tw in own.items():  # each row moves with its own set's parameters only
+        spread = tw.new_zeros(n, 6, sets, 3)
+        spread[rows, :, g, :] = tw
+        out[name] = spread.reshape(n, 6, 3 * sets)
+    return out
 
 
 def point_joint_twists(jac_end: Tensor, lever: Tensor, R_B: Tensor) -> Tensor:
@@ -164,7 +167,10 @@ def geometry_twists(maps: Tensor, origin_rot: Tensor, d_xyz: Tensor, d_rot: Tens
 def _origin_twists(maps: Tensor, origin_rot: Tensor, d_xyz: Tensor, d_rot: Tensor) -> Tensor:
     """:func:`geometry_twists` without the split into shared and per-row directions."""
     k = d_xyz.shape[0]
-    w_local = vee(d_rot @ origin_rot.transpose(-1, -2))  # parent-frame angular rates
+    if d_xyz.dim() == 4 and not bool(d_rot.any()):  # per row, no origin turns (an expansion)
+        w_local = torch.zeros_like(d_xyz)  # what the product gives, without n (dof + 1) of them
+    else:
+        w_local = vee(d_rot @ origin_rot.transpose(-1, -2))  # parent-frame angular rates
     D = torch.cat([d_xyz, w_local], -1)  # (k, *P, n_orig, 6)
     if D.dim() == 3:  # shared parameters: one matrix for every row
         return maps @ D.reshape(k, -1).T

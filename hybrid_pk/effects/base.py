@@ -38,6 +38,7 @@ from torch import Tensor, nn
 from hybrid_pk.effects.conditions import Conditions
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.robot import KinematicParams, Robot
+from hybrid_pk.robot.chain import plain_inputs
 
 __all__ = [
     "EFFECTS",
@@ -190,6 +191,20 @@ class Effect(nn.Module):
     def report_value(self) -> float | list[float]:
         v = self.value.detach().to(torch.float64)
         return float(v) if v.dim() == 0 else [float(x) for x in v]
+
+    def inert(self) -> bool:
+        """Whether applying it changes nothing: a built-in effect that reads no condition,
+        at exactly zero (a candidate being scored), its value plain (no derivative taken
+        through it). Its law then adds 0 x something finite (a rotation by exp(0) = I),
+        so skipping it gives the same values, up to the sign of a zero. A plug-in may do
+        anything at zero, and one that reads a condition still runs, for its error where
+        the rows lack it."""
+        return (
+            type(self).__module__.startswith("hybrid_pk.effects.")
+            and self.needs is None
+            and plain_inputs(self.value)
+            and not bool(self.value.detach().any())
+        )
 
     def apply_q(self, q: Tensor, cond: Conditions) -> Tensor:  # joint stage
         raise NotImplementedError

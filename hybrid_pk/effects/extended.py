@@ -177,7 +177,7 @@ class ExtendedModel(nn.Module):
     def kinematic_params(self, cond: Conditions):
         params = self.robot.kinematic_params()
         for e in self.effects:
-            if e.stage == "geometry":
+            if e.stage == "geometry" and not e.inert():  # candidates at zero: no copies
                 params = e.apply_params(params, cond)
         return params
 
@@ -185,7 +185,7 @@ class ExtendedModel(nn.Module):
         """Joint values after the joint-space effects, before compliance: ``q_kin``."""
         cond = cond or Conditions()
         for e in self.effects:
-            if e.stage == "joint":
+            if e.stage == "joint" and not e.inert():  # candidates at zero: q itself
                 q = e.apply_q(q, cond)
         return q
 
@@ -262,12 +262,15 @@ class ExtendedModel(nn.Module):
             last = change
         return q
 
-    def static_wrenches(self, q_true: Tensor, params, cond: Conditions, gravity=None) -> Tensor:
-        """``(*B, n_chain, 6)`` holding wrench of every chain joint, in its own frame."""
+    def static_wrenches(
+        self, q_true: Tensor, params, cond: Conditions, gravity=None, frames=None
+    ) -> Tensor:
+        """``(*B, n_chain, 6)`` holding wrench of every chain joint, in its own frame
+        (``frames``: the robot's link frames at ``q_true`` and ``params``, if computed)."""
         payload = 0.0 if cond.payload is None else cond.payload
         g = self.gravity_root(cond) if gravity is None else gravity
         return self.robot.static_wrenches(
-            q_true, payload=payload, gravity=g, params=params, frame="joint"
+            q_true, payload=payload, gravity=g, params=params, frame="joint", frames=frames
         )
 
     def deflected_params(

@@ -406,6 +406,7 @@ class Robot(nn.Module):
         gravity: Tensor | tuple[float, float, float] = (0.0, 0.0, -STANDARD_GRAVITY),
         params: KinematicParams | None = None,
         frame: str = "root",
+        frames: Tensor | None = None,
     ) -> Tensor:
         """The full static wrench each chain joint transmits to hold what it carries.
 
@@ -421,18 +422,17 @@ class Robot(nn.Module):
             payload: mass [kg] at the end-link origin; float or ``(*B,)`` tensor.
             gravity: ``(3,)`` or ``(*B, 3)`` gravity in the root frame [m/s^2].
             params: kinematic parameters to use instead of the robot's own.
-            frame: ``"root"``, or ``"joint"``: each wrench in its own joint's frame
-                (pinocchio's ``data.f`` convention).
+            frame: ``"root"``, or ``"joint"``: each in its joint's frame (pinocchio's ``data.f``).
+            frames: :meth:`link_frames` of ``q`` and ``params``, when already computed.
 
         Returns:
-            ``(*B, n_chain, 6)``: force [N] then moment [Nm] about the origin of chain
-            joint ``i``'s frame (on its axis, :meth:`link_frames` index ``i``), in the
-            root frame (or that joint frame).
+            ``(*B, n_chain, 6)``: force [N], moment [Nm] about the origin of chain joint ``i``'s
+            frame (on its axis, :meth:`link_frames` index ``i``), root frame (or that frame).
         """
         if frame not in ("root", "joint"):
             raise ValueError(f"frame must be 'root' or 'joint', got {frame!r}")
         q = self.check_q(q)
-        frames = self.link_frames(q, params)
+        frames = self.link_frames(q, params) if frames is None else frames
         g = self._gravity(gravity, frames)[..., None, :]
         mass_out, arm = self._subtree_loads(q, frames, payload)
         force = (-mass_out[..., None] * g).expand_as(arm)
