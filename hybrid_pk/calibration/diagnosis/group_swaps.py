@@ -3,7 +3,10 @@
 After the search, :func:`.settle.settle` takes out the causes that do not carry over;
 the detection limits of the candidates not named come from one factor of the final
 model's columns and theirs, which also shows the candidates that two or more named
-causes together stand in for (:mod:`.stand_ins`). Such a candidate may be the simpler
+causes together stand in for (:mod:`.stand_ins`). The same factor shows the named
+causes whose exchange (:mod:`.exchanges`: the cause out, two forward steps, backward
+elimination) may give a simpler model; those are exchanged first, where the swap rule
+keeps it, and the model is settled and scored again. A stand-in candidate may be the simpler
 story: a Panda's hidden joint-4 offset is named by the search as the joint-5 axis
 misalignment (2 parameters) together with the joint-5 link length, and the offset (1
 parameter) with that link length does the same. For each member of the group, the
@@ -27,6 +30,7 @@ from dataclasses import dataclass, field
 
 from hybrid_pk.calibration.diagnosis.budget import Budget
 from hybrid_pk.calibration.diagnosis.carryover import Carry
+from hybrid_pk.calibration.diagnosis.exchanges import exchange_causes, promising
 from hybrid_pk.calibration.diagnosis.power import detection_limits
 from hybrid_pk.calibration.diagnosis.settle import settle
 from hybrid_pk.calibration.diagnosis.split import Split
@@ -68,6 +72,15 @@ def final_model(
     out = Final(model, res)
     _settle(out, split, carry, steps, say)
     scores = _not_named(out, pool, split, (alpha, carry), say)
+    causes = [] if scores is None else promising(scores, out.model, alpha)
+    if causes:
+        with budget.stage("exchanges"):
+            named = [e.label for e in out.model.effects]
+            fitted = (out.model, out.res)
+            out.model, out.res = exchange_causes(fitted, causes, pool, split, tests, steps, say)
+            if [e.label for e in out.model.effects] != named:
+                _settle(out, split, carry, steps, say)
+                scores = _not_named(out, pool, split, (alpha, carry), say)
     if not out.stand_ins:
         return out
     with budget.stage("group swaps"):

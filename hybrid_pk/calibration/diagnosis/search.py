@@ -12,7 +12,8 @@
    causes whose correction another candidate could make, correlated estimates, and
    (:mod:`.stand_ins`) candidates not named that named causes together could mimic;
    such a candidate is named in place of one of them where the swap rule keeps it
-   (:mod:`.group_swaps`).
+   (:mod:`.group_swaps`); before that, a cause whose exchange (out, two forward steps
+   in its place) gives a simpler model is exchanged (:mod:`.exchanges`).
 5. Each cause's gain is measured by leaving it out (refit without it) on the
    hold-out rows (:mod:`.gains`). What remains is tested for structure: residuals of
    neighbouring configurations (in joint space) correlate when a smooth error is left

@@ -37,7 +37,7 @@ from hybrid_pk.calibration.diagnosis.variants import refit_without, with_effects
 from hybrid_pk.calibration.fit import FitResult, fit
 from hybrid_pk.effects import ExtendedModel, make_effect
 
-__all__ = ["Swap", "best_swap", "prefer_fewer_causes", "record_swap"]
+__all__ = ["Swap", "best_swap", "blocked_score", "judged", "prefer_fewer_causes", "record_swap"]
 
 
 class Swap(NamedTuple):
@@ -121,17 +121,18 @@ def best_swap(
 
 
 def record_swap(
-    steps: list[dict], swap: Swap, split: Split, why: str
+    steps: list[dict], swap: Swap, split: Split, why: str, simpler: str | None = None
 ) -> tuple[ExtendedModel, FitResult]:
     """Record ``swap`` in ``steps`` (its step, ``why`` it was kept, and the removals that
-    followed it; the step that chose the replaced cause marked as replaced), and return
-    its model and fit."""
+    followed it; the step that chose the replaced cause marked as replaced, ``simpler``:
+    by default fewer causes when the swap removed any, else fewer parameters), and
+    return its model and fit."""
     chosen, alternative = swap.chosen, swap.alternative
     chosen_step = next(s for s in steps if s["candidate"] == chosen and s.get("accepted"))
     step = {"candidate": alternative, "replaces": chosen, "accepted": True}
     step.update(_evidence(swap.model, swap.res, alternative, split, chosen_step["threshold"]))
     step["why"] = why
-    simpler = "fewer causes" if swap.removed else "fewer parameters"
+    simpler = simpler or ("fewer causes" if swap.removed else "fewer parameters")
     chosen_step["accepted"] = False
     chosen_step["why"] = f"replaced by {alternative} ({simpler}, the same fit)"
     steps.append(step)
@@ -139,7 +140,7 @@ def record_swap(
     return swap.model, swap.res
 
 
-def _blocked(model, res, split, carry, say):
+def blocked_score(model, res, split, carry, say):
     """``(blocked score, Blocked)`` of ``model`` (its own parameters re-fitted per
     block) under ``res``'s noise weights; None without blocks."""
     if carry.folds is None:
@@ -225,7 +226,23 @@ def _swapped(model, res, current, swap, split, tests, say, near=None):
     trial, trial_res, removed = eliminate(
         trial, trial_res, split, alpha, alternative, removals, say
     )
-    if not removed and trial_res.n_params >= res.n_params:
+    return judged(
+        model, res, current, (trial, trial_res), swap, removed, removals, split, carry, say
+    )
+
+
+def judged(model, res, current, trial, swap, removed, removals, split, carry, say) -> Swap | None:
+    """The :class:`Swap` ``swap`` (``(chosen, alternative)``) that led from ``model``
+    (its fit ``res``, ``current``: its weighted SSR and blocked score) to ``trial``
+    (``(model, fit)``, after backward elimination removed ``removed``, logged in
+    ``removals``), or None when the swap rule does not keep it: neither fewer causes
+    nor (as many) with fewer parameters, a higher BIC, or a blocked hold-out the current
+    model predicts better by the practical margin."""
+    trial, trial_res = trial
+    fewer = len(trial.effects) < len(model.effects)
+    if not fewer and (
+        len(trial.effects) > len(model.effects) or trial_res.n_params >= res.n_params
+    ):
         return None  # neither fewer causes nor fewer parameters
     ssr_cur, blocked_cur = current
     ssr_new = weighted_ssr(trial, split.train, split.cond_fit, res)
@@ -235,11 +252,11 @@ def _swapped(model, res, current, swap, split, tests, say, near=None):
     if d_bic > 0:
         return None
     if blocked_cur is not None:
-        score_new = _blocked(trial, res, split, carry, say)[0]
+        score_new = blocked_score(trial, res, split, carry, say)[0]
         score_cur, blocked = blocked_cur
         if blocked.gain_mm(score_new, score_cur) >= carry.margin(res):
             return None  # the current causes carry over better by the margin
-    return Swap(chosen, alternative, d_bic, trial, trial_res, removed, removals)
+    return Swap(*swap, d_bic, trial, trial_res, removed, removals)
 
 
 def _evidence(
