@@ -22,3 +22,15 @@ def test_the_cap_warning_counts_causes_taken_out_after_it():
     # a cause taken out before the cap does not count against it
     (early,) = cap_warnings([settled, *named, capped])
     assert "taken out" not in early["why"]
+
+
+def test_the_cap_warning_gives_the_gain_it_would_have_entered_on():
+    """The next candidate's blocked gain, its standard error over the blocks and the
+    margin (what the search's entry rule would have read), not only "the margin"."""
+    named = [_step(f"link_length:joint_{i}") for i in range(8)]
+    blocked = {"blocked_gain_mm": 0.0371, "blocked_gain_se_mm": 0.0284, "min_gain_mm": 0.00192}
+    capped = _step("link_length:wrist_2_joint", accepted=False, capped=8, **blocked)
+    (warning,) = cap_warnings([*named, capped])
+    assert (
+        "gaining 0.0371 ± 0.028 mm (margin 0.00192 mm) on the blocked hold-out" in (warning["why"])
+    )

@@ -222,11 +222,16 @@ def cap_warnings(steps: list[dict]) -> list[dict]:
             continue
         taken = sum(1 for t in steps[i + 1 :] if t.get("removed"))
         after = f" ({taken} of them taken out after it: {s['capped'] - taken} named)" * bool(taken)
+        gain = "the practical margin"
+        if "blocked_gain_mm" in s:  # what it would have entered on: gain ± its standard error
+            se = s.get("blocked_gain_se_mm")
+            gain = f"{s['blocked_gain_mm']:.3g}" + (f" ± {se:.2g}" if se is not None else "")
+            gain += f" mm (margin {s['min_gain_mm']:.3g} mm)"
         out.append(
             {
                 "cause": s["candidate"],
                 "why": f"still significant (score F {s['score_F']:.3g}, p {s['score_p']:.2g}) "
-                "and gaining the practical margin on the blocked hold-out "
+                f"and gaining {gain} on the blocked hold-out "
                 f"when the search stopped at its limit of {s['capped']} "
                 f"cause{'s' if s['capped'] != 1 else ''}{after}: the "
                 "data carry more causes than were named; --max-causes N names more",
