@@ -40,15 +40,15 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from hybrid_pk.calibration.diagnosis.ambiguity import near_duplicates
+from hybrid_pk.calibration.diagnosis.ambiguity import near_duplicates, projector_residual
 from hybrid_pk.calibration.diagnosis.budget import Budget
 from hybrid_pk.calibration.diagnosis.carryover import Carry
 from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic
 from hybrid_pk.calibration.diagnosis.elimination import eliminate
 from hybrid_pk.calibration.diagnosis.plausibility import implausibility
 from hybrid_pk.calibration.diagnosis.selection import (
-    RANK_TOLERANCE,
     Scores,
+    rank_basis,
     score_candidates,
     try_candidate,
 )
@@ -123,8 +123,8 @@ class _Linear(NamedTuple):
         r = self.r - sum(
             (z for c, z in self.zero.items() if c not in labels), torch.zeros_like(self.r)
         )
-        base = _basis(self.J[:, torch.cat([self.index[k] for k in self.frames + labels])])
-        return r - base @ (base.T @ r)
+        base = rank_basis(self.J[:, torch.cat([self.index[k] for k in self.frames + labels])])
+        return projector_residual(r, base)
 
     def p_value(self, drop: float, k: int, ssr: float, n: int) -> float:
         """The F-test of ``k`` parameters that explain ``drop`` of the SSR ``ssr`` of a
@@ -144,7 +144,7 @@ def _simpler(lin: _Linear, cause: str) -> bool:
     kept = [c for c in named if c != cause]
     for _ in range(2):  # in its place, then one more
         left = lin.left(kept)
-        base = _basis(lin.J[:, torch.cat([lin.index[k] for k in lin.frames + kept])])
+        base = rank_basis(lin.J[:, torch.cat([lin.index[k] for k in lin.frames + kept])])
         drops = {c: _drop(lin.J[:, lin.index[c]], base, left) for c in lin.others if c not in kept}
         if not drops:
             break
@@ -171,22 +171,11 @@ def _simpler(lin: _Linear, cause: str) -> bool:
         kept.remove(least)
 
 
-def _basis(cols: Tensor, norm: float | None = None) -> Tensor:
-    """Orthonormal basis of ``cols``' directions with singular values above
-    :data:`.selection.RANK_TOLERANCE` of ``norm`` (default: their own norm, each column
-    scaled to unit norm first: blocks carry different units)."""
-    if norm is None:
-        cols = cols / cols.norm(dim=0).clamp_min(1e-300)
-        norm = float(cols.norm())
-    U, S, _ = torch.linalg.svd(cols, full_matrices=False)
-    return U[:, S > RANK_TOLERANCE * max(norm, 1e-300)]
-
-
 def _drop(cols: Tensor, base: Tensor, left: Tensor) -> float:
     """How much of ``left`` (orthogonal to ``base``) the columns ``cols`` explain beside
     ``base``: the score test's drop (:func:`.selection.score_candidates`, the same rank
     rule)."""
-    U = _basis(cols - base @ (base.T @ cols), float(cols.norm()))
+    U = rank_basis(projector_residual(cols, base), float(cols.norm()))
     return float((U.T @ left).pow(2).sum())
 
 

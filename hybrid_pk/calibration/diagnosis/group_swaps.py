@@ -80,7 +80,7 @@ def final_model(
             out.model, out.res = exchange_causes(fitted, causes, pool, split, tests, steps, say)
             if [e.label for e in out.model.effects] != named:
                 _settle(out, split, carry, steps, say)
-                scores = _not_named(out, pool, split, (alpha, carry), say)
+                _not_named(out, pool, split, (alpha, carry), say)  # limits, stand-ins anew
     if not out.stand_ins:
         return out
     with budget.stage("group swaps"):

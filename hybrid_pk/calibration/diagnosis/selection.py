@@ -48,6 +48,7 @@ __all__ = [
     "Scores",
     "candidate_labels",
     "gauss_newton_start",
+    "rank_basis",
     "score_candidates",
     "try_candidate",
 ]
@@ -61,6 +62,17 @@ EQUIVALENCE_FRACTION = 1e-8
 # norm are directions the current model already explains: the same 1e-4 of the norm as
 # EQUIVALENCE_FRACTION, a motion no tracker resolves.
 RANK_TOLERANCE = 1e-4
+
+
+def rank_basis(cols: Tensor, norm: float | None = None) -> Tensor:
+    """Orthonormal basis of the directions of ``cols`` above :data:`RANK_TOLERANCE` of
+    ``norm`` (default their own norm), each column scaled to unit norm first (blocks
+    carry different units)."""
+    if norm is None:
+        cols = cols / cols.norm(dim=0).clamp_min(1e-300)
+        norm = float(cols.norm())
+    U, S, _ = torch.linalg.svd(cols, full_matrices=False)
+    return U[:, S > RANK_TOLERANCE * max(norm, 1e-300)]
 
 
 def candidate_labels(robot: Robot, data: MeasuredData) -> list[str]:

@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.calibration.diagnosis.ambiguity import projector_residual
-from hybrid_pk.calibration.diagnosis.selection import RANK_TOLERANCE, Scores
+from hybrid_pk.calibration.diagnosis.selection import Scores, rank_basis
 from hybrid_pk.calibration.tuning import diagnosis_tuning
 
 __all__ = ["group_stand_ins", "kept_stand_ins", "swapped_stand_ins"]
@@ -41,11 +41,11 @@ def group_stand_ins(scores: Scores, named: list[str]) -> list[dict]:
         return []
     cols, norms = _off_frames(scores, named)
     causes = {c: v for c, v in cols.items() if c in named}
-    everything = _basis(torch.cat(list(causes.values()), 1))
+    everything = rank_basis(torch.cat(list(causes.values()), 1))
     least = diagnosis_tuning().ambiguity_cosine
     out = []
     for label in (c for c in cols if c not in named):
-        U = _basis(cols[label], norms[label])
+        U = rank_basis(cols[label], norms[label])
         if U.shape[1] == 0 or float(torch.linalg.svdvals(everything.T @ U).min()) <= least:
             continue  # inside the frames (the frame check's) or outside the causes' span
         group = _smallest_group(U, causes)
@@ -72,7 +72,7 @@ def swapped_stand_ins(scores: Scores, named: list[str], swaps: list[dict]) -> li
         label, group = swap["candidate"], swap["group"]
         if label not in named or not set(group) <= set(cols):
             continue  # no longer named, or a member not scored here: nothing to compare
-        U = _basis(cols[label], norms[label])
+        U = rank_basis(cols[label], norms[label])
         cos = _held(U, cols, group)
         if U.shape[1] and cos > diagnosis_tuning().ambiguity_cosine:
             out.append(_swapped_entry(label, group, swap["replaced"], cos, swap["simpler"]))
@@ -91,7 +91,7 @@ def _off_frames(scores: Scores, named) -> tuple[dict[str, Tensor], dict[str, flo
             cols[b.label] = block
         else:
             frames.append(block)
-    Qf = _basis(torch.cat(frames, 1)) if frames else J[:, :0]
+    Qf = rank_basis(torch.cat(frames, 1)) if frames else J[:, :0]
     return (
         {c: projector_residual(v, Qf) for c, v in cols.items()},
         {c: float(v.norm()) for c, v in cols.items()},
@@ -113,20 +113,9 @@ def _needs_named(entry: dict) -> list[str]:
     return [e for e in entry["effects"] if e != entry["named_in_place_of"]]
 
 
-def _basis(cols: Tensor, norm: float | None = None) -> Tensor:
-    """Orthonormal basis of the directions of ``cols`` above :data:`RANK_TOLERANCE` of
-    ``norm`` (default their own norm), each column scaled to unit norm first (a
-    group's columns carry different units)."""
-    if norm is None:
-        cols = cols / cols.norm(dim=0).clamp_min(1e-300)
-        norm = float(cols.norm())
-    U, S, _ = torch.linalg.svd(cols, full_matrices=False)
-    return U[:, S > RANK_TOLERANCE * max(norm, 1e-300)]
-
-
 def _held(U: Tensor, spans: dict[str, Tensor], group: list[str]) -> float:
     """|cosine| of ``U``'s worst direction with the span of ``group``'s columns."""
-    Q = _basis(torch.cat([spans[c] for c in group], 1))
+    Q = rank_basis(torch.cat([spans[c] for c in group], 1))
     return float(torch.linalg.svdvals(Q.T @ U).min()) if Q.shape[1] else 0.0
 
 
