@@ -74,3 +74,13 @@ def test_a_determined_fit_reports_every_singular_value():
     assert fields["observability_index"] == pytest.approx(
         float(s.log().mean().exp()) / 300**0.5, rel=1e-12
     )
+
+
+def test_a_jacobian_that_sees_nothing_has_no_condition_number():
+    """No determined direction at all: every direction counted, no ratio to report
+    (JSON null rather than NaN, which strict JSON cannot hold)."""
+    fields = identifiability_json(_result(torch.zeros(30, 4, dtype=F64)), [])
+    assert fields["unidentifiable_directions"] == 4
+    assert fields["singular_values"] == [0.0] * 4
+    assert fields["condition_number"] is None
+    assert fields["observability_index"] == 0.0

@@ -207,7 +207,7 @@ def identifiability_json(res: FitResult, unobservable: list[str]) -> dict:
     return {
         "n_parameters": res.n_params,
         "unidentifiable_directions": res.n_params - int(keep.sum()),
-        "condition_number": float(s[0] / s[-1]) if s.numel() else float("nan"),
+        "condition_number": float(s[0] / s[-1]) if s.numel() else None,
         "singular_values": [float(v) if k else 0.0 for v, k in zip(sv, keep, strict=True)],
         "observability_index": (
             float(s.log().mean().exp() / math.sqrt(res.n_obs)) if s.numel() else 0.0
