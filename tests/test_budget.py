@@ -47,6 +47,29 @@ def test_budget_is_a_share_of_the_main_search_s_work():
     assert "swaps of joint_offset:joint_2" in budget.warnings()[0]["why"]
 
 
+def test_a_stage_does_its_first_unit_then_units_while_the_budget_lasts():
+    """A stage's first unit (a swap: one cause in place of another) is done whatever
+    the budget; a later one only while it lasts. A refusal records the cut once, with
+    what it leaves, and every later ask of that stage is refused too; another stage
+    still gets its first unit."""
+    budget = Budget(share=0.5)
+    work.count(1000)  # the main search: 500 row evaluations allowed after it
+    budget.main_done()
+    with budget.stage("group swaps"):
+        assert budget.allows("group swaps", ["c in place of a", "c in place of b"])
+        work.count(300)
+        assert budget.allows("group swaps", ["c in place of b"])  # 300 of 500 used
+        work.count(300)
+        assert not budget.allows("group swaps", ["d in place of a", "swaps for e"])
+        assert not budget.allows("group swaps", ["swaps for e"])
+    assert budget.stopped("group swaps")
+    assert budget.cuts == [{"stage": "group swaps", "not_done": ["d in place of a", "swaps for e"]}]
+    with budget.stage("swaps"):
+        assert budget.allows("swaps", ["x in place of y"])  # its first: done all the same
+        assert not budget.allows("swaps", ["z in place of y"])
+    assert [c["stage"] for c in budget.cuts] == ["group swaps", "swaps"]
+
+
 def test_work_is_counted_per_thread():
     """Two diagnoses in two threads of one process do not spend each other's budget."""
     start = work.done()

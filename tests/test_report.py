@@ -204,3 +204,13 @@ def test_error_histograms_position_only(tmp_path):
     assert path.stat().st_size > 10_000
     assert float(pixels[..., :3].std()) > 0.01
     assert pixels.shape[1] / pixels.shape[0] < 2.0  # one panel (two would be 11 x 4 in)
+
+
+def test_report_counts_directions_not_determined_at_all(diagnosed, tmp_path):
+    """An exact trade-off is a count and a warning, not a round-off singular value."""
+    robot, data, diagnosis = diagnosed
+    ident = {**diagnosis.identifiability, "unidentifiable_directions": 1}
+    bare = dataclasses.replace(diagnosis, identifiability=ident)
+    text = write_diagnosis_report(bare, data, robot, tmp_path).read_text(encoding="utf-8")
+    assert re.search(r"\*\*Warning:\*\* 1 direction\(s\) of the fitted parameters", text)
+    assert "| directions not determined at all | 1 |" in text

@@ -151,11 +151,17 @@ TWO_GROUPS = (
 )
 
 
+# The joint after each offset's: its misalignment and link length stand in for it.
+NEXT = {"joint_2": "joint_3", "joint_4": "joint_5"}
+
+
 @pytest.mark.parametrize(("share", "swapped"), [(0.0, 1), (4.0, 2)])
-def test_group_swaps_stop_on_the_work_budget_after_the_first(share, swapped):
-    """No budget: the first stand-in's swaps are tried all the same, the second is
-    left listed as stood in for and the cut is said; four main searches' worth (never
-    spent here): both offsets are named."""
+def test_group_swaps_stop_on_the_work_budget_after_the_first_swap(share, swapped):
+    """No budget: the first stand-in's first swap (the offset in place of the
+    misalignment, its group's first member) is tried all the same, and kept; its other
+    swap and the second stand-in's are left, said in the cut, and the second stays
+    listed as stood in for; four main searches' worth (never spent here): both offsets
+    are named."""
     robot = _panda()
     data, _ = simulate_campaign(robot, 300, TWO_GROUPS, noise_mm=0.02, seed=3)
     diag = diagnose(robot, data, seed=3, tuning=DiagnosisTuning(optional_share=share))
@@ -165,10 +171,16 @@ def test_group_swaps_stop_on_the_work_budget_after_the_first(share, swapped):
     assert {"link_length:joint_3", "link_length:joint_5"} <= set(named)
     cuts = [c for c in diag.budget["cut_short"] if c["stage"] == "group swaps"]
     listed = [a["effects"][0] for a in diag.ambiguous if a.get("stood_in_by")]
+    replaced = [s["replaces"] for s in diag.steps if s.get("replaces")]
+    assert replaced == [f"axis_misalignment:{NEXT[j]}" for j in offsets], diag.steps
     if swapped == 1:
-        left = "joint_offset:joint_4" if offsets == ["joint_2"] else "joint_offset:joint_2"
-        assert cuts == [{"stage": "group swaps", "not_done": [f"swaps for {left}"]}]
-        assert listed == [left], diag.ambiguous
+        done, left = offsets[0], next(j for j in NEXT if j not in offsets)
+        not_done = [
+            f"joint_offset:{done} in place of link_length:{NEXT[done]}",
+            f"swaps for joint_offset:{left}",
+        ]
+        assert cuts == [{"stage": "group swaps", "not_done": not_done}], cuts
+        assert listed == [f"joint_offset:{left}"], diag.ambiguous
     else:
         assert cuts == [], diag.budget
         assert listed == [], diag.ambiguous

@@ -24,6 +24,7 @@ from torch import Tensor
 __all__ = [
     "MAX_CONDITION",
     "correlated_pairs",
+    "determined",
     "parameter_names",
     "svd_covariance",
     "undetermined_groups",
@@ -60,6 +61,16 @@ def correlated_pairs(
     return pairs
 
 
+def determined(s: Tensor, n_obs: int, n_params: int) -> Tensor:
+    """Which singular values ``s`` (descending, of a Jacobian with ``n_obs`` rows and
+    ``n_params`` columns) are measurements: those above ``s_max · max(rows, parameters)
+    · machine epsilon``, the level of the Jacobian's rounding errors (numpy's
+    ``matrix_rank`` rule). Below it a direction is an exact degeneracy whose singular
+    value is round-off, and changes with the order of any sum that built the Jacobian."""
+    tiny = torch.finfo(s.dtype).tiny
+    return s > (s[:1] * max(n_obs, n_params) * torch.finfo(s.dtype).eps).clamp_min(tiny)
+
+
 def svd_covariance(J: Tensor, n_obs: int, s2: float) -> dict:
     """Covariance of the scaled parameters of Jacobian ``J (m, n)`` (or its R factor;
     ``n_obs`` rows in all) at residual variance ``s2``, from the SVD of ``J`` with
@@ -71,9 +82,7 @@ def svd_covariance(J: Tensor, n_obs: int, s2: float) -> dict:
     tiny = torch.finfo(J.dtype).tiny
     norms = J.norm(dim=0).clamp_min(tiny)
     _, s, vh = torch.linalg.svd(J / norms, full_matrices=True)
-    # Rank cut: singular values below s_max · max(rows, parameters) · machine epsilon
-    # are at the level of J's rounding errors (numpy's matrix_rank rule): left out.
-    keep = s > (s[:1] * max(n_obs, J.shape[1]) * torch.finfo(J.dtype).eps).clamp_min(tiny)
+    keep = determined(s, n_obs, J.shape[1])  # the rest is round-off: left out
     W = vh[: s.numel()][keep].T / s[keep]  # (n, rank), unit columns: cov = W W^T · s2
     unit = W / W.norm(dim=1, keepdim=True).clamp_min(tiny)
     return {

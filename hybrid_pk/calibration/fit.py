@@ -27,7 +27,7 @@ from hybrid_pk.calibration.chord import (
 from hybrid_pk.calibration.covariance import correlated_pairs, parameter_names, undetermined_groups
 from hybrid_pk.calibration.frame_hold import held_prior, join_rows
 from hybrid_pk.calibration.frames import FramePriors, PriorRows, prior_centres, prior_residual
-from hybrid_pk.calibration.identifiability import FrameReport, frame_report
+from hybrid_pk.calibration.identifiability import FrameReport, frame_report, skipped_frame_report
 from hybrid_pk.calibration.kept_poses import keep_poses, kept_poses
 from hybrid_pk.calibration.least_squares import levenberg_marquardt
 from hybrid_pk.calibration.problem import ParamBlock, Problem, param_blocks
@@ -77,7 +77,7 @@ class FitResult:
         robust: the robust loss of the fit, or None (least squares).
         weights: ``(N,)`` robust weights of the rows (None for least squares).
         frame_report: which frame components the data do not determine, and frame
-            plausibility warnings (only with ``covariance``).
+            plausibility warnings (only with ``covariance`` and ``report_frames``).
         priors: the known frames and frame prior the fit used.
         cost: their sum of squares at the solution (with the covariance only).
     """
@@ -190,6 +190,7 @@ def fit(
     near: Linearisation | None = None,
     initial_sigma: tuple[float, float | None] | None = None,
     covariance: bool = True,
+    report_frames: bool = True,
     row_weights: Tensor | None = None,
     extra: Callable[[Tensor], tuple[Tensor, Tensor]] | None = None,
     progress: Callable[[str], None] | None = None,
@@ -214,7 +215,8 @@ def fit(
             re-estimation from (e.g. a previous fit's), which saves passes.
         covariance: compute standard deviations, correlations, singular values and the
             frames' identifiability report (one more Jacobian); without it those
-            fields are empty.
+            fields are empty. ``report_frames=False`` leaves out the report alone (a
+            refit whose report nobody reads: the diagnosis' trials).
         row_weights: ``(N,)`` weight of each row's residuals (see :class:`Problem`).
         extra: extra residual rows (priors, constraints; see :class:`Problem`).
         progress: called with a short text at every LM iteration, and at most every
@@ -226,7 +228,7 @@ def fit(
         weights: ``(N,)`` robust row weights to start from (e.g. a previous fit's).
     """
     cond = cond or conditions_from_data(data, robot=model.robot)
-    position_only = data.quat is None
+    # the start's error even without a report: the compliance's warm starts stay the same
     blocks, prior, start = _frame_setup(model, data, cond, free, frames, covariance)
     rows_extra = join_rows(prior, extra)
     if robust is not None and weights is None:
@@ -242,10 +244,8 @@ def fit(
         )  # fmt: skip
 
     start_p, start_r = initial_sigma or (None, None)
-    sigmas = (
-        sigma_pos_mm or start_p or DEFAULT_SIGMA_POS_MM,
-        sigma_rot_rad or start_r or DEFAULT_SIGMA_ROT_RAD,
-    )
+    sigmas = (sigma_pos_mm or start_p or DEFAULT_SIGMA_POS_MM,
+              sigma_rot_rad or start_r or DEFAULT_SIGMA_ROT_RAD)  # fmt: skip
     fixed = (sigma_pos_mm, sigma_rot_rad)
     sig_p, sig_r, iterations, converged, weights = _solve_reweighted(
         problem_at, data, sigmas, fixed, max_iter, progress, robust, weights, near
@@ -267,13 +267,13 @@ def fit(
     pos, ori = model_errors(model, data, cond)
     common = dict(
         blocks=blocks, x=problem.x0, sigma_pos_mm=sig_p,
-        sigma_rot_rad=None if position_only else sig_r, position_mm=pos, orientation_deg=ori,
+        sigma_rot_rad=None if data.quat is None else sig_r, position_mm=pos, orientation_deg=ori,
         n_params=problem.x0.numel(), iterations=iterations, converged=converged,
         robust=robust, weights=weights, priors=frames,
     )  # fmt: skip
     if not covariance:
         return FitResult(**common, **_no_covariance(problem, data))
-    report = frame_report(
+    report = skipped_frame_report(data, blocks) if not report_frames else frame_report(
         model, data, cond, blocks, sigma_pos_mm=sig_p, sigma_rot_rad=common["sigma_rot_rad"],
         prior=prior, priors=frames, start=start, rms_mm=float(pos.pow(2).mean().sqrt()),
     )  # fmt: skip

@@ -32,7 +32,8 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.calibration.frames import FramePriors, PriorRows
-from hybrid_pk.calibration.problem import subset_jacobian
+from hybrid_pk.calibration.problem import subset_jacobian, subset_rows
+from hybrid_pk.calibration.work import count as count_work
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.geometry import nearest_rotation, so3_log
@@ -48,6 +49,7 @@ __all__ = [
     "FrameReport",
     "flange_span_deg",
     "frame_report",
+    "skipped_frame_report",
 ]
 
 # A frame direction whose rms point motion per row is below this fraction of its own
@@ -320,6 +322,14 @@ def frame_report(
     fitted = {b.name for b in blocks}
     warnings = _plausibility(model, priors, fitted, start, rms_mm)
     return FrameReport(directions, warnings)
+
+
+def skipped_frame_report(data: MeasuredData, blocks: tuple[ParamBlock, ...]) -> None:
+    """No report, for a refit whose report nobody reads; the Jacobian rows
+    :func:`frame_report` evaluates are counted as work done all the same, so that a
+    diagnosis' work budget (:mod:`hybrid_pk.calibration.work`) cuts where it did."""
+    if _columns(blocks):
+        count_work(len(subset_rows(data.n, MAX_ROWS)), len(_columns(blocks)))
 
 
 def _plausibility(

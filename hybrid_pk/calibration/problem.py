@@ -315,6 +315,11 @@ class Problem:
             self.params[name].copy_(v)
 
 
+def subset_rows(n: int, max_rows: int) -> Tensor:
+    """Indices of an even subset of at most ``max_rows`` of ``n`` rows."""
+    return torch.arange(0, n, max(1, -(-n // max_rows)))
+
+
 def subset_jacobian(
     model: ExtendedModel,
     data: MeasuredData,
@@ -325,8 +330,7 @@ def subset_jacobian(
     """``(r, J, sub, cond_sub)``: residual and Jacobian [mm and mrad per scaled unit]
     of ``blocks`` at their start, on an even subset ``sub`` (conditions ``cond_sub``)
     of at most ``max_rows`` rows."""
-    step = max(1, -(-data.n // max_rows))
-    rows = torch.arange(0, data.n, step)
+    rows = subset_rows(data.n, max_rows)
     sub, cond_sub = data.subset(rows), cond.subset(rows)
     problem = Problem(model, sub, cond_sub, blocks, 1.0, 1e-3)  # mm and mrad
     r, J = problem.jacobian(torch.zeros_like(problem.x0))

@@ -262,20 +262,20 @@ def _identifiability(diagnosis) -> list[str]:
     ident = diagnosis.identifiability
     cond = ident.get("condition_number")
     noise = ident.get("noise_estimate", {})
+    rot, lost = noise.get("orientation_rad"), ident.get("unidentifiable_directions")
     rows = [
         ["fitted parameters", ident.get("n_parameters")],
-        ["condition number (unit-norm columns)", cond],
+        ["directions not determined at all", lost],
+        ["condition number (unit-norm columns, determined directions)", cond],
         ["observability index", ident.get("observability_index")],
         ["noise estimate, position [mm per axis]", noise.get("position_mm")],
-        [
-            "noise estimate, orientation [deg per axis]",
-            None
-            if noise.get("orientation_rad") is None
-            else math.degrees(noise["orientation_rad"]),
-        ],
+        ["noise estimate, orientation [deg per axis]", None if rot is None else math.degrees(rot)],
     ]
     lines = ["## Identifiability", ""]
-    warnings = []
+    warnings = [
+        f"{lost} direction(s) of the fitted parameters are not determined at all by this "
+        "data (exact trade-offs: singular values of round-off, reported as 0)"
+    ] if lost else []  # fmt: skip
     if cond is not None and cond > LARGE_CONDITION_NUMBER:
         warnings.append(
             f"condition number {fmt(cond)} > {LARGE_CONDITION_NUMBER:g}: some fitted "

@@ -14,7 +14,12 @@ work and the wall time of each stage).
 
 Every stage does its first unit of work whatever the budget (the structural search
 fits the joints named by implausible causes from the plain start), so that a cut
-leaves the most likely answer in place.
+leaves the most likely answer in place. A unit is one step that stands alone, as small
+as the stage allows: the swaps and the group swaps try one cause in place of another
+per unit (a refit and its backward elimination; :meth:`Budget.allows`), an exchange is
+one cause taken out and the search's two choices in its place with what follows them.
+What a stage's first unit may cost beyond the budget is then one such step, not all the
+swaps of its first cause.
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ class Budget:
         self.cuts: list[dict] = []
         self._stages: dict[str, list] = {}  # name -> [work, seconds]
         self._current: tuple[int, float] | None = None  # the optional stage under way
+        self._units: dict[str, int] = {}  # units of work done by stage (:meth:`allows`)
 
     def main_done(self) -> None:
         """The main search ends here: the optional stages' budget is fixed from now."""
@@ -65,6 +71,23 @@ class Budget:
         """True when the optional stages together used up the budget, or would with
         a next step of ``next_work`` (e.g. the largest such step so far)."""
         return self.used() + next_work >= self.allowed
+
+    def allows(self, stage: str, left: list[str]) -> bool:
+        """Whether ``stage`` does its next unit of work: the first whatever the budget,
+        each later one while the budget lasts. Where it does not, the cut is recorded
+        (:meth:`cut`; ``left``: what stays undone, this unit first) and every later
+        call for ``stage`` says no as well."""
+        if self.stopped(stage):
+            return False
+        if self._units.get(stage, 0) and self.spent():
+            self.cut(stage, left)
+            return False
+        self._units[stage] = self._units.get(stage, 0) + 1
+        return True
+
+    def stopped(self, stage: str) -> bool:
+        """Whether the budget cut ``stage`` short."""
+        return any(c["stage"] == stage for c in self.cuts)
 
     def stage(self, name: str) -> _Stage:
         """Context manager counting optional stage ``name`` against the budget."""

@@ -239,7 +239,7 @@ def _exchange(model, res, cause, pool, split, tests, say) -> Swap | None:
     sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
     trial_res = fit(
         trial, split.train, cond=split.cond_fit, initial_sigma=sigmas, progress=say,
-        **res.settings(),
+        report_frames=False, **res.settings(),
     )  # fmt: skip
     added: list[dict] = []
     pairs: list[tuple[str, str]] = []  # (chosen, near-duplicate), as the search keeps them

@@ -9,6 +9,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from hybrid_pk.calibration.covariance import determined
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.effects import Effect, ExtendedModel
 from hybrid_pk.effects.geometric import AxisMisalignment
@@ -190,14 +191,26 @@ def report_value(e: Effect, std: Tensor) -> tuple:
 
 
 def identifiability_json(res: FitResult, unobservable: list[str]) -> dict:
-    """Singular values, condition and observability index of the final fit."""
+    """Singular values, condition and observability index of the final fit.
+
+    A direction whose singular value is below the rank cut of
+    :func:`~hybrid_pk.calibration.covariance.determined` is an exact degeneracy: its
+    singular value is round-off (it moves with the order of any sum that built the
+    Jacobian), so it is counted in ``unidentifiable_directions`` and reported as 0,
+    and the condition number and the observability index (the geometric mean of the
+    singular values per square root of the residual count) are taken over the other
+    directions only.
+    """
     sv = res.singular_values
+    keep = determined(sv, res.n_obs, res.n_params)
+    s = sv[keep]
     return {
         "n_parameters": res.n_params,
-        "condition_number": res.condition,
-        "singular_values": [float(v) for v in sv],
-        "observability_index": float(
-            sv.clamp_min(1e-300).log().mean().exp() / math.sqrt(res.n_obs)
+        "unidentifiable_directions": res.n_params - int(keep.sum()),
+        "condition_number": float(s[0] / s[-1]) if s.numel() else None,
+        "singular_values": [float(v) if k else 0.0 for v, k in zip(sv, keep, strict=True)],
+        "observability_index": (
+            float(s.log().mean().exp() / math.sqrt(res.n_obs)) if s.numel() else 0.0
         ),
         "unobservable_candidates": unobservable,
         "noise_estimate": {"position_mm": res.sigma_pos_mm, "orientation_rad": res.sigma_rot_rad},

@@ -358,7 +358,7 @@ def try_candidate(
             scores.near.start = (r_start, (res.sigma_pos_mm, res.sigma_rot_rad or 1.0))
     new_res = fit(
         new, split.train, cond=split.cond_fit, initial_sigma=sigmas, progress=progress,
-        near=scores.near, **res.settings(),
+        near=scores.near, report_frames=False, **res.settings(),
     )  # fmt: skip
     scores.near = None  # its rows (~the whole Jacobian) are not needed again
     # F-test and BIC of the refit, both models' residuals under the same weights.

@@ -37,7 +37,15 @@ from hybrid_pk.calibration.diagnosis.variants import refit_without, with_effects
 from hybrid_pk.calibration.fit import FitResult, fit
 from hybrid_pk.effects import ExtendedModel, make_effect
 
-__all__ = ["Swap", "best_swap", "blocked_score", "judged", "prefer_fewer_causes", "record_swap"]
+__all__ = [
+    "Swap",
+    "best_swap",
+    "blocked_score",
+    "judged",
+    "prefer_fewer_causes",
+    "rationed",
+    "record_swap",
+]
 
 
 class Swap(NamedTuple):
@@ -72,22 +80,25 @@ def prefer_fewer_causes(
             and margin.
         steps: the search's step records; an accepted swap appends its own and the
             removals that followed it.
-        budget: the optional stages' :class:`~.budget.Budget`: the swaps of the first
-            cause are tried, the rest only while it lasts.
+        budget: the optional stages' :class:`~.budget.Budget`: the first swap (one
+            alternative in place of one cause, refitted, backward elimination) is
+            tried whatever the budget, each later one only while it lasts.
 
     Returns the (possibly) simpler model and its fit.
     """
     model, res = _drop_split_duplicates(model, res, pairs, split, tests[1], steps, say)
     chosen_causes = list(dict.fromkeys(c for c, _ in pairs))
     for k, chosen in enumerate(chosen_causes):
-        if k and budget is not None and budget.spent():
-            budget.cut("swaps", [f"swaps of {c}" for c in chosen_causes[k:]])
+        if budget is not None and budget.stopped("swaps"):
             break
         labels = [e.label for e in model.effects]
         if chosen not in labels or len(labels) < 2:
             continue
         alternatives = [a for c, a in pairs if c == chosen and a not in labels]
-        best = best_swap(model, res, [(chosen, a) for a in alternatives], split, tests, say)
+        later = [f"swaps of {c}" for c in chosen_causes[k + 1 :]]
+        ration = None if budget is None else rationed(budget, "swaps", later)
+        trials = [(chosen, a) for a in alternatives]
+        best = best_swap(model, res, trials, split, tests, say, ration)
         if best is None:
             continue
         alternative, removed = best.alternative, best.removed
@@ -102,22 +113,46 @@ def prefer_fewer_causes(
 
 
 def best_swap(
-    model: ExtendedModel, res: FitResult, swaps: list[tuple[str, str]], split: Split, tests, say
+    model: ExtendedModel,
+    res: FitResult,
+    swaps: list[tuple[str, str]],
+    split: Split,
+    tests,
+    say,
+    ration: Callable[[list[tuple[str, str]]], bool] | None = None,
 ) -> Swap | None:
     """The best (lowest BIC) of the ``(chosen, alternative)`` swaps of ``model`` that the
     swap rule keeps (:func:`_swapped`), or None when it keeps none. ``tests``:
     ``(alpha, carry)``: the F-tests' level, the blocked hold-out's blocks and margin;
-    ``say``: the progress callback."""
+    ``say``: the progress callback; ``ration``: asked before each swap is tried, with
+    the swaps left (that one first): where it says no, the best of those tried
+    (:func:`rationed`)."""
+    if swaps and ration is not None and not ration(swaps):
+        return None
     alternatives = list(dict.fromkeys(a for _, a in swaps))
     # what every swap must match, and the Jacobian its refit steps with
     blocked, near = _blocked_near(model, res, split, tests[1], alternatives, say)
     current = (weighted_ssr(model, split.train, split.cond_fit, res), blocked)
     best = None
-    for swap in swaps:
+    for k, swap in enumerate(swaps):
+        if k and ration is not None and not ration(swaps[k:]):
+            break
         trial = _swapped(model, res, current, swap, split, tests, say, near)
         if trial is not None and (best is None or trial.d_bic < best.d_bic):
             best = trial
     return best
+
+
+def rationed(budget, stage: str, later: list[str]) -> Callable[[list[tuple[str, str]]], bool]:
+    """The ``ration`` of :func:`best_swap` in optional stage ``stage``: each swap tried
+    is one unit of ``budget``'s (:meth:`.budget.Budget.allows`); a cut leaves the swaps
+    not tried (``"alternative in place of chosen"``) and ``later``, what the stage
+    would have done after them."""
+
+    def allows(left: list[tuple[str, str]]) -> bool:
+        return budget.allows(stage, [f"{a} in place of {c}" for c, a in left] + later)
+
+    return allows
 
 
 def record_swap(

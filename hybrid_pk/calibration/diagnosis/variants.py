@@ -146,5 +146,5 @@ def refit_removed(
     start = (noise[0], None if position_only else noise[1])
     return fit(
         reduced, data, cond=cond, initial_sigma=start, progress=progress, near=near,
-        **res.settings(),
+        report_frames=False, **res.settings(),
     )  # fmt: skip
