@@ -172,6 +172,9 @@ class DiagnosisSettings(FitSettings):
         "false-positive rate of the significance test per selection step (default: {default})",
         check=_probability,
     )
+    # 8: a story a user can check cause by cause, at a bounded cost; a search that
+    # reaches it says so (the next candidate's gain), and --max-causes N names more
+    # (without it, README "Without the limit": more causes, larger compensating ones)
     max_causes: int = setting(8, "stop after N causes (default: {default})", "N",
                                check=_at_least_one)  # fmt: skip
     min_gain_mm: float | None = setting(
