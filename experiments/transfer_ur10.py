@@ -94,6 +94,9 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="effects of the extended model as calibrate --effects LIST (no diagnosis)",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of row choices, diagnosis, training")
+    p.add_argument(
+        "--max-causes", type=int, help="diagnose --max-causes N (default: the diagnosis' own)"
+    )
     return p.parse_args(argv)
 
 
@@ -159,7 +162,8 @@ def fit_models(d: Path, files: dict, args, log: dict) -> list[str]:
     if args.effects:
         diagnosis = args.effects
     elif not diagnosis.exists():
-        run(["diagnose", *fit_files, "--robot", "ur10", "--seed", args.seed, *per_file,
+        cap = [] if args.max_causes is None else ["--max-causes", args.max_causes]
+        run(["diagnose", *fit_files, "--robot", "ur10", "--seed", args.seed, *per_file, *cap,
              "--json", diagnosis, "--report", d / "diagnosis_report"], log)  # fmt: skip
     calibrate = ["calibrate", *fit_files, "--robot", "ur10", "--no-urdf", *per_file]
     keys = ["nominal_frames", "extended"] + ([] if args.no_hybrid else ["hybrid"])
