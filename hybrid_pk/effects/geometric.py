@@ -20,7 +20,7 @@ import torch
 
 from hybrid_pk.effects.base import Effect, register
 from hybrid_pk.effects.conditions import Conditions
-from hybrid_pk.effects.limits import MAX_ROTATION_DEG, MAX_TRANSLATION_M
+from hybrid_pk.effects.limits import MAX_ROTATION_DEG, MAX_TRANSLATION_M, WARNED_TRANSLATION_M
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import so3_exp
 from hybrid_pk.geometry.tangents import carried
@@ -45,6 +45,17 @@ class LinkLength(Effect):
     simulate_random = first_joint_is_frame = True  # origin 0 is the base frame's
     equation = "error vector of a fixed joint-origin translation"
     description = "translation error of the origin in front of the joint (vector)"
+
+    @classmethod
+    def implausible(cls, value: float | list[float]) -> list[str]:
+        size = math.hypot(*(value if isinstance(value, list) else [value]))
+        if size <= WARNED_TRANSLATION_M:
+            return []
+        return [
+            f"a link-length correction of {1e3 * size:.3g} mm is beyond what machining and "
+            f"assembly leave (sub-mm; warned above {1e3 * WARNED_TRANSLATION_M:g} mm): it "
+            "likely trades off with another cause along a direction the data barely see"
+        ]
 
     def apply_params(self, params: KinematicParams, cond: Conditions) -> KinematicParams:
         xyz = params.origin_xyz

@@ -18,6 +18,7 @@ __all__ = [
     "MAX_GEAR_RATIO",
     "MAX_ROTATION_DEG",
     "MAX_TRANSLATION_M",
+    "WARNED_TRANSLATION_M",
     "drawn_limit",
     "effect_limit",
 ]
@@ -25,6 +26,9 @@ __all__ = [
 MAX_ROTATION_DEG = 5.0  # [deg] a joint zero or origin off by more is a wrong URDF, not a tolerance
 MAX_BACKLASH_DEG = 1.0  # [deg] worn gearboxes play arcminutes; a degree is a loose coupling
 MAX_TRANSLATION_M = 0.05  # [m] machining and assembly errors are sub-mm; 5 cm is a wrong link
+# [m] a named translation above this is warned about: ten times a sub-mm tolerance, a
+# tenth of the structural limit (the expansion coefficient's convention)
+WARNED_TRANSLATION_M = MAX_TRANSLATION_M / 10
 MAX_GEAR_RATIO = 0.01  # 1 % is an encoder scaling mistake, far beyond a gear's tolerance
 # [rad/Nm]: industrial joints are 1e-7 .. 1e-5, torque-sensed cobot joints and small
 # strain-wave gears at low torque reach 1e-4; ten times that is no metal gear train (a
