@@ -43,6 +43,7 @@ __all__ = [
     "GRAVITY_REUSE_RAD",
     "PoseTwists",
     "StructuredJacobian",
+    "compliance_feedback",
     "point_jacobian",
     "settled_twists",
 ]
@@ -262,11 +263,9 @@ class StructuredJacobian:
         model, robot = self.model, self.model.robot
         n, dof = q.shape
         payload = 0.0 if cond.payload is None else cond.payload
-        c = self._compliance()
-        settles = c is not None and bool((c != 0).any())
-        g = G = None
-        if settles:  # the torques come with dg/dq where that is computed afresh
-            g, G = _gravity_jacobian(robot, q_star, payload, params, key, gravity)
+        # the torques come with dg/dq where that is computed afresh
+        g, feedback = compliance_feedback(self._compliance(), robot, q_star, payload, params,
+                                          key, gravity)  # fmt: skip
         if g is None:
             with torch.no_grad():
                 g = robot.gravity_torques(q_star, payload=payload, gravity=gravity, params=params)
@@ -283,10 +282,7 @@ class StructuredJacobian:
                 start += b.size
         else:  # some effect couples joints: every direction through all
             dq = self._coupled_derivatives(q, cond, kin, g)
-        if not settles:
-            return dq, None
-        # q* = q_kin - C g(q*)  =>  (I + C dg/dq) dq* = dq_kin - dC g
-        return dq, torch.eye(dof, dtype=q.dtype) + c.to(q.dtype)[:, None] * G
+        return dq, feedback
 
     def _coupled_derivatives(self, q, cond, kin, g) -> Tensor:
         """``dq_kin/dtheta (n, dof, k)`` by forward mode through every joint effect."""
@@ -312,6 +308,17 @@ class StructuredJacobian:
                 columns.append(dq_kin[..., k_col : k_col + b.size])
                 k_col += b.size
         return torch.cat(columns, -1)
+
+
+def compliance_feedback(c, robot, q_star: Tensor, payload, params, key, gravity):
+    """``(g, M)``: the compliance's feedback ``M = I + C dg/dq (n, dof, dof)`` at
+    ``q_star`` (``q* = q_kin - C g(q*)  =>  M dq* = dq_kin - dC g``) and the gravity
+    torques ``g (n, dof)`` where they came with ``dg/dq``; ``(None, None)`` where the
+    compliances ``c (dof,)`` are None or all zero."""
+    if c is None or not bool((c != 0).any()):
+        return None, None
+    g, G = _gravity_jacobian(robot, q_star, payload, params, key, gravity)
+    return g, torch.eye(q_star.shape[-1], dtype=q_star.dtype) + c.to(q_star.dtype)[:, None] * G
 
 
 def settled_twists(P: Tensor, dq: Tensor, feedback: Tensor | None) -> Tensor:
@@ -436,9 +443,6 @@ def point_jacobian(model: ExtendedModel, q: Tensor, cond: Conditions) -> Tensor:
         -1,
     )  # fmt: skip
     c = StructuredJacobian(model, ())._compliance()
-    feedback = None
-    if c is not None and bool((c != 0).any()):
-        payload = 0.0 if cond.payload is None else cond.payload
-        G = _gravity_jacobian(robot, q_star, payload, params, None, gravity)[1]
-        feedback = torch.eye(q.shape[-1], dtype=q.dtype) + c[:, None] * G
+    payload = 0.0 if cond.payload is None else cond.payload
+    _, feedback = compliance_feedback(c, robot, q_star, payload, params, None, gravity)
     return settled_twists(tw[:, :3, :], dq, feedback)
