@@ -4,57 +4,50 @@ Data flow: robot model -> measured data -> error effects -> diagnosis/calibratio
 -> residual networks -> IK -> reports.
 """
 
-import os as _os
-import sys as _sys
+# isort: off
+# First: Ctrl-C while the command starts is one line (hybrid_pk.startup), and waiting
+# OpenMP threads sleep (set before torch loads OpenMP; hybrid_pk.threads).
+import hybrid_pk.startup
+import hybrid_pk.threads  # noqa: F401
+# isort: on
 
-try:  # Ctrl-C while the imports run (seconds under load): one line from the CLI, as later
-    # isort: off
-    # First: waiting OpenMP threads sleep (set before torch loads OpenMP; hybrid_pk.threads).
-    import hybrid_pk.threads  # noqa: F401
-    # isort: on
-
-    from hybrid_pk.calibration.diagnosis import Diagnosis as Diagnosis
-    from hybrid_pk.calibration.diagnosis import diagnose as diagnose
-    from hybrid_pk.calibration.fit import FitResult as FitResult
-    from hybrid_pk.calibration.fit import fit as fit
-    from hybrid_pk.calibration.settings import DiagnosisSettings as DiagnosisSettings
-    from hybrid_pk.calibration.settings import FitSettings as FitSettings
-    from hybrid_pk.data import MeasuredData as MeasuredData
-    from hybrid_pk.data import read_table as read_table
-    from hybrid_pk.data import read_table_for as read_table_for
-    from hybrid_pk.data import write_table as write_table
-    from hybrid_pk.effects import Conditions as Conditions
-    from hybrid_pk.effects import ExtendedModel as ExtendedModel
-    from hybrid_pk.effects import Gravity as Gravity
-    from hybrid_pk.effects import make_effect as make_effect
-    from hybrid_pk.errors import DataError as DataError
-    from hybrid_pk.errors import HybridPKError as HybridPKError
-    from hybrid_pk.errors import InvalidFrame as InvalidFrame
-    from hybrid_pk.errors import ModelFileError as ModelFileError
-    from hybrid_pk.errors import RobotModelError as RobotModelError
-    from hybrid_pk.errors import ShapeError as ShapeError
-    from hybrid_pk.evaluation.metrics import error_stats as error_stats
-    from hybrid_pk.evaluation.metrics import pose_error as pose_error
-    from hybrid_pk.hybrid import HybridFK as HybridFK
-    from hybrid_pk.ik import IKOptions as IKOptions
-    from hybrid_pk.ik import IKResult as IKResult
-    from hybrid_pk.ik import solve_ik as solve_ik
-    from hybrid_pk.ik import solve_ik_two_stage as solve_ik_two_stage
-    from hybrid_pk.ik import wang_baseline as wang_baseline
-    from hybrid_pk.io.hybrid_file import load_hybrid as load_hybrid
-    from hybrid_pk.io.hybrid_file import save_hybrid as save_hybrid
-    from hybrid_pk.io.model_file import load_model as load_model
-    from hybrid_pk.io.model_file import save_model as save_model
-    from hybrid_pk.io.urdf_export import export_urdf as export_urdf
-    from hybrid_pk.robot import KinematicParams as KinematicParams
-    from hybrid_pk.robot import Robot as Robot
-    from hybrid_pk.robot import shipped_robots as shipped_robots
-    from hybrid_pk.simulate import simulate_campaign as simulate_campaign
-except KeyboardInterrupt:
-    if _sys.argv and _os.path.basename(_sys.argv[0]).startswith("hybrid-pk"):
-        print("hybrid-pk: interrupted while starting", file=_sys.stderr)
-        raise SystemExit(130) from None
-    raise  # a notebook or a script: its own interrupt, untouched
+from hybrid_pk.calibration.diagnosis import Diagnosis as Diagnosis
+from hybrid_pk.calibration.diagnosis import diagnose as diagnose
+from hybrid_pk.calibration.fit import FitResult as FitResult
+from hybrid_pk.calibration.fit import fit as fit
+from hybrid_pk.calibration.settings import DiagnosisSettings as DiagnosisSettings
+from hybrid_pk.calibration.settings import FitSettings as FitSettings
+from hybrid_pk.data import MeasuredData as MeasuredData
+from hybrid_pk.data import read_table as read_table
+from hybrid_pk.data import read_table_for as read_table_for
+from hybrid_pk.data import write_table as write_table
+from hybrid_pk.effects import Conditions as Conditions
+from hybrid_pk.effects import ExtendedModel as ExtendedModel
+from hybrid_pk.effects import Gravity as Gravity
+from hybrid_pk.effects import make_effect as make_effect
+from hybrid_pk.errors import DataError as DataError
+from hybrid_pk.errors import HybridPKError as HybridPKError
+from hybrid_pk.errors import InvalidFrame as InvalidFrame
+from hybrid_pk.errors import ModelFileError as ModelFileError
+from hybrid_pk.errors import RobotModelError as RobotModelError
+from hybrid_pk.errors import ShapeError as ShapeError
+from hybrid_pk.evaluation.metrics import error_stats as error_stats
+from hybrid_pk.evaluation.metrics import pose_error as pose_error
+from hybrid_pk.hybrid import HybridFK as HybridFK
+from hybrid_pk.ik import IKOptions as IKOptions
+from hybrid_pk.ik import IKResult as IKResult
+from hybrid_pk.ik import solve_ik as solve_ik
+from hybrid_pk.ik import solve_ik_two_stage as solve_ik_two_stage
+from hybrid_pk.ik import wang_baseline as wang_baseline
+from hybrid_pk.io.hybrid_file import load_hybrid as load_hybrid
+from hybrid_pk.io.hybrid_file import save_hybrid as save_hybrid
+from hybrid_pk.io.model_file import load_model as load_model
+from hybrid_pk.io.model_file import save_model as save_model
+from hybrid_pk.io.urdf_export import export_urdf as export_urdf
+from hybrid_pk.robot import KinematicParams as KinematicParams
+from hybrid_pk.robot import Robot as Robot
+from hybrid_pk.robot import shipped_robots as shipped_robots
+from hybrid_pk.simulate import simulate_campaign as simulate_campaign
 
 __version__ = "0.1.0"
 

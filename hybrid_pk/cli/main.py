@@ -22,6 +22,7 @@ from collections.abc import Sequence
 from hybrid_pk.cli.options import command_parser, resolve_robot
 from hybrid_pk.cli.progress import shown
 from hybrid_pk.errors import HybridPKError
+from hybrid_pk.startup import release as release_interrupt
 from hybrid_pk.threads import configure as configure_threads
 
 # Sub-command modules, in the order `--help` lists them.
@@ -92,11 +93,8 @@ def unknown_flag_hint(commands: dict, command: str, unknown: Sequence[str]) -> s
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    try:
-        parser = build_parser()  # imports every command: seconds on a loaded machine
-    except KeyboardInterrupt:
-        print("hybrid-pk: interrupted while starting", file=sys.stderr)
-        return 130
+    parser = build_parser()  # imports every command: seconds on a loaded machine
+    release_interrupt()  # imported: Ctrl-C is the commands' KeyboardInterrupt from here on
     args, unknown = parser.parse_known_args(argv)
     if unknown:  # as argparse would, with the flag's owner or its closest match named
         hint = unknown_flag_hint(args.commands, args.command, unknown)
