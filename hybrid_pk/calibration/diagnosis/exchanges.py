@@ -45,7 +45,7 @@ from hybrid_pk.calibration.diagnosis.budget import Budget
 from hybrid_pk.calibration.diagnosis.carryover import Carry
 from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic
 from hybrid_pk.calibration.diagnosis.elimination import eliminate
-from hybrid_pk.calibration.diagnosis.plausibility import implausibility
+from hybrid_pk.calibration.diagnosis.plausibility import implausible_effect
 from hybrid_pk.calibration.diagnosis.selection import (
     Scores,
     rank_basis,
@@ -293,7 +293,7 @@ def _forward(model, res, pool, split, tests, say):
     if best is None:
         return None
     new, new_res, step = try_candidate(model, res, best, scores, split, progress=say)
-    if not step["accepted"] or implausibility(new.effect(best.label), new.robot, split.train):
+    if not step["accepted"] or implausible_effect(new, split.train, first=best.label):
         return None
     duplicates = near_duplicates(best.label, best.fitted, scores.signatures)
     return new, new_res, step, [(best.label, d["effects"][1]) for d in duplicates]

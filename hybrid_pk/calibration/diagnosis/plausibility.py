@@ -20,7 +20,13 @@ from hybrid_pk.effects.limits import (
 )
 from hybrid_pk.robot import Robot
 
-__all__ = ["MAX_CREDIBLE_EXPANSION", "finding_entry", "implausibility", "plausibility_warnings"]
+__all__ = [
+    "MAX_CREDIBLE_EXPANSION",
+    "finding_entry",
+    "implausibility",
+    "implausible_effect",
+    "plausibility_warnings",
+]
 
 
 def plausibility_warnings(causes: list[Cause], data: MeasuredData) -> list[dict]:
@@ -95,6 +101,22 @@ def implausibility(effect: Effect, robot: Robot, data: MeasuredData | None = Non
         limit_text = f"{math.degrees(limit):g}°"
     why = f"a {what} of {shown} is beyond what a small correction of the URDF can be ({limit_text})"
     return finding_entry(effect.label, size, limit, unit, why)
+
+
+def implausible_effect(model, data: MeasuredData | None, first: str | None = None) -> dict | None:
+    """The :func:`implausibility` entry of the first effect of ``model`` (``first``, by
+    label, checked before the others) that is not a small physical correction, or None.
+
+    Every effect, not only the one a refit added: a refit moves all of them, and along
+    a direction the data barely determine (two link lengths along parallel axes) it can
+    carry an earlier cause to metres while the two cancel (the UR10 series without the
+    cause limit: +-2455 mm, after a group swap)."""
+    effects = sorted(model.effects, key=lambda e: e.label != first)
+    for e in effects:
+        why = implausibility(e, model.robot, data)
+        if why is not None:
+            return why
+    return None
 
 
 def _compliance_check(effect: Effect, robot: Robot, data: MeasuredData | None) -> dict | None:

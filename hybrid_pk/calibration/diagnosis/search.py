@@ -38,7 +38,10 @@ from hybrid_pk.calibration.diagnosis.gains import (
 from hybrid_pk.calibration.diagnosis.group_swaps import final_model
 from hybrid_pk.calibration.diagnosis.leftovers import outliers_json, robust_json, unexplained_json
 from hybrid_pk.calibration.diagnosis.noise import measurement_noise
-from hybrid_pk.calibration.diagnosis.plausibility import implausibility, plausibility_warnings
+from hybrid_pk.calibration.diagnosis.plausibility import (
+    implausible_effect,
+    plausibility_warnings,
+)
 from hybrid_pk.calibration.diagnosis.power import (
     check_determined,
     detectable_json,
@@ -284,10 +287,12 @@ def _select(
         )
         steps.append(step)
         remaining = [c for c in remaining if c != best.label]
-        implausible = implausibility(new.effect(best.label), new.robot, split.train)
+        implausible = implausible_effect(new, split.train, first=best.label)
         if step["accepted"] and implausible is not None:
             step["accepted"] = False
-            step["why"] = f"not a small correction of the URDF: {implausible['why']}"
+            other = implausible["cause"] != best.label
+            moved = f"its refit moves {implausible['cause']} too far: " * other
+            step["why"] = f"not a small correction of the URDF: {moved}{implausible['why']}"
             flagged.append(implausible)
         if not step["accepted"]:
             rejected_in_a_row += 1

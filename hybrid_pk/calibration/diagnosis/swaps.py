@@ -30,7 +30,7 @@ from typing import NamedTuple
 from hybrid_pk.calibration.chord import Linearisation
 from hybrid_pk.calibration.diagnosis.carryover import Carry, linearise, weakest
 from hybrid_pk.calibration.diagnosis.elimination import eliminate
-from hybrid_pk.calibration.diagnosis.plausibility import implausibility
+from hybrid_pk.calibration.diagnosis.plausibility import implausible_effect
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.statistics import f_survival, holdout_score, weighted_ssr
 from hybrid_pk.calibration.diagnosis.variants import refit_without, with_effects, without_effect
@@ -255,7 +255,7 @@ def _swapped(model, res, current, swap, split, tests, say, near=None):
         trial, split.train, cond=split.cond_fit, initial_sigma=sigmas, progress=say,
         near=near, **res.settings(),
     )  # fmt: skip
-    if implausibility(trial.effect(alternative), trial.robot, split.train) is not None:
+    if implausible_effect(trial, split.train, first=alternative) is not None:
         return None
     removals: list[dict] = []
     trial, trial_res, removed = eliminate(
