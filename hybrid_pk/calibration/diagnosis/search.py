@@ -145,7 +145,7 @@ def diagnose(
         model, res, pool, split, (alpha, carry, budget), max_causes, say, flagged
     )
     final = final_model(model, res, pool, split, (alpha, carry, budget), steps, say)
-    model, res = final.model, final.res
+    model, res, flagged = final.model, final.res, flagged + final.flagged
     say("measuring each cause's gain")
     errors = model_errors(model, split.test, split.cond_hold)
     causes = measure_causes(
