@@ -125,15 +125,20 @@ def settle(
     implausible effect's :func:`.plausibility.implausibility` entry goes into
     ``flagged``."""
     ambiguous: list[dict] = []
-    while (implausible := implausible_effect(model, split.train)) is not None:
-        drop = implausible["cause"]
-        why = f"not a small correction of the URDF: {implausible['why']}"
-        say(f"taking out {drop}: {why}")
-        _record(steps, drop, why, None, carry.margin(res))
-        (flagged if flagged is not None else []).append(implausible)
-        model = without_effect(model, drop)
-        res = refit_removed(model, drop, split.train, split.cond_fit, res, None, say)
-    while model.effects and carry.folds is not None:
+    while True:
+        # every refit (the search's, this loop's) may carry an effect off: first that
+        implausible = implausible_effect(model, split.train)
+        if implausible is not None:
+            drop = implausible["cause"]
+            why = f"not a small correction of the URDF: {implausible['why']}"
+            say(f"taking out {drop}: {why}")
+            _record(steps, drop, why, None, carry.margin(res))
+            (flagged if flagged is not None else []).append(implausible)
+            model = without_effect(model, drop)
+            res = refit_removed(model, drop, split.train, split.cond_fit, res, None, say)
+            continue
+        if not model.effects or carry.folds is None:
+            break
         labels = [e.label for e in model.effects]
         alts = {
             lbl: [c for c in cyclic_candidates(model.robot, split.train)
