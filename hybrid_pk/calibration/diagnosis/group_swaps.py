@@ -56,6 +56,7 @@ class Final:
     unresolved: list[dict] = field(default_factory=list)  # ambiguity entries of the settling
     detectable: list[dict] = field(default_factory=list)  # limits of the candidates not named
     stand_ins: list[dict] = field(default_factory=list)  # group stand-ins (:mod:`.stand_ins`)
+    flagged: list[dict] = field(default_factory=list)  # effects taken out as implausible
 
 
 def final_model(
@@ -136,7 +137,9 @@ def _prefer_single_causes(out: Final, split: Split, tests, steps, say) -> list[d
 
 def _settle(out: Final, split: Split, carry: Carry, steps: list[dict], say) -> None:
     """:func:`.settle.settle` ``out``'s model, in place."""
-    out.model, out.res, out.gains, unresolved = settle(out.model, out.res, split, carry, steps, say)
+    out.model, out.res, out.gains, unresolved = settle(
+        out.model, out.res, split, carry, steps, say, out.flagged
+    )
     out.unresolved += unresolved
 
 

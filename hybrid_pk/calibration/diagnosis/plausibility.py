@@ -22,6 +22,7 @@ from hybrid_pk.robot import Robot
 
 __all__ = [
     "MAX_CREDIBLE_EXPANSION",
+    "carried_finding",
     "finding_entry",
     "implausibility",
     "implausible_effect",
@@ -117,6 +118,16 @@ def implausible_effect(model, data: MeasuredData | None, first: str | None = Non
         if why is not None:
             return why
     return None
+
+
+def carried_finding(implausible: dict, label: str) -> dict:
+    """The finding of candidate ``label`` whose refit left ``implausible``'s effect (it,
+    or an effect it carried along a direction the data barely determine) beyond a
+    small correction (``moved``: that effect)."""
+    if implausible["cause"] == label:
+        return implausible
+    why = f"its refit carries {implausible['cause']} off: {implausible['why']}"
+    return {**implausible, "cause": label, "why": why, "moved": implausible["cause"]}
 
 
 def _compliance_check(effect: Effect, robot: Robot, data: MeasuredData | None) -> dict | None:

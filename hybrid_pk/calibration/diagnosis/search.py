@@ -39,6 +39,7 @@ from hybrid_pk.calibration.diagnosis.group_swaps import final_model
 from hybrid_pk.calibration.diagnosis.leftovers import outliers_json, robust_json, unexplained_json
 from hybrid_pk.calibration.diagnosis.noise import measurement_noise
 from hybrid_pk.calibration.diagnosis.plausibility import (
+    carried_finding,
     implausible_effect,
     plausibility_warnings,
 )
@@ -145,7 +146,7 @@ def diagnose(
         model, res, pool, split, (alpha, carry, budget), max_causes, say, flagged
     )
     final = final_model(model, res, pool, split, (alpha, carry, budget), steps, say)
-    model, res = final.model, final.res
+    model, res, flagged = final.model, final.res, flagged + final.flagged
     say("measuring each cause's gain")
     errors = model_errors(model, split.test, split.cond_hold)
     causes = measure_causes(
@@ -290,9 +291,8 @@ def _select(
         implausible = implausible_effect(new, split.train, first=best.label)
         if step["accepted"] and implausible is not None:
             step["accepted"] = False
-            other = implausible["cause"] != best.label
-            moved = f"its refit moves {implausible['cause']} too far: " * other
-            step["why"] = f"not a small correction of the URDF: {moved}{implausible['why']}"
+            implausible = carried_finding(implausible, best.label)
+            step["why"] = f"not a small correction of the URDF: {implausible['why']}"
             flagged.append(implausible)
         if not step["accepted"]:
             rejected_in_a_row += 1

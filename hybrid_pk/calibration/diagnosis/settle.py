@@ -9,6 +9,12 @@ Then a periodic cause that does not carry over along its own joint's range
 (:mod:`.own_range`) is listed and taken out. Then a
 cause that gains less than the margin is taken out. One at a time, the weakest first,
 the model refitted after each, until every cause carries over.
+
+Before all that, an effect that a refit after its acceptance carried beyond a small
+physical correction (:func:`.plausibility.implausible_effect`; e.g. two link lengths
+along parallel axes walking to metres while they cancel) is taken out first and
+handed to the structural check as a finding: the model measured and reported holds
+only the causes it names.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ from hybrid_pk.calibration.chord import Linearisation
 from hybrid_pk.calibration.diagnosis.blocked import Blocked
 from hybrid_pk.calibration.diagnosis.carryover import Carry, linearise, removal_gains
 from hybrid_pk.calibration.diagnosis.own_range import off_range, own_range_gains
+from hybrid_pk.calibration.diagnosis.plausibility import implausible_effect
 from hybrid_pk.calibration.diagnosis.selection import Scores, cyclic_candidates
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.variants import refit_removed, with_effects, without_effect
@@ -107,14 +114,31 @@ def settle(
     carry: Carry,
     steps: list[dict],
     say: Callable[[str], None],
+    flagged: list[dict] | None = None,
 ) -> tuple[ExtendedModel, FitResult, dict[str, dict], list[dict]]:
-    """Take out unresolved cyclic errors and causes below the margin (see the module).
+    """Take out implausible effects, unresolved cyclic errors and causes below the
+    margin (see the module).
 
     Returns the model, its fit, each remaining cause's blocked gains (by label:
     ``gain_mm``, ``position_mm``, ``orientation_deg``; a periodic one also
-    ``own_range``, :func:`.own_range.own_range_gains`) and the ambiguity entries."""
+    ``own_range``, :func:`.own_range.own_range_gains`) and the ambiguity entries. An
+    implausible effect's :func:`.plausibility.implausibility` entry goes into
+    ``flagged``."""
     ambiguous: list[dict] = []
-    while model.effects and carry.folds is not None:
+    while True:
+        # every refit (the search's, this loop's) may carry an effect off: first that
+        implausible = implausible_effect(model, split.train)
+        if implausible is not None:
+            drop = implausible["cause"]
+            why = f"not a small correction of the URDF: {implausible['why']}"
+            say(f"taking out {drop}: {why}")
+            _record(steps, drop, why, None, carry.margin(res))
+            (flagged if flagged is not None else []).append(implausible)
+            model = without_effect(model, drop)
+            res = refit_removed(model, drop, split.train, split.cond_fit, res, None, say)
+            continue
+        if not model.effects or carry.folds is None:
+            break
         labels = [e.label for e in model.effects]
         alts = {
             lbl: [c for c in cyclic_candidates(model.robot, split.train)
@@ -178,19 +202,14 @@ def _below_margin(gains, margin):
     )
 
 
-def _record(steps: list[dict], label: str, why: str, gain: float, margin: float) -> None:
-    """Log the removal and mark the step that accepted ``label`` as undone."""
+def _record(steps: list[dict], label: str, why: str, gain: float | None, margin: float) -> None:
+    """Log the removal and mark the step that accepted ``label`` as undone (``gain``:
+    its blocked gain, None when it was not measured)."""
     for s in steps:
         if s["candidate"] == label and s.get("accepted"):
             s["accepted"] = False
             s["why"] = f"taken out after the search: {why}"
-    steps.append(
-        {
-            "candidate": label,
-            "removed": True,
-            "blocked_gain_mm": gain,
-            "min_gain_mm": margin,
-            "accepted": False,
-            "why": f"does not carry over: {why}",
-        }
-    )
+    record = {"candidate": label, "removed": True, "blocked_gain_mm": gain, "min_gain_mm": margin}
+    if gain is None:
+        del record["blocked_gain_mm"]
+    steps.append({**record, "accepted": False, "why": f"does not carry over: {why}"})

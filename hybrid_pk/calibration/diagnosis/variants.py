@@ -128,14 +128,14 @@ def refit_removed(
     data: MeasuredData,
     cond: Conditions,
     res: FitResult,
-    near: Linearisation,
+    near: Linearisation | None,
     progress: Callable[[str], None] | None = None,
 ) -> FitResult:
     """Refit ``reduced``, the model of ``res`` less effect ``label`` (same values),
     under ``res``'s frame prior and robust loss: from its linearised removal, the noise
     levels re-estimated there (the removal raises them; a pass at the old ones would
     be one more), the first step with ``near``, a Jacobian of ``res``'s model on these
-    rows (:mod:`hybrid_pk.calibration.chord`)."""
+    rows (:mod:`hybrid_pk.calibration.chord`; None: exact Jacobians from the start)."""
     position_only = data.quat is None
     _, steps = linearised_removal(res, label)
     shift_parameters(reduced, steps, position_only)
