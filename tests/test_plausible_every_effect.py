@@ -15,7 +15,11 @@ from __future__ import annotations
 import torch
 
 import hybrid_pk as hpk
-from hybrid_pk.calibration.diagnosis.plausibility import implausibility, implausible_effect
+from hybrid_pk.calibration.diagnosis.plausibility import (
+    carried_finding,
+    implausibility,
+    implausible_effect,
+)
 from hybrid_pk.effects import ExtendedModel
 from tests.helpers import run_rng
 
@@ -53,3 +57,15 @@ def test_the_new_effect_is_named_first_and_a_plausible_model_passes(ur10):
     assert why is not None
     assert why["cause"] == "axis_misalignment:wrist_2_joint"
     assert implausible_effect(_model(ur10, 2e-4, 2e-4), None) is None
+
+
+def test_a_candidate_whose_refit_carried_another_effect_off_is_the_finding(ur10):
+    rng = run_rng("plausible-every-effect-3")
+    far = float(rng.uniform(0.1, 3.0))
+    model = _model(ur10, far, 2e-4)
+    why = implausible_effect(model, None, first="thermal_expansion")
+    finding = carried_finding(why, "thermal_expansion")
+    assert finding["cause"] == "thermal_expansion"  # the candidate, not a named cause
+    assert finding["moved"] == "link_length:elbow_joint"
+    assert "its refit carries link_length:elbow_joint off" in finding["why"]
+    assert carried_finding(why, "link_length:elbow_joint") is why  # its own value: as is

@@ -84,6 +84,9 @@ def implausibility(effect: Effect, robot: Robot, data: MeasuredData | None = Non
     """
     unit = effect.unit
     size = float(effect.value.detach().norm())
+    wrong_sign = _wrong_sign(effect)
+    if wrong_sign is not None:
+        return wrong_sign
     if effect.stage == "compliance":
         return _compliance_check(effect, robot, data)
     if effect.stage == "deflection":
@@ -118,6 +121,24 @@ def implausible_effect(model, data: MeasuredData | None, first: str | None = Non
         if why is not None:
             return why
     return None
+
+
+def _wrong_sign(effect: Effect) -> dict | None:
+    """The finding of an effect whose physics fixes its sign (``positive``: a play, a
+    compliance, a bend under load) fitted below zero: a load cannot bend a structure
+    towards itself, nor a play be negative, so a significant negative value measures
+    something else the effect absorbs, whatever its size."""
+    if not type(effect).positive:
+        return None
+    v = effect.value.detach().reshape(-1)
+    if float(v.min()) >= 0:
+        return None
+    shown = ", ".join(f"{float(x):.3g}" for x in v)
+    why = (
+        f"a negative {effect.kind} ({shown} {effect.unit}) is not physical: it absorbs "
+        "another, unmodelled error"
+    )
+    return finding_entry(effect.label, float(v.min()), 0.0, effect.unit, why)
 
 
 def carried_finding(implausible: dict, label: str) -> dict:
