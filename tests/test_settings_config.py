@@ -42,7 +42,7 @@ def test_flag_over_yaml_over_default(command, tmp_path):
     assert (settings.holdout, settings.robust) == (0.2, "huber")  # flags
     assert (settings.seed, settings.alpha) == (5, 0.01)  # the YAML
     assert settings.tuning == DiagnosisTuning(check_rows=200)
-    assert (settings.max_causes, settings.refit_rows) == (8, 50)  # the defaults
+    assert (settings.max_causes, settings.refit_rows) == (24, 50)  # the defaults
     assert _settings(argv).holdout == 0.3
 
 

@@ -172,10 +172,12 @@ class DiagnosisSettings(FitSettings):
         "false-positive rate of the significance test per selection step (default: {default})",
         check=_probability,
     )
-    # 8: a story a user can check cause by cause, at a bounded cost; a search that
-    # reaches it says so (the next candidate's gain), and --max-causes N names more
-    # (without it, README "Without the limit": more causes, larger compensating ones)
-    max_causes: int = setting(8, "stop after N causes (default: {default})", "N",
+    # 24: a bound on the work, not a selection rule: four causes per joint of a six-axis
+    # arm (a zero, a length, a tilt, an elastic or transmission error). The search's own
+    # rules (significance, the blocked margin, resolved orders, plausibility of every
+    # effect) end it first: 13 causes on the shared UR10 series. A search that reaches
+    # it says so (the next candidate's gain); --max-causes N names fewer or more.
+    max_causes: int = setting(24, "stop after N causes (default: {default})", "N",
                                check=_at_least_one)  # fmt: skip
     min_gain_mm: float | None = setting(
         None,

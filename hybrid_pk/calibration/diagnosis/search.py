@@ -62,7 +62,7 @@ from hybrid_pk.calibration.diagnosis.selection import (
     score_candidates,
     try_candidate,
 )
-from hybrid_pk.calibration.diagnosis.settle import entry_rivals, unresolved_entry
+from hybrid_pk.calibration.diagnosis.settle import entry_rivals, order_rivals, unresolved_entry
 from hybrid_pk.calibration.diagnosis.split import Split, split_campaign
 from hybrid_pk.calibration.diagnosis.stand_ins import kept_stand_ins
 from hybrid_pk.calibration.diagnosis.structural import structural_check
@@ -277,7 +277,8 @@ def _select(
         remaining = [c for c in remaining if c in kept or c not in pool]
         if not scores.scored:
             break
-        best, aside = _first_resolved(scores, model, ambiguous)
+        every_order = (model, res, split, carry, say)
+        best, aside = _first_resolved(scores, model, ambiguous, every_order)
         remaining = [c for c in remaining if c not in aside]
         if best is None:
             steps.append(_untested(scores.ranked[0], scores, _why_stop(scores, aside)))
@@ -325,18 +326,25 @@ def _select(
     return model, res, steps, ambiguous, unobservable
 
 
-def _first_resolved(scores, model, ambiguous):
+def _first_resolved(scores, model, ambiguous, every_order=None):
     """The best eligible candidate (:meth:`Scores.eligible`) that is not a cyclic order
     another order predicts the blocked hold-out nearly as well as (or better); and the
-    candidates set aside as unresolved (their ambiguity entries go into ``ambiguous``)."""
+    candidates set aside as unresolved (their ambiguity entries go into ``ambiguous``).
+    ``every_order``: ``(model, res, split, carry, say)``, to compare a cyclic candidate
+    with every order of its joint (:func:`.settle.order_rivals`), not only the scored
+    ones."""
     current = [e.label for e in model.effects]
     aside: set[str] = set()
+    per_joint: dict = {}  # every order of a joint: one linearisation
     for sc in scores.ranked:
         if not scores.eligible(sc):
             break
         if sc.label in aside:
             continue
         rivals = entry_rivals(scores, current, sc.label)
+        if not rivals and every_order is not None:
+            m, r, split, carry, say = every_order
+            rivals = order_rivals(m, r, split, carry, sc.label, say, per_joint)
         if not rivals:
             return sc, aside
         ambiguous += unresolved_entry(sc.label, rivals, scores.margin)
@@ -415,7 +423,7 @@ def _note_cap(model, res, pool, split, tests, limits, steps, say) -> None:
         return
     # the candidate the search would have tested next: eligible and, if a cyclic
     # order, resolved (its unresolved orders were never candidates for a cause)
-    best, _ = _first_resolved(scores, model, [])
+    best, _ = _first_resolved(scores, model, [], (model, res, split, carry, say))
     if best is None:
         return
     why = f"not tested: the search stopped at max_causes = {max_causes}"

@@ -33,7 +33,7 @@ from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.effects import ExtendedModel, make_effect
 from hybrid_pk.effects.joint import CYCLIC_PREFIX, cyclic_error_kind
 
-__all__ = ["entry_rivals", "order_groups", "settle", "unresolved_entry"]
+__all__ = ["entry_rivals", "order_groups", "order_rivals", "settle", "unresolved_entry"]
 
 
 def _is_cyclic(label: str) -> bool:
@@ -68,6 +68,31 @@ def entry_rivals(scores: Scores, effects: list[str], label: str) -> dict[str, fl
     ]
     adv = rival_advantages(scores.blocked, effects, label, alts)
     return {a: v for a, v in adv.items() if v < scores.margin}
+
+
+def order_rivals(
+    model: ExtendedModel, res: FitResult, split: Split, carry: Carry, label: str, say, cache
+) -> dict[str, float]:
+    """:func:`entry_rivals` of ``label`` (a candidate of ``model``, not yet in it) among
+    *every* order of its joint that :func:`settle` compares it with, not only those the
+    cyclic screen let into this step's scoring: the rule that takes an unresolved order
+    out after the search keeps it from entering (empty: resolved, not a cyclic error,
+    or no blocks). ``cache``: a dict kept for one model and fit (one linearisation per
+    joint serves all its orders)."""
+    if carry.folds is None or not _is_cyclic(label):
+        return {}
+    current, joint = [e.label for e in model.effects], _joint(label)
+    orders = [
+        c
+        for c in cyclic_candidates(model.robot, split.train)
+        if _joint(c) == joint and c not in current
+    ]
+    if joint not in cache:
+        say(f"are the orders of {joint} resolved? ({len(orders)} orders)")
+        trial = with_effects(model, [make_effect(model.robot, a) for a in orders])
+        cache[joint] = linearise(trial, res, split, carry.folds, say, factor=False)[3]
+    adv = rival_advantages(cache[joint], current, label, [a for a in orders if a != label])
+    return {a: v for a, v in adv.items() if v < carry.margin(res)}
 
 
 def unresolved_entry(label: str, rivals: dict[str, float], margin: float) -> list[dict]:
