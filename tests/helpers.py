@@ -193,3 +193,27 @@ def smooth_field(q: torch.Tensor, rms_mm: float, rng) -> torch.Tensor:
     f = torch.sin(q @ w.T + phase) @ amp
     f = f - f.mean(0)
     return f * (rms_mm * 1e-3 / f.pow(2).sum(1).mean().sqrt())
+
+
+def cyclic_campaign(robot, q: Tensor, j: int, order: int, levels, noise_mm: float, rng):
+    """A campaign of ``robot`` at poses ``q`` with a cyclic error of ``order`` per turn at
+    joint ``j``, moving the point by an RMS displacement of ``levels`` (a range, drawn
+    from ``rng``) noise levels of ``noise_mm`` (3-D noise sqrt(3) sigma: the amplitude
+    over the joint's median lever arm), at a random phase. Returns ``(data, label,
+    amplitude [rad])``."""
+    from hybrid_pk.effects import make_effect
+    from hybrid_pk.simulate import simulate_campaign
+
+    with torch.no_grad():  # the joint's median lever arm [m/rad]
+        dq = torch.zeros_like(q)
+        dq[:, j] = 1e-6
+        lever = float(((robot.fk(q + dq) - robot.fk(q))[:, :3, 3] / 1e-6).norm(dim=1).median())
+    amp = float(rng.uniform(*levels)) * noise_mm * 1e-3 * math.sqrt(2) / lever
+    phase = float(rng.uniform(0, 2 * math.pi))
+    label = f"cyclic_error_{order}:{robot.joint_names[j]}"
+    effect = make_effect(robot, label, [amp * math.cos(phase), amp * math.sin(phase)])
+    data, _ = simulate_campaign(
+        robot, None, [effect], poses=q, noise_mm=noise_mm, noise_deg=noise_mm / 10,
+        seed=int(rng.integers(1 << 30)),
+    )  # fmt: skip
+    return data, label, amp

@@ -18,9 +18,8 @@ import hybrid_pk as hpk
 from hybrid_pk.calibration.diagnosis.blocked import Blocked, BlockedScore, Folds, practical_margin
 from hybrid_pk.calibration.diagnosis.search import diagnose
 from hybrid_pk.calibration.problem import ParamBlock
-from hybrid_pk.effects import make_effect
 from hybrid_pk.simulate import simulate_campaign
-from tests.helpers import RUN_SEED, run_rng, smooth_field
+from tests.helpers import RUN_SEED, cyclic_campaign, run_rng, smooth_field
 
 pytestmark = pytest.mark.slow
 
@@ -79,7 +78,6 @@ def test_an_unresolved_cyclic_order_is_never_named():
     rng = run_rng("unresolved-cyclic")
     robot = _ur10()
     j = int(rng.choice([1, 2]))
-    joint = robot.joint_names[j]
     order = int(rng.integers(6, 30))
     n = int(rng.integers(1500, 2500))
     noise = float(rng.uniform(0.01, 0.03))
@@ -87,19 +85,7 @@ def test_an_unresolved_cyclic_order_is_never_named():
     q = robot.sample_q(n, g)
     centre = float(rng.uniform(-2.0, 2.0))
     q[:, j] = centre + (torch.rand(n, generator=g, dtype=q.dtype) - 0.5)
-    with torch.no_grad():  # the joint's median lever arm [m/rad]
-        dq = torch.zeros_like(q)
-        dq[:, j] = 1e-6
-        lever = float(((robot.fk(q + dq) - robot.fk(q))[:, :3, 3] / 1e-6).norm(dim=1).median())
-    # amplitude: an RMS displacement of 0.7-1.5 noise levels (3-D noise sqrt(3) sigma)
-    amp = float(rng.uniform(0.7, 1.5)) * noise * 1e-3 * math.sqrt(2) / lever
-    phase = float(rng.uniform(0, 2 * math.pi))
-    label = f"cyclic_error_{order}:{joint}"
-    effect = make_effect(robot, label, [amp * math.cos(phase), amp * math.sin(phase)])
-    data, _ = simulate_campaign(
-        robot, None, [effect], poses=q, noise_mm=noise, noise_deg=noise / 10,
-        seed=int(rng.integers(1 << 30)),
-    )  # fmt: skip
+    data, label, amp = cyclic_campaign(robot, q, j, order, (0.7, 1.5), noise, rng)
     diag = diagnose(robot, data, seed=RUN_SEED % 1000)
     where = f"seed {RUN_SEED}: {label}, {amp * 1e6:.1f} µrad, noise {noise:.3f} mm"
     named = [f"{c.effect}:{c.joint}" for c in diag.causes]

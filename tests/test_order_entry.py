@@ -6,8 +6,6 @@ steps -> 14, the same 11 causes). Campaign drawn per run (``tests.helpers.run_rn
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 from hybrid_pk.calibration.diagnosis.blocked import Folds
@@ -19,9 +17,8 @@ from hybrid_pk.calibration.diagnosis.settle import entry_rivals, order_rivals
 from hybrid_pk.calibration.diagnosis.split import split_campaign
 from hybrid_pk.calibration.fit import fit
 from hybrid_pk.calibration.known_frames import initialise_with_priors
-from hybrid_pk.effects import ExtendedModel, conditions_from_data, make_effect
-from hybrid_pk.simulate import simulate_campaign
-from tests.helpers import RUN_SEED, run_rng
+from hybrid_pk.effects import ExtendedModel, conditions_from_data
+from tests.helpers import RUN_SEED, cyclic_campaign, run_rng
 from tests.test_diagnose_carryover import _ur10
 
 
@@ -39,18 +36,7 @@ def _unresolved_campaign(rng):
     q[:, j] = float(rng.uniform(-2.0, 2.0)) + 0.6 * (
         torch.rand(n, generator=g, dtype=q.dtype) - 0.5
     )
-    with torch.no_grad():  # the joint's median lever arm [m/rad]
-        dq = torch.zeros_like(q)
-        dq[:, j] = 1e-6
-        lever = float(((robot.fk(q + dq) - robot.fk(q))[:, :3, 3] / 1e-6).norm(dim=1).median())
-    amp = float(rng.uniform(1.5, 3.0)) * noise * 1e-3 * math.sqrt(2) / lever
-    phase = float(rng.uniform(0, 2 * math.pi))
-    label = f"cyclic_error_{order}:{robot.joint_names[j]}"
-    effect = make_effect(robot, label, [amp * math.cos(phase), amp * math.sin(phase)])
-    data, _ = simulate_campaign(
-        robot, None, [effect], poses=q, noise_mm=noise, noise_deg=noise / 10,
-        seed=int(rng.integers(1 << 30)),
-    )  # fmt: skip
+    data, label, amp = cyclic_campaign(robot, q, j, order, (1.5, 3.0), noise, rng)
     return robot, data, label, f"seed {RUN_SEED}: {label}, {amp * 1e6:.1f} µrad"
 
 
