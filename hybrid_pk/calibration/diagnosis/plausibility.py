@@ -125,20 +125,18 @@ def implausible_effect(model, data: MeasuredData | None, first: str | None = Non
 
 def _wrong_sign(effect: Effect) -> dict | None:
     """The finding of an effect whose physics fixes its sign (``positive``: a play, a
-    compliance, a bend under load) fitted below zero: a load cannot bend a structure
-    towards itself, nor a play be negative, so a significant negative value measures
-    something else the effect absorbs, whatever its size."""
+    compliance, a bend under load) fitted below zero: its class's own sign rule
+    (:meth:`Effect.implausible`), which the warnings state too. A load cannot bend a
+    structure towards itself, nor a play be negative, so a significant negative value
+    measures something else the effect absorbs, whatever its size."""
     if not type(effect).positive:
         return None
     v = effect.value.detach().reshape(-1)
-    if float(v.min()) >= 0:
+    value = float(v[0]) if v.numel() == 1 else [float(x) for x in v]
+    reasons = type(effect).implausible(value)
+    if not reasons:
         return None
-    shown = ", ".join(f"{float(x):.3g}" for x in v)
-    why = (
-        f"a negative {effect.kind} ({shown} {effect.unit}) is not physical: it absorbs "
-        "another, unmodelled error"
-    )
-    return finding_entry(effect.label, float(v.min()), 0.0, effect.unit, why)
+    return finding_entry(effect.label, float(v.min()), 0.0, effect.unit, "; ".join(reasons))
 
 
 def carried_finding(implausible: dict, label: str) -> dict:
