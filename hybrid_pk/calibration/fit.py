@@ -28,15 +28,12 @@ from hybrid_pk.calibration.covariance import correlated_pairs, parameter_names, 
 from hybrid_pk.calibration.frame_hold import held_prior, join_rows
 from hybrid_pk.calibration.frames import FramePriors, PriorRows, prior_centres, prior_residual
 from hybrid_pk.calibration.identifiability import FrameReport, frame_report, skipped_frame_report
-from hybrid_pk.calibration.kept_poses import keep_poses, kept_poses
 from hybrid_pk.calibration.least_squares import levenberg_marquardt
+from hybrid_pk.calibration.poses import initialise_frames, model_errors, predicted_poses
 from hybrid_pk.calibration.problem import ParamBlock, Problem, param_blocks
 from hybrid_pk.calibration.robust import irls_update, reestimated_noise, row_weights_vector
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data
-from hybrid_pk.evaluation.metrics import pose_error, position_error_mm
-from hybrid_pk.geometry import quat_to_matrix
-from hybrid_pk.geometry.registration import register_frames
 from hybrid_pk.threads import fit_work
 
 __all__ = [
@@ -141,40 +138,6 @@ class FitResult:
                 return slice(start, start + b.size)
             start += b.size
         raise KeyError(label)
-
-
-@torch.no_grad()
-def initialise_frames(
-    model: ExtendedModel,
-    data: MeasuredData,
-    cond: Conditions,
-    which: str = "frames",
-) -> None:
-    """Set base and/or tool frames to the closed-form registration of ``data``.
-
-    Args:
-        which: ``"frames"`` (both), ``"base"`` or ``"tool"``.
-
-    With gravity from a levelled tracker the loaded end pose depends on the base frame
-    itself, so the registration is repeated once from the first one's base.
-    """
-    R_meas = None if data.quat is None else quat_to_matrix(data.quat)
-    groups = [None] if model.base.sets == 1 or cond.group is None else range(model.base.sets)
-    loaded = bool(model.loaded_effects())
-    passes = 2 if model.gravity.levelled and loaded and which != "tool" else 1
-    for _ in range(passes):
-        T_end = predicted_poses(model, data.q, cond, end_link=True)
-        for g in groups:
-            rows = slice(None) if g is None else cond.group == g
-            if g is not None and not bool(rows.any()):
-                continue
-            base, tool = register_frames(
-                T_end[rows], data.position[rows], None if R_meas is None else R_meas[rows]
-            )
-            if which in ("frames", "base"):
-                model.base.reset_to(base, g)
-            if which in ("frames", "tool"):
-                model.tool.reset_to(tool, g)
 
 
 @fit_work
@@ -386,39 +349,3 @@ def _solve_reweighted(
         if change < 0.05:
             break
     return sig_p, sig_r, iterations, converged, weights
-
-
-@torch.no_grad()
-def model_errors(
-    model: ExtendedModel, data: MeasuredData, cond: Conditions | None = None
-) -> tuple[Tensor, Tensor | None]:
-    """Per-row position [mm] and orientation [deg] errors (None without orientation)."""
-    T = predicted_poses(model, data.q, cond or conditions_from_data(data))
-    if data.quat is None:
-        return position_error_mm(data.position, T[:, :3, 3]), None
-    return pose_error(data.T_measured(), T)
-
-
-# Rows per model evaluation in predicted_poses (bounds the gravity and FK temporaries).
-POSE_CHUNK_ROWS = 32768
-
-
-@torch.no_grad()
-def predicted_poses(
-    model: ExtendedModel, q: Tensor, cond: Conditions, end_link: bool = False
-) -> Tensor:
-    """``(N, 4, 4)`` predicted measured poses (or flange poses in the robot root frame,
-    ``end_link``) of joint values ``q (N, dof)``, evaluated in chunks of rows (measured
-    poses: kept for the same point and rows, :mod:`.kept_poses`)."""
-    kept = None if end_link else kept_poses(model, q, cond)
-    if kept is not None:
-        return kept.clone()  # the caller's to change
-    parts = []
-    for start in range(0, q.shape[0], POSE_CHUNK_ROWS):
-        rows = slice(start, min(start + POSE_CHUNK_ROWS, q.shape[0]))
-        sub = cond.subset(rows)
-        parts.append(model.end_pose(q[rows], sub) if end_link else model(q[rows], sub))
-    T = torch.cat(parts) if parts else model(q, cond)
-    if not end_link:
-        keep_poses(model, q, cond, T)
-    return T
