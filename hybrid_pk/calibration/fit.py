@@ -160,6 +160,7 @@ def fit(
     frames: FramePriors | None = None,
     robust: str | None = None,
     weights: Tensor | None = None,
+    stop: Callable[[ExtendedModel], bool] | None = None,
 ) -> FitResult:
     """Least-squares fit of the model's frames and effect values to measured data.
 
@@ -189,6 +190,8 @@ def fit(
         robust: ``"huber"`` or ``"cauchy"``: rows with gross errors are down-weighted
             (iteratively re-weighted, noise from the median); None: least squares.
         weights: ``(N,)`` robust row weights to start from (e.g. a previous fit's).
+        stop: a test of the model at each accepted LM step; where it holds, the fit
+            raises :class:`~.least_squares.StoppedFit` (model at its pass's start).
     """
     cond = cond or conditions_from_data(data, robot=model.robot)
     # the start's error even without a report: the compliance's warm starts stay the same
@@ -211,7 +214,7 @@ def fit(
               sigma_rot_rad or start_r or DEFAULT_SIGMA_ROT_RAD)  # fmt: skip
     fixed = (sigma_pos_mm, sigma_rot_rad)
     sig_p, sig_r, iterations, converged, weights = _solve_reweighted(
-        problem_at, data, sigmas, fixed, max_iter, progress, robust, weights, near
+        problem_at, data, sigmas, fixed, max_iter, progress, robust, weights, near, stop
     )
     given = frames is not None and (frames.tool, frames.base) != (None, None)  # hold there
     held = held_prior(model, data, cond, blocks, prior, given)  # at this optimum
@@ -222,11 +225,24 @@ def fit(
     if held is not prior or R_start is not None:  # LM from here
         prior, rows_extra = held, join_rows(held, extra)
         sig_p, sig_r, more, converged, weights = _solve_reweighted(
-            problem_at, data, (sig_p, sig_r), fixed, max_iter, progress, robust, weights, R_start
-        )
+            problem_at, data, (sig_p, sig_r), fixed, max_iter, progress, robust, weights,
+            R_start, stop,
+        )  # fmt: skip
         iterations += more
-    # Residuals and Jacobian at the solution with the final weights.
-    problem = problem_at(sig_p, sig_r, weights)
+    problem = problem_at(sig_p, sig_r, weights)  # the solution, under the final weights
+    solved = (sig_p, sig_r, iterations, converged, robust, weights)
+    report = report_frames if covariance else None
+    return _result(problem, solved, (prior, frames, start, R), report)
+
+
+def _result(problem: Problem, solved: tuple, priors: tuple, report: bool | None) -> FitResult:
+    """The :class:`FitResult` of ``problem`` at its solution: ``solved`` is ``(sigma_pos_mm,
+    sigma_rot_rad, iterations, converged, robust, weights)``, ``priors`` ``(prior rows,
+    frame priors, start, R)``; ``report``: None (no covariance), else whether the frame
+    report is made."""
+    model, data, cond, blocks = problem.model, problem.data, problem.cond, problem.blocks
+    sig_p, sig_r, iterations, converged, robust, weights = solved
+    prior, frames, start, R = priors
     pos, ori = model_errors(model, data, cond)
     common = dict(
         blocks=blocks, x=problem.x0, sigma_pos_mm=sig_p,
@@ -234,13 +250,13 @@ def fit(
         n_params=problem.x0.numel(), iterations=iterations, converged=converged,
         robust=robust, weights=weights, priors=frames,
     )  # fmt: skip
-    if not covariance:
+    if report is None:
         return FitResult(**common, **_no_covariance(problem, data))
-    report = skipped_frame_report(data, blocks) if not report_frames else frame_report(
+    made = skipped_frame_report(data, blocks) if not report else frame_report(
         model, data, cond, blocks, sigma_pos_mm=sig_p, sigma_rot_rad=common["sigma_rot_rad"],
         prior=prior, priors=frames, start=start, rms_mm=float(pos.pow(2).mean().sqrt()),
     )  # fmt: skip
-    return FitResult(**common, **covariance_fields(problem, prior, R), frame_report=report)
+    return FitResult(**common, **covariance_fields(problem, prior, R), frame_report=made)
 
 
 def _checked_chord(problem: Problem, near: Linearisation | None, max_iter: int):
@@ -298,6 +314,7 @@ def _solve_reweighted(
     robust: str | None = None,
     weights: Tensor | None = None,
     near: Linearisation | Tensor | None = None,
+    stop: Callable[[ExtendedModel], bool] | None = None,
 ) -> tuple[float, float, int, bool, Tensor | None]:
     """LM fit, noise re-estimated from the residuals and refitted (at most 3 passes;
     robust fits re-weight their rows each pass too, at most ``ROBUST_PASSES``).
@@ -305,8 +322,8 @@ def _solve_reweighted(
     ``problem_at(sigma_pos_mm, sigma_rot_rad, weights)`` is the problem under those
     noise levels and robust weights; ``sigmas`` are the starting levels, ``fixed``
     those given by the caller (not re-estimated); ``near``: the first pass starts from
-    that Jacobian (:func:`.chord.first_passes`). Returns the final noise levels, LM
-    iterations, convergence and the robust weights.
+    that Jacobian (:func:`.chord.first_passes`); ``stop``: :func:`fit`'s. Returns the
+    final noise levels, LM iterations, convergence and the robust weights.
     """
     sig_p, sig_r = sigmas
     sigma_pos_mm, sigma_rot_rad = fixed
@@ -327,6 +344,7 @@ def _solve_reweighted(
             normal=normal,
             progress=progress,
             drop_tol=NEXT_STEP_STD**2 / problem.n_residuals,  # cost ~ 1 per residual
+            stop=None if stop is None else _model_test(problem, stop),
         )
         problem.write(result.x)
         iterations += result.iterations
@@ -349,3 +367,17 @@ def _solve_reweighted(
         if change < 0.05:
             break
     return sig_p, sig_r, iterations, converged, weights
+
+
+def _model_test(problem: Problem, stop: Callable[[ExtendedModel], bool]):
+    """LM's test of a point ``theta`` of ``problem``: ``stop`` of the model with the
+    point written in, the model restored after (``theta = 0`` is where it was)."""
+
+    def test(theta: Tensor) -> bool:
+        problem.write(theta)
+        try:
+            return bool(stop(problem.model))
+        finally:
+            problem.write(torch.zeros_like(theta))
+
+    return test

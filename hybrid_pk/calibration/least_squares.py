@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-__all__ = ["LMResult", "jacobian", "levenberg_marquardt"]
+__all__ = ["LMResult", "StoppedFit", "jacobian", "levenberg_marquardt"]
 
 
 @dataclass(frozen=True)
@@ -37,6 +37,15 @@ class LMResult:
     cost: float
     iterations: int
     converged: bool
+
+
+class StoppedFit(Exception):
+    """Raised by :func:`levenberg_marquardt` where its ``stop`` test held at an
+    accepted step; ``x`` is that step's point."""
+
+    def __init__(self, x: Tensor) -> None:
+        super().__init__("the fit's stop test held at an accepted step")
+        self.x = x
 
 
 def jacobian(
@@ -70,6 +79,7 @@ def levenberg_marquardt(
     normal: Callable[[Tensor], tuple[Tensor, Tensor, float]] | None = None,
     progress: Callable[[str], None] | None = None,
     drop_tol: float = 0.0,
+    stop: Callable[[Tensor], bool] | None = None,
 ) -> LMResult:
     """Minimise ``sum(fun(x)**2)`` from ``x0``.
 
@@ -89,6 +99,8 @@ def levenberg_marquardt(
             the drops shrink at least geometrically, by the ratio of the last two
             undamped ones: ``drop_k^2 / drop_(k-1)`` (Gauss–Newton near a solution
             converges linearly or faster). 0: only ``ftol`` and ``xtol`` stop.
+        stop: a test of each accepted point; where it holds, :class:`StoppedFit` is
+            raised (the caller has no use for the fit from there on).
     """
     if normal is None:
         jac = jac or (lambda x: jacobian(fun, x))
@@ -120,6 +132,8 @@ def levenberg_marquardt(
             converged = True  # no descent left at any damping: at a minimum
             break
         it += 1
+        if stop is not None and stop(x_new):
+            raise StoppedFit(x_new)
         drop = cost - cost_new
         rel_drop = drop / max(cost, 1e-300)
         undamped = lam <= lam0  # a damped step's drop says little about the next one

@@ -26,6 +26,7 @@ __all__ = [
     "finding_entry",
     "implausibility",
     "implausible_effect",
+    "oversized",
     "plausibility_warnings",
 ]
 
@@ -121,6 +122,19 @@ def implausible_effect(model, data: MeasuredData | None, first: str | None = Non
         if why is not None:
             return why
     return None
+
+
+def oversized(model) -> bool:
+    """Whether an effect of ``model`` is beyond the largest size a small physical
+    correction can have (:func:`~hybrid_pk.effects.limits.effect_limit`; its sign and its
+    loads aside): the test a trial's refit stops at. A refit that ends so is refused;
+    the walk on, along a direction the data barely determine (link lengths along
+    parallel axes, to metres), costs Jacobians for nothing else."""
+    return any(
+        (limit := effect_limit(e, model.robot)) is not None
+        and float(e.value.detach().norm()) > limit
+        for e in model.effects
+    )
 
 
 def _wrong_sign(effect: Effect) -> dict | None:

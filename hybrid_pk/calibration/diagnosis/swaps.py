@@ -30,11 +30,12 @@ from typing import NamedTuple
 from hybrid_pk.calibration.chord import Linearisation
 from hybrid_pk.calibration.diagnosis.carryover import Carry, linearise, weakest
 from hybrid_pk.calibration.diagnosis.elimination import eliminate
-from hybrid_pk.calibration.diagnosis.plausibility import implausible_effect
+from hybrid_pk.calibration.diagnosis.plausibility import implausible_effect, oversized
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.statistics import f_survival, holdout_score, weighted_ssr
 from hybrid_pk.calibration.diagnosis.variants import refit_without, with_effects, without_effect
 from hybrid_pk.calibration.fit import FitResult, fit
+from hybrid_pk.calibration.least_squares import StoppedFit
 from hybrid_pk.effects import ExtendedModel, make_effect
 
 __all__ = [
@@ -251,10 +252,13 @@ def _swapped(model, res, current, swap, split, tests, say, near=None):
     say(f"trying {alternative} in place of {chosen}")
     trial = with_effects(without_effect(model, chosen), [make_effect(model.robot, alternative)])
     sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
-    trial_res = fit(
-        trial, split.train, cond=split.cond_fit, initial_sigma=sigmas, progress=say,
-        near=near, **res.settings(),
-    )  # fmt: skip
+    try:  # a refit that carries an effect beyond a small correction is refused: stop there
+        trial_res = fit(
+            trial, split.train, cond=split.cond_fit, initial_sigma=sigmas, progress=say,
+            near=near, stop=oversized, **res.settings(),
+        )  # fmt: skip
+    except StoppedFit:
+        return None
     if implausible_effect(trial, split.train, first=alternative) is not None:
         return None
     removals: list[dict] = []
