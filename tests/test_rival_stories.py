@@ -74,3 +74,41 @@ def test_a_cause_the_blocks_single_out_has_no_rival():
     d = diagnose(robot, data, candidates=CANDIDATES, seed=int(rng.integers(99)))
     assert [f"{c.effect}:{c.joint}" for c in d.causes] == ["joint_offset:joint_2"]
     assert d.rival_stories == []
+
+
+def _story(rng, named_mm: float, rival_mm: float) -> dict:
+    return {
+        "cause": "cyclic_error_6:wrist_1_joint",
+        "rival": "cyclic_error_20:shoulder_pan_joint",
+        "rival_value": [float(x) for x in rng.normal(0, 1e-4, 2)],
+        "unit": "rad",
+        "blocked_rms_mm": {"named": named_mm, "rival": rival_mm},
+        "differ_mm": {
+            "fit_rows": {"p95": 0.26, "max": 0.3},
+            "joint_limits": {"p95": 0.27, "max": 0.41},
+        },
+    }
+
+
+def test_a_better_rival_whose_order_is_not_resolved_is_said_so():
+    # the UR10 pan split: a shoulder-pan order the rows do not resolve predicted the
+    # blocks better than the named wrist-1 order, and the line blamed the search's order
+    rng = run_rng("rival_unresolved")
+    margin = float(rng.uniform(1e-3, 5e-3))
+    named = float(rng.uniform(0.1, 1.0))
+    better = _story(rng, named, named - 3 * margin)
+    unresolved = [
+        {
+            "effects": ["cyclic_error_20:shoulder_pan_joint", "cyclic_error_3:shoulder_pan_joint"],
+            "why": "...",
+            "order_not_resolved": "shoulder_pan_joint",
+        }
+    ]
+    (line,) = rival_lines([better], margin, unresolved)
+    assert "its order is not resolved by these rows" in line, line
+    assert "periodic error of shoulder_pan_joint" in line, line
+    assert "search's order" not in line, line
+    (line,) = rival_lines([better], margin, [])  # a resolved rival: the search's order
+    assert "search's order chose the named cause" in line, line
+    (line,) = rival_lines([_story(rng, named, named - margin / 2)], margin, unresolved)
+    assert "better by more than the margin" not in line, line  # within the margin

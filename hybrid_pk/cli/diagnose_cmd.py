@@ -147,7 +147,8 @@ def summary_lines(diagnosis, seconds: float | None = None, runs: int = 1) -> lis
     if diagnosis.rival_stories:
         margin = (diagnosis.carry_over or {}).get("min_gain_mm")
         lines.append("rival stories (the rows cannot choose; named / rival):")
-        lines += [f"  {x}" for x in rival_lines(diagnosis.rival_stories, margin)]
+        stories = rival_lines(diagnosis.rival_stories, margin, diagnosis.ambiguous)
+        lines += [f"  {x}" for x in stories]
     for w in diagnosis.warnings:
         lines.append(f"warning: {w['cause']}: {w['why']}")
     lines += mounting_lines(diagnosis.model)

@@ -241,7 +241,7 @@ def _what_is_left(diagnosis, data, robot: Robot, out: Path, ext) -> list[str]:
         "",
     ]
     margin = (diagnosis.carry_over or {}).get("min_gain_mm")
-    stories = rival_lines(diagnosis.rival_stories, margin)
+    stories = rival_lines(diagnosis.rival_stories, margin, diagnosis.ambiguous)
     if stories:
         lines += [
             "## Rival stories",

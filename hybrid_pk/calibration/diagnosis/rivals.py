@@ -121,9 +121,19 @@ def _distance(a: ExtendedModel, b: ExtendedModel, q, cond) -> dict:
     return {"p95": float(d.quantile(0.95)), "max": float(d.max())}
 
 
-def rival_lines(stories: list[dict], margin: float | None) -> list[str]:
+def rival_lines(
+    stories: list[dict], margin: float | None, ambiguous: list[dict] | None = None
+) -> list[str]:
     """One line per rival story (``rival_stories`` of the diagnosis JSON): both causes,
-    their blocked RMS errors and how far the two models part."""
+    their blocked RMS errors and how far the two models part. ``ambiguous``: the
+    diagnosis' entries, whose unresolved cyclic orders (``order_not_resolved``) say why
+    a rival that predicts the blocks better is not named."""
+    unresolved = {
+        label: a["order_not_resolved"]
+        for a in ambiguous or []
+        if "order_not_resolved" in a
+        for label in a["effects"]
+    }
     out = []
     for s in stories:
         named, rival = s["blocked_rms_mm"]["named"], s["blocked_rms_mm"]["rival"]
@@ -137,7 +147,13 @@ def rival_lines(stories: list[dict], margin: float | None) -> list[str]:
             "the joint limits"
         )
         if margin is not None and rival < named - margin:
-            line += "; the rival predicts the blocks better by more than the margin (the "
-            line += "search's order chose the named cause)"
+            line += "; the rival predicts the blocks better by more than the margin ("
+            joint = unresolved.get(s["rival"])
+            line += (
+                "the search's order chose the named cause)"
+                if joint is None
+                else f"its order is not resolved by these rows, so it is not named: the "
+                f"named cause may stand in for a periodic error of {joint})"
+            )
         out.append(line)
     return out
