@@ -28,6 +28,7 @@ __all__ = [
     "implausible_effect",
     "oversized",
     "plausibility_warnings",
+    "refusal_why",
 ]
 
 
@@ -151,6 +152,11 @@ def _wrong_sign(effect: Effect) -> dict | None:
     if not reasons:
         return None
     return finding_entry(effect.label, float(v.min()), 0.0, effect.unit, "; ".join(reasons))
+
+
+def refusal_why(implausible: dict) -> str:
+    """Why a step or settle refuses an effect (its :func:`implausibility` entry)."""
+    return f"not a small correction of the URDF: {implausible['why']}"
 
 
 def carried_finding(implausible: dict, label: str) -> dict:

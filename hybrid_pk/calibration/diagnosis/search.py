@@ -42,6 +42,7 @@ from hybrid_pk.calibration.diagnosis.plausibility import (
     carried_finding,
     implausible_effect,
     plausibility_warnings,
+    refusal_why,
 )
 from hybrid_pk.calibration.diagnosis.power import (
     check_determined,
@@ -260,8 +261,7 @@ def _select(
     pairs: list[tuple[str, str]] = []  # (chosen, near-duplicate) for the swaps after
     remaining = list(pool)  # every candidate still open, all cyclic orders included
     while remaining and len(model.effects) < max_causes:
-        # The cyclic orders are ranked anew on what the current model leaves: a large
-        # error explained by an earlier cause hides a joint's periodic error at first.
+        # cyclic orders ranked anew each step: an error an earlier cause explains hides them
         pool, screened = screen_cyclic(
             model, split, remaining, res.weights, carry.folds, carry.margin(res)
         )
@@ -293,7 +293,7 @@ def _select(
         if step["accepted"] and implausible is not None:
             step["accepted"] = False
             implausible = carried_finding(implausible, best.label)
-            step["why"] = f"not a small correction of the URDF: {implausible['why']}"
+            step["why"] = refusal_why(implausible)
             flagged.append(implausible)
         if not step["accepted"]:
             rejected_in_a_row += 1

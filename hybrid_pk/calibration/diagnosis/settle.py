@@ -25,7 +25,7 @@ from hybrid_pk.calibration.chord import Linearisation
 from hybrid_pk.calibration.diagnosis.blocked import Blocked
 from hybrid_pk.calibration.diagnosis.carryover import Carry, linearise, removal_gains
 from hybrid_pk.calibration.diagnosis.own_range import off_range, own_range_gains
-from hybrid_pk.calibration.diagnosis.plausibility import implausible_effect
+from hybrid_pk.calibration.diagnosis.plausibility import implausible_effect, refusal_why
 from hybrid_pk.calibration.diagnosis.selection import Scores, cyclic_candidates
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.variants import refit_removed, with_effects, without_effect
@@ -155,7 +155,7 @@ def settle(
         implausible = implausible_effect(model, split.train)
         if implausible is not None:
             drop = implausible["cause"]
-            why = f"not a small correction of the URDF: {implausible['why']}"
+            why = refusal_why(implausible)
             say(f"taking out {drop}: {why}")
             _record(steps, drop, why, None, carry.margin(res))
             (flagged if flagged is not None else []).append(implausible)
