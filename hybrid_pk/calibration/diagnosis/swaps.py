@@ -258,6 +258,7 @@ def _swapped(model, res, current, swap, split, tests, say, near=None):
             near=near, stop=oversized, **res.settings(),
         )  # fmt: skip
     except StoppedFit:
+        say(f"{alternative} in place of {chosen}: its refit left a small correction, refused")
         return None
     if implausible_effect(trial, split.train, first=alternative) is not None:
         return None
