@@ -1,6 +1,10 @@
 """Ctrl-C while ``hybrid-pk`` is still starting (importing torch and every command takes
 seconds on a loaded machine) is one line and exit 130, as an interrupt later in a
-command is; before, a Python traceback of the import machinery."""
+command is; before, a Python traceback of the import machinery.
+
+Each child starts with SIGINT at its default, as a terminal's foreground command does:
+a shell starts background jobs with SIGINT ignored (``pytest ... &``), the children
+inherit that, and an ignored interrupt stays ignored (the last test)."""
 
 from __future__ import annotations
 
@@ -13,6 +17,11 @@ import time
 import pytest
 
 
+def _default_sigint() -> None:
+    """``preexec_fn``: SIGINT at its default in the child, whatever this process has."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.skipif(shutil.which("hybrid-pk") is None, reason="hybrid-pk not installed")
 @pytest.mark.parametrize("after_s", [0.3, 0.8])
 def test_ctrl_c_while_starting_is_one_line(tmp_path, after_s):
@@ -21,6 +30,7 @@ def test_ctrl_c_while_starting_is_one_line(tmp_path, after_s):
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=_default_sigint,
     )
     time.sleep(after_s)  # past the interpreter's own start, inside the imports
     proc.send_signal(signal.SIGINT)
@@ -32,11 +42,12 @@ def test_ctrl_c_while_starting_is_one_line(tmp_path, after_s):
     assert "interrupted" in lines[0], err
 
 
-def _python(code: str, argv0: str) -> subprocess.CompletedProcess:
+def _python(code: str, argv0: str, start=_default_sigint) -> subprocess.CompletedProcess:
     script = f"import sys\nsys.argv[0] = {argv0!r}\n{code}"
     return subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, timeout=300
-    )
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=300,
+        preexec_fn=start,
+    )  # fmt: skip
 
 
 def test_an_interrupt_an_importing_library_swallows_still_leaves_with_one_line():
@@ -77,6 +88,7 @@ def test_ctrl_c_once_the_command_runs_is_the_commands_own_line(tmp_path):
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=_default_sigint,
     )
     first = proc.stderr.readline()  # the first progress line: the command is running
     proc.send_signal(signal.SIGINT)
@@ -85,3 +97,21 @@ def test_ctrl_c_once_the_command_runs_is_the_commands_own_line(tmp_path):
     assert proc.returncode == 130, (out, err)
     lines = [ln for ln in err.splitlines() if ln.strip() and not ln.startswith("demo [")]
     assert lines == ["hybrid-pk demo: interrupted"], err
+
+
+def test_an_inherited_ignored_interrupt_stays_ignored():
+    # a background job of a shell script (``hybrid-pk train ... &``): a Ctrl-C meant for
+    # the script in the foreground must not stop it
+    def ignored() -> None:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+    code = (
+        "import signal\n"
+        "import hybrid_pk\n"
+        "from hybrid_pk.startup import release\n"
+        "release()  # what the command line does once its commands are imported\n"
+        "print(signal.getsignal(signal.SIGINT) == signal.SIG_IGN)\n"
+    )
+    proc = _python(code, "/usr/bin/hybrid-pk", start=ignored)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "True"
