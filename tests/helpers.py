@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import signal
 from collections.abc import Callable
 
 import numpy as np
@@ -217,3 +218,10 @@ def cyclic_campaign(robot, q: Tensor, j: int, order: int, levels, noise_mm: floa
         seed=int(rng.integers(1 << 30)),
     )  # fmt: skip
     return data, label, amp
+
+
+def default_sigint() -> None:
+    """``preexec_fn`` of a child that a test interrupts: SIGINT at its default, as a
+    terminal's foreground command has it. A shell starts a background job (``pytest ...
+    &``) with SIGINT ignored, and a child would inherit that."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

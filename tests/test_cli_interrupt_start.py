@@ -16,10 +16,7 @@ import time
 
 import pytest
 
-
-def _default_sigint() -> None:
-    """``preexec_fn``: SIGINT at its default in the child, whatever this process has."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
+from tests.helpers import default_sigint
 
 
 @pytest.mark.skipif(shutil.which("hybrid-pk") is None, reason="hybrid-pk not installed")
@@ -30,7 +27,7 @@ def test_ctrl_c_while_starting_is_one_line(tmp_path, after_s):
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        preexec_fn=_default_sigint,
+        preexec_fn=default_sigint,
     )
     time.sleep(after_s)  # past the interpreter's own start, inside the imports
     proc.send_signal(signal.SIGINT)
@@ -42,7 +39,7 @@ def test_ctrl_c_while_starting_is_one_line(tmp_path, after_s):
     assert "interrupted" in lines[0], err
 
 
-def _python(code: str, argv0: str, start=_default_sigint) -> subprocess.CompletedProcess:
+def _python(code: str, argv0: str, start=default_sigint) -> subprocess.CompletedProcess:
     script = f"import sys\nsys.argv[0] = {argv0!r}\n{code}"
     return subprocess.run(
         [sys.executable, "-c", script], capture_output=True, text=True, timeout=300,
@@ -88,7 +85,7 @@ def test_ctrl_c_once_the_command_runs_is_the_commands_own_line(tmp_path):
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        preexec_fn=_default_sigint,
+        preexec_fn=default_sigint,
     )
     first = proc.stderr.readline()  # the first progress line: the command is running
     proc.send_signal(signal.SIGINT)

@@ -27,11 +27,17 @@ def test_a_fit_without_its_frame_report_is_otherwise_the_same(rx160):
     initialise_frames(model, data, cond)
     twin = copy.deepcopy(model)
     # rows of their own each: what is kept per rows (the compliance's last fixed point,
-    # dg/dq, poses) starts the same for both fits
+    # dg/dq, poses) starts the same for both fits. Both copies live throughout: a copy
+    # freed after the first fit could leave its address, and equal values, to the
+    # second, whose compliance would then start where the first settled (kept by the
+    # rows' address, checked by value: the same to the fixed point's tolerance, not bit
+    # for bit). The likely cause of one failure in a full run (x apart at round-off);
+    # not reproduced alone
+    rows_full, rows_bare = copy.deepcopy(data), copy.deepcopy(data)
     before = work.done()
-    full = fit(model, copy.deepcopy(data), cond=cond)
+    full = fit(model, rows_full, cond=cond)
     between = work.done()
-    bare = fit(twin, copy.deepcopy(data), cond=cond, report_frames=False)
+    bare = fit(twin, rows_bare, cond=cond, report_frames=False)
     # the report's rows are counted as done: a diagnosis' work budget cuts where it did
     assert work.done() - between == between - before
     assert full.frame_report is not None

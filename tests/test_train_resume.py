@@ -23,6 +23,7 @@ from hybrid_pk.io.model_file import load_model, save_model
 from hybrid_pk.simulate import simulate_campaign
 from hybrid_pk.training import HybridDataModule, HybridLitModule, make_trainer, preset, train_hybrid
 from hybrid_pk.training.presets import full_model_settings
+from tests.helpers import default_sigint
 
 REPO = Path(__file__).resolve().parents[1]
 NETS = {
@@ -255,7 +256,7 @@ def test_cli_interrupted_by_a_signal_resumes(campaign, rx160, tmp_path, capsys, 
     ]  # fmt: skip
     proc = subprocess.Popen(
         [sys.executable, "-m", "hybrid_pk.cli.main", *args], cwd=tmp_path, env=_env(),
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=default_sigint,
     )  # fmt: skip
     epochs = 0
     for line in proc.stderr:  # the second epoch line: a checkpoint is written
