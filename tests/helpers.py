@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.hybrid.builder import HybridSettings
+from hybrid_pk.simulate.unmodelled import smooth_field as smooth_field
 
 # Leading batch shapes every batched function is tested with (jaxlie style).
 BATCH_SHAPES: list[tuple[int, ...]] = [(), (1,), (3, 2)]
@@ -182,18 +183,6 @@ def middle_q(robot, n: int, seed: int, share: float = 1 / 3) -> Tensor:
     lo, hi = robot.joint_limits
     mid = (lo + hi) / 2
     return mid + (robot.sample_q(n, torch.Generator().manual_seed(seed)) - mid) * share
-
-
-def smooth_field(q: torch.Tensor, rms_mm: float, rng) -> torch.Tensor:
-    """``(N, 3)`` [m]: a smooth random function of the joints (eight plane waves of
-    wavelengths of a few radians), scaled to ``rms_mm`` of RMS point displacement."""
-    dof = q.shape[1]
-    w = torch.as_tensor(rng.normal(0.0, 0.6, (8, dof)), dtype=q.dtype)
-    phase = torch.as_tensor(rng.uniform(0, 2 * math.pi, 8), dtype=q.dtype)
-    amp = torch.as_tensor(rng.normal(0.0, 1.0, (8, 3)), dtype=q.dtype)
-    f = torch.sin(q @ w.T + phase) @ amp
-    f = f - f.mean(0)
-    return f * (rms_mm * 1e-3 / f.pow(2).sum(1).mean().sqrt())
 
 
 def cyclic_campaign(robot, q: Tensor, j: int, order: int, levels, noise_mm: float, rng):

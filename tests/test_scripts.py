@@ -130,3 +130,19 @@ def test_transfer_ur10_carries_each_series_to_the_other(tmp_path):
         for r in rows:  # fallen back: the judged hybrid is the extended model
             if not r["used"]:
                 assert r["judged_hybrid_mm"] == pytest.approx(r["judged_extended_mm"], rel=1e-6)
+
+
+def test_limit_precise_tracker_diagnoses_each_seed_at_both_limits(capsys):
+    """experiments/limit_precise_tracker.py on 150 rows a half: one table row per limit,
+    each with its causes, the other half's error and the margin."""
+    pytest.importorskip("cmeel", reason="example-robot-data (dev extras) not installed")
+    from experiments import limit_precise_tracker
+
+    assert limit_precise_tracker.main(["--seeds", "3", "--rows", "150", "--repeats", "20"]) == 0
+    rows = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("| 3 |")]
+    assert [r.split("|")[2].strip() for r in rows] == ["8", "24"]
+    for r in rows:
+        cells = [c.strip() for c in r.split("|")[1:-1]]
+        assert int(cells[2]) >= 0, r
+        assert float(cells[4]) > 0, r  # the other half's mean error [mm]
+        assert float(cells[5]) > 0, r  # the practical margin [mm]

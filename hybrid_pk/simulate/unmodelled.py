@@ -7,10 +7,15 @@ so ``diagnose``/``calibrate`` never offer them:
 - :class:`HardeningCompliance`: a joint spring that is softer near zero torque
   (harmonic drives: stiffness K1 < K2 < K3), the nonlinear part of the paper's joint
   stiffness. A joint-stage effect: ``theta_true = theta + delta(theta, conditions)``.
+- :func:`smooth_field`: a smooth random displacement of the measured point over joint
+  space (what many small unmodelled errors add up to), for null campaigns.
 """
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -18,7 +23,19 @@ from hybrid_pk.effects.base import Effect
 from hybrid_pk.effects.conditions import Conditions
 from hybrid_pk.robot import Robot
 
-__all__ = ["UNMODELLED_KINDS", "HardeningCompliance", "rms_gravity_torques"]
+__all__ = ["UNMODELLED_KINDS", "HardeningCompliance", "rms_gravity_torques", "smooth_field"]
+
+
+def smooth_field(q: Tensor, rms_mm: float, rng: np.random.Generator) -> Tensor:
+    """``(N, 3)`` [m]: a smooth random function of the joints (eight plane waves of
+    wavelengths of a few radians), scaled to ``rms_mm`` of RMS point displacement."""
+    dof = q.shape[1]
+    w = torch.as_tensor(rng.normal(0.0, 0.6, (8, dof)), dtype=q.dtype)
+    phase = torch.as_tensor(rng.uniform(0, 2 * math.pi, 8), dtype=q.dtype)
+    amp = torch.as_tensor(rng.normal(0.0, 1.0, (8, 3)), dtype=q.dtype)
+    f = torch.sin(q @ w.T + phase) @ amp
+    f = f - f.mean(0)
+    return f * (rms_mm * 1e-3 / f.pow(2).sum(1).mean().sqrt())
 
 
 def rms_gravity_torques(
