@@ -239,6 +239,8 @@ def locate_structural_error(
             tasks += [(j, t) for j in sorted(joints, key=plain.get) for t in _TURNS]
     if best is None:
         return None
+    if best[1] < diagnosis_tuning().structural_fraction * before and best[0] != chain[0]:
+        best = _joint_before(nominal, split, sigmas, (chain, best, plain), (budget, largest))
     joint, after, model = best
     return {
         "joint": joint,
@@ -246,6 +248,32 @@ def locate_structural_error(
         "holdout_mean_mm_before": before,
         "holdout_mean_mm_after": after,
     }
+
+
+def _joint_before(nominal, split, sigmas, found, work) -> tuple:
+    """``best`` (``found``: the chain, ``(joint, hold-out mm, model)``, the joints fitted)
+    or the joint before it in the chain, when that one's correction predicts the
+    hold-out as well (within a hold-out mean's standard error, ``sigma / sqrt(rows)``)
+    with a smaller move: an offset ``d`` at joint k is exactly a full origin correction
+    of the next joint, ``R_k(d) T_next`` (a turn, and a move of the next origin's lever),
+    and the offset alone is the simpler story. ``work``: ``(budget, largest fit's work)``."""
+    chain, best, plain = found
+    budget, largest = work
+    before = chain[chain.index(best[0]) - 1]
+    if before in plain:  # fitted already: it did not explain the error
+        return best
+    if budget is not None and budget.spent(largest):
+        budget.cut("structural search", [f"{before} (the joint before {best[0]})"])
+        return best
+    model, after = _fit_correction(nominal, before, split, sigmas, None)
+    tolerance = sigmas[0] / math.sqrt(split.test.n)  # [mm]
+    moved = _origin_correction(model, before)["translation_mm"]
+    if (
+        after <= best[1] + tolerance
+        and moved < _origin_correction(best[2], best[0])["translation_mm"]
+    ):
+        return before, after, model
+    return best
 
 
 # Starting misalignments of the second search: quarter and half turns on the basis.
