@@ -185,6 +185,22 @@ def middle_q(robot, n: int, seed: int, share: float = 1 / 3) -> Tensor:
     return mid + (robot.sample_q(n, torch.Generator().manual_seed(seed)) - mid) * share
 
 
+def banded_poses(robot, rng, orders: tuple[int, int], band: float):
+    """The poses of a cyclic campaign whose order the rows may not resolve: joint ``j``
+    (the shoulder lift or the elbow), an order drawn in ``orders``, 1,500-2,500 poses
+    with joint ``j`` held in ``band`` rad about a random angle in [-2, 2] rad, and a
+    noise level of 0.01-0.03 mm. Returns ``(j, order, noise_mm, q)``."""
+    j = int(rng.choice([1, 2]))
+    order = int(rng.integers(*orders))
+    n = int(rng.integers(1500, 2500))
+    noise = float(rng.uniform(0.01, 0.03))
+    g = torch.Generator().manual_seed(int(rng.integers(1 << 30)))
+    q = robot.sample_q(n, g)
+    centre = float(rng.uniform(-2.0, 2.0))
+    q[:, j] = centre + band * (torch.rand(n, generator=g, dtype=q.dtype) - 0.5)
+    return j, order, noise, q
+
+
 def cyclic_campaign(robot, q: Tensor, j: int, order: int, levels, noise_mm: float, rng):
     """A campaign of ``robot`` at poses ``q`` with a cyclic error of ``order`` per turn at
     joint ``j``, moving the point by an RMS displacement of ``levels`` (a range, drawn

@@ -19,7 +19,7 @@ from hybrid_pk.calibration.diagnosis.blocked import Blocked, BlockedScore, Folds
 from hybrid_pk.calibration.diagnosis.search import diagnose
 from hybrid_pk.calibration.problem import ParamBlock
 from hybrid_pk.simulate import simulate_campaign
-from tests.helpers import RUN_SEED, cyclic_campaign, run_rng, smooth_field
+from tests.helpers import RUN_SEED, banded_poses, cyclic_campaign, run_rng, smooth_field
 
 pytestmark = pytest.mark.slow
 
@@ -77,14 +77,7 @@ def test_an_unresolved_cyclic_order_is_never_named():
     or gains too little to be one)."""
     rng = run_rng("unresolved-cyclic")
     robot = _ur10()
-    j = int(rng.choice([1, 2]))
-    order = int(rng.integers(6, 30))
-    n = int(rng.integers(1500, 2500))
-    noise = float(rng.uniform(0.01, 0.03))
-    g = torch.Generator().manual_seed(int(rng.integers(1 << 30)))
-    q = robot.sample_q(n, g)
-    centre = float(rng.uniform(-2.0, 2.0))
-    q[:, j] = centre + (torch.rand(n, generator=g, dtype=q.dtype) - 0.5)
+    j, order, noise, q = banded_poses(robot, rng, (6, 30), 1.0)
     data, label, amp = cyclic_campaign(robot, q, j, order, (0.7, 1.5), noise, rng)
     diag = diagnose(robot, data, seed=RUN_SEED % 1000)
     where = f"seed {RUN_SEED}: {label}, {amp * 1e6:.1f} µrad, noise {noise:.3f} mm"

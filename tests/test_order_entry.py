@@ -6,8 +6,6 @@ steps -> 14, the same 11 causes). Campaign drawn per run (``tests.helpers.run_rn
 
 from __future__ import annotations
 
-import torch
-
 from hybrid_pk.calibration.diagnosis.blocked import Folds
 from hybrid_pk.calibration.diagnosis.carryover import Carry
 from hybrid_pk.calibration.diagnosis.regions import make_folds
@@ -18,7 +16,7 @@ from hybrid_pk.calibration.diagnosis.split import split_campaign
 from hybrid_pk.calibration.fit import fit
 from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.effects import ExtendedModel, conditions_from_data
-from tests.helpers import RUN_SEED, cyclic_campaign, run_rng
+from tests.helpers import RUN_SEED, banded_poses, cyclic_campaign, run_rng
 from tests.test_diagnose_carryover import _ur10
 
 
@@ -27,15 +25,7 @@ def _unresolved_campaign(rng):
     measured over 0.6 rad of that joint (at most one period: a neighbouring order fits
     the same rows), moving the point by 1.5-3 noise levels (significant)."""
     robot = _ur10()
-    j = int(rng.choice([1, 2]))
-    order = int(rng.integers(4, 12))
-    n = int(rng.integers(1500, 2500))
-    noise = float(rng.uniform(0.01, 0.03))
-    g = torch.Generator().manual_seed(int(rng.integers(1 << 30)))
-    q = robot.sample_q(n, g)
-    q[:, j] = float(rng.uniform(-2.0, 2.0)) + 0.6 * (
-        torch.rand(n, generator=g, dtype=q.dtype) - 0.5
-    )
+    j, order, noise, q = banded_poses(robot, rng, (4, 12), 0.6)
     data, label, amp = cyclic_campaign(robot, q, j, order, (1.5, 3.0), noise, rng)
     return robot, data, label, f"seed {RUN_SEED}: {label}, {amp * 1e6:.1f} µrad"
 
