@@ -158,7 +158,8 @@ def settle(
             why = refusal_why(implausible)
             say(f"taking out {drop}: {why}")
             _record(steps, drop, why, None, carry.margin(res))
-            (flagged if flagged is not None else []).append(implausible)
+            if flagged is not None:
+                flagged.append(implausible)
             model = without_effect(model, drop)
             res = refit_removed(model, drop, split.train, split.cond_fit, res, None, say)
             continue
