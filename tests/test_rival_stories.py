@@ -41,9 +41,16 @@ def _campaign(rng: np.random.Generator, band: int, spec: str):
 def test_a_link_length_the_next_link_stands_in_for_is_a_rival_story():
     rng = run_rng("rival_stories")
     # joint 3 held in a narrow band: a shift of joint 3's origin and one of joint 4's
-    # (the next link, turned by joint 3) move the point alike on these rows only
-    t = rng.normal(0, 1, 3)
-    t *= rng.uniform(0.3e-3, 0.8e-3) / np.linalg.norm(t)
+    # (the next link, turned by joint 3) move the point alike on these rows only. They
+    # part by the shift's part across joint 3's axis turned through joint 3's angle (a
+    # shift along the axis turns into itself): drawn at 0.2-0.5 mm, it parts them by
+    # more than 0.1 mm across the range and by < 0.015 mm within the band's 0.03 rad,
+    # below the noise. The part along the axis is drawn at up to 0.5 mm either way.
+    params = hpk.Robot.from_urdf("rx160").kinematic_params()
+    axis = (params.origin_rot[2] @ params.axis[2]).detach().numpy()  # in the frame the shift is in
+    across = np.cross(axis, rng.normal(0, 1, 3))
+    t = across * rng.uniform(0.2e-3, 0.5e-3) / np.linalg.norm(across)
+    t += axis * rng.uniform(-0.5e-3, 0.5e-3)
     robot, data = _campaign(rng, 2, "link_length:joint_3=" + ",".join(f"{x:.6g}" for x in t))
     d = diagnose(robot, data, candidates=CANDIDATES, seed=int(rng.integers(99)))
     named = [f"{c.effect}:{c.joint}" for c in d.causes]
