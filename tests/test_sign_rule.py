@@ -36,3 +36,31 @@ def test_effects_without_a_sign_rule_keep_both_signs(ur10):
     small = float(rng.uniform(1e-5, 1e-4))
     for label in ("joint_offset:elbow_joint", "gear_ratio:wrist_2_joint", "thermal_expansion"):
         assert implausibility(hpk.make_effect(ur10, label, -small), ur10) is None, label
+
+
+def test_a_component_within_three_std_of_zero_is_zero_not_a_negative_finding(ur10):
+    """The sign rule reads a component's standard deviation where the fit gave one: a
+    tilt compliance of (-3.7e-10 +- 7.8e-9, 1.08e-6 +- 2e-9) rad/Nm (a component the rows
+    barely determine, beside one they do) is zero within 0.05 std, not a negative
+    compliance. Refused as negative, it stopped a joint-3 offset from entering a
+    pinocchio-generated campaign (sweep seed 737373): the search kept the tilt
+    compliance alone in place of the true joint-2 compliance and joint-3 offset."""
+    rng = run_rng("sign-rule-std")
+    sd = float(rng.uniform(1e-9, 1e-8))
+    big = float(rng.uniform(5e-7, 5e-6))
+    label = "tilt_compliance:wrist_1_joint"
+    for k, refused in ((0.05, False), (2.9, False), (3.1, True), (30.0, True)):
+        tilt = hpk.make_effect(ur10, label, torch.tensor([-k * sd, big]))
+        why = implausibility(tilt, ur10, std=[sd, sd / 5])
+        assert (why is not None) == refused, (k, why)
+        if refused:
+            assert f"{k:.3g} std below zero" in why["why"], why
+    # without a standard deviation (a fit without covariance: NaN) any value below zero
+    tilt = hpk.make_effect(ur10, label, torch.tensor([-0.05 * sd, big]))
+    assert implausibility(tilt, ur10) is not None
+    assert implausibility(tilt, ur10, std=[float("nan"), float("nan")]) is not None
+    # one component: a compliance or a play
+    for name in ("joint_compliance:elbow_joint", "backlash:wrist_3_joint"):
+        effect = hpk.make_effect(ur10, name, -sd)
+        assert implausibility(effect, ur10, std=[sd]) is None, name
+        assert implausibility(effect, ur10, std=[sd / 10]) is not None, name

@@ -233,7 +233,7 @@ def _print_summary(robot, data, diag, effects, model, res0, res) -> None:
     else:
         print("  no effects: frames only" + (" (the diagnosis named none)" if diag else ""))
     lines = frame_lines(model) + mounting_lines(model) + fit_lines(data, res)
-    for line in lines + implausible_effect_lines(model, data):
+    for line in lines + implausible_effect_lines(model, data, res):
         print(line)
     p0, p1 = error_stats(res0.position_mm), error_stats(res.position_mm)
     print(

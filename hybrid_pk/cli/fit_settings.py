@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from hybrid_pk.calibration.diagnosis.plausibility import implausibility
+from hybrid_pk.calibration.diagnosis.plausibility import effect_std, implausibility
 from hybrid_pk.calibration.robust import (
     CUT_WEIGHT,
     OUTLIER_K,
@@ -120,13 +120,14 @@ def fit_lines(data, res) -> list[str]:
     return frame_report_lines(res) + robust_lines(summary["outliers"], summary)
 
 
-def implausible_effect_lines(model, data) -> list[str]:
+def implausible_effect_lines(model, data, res=None) -> list[str]:
     """A ``warning:`` for each fitted effect of ``model`` that is not a small correction
     of the URDF (``calibrate --effects LIST`` fits what it is told; it does not let such
-    a value pass for a cause)."""
+    a value pass for a cause). ``res``: the fit, whose standard deviations the sign
+    rules read."""
     lines = []
     for effect in model.effects:
-        why = implausibility(effect, model.robot, data)
+        why = implausibility(effect, model.robot, data, effect_std(res, effect.label))
         if why is not None:
             lines.append(
                 f"warning: {effect.label}: {why['why']}; this is no calibration error but a "

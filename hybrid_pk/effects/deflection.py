@@ -33,7 +33,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from hybrid_pk.effects.base import Effect, register
+from hybrid_pk.effects.base import Effect, register, sds_below
 from hybrid_pk.effects.limits import DRAWN_COMPLIANCE, MAX_COMPLIANCE
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import so3_exp
@@ -93,11 +93,12 @@ class DeflectionEffect(Effect):
         self.register_buffer("basis", perpendicular_basis(axis))  # (2, 3)
 
     @classmethod
-    def implausible(cls, value: float | list[float]) -> list[str]:
-        if min(value) >= 0:
+    def implausible(cls, value: float | list[float], std=None) -> list[str]:
+        if not cls.below_zero(value, std):
             return []
+        shown = ", ".join(f"{v:.3g}" for v in value)
         return [
-            f"negative {cls.kind} ({', '.join(f'{v:.3g}' for v in value)} {cls.unit}): a load "
+            f"negative {cls.kind} ({shown} {cls.unit}{sds_below(value, std)}): a load "
             "cannot bend a structure towards itself; it likely absorbs another, unmodelled error"
         ]
 

@@ -47,7 +47,7 @@ class LinkLength(Effect):
     description = "translation error of the origin in front of the joint (vector)"
 
     @classmethod
-    def implausible(cls, value: float | list[float]) -> list[str]:
+    def implausible(cls, value: float | list[float], std=None) -> list[str]:
         size = math.hypot(*(value if isinstance(value, list) else [value]))
         if size <= WARNED_TRANSLATION_M:
             return []
@@ -147,7 +147,7 @@ class ThermalExpansion(Effect):
     )
 
     @classmethod
-    def implausible(cls, value: float | list[float]) -> list[str]:
+    def implausible(cls, value: float | list[float], std=None) -> list[str]:
         alpha = float(value)  # type: ignore[arg-type]
         if 0 <= alpha <= MAX_CREDIBLE_EXPANSION:
             return []

@@ -293,7 +293,7 @@ def _forward(model, res, pool, split, tests, say):
     if best is None:
         return None
     new, new_res, step = try_candidate(model, res, best, scores, split, progress=say)
-    if not step["accepted"] or implausible_effect(new, split.train, first=best.label):
+    if not step["accepted"] or implausible_effect(new, split.train, best.label, new_res):
         return None
     duplicates = near_duplicates(best.label, best.fitted, scores.signatures)
     return new, new_res, step, [(best.label, d["effects"][1]) for d in duplicates]

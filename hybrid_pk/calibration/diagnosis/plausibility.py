@@ -23,6 +23,7 @@ from hybrid_pk.robot import Robot
 __all__ = [
     "MAX_CREDIBLE_EXPANSION",
     "carried_finding",
+    "effect_std",
     "finding_entry",
     "implausibility",
     "implausible_effect",
@@ -43,7 +44,7 @@ def plausibility_warnings(causes: list[Cause], data: MeasuredData) -> list[dict]
     for c in causes:
         label = c.effect if c.joint is None else f"{c.effect}:{c.joint}"
         cls = EFFECTS[c.effect]
-        reasons = cls.implausible(c.value)
+        reasons = cls.implausible(c.value, c.std)
         if cls.needs == "temperature":
             reasons += _temperature_reasons(data)
         if reasons:
@@ -74,19 +75,24 @@ def finding_entry(cause: str, value, limit: float | None, unit: str, why: str) -
     return {"cause": cause, "value": value, "limit": limit, "unit": unit, "why": why}
 
 
-def implausibility(effect: Effect, robot: Robot, data: MeasuredData | None = None) -> dict | None:
+def implausibility(
+    effect: Effect, robot: Robot, data: MeasuredData | None = None, std=None
+) -> dict | None:
     """Why ``effect``'s value is not a small physical correction, or None.
 
     Args:
         effect: a fitted effect of ``robot``.
         data: the rows (compliance: the gravity torques they load the joint with).
+        std: ``(size,)`` standard deviations of its parameters from the fit (None, or
+            NaN: the fit gave none): a sign rule then reads a value within
+            :data:`~hybrid_pk.effects.base.SIGN_SIGMAS` of them as zero.
 
     Returns:
         ``{"cause", "value", "limit", "unit", "why"}`` when beyond the limits.
     """
     unit = effect.unit
     size = float(effect.value.detach().norm())
-    wrong_sign = _wrong_sign(effect)
+    wrong_sign = _wrong_sign(effect, std)
     if wrong_sign is not None:
         return wrong_sign
     if effect.stage == "compliance":
@@ -109,9 +115,12 @@ def implausibility(effect: Effect, robot: Robot, data: MeasuredData | None = Non
     return finding_entry(effect.label, size, limit, unit, why)
 
 
-def implausible_effect(model, data: MeasuredData | None, first: str | None = None) -> dict | None:
+def implausible_effect(
+    model, data: MeasuredData | None, first: str | None = None, res=None
+) -> dict | None:
     """The :func:`implausibility` entry of the first effect of ``model`` (``first``, by
     label, checked before the others) that is not a small physical correction, or None.
+    ``res``: the fit of ``model``, whose standard deviations the sign rules read.
 
     Every effect, not only the one a refit added: a refit moves all of them, and along
     a direction the data barely determine (two link lengths along parallel axes) it can
@@ -119,7 +128,7 @@ def implausible_effect(model, data: MeasuredData | None, first: str | None = Non
     cause limit: +-2455 mm, after a group swap)."""
     effects = sorted(model.effects, key=lambda e: e.label != first)
     for e in effects:
-        why = implausibility(e, model.robot, data)
+        why = implausibility(e, model.robot, data, effect_std(res, e.label))
         if why is not None:
             return why
     return None
@@ -138,17 +147,33 @@ def oversized(model) -> bool:
     )
 
 
-def _wrong_sign(effect: Effect) -> dict | None:
+def effect_std(res, label: str):
+    """The standard deviations of effect ``label``'s parameters in fit ``res`` (a list),
+    or None (no fit, or not one of its blocks)."""
+    if res is None:
+        return None
+    try:
+        return [float(x) for x in res.std[res.block_slice(label)]]
+    except (KeyError, IndexError):
+        return None
+
+
+def _wrong_sign(effect: Effect, std=None) -> dict | None:
     """The finding of an effect whose physics fixes its sign (``positive``: a play, a
     compliance, a bend under load) fitted below zero: its class's own sign rule
     (:meth:`Effect.implausible`), which the warnings state too. A load cannot bend a
     structure towards itself, nor a play be negative, so a significant negative value
-    measures something else the effect absorbs, whatever its size."""
+    measures something else the effect absorbs, whatever its size; one within
+    :data:`~hybrid_pk.effects.base.SIGN_SIGMAS` of its ``std`` (where the fit gave
+    one) is zero as far as the rows can tell (a component the data barely determine,
+    next to one they do)."""
     if not type(effect).positive:
         return None
     v = effect.value.detach().reshape(-1)
     value = float(v[0]) if v.numel() == 1 else [float(x) for x in v]
-    reasons = type(effect).implausible(value)
+    if std is not None and v.numel() == 1:
+        std = std[0] if isinstance(std, list | tuple) else std
+    reasons = type(effect).implausible(value, std)
     if not reasons:
         return None
     return finding_entry(effect.label, float(v.min()), 0.0, effect.unit, "; ".join(reasons))

@@ -289,7 +289,7 @@ def _select(
         )
         steps.append(step)
         remaining = [c for c in remaining if c != best.label]
-        implausible = implausible_effect(new, split.train, first=best.label)
+        implausible = implausible_effect(new, split.train, first=best.label, res=new_res)
         if step["accepted"] and implausible is not None:
             step["accepted"] = False
             implausible = carried_finding(implausible, best.label)

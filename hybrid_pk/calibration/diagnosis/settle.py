@@ -152,7 +152,7 @@ def settle(
     ambiguous: list[dict] = []
     while True:
         # every refit (the search's, this loop's) may carry an effect off: first that
-        implausible = implausible_effect(model, split.train)
+        implausible = implausible_effect(model, split.train, res=res)
         if implausible is not None:
             drop = implausible["cause"]
             why = refusal_why(implausible)

@@ -333,7 +333,7 @@ def structural_check(
     findings, keep = list(flagged), []
     for c in causes:
         label = f"{c.effect}:{c.joint}" if c.joint else c.effect
-        why = implausibility(model.effect(label), robot, split.train)
+        why = implausibility(model.effect(label), robot, split.train, c.std)
         if why is None:
             share, _, _ = frame_share(model, label, split.train, split.cond_fit)
             if share > diagnosis_tuning().max_frame_share:

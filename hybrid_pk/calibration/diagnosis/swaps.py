@@ -260,7 +260,7 @@ def _swapped(model, res, current, swap, split, tests, say, near=None):
     except StoppedFit:
         say(f"{alternative} in place of {chosen}: its refit left a small correction, refused")
         return None
-    if implausible_effect(trial, split.train, first=alternative) is not None:
+    if implausible_effect(trial, split.train, first=alternative, res=trial_res) is not None:
         return None
     removals: list[dict] = []
     trial, trial_res, removed = eliminate(
