@@ -19,7 +19,7 @@ import torch
 
 from hybrid_pk.calibration.diagnosis.carryover import Carry, linearise
 from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic
-from hybrid_pk.calibration.diagnosis.plausibility import implausibility
+from hybrid_pk.calibration.diagnosis.plausibility import effect_std, implausibility
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.variants import with_effects, without_effect
 from hybrid_pk.calibration.fit import FitResult, fit
@@ -86,12 +86,13 @@ def _parted(model, res, split, pair: tuple[str, str], judge, say) -> dict | None
     (cause, rival), (carry, named) = pair, judge
     say(f"rival stories: {rival} for {cause}")
     swapped = with_effects(without_effect(model, cause), [make_effect(model.robot, rival)])
-    fit(
-        swapped, split.train, cond=split.cond_fit, covariance=False,
+    # with its covariance: the sign rule reads the rival's standard deviation
+    fitted = fit(
+        swapped, split.train, cond=split.cond_fit, report_frames=False,
         initial_sigma=(res.sigma_pos_mm, res.sigma_rot_rad), **res.settings(),
     )  # fmt: skip
     effect = swapped.effect(rival)
-    if implausibility(effect, model.robot, split.train) is not None:
+    if implausibility(effect, model.robot, split.train, effect_std(fitted, rival)) is not None:
         return None
     blocked = linearise(swapped, res, split, carry.folds, say, factor=False)[3]
     own = blocked.rms_mm(blocked.of([e.label for e in swapped.effects]))
