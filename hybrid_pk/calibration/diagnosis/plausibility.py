@@ -154,7 +154,7 @@ def effect_std(res, label: str):
         return None
     try:
         return [float(x) for x in res.std[res.block_slice(label)]]
-    except (KeyError, IndexError):
+    except KeyError:
         return None
 
 
@@ -171,8 +171,6 @@ def _wrong_sign(effect: Effect, std=None) -> dict | None:
         return None
     v = effect.value.detach().reshape(-1)
     value = float(v[0]) if v.numel() == 1 else [float(x) for x in v]
-    if std is not None and v.numel() == 1:
-        std = std[0] if isinstance(std, list | tuple) else std
     reasons = type(effect).implausible(value, std)
     if not reasons:
         return None
