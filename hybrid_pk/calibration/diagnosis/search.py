@@ -192,7 +192,7 @@ def _optional_findings(model, res, named, split, refs, say, budget):
     with budget.stage("structural search"):
         sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
         causes, structural = structural_check(
-            model, causes, flagged, split, nominal_model, sigmas, say, budget
+            model, causes, flagged, split, nominal_model, sigmas, say, budget, res
         )
     with budget.stage("rival stories"):
         stories = rival_stories(model, res, pool, split, carry, say, budget)

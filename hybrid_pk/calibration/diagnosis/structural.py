@@ -35,7 +35,11 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.calibration.diagnosis.budget import Budget
-from hybrid_pk.calibration.diagnosis.plausibility import finding_entry, implausibility
+from hybrid_pk.calibration.diagnosis.plausibility import (
+    effect_std,
+    finding_entry,
+    implausibility,
+)
 from hybrid_pk.calibration.fit import fit, model_errors
 from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.calibration.problem import Problem, param_blocks
@@ -48,6 +52,7 @@ from hybrid_pk.effects import (
     effect_joint_names,
     make_effect,
 )
+from hybrid_pk.effects.base import SIGN_SIGMAS
 from hybrid_pk.effects.geometric import AxisMisalignment, LinkLength
 from hybrid_pk.effects.joint import JointOffset
 from hybrid_pk.effects.limits import (
@@ -59,6 +64,7 @@ from hybrid_pk.geometry import so3_exp, so3_log
 __all__ = [
     "MAX_ROTATION_DEG",
     "MAX_TRANSLATION_M",
+    "determined_part",
     "displacement",
     "frame_share",
     "locate_structural_error",
@@ -73,22 +79,25 @@ FRAME_SHARE_ROWS = 2000
 
 
 @torch.no_grad()
-def displacement(model: ExtendedModel, label: str, data: MeasuredData, cond: Conditions):
+def displacement(
+    model: ExtendedModel, label: str, data: MeasuredData, cond: Conditions, value=None
+):
     """``(N, 3)`` [mm] what effect ``label`` moves the measured points by, frames fixed
-    (the measurement frame)."""
-    reduced = ExtendedModel(
-        model.robot,
-        [
-            make_effect(model.robot, e.label, e.value.detach().clone())
+    (the measurement frame); ``value`` (its parameters) in place of its own if given."""
+
+    def copy(replace: bool) -> ExtendedModel:
+        kept = [
+            make_effect(model.robot, e.label, (value if e.label == label else e.value).detach())
             for e in model.effects
-            if e.label != label
-        ],
-        frame_sets=model.base.sets,
-        gravity=model.gravity,
-    )
-    reduced.base.reset_to(model.base.matrix().detach())
-    reduced.tool.reset_to(model.tool.matrix().detach())
-    return 1e3 * (model(data.q, cond)[:, :3, 3] - reduced(data.q, cond)[:, :3, 3])
+            if replace or e.label != label
+        ]
+        out = ExtendedModel(model.robot, kept, frame_sets=model.base.sets, gravity=model.gravity)
+        out.base.reset_to(model.base.matrix().detach())
+        out.tool.reset_to(model.tool.matrix().detach())
+        return out
+
+    full = model if value is None else copy(True)
+    return 1e3 * (full(data.q, cond)[:, :3, 3] - copy(False)(data.q, cond)[:, :3, 3])
 
 
 def off_frames(
@@ -111,9 +120,16 @@ def off_frames(
 
 
 def frame_share(
-    model: ExtendedModel, label: str, data: MeasuredData, cond: Conditions
+    model: ExtendedModel, label: str, data: MeasuredData, cond: Conditions, std=None
 ) -> tuple[float, Tensor, Tensor]:
     """Fraction of the displacement effect ``label`` makes that a frame change makes too.
+
+    ``std``: the fit's standard deviations of the effect's parameters. A parameter
+    within :data:`~hybrid_pk.effects.base.SIGN_SIGMAS` of them of zero is zero as far
+    as the rows can tell (its value is wherever the frames' trade-off left it, within
+    the rows' noise), so it is left out of the displacement judged: a value the rows do
+    not determine measures neither a physical error nor a trade-off. With no parameter
+    determined the share is 0 (nothing to judge).
 
     Returns:
         ``(share, d, d_phys)``: ``share`` in [0, 1], the displacement ``d (n, 3)`` [mm]
@@ -123,11 +139,24 @@ def frame_share(
     if data.n > FRAME_SHARE_ROWS:  # a ratio of the rows' spread: an even subset will do
         rows = torch.arange(0, data.n, math.ceil(data.n / FRAME_SHARE_ROWS))
         data, cond = data.subset(rows), cond.subset(rows)
-    d = displacement(model, label, data, cond)
+    d = displacement(model, label, data, cond, determined_part(model.effect(label), std))
     (d_phys,) = off_frames(model, data, cond, d)
     total = float((d**2).sum())
-    share = 1.0 - float((d_phys**2).sum()) / max(total, 1e-300)
+    if total == 0.0:
+        return 0.0, d, d_phys
+    share = 1.0 - float((d_phys**2).sum()) / total
     return min(max(share, 0.0), 1.0), d, d_phys
+
+
+def determined_part(effect, std) -> Tensor | None:
+    """The effect's value with its parameters within ``SIGN_SIGMAS`` of their ``std``
+    of zero set to zero, or None when there is no such parameter (or no finite std)."""
+    if std is None:
+        return None
+    v = effect.value.detach()
+    s = torch.as_tensor(std, dtype=v.dtype).reshape(v.shape)
+    noise = v.abs() <= SIGN_SIGMAS * s  # False where the std is NaN: kept
+    return torch.where(noise, torch.zeros_like(v), v) if bool(noise.any()) else None
 
 
 def _origin_correction(model: ExtendedModel, joint: str) -> dict:
@@ -308,6 +337,7 @@ def structural_check(
     sigmas: tuple[float, float | None],
     say: Callable[[str], None] | None = None,
     budget: Budget | None = None,
+    res=None,
 ) -> tuple[list, dict | None]:
     """Keep only plausible causes; say where the URDF looks wrong when it does.
 
@@ -321,6 +351,8 @@ def structural_check(
         sigmas: noise levels ``(position mm, rotation rad)`` of the structural fits.
         budget: the optional stages' work budget (:mod:`.budget`); the structural
             search stops when it is spent (``budget_cut`` says what it left undone).
+        res: the fit of ``model``: its standard deviations say which parameters the
+            frame share judges (:func:`frame_share`).
 
     Returns:
         ``(causes, structural)``: the causes that stay plain causes, and the
@@ -335,14 +367,17 @@ def structural_check(
         label = f"{c.effect}:{c.joint}" if c.joint else c.effect
         why = implausibility(model.effect(label), robot, split.train, c.std)
         if why is None:
-            share, _, _ = frame_share(model, label, split.train, split.cond_fit)
+            std = effect_std(res, label)
+            share, _, _ = frame_share(model, label, split.train, split.cond_fit, std)
             if share > diagnosis_tuning().max_frame_share:
+                part = "it makes" if determined_part(model.effect(label), std) is None else (
+                    "the components the rows determine make")  # fmt: skip
                 why = finding_entry(
                     label,
                     c.value,
                     None,
                     c.unit,
-                    f"{100 * share:.1f} % of the displacement it makes is what a "
+                    f"{100 * share:.1f} % of the displacement {part} is what a "
                     "change of the base and tool frames makes: its value measures a "
                     "trade-off with the frames, not a physical error",
                 )
