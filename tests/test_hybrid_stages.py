@@ -126,7 +126,9 @@ def test_the_default_hybrid_is_the_physics_where_joint_1_was_never_trained(ur10)
                 "orientation_net": "mlp:64x2",
                 "refine_net": "mlp:64x2",
             },
-            max_epochs=40,
+            # 40 epochs left an elbow sag under-learned (validation gain 0.68-0.81 at
+            # seeds 1-8 and sweep seed 313131, against the < 0.8 below); 80 take it to ~0.5
+            max_epochs=80,
             progress=False,
             seed=RUN_SEED,
         )
