@@ -236,7 +236,7 @@ def test_networks_gated_beyond_joint_1_are_carried_where_the_new_rows_show_they_
     nets = {"position_net": "mlp:64x2", "orientation_net": "mlp:64x2", "refine_net": "mlp:64x2"}
     result = train_hybrid(
         data.subset(torch.nonzero(low)[:, 0]), ExtendedModel(ur10), model=nets,
-        max_epochs=40, progress=False, seed=0,
+        max_epochs=80, progress=False, seed=0,
     )  # fmt: skip
     path = tmp_path / "hybrid.pt"
     save_hybrid(path, result.hybrid)
