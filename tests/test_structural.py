@@ -241,9 +241,9 @@ def test_an_offset_is_named_at_its_joint_not_as_the_next_joints_turn_and_move(rx
     hint at joint_3 explained the error there, and the search named joint_3 with a
     move of a hundred-odd mm. The joint before predicts the hold-out as well with a
     smaller move: it is named (sweep seed 424242 of tests/test_budget.py). Its move is
-    not zero (4.3 mm in that case; 37 mm against the next joint's 182 mm here at sweep
-    seed 141414, a 12.7 deg offset, the rotation exact): the rule asks only that it be
-    the smaller one."""
+    the rows' noise: at sweep seed 141414 it was reported as 37 mm, a move of joint 2's
+    origin along joint 1's axis that is exactly a base translation (the structural fits
+    hold no frame prior); the reported move leaves such directions out."""
     rng = run_rng("structural joint before")
     offset = float(rng.uniform(0.15, 0.3)) * float(rng.choice([-1.0, 1.0]))  # [rad]
     data, _ = simulate_campaign(rx160, 150, f"joint_offset:joint_2={offset}", noise_mm=0.05,
@@ -258,4 +258,6 @@ def test_an_offset_is_named_at_its_joint_not_as_the_next_joints_turn_and_move(rx
     next_move = 2 * abs(math.sin(offset / 2)) * lever_mm  # what joint_3's correction moves
     assert found["joint"] == "joint_2", (offset, found)
     assert found["translation_mm"] < next_move, (offset, found, next_move)
+    # an offset moves no origin: 0.02-0.6 mm at seeds 1-8, 141414, 424242 (0.05 mm noise)
+    assert found["translation_mm"] < 1.0, (offset, found)
     assert abs(found["rotation_deg"] - math.degrees(abs(offset))) < 0.05, (offset, found)

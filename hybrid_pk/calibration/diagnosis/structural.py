@@ -159,9 +159,11 @@ def determined_part(effect, std) -> Tensor | None:
     return torch.where(noise, torch.zeros_like(v), v) if bool(noise.any()) else None
 
 
-def _origin_correction(model: ExtendedModel, joint: str) -> dict:
+def _origin_correction(model: ExtendedModel, joint: str, data: MeasuredData, cond) -> dict:
     """Rotation [deg] (and axis in the joint frame) and translation [mm] of the origin
-    correction held by the joint's offset, misalignment and link-length effects."""
+    correction held by the joint's offset, misalignment and link-length effects; the
+    translation without the part a change of the frames makes as well
+    (:func:`_frame_free_move`, on ``data``)."""
     robot = model.robot
     misalignment = model.effect(f"{AxisMisalignment.kind}:{joint}")
     axis = torch.as_tensor(robot.spec.axes[misalignment.joint_index], dtype=torch.float64)
@@ -174,11 +176,35 @@ def _origin_correction(model: ExtendedModel, joint: str) -> dict:
         if not prismatic:
             R = R @ so3_exp(axis * offset)
     rotvec = so3_log(R)
-    dp = model.effect(f"{LinkLength.kind}:{joint}").value.detach().double()
+    dp = _frame_free_move(model, f"{LinkLength.kind}:{joint}", data, cond)
     angle = math.degrees(float(rotvec.norm()))
     unit = rotvec / rotvec.norm().clamp_min(1e-300)
     mm = 1e3 * float(dp.norm()) + (1e3 * abs(offset) if prismatic else 0.0)
     return {"rotation_deg": angle, "rotation_axis": [float(x) for x in unit], "translation_mm": mm}
+
+
+# A direction of a link length whose frame-free displacement is below this fraction of
+# the largest direction's is a frame change (selection.RANK_TOLERANCE: 1e-4 of the
+# norm, a motion no tracker resolves).
+FRAME_MOVE_FRACTION = 1e-4
+
+
+def _frame_free_move(model: ExtendedModel, label: str, data: MeasuredData, cond) -> Tensor:
+    """``(3,)`` [m] link length ``label``'s value without its directions whose
+    displacement a change of the base and tool frames makes exactly (the origin after
+    the first joint moved along that joint's axis is a base translation): the fits of the
+    structural search hold no frame prior, so such a direction goes wherever the fit's
+    path leaves it and measures no error of the URDF."""
+    value = model.effect(label).value.detach().double().reshape(-1)
+    if data.n > FRAME_SHARE_ROWS:  # a rank on the rows' spread: an even subset will do
+        rows = torch.arange(0, data.n, math.ceil(data.n / FRAME_SHARE_ROWS))
+        data, cond = data.subset(rows), cond.subset(rows)
+    unit = torch.eye(3, dtype=value.dtype) * 1e-3  # 1 mm along each axis: exactly linear
+    fields = [displacement(model, label, data, cond, u) for u in unit]
+    free = off_frames(model, data, cond, *fields)
+    _, S, Vh = torch.linalg.svd(torch.stack([f.reshape(-1) for f in free], 1), full_matrices=False)
+    kept = Vh[S > FRAME_MOVE_FRACTION * S[0]]
+    return kept.T @ (kept @ value)
 
 
 # The structural search fits without limits: no frame prior, so nothing held either
@@ -273,7 +299,7 @@ def locate_structural_error(
     joint, after, model = best
     return {
         "joint": joint,
-        **_origin_correction(model, joint),
+        **_origin_correction(model, joint, split.train, split.cond_fit),
         "holdout_mean_mm_before": before,
         "holdout_mean_mm_after": after,
     }
@@ -296,11 +322,10 @@ def _joint_before(nominal, split, sigmas, found, work) -> tuple:
         return best
     model, after = _fit_correction(nominal, before, split, sigmas, None)
     tolerance = sigmas[0] / math.sqrt(split.test.n)  # [mm]
-    moved = _origin_correction(model, before)["translation_mm"]
-    if (
-        after <= best[1] + tolerance
-        and moved < _origin_correction(best[2], best[0])["translation_mm"]
-    ):
+    rows = (split.train, split.cond_fit)
+    moved = _origin_correction(model, before, *rows)["translation_mm"]
+    next_move = _origin_correction(best[2], best[0], *rows)["translation_mm"]
+    if after <= best[1] + tolerance and moved < next_move:
         return before, after, model
     return best
 
