@@ -23,6 +23,7 @@ from torch import Tensor
 from hybrid_pk.calibration.covariance import svd_covariance
 from hybrid_pk.calibration.frames import PriorRows
 from hybrid_pk.calibration.problem import ParamBlock, Problem
+from hybrid_pk.calibration.robust import rotation_noise
 from hybrid_pk.calibration.work import count as count_work
 
 # Directions of a Jacobian (columns at unit norm) weaker than this share of the
@@ -255,6 +256,24 @@ def _appended(R: Tensor | None, M: Tensor) -> Tensor:
     return torch.linalg.qr(M if R is None else torch.cat([R, M]), mode="r").R
 
 
+def residual_variance(problem: Problem, zz: float, n_par: int) -> float:
+    """The variance the covariance is scaled by: the weighted residuals' square sum
+    ``zz`` per degree of freedom. Orientation rows whose noise level sits at its floor
+    (:func:`~hybrid_pk.calibration.robust.rotation_noise`: orientations exact to the
+    position noise over ``LEVER_M``, as a simulation without orientation noise gives)
+    are left out: their weighted residuals are below one by the floor's making, and
+    with as many orientation as position rows they would scale every position-made
+    standard deviation by sqrt(1/2). (The directions only they determine keep the
+    floor's larger variance: a bound, not an estimate.)"""
+    n_obs, n = problem.n_residuals, problem.data.n
+    floor = rotation_noise(0.0, problem.sigma_pos_mm)
+    if problem.R_meas is None or problem.sigma_rot_rad > floor * (1 + 1e-9):
+        return zz / max(n_obs - n_par, 1)
+    with torch.no_grad():
+        rot = problem.residual(torch.zeros_like(problem.x0))[3 * n : 6 * n]
+    return (zz - float(rot @ rot)) / max(n_obs - 3 * n - n_par, 1)
+
+
 def covariance_fields(problem: Problem, prior: PriorRows | None, R: Tensor | None) -> dict:
     """Standard deviations, correlations and singular values at the problem's point,
     and the normal matrix ``J^T J`` (scaled parameters) they come from; ``R``: the
@@ -264,7 +283,7 @@ def covariance_fields(problem: Problem, prior: PriorRows | None, R: Tensor | Non
     n_par = problem.x0.numel()
     J, z = R[:, :n_par], R[:, n_par]
     n_obs = problem.n_residuals
-    s2 = float(z @ z) / max(n_obs - n_par, 1)
+    s2 = residual_variance(problem, float(z @ z), n_par)
     normal = J.T @ J
     svd = svd_covariance(J, n_obs, s2)
     std = svd["cov"].diagonal().clamp_min(0).sqrt() * problem.scale
