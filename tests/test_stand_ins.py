@@ -141,7 +141,13 @@ def test_hidden_offset_stood_in_for_by_a_group_is_named():
     assert set(named) == set(truth), f"{where}: named {sorted(named)}"
     for label, value in truth.items():
         err = _within(named[label].value, value)
-        assert err < VALUE_TOLERANCE, f"{where}: {label} {named[label].value} ({err:.1%} off)"
+        # or within the rows' precision: a link length of 0.05-0.3 mm measured at 0.02 mm
+        # has ~1 um std a component, and 5 % of the smaller ones is 2-3 std (sweep seed
+        # 696969: 5.3 % off, 3.1 std as a norm); 4 std as a norm: chi-square(3) > 16, 0.1 %
+        z = float(np.linalg.norm((np.atleast_1d(named[label].value) - value) / named[label].std))
+        assert err < VALUE_TOLERANCE or z < 4.0, (
+            f"{where}: {label} {named[label].value} ({err:.1%} off, {z:.1f} std)"
+        )
 
 
 # Two offsets, each stood in for by the next joint's misalignment and link length.
