@@ -8,6 +8,7 @@ sized to 0.15–0.9 mm mean error on the campaign itself, unknown base and tool 
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -210,7 +211,13 @@ def test_hidden_effect_is_named_with_its_value(kind):
     data, truth, where = _campaign(robot, [spec], rng)
     diag = diagnose(robot, data, seed=RUN_SEED % 1000)
     _check(diag, truth, f"{robot.name} {where}")
-    assert diag.extended["position_mm"]["mean"] < diag.nominal["position_mm"]["mean"] / 2
+    # halved, or at what the noise alone leaves: an effect sized with known frames can be
+    # mostly a frame change once they are fitted (sweep seed 919191: a shoulder axis
+    # tilted about the vertical left 0.058 mm nominal, the noise alone 0.040 mm)
+    noise = float(re.search(r"noise=([0-9.]+) mm", where).group(1))
+    floor = math.sqrt(8 / math.pi) * noise  # mean 3-D norm of the noise; ~2 % sd here
+    extended, nominal = (d["position_mm"]["mean"] for d in (diag.extended, diag.nominal))
+    assert extended < max(nominal / 2, 1.1 * floor), (where, extended, nominal, floor)
 
 
 def test_hidden_effect_position_only_data():
