@@ -35,11 +35,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.calibration.diagnosis.budget import Budget
-from hybrid_pk.calibration.diagnosis.plausibility import (
-    effect_std,
-    finding_entry,
-    implausibility,
-)
+from hybrid_pk.calibration.diagnosis.plausibility import effect_std, finding_entry, implausibility
 from hybrid_pk.calibration.fit import fit, model_errors
 from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.calibration.problem import Problem, param_blocks
@@ -119,6 +115,15 @@ def off_frames(
     return out
 
 
+def _even_subset(data: MeasuredData, cond: Conditions) -> tuple[MeasuredData, Conditions]:
+    """At most ``FRAME_SHARE_ROWS`` rows, evenly spaced: a share or a rank of the rows'
+    spread needs no more."""
+    if data.n <= FRAME_SHARE_ROWS:
+        return data, cond
+    rows = torch.arange(0, data.n, math.ceil(data.n / FRAME_SHARE_ROWS))
+    return data.subset(rows), cond.subset(rows)
+
+
 def frame_share(
     model: ExtendedModel, label: str, data: MeasuredData, cond: Conditions, std=None
 ) -> tuple[float, Tensor, Tensor]:
@@ -136,9 +141,7 @@ def frame_share(
         and its part ``d_phys`` that no change of the base and tool frames makes, on
         the rows used (an even subset of at most ``FRAME_SHARE_ROWS``).
     """
-    if data.n > FRAME_SHARE_ROWS:  # a ratio of the rows' spread: an even subset will do
-        rows = torch.arange(0, data.n, math.ceil(data.n / FRAME_SHARE_ROWS))
-        data, cond = data.subset(rows), cond.subset(rows)
+    data, cond = _even_subset(data, cond)
     d = displacement(model, label, data, cond, determined_part(model.effect(label), std))
     (d_phys,) = off_frames(model, data, cond, d)
     total = float((d**2).sum())
@@ -196,9 +199,7 @@ def _frame_free_move(model: ExtendedModel, label: str, data: MeasuredData, cond)
     structural search hold no frame prior, so such a direction goes wherever the fit's
     path leaves it and measures no error of the URDF."""
     value = model.effect(label).value.detach().double().reshape(-1)
-    if data.n > FRAME_SHARE_ROWS:  # a rank on the rows' spread: an even subset will do
-        rows = torch.arange(0, data.n, math.ceil(data.n / FRAME_SHARE_ROWS))
-        data, cond = data.subset(rows), cond.subset(rows)
+    data, cond = _even_subset(data, cond)
     unit = torch.eye(3, dtype=value.dtype) * 1e-3  # 1 mm along each axis: exactly linear
     fields = [displacement(model, label, data, cond, u) for u in unit]
     free = off_frames(model, data, cond, *fields)
