@@ -72,11 +72,18 @@ def test_a_stage_does_its_first_unit_then_units_while_the_budget_lasts():
 
 def test_work_is_counted_per_thread():
     """Two diagnoses in two threads of one process do not spend each other's budget."""
-    start = work.done()
-    other = threading.Thread(target=lambda: work.count(10_000))
+    start, seen = work.done(), []
+
+    def other_diagnosis():
+        before = work.done()
+        work.count(10_000)
+        seen.append(work.done() - before)
+
+    other = threading.Thread(target=other_diagnosis)
     other.start()
     other.join()
-    assert work.done() == start
+    assert seen == [10_000]  # the other thread counted its own work
+    assert work.done() == start  # and none of it here
 
 
 # An offset d at joint k is exactly a full origin correction of the next joint:

@@ -3,8 +3,6 @@ joints before their frame, gradients to q, the coverage fall-back, model files."
 
 from __future__ import annotations
 
-import os
-import time
 from pathlib import Path
 
 import pytest
@@ -26,11 +24,10 @@ from hybrid_pk.hybrid.inputs import parse_inputs
 from hybrid_pk.hybrid.local import LocalFeatures, LocalHead, LocalSpec
 from hybrid_pk.io.hybrid_file import load_hybrid, save_hybrid
 from hybrid_pk.io.model_file import load_model
-from tests.helpers import check_gradients
+from tests.helpers import RUN_SEED, check_gradients
 
 F64 = torch.float64
 DATA = Path(__file__).parent / "data"
-RUN_SEED = int(os.environ.get("HYBRID_PK_TEST_SEED", time.time_ns() % 1_000_003))
 SPECS = ["frame1", "frame1+gravity", "frame1+gravity+torque", "frame1+full", "frame2+gravity+full"]
 SPECS += ["frame1+q2-4+torque", "local"]
 
@@ -219,8 +216,10 @@ def test_a_joints_twist_is_the_first_order_motion_of_the_flange(robot):
     moved = p_j + (R_j @ (so3_exp(twist[:3]) @ local[..., None] + twist[3:, None]))[..., 0]
     R1 = frames[:, 0, :3, :3]
     expected = (R1.transpose(-1, -2) @ (moved - p_E)[..., None])[..., 0]  # joint 1's axes
-    torch.testing.assert_close(dp, expected, rtol=0, atol=1e-11)
-    assert float(dp.norm(dim=-1).min()) > 1e-7  # the motion is not zero
+    torch.testing.assert_close(
+        dp, expected, rtol=0, atol=1e-11, msg=lambda m: f"seed {RUN_SEED}: {m}"
+    )
+    assert float(dp.norm(dim=-1).min()) > 1e-7, f"seed {RUN_SEED}"  # the motion is not zero
 
 
 def test_each_joint_of_local_networks_falls_back_on_its_own(robot):

@@ -176,9 +176,17 @@ def test_ik_on_a_model_with_residual_networks(tmp_path, capsys):
     _check_rows(frame, robot, lambda qq: model(qq, None), T)
 
 
-def test_ik_no_progress_shows_no_bar(tmp_path, capsys):
+def test_ik_no_progress_shows_no_bar(tmp_path, capsys, monkeypatch):
     """--no-progress (every command) turned off every bar but the IK one (a hybrid model,
-    two stages: 400 targets take about a second, beyond the 0.5 s delay of the bar)."""
+    two stages). The bar is the real one, shown from its first line (without the 0.5 s
+    delay a quick solve prints nothing either way)."""
+    import hybrid_pk.cli.ik_cmd as ik_cmd
+    from hybrid_pk.cli.progress import progress
+
+    def at_once(name, total=None, **kw):
+        return progress(name, total, **{**kw, "delay": 0.0})
+
+    monkeypatch.setattr(ik_cmd, "progress", at_once)
     robot = Robot.from_urdf("ur10")
     torch.manual_seed(0)
     net = HybridFK.build(
@@ -191,10 +199,13 @@ def test_ik_no_progress_shows_no_bar(tmp_path, capsys):
     rc, out, err = _run(capsys, *argv, "--no-progress")
     assert rc == 0
     assert "on 400 target(s)" in out
+    assert "ik [" not in err, err[:200]
     assert "target" not in err, err[:200]
-    # off a terminal the progress is lines, as every command's, not a bar redrawn by \r
+    # without it the bar shows; off a terminal as lines, as every command's, not a bar
+    # redrawn by \r
     rc, out, err = _run(capsys, *argv)
     assert rc == 0
+    assert "ik [" in err, err[:200]
     assert "\r" not in err
 
 

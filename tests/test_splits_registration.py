@@ -18,6 +18,7 @@ from hybrid_pk.effects import ExtendedModel, conditions_from_data
 from hybrid_pk.errors import DataError
 from hybrid_pk.evaluation.splits import joint_box_split, random_split, region_split
 from hybrid_pk.geometry import matrix_to_quat, so3_exp
+from hybrid_pk.geometry.registration import register_frames
 from hybrid_pk.simulate import random_frames, simulate_campaign
 from tests.helpers import rotation_distance
 from tests.oracles.circle_referencing import (
@@ -113,6 +114,10 @@ def test_explicit_joint_box(campaign):
 
 
 # ----------------------------------------------------------------------------- referencing
+# The paper's referencing by circles (``tests/oracles/circle_referencing.py``, test code)
+# is an independent way to the base frame: the product's closed-form registration
+# (``geometry.registration.register_frames``, where every fit starts) must agree with it
+# on the same sweeps. The circle fit's own tests check the oracle itself.
 
 HOME = (0.3, -1.2, 1.3, -1.7, -1.5, 0.4)  # [rad] a UR10 pose away from singularities
 
@@ -143,6 +148,20 @@ def test_referencing_by_circles_recovers_the_base_frame(ur10, seed):
     assert 1e3 * float((ref.tool[:3, 3] - tool[:3, 3]).norm()) < 0.1
     assert math.degrees(float(rotation_distance(ref.tool[:3, :3], tool[:3, :3]))) < 0.01
     assert all(c.rms_mm < 0.02 for c in ref.circles)
+    # the product's registration of the same rows, positions only, agrees with it
+    base_product = _registered_base(ur10, _sweeps(ur10, base, tool, noise_mm=0.005, seed=seed))
+    assert 1e3 * float((base_product[:3, 3] - ref.base[:3, 3]).norm()) < 0.1  # mm
+    assert math.degrees(float(rotation_distance(base_product[:3, :3], ref.base[:3, :3]))) < 0.01
+
+
+def _registered_base(robot, sweeps) -> torch.Tensor:
+    """``T_meas_root`` of the product's closed-form registration of the sweeps' rows
+    (positions only: the orientations would give the rotation directly)."""
+    q = torch.cat([s.q for s in sweeps])
+    with torch.no_grad():
+        T_end = robot.fk(q).double()
+    base, _ = register_frames(T_end, torch.cat([s.position for s in sweeps]), None)
+    return base
 
 
 def test_circle_fit_is_exact_on_a_short_arc():
@@ -177,6 +196,8 @@ def test_sweeps_are_found_in_a_table_and_reference_it(ur10):
     ref = reference_from_sweeps(ur10, found)  # position only: tool point, no rotation
     assert 1e3 * float((ref.base[:3, 3] - base[:3, 3]).norm()) < 1e-6
     assert 1e3 * float((ref.tool[:3, 3] - tool[:3, 3]).norm()) < 1e-6
+    base_product = _registered_base(ur10, found)  # the product, on the sweeps found
+    assert 1e3 * float((base_product[:3, 3] - ref.base[:3, 3]).norm()) < 1e-3
 
 
 def test_parallel_axes_cannot_fix_the_base(ur10):
