@@ -55,3 +55,27 @@ def test_feedback_on_the_twist_rows_equals_it_on_every_column(ur10):
     scale = old.abs().amax(dim=(0, 1))  # per column: units differ between blocks
     assert bool((scale > 0).all())
     assert float(((twists - old).abs().amax(dim=(0, 1)) / scale).max()) < 1e-12
+
+
+def test_a_soft_joint_settles_to_the_stated_tolerance(rx160):
+    """The compliance fixed point without derivatives stops at its tolerance
+    (``COMPLIANCE_TOL_RAD``), also on a soft joint where four steps are not enough: an
+    RX160 shoulder at 2.3e-5 rad/Nm (contraction ~0.01 from a ~0.01 rad sag) left
+    1e-10 rad with four. Checked against the fixed point iterated far past it."""
+    from hybrid_pk.effects.extended import COMPLIANCE_TOL_RAD
+
+    model = ExtendedModel(rx160, [make_effect(rx160, "joint_compliance:joint_2", 2.3e-5)])
+    q = rx160.sample_q(200, torch.Generator().manual_seed(3))
+    data, _ = simulate_campaign(rx160, 200, "none", poses=q, noise_mm=0.0, payload=20.0, seed=1)
+    cond = conditions_from_data(data)
+    with torch.no_grad():
+        settled = model.joint_values(q.clone(), cond)  # fresh rows: a cold start
+        g = model.gravity_root(cond)
+        c = model._compliance()
+        payload = 0.0 if cond.payload is None else cond.payload
+        ref = q.clone()
+        for _ in range(60):  # contraction ~0.01: far below round-off
+            ref = q - c * rx160.gravity_torques(ref, payload=payload, gravity=g)
+    sag = float((ref - q).abs().max())
+    assert sag > 1e-3  # the joint is soft: four steps would leave ~sag^5
+    assert float((settled - ref).abs().max()) <= 10 * COMPLIANCE_TOL_RAD

@@ -37,6 +37,11 @@ COMPLIANCE_ITERATIONS = 4
 # Without derivatives to carry, the iteration stops once its estimated error is below
 # this [rad]: 1e-9 mm at a metre's lever, ten million times below a tracker's noise.
 COMPLIANCE_TOL_RAD = 1e-12
+# ... and after at most this many steps: enough for the tolerance from a cold start
+# sagging 0.1 rad at a contraction of 0.1 (0.1 x 0.1^11 = 1e-12), a joint ten times
+# softer than gravity's own stiffness. Four steps, as with derivatives, left 1e-10 rad
+# on a soft RX160 shoulder (c = 2.3e-5 rad/Nm: contraction ~0.01 from a 0.01 rad sag).
+COMPLIANCE_MAX_SETTLING = 12
 
 
 def _tensors(*values) -> list[Tensor]:
@@ -240,7 +245,7 @@ class ExtendedModel(nn.Module):
     def _settled(step, q: Tensor, warm: bool = False) -> Tensor:
         """The fixed point of ``step`` from ``q``, stopped once the error left,
         estimated from the last two changes (their ratio is the contraction), is below
-        :data:`COMPLIANCE_TOL_RAD`; at most :data:`COMPLIANCE_ITERATIONS` steps.
+        :data:`COMPLIANCE_TOL_RAD`; at most :data:`COMPLIANCE_MAX_SETTLING` steps.
         ``warm``: ``q`` is where the same rows settled before (:mod:`.warm_start`):
         when the first step moves it by less than the tolerance, it is the fixed point
         within that (the step contracts its error by |c dtau/dq| ~ 1e-3) and is returned
@@ -248,7 +253,7 @@ class ExtendedModel(nn.Module):
         (a start within round-off of the fixed point moves by round-off, from which no
         contraction can be read)."""
         last = math.inf  # no change yet: no contraction to estimate
-        for k in range(COMPLIANCE_ITERATIONS):
+        for k in range(COMPLIANCE_MAX_SETTLING):
             q_new = step(q)
             change = float((q_new - q).abs().max()) if q.numel() else 0.0
             if warm and k == 0 and change <= COMPLIANCE_TOL_RAD:
