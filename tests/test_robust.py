@@ -132,12 +132,28 @@ def test_gross_errors_change_neither_the_causes_nor_their_values(rx160):
     robust = diagnose(rx160, dirty, robust="cauchy")
     why = f"HYBRID_PK_TEST_SEED={RUN_SEED}, campaign seed {seed}, truth {truth['effects']}"
     # The same causes, in whatever order each diagnosis found them; values by cause.
-    by_label = {(c.effect, c.joint): c for c in robust.causes}
-    labels = [(c.effect, c.joint) for c in clean.causes]
+    by_label = {f"{c.effect}:{c.joint}": c for c in robust.causes}
+    labels = [f"{c.effect}:{c.joint}" for c in clean.causes]
     assert len(by_label) == len(robust.causes), why  # no cause named twice
-    assert sorted(by_label) == sorted(labels), why
+    # ... but for a cause one of them names in place of another whose signature is the
+    # same in these rows (100 % alike), that it reports as ambiguous with it: the rows
+    # cannot choose, and the down-weighted rows' noise weights may tip the choice (seed
+    # 373737: a joint-3 offset or a joint-4 misalignment, the misalignment's second
+    # direction gaining 0.0016-0.0041 mm against a 0.005 mm margin).
+    alike = {
+        frozenset(a["effects"])
+        for d in (clean, robust)
+        for a in d.ambiguous
+        if len(a["effects"]) == 2 and "100.0 %" in a.get("why", "")
+    }
+    only_clean, only_robust = set(labels) - set(by_label), set(by_label) - set(labels)
+    for mine, theirs in ((only_clean, only_robust), (only_robust, only_clean)):
+        for label in mine:
+            assert any(frozenset((label, o)) in alike for o in theirs), (label, alike, why)
     for a in clean.causes:
-        b = by_label[(a.effect, a.joint)]
+        if f"{a.effect}:{a.joint}" in only_clean:
+            continue
+        b = by_label[f"{a.effect}:{a.joint}"]
         va, vb, sa = (torch.tensor(x, dtype=F64).reshape(-1) for x in (a.value, b.value, a.std))
         assert bool(((va - vb).abs() <= 2 * sa).all()), (a, b, why)
     listed = {o["row"] for o in robust.outliers}
