@@ -25,6 +25,7 @@ from hybrid_pk.calibration.diagnosis.ambiguity import (
 )
 from hybrid_pk.calibration.diagnosis.blocked import Blocked
 from hybrid_pk.calibration.diagnosis.carryover import Carry, linearise
+from hybrid_pk.calibration.diagnosis.pair_entry import carrying_pair
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.statistics import (
     f_survival,
@@ -159,6 +160,8 @@ class Scores:
             blocks [mm] (:meth:`.blocked.Blocked.gain_se_mm`).
         near: the Jacobian's rows, where the chosen candidate's refit steps from
             (:mod:`hybrid_pk.calibration.chord`; released by :func:`try_candidate`).
+        pair: where no candidate carries over alone, the pair that does
+            (:func:`.pair_entry.carrying_pair`): its lead carries over with it.
     """
 
     scored: list[CandidateScore]
@@ -174,6 +177,7 @@ class Scores:
     carry: dict[str, float] = field(default_factory=dict)
     carry_se: dict[str, float] = field(default_factory=dict)
     near: Linearisation | None = None
+    pair: dict | None = None
 
     @property
     def ranked(self) -> list[CandidateScore]:
@@ -190,6 +194,8 @@ class Scores:
         a cause enters on a gain the blocks agree on; it stays while it gains the
         margin, :func:`.carryover.weakest`). True without blocks."""
         gain = self.carry.get(label)
+        if self.pair is not None and label == self.pair["lead"]:
+            return True  # it carries over with its partner (:mod:`.pair_entry`)
         return gain is None or gain >= max(self.margin, self.carry_se.get(label, 0.0))
 
     @property
@@ -264,6 +270,7 @@ def score_candidates(
         for sc, with_it in zip(out.scored, withs, strict=True):
             out.carry[sc.label] = blocked.gain_mm(base, with_it)
             out.carry_se[sc.label] = blocked.gain_se_mm(base, with_it)
+        out.pair = carrying_pair(out, current)
     return out
 
 
@@ -391,11 +398,14 @@ def try_candidate(
 def carry_record(scores: Scores, label: str) -> dict:
     """A step record's blocked gain of candidate ``label``, its standard error and the
     margin."""
-    return {
+    out = {
         "blocked_gain_mm": scores.carry[label],
         "blocked_gain_se_mm": scores.carry_se.get(label, 0.0),
         "min_gain_mm": scores.margin,
     }
+    if scores.pair is not None and scores.pair["lead"] == label:
+        out["entered_with"] = dict(scores.pair)  # its partner, their gain and its se
+    return out
 
 
 def _ssr(model: ExtendedModel, split: Split, res: FitResult) -> float:
