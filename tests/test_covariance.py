@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from hybrid_pk.calibration.covariance import svd_covariance, undetermined_groups
-from hybrid_pk.calibration.fit import fit
+from hybrid_pk.calibration.fit import fit, initialise_frames
 from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.cli.calibrate_output import MAX_CONDITION, condition_warning
 from hybrid_pk.effects import ExtendedModel, conditions_from_data, make_effect
@@ -129,7 +129,11 @@ def test_exact_orientations_do_not_shrink_what_positions_measure(rx160):
     for seed in rng.integers(1 << 20, size=20):
         data, _ = simulate_campaign(rx160, 300, spec, noise_mm=0.02, seed=int(seed))
         model = ExtendedModel(rx160, [make_effect(rx160, "link_length:joint_4")])
-        res = fit(model, data, cond=conditions_from_data(data))
+        cond = conditions_from_data(data)
+        # from the closed-form frames, as every fit of the tool starts: from the identity
+        # one draw in 20 (sweep seeds 838383, 151515) ended in another minimum, 80 mm off
+        initialise_frames(model, data, cond)
+        res = fit(model, data, cond=cond)
         err = model.effect("link_length:joint_4").value.detach() - torch.as_tensor(length)
         z.append(err / res.std[res.block_slice("link_length:joint_4")])
     rms = float(torch.cat(z).pow(2).mean().sqrt())
