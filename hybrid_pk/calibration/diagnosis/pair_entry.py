@@ -28,11 +28,12 @@ __all__ = ["PAIR_CANDIDATES", "carrying_pair"]
 PAIR_CANDIDATES = 12
 
 
-def carrying_pair(scores, current: list[str]) -> dict | None:
+def carrying_pair(scores, current: list[str], base) -> dict | None:
     """``{"lead", "partner", "gain_mm", "se_mm"}`` of the best pair of significant
-    candidates of ``scores`` (a scoring at the model whose effects are ``current``) whose
-    blocked gain reaches the practical margin and its own standard error, when no
-    single candidate does; else None. ``lead``: the member with the larger score."""
+    candidates of ``scores`` (a scoring at the model whose effects are ``current``, with
+    blocked score ``base``) whose blocked gain reaches the practical margin and its own
+    standard error, when no single candidate does; else None. ``lead``: the member with
+    the larger score."""
     blocked = scores.blocked
     if blocked is None or any(scores.eligible(sc) for sc in scores.scored):
         return None
@@ -41,7 +42,6 @@ def carrying_pair(scores, current: list[str]) -> dict | None:
     )[:PAIR_CANDIDATES]
     if len(significant) < 2:
         return None
-    base = blocked.of(current)
     best = None
     for i, lead in enumerate(significant[:-1]):
         partners = [sc.label for sc in significant[i + 1 :]]

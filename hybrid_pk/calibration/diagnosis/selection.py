@@ -270,7 +270,7 @@ def score_candidates(
         for sc, with_it in zip(out.scored, withs, strict=True):
             out.carry[sc.label] = blocked.gain_mm(base, with_it)
             out.carry_se[sc.label] = blocked.gain_se_mm(base, with_it)
-        out.pair = carrying_pair(out, current)
+        out.pair = carrying_pair(out, current, base)
     return out
 
 
