@@ -142,14 +142,15 @@ def _sweeps(robot, base, tool, noise_mm, seed=0, k=25, ranges=SWEEPS):
 @pytest.mark.parametrize("seed", [0, 1])
 def test_referencing_by_circles_recovers_the_base_frame(ur10, seed):
     base, tool = random_frames(torch.Generator().manual_seed(seed))
-    ref = reference_from_sweeps(ur10, _sweeps(ur10, base, tool, noise_mm=0.005, seed=seed))
+    sweeps = _sweeps(ur10, base, tool, noise_mm=0.005, seed=seed)
+    ref = reference_from_sweeps(ur10, sweeps)
     assert 1e3 * float((ref.base[:3, 3] - base[:3, 3]).norm()) < 0.1  # mm
     assert math.degrees(float(rotation_distance(ref.base[:3, :3], base[:3, :3]))) < 0.01
     assert 1e3 * float((ref.tool[:3, 3] - tool[:3, 3]).norm()) < 0.1
     assert math.degrees(float(rotation_distance(ref.tool[:3, :3], tool[:3, :3]))) < 0.01
     assert all(c.rms_mm < 0.02 for c in ref.circles)
     # the product's registration of the same rows, positions only, agrees with it
-    base_product = _registered_base(ur10, _sweeps(ur10, base, tool, noise_mm=0.005, seed=seed))
+    base_product = _registered_base(ur10, sweeps)
     assert 1e3 * float((base_product[:3, 3] - ref.base[:3, 3]).norm()) < 0.1  # mm
     assert math.degrees(float(rotation_distance(base_product[:3, :3], ref.base[:3, :3]))) < 0.01
 
