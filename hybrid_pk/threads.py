@@ -3,7 +3,8 @@
 The policy, in the order it is decided:
 
 1. ``--threads N`` of any command, else the ``HYBRID_PK_THREADS`` environment variable
-   (a count, or ``torch``: leave torch's own settings, the behaviour before the policy);
+   (a count, at most the usable cores, or ``torch``: leave torch's own settings, the
+   behaviour before the policy);
 2. else the cores this process may use (:func:`usable_cores`: its CPU affinity and its
    cgroup's CPU quota), and no more than the work can use: one thread per
    ``ROWS_PER_THREAD`` rows of a batch (:func:`threads_for`), and one thread for the
@@ -125,11 +126,17 @@ def parse_threads(text: str | int | None) -> int | str | None:
 def requested_threads() -> int | str | None:
     """What the user fixed: ``--threads`` (via :func:`configure`), else ``HYBRID_PK_THREADS``."""
     if _state["explicit"] is not None:
-        return _state["explicit"]
+        return _at_most_cores(_state["explicit"])
     try:
-        return parse_threads(os.environ.get(ENV))
+        return _at_most_cores(parse_threads(os.environ.get(ENV)))
     except ValueError as exc:
         raise ValueError(f"{ENV}: {exc}") from None
+
+
+def _at_most_cores(choice: int | str | None) -> int | str | None:
+    """A count above :func:`usable_cores` cut to them: threads beyond the cores only
+    take turns on them, each spinning or switching (the collapse this policy is for)."""
+    return min(choice, usable_cores()) if isinstance(choice, int) else choice
 
 
 def _set(n: int) -> None:

@@ -153,6 +153,20 @@ def test_cli_threads_sets_torch(fresh, tmp_path):
     assert threads.requested_threads() == 1
 
 
+def test_a_count_beyond_the_usable_cores_is_cut_to_them(fresh, tmp_path, capsys):
+    """More threads than cores only take turns on them: ``--threads`` and the
+    environment are cut to :func:`usable_cores`, the command line says so."""
+    fresh.setattr(threads, "usable_cores", lambda: 2)
+    fresh.setenv(threads.ENV, "8")
+    with threads.work_threads(500) as n:
+        assert n == 2 == torch.get_num_threads()
+    fresh.delenv(threads.ENV)
+    out = tmp_path / "sim.csv"
+    assert main(["simulate", "rx160", "--n", "5", "--out", str(out), "--threads", "100000"]) == 0
+    assert torch.get_num_threads() == 2
+    assert "note: --threads 100000: this process may use 2 cores" in capsys.readouterr().out
+
+
 def _waiting_policy(env: dict) -> str:
     code = "import os, hybrid_pk; print(os.environ.get('OMP_WAIT_POLICY', 'unset'))"
     full = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", threads.ENV)}

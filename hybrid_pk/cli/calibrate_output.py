@@ -11,6 +11,7 @@ from hybrid_pk.calibration.diagnosis import report_value
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.effects import ExtendedModel
 from hybrid_pk.effects.joint import JointOffset
+from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import error_stats
 from hybrid_pk.geometry import matrix_to_rpy
 from hybrid_pk.io.urdf_export import export_urdf
@@ -24,6 +25,7 @@ __all__ = [
     "export_model_urdf",
     "format_value",
     "frame_lines",
+    "urdf_beside",
     "urdf_target",
     "wrote_line",
 ]
@@ -112,6 +114,7 @@ def add_urdf_options(parser: argparse.ArgumentParser) -> None:
         "MODEL.urdf next to MODEL; with --refit only when given)",
     )
     parser.add_argument("--no-urdf", action="store_true", help="write no corrected URDF")
+    parser.set_defaults(also_writes=urdf_beside)
     parser.add_argument(
         "--urdf-frames",
         action="store_true",
@@ -134,6 +137,15 @@ def urdf_target(args: argparse.Namespace, refit: bool) -> Path | None:
     if args.urdf:
         return Path(args.urdf)
     return None if refit else Path(f"{args.out}.urdf")
+
+
+def urdf_beside(args: argparse.Namespace) -> list[tuple[str, Path]]:
+    """The URDF written beside ``--out`` unless ``--urdf`` names it (for the check of
+    the outputs before the command runs, :mod:`hybrid_pk.cli.outputs`)."""
+    if args.no_urdf and args.urdf:
+        raise HybridPKError(f"--urdf {args.urdf} and --no-urdf: give one of them")
+    target = urdf_target(args, refit=args.model is not None or args.refit is not None)
+    return [] if target is None or args.urdf else [("its URDF", target)]
 
 
 def export_model_urdf(model: ExtendedModel, args: argparse.Namespace, target: Path | None):

@@ -41,7 +41,7 @@ DESCRIPTION = _DESCRIPTION
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The flags of ``hybrid-pk demo``."""
-    add_out(p, metavar="DIR", help="output folder", default="hybrid_pk_demo")
+    add_out(p, metavar="DIR", help="output folder", default="hybrid_pk_demo", kind="folder")
     add_robot(p, default=DEFAULT_ROBOT)
     p.add_argument("--n", type=int, default=3000, help="measured poses (default: %(default)s)")
     p.add_argument(

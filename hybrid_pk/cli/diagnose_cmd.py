@@ -18,7 +18,8 @@ from hybrid_pk.cli.options import add_data, add_end_link, add_json, add_report, 
 from hybrid_pk.cli.progress import Progress
 from hybrid_pk.cli.settings_flags import add_config_flags, add_settings_flags
 from hybrid_pk.cli.transfer_check import append_to_report, transfer_check, transfer_lines
-from hybrid_pk.errors import DataError
+from hybrid_pk.errors import DataError, HybridPKError
+from hybrid_pk.output_file import write_text
 
 _DESCRIPTION = """\
 Diagnose a robot from measured poses: fit base and tool frames to the nominal URDF,
@@ -176,6 +177,11 @@ def run(args: argparse.Namespace) -> int:
     for path in args.data:
         if not Path(path).is_file():
             raise DataError("file not found", file=str(path))  # as every table reader says
+    if settings.candidates is not None and not settings.candidates:
+        raise HybridPKError(
+            "--candidates: no effect given; list some (joint_offset:joint_2,...) or leave "
+            "the option out for every effect the data could reveal"
+        )
     robot = load_robot(args.robot, args.end_link)
     for c in settings.candidates or []:
         make_effect(robot, c)  # unknown effect or joint: a clear error now
@@ -213,11 +219,9 @@ def run(args: argparse.Namespace) -> int:
         progress.close()
     seconds = progress.elapsed()
 
-    out = Path(args.json)
-    out.parent.mkdir(parents=True, exist_ok=True)
     doc = result.to_json() | {"transfer": None if transfer is None else transfer.to_json()}
     doc["stability"] = stability
-    out.write_text(json.dumps(_finite(doc), indent=2) + "\n", encoding="utf-8")
+    out = write_text(args.json, json.dumps(_finite(doc), indent=2) + "\n")
     lines = summary_lines(result, seconds, settings.stability)
     unloaded = unloaded_reason(robot, data.payload, "move nothing and were not tested")
     if unloaded:

@@ -152,6 +152,8 @@ def run(args: argparse.Namespace) -> int:
             f"{args.out}: --format {args.format} writes {kind}; name the file "
             f"{' or '.join(f'*{x}' for x in suffixes)}"
         )
+    if args.ur_root != "auto" and args.format != "ur-calibration":
+        raise HybridPKError(f"--ur-root is for --format ur-calibration, not {args.format}")
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
     model = loaded.model
     model.requires_grad_(False)

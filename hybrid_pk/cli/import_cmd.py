@@ -80,7 +80,7 @@ def _ipa_options(ipa: argparse.ArgumentParser) -> None:
 def _add_sources_and_out(parser: argparse.ArgumentParser, sources_help: str) -> None:
     """``SRC...``, ``--out DST`` and ``--format`` of a conversion of files."""
     parser.add_argument("sources", nargs="+", metavar="SRC", help=sources_help)
-    add_out(parser, metavar="DST", help="output table, or directory for several SRC")
+    add_out(parser, metavar="DST", help="output table, or directory for several SRC", kind="either")
     parser.add_argument(
         "--format",
         choices=("csv", "parquet"),

@@ -4,9 +4,9 @@ DH / modified-DH table as a URDF that ``--robot`` (and pinocchio, yourdfpy) read
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from hybrid_pk.cli.options import add_out
+from hybrid_pk.output_file import write_text
 from hybrid_pk.robot.dh import ROOT_LINK, TIP_LINK, dh_urdf
 from hybrid_pk.robot.dh_table import CONVENTIONS, DH_COLUMNS, INERTIA_COLUMNS, read_dh_table
 from hybrid_pk.units import UNITS
@@ -64,9 +64,7 @@ def run(args: argparse.Namespace) -> int:
     given = {"length": args.length_unit, "angle": args.angle_unit}
     units = {k: v for k, v in given.items() if v is not None} or None
     table = read_dh_table(args.table, args.convention, name=args.name, units=units)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(dh_urdf(table), encoding="utf-8")
+    out = write_text(args.out, dh_urdf(table))
     statics = "from the table" if table.inertial is not None else "none (no masses given)"
     print(
         f"{table.name}: {table.n} joints ({table.convention}) from {args.table}; chain "

@@ -20,6 +20,7 @@ import sys
 from collections.abc import Sequence
 
 from hybrid_pk.cli.options import command_parser, resolve_robot
+from hybrid_pk.cli.outputs import check_outputs
 from hybrid_pk.cli.progress import shown
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.startup import release as release_interrupt
@@ -102,7 +103,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     name = f"import {args.format}" if args.command == "import" else args.command  # as argparse
     try:
         resolve_robot(args)
-        configure_threads(getattr(args, "threads", None))
+        check_outputs(args)  # before any work: nothing is written over an input
+        asked = getattr(args, "threads", None)
+        threads = configure_threads(asked)
+        if isinstance(asked, int) and isinstance(threads, int) and asked > threads:
+            print(f"note: --threads {asked}: this process may use {threads} cores")
         with shown(not getattr(args, "no_progress", False)):
             return int(args.func(args) or 0)
     except (HybridPKError, OSError, ValueError) as exc:

@@ -208,12 +208,15 @@ def add_out(
     help: str,
     required: bool = True,
     default: str | None = None,
+    kind: str = "file",
 ) -> None:
-    """``--out PATH``: the file or folder the command writes."""
+    """``--out PATH``: the file or folder the command writes (``kind``: ``"file"``,
+    ``"folder"`` or ``"either"``, for the check before it runs: :mod:`.outputs`)."""
     if default is not None:
         required = False
         help += " (default: %(default)s)"
     parser.add_argument("--out", required=required, default=default, metavar=metavar, help=help)
+    parser.set_defaults(out_kind=kind)
 
 
 def add_json(parser: argparse.ArgumentParser, *, help: str, required: bool = False) -> None:
@@ -236,12 +239,23 @@ def add_seed(parser: argparse.ArgumentParser, *, default: int = 0, what: str) ->
     )
 
 
+def _count(text: str) -> int:
+    """``argparse`` type of a count of at least one (refused before any work)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+    return value
+
+
 def add_epochs(parser: argparse.ArgumentParser, *, default: int | None = None) -> None:
-    """``--epochs N``: training epochs of the residual networks."""
+    """``--epochs N``: training epochs of the residual networks (at least one)."""
     tail = "preset" if default is None else "%(default)s"
     parser.add_argument(
         "--epochs",
-        type=int,
+        type=_count,
         default=default,
         metavar="N",
         help=f"maximum training epochs of the networks (default: {tail})",

@@ -169,6 +169,11 @@ def _summary(plan: Plan, args: argparse.Namespace, labels: list[str]) -> list[st
             f"warning: no poses separate {', '.join(lost)} (they trade off exactly); plan "
             "without the effect that duplicates a frame (diagnose lists such pairs as ambiguous)"
         )
+    if args.n < len(plan.names):  # calibrate refuses fewer rows than parameters
+        lines.append(
+            f"warning: {args.n} poses for {len(plan.names)} parameters: calibrate needs at "
+            f"least one row per parameter; plan --n {len(plan.names)} or more"
+        )
     return lines
 
 

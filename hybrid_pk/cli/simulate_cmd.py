@@ -15,7 +15,12 @@ from hybrid_pk.cli.options import (
 from hybrid_pk.data.joint_table import read_joint_table
 from hybrid_pk.effects import parse_gravity
 from hybrid_pk.errors import HybridPKError
-from hybrid_pk.pipelines.simulation import simulate_to_files, table_path, unseen_lines
+from hybrid_pk.pipelines.simulation import (
+    simulate_to_files,
+    table_path,
+    truth_path,
+    unseen_lines,
+)
 from hybrid_pk.robot import Robot
 from hybrid_pk.simulate import TRAJECTORIES, is_hidden_spec
 
@@ -80,7 +85,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--trajectory",
         choices=TRAJECTORIES,
-        default="random",
+        default=None,
         help="random: uniform in the joint limits; continuous: smooth joint path at 10 Hz "
         "(writes t [s]); iso-cube: ISO 9283 poses P1..P5, repeated; zigzag: Cartesian "
         "raster through the ISO cube (default: random)",
@@ -149,6 +154,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="output table (.csv, .parquet or .pq); the truth goes to FILE.truth.json",
     )
+    p.set_defaults(also_writes=lambda args: [("its truth file", truth_path(args.out))])
 
 
 def _describe(entry: dict) -> str:
@@ -178,6 +184,11 @@ def run(args: argparse.Namespace) -> int:
         for name in ("base", "tool")
     }
     poses = None
+    if args.poses is not None and args.trajectory is not None:
+        raise HybridPKError(
+            f"--poses {args.poses} and --trajectory {args.trajectory}: give one of them"
+        )
+    args.trajectory = args.trajectory or "random"
     if args.poses is not None:
         poses, _ = read_joint_table(args.poses, robot)
     elif args.n is None:

@@ -23,6 +23,7 @@ from hybrid_pk.data.measured import (
     MeasuredData,
 )
 from hybrid_pk.errors import DataError
+from hybrid_pk.output_file import replacing
 
 __all__ = ["CSV_SUFFIXES", "PARQUET_SUFFIXES", "load_cells", "to_frame", "write_frame"]
 
@@ -140,10 +141,11 @@ def write_frame(path: str | os.PathLike, frame: pd.DataFrame) -> Path:
     """Write a table to CSV (shortest round-trip floats) or Parquet, by extension."""
     path = Path(path)
     suffix = path.suffix.lower()
-    if suffix in CSV_SUFFIXES:
-        frame.to_csv(path, index=False)  # float64 -> repr: exact on re-read
-    elif suffix in PARQUET_SUFFIXES:
-        frame.to_parquet(path, index=False)
-    else:
+    if suffix not in CSV_SUFFIXES and suffix not in PARQUET_SUFFIXES:
         raise DataError(_UNSUPPORTED.format(path.suffix), file=str(path))
+    with replacing(path) as tmp:
+        if suffix in CSV_SUFFIXES:
+            frame.to_csv(tmp, index=False)  # float64 -> repr: exact on re-read
+        else:
+            frame.to_parquet(tmp, index=False)
     return path

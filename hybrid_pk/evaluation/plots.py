@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from hybrid_pk.errors import HybridPKError
+from hybrid_pk.output_file import replacing
 
 try:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -64,8 +65,8 @@ def new_figure(width: float = 7.0, height: float = 4.5) -> Figure:
 def save_figure(fig: Figure, path: str | Path) -> Path:
     """Write ``fig`` as PNG to ``path`` (folders created) and return the path."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=DPI)
+    with replacing(path) as tmp:
+        fig.savefig(tmp, dpi=DPI)
     return path
 
 

@@ -53,6 +53,7 @@ from hybrid_pk.effects.geometric import REFERENCE_TEMPERATURE
 from hybrid_pk.effects.joint import JointOffset
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import matrix_to_rpy
+from hybrid_pk.output_file import write_text
 from hybrid_pk.robot.dh import rot, trans
 from hybrid_pk.robot.dh_table import CONVENTIONS, INERTIA_COLUMNS, DHTable
 
@@ -333,6 +334,4 @@ def write_dh_yaml(table: DHTable, path: str | os.PathLike, header: list[str] = (
     }
     text = "".join(f"# {line}\n" if line else "#\n" for line in header)
     text += yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text, encoding="utf-8")
-    return path
+    return write_text(path, text)

@@ -44,6 +44,7 @@ from torch import Tensor
 
 from hybrid_pk.effects import ExtendedModel, Gravity, make_effect
 from hybrid_pk.errors import HybridPKError, ModelFileError, RobotModelError
+from hybrid_pk.output_file import replacing
 from hybrid_pk.robot import Robot, load_chain_spec, resolve_urdf
 
 __all__ = [
@@ -197,15 +198,11 @@ def save_model(
     }
     if not model.gravity.is_default:
         payload["gravity"] = model.gravity.to_dict()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    os.close(fd)
-    try:
-        torch.save(payload, tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    with replacing(path) as tmp:
+        try:
+            torch.save(payload, tmp)
+        except RuntimeError as exc:  # torch's zip writer reports a failed write so
+            raise OSError(f"the model's data could not be written: {exc}") from None
     return path
 
 

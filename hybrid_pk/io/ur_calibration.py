@@ -37,6 +37,7 @@ from hybrid_pk.effects import ExtendedModel
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.geometry import so3_log
 from hybrid_pk.io.dh_export import frame_entry, model_dh_table, zero_frames
+from hybrid_pk.output_file import write_text
 from hybrid_pk.robot.dh import dh_row_parts, rot, trans
 
 __all__ = ["UR_JOINTS", "UR_ROOTS", "guess_ur_root", "not_ur_layout", "ur_kinematics"]
@@ -154,6 +155,4 @@ def write_ur_calibration(
         )
     text = "".join(f"# {line}\n" if line else "#\n" for line in header)
     text += yaml.safe_dump(doc, sort_keys=False, width=100)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text, encoding="utf-8")
-    return path, note
+    return write_text(path, text), note

@@ -37,6 +37,7 @@ from hybrid_pk.effects.geometric import REFERENCE_TEMPERATURE
 from hybrid_pk.effects.joint import JointOffset
 from hybrid_pk.errors import HybridPKError, RobotModelError
 from hybrid_pk.geometry import matrix_to_rpy, rpy_to_matrix, so3_exp, transform
+from hybrid_pk.output_file import write_text
 
 __all__ = ["BASE_LINK_NAME", "TOOL_LINK_NAME", "corrected_urdf", "export_urdf"]
 
@@ -288,5 +289,4 @@ def export_urdf(
         frame_set=frame_set,
         fold_joint_offsets=fold_joint_offsets,
     )
-    path.write_text(text, encoding="utf-8")
-    return path
+    return write_text(path, text)

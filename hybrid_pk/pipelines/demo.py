@@ -33,6 +33,7 @@ from hybrid_pk.effects import Conditions, Effect, ExtendedModel, conditions_from
 from hybrid_pk.ik import solve_ik_two_stage
 from hybrid_pk.io.hybrid_file import save_hybrid
 from hybrid_pk.io.model_file import save_model
+from hybrid_pk.output_file import write_text
 from hybrid_pk.pipelines.calibration import calibrate, cause_labels
 from hybrid_pk.pipelines.demo_report import write_demo_report
 from hybrid_pk.report.diagnosis_report import write_diagnosis_report
@@ -234,7 +235,7 @@ def _simulate(out: Path, robot: Robot, n: int, hidden, sim: dict):
     truth["effects"] = [effect_entry(e) for e in vocabulary]
     truth["unmodelled"] = [{**effect_entry(e), "tau0_Nm": e.tau0} for e in unmodelled]
     write_table(out / "campaign.csv", data)
-    (out / "campaign.csv.truth.json").write_text(json.dumps(truth, indent=2))
+    write_text(out / "campaign.csv.truth.json", json.dumps(truth, indent=2))
     return data, truth
 
 
@@ -254,7 +255,7 @@ class _Split:
 def _diagnose(out: Path, robot: Robot, split: _Split, settings: DiagnosisSettings, say):
     """The diagnosis of the calibration rows, its JSON and its report with the plots."""
     diag = diagnose(robot, split.calib, progress=say, **settings.keywords())
-    (out / "diagnosis.json").write_text(json.dumps(diag.to_json(), indent=2, default=str))
+    write_text(out / "diagnosis.json", json.dumps(diag.to_json(), indent=2, default=str))
     say("writing the diagnosis report")
     return diag, write_diagnosis_report(diag, split.calib, robot, out / "diagnosis", say)
 
@@ -306,7 +307,7 @@ def _evaluate(out: Path, nominal, model, hybrid, split: _Split):
         intro=f"{test.n} rows of the campaign that no diagnosis, calibration or training step saw.",
         joint_types=model.robot.joint_types,
     )
-    (out / "evaluation.json").write_text(json.dumps(results, indent=2))
+    write_text(out / "evaluation.json", json.dumps(results, indent=2))
     return report, results
 
 

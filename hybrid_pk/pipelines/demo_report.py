@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 
 from hybrid_pk.calibration.diagnosis.unseen import seen_error
+from hybrid_pk.output_file import write_text
 from hybrid_pk.report.markdown import fmt, image, markdown_table, stats_table
 
 __all__ = ["NOT_INJECTED", "found_table", "injected_text", "run_time_line", "write_demo_report"]
@@ -113,7 +114,7 @@ def write_demo_report(
         *_ik_section(ik, diag.model.robot.joint_names, diag.model.robot.joint_types),
     ]
     path = out / "report.md"
-    path.write_text("\n".join(lines), encoding="utf-8")
+    write_text(path, "\n".join(lines))
     return path
 
 

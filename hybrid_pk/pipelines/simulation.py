@@ -22,6 +22,7 @@ from hybrid_pk.data import MeasuredData
 from hybrid_pk.data.table import write_table
 from hybrid_pk.effects import ExtendedModel, conditions_from_data, make_effect, unloaded_reason
 from hybrid_pk.errors import DataError
+from hybrid_pk.output_file import replacing
 from hybrid_pk.pipelines.calibration import FRAME_LABELS
 from hybrid_pk.robot import Robot
 from hybrid_pk.simulate import simulate_campaign
@@ -91,8 +92,9 @@ def simulate_to_files(
     out = table_path(out)
     data, truth = simulate_campaign(robot, n, effects, **campaign, **_given_frames(base, tool))
     truth_file = truth_path(out)
-    write_table(out, data)
-    truth_file.write_text(json.dumps(truth, indent=2) + "\n", encoding="utf-8")
+    with replacing(truth_file) as tmp:  # the truth written in full before the table is touched
+        tmp.write_text(json.dumps(truth, indent=2) + "\n", encoding="utf-8")
+        write_table(out, data)
     lines = campaign_frame_lines(robot, data, truth, tool)
     return SimulationResult(data, truth, out, truth_file, lines)
 

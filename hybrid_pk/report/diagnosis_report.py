@@ -25,6 +25,7 @@ from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import conditions_from_data
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.plots import error_histograms
+from hybrid_pk.output_file import write_text
 from hybrid_pk.report.evidence import Evidence, cause_evidence, cause_label
 from hybrid_pk.report.findings import (
     frames_section,
@@ -443,6 +444,4 @@ def write_diagnosis_report(
     lines += frames_section(diagnosis) + robust_section(diagnosis)
     lines += outlier_plot(diagnosis, data, out)
     lines += _selection_log(diagnosis)
-    path = out / "report.md"
-    path.write_text("\n".join(lines).rstrip() + "\n", encoding="utf-8")
-    return path
+    return write_text(out / "report.md", "\n".join(lines).rstrip() + "\n")

@@ -29,6 +29,7 @@ from hybrid_pk.evaluation.plots import (
     new_figure,
     save_figure,
 )
+from hybrid_pk.output_file import write_text
 from hybrid_pk.report.markdown import image, markdown_table, stats_table
 
 __all__ = ["write_evaluation_report"]
@@ -201,7 +202,6 @@ def write_evaluation_report(
     iso_lines, iso = _iso_section(data, predictions[names[-1]], names[-1])
     lines += iso_lines
     saved = results if iso is None else {**results, "iso9283": iso}
-    (out / "evaluation.json").write_text(json.dumps(saved, indent=2) + "\n", encoding="utf-8")
-    path = out / "report.md"
-    path.write_text("\n".join(lines), encoding="utf-8")
+    write_text(out / "evaluation.json", json.dumps(saved, indent=2) + "\n")
+    path = write_text(out / "report.md", "\n".join(lines))
     return path, results

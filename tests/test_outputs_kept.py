@@ -1,0 +1,113 @@
+"""Outputs never cost an input or an earlier file: a command refuses, before any work,
+to write over one of its inputs or a folder; a write that fails (here a real one: the
+file-size limit at 0) keeps the file that was there and names it in one line."""
+
+from __future__ import annotations
+
+import os
+import resource
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from hybrid_pk.cli.main import main
+from hybrid_pk.output_file import OutputError, replacing, write_text
+
+REPO = Path(__file__).resolve().parents[1]
+ORIGINAL = "ORIGINAL\n"
+
+
+def _cli_without_room(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    """``hybrid-pk ARGS`` in a process that may not write a byte to any file."""
+
+    def no_room():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (0, resource.RLIM_INFINITY))
+
+    env = {**os.environ, "PYTHONPATH": str(REPO), "HYBRID_PK_THREADS": "1"}
+    cmd = [sys.executable, "-m", "hybrid_pk.cli.main", *args, "--no-progress"]
+    return subprocess.run(
+        cmd, cwd=cwd, env=env, capture_output=True, text=True, preexec_fn=no_room, timeout=300
+    )
+
+
+def _only_line(text: str) -> str:
+    lines = text.strip().splitlines()
+    assert len(lines) == 1, text
+    return lines[0]
+
+
+def _write_through(path: Path, writer) -> None:
+    with replacing(path) as tmp:
+        writer(tmp)
+
+
+def test_a_failed_write_keeps_the_old_file_and_leaves_no_part(tmp_path):
+    target = tmp_path / "table.csv"
+    target.write_text(ORIGINAL)
+
+    def write_half(tmp: Path):
+        tmp.write_text("half")
+        raise OSError(28, "disk full")
+
+    with pytest.raises(OutputError, match=r"table\.csv: cannot write it \(disk full\); the file"):
+        _write_through(target, write_half)
+    assert target.read_text() == ORIGINAL
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["table.csv"]
+    fresh = tmp_path / "new" / "out.json"  # folders made; the mode a plain open gives
+    write_text(fresh, "{}\n")
+    umask = os.umask(0)
+    os.umask(umask)
+    assert fresh.read_text() == "{}\n"
+    assert fresh.stat().st_mode & 0o777 == 0o666 & ~umask
+
+
+def test_a_table_and_a_model_that_cannot_be_written_keep_the_files_there(tmp_path):
+    assert main(["simulate", "rx160", "--n", "40", "--out", str(tmp_path / "a.csv")]) == 0
+    for name in ("new.csv", "new.csv.truth.json", "model.pt"):
+        (tmp_path / name).write_text(ORIGINAL)
+    sim = _cli_without_room(["simulate", "rx160", "--n", "20", "--out", "new.csv"], tmp_path)
+    assert sim.returncode == 2
+    assert "cannot write it (File too large); the file there is unchanged" in _only_line(sim.stderr)
+    calib = ["calibrate", "a.csv", "--robot", "rx160", "--effects", "none", "--out", "model.pt"]
+    cal = _cli_without_room([*calib, "--no-urdf"], tmp_path)
+    assert cal.returncode == 2, cal.stderr
+    assert _only_line(cal.stderr).startswith("hybrid-pk calibrate: error: model.pt: cannot write")
+    for name in ("new.csv", "new.csv.truth.json", "model.pt"):
+        assert (tmp_path / name).read_text() == ORIGINAL, name
+    assert not [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["calibrate", "{a}", "--robot", "rx160", "--effects", "none", "--out", "{a}"],
+         "--out {a} is also the input DATA"),
+        (["evaluate", "nominal:rx160", "{a}", "--json", "{a}"],
+         "--json {a} is also the input DATA"),
+        (["simulate", "rx160", "--poses", "{a}", "--out", "{a}"],
+         "--out {a} is also the input --poses"),
+        (["calibrate", "{a}", "--robot", "rx160", "--out", "{d}/m.pt", "--urdf", "{d}/m.pt"],
+         "--urdf and --out are one file"),
+        (["calibrate", "{a}", "--robot", "rx160", "--out", "{d}/m.pt", "--urdf", "{d}/u.urdf",
+          "--no-urdf"], "--urdf {d}/u.urdf and --no-urdf: give one of them"),
+        (["evaluate", "nominal:rx160", "{a}", "--json", "{d}"], "--json {d}: is a folder"),
+        (["evaluate", "nominal:rx160", "{a}", "--report", "{a}"], "--report {a}: is a file"),
+        (["simulate", "rx160", "--n", "5", "--out", "{d}/t.csv"],
+         "its truth file {d}/t.csv.truth.json: is a folder"),
+    ],
+)  # fmt: skip
+def test_outputs_over_an_input_or_a_folder_are_refused_before_any_work(
+    tmp_path, capsys, args, message
+):
+    a, d = tmp_path / "a.csv", tmp_path
+    assert main(["simulate", "rx160", "--n", "20", "--out", str(a)]) == 0
+    (tmp_path / "t.csv.truth.json").mkdir()  # where simulate would put t.csv's truth
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()}
+    capsys.readouterr()
+    assert main([s.format(a=a, d=d) for s in args]) == 2
+    err = _only_line(capsys.readouterr().err)
+    assert message.format(a=a, d=d) in err
+    after = {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()}
+    assert after == before  # nothing written
