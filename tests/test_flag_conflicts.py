@@ -56,11 +56,14 @@ def test_contradicting_flags_are_refused_before_any_work(campaign, tmp_path, cap
     assert sorted(p.name for p in tmp_path.iterdir()) == []
 
 
-def test_zero_epochs_are_refused_before_the_demo_starts(tmp_path, capsys):
+def test_a_refused_demo_leaves_no_folder(tmp_path, capsys):
     out = tmp_path / "demo"
     err = _refused(["demo", "--epochs", "0", "--out", str(out)], capsys)
     assert "--epochs: expected a whole number >= 1, got '0'" in err
     assert not out.exists()
+    err = _refused(["demo", "--n", "-1", "--out", str(out), "--no-progress"], capsys)
+    assert "n must be a positive number of rows, got -1" in err
+    assert not out.exists()  # the folder is made once the campaign is drawn
 
 
 def test_a_plan_with_fewer_poses_than_parameters_says_calibrate_needs_more(tmp_path, capsys):

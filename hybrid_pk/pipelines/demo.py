@@ -185,8 +185,7 @@ def run_demo(
             text of one of :data:`STAGES`) starts, else the inner step under way.
     """
     started = time.perf_counter()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = Path(out)  # made once the campaign is drawn: a refused input leaves no folder
     nominal_robot = Robot.from_urdf(robot)
     nominal_robot.requires_grad_(False)
     stages = _Stages(progress)
@@ -234,6 +233,7 @@ def _simulate(out: Path, robot: Robot, n: int, hidden, sim: dict):
     data, truth = simulate_campaign(robot, n, vocabulary + unmodelled, **sim)
     truth["effects"] = [effect_entry(e) for e in vocabulary]
     truth["unmodelled"] = [{**effect_entry(e), "tau0_Nm": e.tau0} for e in unmodelled]
+    out.mkdir(parents=True, exist_ok=True)
     write_table(out / "campaign.csv", data)
     write_text(out / "campaign.csv.truth.json", json.dumps(truth, indent=2))
     return data, truth
