@@ -21,6 +21,7 @@ from hybrid_pk.data.measured import SkippedRow
 from hybrid_pk.errors import DataError
 
 __all__ = [
+    "ABSOLUTE_ZERO_C",
     "LIMIT_SLACK",
     "MAX_PAYLOAD_KG",
     "MAX_POSITION_M",
@@ -34,6 +35,7 @@ __all__ = [
     "first_long_row",
     "missing_columns_error",
     "numeric_column",
+    "refuse_booleans",
     "to_float",
 ]
 
@@ -47,11 +49,29 @@ MAX_PAYLOAD_KG = 2300.0
 # No robot runs at 100 °C (motor windings, grease and encoders are rated far below the
 # boiling point of water): a higher temperature [°C] is kelvin (or °F) written as °C.
 MAX_TEMPERATURE_C = 100.0
+# Absolute zero [°C] (0 K): nothing is colder, so a lower value is no temperature at all.
+ABSOLUTE_ZERO_C = -273.15
+
+
+def _booleans(values: pd.Series) -> bool:
+    """True for a column of booleans (a Parquet bool column, with or without nulls)."""
+    return pd.api.types.infer_dtype(values, skipna=True) == "boolean"
+
+
+def refuse_booleans(file: str, values: pd.Series, column: str) -> None:
+    """Raise if column ``column`` of ``file`` holds booleans: True is no 1 rad or 1 m,
+    and a whole column of them is the wrong column (or type), never a bad row."""
+    if _booleans(values):
+        raise DataError("boolean, expected numbers", file=file, column=column)
 
 
 def to_float(values: pd.Series) -> tuple[np.ndarray, np.ndarray]:
-    """Cells -> ``(floats, unparsable)``; unparsable cells are NaN in ``floats``."""
-    if pd.api.types.is_numeric_dtype(values) and not pd.api.types.is_bool_dtype(values):
+    """Cells -> ``(floats, unparsable)``; unparsable cells are NaN in ``floats``.
+    Booleans are no numbers: every cell of a boolean column is unparsable
+    (:func:`refuse_booleans` names the column)."""
+    if _booleans(values):
+        return np.full(len(values), np.nan), np.ones(len(values), bool)
+    if pd.api.types.is_numeric_dtype(values):
         return values.to_numpy(np.float64), np.zeros(len(values), bool)
     cells = values.to_numpy(object)
     try:
@@ -214,8 +234,9 @@ class RowProblems:
 
 
 def numeric_column(file: str, values: pd.Series, name: str) -> np.ndarray:
-    """The cells of column ``name`` as floats; a DataError at the first cell that is not
-    a finite number (file, 1-based row, column)."""
+    """The cells of column ``name`` as floats; a DataError at a boolean column or the
+    first cell that is not a finite number (file, 1-based row, column)."""
+    refuse_booleans(file, values, name)
     out, unparsable = to_float(values)
     for k, (raw, v, bad) in enumerate(zip(values.to_numpy(object), out, unparsable, strict=True)):
         why = cell_problem(raw, float(v), bool(bad))
@@ -226,8 +247,9 @@ def numeric_column(file: str, values: pd.Series, name: str) -> np.ndarray:
 
 def check_conditions(file: str, columns: dict[str, np.ndarray], rows: np.ndarray) -> None:
     """Raise at the first payload below 0 kg or beyond :data:`MAX_PAYLOAD_KG` (grams), or
-    temperature beyond :data:`MAX_TEMPERATURE_C` (kelvin, °F): a unit problem of the file,
-    never skipped. ``rows``: the 1-based row of each value."""
+    temperature beyond :data:`MAX_TEMPERATURE_C` (kelvin, °F) or below
+    :data:`ABSOLUTE_ZERO_C` (impossible): a problem of the file, never skipped. ``rows``:
+    the 1-based row of each value."""
     checks = (
         ("payload", lambda v: v < 0, "a payload is a mass >= 0 kg"),
         (
@@ -241,6 +263,12 @@ def check_conditions(file: str, columns: dict[str, np.ndarray], rows: np.ndarray
             lambda v: v > MAX_TEMPERATURE_C,
             f"looks like kelvin or °F (no robot runs at {MAX_TEMPERATURE_C:g} °C); the column "
             "is °C: subtract 273.15 from kelvin",
+        ),
+        (
+            "temperature",
+            lambda v: v < ABSOLUTE_ZERO_C,
+            f"below absolute zero ({ABSOLUTE_ZERO_C:g} °C), which no temperature is; the "
+            "column is °C",
         ),
     )
     for name, wrong, why in checks:

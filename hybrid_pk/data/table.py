@@ -35,6 +35,7 @@ from hybrid_pk.data.cells import (
     check_joint_unit,
     check_time_order,
     missing_columns_error,
+    refuse_booleans,
     to_float,
 )
 from hybrid_pk.data.files import load_cells, to_frame, write_frame
@@ -215,6 +216,7 @@ def _read_file(path: Path, spec: _JointSpec, skip: bool, require_joints: bool) -
     problems = RowProblems(file, len(frame))
     columns: dict[str, np.ndarray] = {}
     for col in select.wanted:
+        refuse_booleans(file, frame[col], col)
         columns[col], unparsable = to_float(frame[col])
         problems.note_cells(col, frame[col].to_numpy(object), columns[col], unparsable)
     problems.raise_first(skip)
