@@ -222,3 +222,22 @@ def test_a_dh_table_given_as_robot_says_how_to_make_a_urdf(tmp_path, capsys):
     assert "is a table, not a URDF" in err, err
     assert "import dh" in err
     assert Robot.from_dh(table).dof == 6
+
+
+@pytest.mark.parametrize(
+    ("text", "where"),
+    [("- 1\n- 2\n", ", row 1: found 1 where a row"), ("", ": holds nothing, not a table")],
+)
+def test_a_yaml_that_holds_no_rows_says_what_it_should_hold(tmp_path, capsys, text, where):
+    """A YAML list of numbers, or an empty YAML: one line saying what the file should
+    hold (before: blamed on "column 'convention'", and 'cannot read a DH table from a
+    NoneType'), with or without --convention."""
+    path = tmp_path / "t.yaml"
+    path.write_text(text)
+    for flags in ([], ["--convention", "dh"]):
+        assert main(["import", "dh", str(path), *flags, "--out", str(tmp_path / "x.urdf")]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1, err
+        assert f"error: {path}{where}" in err, err
+        assert "a YAML DH table holds joints: (a list with one mapping of name, a," in err
+        assert "convention" not in err.split(";")[0]
