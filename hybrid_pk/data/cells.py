@@ -34,6 +34,7 @@ __all__ = [
     "check_time_order",
     "first_long_row",
     "missing_columns_error",
+    "note_joint_limits",
     "numeric_column",
     "refuse_booleans",
     "to_float",
@@ -325,4 +326,34 @@ def check_joint_unit(
             file=file,
             row=row,
             column=name,
+        )
+
+
+def note_joint_limits(
+    problems: RowProblems,
+    columns: dict[str, np.ndarray],
+    joints: Sequence[str],
+    lower: Sequence[float],
+    upper: Sequence[float],
+    types: Sequence[str],
+    ok: np.ndarray,
+) -> None:
+    """Record in ``problems`` the ``ok`` rows whose joint value lies outside the joint's
+    limits (``lower``, ``upper`` [rad or m] and ``types`` per joint of ``joints``, each a
+    column of ``columns``); continuous joints have none. The slack is
+    :data:`LIMIT_SLACK`."""
+    for j, name in enumerate(joints):
+        lo, hi, kind = lower[j], upper[j], types[j]
+        if kind == "continuous":
+            continue
+        v = columns[name]
+        unit = "m" if kind == "prismatic" else "rad"
+        out = ok & ((v < lo - LIMIT_SLACK) | (v > hi + LIMIT_SLACK))
+        problems.note(
+            out,
+            name,
+            lambda k, v=v, lo=lo, hi=hi, name=name, unit=unit: (
+                f"joint {name!r} value {v[k]:.6g} {unit} outside its limits "
+                f"[{lo:.6g}, {hi:.6g}] {unit}"
+            ),
         )
