@@ -280,6 +280,30 @@ def test_cli_a_joint_the_ur10_cannot_take_names_file_row_column(
     assert not out.exists()
 
 
+def test_cli_format_that_disagrees_with_the_out_table_is_a_usage_error(capsys, tmp_path):
+    """--format parquet --out x.csv: one line naming both, nothing written (before: a CSV
+    written, --format ignored); --format that agrees, and --format for a directory of
+    several tables, still write."""
+    path = _ipa_file(tmp_path, f"{_HEADER}\n{_ROW}\n")
+    for fmt, out in (("parquet", "x.csv"), ("csv", "x.pq")):
+        argv = ["import", "ipa", str(path), "--format", fmt, "--out", str(tmp_path / out)]
+        err = _one_error_line(capsys, argv)
+        assert f"--format {fmt} disagrees with --out {tmp_path / out}, a " in err, err
+        assert not (tmp_path / out).exists()
+    assert (
+        main(["import", "ipa", str(path), "--format", "parquet", "--out", str(tmp_path / "x.pq")])
+        == 0
+    )
+    other = tmp_path / "other.csv"
+    other.write_text(path.read_text())
+    argv = ["import", "ipa", str(path), str(other), "--format", "parquet", "--out"]
+    assert main([*argv, str(tmp_path / "series")]) == 0
+    assert sorted(p.name for p in (tmp_path / "series").iterdir()) == [
+        "ipa.parquet",
+        "other.parquet",
+    ]
+
+
 def test_cli_help_states_units(capsys):
     with pytest.raises(SystemExit):
         main(["import", "ipa", "--help"])
