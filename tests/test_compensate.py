@@ -374,6 +374,28 @@ def test_cli_controller_running_the_exported_geometry(tmp_path, capsys, rx160):
     assert "a CSV DH table does not state its convention" in capsys.readouterr().err
 
 
+def test_cli_controller_file_that_holds_no_kinematics(tmp_path, capsys, rx160):
+    """--controller names a URDF or a DH YAML table: a JSON file is one line saying so
+    (before: yourdfpy's parser noise, then 'cannot parse URDF: Invalid input object:
+    NoneType'); a cut-off URDF is one line naming its line and column."""
+    model = save_model(tmp_path / "m.pt", _real(rx160))
+    write_joint_table(tmp_path / "p.csv", _program(rx160, 4), rx160.joint_names)
+    argv = ["compensate", str(model), str(tmp_path / "p.csv"), "--out", str(tmp_path / "o.csv")]
+    (tmp_path / "c.json").write_text('{"format": "x"\n')
+    cut = tmp_path / "c.urdf"
+    cut.write_text('<robot name="r">\n  <link name="a"/>\n  <joint name="j">')
+    for controller, text in (
+        ("c.json", "--controller: {}: expected the controller's kinematics, a URDF (.urdf"),
+        ("c.urdf", "{}, line 3, column 19: not well-formed XML (premature end of data"),
+    ):
+        path = tmp_path / controller
+        assert main([*argv, "--controller", str(path)]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1, err
+        assert text.format(path) in err, err
+    assert not (tmp_path / "o.csv").exists()
+
+
 @pytest.mark.parametrize(
     ("cell", "message"),
     [("abc", "row 2, column 'payload': text 'abc'"), ("", "row 2, column 'payload': empty"),

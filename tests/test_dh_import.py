@@ -11,6 +11,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+import yaml
 
 from hybrid_pk import Robot
 from hybrid_pk.cli.main import main
@@ -222,3 +223,37 @@ def test_a_dh_table_given_as_robot_says_how_to_make_a_urdf(tmp_path, capsys):
     assert "is a table, not a URDF" in err, err
     assert "import dh" in err
     assert Robot.from_dh(table).dof == 6
+
+
+@pytest.mark.parametrize(
+    ("text", "where"),
+    [("- 1\n- 2\n", ", row 1: found 1 where a row"), ("", ": holds nothing, not a table")],
+)
+def test_a_yaml_that_holds_no_rows_says_what_it_should_hold(tmp_path, capsys, text, where):
+    """A YAML list of numbers, or an empty YAML: one line saying what the file should
+    hold (before: blamed on "column 'convention'", and 'cannot read a DH table from a
+    NoneType'), with or without --convention."""
+    path = tmp_path / "t.yaml"
+    path.write_text(text)
+    for flags in ([], ["--convention", "dh"]):
+        assert main(["import", "dh", str(path), *flags, "--out", str(tmp_path / "x.urdf")]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1, err
+        assert f"error: {path}{where}" in err, err
+        assert "a YAML DH table holds joints: (a list with one mapping of name, a," in err
+        assert "convention" not in err.split(";")[0]
+
+
+def test_out_must_be_named_as_a_urdf(tmp_path, capsys):
+    """--out h.csv: one line naming --out and the suffixes, nothing written (before: URDF
+    XML written into a .csv, rc 0); .urdf and .xml are written."""
+    path = tmp_path / "t.yaml"
+    path.write_text(yaml.safe_dump({"convention": "dh", "joints": ROWS}))
+    assert main(["import", "dh", str(path), "--out", str(tmp_path / "h.csv")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert f"--out {tmp_path / 'h.csv'}: import dh writes a URDF (XML); name the file *.urdf" in err
+    assert not (tmp_path / "h.csv").exists()
+    for name in ("h.urdf", "h.XML"):
+        assert main(["import", "dh", str(path), "--out", str(tmp_path / name)]) == 0
+        assert Robot.from_urdf(tmp_path / name).dof == len(ROWS)

@@ -255,6 +255,55 @@ def test_cli_missing_source_and_bad_output_type(capsys, tmp_path):
     assert "unsupported file type '.txt'" in err
 
 
+_JOINTS = ";-1,5708;-1,5708;0,0;-1,5708;0,0;0,0;"  # the joint cells of _ROW
+
+
+@pytest.mark.parametrize(
+    ("joints", "column", "says"),
+    [
+        (";180;-1,5708;0,0;-1,5708;0,0;0,0;", "shoulder_pan_joint", "looks like degrees"),
+        (";-1,5708;-1,5708;3,5;-1,5708;0,0;0,0;", "elbow_joint", "joint 'elbow_joint' value "
+         "3.5 rad outside its limits [-3.14159, 3.14159] rad"),
+    ],
+)  # fmt: skip
+def test_cli_a_joint_the_ur10_cannot_take_names_file_row_column(
+    capsys, tmp_path, joints, column, says
+):
+    """A joint value that the table reader refuses for the UR10 (a 180 in a radian
+    column, an elbow beyond +-pi) is refused at import, naming the source file, its row
+    and column, and nothing is written (before: rc 0, a table every command refuses)."""
+    bad = _ROW.replace(_JOINTS, joints, 1)
+    path = _ipa_file(tmp_path, "\n".join([_HEADER, _ROW, _ROW, bad]) + "\n")
+    out = tmp_path / "o.csv"
+    err = _one_error_line(capsys, ["import", "ipa", str(path), "--out", str(out)])
+    assert f"{path}, row 3, column '{column}': {says}" in err, err
+    assert not out.exists()
+
+
+def test_cli_format_that_disagrees_with_the_out_table_is_a_usage_error(capsys, tmp_path):
+    """--format parquet --out x.csv: one line naming both, nothing written (before: a CSV
+    written, --format ignored); --format that agrees, and --format for a directory of
+    several tables, still write."""
+    path = _ipa_file(tmp_path, f"{_HEADER}\n{_ROW}\n")
+    for fmt, out in (("parquet", "x.csv"), ("csv", "x.pq")):
+        argv = ["import", "ipa", str(path), "--format", fmt, "--out", str(tmp_path / out)]
+        err = _one_error_line(capsys, argv)
+        assert f"--format {fmt} disagrees with --out {tmp_path / out}, a " in err, err
+        assert not (tmp_path / out).exists()
+    assert (
+        main(["import", "ipa", str(path), "--format", "parquet", "--out", str(tmp_path / "x.pq")])
+        == 0
+    )
+    other = tmp_path / "other.csv"
+    other.write_text(path.read_text())
+    argv = ["import", "ipa", str(path), str(other), "--format", "parquet", "--out"]
+    assert main([*argv, str(tmp_path / "series")]) == 0
+    assert sorted(p.name for p in (tmp_path / "series").iterdir()) == [
+        "ipa.parquet",
+        "other.parquet",
+    ]
+
+
 def test_cli_help_states_units(capsys):
     with pytest.raises(SystemExit):
         main(["import", "ipa", "--help"])

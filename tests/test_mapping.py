@@ -276,6 +276,8 @@ def test_decreasing_time_is_an_error(tmp_path):
         ("j=J,x=X,y=Y,z=Z,e1=A,e2=B,e3=C", {"euler": "XYQ"}, "Euler sequence"),
         ("j=J,x", {}, "TARGET=SOURCE"),
         ("j=J,j=K,x=X,y=Y,z=Z", {}, "given twice"),
+        ("j=J,x=X,y=Y,z=Z", {"decimal": "ab"}, "decimal 'ab' must be one character"),
+        ("j=J,x=X,y=Y,z=Z", {"separator": ";", "decimal": ";"}, "other than the separator"),
     ],
 )
 def test_bad_maps_are_one_line_errors(inline, options, words):
@@ -315,3 +317,25 @@ def test_cli_import_columns_error_is_one_line_with_location(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0
     assert "bad.csv, row 2, column 'X'" in err
+
+
+@pytest.mark.parametrize(
+    ("flags", "says"),
+    [
+        (["--decimal", "ab"], "--decimal 'ab': give the decimal mark, one character (. or ,)"),
+        (["--decimal", ";"], "--decimal ';' is also the field separator (--sep); the two must"),
+    ],
+)
+def test_cli_decimal_is_one_character_other_than_the_separator(tmp_path, capsys, flags, says):
+    """--decimal ab, or --decimal equal to --sep: one line naming the flag, nothing
+    written (before: "row 1, column 'X': text '1,5' in a numeric column")."""
+    path = _write(tmp_path / "e.csv", ["J", "X", "Y", "Z"], [[0.1, 1.5, 2.0, 3.0]], ";", ",")
+    dst = tmp_path / "o.csv"
+    argv = ["import", "columns", str(path), "--map", "j=J,x=X,y=Y,z=Z", "--sep", ";", *flags]
+    assert main([*argv, "--out", str(dst)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert f"hybrid-pk import columns: error: {says}" in err, err
+    assert not dst.exists()
+    assert main([*argv[:-2], "--decimal", ",", "--out", str(dst)]) == 0
+    assert pd.read_csv(dst)["x"].tolist() == [1.5]

@@ -240,6 +240,9 @@ def test_parse_gravity():
         parse_gravity("0,0,-1")
     with pytest.raises(HybridPKError, match="X,Y,Z"):
         parse_gravity("down")
+    # a zero vector has no direction to scale: the example is the floor's, not 0,0,0
+    with pytest.raises(HybridPKError, match=r"magnitude 0 m/s.*\(e\.g\. 0,0,-9\.81, a robot on"):
+        parse_gravity("0,0,0")
 
 
 @pytest.mark.parametrize(

@@ -271,6 +271,25 @@ def test_several_leaves_require_end_link(tmp_path):
     assert hpk.Robot.from_urdf(path, end_link="camera").dof == 3
 
 
+def test_a_cut_off_urdf_is_one_line_naming_line_and_column(tmp_path, capsys):
+    """A URDF cut off mid-joint: one line with the file, line and column of the XML
+    error (before: yourdfpy's parser noise on two lines, then 'expected one root link')."""
+    from hybrid_pk.cli.main import main
+
+    lines = hpk.shipped_robots()["rx160"].read_text().splitlines()
+    cut = next(i for i, line in enumerate(lines) if "<joint " in line) + 2
+    path = tmp_path / "trunc.urdf"
+    path.write_text("\n".join(lines[:cut]) + "\n")
+    with pytest.raises(hpk.RobotModelError, match=r"trunc\.urdf, line \d+, column \d+: not well"):
+        hpk.Robot.from_urdf(path)
+    capsys.readouterr()
+    assert main(["simulate", str(path), "--n", "5", "--out", str(tmp_path / "s.csv")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert f"error: {path}, line {cut + 1}, column 1: not well-formed XML (premature end" in err
+    assert not (tmp_path / "s.csv").exists()
+
+
 def test_bad_q_shape_says_expected_and_found():
     robot = hpk.Robot.from_urdf("rx160")
     with pytest.raises(hpk.ShapeError, match=r"\(\*B, 6\).*found \(2, 5\)"):

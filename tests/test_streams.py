@@ -312,3 +312,50 @@ def test_cli_streams_carry_temperature_and_refuse_kelvin(ur10, tmp_path, capsys)
     err = capsys.readouterr().err
     assert f"{tracker_csv}, row 1, column 'temperature'" in err, err
     assert "kelvin" in err, err
+
+
+@pytest.mark.parametrize(
+    ("flags", "says"),
+    [
+        (["--max-offset", "-1"], "argument --max-offset: expected a finite time > 0 s, got '-1'"),
+        (["--max-offset", "nan"], "argument --max-offset: expected a finite time [s], got 'nan'"),
+        (["--offset", "nan"], "argument --offset: expected a finite time [s], got 'nan'"),
+        (["--robot-decimal", "ab"], "--robot-decimal 'ab': give the decimal mark, one char"),
+        (["--tracker-sep", ";", "--tracker-decimal", ";"], "--tracker-decimal ';' is also the "
+         "field separator (--tracker-sep)"),
+        (["--offset", "0.05", "--max-offset", "0.01"], "--max-offset 0.01 bounds the search "
+         "for the offset, which --offset 0.05 skips; give one of them"),
+        (["--max-offset", "1e9"], "--max-offset 1e+09 s reaches beyond every offset at which "
+         "the streams overlap: robot t 0.000..1.992 s (1.99 s long), tracker t -0.480.."),
+    ],
+)  # fmt: skip
+def test_cli_offset_flags_are_usage_errors_naming_the_flag(ur10, tmp_path, capsys, flags, says):
+    """--max-offset -1 / 1e9 / nan, --offset nan, --offset with --max-offset and a stream's
+    decimal mark that is no character or the separator: one line naming the flag, exit 2,
+    no table (before: an IndexError, a 2.9 TiB MemoryError, 'arange: cannot compute
+    length', a vague 'no robot sample ... at offset nan s', or rc 0 with --max-offset
+    ignored). 1e9 names the streams' spans and the largest useful value."""
+    t_r, q, t_m, pos, _, _ = simulate_streams(ur10, 0.02, duration=2.0)
+    robot_csv, tracker_csv = write_streams(tmp_path, ur10.joint_names, t_r, q, t_m, pos)
+    dst = tmp_path / "table.csv"
+    argv = ["import", "streams", str(robot_csv), str(tracker_csv), "--robot", "ur10"]
+    try:
+        rc = main([*argv, *flags, "--out", str(dst), "--no-progress"])
+    except SystemExit as stop:  # argparse's usage errors
+        rc = stop.code
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert f"hybrid-pk import streams: error: {says}" in err, err
+    if "1e+09" in says:
+        assert "overlap at offsets -2.472..2.520 s" in err, err
+        assert "; give at most 2.519 s" in err, err
+    assert not dst.exists()
+
+
+def test_estimate_time_offset_refuses_a_search_without_width(ur10):
+    """max_offset -1 or NaN in Python: a DataError saying so (before: an IndexError)."""
+    t_r, q, t_m, pos, _, _ = simulate_streams(ur10, 0.02, duration=2.0)
+    for bad in (-1.0, math.nan, 0.0):
+        with pytest.raises(DataError, match="max_offset must be a finite time > 0 s"):
+            estimate_time_offset(t_r, q, t_m, pos, ur10, max_offset=bad)

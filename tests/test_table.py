@@ -481,13 +481,50 @@ def test_a_data_file_that_does_not_exist_is_named(tmp_path, capsys):
         ("payload", -2.0, "a payload is a mass >= 0 kg"),
         ("payload", 5000.0, "looks like grams"),
         ("temperature", 295.0, "looks like kelvin"),
+        ("temperature", -400.0, "below absolute zero (-273.15 °C)"),
     ],
 )
 def test_payload_and_temperature_in_other_units_are_refused(tmp_path, column, value, message):
-    """A negative payload, a payload in grams (beyond the heaviest arm's 2.3 t) and a
-    temperature in kelvin name file, row and column (before: read as kg / degC; a 5 kg
-    payload written as 5000 made evaluate report a 36 deg mean orientation error)."""
+    """A negative payload, a payload in grams (beyond the heaviest arm's 2.3 t), a
+    temperature in kelvin and one below absolute zero name file, row and column (before:
+    read as kg / degC; a 5 kg payload written as 5000 made evaluate report a 36 deg mean
+    orientation error; -400 °C was accepted)."""
     frame = _frame(5, payload=np.full(5, 2.0), temperature=np.full(5, 22.0))
     path = _csv(tmp_path, _set(frame, 3, column, value))
     with pytest.raises(DataError, match=_where(path, 3, column) + ".*" + re.escape(message)):
         read_table(path, **UR10)
+
+
+@pytest.mark.parametrize("column", ["shoulder_pan_joint", "z", "payload"])
+@pytest.mark.parametrize("nulls", [False, True])
+def test_a_boolean_parquet_column_is_no_numbers(tmp_path, column, nulls):
+    """A Parquet column of booleans, with or without nulls, names file and column (before:
+    True / False read as 1 / 0 rad, m or kg, rc 0)."""
+    frame = _frame(5, payload=np.full(5, 2.0))
+    flags = [True, False, True, False, True]
+    frame[column] = pd.array([None, *flags[1:]] if nulls else flags, dtype="boolean")
+    path = tmp_path / "bool.parquet"
+    frame.to_parquet(path)
+    _raises(path, None, column, "boolean, expected numbers")
+
+
+def test_cli_refuses_a_boolean_joint_column_and_a_temperature_below_absolute_zero(tmp_path, capsys):
+    """evaluate on a table with a boolean joint column or a -400 °C temperature: one line
+    naming file (and row) and column, exit code 2 (before: rc 0)."""
+    from hybrid_pk.cli.main import main
+
+    names = [f"joint_{k}" for k in range(1, 7)]
+    frame = _frame(12, temperature=np.full(12, 22.0)).rename(
+        columns=dict(zip(JOINTS, names, strict=True))
+    )
+    cold = _csv(tmp_path, _set(frame, 4, "temperature", -400.0), "cold.csv")
+    frame["joint_1"] = frame["joint_1"] > 0
+    frame.to_parquet(tmp_path / "bool.parquet")
+    for path, where in (
+        (tmp_path / "bool.parquet", "column 'joint_1': boolean, expected numbers"),
+        (cold, "row 4, column 'temperature': -400: below absolute zero"),
+    ):
+        assert main(["evaluate", "nominal:rx160", str(path), "--no-progress"]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1, err
+        assert f"{path}, {where}" in err, err

@@ -148,8 +148,13 @@ def _controller(path: str, robot: Robot) -> Robot:
         )
     if suffix in (".yaml", ".yml"):
         controller = Robot.from_dh(path)
-    else:
+    elif suffix in (".urdf", ".xml"):
         controller = Robot.from_urdf(path, end_link=robot.end_link)
+    else:  # a model, a diagnosis JSON, a program: no kinematics a controller runs
+        raise HybridPKError(
+            f"--controller: {path}: expected the controller's kinematics, a URDF (.urdf, "
+            ".xml) or a DH / MDH YAML table (.yaml, .yml), as 'hybrid-pk export' writes them"
+        )
     if controller.joint_names != robot.joint_names:
         raise HybridPKError(
             f"--controller: {path} has joints {', '.join(controller.joint_names)}; the model's "

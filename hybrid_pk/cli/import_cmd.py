@@ -12,6 +12,7 @@ import argparse
 from pathlib import Path
 
 from hybrid_pk.cli import import_dh
+from hybrid_pk.cli import import_flags as flags
 from hybrid_pk.cli.options import add_out, add_robot, command_parser
 from hybrid_pk.data.ipa import EULER_SEQUENCES, MEASUREMENT_CONVENTION, convert_ipa
 from hybrid_pk.errors import DataError
@@ -84,13 +85,14 @@ def _add_sources_and_out(parser: argparse.ArgumentParser, sources_help: str) -> 
     parser.add_argument(
         "--format",
         choices=("csv", "parquet"),
-        default="csv",
         dest="table_format",
-        help="table type written into a DST directory (default: csv)",
+        help="table type written into a DST directory (default: csv); a DST table's is "
+        "its extension",
     )
 
 
-def _destinations(sources: list[Path], out: Path, table_format: str) -> list[Path]:
+def _destinations(sources: list[Path], out: Path, table_format: str | None) -> list[Path]:
+    flags.check_table_format(table_format, out, len(sources))
     if len(sources) == 1 and not out.is_dir():
         return [out]
     if out.suffix.lower() in _TABLE_SUFFIXES:
@@ -98,7 +100,7 @@ def _destinations(sources: list[Path], out: Path, table_format: str) -> list[Pat
             f"--out {out} is a table but {len(sources)} sources were given; give a directory "
             "(one table per series: they were measured with different tracker set-ups)"
         )
-    dests = [out / f"{src.stem}.{table_format}" for src in sources]
+    dests = [out / f"{src.stem}.{table_format or 'csv'}" for src in sources]
     if len(set(dests)) < len(dests):
         raise DataError("several sources have the same file name; convert them one by one")
     out.mkdir(parents=True, exist_ok=True)
@@ -224,6 +226,7 @@ def _column_map(spec: str, args: argparse.Namespace, prefix: str = ""):
 def _run_columns(args: argparse.Namespace) -> int:
     from hybrid_pk.data.mapping import convert_columns
 
+    flags.check_decimal(args)
     cmap = _column_map(args.map, args)
     sources = [Path(s) for s in args.sources]
     for src in sources:
@@ -277,14 +280,17 @@ def _streams_options(st: argparse.ArgumentParser) -> None:
     st.add_argument("--robot-map", metavar="MAP", help="column map of the robot stream")
     st.add_argument("--tracker-map", metavar="MAP", help="column map of the tracker stream")
     st.add_argument(
-        "--offset", type=float, metavar="S", help="known offset [s]; skips the estimation"
+        "--offset",
+        type=flags.finite_seconds,
+        metavar="S",
+        help="known offset [s]; skips the estimation",
     )
     st.add_argument(
         "--max-offset",
-        type=float,
-        default=1.0,
+        type=flags.positive_seconds,
         metavar="S",
-        help="largest |offset| searched [s] (default: 1)",
+        help=f"largest |offset| searched [s] (default: {flags.DEFAULT_MAX_OFFSET_S:g}; "
+        "at most the offsets at which the streams overlap)",
     )
     st.add_argument(
         "--every",
@@ -380,6 +386,9 @@ def _run_streams(args: argparse.Namespace) -> int:
 
     if args.every < 1:
         raise DataError(f"--every must be >= 1, got {args.every}")
+    flags.check_offset_flags(args.offset, args.max_offset)
+    for prefix in ("robot-", "tracker-"):
+        flags.check_decimal(args, prefix)
     robot = load_robot(args.robot)
     names = list(robot.joint_names)
     rs, ts = _read_streams(args, names)
@@ -391,11 +400,12 @@ def _run_streams(args: argparse.Namespace) -> int:
     print(f"robot stream: {len(t_r)} samples, {_rate(t_r):.1f} Hz, {t_r[-1] - t_r[0]:.1f} s")
     print(f"tracker stream: {len(t_m)} samples, {_rate(t_m):.1f} Hz, {t_m[-1] - t_m[0]:.1f} s")
     if args.offset is None:
+        if args.max_offset is not None:
+            flags.check_max_offset(args.max_offset, t_r, t_m)
+        max_offset = args.max_offset or flags.DEFAULT_MAX_OFFSET_S
         with progress("estimate offset") as bar:
             bar.stage("cross-correlation and registration")
-            est = estimate_time_offset(
-                t_r, q, t_m, pos, robot, quat=quat, max_offset=args.max_offset
-            )
+            est = estimate_time_offset(t_r, q, t_m, pos, robot, quat=quat, max_offset=max_offset)
         print(est.summary())
         warning = est.residual_warning(f"{args.robot_stream}, {args.tracker_stream}")
         if warning:

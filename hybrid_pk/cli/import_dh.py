@@ -4,12 +4,17 @@ DH / modified-DH table as a URDF that ``--robot`` (and pinocchio, yourdfpy) read
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from hybrid_pk.cli.options import add_out
+from hybrid_pk.errors import HybridPKError
 from hybrid_pk.output_file import write_text
 from hybrid_pk.robot.dh import ROOT_LINK, TIP_LINK, dh_urdf
 from hybrid_pk.robot.dh_table import CONVENTIONS, DH_COLUMNS, INERTIA_COLUMNS, read_dh_table
 from hybrid_pk.units import UNITS
+
+# What a URDF file is named, as ROBOT arguments and export take it.
+_URDF_SUFFIXES = (".urdf", ".xml")
 
 TEXT = "a robot maker's DH / modified-DH table (CSV or YAML) -> URDF"
 HELP = f"""\
@@ -61,6 +66,11 @@ def add_options(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if Path(args.out).suffix.lower() not in _URDF_SUFFIXES:  # as export checks its FILE
+        raise HybridPKError(
+            f"--out {args.out}: import dh writes a URDF (XML); name the file "
+            f"{' or '.join(f'*{x}' for x in _URDF_SUFFIXES)}"
+        )
     given = {"length": args.length_unit, "angle": args.angle_unit}
     units = {k: v for k, v in given.items() if v is not None} or None
     table = read_dh_table(args.table, args.convention, name=args.name, units=units)

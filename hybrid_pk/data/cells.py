@@ -21,6 +21,7 @@ from hybrid_pk.data.measured import SkippedRow
 from hybrid_pk.errors import DataError
 
 __all__ = [
+    "ABSOLUTE_ZERO_C",
     "LIMIT_SLACK",
     "MAX_PAYLOAD_KG",
     "MAX_POSITION_M",
@@ -33,7 +34,9 @@ __all__ = [
     "check_time_order",
     "first_long_row",
     "missing_columns_error",
+    "note_joint_limits",
     "numeric_column",
+    "refuse_booleans",
     "to_float",
 ]
 
@@ -47,11 +50,29 @@ MAX_PAYLOAD_KG = 2300.0
 # No robot runs at 100 °C (motor windings, grease and encoders are rated far below the
 # boiling point of water): a higher temperature [°C] is kelvin (or °F) written as °C.
 MAX_TEMPERATURE_C = 100.0
+# Absolute zero [°C] (0 K): nothing is colder, so a lower value is no temperature at all.
+ABSOLUTE_ZERO_C = -273.15
+
+
+def _booleans(values: pd.Series) -> bool:
+    """True for a column of booleans (a Parquet bool column, with or without nulls)."""
+    return pd.api.types.infer_dtype(values, skipna=True) == "boolean"
+
+
+def refuse_booleans(file: str, values: pd.Series, column: str) -> None:
+    """Raise if column ``column`` of ``file`` holds booleans: True is no 1 rad or 1 m,
+    and a whole column of them is the wrong column (or type), never a bad row."""
+    if _booleans(values):
+        raise DataError("boolean, expected numbers", file=file, column=column)
 
 
 def to_float(values: pd.Series) -> tuple[np.ndarray, np.ndarray]:
-    """Cells -> ``(floats, unparsable)``; unparsable cells are NaN in ``floats``."""
-    if pd.api.types.is_numeric_dtype(values) and not pd.api.types.is_bool_dtype(values):
+    """Cells -> ``(floats, unparsable)``; unparsable cells are NaN in ``floats``.
+    Booleans are no numbers: every cell of a boolean column is unparsable
+    (:func:`refuse_booleans` names the column)."""
+    if _booleans(values):
+        return np.full(len(values), np.nan), np.ones(len(values), bool)
+    if pd.api.types.is_numeric_dtype(values):
         return values.to_numpy(np.float64), np.zeros(len(values), bool)
     cells = values.to_numpy(object)
     try:
@@ -214,8 +235,9 @@ class RowProblems:
 
 
 def numeric_column(file: str, values: pd.Series, name: str) -> np.ndarray:
-    """The cells of column ``name`` as floats; a DataError at the first cell that is not
-    a finite number (file, 1-based row, column)."""
+    """The cells of column ``name`` as floats; a DataError at a boolean column or the
+    first cell that is not a finite number (file, 1-based row, column)."""
+    refuse_booleans(file, values, name)
     out, unparsable = to_float(values)
     for k, (raw, v, bad) in enumerate(zip(values.to_numpy(object), out, unparsable, strict=True)):
         why = cell_problem(raw, float(v), bool(bad))
@@ -226,8 +248,9 @@ def numeric_column(file: str, values: pd.Series, name: str) -> np.ndarray:
 
 def check_conditions(file: str, columns: dict[str, np.ndarray], rows: np.ndarray) -> None:
     """Raise at the first payload below 0 kg or beyond :data:`MAX_PAYLOAD_KG` (grams), or
-    temperature beyond :data:`MAX_TEMPERATURE_C` (kelvin, °F): a unit problem of the file,
-    never skipped. ``rows``: the 1-based row of each value."""
+    temperature beyond :data:`MAX_TEMPERATURE_C` (kelvin, °F) or below
+    :data:`ABSOLUTE_ZERO_C` (impossible): a problem of the file, never skipped. ``rows``:
+    the 1-based row of each value."""
     checks = (
         ("payload", lambda v: v < 0, "a payload is a mass >= 0 kg"),
         (
@@ -241,6 +264,12 @@ def check_conditions(file: str, columns: dict[str, np.ndarray], rows: np.ndarray
             lambda v: v > MAX_TEMPERATURE_C,
             f"looks like kelvin or °F (no robot runs at {MAX_TEMPERATURE_C:g} °C); the column "
             "is °C: subtract 273.15 from kelvin",
+        ),
+        (
+            "temperature",
+            lambda v: v < ABSOLUTE_ZERO_C,
+            f"below absolute zero ({ABSOLUTE_ZERO_C:g} °C), which no temperature is; the "
+            "column is °C",
         ),
     )
     for name, wrong, why in checks:
@@ -297,4 +326,34 @@ def check_joint_unit(
             file=file,
             row=row,
             column=name,
+        )
+
+
+def note_joint_limits(
+    problems: RowProblems,
+    columns: dict[str, np.ndarray],
+    joints: Sequence[str],
+    lower: Sequence[float],
+    upper: Sequence[float],
+    types: Sequence[str],
+    ok: np.ndarray,
+) -> None:
+    """Record in ``problems`` the ``ok`` rows whose joint value lies outside the joint's
+    limits (``lower``, ``upper`` [rad or m] and ``types`` per joint of ``joints``, each a
+    column of ``columns``); continuous joints have none. The slack is
+    :data:`LIMIT_SLACK`."""
+    for j, name in enumerate(joints):
+        lo, hi, kind = lower[j], upper[j], types[j]
+        if kind == "continuous":
+            continue
+        v = columns[name]
+        unit = "m" if kind == "prismatic" else "rad"
+        out = ok & ((v < lo - LIMIT_SLACK) | (v > hi + LIMIT_SLACK))
+        problems.note(
+            out,
+            name,
+            lambda k, v=v, lo=lo, hi=hi, name=name, unit=unit: (
+                f"joint {name!r} value {v[k]:.6g} {unit} outside its limits "
+                f"[{lo:.6g}, {hi:.6g}] {unit}"
+            ),
         )

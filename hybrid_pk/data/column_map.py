@@ -82,7 +82,8 @@ class ColumnMap:
         Raises:
             DataError: partial position/orientation, Euler angles without a sequence,
                 both Euler angles and a quaternion, an unknown sequence, a unit of the
-                wrong quantity.
+                wrong quantity, a decimal mark that is not one character or is the
+                separator.
         """
         self._check_groups()
         if self.time_format not in ("number", "datetime"):
@@ -91,6 +92,11 @@ class ColumnMap:
             )
         if self.skip_lines < 0:
             raise DataError(f"column map: skip_lines must be >= 0, got {self.skip_lines}")
+        if len(self.decimal) != 1 or self.decimal == self.separator:
+            raise DataError(
+                f"column map: decimal {self.decimal!r} must be one character other than the "
+                f"separator ({self.separator!r})"
+            )
         for name, src in self.columns.items():
             quantity = TARGET_QUANTITY.get(name, "joint")
             if src.unit is None or quantity == "joint":

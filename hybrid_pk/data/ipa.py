@@ -46,6 +46,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from decimal import Decimal
+from functools import cache
 from pathlib import Path
 from typing import NamedTuple
 
@@ -53,7 +54,14 @@ import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 
-from hybrid_pk.data.cells import check_header_names, missing_columns_error, to_float
+from hybrid_pk.data.cells import (
+    RowProblems,
+    check_header_names,
+    check_joint_unit,
+    missing_columns_error,
+    note_joint_limits,
+    to_float,
+)
 from hybrid_pk.data.euler import (
     EULER_SEQUENCES,
     ConventionScore,
@@ -73,6 +81,7 @@ __all__ = [
     "EulerDetection",
     "IpaConventions",
     "IpaImport",
+    "check_ipa_joints",
     "convert_ipa",
     "describe_sequence",
     "detect_euler_convention",
@@ -160,6 +169,31 @@ def read_ipa_csv(
     return pd.DataFrame(out)
 
 
+@cache
+def _ur10_limits() -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
+    """``(lower, upper, types)`` of :data:`UR_JOINT_NAMES`, from the shipped UR10's URDF."""
+    from hybrid_pk.robot.chain_spec import load_chain_spec
+
+    spec = load_chain_spec("ur10")
+    order = [spec.joint_names.index(name) for name in UR_JOINT_NAMES]
+    return spec.lower[order], spec.upper[order], tuple(spec.joint_types[k] for k in order)
+
+
+def check_ipa_joints(file: str, raw: pd.DataFrame) -> None:
+    """Raise at the first joint value of ``raw`` (rows of ``file``) that the table reader
+    would refuse for the UR10, the one arm of the IPA data set: a column that holds
+    degrees, or a value outside the joint limits. The error names the source file, its
+    1-based data row and column, so no table is written that every command refuses."""
+    lower, upper, types = _ur10_limits()
+    columns = {name: raw[name].to_numpy() for name in UR_JOINT_NAMES}
+    every = np.ones(len(raw), bool)
+    for j, name in enumerate(UR_JOINT_NAMES):
+        check_joint_unit(file, name, types[j], lower[j], upper[j], columns[name], every)
+    problems = RowProblems(file, len(raw))
+    note_joint_limits(problems, columns, UR_JOINT_NAMES, lower, upper, types, every)
+    problems.raise_first()
+
+
 def ipa_to_frame(raw: pd.DataFrame, convention: str = MEASUREMENT_CONVENTION) -> pd.DataFrame:
     """Parsed IPA columns -> table of contract section 1 (plus ``std_*`` extras).
 
@@ -222,7 +256,8 @@ def convert_ipa(
     """Convert one IPA measurement file to a section-1 table (CSV or Parquet by extension).
 
     Args:
-        src: ``measurements_*.csv`` of the IPA UR10 data set.
+        src: ``measurements_*.csv`` of the IPA UR10 data set; its joints must be radians
+            within the UR10's limits (:func:`check_ipa_joints`).
         dst: output table; ``.csv``, ``.parquet`` or ``.pq``.
         convention: scipy Euler sequence of ``measurement_rx,ry,rz``, or ``"auto"`` to
             detect it on this file (:func:`detect_ipa_conventions`).
@@ -234,6 +269,7 @@ def convert_ipa(
     if convention == "auto":
         required += GOAL_ANGLES
     raw = read_ipa_csv(src, required, optional=list(_STD_COLUMNS))
+    check_ipa_joints(str(src), raw)
     detected = convention == "auto"
     if detected:
         convention = _detect_on(raw).measurement.convention

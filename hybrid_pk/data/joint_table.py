@@ -19,7 +19,13 @@ import pandas as pd
 import torch
 from torch import Tensor
 
-from hybrid_pk.data.cells import LIMIT_SLACK, cell_problem, check_joint_unit, to_float
+from hybrid_pk.data.cells import (
+    LIMIT_SLACK,
+    cell_problem,
+    check_joint_unit,
+    refuse_booleans,
+    to_float,
+)
 from hybrid_pk.data.files import load_cells, write_frame
 from hybrid_pk.errors import DataError
 from hybrid_pk.units import UNITS
@@ -89,6 +95,7 @@ def read_joint_table(
     factors = angle_factors(robot, angle_unit)
     q = np.empty((len(frame), len(names)))
     for j, name in enumerate(names):
+        refuse_booleans(file, frame[name], name)
         values, unparsable = to_float(frame[name])
         values = values * factors[j]
         bad = ~np.isfinite(values) | unparsable

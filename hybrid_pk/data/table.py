@@ -28,13 +28,14 @@ import numpy as np
 import torch
 
 from hybrid_pk.data.cells import (
-    LIMIT_SLACK,
     MAX_POSITION_M,
     RowProblems,
     check_conditions,
     check_joint_unit,
     check_time_order,
     missing_columns_error,
+    note_joint_limits,
+    refuse_booleans,
     to_float,
 )
 from hybrid_pk.data.files import load_cells, to_frame, write_frame
@@ -159,31 +160,6 @@ def _select_columns(
     return _Columns(has_joints, joints, quat, wanted, ignored)
 
 
-def _note_limits(
-    columns: dict[str, np.ndarray],
-    joints: list[str],
-    spec: _JointSpec,
-    ok: np.ndarray,
-    problems: RowProblems,
-) -> None:
-    """Record rows whose joint values lie outside the limits (continuous joints have none)."""
-    for j, name in enumerate(joints):
-        lo, hi, kind = spec.lower[j], spec.upper[j], spec.types[j]
-        if kind == "continuous":
-            continue
-        v = columns[name]
-        unit = "m" if kind == "prismatic" else "rad"
-        out = ok & ((v < lo - LIMIT_SLACK) | (v > hi + LIMIT_SLACK))
-        problems.note(
-            out,
-            name,
-            lambda k, v=v, lo=lo, hi=hi, name=name, unit=unit: (
-                f"joint {name!r} value {v[k]:.6g} {unit} outside its limits "
-                f"[{lo:.6g}, {hi:.6g}] {unit}"
-            ),
-        )
-
-
 def _check_metres(file: str, columns: dict[str, np.ndarray], ok: np.ndarray) -> None:
     """Raise if the position columns hold mm (or cm): a file-level problem, never skipped."""
     if not ok.any() or any(c not in columns for c in POSITION_COLUMNS):
@@ -215,6 +191,7 @@ def _read_file(path: Path, spec: _JointSpec, skip: bool, require_joints: bool) -
     problems = RowProblems(file, len(frame))
     columns: dict[str, np.ndarray] = {}
     for col in select.wanted:
+        refuse_booleans(file, frame[col], col)
         columns[col], unparsable = to_float(frame[col])
         problems.note_cells(col, frame[col].to_numpy(object), columns[col], unparsable)
     problems.raise_first(skip)
@@ -224,7 +201,7 @@ def _read_file(path: Path, spec: _JointSpec, skip: bool, require_joints: bool) -
     check_conditions(file, {c: v[ok] for c, v in columns.items()}, np.flatnonzero(ok) + 1)
     for j, name in enumerate(select.joints):
         check_joint_unit(file, name, spec.types[j], spec.lower[j], spec.upper[j], columns[name], ok)
-    _note_limits(columns, select.joints, spec, ok, problems)
+    note_joint_limits(problems, columns, select.joints, spec.lower, spec.upper, spec.types, ok)
     if select.quat:
         norm = np.sqrt(sum(columns[c] ** 2 for c in QUAT_COLUMNS))
         problems.note(

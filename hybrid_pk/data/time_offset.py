@@ -383,9 +383,11 @@ def estimate_time_offset(
         The estimate; ``offset`` is the refined value.
 
     Raises:
-        DataError: bad shapes or times, streams that never overlap, a robot that does
-            not move (no speed to correlate), too few rows overlapping the tracker span.
+        DataError: a bad max_offset, shapes or times, streams that never overlap, a robot
+            that does not move (no speed to correlate), too few rows overlapping the tracker.
     """
+    if not 0 < max_offset < math.inf:  # a search half-width: -1 or NaN has no grid
+        raise DataError(f"max_offset must be a finite time > 0 s, got {max_offset!r}")
     t_r, q, t_m, pos, quat_np = _checked_streams(robot_t, q, tracker_t, position, quat)
     with torch.no_grad():
         T_all = robot.fk(torch.as_tensor(q, dtype=robot.dtype)).double()

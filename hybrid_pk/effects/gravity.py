@@ -111,10 +111,13 @@ def parse_gravity(text: str | None) -> Gravity:
     norm = math.sqrt(sum(v * v for v in values))
     lo, hi = _CREDIBLE_G
     if not lo <= norm <= hi:
+        # the same direction scaled to g (+ 0.0: no "-0"); a zero vector has none: the floor's, -z
+        direction = [v / norm for v in values] if norm > 0 else [0.0, 0.0, -1.0]
+        example = ",".join(f"{v * STANDARD_GRAVITY + 0.0:.3g}" for v in direction)
         raise HybridPKError(
             f"--gravity {text!r} has magnitude {norm:.4g} m/s^2; gravity is about "
             f"{STANDARD_GRAVITY:.2f} m/s^2: give the acceleration, not a direction (e.g. "
-            f"{','.join(f'{v / max(norm, 1e-12) * STANDARD_GRAVITY:.3g}' for v in values)})"
+            f"{example}{'' if norm > 0 else ', a robot on the floor'})"
         )
     return Gravity(tuple(values), "root")
 

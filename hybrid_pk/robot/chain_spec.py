@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytorch_kinematics as pk
 import yourdfpy
+from lxml import etree
 from pytorch_kinematics.urdf_parser_py.xml_reflection import core as _pk_xml
 
 from hybrid_pk.errors import InvalidFrame, RobotModelError
@@ -182,10 +183,30 @@ def _quiet_unknown_attributes():
         _pk_xml.on_error = said
 
 
+def _check_well_formed(path: Path) -> None:
+    """Raise one line naming ``path``, line and column at its first XML syntax error.
+
+    yourdfpy reads a broken file by printing the parser's complaint and retrying with a
+    recovering parser, whose partial tree then fails for an unrelated reason (a file
+    cut off mid-joint: 'expected one root link'); lxml, the parser yourdfpy uses, is
+    asked first so that every file it would complain about is refused here instead.
+    """
+    try:
+        etree.parse(str(path))
+    except etree.XMLSyntaxError as exc:
+        line, column = exc.position
+        reason = exc.msg.split(f", line {line}, column")[0]  # the position is said first
+        raise RobotModelError(
+            f"{path}, line {line}, column {column}: not well-formed XML "
+            f"({reason[:1].lower()}{reason[1:]})"
+        ) from None
+
+
 class _Tree:
     """The URDF's link tree: joints by child link, children by parent link."""
 
     def __init__(self, path: Path) -> None:
+        _check_well_formed(path)
         try:
             model = yourdfpy.URDF.load(str(path), load_meshes=False, build_scene_graph=False)
         except Exception as exc:  # yourdfpy raises bare lxml/ValueErrors

@@ -46,6 +46,11 @@ CONVENTIONS = ("dh", "mdh")
 DH_COLUMNS = ("name", "a", "alpha", "d", "theta", "type", "lower", "upper")
 INERTIA_COLUMNS = ("mass", "com_x", "com_y", "com_z", "ixx", "ixy", "ixz", "iyy", "iyz", "izz")
 _TYPES = ("revolute", "continuous", "prismatic")
+# What a YAML DH table holds, said by the errors of a file laid out otherwise.
+_LAYOUT = (
+    f"a YAML DH table holds joints: (a list with one mapping of {', '.join(DH_COLUMNS)} "
+    "per joint) and convention: dh|mdh, or that list alone"
+)
 _ANGLES = ("alpha", "theta", "beta")
 # A DH angle is defined modulo one turn, so a table states it within [-2 pi, 2 pi]; a
 # larger figure is a degree value (90, 180). Joint limits may span two turns (UR arms
@@ -176,6 +181,9 @@ def _records(source, where: str) -> tuple[list[dict], dict]:
             except yaml.YAMLError as exc:
                 reason = " ".join(str(exc).split())
                 raise DataError(f"not valid YAML ({reason})", file=where) from exc
+            if not isinstance(doc, (Mapping, list)):  # a text would be read as a path
+                what = "nothing" if doc is None else repr(str(doc)[:40])
+                raise DataError(f"holds {what}, not a table; {_LAYOUT}", file=where)
             return _records(doc, where)
         try:
             frame = pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
@@ -263,8 +271,6 @@ def _too_long(written: float, units: TableUnits = TableUnits()) -> str:
 def _row(row: dict, where: str, i: int, inertial: bool, units: TableUnits) -> tuple:
     """``(name, type, [a, alpha, d, theta, beta], lower, upper, inertial or None)`` in
     m, rad, kg."""
-    if not isinstance(row, Mapping):
-        raise DataError(f"a row must map column names to values, found {row!r}", file=where, row=i)
     name = str(row.get("name", "")).strip()
     if not name:
         raise DataError("empty joint name", file=where, row=i, column="name")
@@ -372,6 +378,13 @@ def read_dh_table(
         return source
     where = os.fspath(source) if isinstance(source, (str, os.PathLike)) else "<table>"
     records, head = _records(source, where)
+    for i, r in enumerate(records, start=1):  # before the convention: the file is wrong
+        if not isinstance(r, Mapping):
+            raise DataError(
+                f"found {r!r} where a row (a mapping of column: value) belongs; {_LAYOUT}",
+                file=where,
+                row=i,
+            )
     stated = head.get("convention")
     if stated is not None and str(stated).lower() not in CONVENTIONS:
         raise DataError(f"convention {stated!r}: write dh or mdh", file=where, column="convention")
@@ -394,10 +407,8 @@ def read_dh_table(
     table_units = TableUnits.parse(units, head.get("units"), where)
     if not records:
         raise DataError("the DH table has no rows", file=where)
-    keys = set().union(*(r.keys() for r in records if isinstance(r, Mapping)))
+    keys = set().union(*(r.keys() for r in records))
     for i, r in enumerate(records, start=1):
-        if not isinstance(r, Mapping):
-            continue  # _row says so
         optional = ("lower", "upper") if str(r.get("type", "")).strip() == "continuous" else ()
         missing = [c for c in DH_COLUMNS if c not in r and c not in optional]
         if missing:

@@ -1,0 +1,114 @@
+"""Checks of ``import``'s flags that argparse cannot make alone: values that need another
+flag (``--decimal`` against ``--sep``, ``--format`` against ``--out``, ``--offset``
+against ``--max-offset``) or the streams read (``--max-offset`` against their times).
+Each failure is a usage error naming the flag: one line, exit code 2."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+import numpy as np
+
+from hybrid_pk.data.files import CSV_SUFFIXES, PARQUET_SUFFIXES
+from hybrid_pk.errors import HybridPKError
+
+__all__ = [
+    "DEFAULT_MAX_OFFSET_S",
+    "check_decimal",
+    "check_max_offset",
+    "check_offset_flags",
+    "check_table_format",
+    "finite_seconds",
+    "positive_seconds",
+]
+
+# [s] Largest |offset| searched by default: a controller and a tracker PC whose clocks
+# are set by NTP, or started by hand together, differ by well under a second.
+DEFAULT_MAX_OFFSET_S = 1.0
+
+# The extensions of each --format's tables: the table writer picks the type by them.
+_SUFFIXES = {"csv": CSV_SUFFIXES, "parquet": PARQUET_SUFFIXES}
+
+
+def finite_seconds(text: str) -> float:
+    """``argparse`` type of ``--offset``: a finite number of seconds (any sign)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite time [s], got {text!r}")
+    return value
+
+
+def positive_seconds(text: str) -> float:
+    """``argparse`` type of ``--max-offset``: a finite time > 0 s (a search half-width)."""
+    value = finite_seconds(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a finite time > 0 s, got {text!r}")
+    return value
+
+
+def check_offset_flags(offset: float | None, max_offset: float | None) -> None:
+    """``--max-offset`` bounds the estimation that a given ``--offset`` skips: both given
+    means one of them is not what the user thinks."""
+    if offset is not None and max_offset is not None:
+        raise HybridPKError(
+            f"--max-offset {max_offset:g} bounds the search for the offset, which --offset "
+            f"{offset:g} skips; give one of them"
+        )
+
+
+def check_max_offset(max_offset: float, t_robot: np.ndarray, t_tracker: np.ndarray) -> None:
+    """Refuse a ``--max-offset`` [s] beyond every offset at which the streams overlap
+    (tracker time = robot time + offset): the search there finds no sample pair, and
+    its grid grows with the bound (1e9 s asked for terabytes)."""
+    lo = float(t_tracker[0] - t_robot[-1])
+    hi = float(t_tracker[-1] - t_robot[0])
+    reach = max(abs(lo), abs(hi))
+    if max_offset > reach:
+        raise HybridPKError(
+            f"--max-offset {max_offset:g} s reaches beyond every offset at which the streams "
+            f"overlap: robot t {_span(t_robot)}, tracker t {_span(t_tracker)} overlap at "
+            f"offsets {lo:.3f}..{hi:.3f} s; give at most {math.floor(1e3 * reach) / 1e3:.3f} s"
+        )
+
+
+def _span(t: np.ndarray) -> str:
+    """A stream's first and last time stamp and its length, for messages."""
+    return f"{t[0]:.3f}..{t[-1]:.3f} s ({t[-1] - t[0]:.3g} s long)"
+
+
+def check_table_format(table_format: str | None, out: Path, n_sources: int) -> None:
+    """``--format`` is the type of the tables written into a DST directory; a DST table's
+    type is its extension, so a ``--format`` that disagrees with it is refused (it was
+    ignored: ``--format parquet --out x.csv`` wrote a CSV)."""
+    if table_format is None or n_sources > 1 or out.is_dir():
+        return
+    suffix = out.suffix.lower()
+    if suffix in (*CSV_SUFFIXES, *PARQUET_SUFFIXES) and suffix not in _SUFFIXES[table_format]:
+        raise HybridPKError(
+            f"--format {table_format} disagrees with --out {out}, a {suffix} table: a table's "
+            "type is its extension (--format is the type of the tables written into a DST "
+            f"directory); drop --format or name the file *{_SUFFIXES[table_format][0]}"
+        )
+
+
+def check_decimal(args: argparse.Namespace, prefix: str = "") -> None:
+    """``--{prefix}decimal``: one character, other than ``--{prefix}sep`` (a number's
+    decimal mark that is also the separator splits every number in two)."""
+    dest = prefix.replace("-", "_")
+    decimal = getattr(args, f"{dest}decimal", None)
+    if decimal is None:
+        return
+    if len(decimal) != 1:
+        raise HybridPKError(
+            f"--{prefix}decimal {decimal!r}: give the decimal mark, one character (. or ,)"
+        )
+    if getattr(args, f"{dest}separator", None) == decimal:
+        raise HybridPKError(
+            f"--{prefix}decimal {decimal!r} is also the field separator (--{prefix}sep); "
+            "the two must differ"
+        )
