@@ -92,10 +92,12 @@ def test_a_table_and_a_model_that_cannot_be_written_keep_the_files_there(tmp_pat
          "--urdf and --out are one file"),
         (["calibrate", "{a}", "--robot", "rx160", "--out", "{d}/m.pt", "--urdf", "{d}/u.urdf",
           "--no-urdf"], "--urdf {d}/u.urdf and --no-urdf: give one of them"),
-        (["evaluate", "nominal:rx160", "{a}", "--json", "{d}"], "--json {d}: is a folder"),
-        (["evaluate", "nominal:rx160", "{a}", "--report", "{a}"], "--report {a}: is a file"),
+        (["evaluate", "nominal:rx160", "{a}", "--json", "{d}"], "--json {d} is a folder"),
+        (["evaluate", "nominal:rx160", "{a}", "--report", "{a}"], "--report {a} is a file"),
+        (["evaluate", "nominal:rx160", "{a}", "--json", "{a}/x.json"],
+         "--json {a}/x.json: {a} is a file, not a folder"),
         (["simulate", "rx160", "--n", "5", "--out", "{d}/t.csv"],
-         "its truth file {d}/t.csv.truth.json: is a folder"),
+         "its truth file {d}/t.csv.truth.json is a folder"),
     ],
 )  # fmt: skip
 def test_outputs_over_an_input_or_a_folder_are_refused_before_any_work(

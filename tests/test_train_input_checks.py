@@ -103,10 +103,7 @@ def test_out_an_existing_folder_is_refused_before_training(files, tmp_path, caps
     code = main(["train", str(table), "--model", str(base), "--out", str(tmp_path)])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2
-    assert err == [
-        f"hybrid-pk train: error: --out {tmp_path} is a folder; give a model file name, "
-        "e.g. hybrid.pt"
-    ]
+    assert err == [f"hybrid-pk train: error: --out {tmp_path} is a folder; give a file name"]
 
 
 def test_logdir_an_existing_file_is_refused_before_training(files, capsys, no_training):
@@ -118,7 +115,7 @@ def test_logdir_an_existing_file_is_refused_before_training(files, capsys, no_tr
     assert code == 2
     assert (
         err
-        == f"hybrid-pk train: error: --logdir {table} is a file; give a folder (TensorBoard logs)"
+        == f"hybrid-pk train: error: --logdir {table} is a file; give a folder (it holds several)"
     )
 
 

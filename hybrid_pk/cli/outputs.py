@@ -2,8 +2,9 @@
 
 A command may not write over one of its own inputs (``calibrate runs.csv --out
 runs.csv`` would replace the measurements by a model), nor write two of its outputs to
-one path, nor a file where a folder is or a folder where a file is. Each refusal is one
-line naming the option and the path, and comes before any work or any file written.
+one path, nor a file where a folder is or a folder where a file is, nor into a folder
+it may not write in. Each refusal is one line naming the option and the path, and comes
+before any work or any file written.
 Each file itself is then written through :func:`hybrid_pk.output_file.replacing`, so a
 write that fails keeps what was there.
 
@@ -76,15 +77,28 @@ def _inputs(args: argparse.Namespace) -> list[tuple[str, Path]]:
     return found
 
 
+def _check_parent(flag: str, path: Path) -> None:
+    """The nearest folder above ``path`` that exists (the rest is made) must be a folder
+    the process may write in."""
+    parent = path.absolute().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise HybridPKError(f"{flag} {path}: {parent} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise HybridPKError(f"{flag} {path}: the folder {parent} is not writable")
+
+
 def check_outputs(args: argparse.Namespace) -> None:
     """Refuse, before any work, outputs that would overwrite an input or each other, or
     a file given where a folder is (and the other way round): :class:`HybridPKError`."""
     inputs, seen = _inputs(args), {}
     for flag, path, kind in _outputs(args):
         if kind == "file" and path.is_dir():
-            raise HybridPKError(f"{flag} {path}: is a folder; give a file name")
+            raise HybridPKError(f"{flag} {path} is a folder; give a file name")
         if kind == "folder" and path.exists() and not path.is_dir():
-            raise HybridPKError(f"{flag} {path}: is a file; give a folder (it holds several)")
+            raise HybridPKError(f"{flag} {path} is a file; give a folder (it holds several)")
+        _check_parent(flag, path)
         for name, source in inputs:
             if path.exists() and os.path.samefile(path, source):
                 raise HybridPKError(

@@ -3,11 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
-from pathlib import Path
 
 import torch
 
@@ -136,26 +134,6 @@ def _processes(text: str) -> int:
     return value
 
 
-def _check_writable(path: str | None, flag: str, folder: bool) -> None:
-    """Refuse, before any training, an output the command could not write at its end:
-    a file where a folder is needed or the other way round, a parent that is a file, a
-    folder without write permission (the nearest one that exists; the rest is made)."""
-    if path is None:
-        return
-    target = Path(path)
-    if target.exists() and target.is_dir() != folder:
-        what = "a folder" if target.is_dir() else "a file"
-        need = "a folder (TensorBoard logs)" if folder else "a model file name, e.g. hybrid.pt"
-        raise HybridPKError(f"{flag} {path} is {what}; give {need}")
-    parent = target.absolute().parent
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir():
-        raise HybridPKError(f"{flag} {path}: {parent} is a file, not a folder")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise HybridPKError(f"{flag} {path}: the folder {parent} is not writable")
-
-
 def _prepare(args, loaded, robot, sets: int):
     """DATA read for the model's robot, its conditions, and the base model (frames
     fitted to DATA with --fit-frames)."""
@@ -199,8 +177,6 @@ def run(args: argparse.Namespace) -> int:
     quiet_lightning()  # after the import: Lightning sets its logger up when imported
     settings = train_settings(given_values(args, TrainSettings), args.config)
     training_sections(settings, args.config)  # checked before any data is read
-    _check_writable(args.out, "--out", folder=False)
-    _check_writable(args.logdir, "--logdir", folder=True)
     if args.resume and args.logdir is None:
         raise HybridPKError("--resume needs the --logdir DIR of the run to continue")
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
