@@ -47,9 +47,17 @@ def replacing(path: str | os.PathLike) -> Iterator[Path]:
     ``path`` is left as it was; an OS error (disk full, file too large, permission)
     becomes an :class:`OutputError` naming ``path``. Missing parent folders are made."""
     path = Path(path)
+    if path.is_symlink():  # write where the link points, and keep the link
+        path = path.resolve()
     if path.is_dir():
-        raise OutputError(f"{path}: is a folder; give a file name")
+        raise OutputError(f"{path} is a folder; give a file name")
     existed = path.exists()
+    if existed and not path.is_file():  # a device or a pipe (/dev/stdout): written as it is
+        try:
+            yield path
+        except OSError as exc:
+            raise _failed(path, exc, existed=False) from None
+        return
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)

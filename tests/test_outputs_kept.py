@@ -113,3 +113,18 @@ def test_outputs_over_an_input_or_a_folder_are_refused_before_any_work(
     assert message.format(a=a, d=d) in err
     after = {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()}
     assert after == before  # nothing written
+
+
+def test_a_link_is_written_through_and_a_device_as_it_is(tmp_path):
+    target, link = tmp_path / "target.csv", tmp_path / "link.csv"
+    target.write_text(ORIGINAL)
+    link.symlink_to(target.name)
+    write_text(link, "new\n")
+    assert link.is_symlink()
+    assert target.read_text() == "new\n"
+    full = Path("/dev/full")  # a device is written in place, never replaced by a file
+    if not full.exists():
+        pytest.skip("no /dev/full here")
+    with pytest.raises(OutputError, match=r"/dev/full: cannot write it"):
+        write_text(full, "x" * 100_000)
+    assert full.is_char_device()
