@@ -72,3 +72,10 @@ class ModelFileError(HybridPKError):
 
 class ShapeError(HybridPKError, ValueError):
     """A tensor argument with the wrong shape or dtype (says expected and found)."""
+
+
+def missing_file(path, what: str = "file") -> str:
+    """Why ``path`` cannot be read as a ``what``: it is a folder, or it is not there."""
+    import os
+
+    return f"is a folder, not a {what}" if os.path.isdir(path) else f"{what} not found"

@@ -74,3 +74,10 @@ def test_a_plan_with_fewer_poses_than_parameters_says_calibrate_needs_more(tmp_p
     assert "warning: 3 poses for 12 parameters: calibrate needs at least one row per" in printed
     assert main([*args[:3], "12", *args[4:]]) == 0
     assert "warning: 12 poses" not in capsys.readouterr().out
+
+
+def test_a_folder_given_as_a_file_is_named_as_one(tmp_path, capsys):
+    err = _refused(["evaluate", "nominal:rx160", str(tmp_path)], capsys)
+    assert err.endswith(f"{tmp_path}: is a folder, not a file")
+    err = _refused(["import", "dh", str(tmp_path), "--out", str(tmp_path / "r.urdf")], capsys)
+    assert err.endswith(f"{tmp_path}: is a folder, not a DH table file")

@@ -18,7 +18,7 @@ from hybrid_pk.cli.options import add_data, add_end_link, add_json, add_report, 
 from hybrid_pk.cli.progress import Progress
 from hybrid_pk.cli.settings_flags import add_config_flags, add_settings_flags
 from hybrid_pk.cli.transfer_check import append_to_report, transfer_check, transfer_lines
-from hybrid_pk.errors import DataError, HybridPKError
+from hybrid_pk.errors import DataError, HybridPKError, missing_file
 from hybrid_pk.output_file import write_text
 
 _DESCRIPTION = """\
@@ -176,7 +176,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     for path in args.data:
         if not Path(path).is_file():
-            raise DataError("file not found", file=str(path))  # as every table reader says
+            raise DataError(missing_file(path), file=str(path))  # as every table reader
     if settings.candidates is not None and not settings.candidates:
         raise HybridPKError(
             "--candidates: no effect given; list some (joint_offset:joint_2,...) or leave "

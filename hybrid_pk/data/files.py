@@ -22,7 +22,7 @@ from hybrid_pk.data.measured import (
     QUAT_COLUMNS,
     MeasuredData,
 )
-from hybrid_pk.errors import DataError
+from hybrid_pk.errors import DataError, missing_file
 from hybrid_pk.output_file import replacing
 
 __all__ = ["CSV_SUFFIXES", "PARQUET_SUFFIXES", "load_cells", "to_frame", "write_frame"]
@@ -41,7 +41,7 @@ def load_cells(path: Path) -> pd.DataFrame:
             extension.
     """
     if not Path(path).is_file():
-        raise DataError("file not found", file=str(path))
+        raise DataError(missing_file(path), file=str(path))
     suffix = path.suffix.lower()
     if suffix in CSV_SUFFIXES:
         frame = _load_csv(path)

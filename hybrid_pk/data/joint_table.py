@@ -27,7 +27,7 @@ from hybrid_pk.data.cells import (
     to_float,
 )
 from hybrid_pk.data.files import load_cells, write_frame
-from hybrid_pk.errors import DataError
+from hybrid_pk.errors import DataError, missing_file
 from hybrid_pk.units import UNITS
 
 __all__ = ["angle_factors", "has_joint_columns", "read_joint_table", "write_joint_table"]
@@ -35,7 +35,7 @@ __all__ = ["angle_factors", "has_joint_columns", "read_joint_table", "write_join
 
 def _load(path: Path) -> pd.DataFrame:
     if not path.is_file():
-        raise DataError("file not found", file=str(path))
+        raise DataError(missing_file(path), file=str(path))
     return load_cells(path)
 
 

@@ -29,7 +29,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from hybrid_pk.errors import DataError
+from hybrid_pk.errors import DataError, missing_file
 from hybrid_pk.units import UNITS
 
 __all__ = [
@@ -174,7 +174,7 @@ def _records(source, where: str) -> tuple[list[dict], dict]:
     if isinstance(source, (str, os.PathLike)):
         path = Path(source)
         if not path.is_file():
-            raise DataError("DH table file not found", file=where)
+            raise DataError(missing_file(path, "DH table file"), file=where)
         if path.suffix.lower() in (".yaml", ".yml"):
             try:
                 doc = yaml.safe_load(path.read_text(encoding="utf-8"))
