@@ -30,6 +30,21 @@ class OutputError(HybridPKError, OSError):
     """An output file that could not be written; what was there before is kept."""
 
 
+# A file name's limit on every common file system, and what the temporary name adds to
+# the target's: the leading dot, a dot, mkstemp's 8 random characters.
+_NAME_MAX = 255
+_TEMP_EXTRA = 10
+
+
+def _in_place(path: Path) -> bool:
+    """A target that is not a plain file (a device, a pipe, a terminal; ``/dev/stdout``
+    even where it leads to a file, as the shell's redirection holds it open): written in
+    place, there is no file to keep."""
+    if path.parts[:2] in (("/", "dev"), ("/", "proc")):
+        return True
+    return path.exists() and not path.is_file()
+
+
 def _mode(path: Path) -> int:
     """The permissions the file gets: those of the file it replaces, else what a plain
     ``open(path, "w")`` would give under the process' umask (``mkstemp`` makes 0600)."""
@@ -47,20 +62,21 @@ def replacing(path: str | os.PathLike) -> Iterator[Path]:
     ``path`` is left as it was; an OS error (disk full, file too large, permission)
     becomes an :class:`OutputError` naming ``path``. Missing parent folders are made."""
     path = Path(path)
-    if path.is_symlink():  # write where the link points, and keep the link
-        path = path.resolve()
     if path.is_dir():
         raise OutputError(f"{path} is a folder; give a file name")
-    existed = path.exists()
-    if existed and not path.is_file():  # a device or a pipe (/dev/stdout): written as it is
+    if _in_place(path):  # a device, a pipe, /dev/stdout: written as it is
         try:
             yield path
         except OSError as exc:
             raise _failed(path, exc, existed=False) from None
         return
+    if path.is_symlink():  # write where the link points, and keep the link
+        path = path.resolve()
+    existed = path.exists()
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+        stem = path.name[: _NAME_MAX - _TEMP_EXTRA - len(path.suffix)]  # room for the rest
+        fd, name = tempfile.mkstemp(prefix=f".{stem}.", suffix=path.suffix, dir=path.parent)
         os.close(fd)
     except OSError as exc:
         raise _failed(path, exc, existed) from None

@@ -310,3 +310,11 @@ def test_cli_help_states_units(capsys):
     out = capsys.readouterr().out
     for unit in ("[rad]", "[mm]", "[deg]", "[m]", "°C"):
         assert unit in out
+
+
+def test_cli_a_folder_out_that_would_replace_a_source_is_refused(capsys, tmp_path):
+    path = _ipa_file(tmp_path, f"{_HEADER}\n{_ROW}\n")
+    before = path.read_bytes()
+    err = _one_error_line(capsys, ["import", "ipa", str(path), "--out", str(tmp_path)])
+    assert f"{path}: --out {tmp_path}: its table ipa.csv would replace this source" in err
+    assert path.read_bytes() == before

@@ -128,3 +128,28 @@ def test_a_link_is_written_through_and_a_device_as_it_is(tmp_path):
     with pytest.raises(OutputError, match=r"/dev/full: cannot write it"):
         write_text(full, "x" * 100_000)
     assert full.is_char_device()
+
+
+def test_a_urdf_named_as_the_model_is_an_input_too(tmp_path, capsys):
+    urdf = tmp_path / "robot.urdf"
+    urdf.write_text((REPO / "urdf" / "rx160.urdf").read_text())
+    table = tmp_path / "a.csv"
+    assert main(["simulate", str(urdf), "--n", "20", "--out", str(table)]) == 0
+    capsys.readouterr()
+    assert main(["evaluate", f"nominal:{urdf}", str(table), "--json", str(urdf)]) == 2
+    assert "--json" in _only_line(capsys.readouterr().err)
+    assert urdf.read_text() == (REPO / "urdf" / "rx160.urdf").read_text()
+
+
+def test_stdout_and_long_names_are_written(tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(REPO), "HYBRID_PK_THREADS": "1"}
+    table = tmp_path / ("a" * 240 + ".csv")  # a name near the 255-character limit
+    cmd = [sys.executable, "-m", "hybrid_pk.cli.main", "simulate", "rx160", "--n", "5"]
+    run = subprocess.run([*cmd, "--out", str(table)], env=env, capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert table.is_file()
+    plan = [sys.executable, "-m", "hybrid_pk.cli.main", "plan", "rx160", "--n", "12"]
+    plan += ["--candidates", "40", "--out", str(tmp_path / "p.csv"), "--json", "/dev/stdout"]
+    run = subprocess.run(plan, env=env, capture_output=True, text=True)  # stdout: a pipe
+    assert run.returncode == 0, run.stderr
+    assert '"robot": "rx160"' in run.stdout

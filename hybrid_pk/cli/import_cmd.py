@@ -9,6 +9,7 @@ a tracker stream with an unknown time offset: :mod:`hybrid_pk.data.streams`) and
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 from hybrid_pk.cli import import_dh
@@ -103,6 +104,13 @@ def _destinations(sources: list[Path], out: Path, table_format: str | None) -> l
     dests = [out / f"{src.stem}.{table_format or 'csv'}" for src in sources]
     if len(set(dests)) < len(dests):
         raise DataError("several sources have the same file name; convert them one by one")
+    for src, dst in zip(sources, dests, strict=True):
+        if dst.exists() and src.exists() and os.path.samefile(src, dst):
+            raise DataError(
+                f"--out {out}: its table {dst.name} would replace this source; give another "
+                "folder or --format parquet",
+                file=str(src),
+            )
     out.mkdir(parents=True, exist_ok=True)
     return dests
 

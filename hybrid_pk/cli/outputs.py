@@ -25,6 +25,7 @@ from hybrid_pk.errors import HybridPKError
 
 __all__ = ["check_outputs"]
 
+_NOMINAL = "nominal:"  # a model named by its robot, which may be a URDF file
 _FILES = {"out": "--out", "json": "--json", "urdf": "--urdf"}
 _FOLDERS = {"report": "--report", "logdir": "--logdir"}
 # Arguments that may name an input file (positional ones by their metavar in messages).
@@ -72,6 +73,8 @@ def _inputs(args: argparse.Namespace) -> list[tuple[str, Path]]:
     for dest, name in _INPUTS.items():
         value = getattr(args, dest, None)
         for item in value if isinstance(value, (list, tuple)) else [value]:
+            if isinstance(item, str) and item.startswith(_NOMINAL):  # nominal:ROBOT.urdf
+                item = item[len(_NOMINAL) :]
             if isinstance(item, (str, os.PathLike)) and Path(item).is_file():
                 found.append((name, Path(item)))
     return found

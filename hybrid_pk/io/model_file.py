@@ -201,8 +201,8 @@ def save_model(
     with replacing(path) as tmp:
         try:
             torch.save(payload, tmp)
-        except RuntimeError as exc:  # torch's zip writer reports a failed write so
-            raise OSError(f"the model's data could not be written: {exc}") from None
+        except RuntimeError:  # torch's zip writer reports a failed write so
+            raise OSError("torch.save could not write the model's data") from None
     return path
 
 
