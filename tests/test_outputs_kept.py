@@ -153,3 +153,20 @@ def test_stdout_and_long_names_are_written(tmp_path):
     run = subprocess.run(plan, env=env, capture_output=True, text=True)  # stdout: a pipe
     assert run.returncode == 0, run.stderr
     assert '"robot": "rx160"' in run.stdout
+
+
+def test_a_model_and_its_urdf_are_written_both_or_neither(tmp_path, capsys):
+    full = Path("/dev/full")  # the URDF's write fails: the model file must not be replaced
+    if not full.exists():
+        pytest.skip("no /dev/full here")
+    table, model = tmp_path / "a.csv", tmp_path / "m.pt"
+    assert main(["simulate", "rx160", "--n", "30", "--out", str(table)]) == 0
+    model.write_text(ORIGINAL)
+    capsys.readouterr()
+    args = ["calibrate", str(table), "--robot", "rx160", "--effects", "none", "--out", str(model)]
+    assert main([*args, "--urdf", str(full), "--no-progress"]) == 2
+    assert "/dev/full: cannot write it" in _only_line(capsys.readouterr().err)
+    assert model.read_text() == ORIGINAL
+    assert main([*args, "--no-progress"]) == 0  # and both are written when they can be
+    assert model.read_bytes() != ORIGINAL.encode()
+    assert (tmp_path / "m.pt.urdf").read_text().startswith("<?xml")

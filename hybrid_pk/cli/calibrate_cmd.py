@@ -17,9 +17,9 @@ from hybrid_pk.cli.calibrate_output import (
     condition_warning,
     effect_rows,
     error_summary,
-    export_model_urdf,
     format_value,
     frame_lines,
+    save_with_urdf,
     urdf_target,
     wrote_line,
 )
@@ -194,9 +194,8 @@ def _run_new(args: argparse.Namespace, settings: DiagnosisSettings) -> int:
             "diagnosis": None if diag is None else diag.to_json(),
             "transfer": None if transfer is None else transfer.to_json(),
         }
-        save_model(args.out, model, metadata=metadata)
         urdf = urdf_target(args, refit=False)
-        export_model_urdf(model, args, urdf)
+        save_with_urdf(lambda: save_model(args.out, model, metadata=metadata), model, args, urdf)
 
     _print_summary(robot, data, diag, effects, model, res0, res)
     for line in transfer_lines(transfer, settings, data):

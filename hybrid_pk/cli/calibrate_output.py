@@ -4,6 +4,7 @@ the corrected URDF, the identifiability warning."""
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from pathlib import Path
 
 from hybrid_pk.calibration.covariance import MAX_CONDITION
@@ -15,6 +16,7 @@ from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import error_stats
 from hybrid_pk.geometry import matrix_to_rpy
 from hybrid_pk.io.urdf_export import export_urdf
+from hybrid_pk.output_file import replacing
 
 __all__ = [
     "MAX_CONDITION",
@@ -22,9 +24,9 @@ __all__ = [
     "condition_warning",
     "effect_rows",
     "error_summary",
-    "export_model_urdf",
     "format_value",
     "frame_lines",
+    "save_with_urdf",
     "urdf_beside",
     "urdf_target",
     "wrote_line",
@@ -148,17 +150,22 @@ def urdf_beside(args: argparse.Namespace) -> list[tuple[str, Path]]:
     return [] if target is None or args.urdf else [("its URDF", target)]
 
 
-def export_model_urdf(model: ExtendedModel, args: argparse.Namespace, target: Path | None):
-    """Write the corrected URDF of ``model`` to ``target`` (nothing if None)."""
+def save_with_urdf(save: Callable[[], object], model: ExtendedModel, args, target) -> None:
+    """The model file (``save()`` writes it) and the corrected URDF of ``model`` at
+    ``target`` (none if None), both or neither where a write fails: the URDF is written
+    in full first, then the model file replaced, then the URDF renamed in."""
     if target is None:
+        save()
         return
-    export_urdf(
-        model,
-        target,
-        include_base=args.urdf_frames,
-        include_tool=args.urdf_frames,
-        fold_joint_offsets=args.urdf_fold_offsets,
-    )
+    with replacing(target) as tmp:
+        export_urdf(
+            model,
+            tmp,
+            include_base=args.urdf_frames,
+            include_tool=args.urdf_frames,
+            fold_joint_offsets=args.urdf_fold_offsets,
+        )
+        save()
 
 
 def wrote_line(out, model: ExtendedModel, args: argparse.Namespace, urdf: Path | None) -> str:

@@ -9,8 +9,8 @@ import math
 from hybrid_pk.calibration.settings import FitSettings
 from hybrid_pk.cli.calibrate_output import (
     error_summary,
-    export_model_urdf,
     frame_lines,
+    save_with_urdf,
     urdf_target,
     wrote_line,
 )
@@ -68,12 +68,13 @@ def run_refit(args: argparse.Namespace, settings: FitSettings) -> int:
         )  # fmt: skip
         model, res, before, after = result.model, result.fit, result.before, result.after
         bar.stage("writing")
-        save_model(
-            args.out, model, networks=result.networks if loaded.has_networks else None,
-            metadata=_metadata(args, loaded, data, res),
-        )  # fmt: skip
         urdf = urdf_target(args, refit=True)
-        export_model_urdf(model, args, urdf)
+        save_with_urdf(
+            lambda: save_model(
+                args.out, model, networks=result.networks if loaded.has_networks else None,
+                metadata=_metadata(args, loaded, data, res),
+            ), model, args, urdf,
+        )  # fmt: skip
 
     frames = {"frames": "base and tool frames"}.get(which, f"{which} frame")
     per_file = " (one set per file)" if args.frames_per_file else ""
