@@ -170,3 +170,18 @@ def test_a_model_and_its_urdf_are_written_both_or_neither(tmp_path, capsys):
     assert main([*args, "--no-progress"]) == 0  # and both are written when they can be
     assert model.read_bytes() != ORIGINAL.encode()
     assert (tmp_path / "m.pt.urdf").read_text().startswith("<?xml")
+
+
+def test_a_plan_and_its_json_are_written_both_or_neither(tmp_path, capsys):
+    full = Path("/dev/full")  # the JSON's write fails: the poses must not be replaced
+    if not full.exists():
+        pytest.skip("no /dev/full here")
+    poses = tmp_path / "p.csv"
+    poses.write_text(ORIGINAL)
+    args = ["plan", "rx160", "--n", "12", "--candidates", "40", "--out", str(poses)]
+    assert main([*args, "--json", str(full), "--no-progress"]) == 2
+    assert "/dev/full: cannot write it" in _only_line(capsys.readouterr().err)
+    assert poses.read_text() == ORIGINAL
+    assert main([*args, "--json", str(tmp_path / "p.json"), "--no-progress"]) == 0
+    assert poses.read_text() != ORIGINAL
+    assert '"robot": "rx160"' in (tmp_path / "p.json").read_text()

@@ -6,7 +6,7 @@ import argparse
 import math
 
 from hybrid_pk.calibration.planning import CRITERIA, Plan, box_bounds
-from hybrid_pk.cli.common import flag_values, load_robot, read_json, write_json
+from hybrid_pk.cli.common import flag_values, load_robot, read_json
 from hybrid_pk.cli.effect_lists import effect_labels
 from hybrid_pk.cli.options import (
     add_end_link,
@@ -187,12 +187,11 @@ def run(args: argparse.Namespace) -> int:
     with progress("plan", total=2, enabled=not args.no_progress) as bar:
         res = plan_to_file(
             robot, args.n, labels, args.out, box=box, progress=bar.report,
+            json_out=None if args.json is None else (args.json, args.robot),
             **flag_values(args, *_PLAN_FLAGS),
         )  # fmt: skip
     for line in _summary(res.plan, args, labels):
         print(line)
-    if args.json:
-        write_json(args.json, res.document(args.robot))
     print(f"wrote {args.out}" + (f" and {args.json}" if args.json else ""))
     end = f" --end-link {args.end_link}" if args.end_link else ""  # a URDF of several leaves
     hint = f"hybrid-pk simulate {args.robot}{end} --poses {args.out} ..."

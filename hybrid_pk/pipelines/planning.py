@@ -7,6 +7,7 @@ plan's JSON document (predicted 1-sigma per parameter beside random poses).
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -16,6 +17,7 @@ from hybrid_pk.calibration.planning import Plan, plan_poses
 from hybrid_pk.data.joint_table import write_joint_table
 from hybrid_pk.effects import make_effect
 from hybrid_pk.errors import HybridPKError
+from hybrid_pk.output_file import replacing
 from hybrid_pk.robot import Robot
 
 __all__ = ["PlanResult", "parameter_units", "plan_to_file"]
@@ -79,10 +81,13 @@ def plan_to_file(
     *,
     box: Mapping[str, tuple[float, float]] | None = None,
     progress=None,
+    json_out: tuple[str | os.PathLike, str] | None = None,
     **settings,
 ) -> PlanResult:
     """Plan ``n`` poses for the frames and the effects ``labels`` (checked before any
     work) and write them to ``out``; ``settings``: :func:`plan_poses`' keywords.
+    ``json_out``: ``(path, robot name)`` of the plan's JSON document as well, the two
+    files written both or neither where a write fails (the JSON in full first).
 
     Raises:
         HybridPKError: an unknown effect or joint, or a noise that is not positive.
@@ -93,5 +98,12 @@ def plan_to_file(
     if noise_mm <= 0 or (not settings.get("position_only") and noise_deg <= 0):
         raise HybridPKError("--noise-mm and --noise-deg must be positive")
     plan = plan_poses(robot, n, effects=list(labels), box=box, progress=progress, **settings)
-    write_joint_table(out, plan.q, robot.joint_names)
-    return PlanResult(plan, list(labels), dict(settings), str(out))
+    result = PlanResult(plan, list(labels), dict(settings), str(out))
+    if json_out is None:
+        write_joint_table(out, plan.q, robot.joint_names)
+        return result
+    document = json.dumps(result.document(json_out[1]), indent=2, allow_nan=False) + "\n"
+    with replacing(json_out[0]) as tmp:
+        tmp.write_text(document, encoding="utf-8")
+        write_joint_table(out, plan.q, robot.joint_names)
+    return result
