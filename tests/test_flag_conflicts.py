@@ -81,3 +81,11 @@ def test_a_folder_given_as_a_file_is_named_as_one(tmp_path, capsys):
     assert err.endswith(f"{tmp_path}: is a folder, not a file")
     err = _refused(["import", "dh", str(tmp_path), "--out", str(tmp_path / "r.urdf")], capsys)
     assert err.endswith(f"{tmp_path}: is a folder, not a DH table file")
+
+
+def test_a_temperature_below_absolute_zero_is_not_simulated(tmp_path, capsys):
+    out = tmp_path / "cold.csv"
+    args = ["simulate", "rx160", "--n", "5", "--temperature-range", "-400", "-300"]
+    err = _refused([*args, "--out", str(out)], capsys)
+    assert "temperature range must be -273.15 <= LO <= HI" in err
+    assert not out.exists()

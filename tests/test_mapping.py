@@ -310,6 +310,25 @@ def test_cli_import_columns_writes_a_table_valid_for_the_robot(leica_like, tmp_p
     np.testing.assert_allclose(table[["x", "y", "z"]].to_numpy(), pos, atol=1e-12)
 
 
+def test_cli_import_columns_checked_for_a_robot_replaces_nothing_it_refuses(
+    leica_like, tmp_path, capsys
+):
+    """The tables are validated for --robot before any replaces a file (the table was
+    written, then refused, rc 2, with the earlier file gone)."""
+    path = leica_like[0]
+    dst = tmp_path / "table.csv"
+    dst.write_text("ORIGINAL\n")
+    argv = ["import", "columns", str(path), "--map", _inline(), "--sep", ";", "--decimal", ","]
+    argv += ["--skip-lines", "2", "--euler", "ZYX", "--out", str(dst), "--robot", "rx160"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0
+    assert str(dst) in err
+    assert ".table.csv." not in err  # named as the table it would be, not its temporary
+    assert dst.read_text() == "ORIGINAL\n"
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
+
+
 def test_cli_import_columns_error_is_one_line_with_location(tmp_path, capsys):
     path = _simple(tmp_path, [[0.1, 1.0, 2.0, 3.0], [0.2, "oops", 2.0, 3.0]])
     argv = ["import", "columns", str(path), "--map", "j=J,x=X,y=Y,z=Z", "--out"]

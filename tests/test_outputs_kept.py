@@ -94,6 +94,8 @@ def test_a_table_and_a_model_that_cannot_be_written_keep_the_files_there(tmp_pat
           "--no-urdf"], "--urdf {d}/u.urdf and --no-urdf: give one of them"),
         (["evaluate", "nominal:rx160", "{a}", "--json", "{d}"], "--json {d} is a folder"),
         (["evaluate", "nominal:rx160", "{a}", "--report", "{a}"], "--report {a} is a file"),
+        (["evaluate", "nominal:rx160", "{a}", "--json", "{d}/r/evaluation.json", "--report",
+          "{d}/r"], "--json {d}/r/evaluation.json is inside --report {d}/r"),
         (["evaluate", "nominal:rx160", "{a}", "--json", "{a}/x.json"],
          "--json {a}/x.json: {a} is a file, not a folder"),
         (["simulate", "rx160", "--n", "5", "--out", "{d}/t.csv"],

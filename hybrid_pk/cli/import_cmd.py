@@ -9,7 +9,8 @@ a tracker stream with an unknown time offset: :mod:`hybrid_pk.data.streams`) and
 from __future__ import annotations
 
 import argparse
-import os
+from contextlib import ExitStack
+from dataclasses import replace
 from pathlib import Path
 
 from hybrid_pk.cli import import_dh
@@ -17,8 +18,7 @@ from hybrid_pk.cli import import_flags as flags
 from hybrid_pk.cli.options import add_out, add_robot, command_parser
 from hybrid_pk.data.ipa import EULER_SEQUENCES, MEASUREMENT_CONVENTION, convert_ipa
 from hybrid_pk.errors import DataError
-
-_TABLE_SUFFIXES = (".csv", ".parquet", ".pq")
+from hybrid_pk.output_file import replacing
 
 _IPA_HELP = """\
 Convert files of the published UR10 laser-tracker data set (IPA, Landgraf et al.
@@ -92,29 +92,6 @@ def _add_sources_and_out(parser: argparse.ArgumentParser, sources_help: str) -> 
     )
 
 
-def _destinations(sources: list[Path], out: Path, table_format: str | None) -> list[Path]:
-    flags.check_table_format(table_format, out, len(sources))
-    if len(sources) == 1 and not out.is_dir():
-        return [out]
-    if out.suffix.lower() in _TABLE_SUFFIXES:
-        raise DataError(
-            f"--out {out} is a table but {len(sources)} sources were given; give a directory "
-            "(one table per series: they were measured with different tracker set-ups)"
-        )
-    dests = [out / f"{src.stem}.{table_format or 'csv'}" for src in sources]
-    if len(set(dests)) < len(dests):
-        raise DataError("several sources have the same file name; convert them one by one")
-    for src, dst in zip(sources, dests, strict=True):
-        if dst.exists() and src.exists() and os.path.samefile(src, dst):
-            raise DataError(
-                f"--out {out}: its table {dst.name} would replace this source; give another "
-                "folder or --format parquet",
-                file=str(src),
-            )
-    out.mkdir(parents=True, exist_ok=True)
-    return dests
-
-
 def _run_ipa(args: argparse.Namespace) -> int:
     sources = [Path(s) for s in args.sources]
     for src in sources:
@@ -128,7 +105,7 @@ def _run_ipa(args: argparse.Namespace) -> int:
         if not src.is_file():
             raise DataError("no such file", file=str(src))
     for src, dst in zip(
-        sources, _destinations(sources, Path(args.out), args.table_format), strict=True
+        sources, flags.destinations(sources, Path(args.out), args.table_format), strict=True
     ):
         print(convert_ipa(src, dst, convention=args.convention).summary())
     return 0
@@ -240,15 +217,22 @@ def _run_columns(args: argparse.Namespace) -> int:
     for src in sources:
         if not src.is_file():
             raise DataError("no such file", file=str(src))
-    dests = _destinations(sources, Path(args.out), args.table_format)
-    for src, dst in zip(sources, dests, strict=True):
-        print(convert_columns(src, dst, cmap, skip_bad_rows=args.skip_bad_rows).summary())
+    dests = flags.destinations(sources, Path(args.out), args.table_format)
+    robot = None
     if args.robot:
-        from hybrid_pk.cli.common import load_robot, read_data
+        from hybrid_pk.cli.common import load_robot
 
         robot = load_robot(args.robot)
-        data = read_data(dests, robot)
-        print(f"validated for {robot.name}: {data.n} rows, joints {', '.join(data.joint_names)}")
+    with ExitStack() as stack:  # every table validated before any is renamed in
+        temps = [stack.enter_context(replacing(dst)) for dst in dests]
+        for src, dst, tmp in zip(sources, dests, temps, strict=True):
+            done = convert_columns(src, tmp, cmap, skip_bad_rows=args.skip_bad_rows)
+            print(replace(done, destination=str(dst)).summary())
+        if robot is not None:
+            data = flags.validated_tables(temps, dests, robot)
+            print(
+                f"validated for {robot.name}: {data.n} rows, joints {', '.join(data.joint_names)}"
+            )
     return 0
 
 

@@ -1,18 +1,20 @@
 """Checks of ``import``'s flags that argparse cannot make alone: values that need another
 flag (``--decimal`` against ``--sep``, ``--format`` against ``--out``, ``--offset``
 against ``--max-offset``) or the streams read (``--max-offset`` against their times).
-Each failure is a usage error naming the flag: one line, exit code 2."""
+Each failure is a usage error naming the flag: one line, exit code 2. Also where the
+tables go (``--out``: one table, or a folder of them) and their check for ``--robot``."""
 
 from __future__ import annotations
 
 import argparse
 import math
+import os
 from pathlib import Path
 
 import numpy as np
 
 from hybrid_pk.data.files import CSV_SUFFIXES, PARQUET_SUFFIXES
-from hybrid_pk.errors import HybridPKError
+from hybrid_pk.errors import DataError, HybridPKError
 
 __all__ = [
     "DEFAULT_MAX_OFFSET_S",
@@ -20,8 +22,10 @@ __all__ = [
     "check_max_offset",
     "check_offset_flags",
     "check_table_format",
+    "destinations",
     "finite_seconds",
     "positive_seconds",
+    "validated_tables",
 ]
 
 # [s] Largest |offset| searched by default: a controller and a tracker PC whose clocks
@@ -112,3 +116,43 @@ def check_decimal(args: argparse.Namespace, prefix: str = "") -> None:
             f"--{prefix}decimal {decimal!r} is also the field separator (--{prefix}sep); "
             "the two must differ"
         )
+
+
+def destinations(sources: list[Path], out: Path, table_format: str | None) -> list[Path]:
+    """The table each of ``sources`` is written to: ``out`` itself for one source, else
+    one table per source in the folder ``out``; refused where one would replace a
+    source or another (a usage error naming --out)."""
+    check_table_format(table_format, out, len(sources))
+    if len(sources) == 1 and not out.is_dir():
+        return [out]
+    if out.suffix.lower() in (*CSV_SUFFIXES, *PARQUET_SUFFIXES):
+        raise DataError(
+            f"--out {out} is a table but {len(sources)} sources were given; give a directory "
+            "(one table per series: they were measured with different tracker set-ups)"
+        )
+    dests = [out / f"{src.stem}.{table_format or 'csv'}" for src in sources]
+    if len(set(dests)) < len(dests):
+        raise DataError("several sources have the same file name; convert them one by one")
+    for src, dst in zip(sources, dests, strict=True):
+        if dst.exists() and src.exists() and os.path.samefile(src, dst):
+            raise DataError(
+                f"--out {out}: its table {dst.name} would replace this source; give another "
+                "folder or --format parquet",
+                file=str(src),
+            )
+    out.mkdir(parents=True, exist_ok=True)
+    return dests
+
+
+def validated_tables(temps: list[Path], dests: list[Path], robot):
+    """The written tables read for ``robot`` from their temporary files, a problem named
+    by the table it will be."""
+    from hybrid_pk.cli.common import read_data
+
+    try:
+        return read_data(temps, robot)
+    except DataError as exc:
+        message = str(exc)
+        for tmp, dst in zip(temps, dests, strict=True):
+            message = message.replace(str(tmp), str(dst))
+        raise DataError(message) from None

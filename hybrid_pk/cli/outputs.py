@@ -3,8 +3,8 @@
 A command may not write over one of its own inputs (``calibrate runs.csv --out
 runs.csv`` would replace the measurements by a model), nor write two of its outputs to
 one path, nor a file where a folder is or a folder where a file is, nor into a folder
-it may not write in. Each refusal is one line naming the option and the path, and comes
-before any work or any file written.
+it may not write in, nor a file inside an output folder. Each refusal is one line
+naming the option and the path, and comes before any work or any file written.
 Each file itself is then written through :func:`hybrid_pk.output_file.replacing`, so a
 write that fails keeps what was there.
 
@@ -112,3 +112,17 @@ def check_outputs(args: argparse.Namespace) -> None:
         if key in seen:
             raise HybridPKError(f"{flag} and {seen[key]} are one file, {path}: give each its own")
         seen[key] = flag
+    _check_folders(_outputs(args))
+
+
+def _check_folders(outputs: list[tuple[str, Path, str]]) -> None:
+    """No file output inside a folder output: the folder's files are the command's to
+    name (``--json R/report.md --report R`` would leave one of the two)."""
+    folders = [(flag, path.resolve()) for flag, path, kind in outputs if kind == "folder"]
+    for flag, path, kind in outputs:
+        for folder_flag, folder in folders:
+            if kind == "file" and path.resolve().is_relative_to(folder):
+                raise HybridPKError(
+                    f"{flag} {path} is inside {folder_flag} {folder}, whose files the "
+                    "command writes: give it outside that folder"
+                )

@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from hybrid_pk.data.cells import MAX_PAYLOAD_KG, MAX_TEMPERATURE_C
+from hybrid_pk.data.cells import ABSOLUTE_ZERO_C, MAX_PAYLOAD_KG, MAX_TEMPERATURE_C
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, Effect, ExtendedModel, Gravity, approach_direction
 from hybrid_pk.errors import HybridPKError
@@ -180,9 +180,14 @@ def _check_args(
         raise HybridPKError(f"payload {top:g} kg: no arm carries more than {MAX_PAYLOAD_KG:g} kg")
     if temperature_range is not None:
         lo, hi = temperature_range
-        if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi <= MAX_TEMPERATURE_C):
+        if not (
+            math.isfinite(lo)
+            and math.isfinite(hi)
+            and ABSOLUTE_ZERO_C <= lo <= hi <= MAX_TEMPERATURE_C
+        ):
             raise HybridPKError(
-                f"temperature range must be LO <= HI <= {MAX_TEMPERATURE_C:g} [°C], got {lo}, {hi}"
+                f"temperature range must be {ABSOLUTE_ZERO_C:g} <= LO <= HI <= "
+                f"{MAX_TEMPERATURE_C:g} [°C], got {lo}, {hi}"
             )
 
 
