@@ -318,3 +318,21 @@ def test_cli_a_folder_out_that_would_replace_a_source_is_refused(capsys, tmp_pat
     err = _one_error_line(capsys, ["import", "ipa", str(path), "--out", str(tmp_path)])
     assert f"{path}: --out {tmp_path}: its table ipa.csv would replace this source" in err
     assert path.read_bytes() == before
+
+
+def test_cli_several_series_are_converted_all_or_none(capsys, tmp_path):
+    src = tmp_path / "src"
+    src.mkdir()
+    good, bad = src / "measurements_a.csv", src / "measurements_b.csv"
+    good.write_text(f"{_HEADER}\n{_ROW}\n")
+    bad.write_text(f"{_HEADER}\n{_ROW.replace('2361,98', 'oops')}\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "measurements_a.csv").write_text("ORIGINAL\n")
+    err = _one_error_line(capsys, ["import", "ipa", str(good), str(bad), "--out", str(out)])
+    assert f"{bad}, row 1, column 'measurement_x'" in err
+    assert (out / "measurements_a.csv").read_text() == "ORIGINAL\n"  # the first not replaced
+    assert sorted(p.name for p in out.iterdir()) == ["measurements_a.csv"]
+    bad.write_text(f"{_HEADER}\n{_ROW}\n")
+    assert main(["import", "ipa", str(good), str(bad), "--out", str(out)]) == 0
+    assert (out / "measurements_a.csv").read_text().startswith("shoulder_pan_joint,")

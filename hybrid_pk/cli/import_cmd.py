@@ -104,10 +104,14 @@ def _run_ipa(args: argparse.Namespace) -> int:
             )
         if not src.is_file():
             raise DataError("no such file", file=str(src))
-    for src, dst in zip(
-        sources, flags.destinations(sources, Path(args.out), args.table_format), strict=True
-    ):
-        print(convert_ipa(src, dst, convention=args.convention).summary())
+    dests = flags.destinations(sources, Path(args.out), args.table_format)
+    with ExitStack() as stack:  # every series converted before any table is renamed in
+        temps = [stack.enter_context(replacing(dst)) for dst in dests]
+        done = [
+            replace(convert_ipa(src, tmp, convention=args.convention), destination=str(dst))
+            for src, dst, tmp in zip(sources, dests, temps, strict=True)
+        ]
+    print("\n".join(d.summary() for d in done))
     return 0
 
 
