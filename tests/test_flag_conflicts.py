@@ -61,8 +61,12 @@ def test_a_refused_demo_leaves_no_folder(tmp_path, capsys):
     err = _refused(["demo", "--epochs", "0", "--out", str(out)], capsys)
     assert "--epochs: expected a whole number >= 1, got '0'" in err
     assert not out.exists()
-    err = _refused(["demo", "--n", "-1", "--out", str(out), "--no-progress"], capsys)
-    assert "n must be a positive number of rows, got -1" in err
+    err = _refused(["demo", "--n", "-1", "--noise-mm", "-0.1", "--out", str(out)], capsys)
+    assert "argument --n: expected a whole number >= 1, got '-1'" in err
+    err = _refused(["demo", "--noise-mm", "nan", "--out", str(out)], capsys)
+    assert "argument --noise-mm: expected a finite number >= 0, got 'nan'" in err
+    err = _refused(["demo", "--robot", "no_such_robot", "--out", str(out), "--no-progress"], capsys)
+    assert "unknown robot 'no_such_robot'" in err
     assert not out.exists()  # the folder is made once the campaign is drawn
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 
-from hybrid_pk.cli.options import add_epochs, add_noise, add_out, add_robot, add_seed
+from hybrid_pk.cli.options import add_epochs, add_noise, add_out, add_robot, add_seed, count
 from hybrid_pk.cli.progress import progress
 from hybrid_pk.pipelines.demo import (
     DEFAULT_ROBOT,
@@ -43,7 +43,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """The flags of ``hybrid-pk demo``."""
     add_out(p, metavar="DIR", help="output folder", default="hybrid_pk_demo", kind="folder")
     add_robot(p, default=DEFAULT_ROBOT)
-    p.add_argument("--n", type=int, default=3000, help="measured poses (default: %(default)s)")
+    p.add_argument("--n", type=count, default=3000, help="measured poses (default: %(default)s)")
     p.add_argument(
         "--effects",
         default="random:3",

@@ -22,6 +22,7 @@ Groups:
 from __future__ import annotations
 
 import argparse
+import math
 
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.robot import shipped_robots
@@ -48,6 +49,7 @@ __all__ = [
     "add_seed",
     "add_threads",
     "command_parser",
+    "count",
     "resolve_robot",
 ]
 
@@ -239,7 +241,7 @@ def add_seed(parser: argparse.ArgumentParser, *, default: int = 0, what: str) ->
     )
 
 
-def _count(text: str) -> int:
+def count(text: str) -> int:
     """``argparse`` type of a count of at least one (refused before any work)."""
     try:
         value = int(text)
@@ -255,25 +257,36 @@ def add_epochs(parser: argparse.ArgumentParser, *, default: int | None = None) -
     tail = "preset" if default is None else "%(default)s"
     parser.add_argument(
         "--epochs",
-        type=_count,
+        type=count,
         default=default,
         metavar="N",
         help=f"maximum training epochs of the networks (default: {tail})",
     )
 
 
+def _noise(text: str) -> float:
+    """``argparse`` type of a noise std: a finite number >= 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
+    return value
+
+
 def add_noise(parser: argparse.ArgumentParser, *, mm: float, deg: float) -> None:
     """``--noise-mm S`` and ``--noise-deg S``: measurement noise of a simulated campaign."""
     parser.add_argument(
         "--noise-mm",
-        type=float,
+        type=_noise,
         default=mm,
         metavar="S",
         help="std of the position noise per coordinate [mm] (default: %(default)s)",
     )
     parser.add_argument(
         "--noise-deg",
-        type=float,
+        type=_noise,
         default=deg,
         metavar="S",
         help="std of the orientation noise per rotation axis [deg] (default: %(default)s)",
