@@ -9,8 +9,6 @@ a tracker stream with an unknown time offset: :mod:`hybrid_pk.data.streams`) and
 from __future__ import annotations
 
 import argparse
-from contextlib import ExitStack
-from dataclasses import replace
 from pathlib import Path
 
 from hybrid_pk.cli import import_dh
@@ -18,7 +16,6 @@ from hybrid_pk.cli import import_flags as flags
 from hybrid_pk.cli.options import add_out, add_robot, command_parser
 from hybrid_pk.data.ipa import EULER_SEQUENCES, MEASUREMENT_CONVENTION, convert_ipa
 from hybrid_pk.errors import DataError
-from hybrid_pk.output_file import replacing
 
 _IPA_HELP = """\
 Convert files of the published UR10 laser-tracker data set (IPA, Landgraf et al.
@@ -105,12 +102,9 @@ def _run_ipa(args: argparse.Namespace) -> int:
         if not src.is_file():
             raise DataError("no such file", file=str(src))
     dests = flags.destinations(sources, Path(args.out), args.table_format)
-    with ExitStack() as stack:  # every series converted before any table is renamed in
-        temps = [stack.enter_context(replacing(dst)) for dst in dests]
-        done = [
-            replace(convert_ipa(src, tmp, convention=args.convention), destination=str(dst))
-            for src, dst, tmp in zip(sources, dests, temps, strict=True)
-        ]
+    done, _ = flags.write_tables(
+        sources, dests, lambda src, tmp: convert_ipa(src, tmp, convention=args.convention)
+    )
     print("\n".join(d.summary() for d in done))
     return 0
 
@@ -227,16 +221,15 @@ def _run_columns(args: argparse.Namespace) -> int:
         from hybrid_pk.cli.common import load_robot
 
         robot = load_robot(args.robot)
-    with ExitStack() as stack:  # every table validated before any is renamed in
-        temps = [stack.enter_context(replacing(dst)) for dst in dests]
-        for src, dst, tmp in zip(sources, dests, temps, strict=True):
-            done = convert_columns(src, tmp, cmap, skip_bad_rows=args.skip_bad_rows)
-            print(replace(done, destination=str(dst)).summary())
-        if robot is not None:
-            data = flags.validated_tables(temps, dests, robot)
-            print(
-                f"validated for {robot.name}: {data.n} rows, joints {', '.join(data.joint_names)}"
-            )
+    done, data = flags.write_tables(
+        sources,
+        dests,
+        lambda src, tmp: convert_columns(src, tmp, cmap, skip_bad_rows=args.skip_bad_rows),
+        robot,
+    )
+    print("\n".join(d.summary() for d in done))
+    if data is not None:
+        print(f"validated for {robot.name}: {data.n} rows, joints {', '.join(data.joint_names)}")
     return 0
 
 

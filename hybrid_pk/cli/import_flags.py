@@ -2,19 +2,23 @@
 flag (``--decimal`` against ``--sep``, ``--format`` against ``--out``, ``--offset``
 against ``--max-offset``) or the streams read (``--max-offset`` against their times).
 Each failure is a usage error naming the flag: one line, exit code 2. Also where the
-tables go (``--out``: one table, or a folder of them) and their check for ``--robot``."""
+tables go (``--out``: one table, or a folder of them) and their writing, all or none."""
 
 from __future__ import annotations
 
 import argparse
 import math
 import os
+from collections.abc import Callable
+from contextlib import ExitStack
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from hybrid_pk.data.files import CSV_SUFFIXES, PARQUET_SUFFIXES
 from hybrid_pk.errors import DataError, HybridPKError
+from hybrid_pk.output_file import replacing
 
 __all__ = [
     "DEFAULT_MAX_OFFSET_S",
@@ -25,7 +29,7 @@ __all__ = [
     "destinations",
     "finite_seconds",
     "positive_seconds",
-    "validated_tables",
+    "write_tables",
 ]
 
 # [s] Largest |offset| searched by default: a controller and a tracker PC whose clocks
@@ -144,7 +148,22 @@ def destinations(sources: list[Path], out: Path, table_format: str | None) -> li
     return dests
 
 
-def validated_tables(temps: list[Path], dests: list[Path], robot):
+def write_tables(sources: list[Path], dests: list[Path], convert: Callable, robot=None):
+    """``convert(source, table)`` of every source to its table, all or none: each into
+    a temporary file beside its table, renamed in once every one is converted (and, with
+    ``robot``, read back for it). Returns what each ``convert`` returned, its
+    ``destination`` the table, and the rows read for ``robot`` (None without)."""
+    with ExitStack() as stack:
+        temps = [stack.enter_context(replacing(dst)) for dst in dests]
+        done = [
+            replace(convert(src, tmp), destination=str(dst))
+            for src, dst, tmp in zip(sources, dests, temps, strict=True)
+        ]
+        data = None if robot is None else _validated(temps, dests, robot)
+    return done, data
+
+
+def _validated(temps: list[Path], dests: list[Path], robot):
     """The written tables read for ``robot`` from their temporary files, a problem named
     by the table it will be."""
     from hybrid_pk.cli.common import read_data

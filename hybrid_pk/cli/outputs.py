@@ -95,8 +95,8 @@ def _check_parent(flag: str, path: Path) -> None:
 def check_outputs(args: argparse.Namespace) -> None:
     """Refuse, before any work, outputs that would overwrite an input or each other, or
     a file given where a folder is (and the other way round): :class:`HybridPKError`."""
-    inputs, seen = _inputs(args), {}
-    for flag, path, kind in _outputs(args):
+    inputs, outputs, seen = _inputs(args), _outputs(args), {}
+    for flag, path, kind in outputs:
         if kind == "file" and path.is_dir():
             raise HybridPKError(f"{flag} {path} is a folder; give a file name")
         if kind == "folder" and path.exists() and not path.is_dir():
@@ -112,7 +112,7 @@ def check_outputs(args: argparse.Namespace) -> None:
         if key in seen:
             raise HybridPKError(f"{flag} and {seen[key]} are one file, {path}: give each its own")
         seen[key] = flag
-    _check_folders(_outputs(args))
+    _check_folders(outputs)
 
 
 def _check_folders(outputs: list[tuple[str, Path, str]]) -> None:
