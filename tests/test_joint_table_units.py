@@ -85,3 +85,28 @@ def test_compensate_reads_and_writes_a_program_in_degrees(tmp_path, capsys):
     assert np.abs(a[robot.joint_names].values - frame[robot.joint_names].values).max() > 1e-3
     assert list(a["line"]) == list(range(10, 30))
     assert (a["status"] == "ok").all()
+
+
+def test_a_radian_program_read_as_degrees_is_a_warning(tmp_path, capsys):
+    """`compensate --angle-unit deg` on a program in radians: every value lies within 2 pi,
+    a program moving each joint by less than 6.3 deg; a warning line names the largest
+    value and its column (before: read silently as a tiny program). A program in degrees
+    gets no such line."""
+    from hybrid_pk.pipelines.compensation import read_program
+
+    robot = Robot.from_urdf("rx160")
+    rad = _program(tmp_path, robot, 1.0)
+    notes = read_program(str(rad), robot, "deg").notes
+    warned = [n for n in notes if "look like radians" in n]
+    assert len(warned) == 1
+    assert warned[0].startswith(f"warning: {rad}: ")
+    q = pd.read_csv(rad)[robot.joint_names].abs()
+    top = q.max().max()
+    assert f"largest {top:.4g}, column {q.max().idxmax()}" in warned[0]
+    assert not [n for n in read_program(str(rad), robot, "rad").notes if "radians" in n]
+    deg = tmp_path / "deg.csv"
+    pd.DataFrame(np.degrees(q.values), columns=robot.joint_names).to_csv(deg, index=False)
+    assert not [n for n in read_program(str(deg), robot, "deg").notes if "radians" in n]
+    argv = ["compensate", "nominal:rx160", str(rad), "--out", str(tmp_path / "c.csv")]
+    assert main([*argv, "--angle-unit", "deg", "--no-progress"]) == 0
+    assert "these look like radians" in capsys.readouterr().out

@@ -84,6 +84,7 @@ def read_program(path: str, robot: Robot, angle_unit: str = "rad") -> Program:
                 "joints are corrected already, and corrected again they miss the targets by "
                 "the correction once more; give the nominal program"
             )
+        notes += _radians_read_as_degrees(path, q, robot, angle_unit)
         columns = rest if len(rest.columns) else None
         return Program(
             q, None, extra.get("payload"), extra.get("temperature"), notes=notes,
@@ -96,6 +97,27 @@ def read_program(path: str, robot: Robot, angle_unit: str = "rad") -> Program:
             "(or give the joint targets, one column per joint)"
         )
     return Program(None, data.T_measured(), data.payload, data.temperature, "flange poses")
+
+
+def _radians_read_as_degrees(path, q: Tensor, robot: Robot, angle_unit: str) -> list[str]:
+    """A warning when a program read in degrees looks like radians: every revolute
+    value within one turn's worth of radians (2 pi), the largest above 1 (a program
+    near the zero pose reads alike in both units). Read as degrees it would move each
+    joint by less than 6.3 deg, less than a wrist's width at the tool; a warning, not
+    an error, as such a small program is possible."""
+    revolute = [j for j, kind in enumerate(robot.joint_types) if kind != "prismatic"]
+    if angle_unit != "deg" or not revolute or not q.numel():
+        return []
+    stated = q[:, revolute].abs() * (180.0 / np.pi)  # the values as written [deg]
+    top = float(stated.max())
+    if not 1.0 < top <= 2 * np.pi:
+        return []
+    j = revolute[int(stated.max(0).values.argmax())]
+    return [
+        f"warning: {path}: every revolute joint value lies within +-6.28 (largest "
+        f"{top:.4g}, column {robot.joint_names[j]}): these look like radians, which "
+        "--angle-unit deg reads as degrees; if they are radians, leave --angle-unit out"
+    ]
 
 
 def compensate_program(
