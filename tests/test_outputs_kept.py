@@ -187,3 +187,39 @@ def test_a_plan_and_its_json_are_written_both_or_neither(tmp_path, capsys):
     assert main([*args, "--json", str(tmp_path / "p.json"), "--no-progress"]) == 0
     assert poses.read_text() != ORIGINAL
     assert '"robot": "rx160"' in (tmp_path / "p.json").read_text()
+
+
+_TERMINATED_WHILE_WRITING = """
+import os, signal, sys
+from pathlib import Path
+import pandas as pd
+from hybrid_pk.cli.main import main
+
+written = pd.DataFrame.to_csv
+
+def terminated_while_writing(self, path, *args, **kwargs):
+    Path(path).write_text("part of a table")
+    os.kill(os.getpid(), signal.SIGTERM)  # a `kill` while the table is half written
+    return written(self, path, *args, **kwargs)
+
+pd.DataFrame.to_csv = terminated_while_writing
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_sigterm_while_writing_keeps_the_old_file_and_leaves_no_part(tmp_path):
+    """SIGTERM (`kill`, a scheduler) while a table is written: exit code 143, one line,
+    the file it would replace kept and no temporary file beside it (before: the process
+    ended at once and left `.campaign.csv.XXXXXXXX.csv` in the folder)."""
+    out = tmp_path / "campaign.csv"
+    out.write_text(ORIGINAL)
+    env = {**os.environ, "PYTHONPATH": str(REPO), "HYBRID_PK_THREADS": "1"}
+    args = ["simulate", "rx160", "--n", "10", "--out", str(out), "--no-progress"]
+    proc = subprocess.run(
+        [sys.executable, "-c", _TERMINATED_WHILE_WRITING, *args],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 143, proc.stderr
+    assert _only_line(proc.stderr) == "hybrid-pk simulate: terminated"
+    assert out.read_text() == ORIGINAL
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["campaign.csv"]

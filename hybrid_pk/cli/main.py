@@ -23,6 +23,12 @@ from hybrid_pk.cli.options import command_parser, resolve_robot
 from hybrid_pk.cli.outputs import check_outputs
 from hybrid_pk.cli.progress import shown
 from hybrid_pk.errors import HybridPKError
+from hybrid_pk.startup import (
+    EXIT_INTERRUPTED,
+    EXIT_TERMINATED,
+    Terminated,
+    terminable,
+)
 from hybrid_pk.startup import release as release_interrupt
 from hybrid_pk.threads import configure as configure_threads
 
@@ -108,7 +114,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         threads = configure_threads(asked)
         if isinstance(asked, int) and isinstance(threads, int) and asked > threads:
             print(f"note: --threads {asked}: this process may use {threads} cores")
-        with shown(not getattr(args, "no_progress", False)):
+        with terminable(), shown(not getattr(args, "no_progress", False)):
             return int(args.func(args) or 0)
     except (HybridPKError, OSError, ValueError) as exc:
         if args.debug:
@@ -116,9 +122,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         msg = " ".join(str(exc).split())  # one line, whatever the exception carried
         print(f"hybrid-pk {name}: error: {msg}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"hybrid-pk {name}: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (Terminated)
+        ended = isinstance(exc, Terminated)
+        print(f"hybrid-pk {name}: {'terminated' if ended else 'interrupted'}", file=sys.stderr)
+        return EXIT_TERMINATED if ended else EXIT_INTERRUPTED
     except Exception as exc:  # a bug, not bad input: still one line, the traceback on demand
         if args.debug:
             raise

@@ -25,6 +25,7 @@ from pathlib import Path
 import torch
 
 from hybrid_pk.errors import HybridPKError, TrainingInterrupted
+from hybrid_pk.startup import Terminated
 
 __all__ = [
     "RECORD",
@@ -193,13 +194,17 @@ def _stopped_early(checkpoint: dict) -> bool:
 
 def interruption(exc: BaseException, trainer, stage: str) -> BaseException:
     """The :class:`TrainingInterrupted` for Lightning's exit on Ctrl-C (``SystemExit(1)``
-    after its clean-up) or SIGTERM (``SIGTERMException``) in ``stage`` (``"training"`` or
-    ``"blocked"``, the probe fits after it), naming the checkpoint kept; ``exc`` itself
-    when it is no interruption."""
+    after its clean-up) or SIGTERM (``SIGTERMException``, or that exit) in ``stage``
+    (``"training"`` or ``"blocked"``, the probe fits after it), naming the checkpoint
+    kept; ``exc`` itself when it is no interruption."""
     from lightning.pytorch.trainer.states import TrainerStatus
     from lightning.pytorch.utilities.exceptions import SIGTERMException
 
-    sigterm = isinstance(exc, SIGTERMException)
+    # SIGTERM: Lightning's own exception, or the command's (:class:`.startup.Terminated`),
+    # which Lightning turns into its exit during the fit (it noted the signal)
+    sigterm = isinstance(exc, (SIGTERMException, Terminated)) or bool(
+        getattr(trainer, "received_sigterm", False)
+    )
     stopped = stage == "blocked" or trainer.state.status == TrainerStatus.INTERRUPTED
     if not (sigterm or isinstance(exc, KeyboardInterrupt) or stopped):
         return exc
