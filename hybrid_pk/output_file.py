@@ -23,7 +23,7 @@ from pathlib import Path
 
 from hybrid_pk.errors import HybridPKError
 
-__all__ = ["OutputError", "replacing", "write_text"]
+__all__ = ["OutputError", "read_only", "replacing", "write_text"]
 
 
 class OutputError(HybridPKError, OSError):
@@ -43,6 +43,13 @@ def _in_place(path: Path) -> bool:
     if path.parts[:2] in (("/", "dev"), ("/", "proc")):
         return True
     return path.exists() and not path.is_file()
+
+
+def read_only(path: Path) -> bool:
+    """A file this process may not write, or one without any write permission: the
+    rename would replace it where a plain ``open`` is refused (and root, who may open
+    anything, still finds the file marked as not to be written)."""
+    return not os.access(path, os.W_OK) or not path.stat().st_mode & 0o222
 
 
 def _mode(path: Path) -> int:
@@ -73,6 +80,8 @@ def replacing(path: str | os.PathLike) -> Iterator[Path]:
     if path.is_symlink():  # write where the link points, and keep the link
         path = path.resolve()
     existed = path.exists()
+    if existed and read_only(path):
+        raise OutputError(f"{path}: cannot write it (the file is read-only); it is unchanged")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         stem = path.name[: _NAME_MAX - _TEMP_EXTRA - len(path.suffix)]  # room for the rest

@@ -223,3 +223,24 @@ def test_sigterm_while_writing_keeps_the_old_file_and_leaves_no_part(tmp_path):
     assert _only_line(proc.stderr) == "hybrid-pk simulate: terminated"
     assert out.read_text() == ORIGINAL
     assert sorted(p.name for p in tmp_path.iterdir()) == ["campaign.csv"]
+
+
+def test_a_read_only_output_is_refused_and_kept(tmp_path, capsys):
+    """An output file without write permission (`chmod a-w`) is refused before any work,
+    naming the flag; in Python, ``replacing`` refuses it too (before: the rename replaced
+    it, even where a plain ``open`` is refused)."""
+    out = tmp_path / "campaign.csv"
+    out.write_text(ORIGINAL)
+    out.chmod(0o444)
+    assert main(["simulate", "rx160", "--n", "5", "--out", str(out), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert _only_line(err) == (
+        f"hybrid-pk simulate: error: --out {out}: the file is read-only; make it writable "
+        "or give another name"
+    )
+    with pytest.raises(OutputError, match=r"\(the file is read-only\); it is unchanged"):
+        write_text(out, "NEW\n")
+    assert out.read_text() == ORIGINAL
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["campaign.csv"]
+    out.chmod(0o644)
+    assert main(["simulate", "rx160", "--n", "5", "--out", str(out), "--no-progress"]) == 0

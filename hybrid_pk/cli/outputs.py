@@ -22,6 +22,7 @@ import os
 from pathlib import Path
 
 from hybrid_pk.errors import HybridPKError
+from hybrid_pk.output_file import read_only
 
 __all__ = ["check_outputs"]
 
@@ -102,6 +103,10 @@ def check_outputs(args: argparse.Namespace) -> None:
         if kind == "folder" and path.exists() and not path.is_dir():
             raise HybridPKError(f"{flag} {path} is a file; give a folder (it holds several)")
         _check_parent(flag, path)
+        if kind != "folder" and path.is_file() and read_only(path):
+            raise HybridPKError(
+                f"{flag} {path}: the file is read-only; make it writable or give another name"
+            )
         for name, source in inputs:
             if path.exists() and os.path.samefile(path, source):
                 raise HybridPKError(
