@@ -14,29 +14,20 @@ from typing import Any
 
 import numpy as np
 import torch
-from scipy.optimize import minimize_scalar
-from scipy.spatial.transform import Rotation
 
-from hybrid_pk.data.clock_jump import ClockJump, find_clock_jumps, noise_rms
+from hybrid_pk.data.clock_jump import ClockJump
 from hybrid_pk.data.interpolation import (
-    GAP_FACTOR,
     checked_array,
-    interpolate_poses,
     stream_times,
 )
-from hybrid_pk.data.point_frames import PointFrames
+from hybrid_pk.data.offset_search import OffsetSearch, speed_profile
 from hybrid_pk.errors import DataError
-from hybrid_pk.geometry.registration import register_frames
 
 __all__ = ["OffsetEstimate", "check_clock_jumps", "estimate_time_offset", "speed_profile"]
 
 GRID_DT = 1e-3  # [s] resampling step of the speed profiles
 SMOOTH_S = 0.02  # [s] box filter and difference span of the speed profiles
 REFINE_POINTS = 1500  # robot rows used by the registration refinement (evenly spaced)
-# Robot rows per offset of the residual scan: 900 equations for 9 unknowns; an offset in
-# another basin leaves a residual of mm (speed x error) against µm of noise, so a fifth
-# of the refinement's rows tells the basins apart at a fifth of its cost per fit.
-SCAN_POINTS = 300
 # Lowest minima of the scan that are refined: a path that repeats itself makes basins of
 # similar depth one period apart; the true one and its neighbours on either side.
 CANDIDATES = 3
@@ -44,28 +35,6 @@ CANDIDATES = 3
 # error (~1 mm, ISO 9283 accuracy of industrial arms) is ~100 times a tracker's ~10 µm
 # noise; more than that is more than a nominal model leaves.
 NOISE_RATIO = 100.0
-
-
-def speed_profile(t: np.ndarray, p: np.ndarray, grid: np.ndarray, smooth: float) -> np.ndarray:
-    """Speed ``|dp/dt|`` [m/s] of points ``p (M, 3)`` [m] at times ``t (M,)`` [s], on ``grid``.
-
-    Positions are interpolated linearly onto ``grid`` (uniform step), box-filtered over
-    ``smooth`` seconds and differenced over ``smooth`` seconds. Applied identically to
-    both streams, the filter shifts neither. Where the filter would reach past the
-    ends of ``grid`` the speed is NaN.
-    """
-    dt = float(grid[1] - grid[0])
-    half = max(round(smooth / dt / 2), 1)
-    width = 2 * half + 1  # odd: the filtered value sits on a grid point
-    v = np.full(len(grid), np.nan)
-    if len(grid) <= 2 * width:
-        return v
-    g = np.stack([np.interp(grid, t, p[:, k]) for k in range(3)], -1)
-    c = np.concatenate([np.zeros((1, 3)), np.cumsum(g, 0)])
-    box = (c[width:] - c[:-width]) / width  # box[i] = mean of g[i : i + width]
-    speed = np.linalg.norm(box[2 * half :] - box[: -2 * half], axis=-1) / (2 * half * dt)
-    v[2 * half : 2 * half + len(speed)] = speed  # speed[0] is centred on grid index 2 half
-    return v
 
 
 @dataclass(frozen=True)
@@ -134,204 +103,12 @@ class OffsetEstimate:
         )
 
 
-def _correlation(a: np.ndarray, b: np.ndarray) -> float:
-    a, b = a - a.mean(), b - b.mean()
-    # Elementwise sums, not BLAS dot products: called hundreds of times on small
-    # vectors, where a threaded BLAS on a busy machine costs more than the arithmetic.
-    den = math.sqrt(float((a * a).sum()) * float((b * b).sum()))
-    return float((a * b).sum()) / den if den > 0 else 0.0
-
-
-def _best_lag(
-    grid: np.ndarray,
-    v_robot: np.ndarray,
-    t_tr: np.ndarray,
-    v_tr: np.ndarray,
-    lags: np.ndarray,
-    min_overlap: int,
-) -> tuple[float, float]:
-    """Lag of the largest correlation of ``v_robot(t)`` and ``v_tr(t + lag)``, refined by a
-    parabola through the peak and its neighbours."""
-    scores = np.full(len(lags), -np.inf)
-    ok_r = np.isfinite(v_robot)
-    ok_tr = np.isfinite(v_tr)
-    for i, lag in enumerate(lags):
-        inside = ok_r & (grid + lag >= t_tr[0]) & (grid + lag <= t_tr[-1])
-        other = np.interp(grid[inside] + lag, t_tr, np.where(ok_tr, v_tr, np.nan))
-        keep = np.isfinite(other)
-        if keep.sum() < min_overlap:
-            continue
-        scores[i] = _correlation(v_robot[inside][keep], other[keep])
-    if not np.isfinite(scores).any():
-        raise DataError(
-            "the robot and tracker streams do not overlap in time for any offset searched: "
-            f"robot t {grid[0]:.6g}..{grid[-1]:.6g} s, tracker t {t_tr[0]:.6g}.."
-            f"{t_tr[-1]:.6g} s, offsets {lags[0]:.6g}..{lags[-1]:.6g} s (tracker = robot "
-            "+ offset); check both time columns (units: a ms column read as s) and max_offset"
-        )
-    i = int(np.argmax(scores))
-    lag = float(lags[i])
-    if 0 < i < len(lags) - 1 and np.isfinite(scores[i - 1]) and np.isfinite(scores[i + 1]):
-        den = scores[i - 1] - 2 * scores[i] + scores[i + 1]
-        if den < 0:
-            lag += 0.5 * (scores[i - 1] - scores[i + 1]) / den * float(lags[1] - lags[0])
-    return lag, float(scores[i])
-
-
 def _lowest_minima(scan: np.ndarray, lags: np.ndarray, count: int) -> list[float]:
     """The lags of the ``count`` lowest local minima of ``scan`` (NaN: no value)."""
     value = np.where(np.isfinite(scan), scan, np.inf)
     pad = np.concatenate([[np.inf], value, [np.inf]])
     found = np.flatnonzero(np.isfinite(value) & (value <= pad[:-2]) & (value <= pad[2:]))
     return [float(lags[i]) for i in found[np.argsort(value[found])][:count]]
-
-
-def _rotations(quat: np.ndarray, dtype: torch.dtype) -> torch.Tensor:
-    """``(K, 4)`` ``(w, x, y, z)`` -> ``(K, 3, 3)`` rotation matrices."""
-    return torch.as_tensor(Rotation.from_quat(quat[:, [1, 2, 3, 0]]).as_matrix(), dtype=dtype)
-
-
-class _OffsetSearch:
-    """Both streams on common ground: speed profiles on uniform grids, the robot rows
-    usable near an offset, and the registration residual as a function of the offset."""
-
-    def __init__(
-        self,
-        t_r: np.ndarray,
-        T_all: torch.Tensor,
-        t_m: np.ndarray,
-        pos: np.ndarray,
-        quat: np.ndarray | None,
-        *,
-        smooth: float,
-        grid_dt: float,
-        refine_points: int,
-    ) -> None:
-        self.t_r, self.T_all, self.t_m, self.pos, self.quat = t_r, T_all, t_m, pos, quat
-        self.smooth, self.grid_dt, self.refine_points = smooth, grid_dt, refine_points
-        self.grid_r = np.arange(t_r[0], t_r[-1], grid_dt)
-        self.grid_m = np.arange(t_m[0], t_m[-1], grid_dt)
-        self.v_m = speed_profile(t_m, pos, self.grid_m, smooth)
-        self.min_overlap = max(int(0.25 * len(self.grid_r)), 10)
-        self.step = max(5 * grid_dt, smooth / 4)
-        self.max_gap = GAP_FACTOR * float(np.median(np.diff(t_m)))
-        self.gaps = np.flatnonzero(np.diff(t_m) > self.max_gap)  # tracker rows before a gap
-
-    def robot_speed(self, tool_point: np.ndarray | None = None) -> np.ndarray:
-        """Speed profile of the flange, or of ``tool_point`` [m] on the flange."""
-        if tool_point is None:
-            p = self.T_all[:, :3, 3]
-        else:
-            tool = torch.eye(4, dtype=self.T_all.dtype)
-            tool[:3, 3] = torch.as_tensor(tool_point)
-            p = (self.T_all @ tool)[:, :3, 3]
-        return speed_profile(self.t_r, p.numpy(), self.grid_r, self.smooth)
-
-    def correlate(
-        self, v_robot: np.ndarray, centre: float, half_width: float
-    ) -> tuple[float, float]:
-        """Best lag in ``centre ± half_width``: a coarse scan, then a fine one at the peak."""
-        step, args = self.step, (self.grid_r, v_robot, self.grid_m, self.v_m)
-        lags = np.arange(centre - half_width, centre + half_width + step / 2, step)
-        lag, _ = _best_lag(*args, lags, self.min_overlap)
-        fine = np.arange(lag - 2 * step, lag + 2 * step + self.grid_dt / 2, self.grid_dt)
-        return _best_lag(*args, fine, self.min_overlap)
-
-    def usable(self, centre: float, half_width: float) -> np.ndarray:
-        """All robot rows whose tracker time stays inside the stream and away from gaps
-        for every offset in ``centre ± half_width``."""
-        t_r, t_m = self.t_r, self.t_m
-        lo, hi = centre - half_width, centre + half_width
-        usable = np.flatnonzero((t_r + lo >= t_m[0]) & (t_r + hi <= t_m[-1]))
-        gaps = self.gaps
-        if gaps.size and usable.size:
-            g0, g1 = t_m[gaps], t_m[gaps + 1]
-            first = np.clip(np.searchsorted(g1, t_r[usable] + lo, side="right"), 0, gaps.size - 1)
-            touches = (g0[first] < t_r[usable] + hi) & (g1[first] > t_r[usable] + lo)
-            usable = usable[~touches]
-        return usable
-
-    def rows_near(self, centre: float, half_width: float) -> np.ndarray:
-        """``refine_points`` of :meth:`usable`, evenly spaced (a fixed set for the whole
-        interval: the cost does not jump)."""
-        usable = self.usable(centre, half_width)
-        if len(usable) < 10:
-            raise DataError(
-                f"only {len(usable)} robot rows overlap the tracker stream (away from gaps) "
-                f"near offset {centre:.4f} s; need at least 10"
-            )
-        count = min(self.refine_points, len(usable))
-        return usable[np.unique(np.linspace(0, len(usable) - 1, count).round().astype(int))]
-
-    def cost(self, offset: float, pick: np.ndarray, frames: PointFrames) -> float:
-        """RMS registration residual [mm] of rows ``pick`` at ``offset``."""
-        times = self.t_r[pick] + offset
-        p, _, _ = interpolate_poses(self.t_m, self.pos, None, times, self.max_gap)
-        return frames.rms_mm(p)
-
-    def registered(self, offset: float, pick: np.ndarray) -> PointFrames:
-        """Frames registered on rows ``pick`` at ``offset`` (the warm start of ``cost``)."""
-        times = self.t_r[pick] + offset
-        p, qq, _ = interpolate_poses(self.t_m, self.pos, self.quat, times, self.max_gap)
-        R = None if qq is None else _rotations(qq, self.T_all.dtype)
-        T = self.T_all[pick]
-        return PointFrames.from_guess(T, register_frames(T, torch.as_tensor(p), R))
-
-    def scan(self, lags: np.ndarray, start: float, pose: tuple) -> np.ndarray:
-        """RMS registration residual [mm] at each of ``lags`` (increasing), on
-        :data:`SCAN_POINTS` rows overlapping the tracker there; NaN where fewer than a
-        quarter of the robot rows overlap (a short overlap fits many offsets).
-
-        Walks out from the lag nearest ``start`` [s] in both directions, each fit
-        warm-started at its neighbour's (first at ``pose``, registered near ``start``):
-        a few Gauss-Newton steps each, whatever the length of the streams.
-        """
-        out = np.full(len(lags), np.nan)
-        first = int(np.argmin(np.abs(lags - start)))
-        for order in (range(first, len(lags)), range(first - 1, -1, -1)):
-            pose_i = pose
-            for i in order:
-                usable = self.usable(float(lags[i]), 0.0)
-                if len(usable) < max(len(self.t_r) // 4, 10):
-                    continue
-                count = min(SCAN_POINTS, len(usable))
-                pick = usable[np.unique(np.linspace(0, len(usable) - 1, count).round().astype(int))]
-                times = self.t_r[pick] + lags[i]
-                p, _, _ = interpolate_poses(self.t_m, self.pos, None, times, self.max_gap)
-                local = PointFrames(self.T_all[pick], pose_i)
-                pose_i = local.fit(p)
-                r = local.points(*pose_i) - p
-                out[i] = 1e3 * math.sqrt(float((r * r).sum(-1).mean()))
-        return out
-
-    def check(self, offset: float, pick: np.ndarray, frames: PointFrames):
-        """``(jumps, noise [m])`` at the frames registered on ``pick``: the steps of the
-        offset inside the streams and the noise the residuals show (:func:`noise_rms`)."""
-        p, _, _ = interpolate_poses(self.t_m, self.pos, None, self.t_r[pick] + offset, self.max_gap)
-        streams, pose = (self.t_r, self.T_all, self.t_m, self.pos), frames.fit(p)
-        jumps = find_clock_jumps(*streams, offset, pose, self.max_gap)
-        return jumps, noise_rms(streams, offset, pose, self.max_gap)
-
-    def refine(self, centre: float, half_width: float):
-        """Bounded search of ``cost``, re-centred while the minimum sits on a bound.
-
-        Returns ``(result, (lo, hi), pick, frames)`` of the last search.
-        """
-        for _ in range(5):
-            lo, hi = centre - half_width, centre + half_width
-            pick = self.rows_near(centre, half_width)
-            frames = self.registered(centre, pick)
-            res = minimize_scalar(
-                self.cost,
-                bounds=(lo, hi),
-                args=(pick, frames),
-                method="bounded",
-                options={"xatol": 1e-6},
-            )
-            if min(res.x - lo, hi - res.x) > 0.05 * half_width:
-                break
-            centre = float(res.x)
-        return res, (lo, hi), pick, frames
 
 
 def _checked_streams(robot_t, q, tracker_t, position, quat):
@@ -391,7 +168,7 @@ def estimate_time_offset(
     t_r, q, t_m, pos, quat_np = _checked_streams(robot_t, q, tracker_t, position, quat)
     with torch.no_grad():
         T_all = robot.fk(torch.as_tensor(q, dtype=robot.dtype)).double()
-    search = _OffsetSearch(
+    search = OffsetSearch(
         t_r, T_all, t_m, pos, quat_np, smooth=smooth, grid_dt=grid_dt, refine_points=refine_points
     )
     # Coarse 1: flange speed (the tool offset is not known yet) against point speed.
@@ -440,7 +217,7 @@ def check_clock_jumps(
     t_r, q, t_m, pos, quat_np = _checked_streams(robot_t, q, tracker_t, position, quat)
     with torch.no_grad():
         T_all = robot.fk(torch.as_tensor(q, dtype=robot.dtype)).double()
-    search = _OffsetSearch(
+    search = OffsetSearch(
         t_r, T_all, t_m, pos, quat_np, smooth=SMOOTH_S, grid_dt=GRID_DT, refine_points=REFINE_POINTS
     )
     try:
