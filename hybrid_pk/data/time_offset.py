@@ -191,7 +191,7 @@ def estimate_time_offset(
     # (its search may walk beyond max_offset, where the scan does not reach)
     if all(abs(coarse - c) > refine_window for c, _ in centres):
         centres.append((coarse, max(refine_window, 1.5 * abs(coarse - lag0))))
-    refined = [search.refine(c, w) for c, w in centres]
+    refined = _refined(search, centres)
     res, (lo, hi), pick, frames = min(refined, key=lambda found: found[0].fun)
     jumps, noise = search.check(float(res.x), pick, frames)
     return OffsetEstimate(
@@ -206,6 +206,22 @@ def estimate_time_offset(
         jumps=jumps,
         noise_mm=1e3 * noise,
     )
+
+
+def _refined(search: OffsetSearch, centres: list[tuple[float, float]]) -> list[tuple]:
+    """Each candidate ``(centre, half-width)`` refined (:meth:`OffsetSearch.refine`); one
+    whose window leaves under 10 robot rows overlapping the tracker (the end of the
+    search on a short stream) is dropped, too few rows to judge it; the first such
+    error where none is left."""
+    found, refused = [], None
+    for centre, half_width in centres:
+        try:
+            found.append(search.refine(centre, half_width))
+        except DataError as exc:
+            refused = refused or exc
+    if not found:
+        raise refused
+    return found
 
 
 def check_clock_jumps(
