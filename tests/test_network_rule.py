@@ -9,11 +9,12 @@ from dataclasses import replace
 import pytest
 import torch
 
+from hybrid_pk.calibration.least_squares import jacobian
 from hybrid_pk.cli.main import main
 from hybrid_pk.data import write_table
 from hybrid_pk.effects import ExtendedModel, conditions_from_data
 from hybrid_pk.evaluation.metrics import row_errors
-from hybrid_pk.geometry import rpy_to_matrix, transform
+from hybrid_pk.geometry import rpy_to_matrix, so3_exp, transform
 from hybrid_pk.io.hybrid_file import networks_used, predict_poses, save_hybrid
 from hybrid_pk.io.model_file import load_model
 from hybrid_pk.pipelines.flange_frames import (
@@ -194,6 +195,30 @@ def test_the_folds_leave_one_row_out_up_to_their_cap():
     fold, folds = fold_of_rows(10 * MAX_FOLDS + 3)
     assert folds == MAX_FOLDS
     assert int(torch.bincount(fold).min()) == 10
+
+
+@pytest.mark.parametrize("orientation", [True, False])
+@pytest.mark.parametrize("weighted", [True, False])
+def test_the_frames_jacobian_in_closed_form_is_forward_modes(orientation, weighted):
+    """``FlangeRows.jacobian`` against forward mode through ``FlangeRows.residual``
+    (float64, random frames, offsets of tens of mm and mrad, a subset of the rows, robust
+    weights or none, position only or full poses): the same to round-off."""
+    g = torch.Generator().manual_seed(7 + 2 * orientation + weighted)
+
+    def frames(k: int) -> torch.Tensor:
+        w, p = torch.randn(k, 3, generator=g, dtype=F64), torch.randn(k, 3, generator=g, dtype=F64)
+        return transform(so3_exp(w), p)
+
+    E, T, (B0, X0) = frames(24), frames(24), frames(2)
+    weights = torch.rand(24, generator=g, dtype=F64) + 0.5 if weighted else None
+    rows = FlangeRows(E, T[:, :3, 3], T[:, :3, :3] if orientation else None, 0.02, 1e-4, weights)
+    theta = 40 * torch.randn(12, generator=g, dtype=F64)
+    picked = torch.arange(1, 24, 3)
+    r, J = rows.jacobian(theta, B0, X0, picked)
+    r_fwd, J_fwd = jacobian(lambda t: rows.residual(t, B0, X0, picked), theta)
+    assert J.shape == (picked.numel() * (6 if orientation else 3), 12)
+    assert torch.equal(r, r_fwd)
+    assert torch.allclose(J, J_fwd, rtol=1e-12, atol=1e-12 * float(J_fwd.abs().max()))
 
 
 def test_the_frames_fit_recovers_the_frames_of_exact_rows(ur10):

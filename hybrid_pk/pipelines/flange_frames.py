@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.calibration.least_squares import levenberg_marquardt
-from hybrid_pk.geometry import so3_exp, transform, vee_antisym
+from hybrid_pk.geometry import skew, so3_exp, so3_left_jacobian, transform, vee_antisym
 
 __all__ = [
     "BLOCKS",
@@ -85,6 +85,43 @@ class FlangeRows:
         vee = vee_antisym(D)
         return torch.cat([pos.reshape(-1), ((0.5 / self.sigma_rad) * vee * w).reshape(-1)])
 
+    def jacobian(
+        self, theta: Tensor, B0: Tensor, X0: Tensor, rows: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """:meth:`residual` ``(m,)`` at ``theta`` and its Jacobian ``(m, 12)``, in closed
+        form (forward mode through the residual takes torch's slow reference path at
+        every product with a constant: ~50 times the time).
+
+        With ``T = B E X``, ``B = (exp(w_b) R_B0, p_B0 + t_b)``, ``X = (R_X0 exp(w_x),
+        p_X0 + t_x)``: the point moves by ``dt_b``, ``-[R_B v]x J_l(w_b) dw_b`` (``v`` the
+        tool point in the base) and ``R_B R_E dt_x``; ``D = R_meas R^T`` turns by
+        ``-D [a]x`` (base, ``a = J_l(w_b) dw_b``) or ``-[c]x D`` (tool, ``c = R_meas
+        J_r(w_x) dw_x``), so ``vee(D - D^T)`` by ``-(tr D - D^T) a`` or ``-(tr D - D) c``."""
+        r = self.residual(theta, B0, X0, rows)
+        B, X = frames_at(theta, B0, X0)
+        E = self.E[rows]
+        n, dt = E.shape[0], theta.dtype
+        w = torch.ones(n, dtype=dt) if self.weights is None else self.weights[rows].to(dt).sqrt()
+        k_pos = -(1e3 / self.sigma_mm) * w[:, None, None]  # residual = measured - predicted
+        v = E[:, :3, :3] @ X[:3, 3] + E[:, :3, 3]  # the tool point in the base's frame
+        J_lb = so3_left_jacobian(theta[3:6] * _MRAD) * _MRAD
+        J_rx = so3_left_jacobian(-theta[9:12] * _MRAD) * _MRAD
+        RBE = B[:3, :3] @ E[:, :3, :3]
+        pos = torch.zeros(n, 3, 12, dtype=dt)
+        pos[:, :, 0:3] = torch.eye(3, dtype=dt) * _MM
+        pos[:, :, 3:6] = -skew(v @ B[:3, :3].T) @ J_lb
+        pos[:, :, 6:9] = RBE * _MM
+        J = [(k_pos * pos).reshape(-1, 12)]
+        if self.R_meas is not None:
+            R_meas = self.R_meas[rows]
+            D = R_meas @ (RBE @ X[:3, :3]).transpose(-1, -2)
+            trace = D.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None] * torch.eye(3, dtype=dt)
+            rot = torch.zeros(n, 3, 12, dtype=dt)
+            rot[:, :, 3:6] = -(trace - D.transpose(-1, -2)) @ J_lb
+            rot[:, :, 9:12] = -(trace - D) @ R_meas @ J_rx
+            J.append(((0.5 / self.sigma_rad) * w[:, None, None] * rot).reshape(-1, 12))
+        return r, torch.cat(J)
+
 
 def frames_at(theta: Tensor, B0: Tensor, X0: Tensor) -> tuple[Tensor, Tensor]:
     """Frames at offsets ``theta`` = base translation [mm], base rotation [mrad] (in the
@@ -113,7 +150,13 @@ def fit_flange_frames(
         t[mask] = t_free
         return rows.residual(t, B0, X0, idx)
 
-    x = levenberg_marquardt(res, theta[mask], max_iter=_MAX_ITER).x
+    def jac(t_free: Tensor) -> tuple[Tensor, Tensor]:
+        t = theta.clone()
+        t[mask] = t_free
+        r, J = rows.jacobian(t, B0, X0, idx)
+        return r, J[:, mask]
+
+    x = levenberg_marquardt(res, theta[mask], max_iter=_MAX_ITER, jac=jac).x
     theta[mask] = x
     B, X = frames_at(theta, B0, X0)
     return B.detach(), X.detach()
