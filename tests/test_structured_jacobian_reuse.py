@@ -3,7 +3,7 @@ with their derivative, and the frame twists spread over several frame sets."""
 
 import torch
 
-from hybrid_pk.calibration.structured_jacobian import _gravity_jacobian
+from hybrid_pk.calibration.gravity_jacobian import gravity_jacobian
 from hybrid_pk.calibration.twists import frame_twists
 from hybrid_pk.effects import ExtendedModel
 
@@ -16,10 +16,10 @@ def test_gravity_derivative_hands_on_its_torques_bit_for_bit(ur10):
     data_q = q.clone()  # the rows' data set, the key's owner
     key = (data_q, 0, 50)
     with torch.no_grad():
-        tau, G = _gravity_jacobian(ur10, q, payload, params, key, gravity)
+        tau, G = gravity_jacobian(ur10, q, payload, params, key, gravity)
         assert torch.equal(tau, ur10.gravity_torques(q, payload, gravity, params))
         assert G.shape == (50, 6, 6)
-        again, G_kept = _gravity_jacobian(ur10, q + 1e-6, payload, params, key, gravity)
+        again, G_kept = gravity_jacobian(ur10, q + 1e-6, payload, params, key, gravity)
     assert again is None  # dg/dq reused (q* moved < GRAVITY_REUSE_RAD): no torques with it
     assert torch.equal(G_kept, G)
 

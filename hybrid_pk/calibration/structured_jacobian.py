@@ -15,11 +15,10 @@
 
 from __future__ import annotations
 
-import weakref
-
 import torch
 from torch import Tensor
 
+from hybrid_pk.calibration.gravity_jacobian import GRAVITY_REUSE_RAD, compliance_feedback
 from hybrid_pk.calibration.joint_jacobian import joint_effect_jacobian
 from hybrid_pk.calibration.least_squares import jacobian
 from hybrid_pk.calibration.loaded_jacobian import (
@@ -37,7 +36,6 @@ from hybrid_pk.calibration.twists import (
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.geometry.tangents import carried
 from hybrid_pk.robot import KinematicParams
-from hybrid_pk.robot.statics import gravity_values
 
 __all__ = [
     "GRAVITY_REUSE_RAD",
@@ -310,17 +308,6 @@ class StructuredJacobian:
         return torch.cat(columns, -1)
 
 
-def compliance_feedback(c, robot, q_star: Tensor, payload, params, key, gravity):
-    """``(g, M)``: the compliance's feedback ``M = I + C dg/dq (n, dof, dof)`` at
-    ``q_star`` (``q* = q_kin - C g(q*)  =>  M dq* = dq_kin - dC g``) and the gravity
-    torques ``g (n, dof)`` where they came with ``dg/dq``; ``(None, None)`` where the
-    compliances ``c (dof,)`` are None or all zero."""
-    if c is None or not bool((c != 0).any()):
-        return None, None
-    g, G = _gravity_jacobian(robot, q_star, payload, params, key, gravity)
-    return g, torch.eye(q_star.shape[-1], dtype=q_star.dtype) + c.to(q_star.dtype)[:, None] * G
-
-
 def settled_twists(P: Tensor, dq: Tensor, feedback: Tensor | None) -> Tensor:
     """``P M^-1 dq``: the twists ``(n, r, k)`` of joint-space derivatives ``dq (n, dof,
     k)`` mapped by ``P (n, r, dof)`` through the compliance's feedback ``M (n, dof,
@@ -369,53 +356,6 @@ def _follows(a: Tensor, b: Tensor) -> bool:
 # [rad or m] difference step of the joint effects' derivative in point_jacobian: its
 # truncation is ~1e-6 of their slope's change, its round-off ~1e-16 / 1e-6 = 1e-10.
 _JOINT_STEP = 1e-6
-
-# dg/dq kept for reuse: id(data q) -> (weakref to it, q_star (N, dof), G (N, dof, dof),
-# valid (N,) bool), whatever the chunking of the problem that asks.
-_GRAVITY_JACOBIANS: dict[int, tuple] = {}
-# Reuse dg/dq while the true joint values moved less than this [rad] (max over rows).
-GRAVITY_REUSE_RAD = 1e-4
-
-
-def _gravity_jacobian(robot, q_star: Tensor, payload, params, key, gravity):
-    """``(g, dg/dq (n, dof, dof))`` at ``q_star``: ``dg/dq`` reused from an earlier call
-    where valid, the torques ``g (n, dof)`` where they came with it (else None)."""
-    store = None
-    if key is not None:
-        data_q, start, stop = key
-        for k in [k for k, v in _GRAVITY_JACOBIANS.items() if v[0]() is None]:
-            del _GRAVITY_JACOBIANS[k]  # data sets that no longer exist
-        store = _GRAVITY_JACOBIANS.get(id(data_q))
-        if store is None or store[0]() is not data_q or store[1].shape[-1] != q_star.shape[-1]:
-            n, dof = data_q.shape[0], q_star.shape[-1]
-            store = (
-                weakref.ref(data_q),
-                torch.zeros(n, dof, dtype=q_star.dtype),
-                torch.zeros(n, dof, dof, dtype=q_star.dtype),
-                torch.zeros(n, dtype=torch.bool),
-            )
-            _GRAVITY_JACOBIANS[id(data_q)] = store
-        _, q_kept, G_kept, valid = store
-        rows = slice(start, stop)
-        if bool(valid[rows].all()):
-            if float((q_kept[rows] - q_star).abs().max()) <= GRAVITY_REUSE_RAD:
-                return None, G_kept[rows]
-
-    tau = None
-    closed = gravity_values(robot, q_star, payload, gravity, params, derivative=True)
-    if closed is not None:
-        tau, G = closed
-    else:  # off-chain bodies: forward mode through the differentiable statics
-
-        def grav(d: Tensor) -> Tensor:
-            tau = robot.gravity_torques(q_star + d, payload=payload, gravity=gravity, params=params)
-            return tau.reshape(-1)
-
-        dof = q_star.shape[-1]
-        G = jacobian(grav, torch.zeros(dof, dtype=q_star.dtype))[1].reshape(-1, dof, dof)
-    if store is not None:
-        q_kept[rows], G_kept[rows], valid[rows] = q_star, G, True
-    return tau, G
 
 
 @torch.no_grad()
