@@ -5,6 +5,7 @@ robot's joints as the data's columns, and a hidden effect found on it."""
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pandas as pd
@@ -164,12 +165,9 @@ def _hidden(robot: hpk.Robot, rng: np.random.Generator) -> tuple[str, object]:
     return f"{kind}:{rng.choice(joints)}", sign
 
 
-def _carry_over_size(robot: hpk.Robot, label: str, value, data, noise_mm: float) -> float:
-    """How many times ``value`` of ``label`` it takes to raise the campaign's RMS error
-    (3-D, per row) by the diagnosis' practical margin once the frames have absorbed
-    what they can: the smallest such effect the selection by what carries over can name
-    (linearised; an in-sample estimate: at seed 12345 an effect of exactly this size
-    gained 0.0028 mm on the blocked hold-out against the margin's 0.0021 mm)."""
+def _correction(robot: hpk.Robot, label: str, value, data) -> torch.Tensor:
+    """The point motion [mm] of ``label`` at ``value`` on ``data``'s rows that the frames
+    cannot absorb (linearised at the nominal robot, position only)."""
     trial = with_effects(hpk.ExtendedModel(robot, []), [hpk.make_effect(robot, label, value)])
     blocks = param_blocks(trial, None, True)
     problem = Problem(trial, data, conditions_from_data(data, False), blocks, 1.0, 1e-3)
@@ -178,8 +176,31 @@ def _carry_over_size(robot: hpk.Robot, label: str, value, data, noise_mm: float)
     theta = (problem.x0 / problem.scale)[-k:]  # the effect's parameters, scaled
     signal = J[:, -k:] @ theta
     frames = J[:, :-k]
-    left = signal - frames @ torch.linalg.lstsq(frames, signal[:, None]).solution[:, 0]
-    moved = float(left.norm()) / data.n**0.5  # RMS over rows of the 3-D point motion [mm]
+    return signal - frames @ torch.linalg.lstsq(frames, signal[:, None]).solution[:, 0]
+
+
+def _exact_stand_in(diag, named: dict, label: str) -> str | None:
+    """The one named cause that the diagnosis reports as exactly alike ``label`` (its
+    signature and the hidden one's at |cos| >= 0.9995, 1.0000 as printed: no data of
+    this robot can tell them apart, e.g. a tilt of an origin about the line the joint
+    before it turns about is that joint's offset); None otherwise."""
+    if len(named) != 1:
+        return None
+    (other,) = named
+    for entry in diag.ambiguous:
+        cos = re.search(r"\|cos\| = ([0-9.]+)", entry.get("why", ""))
+        if set(entry["effects"]) == {other, label} and cos and float(cos.group(1)) >= 0.9995:
+            return other
+    return None
+
+
+def _carry_over_size(robot: hpk.Robot, label: str, value, data, noise_mm: float) -> float:
+    """How many times ``value`` of ``label`` it takes to raise the campaign's RMS error
+    (3-D, per row) by the diagnosis' practical margin once the frames have absorbed
+    what they can: the smallest such effect the selection by what carries over can name
+    (linearised; an in-sample estimate: at seed 12345 an effect of exactly this size
+    gained 0.0028 mm on the blocked hold-out against the margin's 0.0021 mm)."""
+    moved = float(_correction(robot, label, value, data).norm()) / data.n**0.5  # RMS [mm]
     noise = 3**0.5 * noise_mm  # the 3-D noise per row
     # RMS error with the effect: sqrt(noise^2 + s^2); it must exceed noise by the margin
     needed = ((noise + practical_margin(noise_mm)) ** 2 - noise**2) ** 0.5
@@ -213,6 +234,12 @@ def test_hidden_effect_on_the_mimic_robot(robot):
     where = f"seed {RUN_SEED}: {label} = {effect.report_value()} ({factor:.2g} x its scale)"
     diag = diagnose(robot, data, seed=0)
     named = {f"{c.effect}:{c.joint}": c for c in diag.causes}
+    other = _exact_stand_in(diag, named, label)
+    if other is not None:  # named as what it is in this data; the same correction (20 %)
+        truth = _correction(robot, label, effect.report_value(), data)
+        made = _correction(robot, other, named[other].value, data)
+        assert float((made - truth).norm()) < 0.2 * float(truth.norm()), f"{where}: {other}"
+        return
     assert list(named) == [label], f"{where}: named {list(named)}; steps {diag.steps}"
     found = np.asarray(named[label].value, dtype=float)
     true = np.asarray(effect.report_value(), dtype=float)
