@@ -15,6 +15,7 @@ from hybrid_pk.errors import HybridPKError
 from hybrid_pk.ik import IKOptions, parse_approach
 from hybrid_pk.ik.dedup import REVOLUTE_TOL
 from hybrid_pk.ik.two_stage import DEFAULT_BOX
+from hybrid_pk.io.model_file import NOMINAL_PREFIX
 from hybrid_pk.pipelines.solving import solve_targets, target_reach
 
 # The fixes of assumed conditions, as flags and columns.
@@ -152,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _print_summary(args, loaded, robot, data, job) -> None:
     n, frame, two_stage = data.n, job.frame, job.two_stage
-    kind = "nominal URDF" if loaded.source.startswith("nominal:") else "model"
+    kind = "nominal URDF" if loaded.source.startswith(NOMINAL_PREFIX) else "model"
     if two_stage:
         kind += " (two stages: kinematics + frames, then the full model)"
     n_sol = len(frame)
@@ -240,7 +241,7 @@ def _beyond_reach(loaded, data, frame, k: int) -> None:
         return
     rows = ", ".join(str(int(i)) for i in far.nonzero()[:5, 0]) + (", ..." if far.sum() > 5 else "")
     span = f"{float(distance[far].min()):.3g}-{float(distance[far].max()):.3g} m"
-    if loaded.source.startswith("nominal:"):  # identity frames: targets in the base frame
+    if loaded.source.startswith(NOMINAL_PREFIX):  # identity frames: targets in the base frame
         why = "nominal:ROBOT takes flange poses in the robot base frame [m]; measured poses "
         why += "in a tracker's frame go with a calibrated model file"
     else:

@@ -22,11 +22,11 @@ import os
 from pathlib import Path
 
 from hybrid_pk.errors import HybridPKError
+from hybrid_pk.io.model_file import NOMINAL_PREFIX
 from hybrid_pk.output_file import read_only
 
 __all__ = ["check_outputs"]
 
-_NOMINAL = "nominal:"  # a model named by its robot, which may be a URDF file
 _FILES = {"out": "--out", "json": "--json", "urdf": "--urdf"}
 _FOLDERS = {"report": "--report", "logdir": "--logdir"}
 # Arguments that may name an input file (positional ones by their metavar in messages).
@@ -74,8 +74,8 @@ def _inputs(args: argparse.Namespace) -> list[tuple[str, Path]]:
     for dest, name in _INPUTS.items():
         value = getattr(args, dest, None)
         for item in value if isinstance(value, (list, tuple)) else [value]:
-            if isinstance(item, str) and item.startswith(_NOMINAL):  # nominal:ROBOT.urdf
-                item = item[len(_NOMINAL) :]
+            if isinstance(item, str) and item.startswith(NOMINAL_PREFIX):  # nominal:X.urdf
+                item = item[len(NOMINAL_PREFIX) :]
             if isinstance(item, (str, os.PathLike)) and Path(item).is_file():
                 found.append((name, Path(item)))
     return found
