@@ -15,6 +15,7 @@ extension (pandas, matplotlib) see the same one.
 
 from __future__ import annotations
 
+import json
 import os
 import tempfile
 from collections.abc import Iterator
@@ -23,7 +24,7 @@ from pathlib import Path
 
 from hybrid_pk.errors import HybridPKError
 
-__all__ = ["OutputError", "read_only", "replacing", "write_text"]
+__all__ = ["OutputError", "json_text", "read_only", "replacing", "write_text"]
 
 
 class OutputError(HybridPKError, OSError):
@@ -115,3 +116,9 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
     with replacing(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
     return path
+
+
+def json_text(obj: object) -> str:
+    """``obj`` as the tool's JSON outputs are written: indented, NaN and inf refused
+    (they are not JSON), a final newline."""
+    return json.dumps(obj, indent=2, allow_nan=False) + "\n"

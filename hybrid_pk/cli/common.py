@@ -20,7 +20,7 @@ from hybrid_pk.data import DataWarning, MeasuredData, read_table_for
 from hybrid_pk.effects import ExtendedModel
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.evaluation.metrics import ErrorStats, error_stats
-from hybrid_pk.output_file import write_text
+from hybrid_pk.output_file import json_text, write_text
 from hybrid_pk.pipelines.calibration import FRAME_LABELS as FRAME_LABELS
 from hybrid_pk.pipelines.calibration import refit_frames as fit_frames
 from hybrid_pk.pipelines.refit import with_frame_sets as with_frame_sets
@@ -261,4 +261,4 @@ def read_json(path: str | os.PathLike, flag: str, kind: str = ""):
 
 def write_json(path: str | os.PathLike, obj: dict) -> Path:
     """Write ``obj`` as indented JSON (NaN/inf refused: they are not JSON)."""
-    return write_text(path, json.dumps(obj, indent=2, allow_nan=False) + "\n")
+    return write_text(path, json_text(obj))

@@ -7,7 +7,6 @@ plan's JSON document (predicted 1-sigma per parameter beside random poses).
 
 from __future__ import annotations
 
-import json
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -17,7 +16,7 @@ from hybrid_pk.calibration.planning import Plan, plan_poses
 from hybrid_pk.data.joint_table import write_joint_table
 from hybrid_pk.effects import make_effect
 from hybrid_pk.errors import HybridPKError
-from hybrid_pk.output_file import replacing
+from hybrid_pk.output_file import json_text, replacing
 from hybrid_pk.robot import Robot
 
 __all__ = ["PlanResult", "parameter_units", "plan_to_file"]
@@ -102,7 +101,7 @@ def plan_to_file(
     if json_out is None:
         write_joint_table(out, plan.q, robot.joint_names)
         return result
-    document = json.dumps(result.document(json_out[1]), indent=2, allow_nan=False) + "\n"
+    document = json_text(result.document(json_out[1]))
     with replacing(json_out[0]) as tmp:
         tmp.write_text(document, encoding="utf-8")
         write_joint_table(out, plan.q, robot.joint_names)
