@@ -104,6 +104,7 @@ def test_offset_found_for_random_offsets_with_and_without_orientation(ur10, seed
         # lacks, moves the least-squares offset by up to ~0.6 ms in these streams
         assert abs(est.offset - offset) < 2e-3, est.summary()
         assert est.residual_warning("streams") == "", est.summary()
+        assert est.ambiguity_warning("streams") == "", est.summary()  # 12 s: determined
 
 
 def test_residual_far_above_the_noise_is_one_warning_line(ur10):

@@ -396,9 +396,10 @@ def _run_streams(args: argparse.Namespace) -> int:
             bar.stage("cross-correlation and registration")
             est = estimate_time_offset(t_r, q, t_m, pos, robot, quat=quat, max_offset=max_offset)
         print(est.summary())
-        warning = est.residual_warning(f"{args.robot_stream}, {args.tracker_stream}")
-        if warning:
-            print(f"warning: {warning}")
+        source = f"{args.robot_stream}, {args.tracker_stream}"
+        for warning in (est.residual_warning(source), est.ambiguity_warning(source)):
+            if warning:
+                print(f"warning: {warning}")
         offset, jumps = est.offset, est.jumps
     else:
         offset = args.offset

@@ -31,6 +31,13 @@ so the tracker sample of robot row ``k`` is the one at ``t_k + offset``.
      like the correlation's value, and the lowest refined residual is the estimate.
      ``OffsetEstimate.residual_warning`` is one line when that residual exceeds 100
      times the noise the rows show (:func:`~hybrid_pk.data.clock_jump.noise_rms`).
+     The scan's registration at each lag is the better of a warm start and the closed
+     form: on a short path the registration has several local minima.
+   - evidence: the offsets the noise allows (``OffsetEstimate.interval``) and the other
+     minima that fit about as well (``rivals``), from the residual profiled on fixed
+     tracker samples (:mod:`~hybrid_pk.data.offset_evidence`);
+     ``OffsetEstimate.ambiguity_warning`` is one line when the offset is not
+     determined to one robot sample.
 
 2. :func:`synchronise` interpolates the tracker stream at the robot times: positions
    linearly, orientations by SLERP (at 3 kHz the tracker moves ~0.1 mm between

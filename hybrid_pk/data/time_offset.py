@@ -20,6 +20,7 @@ from hybrid_pk.data.interpolation import (
     checked_array,
     stream_times,
 )
+from hybrid_pk.data.offset_evidence import LIKELIHOOD_RATIO, Rival, interval, rivals
 from hybrid_pk.data.offset_search import OffsetSearch, speed_profile
 from hybrid_pk.errors import DataError
 
@@ -53,6 +54,13 @@ class OffsetEstimate:
         jumps: steps of the offset inside the streams (:mod:`~hybrid_pk.data.clock_jump`).
         noise_mm: RMS length [mm] of the residual's noise that the rows show at ``offset``
             (:func:`~hybrid_pk.data.clock_jump.noise_rms`); NaN if not estimated.
+        rivals: other minima of the registration residual that the data do not exclude
+            (:mod:`~hybrid_pk.data.offset_evidence`).
+        interval: [s] the offsets around ``offset`` that the data do not exclude (a
+            likelihood ratio under 100; :mod:`~hybrid_pk.data.offset_evidence`); an end
+            is infinite where the residual stays flat to the end of the search; NaN: not
+            computed.
+        sample_s: [s] the robot stream's sampling period (median step of its stamps).
     """
 
     offset: float
@@ -65,6 +73,18 @@ class OffsetEstimate:
     max_offset: float = math.inf
     jumps: tuple[ClockJump, ...] = ()
     noise_mm: float = math.nan
+    rivals: tuple[Rival, ...] = ()
+    interval: tuple[float, float] = (math.nan, math.nan)
+    sample_s: float = math.nan
+
+    @property
+    def determined(self) -> bool:
+        """No rival basin, and the interval within one robot sample of the offset either
+        side (beyond, a row's tracker pose is uncertain by more than the time between
+        two rows). True where the interval was not computed."""
+        lo, hi = self.interval
+        wide = max(self.offset - lo, hi - self.offset) > self.sample_s  # NaN: False
+        return not self.rivals and not wide
 
     def summary(self) -> str:
         """One line for humans; says when the offset lies beyond ``max_offset``."""
@@ -78,6 +98,9 @@ class OffsetEstimate:
             f"correlation {self.correlation:.3f} at {1e3 * self.coarse:.1f} ms, registration "
             f"residual {before}{self.residual_mm:.3f} mm RMS ({self.n_rows} rows)"
         )
+        if self.interval_text():
+            ratio = f"likelihood ratio {LIKELIHOOD_RATIO:g}:1"
+            line += f"; the noise allows {self.interval_text()} ({ratio})"
         if not self.bounds[0] <= self.coarse <= self.bounds[1]:  # a broad peak, shifted
             line += "; the registration residual's scan placed it away from the correlation's peak"
         if abs(self.offset) > self.max_offset:
@@ -102,13 +125,51 @@ class OffsetEstimate:
             "the offset with --offset to compare"
         )
 
+    def ambiguity_warning(self, source: str) -> str:
+        """One line when the offset is not :attr:`determined` (naming ``source``, the
+        streams); empty otherwise."""
+        if self.determined:
+            return ""
+        parts = [f"offsets from {_ms(self.interval[0])} to {_ms(self.interval[1])}"]
+        parts += [_rival_text(r) for r in self.rivals]
+        return (
+            f"{source}: the time offset is not determined: {'; '.join(parts)} fit the "
+            f"streams about as well as {_ms(self.offset)} (the data favour it by a "
+            f"likelihood ratio under {LIKELIHOOD_RATIO:g}:1, against the noise or the "
+            f"residual, whichever is larger; a robot sample is {_ms(self.sample_s)}); a "
+            "longer stream whose path turns and changes speed decides, or give the "
+            "offset with --offset"
+        )
 
-def _lowest_minima(scan: np.ndarray, lags: np.ndarray, count: int) -> list[float]:
-    """The lags of the ``count`` lowest local minima of ``scan`` (NaN: no value)."""
+    def interval_text(self) -> str:
+        """``A to B ms`` of the interval, or empty where it was not computed."""
+        lo, hi = self.interval
+        return "" if math.isnan(lo) else f"{_ms(lo)} to {_ms(hi)}"
+
+
+def _ms(t: float) -> str:
+    if math.isinf(t):
+        return "the end of the search" if t > 0 else "the start of the search"
+    return f"{1e3 * t:.{3 if abs(t) < 0.01 else 1}f} ms"
+
+
+def _rival_text(r: Rival) -> str:
+    if not math.isfinite(r.d_chi2):
+        samples = f"{r.rows} tracker samples"
+        return f"{_ms(r.offset)} (only {samples} inside the robot stream at both offsets)"
+    ratio = math.exp(min(r.d_chi2, 700) / 2)  # d_chi2 = 2 ln(ratio)
+    return (
+        f"{_ms(r.offset)} ({1e3 * r.residual_mm:.1f} against {1e3 * r.best_residual_mm:.1f} "
+        f"µm RMS on the {r.rows} tracker samples both cover, ratio {ratio:.3g}:1)"
+    )
+
+
+def _lowest_minima(scan: np.ndarray, count: int) -> list[int]:
+    """The indices of the ``count`` lowest local minima of ``scan`` (NaN: no value)."""
     value = np.where(np.isfinite(scan), scan, np.inf)
     pad = np.concatenate([[np.inf], value, [np.inf]])
     found = np.flatnonzero(np.isfinite(value) & (value <= pad[:-2]) & (value <= pad[2:]))
-    return [float(lags[i]) for i in found[np.argsort(value[found])][:count]]
+    return [int(i) for i in found[np.argsort(value[found])][:count]]
 
 
 def _checked_streams(robot_t, q, tracker_t, position, quat):
@@ -185,14 +246,15 @@ def estimate_time_offset(
     # by up to the whole search (0.96 s for 0.23 s true): scan the registration residual
     # over all of it, one grid step per refinement window, and refine the lowest minima.
     lags = np.linspace(-max_offset, max_offset, 2 * math.ceil(max_offset / refine_window) + 1)
-    scan = search.scan(lags, coarse, frames.pose)
-    centres = [(c, refine_window) for c in _lowest_minima(scan, lags, CANDIDATES)]
+    scan, poses = search.scan(lags, coarse, frames.pose)
+    centres = [(lags[i], refine_window, poses[i]) for i in _lowest_minima(scan, CANDIDATES)]
     # and the correlation's value, its window covering the two coarse stages' disagreement
     # (its search may walk beyond max_offset, where the scan does not reach)
-    if all(abs(coarse - c) > refine_window for c, _ in centres):
-        centres.append((coarse, max(refine_window, 1.5 * abs(coarse - lag0))))
+    if all(abs(coarse - c) > refine_window for c, _, _ in centres):
+        centres.append((coarse, max(refine_window, 1.5 * abs(coarse - lag0)), None))
     refined = _refined(search, centres)
-    res, (lo, hi), pick, frames = min(refined, key=lambda found: found[0].fun)
+    best = min(range(len(refined)), key=lambda i: refined[i][0].fun)
+    res, (lo, hi), pick, frames = refined[best]
     jumps, noise = search.check(float(res.x), pick, frames)
     return OffsetEstimate(
         offset=float(res.x),
@@ -205,18 +267,21 @@ def estimate_time_offset(
         max_offset=float(max_offset),
         jumps=jumps,
         noise_mm=1e3 * noise,
+        rivals=rivals(search, refined, best, noise, refine_window),
+        interval=interval(search, refined[best], noise, max_offset, refine_window),
+        sample_s=float(np.median(np.diff(t_r))),
     )
 
 
-def _refined(search: OffsetSearch, centres: list[tuple[float, float]]) -> list[tuple]:
-    """Each candidate ``(centre, half-width)`` refined (:meth:`OffsetSearch.refine`); one
-    whose window leaves under 10 robot rows overlapping the tracker (the end of the
-    search on a short stream) is dropped, too few rows to judge it; the first such
-    error where none is left."""
+def _refined(search: OffsetSearch, centres: list[tuple]) -> list[tuple]:
+    """Each candidate ``(centre, half-width, scan pose or None)`` refined
+    (:meth:`OffsetSearch.refine`); one whose window leaves under 10 robot rows
+    overlapping the tracker (the end of the search on a short stream) is dropped, too few
+    rows to judge it; the first such error where none is left."""
     found, refused = [], None
-    for centre, half_width in centres:
+    for centre, half_width, pose in centres:
         try:
-            found.append(search.refine(centre, half_width))
+            found.append(search.refine(float(centre), half_width, pose))
         except DataError as exc:
             refused = refused or exc
     if not found:
