@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hybrid_pk.cli.options import finite_number
 from hybrid_pk.data.files import CSV_SUFFIXES, PARQUET_SUFFIXES
 from hybrid_pk.errors import DataError, HybridPKError
 from hybrid_pk.output_file import replacing
@@ -42,13 +43,7 @@ _SUFFIXES = {"csv": CSV_SUFFIXES, "parquet": PARQUET_SUFFIXES}
 
 def finite_seconds(text: str) -> float:
     """``argparse`` type of ``--offset``: a finite number of seconds (any sign)."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"expected a finite time [s], got {text!r}")
-    return value
+    return finite_number(text, "a finite time [s]")
 
 
 def positive_seconds(text: str) -> float:

@@ -50,6 +50,7 @@ __all__ = [
     "add_threads",
     "command_parser",
     "count",
+    "finite_number",
     "resolve_robot",
 ]
 
@@ -264,15 +265,21 @@ def add_epochs(parser: argparse.ArgumentParser, *, default: int | None = None) -
     )
 
 
-def _noise(text: str) -> float:
-    """``argparse`` type of a noise std: a finite number >= 0."""
+def finite_number(text: str, expected: str, lowest: float = -math.inf) -> float:
+    """``float(text)`` when it is finite and >= ``lowest``; otherwise the ``argparse``
+    error ``expected EXPECTED, got 'TEXT'`` (one line: a usage error naming the flag)."""
     try:
         value = float(text)
     except ValueError:
         value = math.nan
-    if not (math.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
+    if not (math.isfinite(value) and value >= lowest):
+        raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
     return value
+
+
+def _noise(text: str) -> float:
+    """``argparse`` type of a noise std: a finite number >= 0."""
+    return finite_number(text, "a finite number >= 0", lowest=0.0)
 
 
 def add_noise(parser: argparse.ArgumentParser, *, mm: float, deg: float) -> None:
