@@ -16,6 +16,7 @@ from hybrid_pk.effects.geometric import REFERENCE_TEMPERATURE
 from hybrid_pk.geometry import so3_exp, transform
 from hybrid_pk.io.model_file import load_model, model_robot, save_model
 from hybrid_pk.io.urdf_export import corrected_urdf, export_urdf
+from hybrid_pk.robot.urdf_copy import urdf_copy
 from tests.helpers import assert_transforms_close
 
 HERE = Path(__file__).resolve().parent
@@ -119,6 +120,22 @@ def test_round_trip_without_the_original_urdf(tmp_path, monkeypatch):
     copy = Path(loaded.model.robot.spec.urdf_path)
     assert copy.parent == tmp_path / "cache" / "hybrid_pk" / "urdf"
     assert not loaded.frames_fitted
+
+
+def test_urdf_copies_are_one_file_per_content_and_leave_no_partial(tmp_path, monkeypatch):
+    """A model file's URDF and a DH table's share one cache: the same text is the same
+    file (written once), another text another file, and no half-written copy remains."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    text = ARM7.read_text(encoding="utf-8")
+    first = urdf_copy(text, "arm7.urdf")
+    stamp = first.stat().st_mtime_ns
+    assert urdf_copy(text, "arm7.urdf") == first
+    assert first.stat().st_mtime_ns == stamp  # not written again
+    other = urdf_copy(text.replace("arm7", "arm7b", 1), "arm7.urdf")
+    assert other != first
+    assert first.read_text(encoding="utf-8") == text
+    folder = tmp_path / "cache" / "hybrid_pk" / "urdf"
+    assert sorted(p.name for p in folder.iterdir()) == sorted([first.name, other.name])
 
 
 def test_nominal_spec_is_the_urdf_with_identity_frames(rx160):

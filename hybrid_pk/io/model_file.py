@@ -29,9 +29,7 @@ an older hybrid_pk reads it right).
 from __future__ import annotations
 
 import datetime as _dt
-import hashlib
 import os
-import tempfile
 import zipfile
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -46,6 +44,7 @@ from hybrid_pk.effects import ExtendedModel, Gravity, make_effect
 from hybrid_pk.errors import HybridPKError, ModelFileError, RobotModelError
 from hybrid_pk.output_file import replacing
 from hybrid_pk.robot import Robot, load_chain_spec, resolve_urdf
+from hybrid_pk.robot.urdf_copy import urdf_copy
 
 __all__ = [
     "FORMAT_TAG",
@@ -265,26 +264,7 @@ def _urdf_file(text: str, original: str, name: str) -> Path:
             return Path(original)
     except (OSError, ValueError):
         pass
-    digest = hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
-    cache = _cache_dir()
-    out = cache / f"{Path(name).name or 'robot'}-{digest}.urdf"
-    if not out.is_file() or out.read_text(encoding="utf-8") != text:
-        fd, tmp = tempfile.mkstemp(dir=cache, suffix=".urdf")
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, out)
-    return out
-
-
-def _cache_dir() -> Path:
-    """Per-user directory for URDF copies (the robot's FK needs a file to read)."""
-    home = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    cache = Path(home) / "hybrid_pk" / "urdf"
-    try:
-        cache.mkdir(parents=True, exist_ok=True)
-        return cache
-    except OSError:
-        return Path(tempfile.mkdtemp(prefix="hybrid_pk_urdf_"))  # read-only home
+    return urdf_copy(text, name)
 
 
 def _load_nominal(spec: str, robot_check, end_link: str | None) -> LoadedModel:

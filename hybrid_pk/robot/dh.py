@@ -28,17 +28,14 @@ the row's optional inertial.
 
 from __future__ import annotations
 
-import hashlib
 import math
-import os
-import tempfile
-from pathlib import Path
 
 import numpy as np
 import torch
 
 from hybrid_pk.geometry import matrix_to_rpy
 from hybrid_pk.robot.dh_table import DHTable, read_dh_table
+from hybrid_pk.robot.urdf_copy import urdf_copy
 
 __all__ = ["ROOT_LINK", "TIP_LINK", "dh_row_parts", "dh_urdf", "from_dh", "rot", "trans"]
 
@@ -155,21 +152,6 @@ def dh_urdf(table: DHTable) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _stored(text: str, name: str) -> Path:
-    """A file holding ``text`` (the robot's FK reads a URDF file), named by its hash."""
-    user = os.getuid() if hasattr(os, "getuid") else 0  # one folder per user
-    folder = Path(tempfile.gettempdir()) / f"hybrid_pk_dh_{user}"
-    digest = hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
-    path = folder / f"{Path(name).name or 'robot'}-{digest}.urdf"
-    if path.is_file() and path.read_text(encoding="utf-8") == text:
-        return path
-    folder.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(f"{path.name}.{os.getpid()}.part")  # never a half-written URDF
-    partial.write_text(text, encoding="utf-8")
-    os.replace(partial, path)
-    return path
-
-
 def from_dh(
     cls,
     table,
@@ -200,4 +182,4 @@ def from_dh(
         DataError: a bad table, naming file, row and column.
     """
     checked = read_dh_table(table, convention, name=name, base=base, flange=flange, units=units)
-    return cls.from_urdf(_stored(dh_urdf(checked), checked.name), end_link=TIP_LINK, dtype=dtype)
+    return cls.from_urdf(urdf_copy(dh_urdf(checked), checked.name), end_link=TIP_LINK, dtype=dtype)
