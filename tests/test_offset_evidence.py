@@ -4,12 +4,14 @@ cannot show is said, not returned silently."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
 
 from hybrid_pk.cli.main import main
-from hybrid_pk.data.streams import estimate_time_offset
+from hybrid_pk.data.streams import OffsetEstimate, estimate_time_offset
 from hybrid_pk.effects import ExtendedModel, make_effect
 from tests.test_streams import simulate_streams, write_streams
 
@@ -86,3 +88,23 @@ def test_cli_says_when_the_streams_cannot_show_the_offset(ur10, tmp_path, capsys
     assert "--offset" in lines[0]
     assert "the noise allows" in out  # the summary line's interval
     assert (tmp_path / "table.csv").exists()  # the table is written; the user decides
+
+
+def test_interval_words_show_its_width_and_open_ends():
+    def est(lo, hi):
+        return OffsetEstimate(0.12, 0.1, 1.0, 0.03, 1.0, (0.1, 0.14), 880, 1.0,
+                              interval=(lo, hi), sample_s=1 / 110)  # fmt: skip
+
+    narrow = est(0.119973, 0.120013)
+    assert narrow.interval_text() == "offsets from 119.973 to 120.013 ms"
+    assert narrow.determined
+    assert narrow.ambiguity_warning("s") == ""
+    assert est(-math.inf, math.inf).interval_text() == "all the offsets searched"
+    assert est(0.05, math.inf).interval_text() == "offsets from 50.0 ms on"
+    wide = est(0.08, 0.2)  # 40 ms below the offset: more than a robot sample
+    assert not wide.determined
+    assert wide.ambiguity_warning("s").startswith("s: the time offset is not determined: "
+                                                  "offsets from 80.0 to 200.0 ms fit")  # fmt: skip
+    unknown = OffsetEstimate(0.12, 0.1, 1.0, 0.03, 1.0, (0.1, 0.14), 880, 1.0)
+    assert unknown.interval_text() == ""
+    assert unknown.determined  # not computed: nothing to say

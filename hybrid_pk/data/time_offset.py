@@ -130,33 +130,47 @@ class OffsetEstimate:
         streams); empty otherwise."""
         if self.determined:
             return ""
-        parts = [f"offsets from {_ms(self.interval[0])} to {_ms(self.interval[1])}"]
-        parts += [_rival_text(r) for r in self.rivals]
+        lo, hi = self.interval
+        outside = [r for r in self.rivals if not lo <= r.offset <= hi]
+        parts = [f"{self.interval_text()} fit the streams about as well as {_ms(self.offset)}"]
+        compared = [_rival_text(r) for r in outside if math.isfinite(r.d_chi2)]
+        if compared:
+            parts.append(f"so do {', '.join(compared)}")
+        unknown = [_ms(r.offset) for r in outside if not math.isfinite(r.d_chi2)]
+        if unknown:
+            parts.append(f"{' and '.join(unknown)} share too few samples with it to compare")
         return (
-            f"{source}: the time offset is not determined: {'; '.join(parts)} fit the "
-            f"streams about as well as {_ms(self.offset)} (the data favour it by a "
-            f"likelihood ratio under {LIKELIHOOD_RATIO:g}:1, against the noise or the "
-            f"residual, whichever is larger; a robot sample is {_ms(self.sample_s)}); a "
-            "longer stream whose path turns and changes speed decides, or give the "
-            "offset with --offset"
+            f"{source}: the time offset is not determined: {'; '.join(parts)} (the data "
+            f"favour it by a likelihood ratio under {LIKELIHOOD_RATIO:g}:1, against the "
+            "noise or the residual, whichever is larger; a robot sample is "
+            f"{_ms(self.sample_s)}); a longer stream whose path turns and changes speed "
+            "decides, or give the offset with --offset"
         )
 
     def interval_text(self) -> str:
-        """``A to B ms`` of the interval, or empty where it was not computed."""
+        """The interval in words (``offsets from A to B ms``), or empty where it was not
+        computed; as many decimals as show its width to two digits."""
         lo, hi = self.interval
-        return "" if math.isnan(lo) else f"{_ms(lo)} to {_ms(hi)}"
+        if math.isnan(lo):
+            return ""
+        if math.isinf(lo) and math.isinf(hi):
+            return "all the offsets searched"
+        width = 1e3 * (hi - lo) if math.isfinite(hi - lo) else 1.0
+        digits = min(max(1, 1 - math.floor(math.log10(max(width, 1e-9)))), 6)
+        if math.isinf(lo):
+            return f"offsets up to {_ms(hi, digits)}"
+        if math.isinf(hi):
+            return f"offsets from {_ms(lo, digits)} on"
+        return f"offsets from {1e3 * lo:.{digits}f} to {_ms(hi, digits)}"
 
 
-def _ms(t: float) -> str:
-    if math.isinf(t):
-        return "the end of the search" if t > 0 else "the start of the search"
-    return f"{1e3 * t:.{3 if abs(t) < 0.01 else 1}f} ms"
+def _ms(t: float, digits: int | None = None) -> str:
+    if digits is None:
+        digits = 3 if abs(t) < 0.01 else 1
+    return f"{1e3 * t:.{digits}f} ms"
 
 
 def _rival_text(r: Rival) -> str:
-    if not math.isfinite(r.d_chi2):
-        samples = f"{r.rows} tracker samples"
-        return f"{_ms(r.offset)} (only {samples} inside the robot stream at both offsets)"
     ratio = math.exp(min(r.d_chi2, 700) / 2)  # d_chi2 = 2 ln(ratio)
     return (
         f"{_ms(r.offset)} ({1e3 * r.residual_mm:.1f} against {1e3 * r.best_residual_mm:.1f} "
