@@ -108,3 +108,16 @@ def test_interval_words_show_its_width_and_open_ends():
     unknown = OffsetEstimate(0.12, 0.1, 1.0, 0.03, 1.0, (0.1, 0.14), 880, 1.0)
     assert unknown.interval_text() == ""
     assert unknown.determined  # not computed: nothing to say
+
+
+def test_a_pause_of_the_robot_logger_leaves_the_interval_as_narrow(ur10):
+    """3 s without robot rows: the tracker samples there are not compared against a
+    path the spline would make up across the pause."""
+    offset = _random_offset(3)
+    t_r, q, t_m, pos, _, _ = simulate_streams(ur10, offset, seed=3)
+    keep = (t_r < 4.0) | (t_r > 7.0)
+    est = estimate_time_offset(t_r[keep], q[keep], t_m, pos, _Exact(ur10))
+    lo, hi = est.interval
+    assert lo <= offset <= hi, est.summary()
+    assert hi - lo < 4e-4, est.summary()
+    assert est.determined, est.summary()

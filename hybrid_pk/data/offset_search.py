@@ -230,9 +230,17 @@ class OffsetSearch:
 
     def covered(self, offset: float) -> np.ndarray:
         """``(M,)`` whether each tracker sample's robot time (``t - offset``) lies inside
-        the robot stream."""
+        the robot stream and not in a gap of it (rows further apart than
+        :data:`GAP_FACTOR` median steps: a logger's pause, where no spline knows the
+        path)."""
         t = self.t_m - offset
-        return (t >= self.t_r[0]) & (t <= self.t_r[-1])
+        inside = (t >= self.t_r[0]) & (t <= self.t_r[-1])
+        step = np.diff(self.t_r)
+        gaps = np.flatnonzero(step > GAP_FACTOR * float(np.median(step)))
+        if gaps.size:
+            after = np.clip(np.searchsorted(self.t_r, t, side="right") - 1, 0, len(step) - 1)
+            inside &= ~np.isin(after, gaps)
+        return inside
 
     def flange_at(self, times: np.ndarray) -> torch.Tensor:
         """``(K, 4, 4)`` nominal flange poses at robot ``times`` [s] inside the stream:
