@@ -85,7 +85,7 @@ class _Profile:
         """``(d_chi2, registration)`` at ``offset`` from ``pose`` (with ``cold``, and from
         the closed form); NaN where under :data:`MIN_COMMON_ROWS` of the samples stay
         inside the robot stream."""
-        samples = self.samples[self.search.covered(offset)[self.samples]]
+        samples = self.samples[self.search.covered(offset, self.samples)]
         if len(samples) < MIN_COMMON_ROWS:
             return math.nan, pose
         ms_best = self.ms

@@ -128,6 +128,8 @@ class OffsetSearch:
         self.max_gap = GAP_FACTOR * float(np.median(np.diff(t_m)))
         self.gaps = np.flatnonzero(np.diff(t_m) > self.max_gap)  # tracker rows before a gap
         self._splines = None  # of the flange poses over robot time (flange_at)
+        step = np.diff(t_r)
+        self.robot_gaps = np.flatnonzero(step > GAP_FACTOR * float(np.median(step)))
 
     def robot_speed(self, tool_point: np.ndarray | None = None) -> np.ndarray:
         """Speed profile of the flange, or of ``tool_point`` [m] on the flange."""
@@ -228,18 +230,16 @@ class OffsetSearch:
         guess = register_frames(T, torch.as_tensor(p), None, iterations=COLD_ITERATIONS)
         return _better(T, p, (pose, PointFrames.from_guess(T, guess).pose))
 
-    def covered(self, offset: float) -> np.ndarray:
-        """``(M,)`` whether each tracker sample's robot time (``t - offset``) lies inside
-        the robot stream and not in a gap of it (rows further apart than
-        :data:`GAP_FACTOR` median steps: a logger's pause, where no spline knows the
-        path)."""
-        t = self.t_m - offset
+    def covered(self, offset: float, samples: np.ndarray | None = None) -> np.ndarray:
+        """Whether each tracker sample (of ``samples``, indices; default all) has its
+        robot time ``t - offset`` inside the robot stream and not in a pause of it (rows
+        further apart than :data:`GAP_FACTOR` median steps: a logger's pause, where no
+        spline knows the path)."""
+        t = self.t_m - offset if samples is None else self.t_m[samples] - offset
         inside = (t >= self.t_r[0]) & (t <= self.t_r[-1])
-        step = np.diff(self.t_r)
-        gaps = np.flatnonzero(step > GAP_FACTOR * float(np.median(step)))
-        if gaps.size:
-            after = np.clip(np.searchsorted(self.t_r, t, side="right") - 1, 0, len(step) - 1)
-            inside &= ~np.isin(after, gaps)
+        if self.robot_gaps.size:
+            before = np.searchsorted(self.t_r, t, side="right") - 1
+            inside &= ~np.isin(np.clip(before, 0, len(self.t_r) - 2), self.robot_gaps)
         return inside
 
     def flange_at(self, times: np.ndarray) -> torch.Tensor:
