@@ -128,6 +128,8 @@ def interval(
     do not exclude (module docstring); an end is infinite where the residual stays within
     the bound for ``limit`` [s] or until the streams stop overlapping. ``near`` [s]: the
     scan's step, the longest move a warm-started registration alone follows."""
+    if search.covered(float(found[0].x)).sum() < MIN_COMMON_ROWS:
+        return -math.inf, math.inf  # a tracker slower than that has nothing to compare
     profile = _Profile(search, found, noise_m)
     if not math.isfinite(profile.scale):
         return -math.inf, math.inf  # no noise scale: nothing is excluded
