@@ -121,3 +121,18 @@ def test_a_pause_of_the_robot_logger_leaves_the_interval_as_narrow(ur10):
     assert lo <= offset <= hi, est.summary()
     assert hi - lo < 4e-4, est.summary()
     assert est.determined, est.summary()
+
+
+@pytest.mark.parametrize("seed", [3, 7])
+def test_interval_covers_the_truth_when_the_tracker_filters_its_noise(ur10, seed):
+    """A tracker averaging 30 of its samples (10 ms at 3 kHz): its noise is correlated
+    over that span, and at most one sample per robot sample is compared, so the
+    evidence is not counted thirty times."""
+    offset = _random_offset(seed)
+    t_r, q, t_m, pos, _, _ = simulate_streams(ur10, offset, duration=3.0, seed=seed, noise_mm=0.0)
+    white = np.random.default_rng(seed).normal(0, 0.02e-3 * 30**0.5, (len(t_m) + 30, 3))
+    box = np.ones(30) / 30
+    noise = np.stack([np.convolve(white[:, k], box, mode="valid")[: len(t_m)] for k in range(3)], 1)
+    est = estimate_time_offset(t_r, q, t_m, pos + noise, _Exact(ur10))
+    lo, hi = est.interval
+    assert lo <= offset <= hi, (est.summary(), offset)

@@ -76,7 +76,7 @@ class _Profile:
         res, _, _, frames = found
         self.search, self.best = search, float(res.x)
         inside = np.flatnonzero(search.covered(self.best))
-        count = min(search.refine_points, len(inside))
+        count = min(search.refine_points, len(inside), _robot_rows(search, self.best))
         self.samples = inside[np.unique(np.linspace(0, len(inside) - 1, count).round().astype(int))]
         self.pose, self.ms = search.sample_registration(self.best, self.samples, frames.pose)
         self.scale = max(noise_m**2, self.ms) if math.isfinite(noise_m) else math.inf
@@ -162,7 +162,7 @@ def _compared(search, offsets: tuple[float, float], found: tuple, noise_m: float
     common = np.flatnonzero(search.covered(offsets[0]) & search.covered(offsets[1]))
     if len(common) < MIN_COMMON_ROWS:
         return Rival(offsets[1], math.nan, math.nan, len(common), math.nan)
-    count = min(search.refine_points, len(common))
+    count = min(search.refine_points, len(common), *(_robot_rows(search, o) for o in offsets))
     samples = common[np.unique(np.linspace(0, len(common) - 1, count).round().astype(int))]
     ms = [
         search.sample_registration(offset, samples, frames.pose)[1]
@@ -171,3 +171,10 @@ def _compared(search, offsets: tuple[float, float], found: tuple, noise_m: float
     scale = max(noise_m**2, ms[0]) if math.isfinite(noise_m) else math.inf
     d_chi2 = 3 * len(samples) * (ms[1] - ms[0]) / scale
     return Rival(offsets[1], 1e3 * math.sqrt(ms[1]), 1e3 * math.sqrt(ms[0]), len(common), d_chi2)
+
+
+def _robot_rows(search, offset: float) -> int:
+    """Robot rows overlapping the tracker at ``offset``: at most one tracker sample per
+    robot sample is compared, so that a tracker's own filtering (its noise correlated
+    over a few of its samples) does not count one error many times (10 at least)."""
+    return max(len(search.usable(offset, 0.0)), MIN_COMMON_ROWS)
