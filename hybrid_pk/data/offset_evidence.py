@@ -5,7 +5,9 @@ what the streams say about the offset. Relative to the estimate it reads as::
 
     d_chi2(offset) = 3 K (ms(offset) - ms_best) / max(noise^2, ms_best)
 
-``ms``: the mean squared residual length [m^2] on the same ``K`` robot rows; ``noise``:
+``ms``: the mean squared residual length [m^2] on the same ``K`` tracker samples (at
+most one per robot sample: a tracker's filtering correlates its noise over a few of its
+own samples, which must not count as independent evidence); ``noise``:
 the RMS length of the streams' noise (model-free, :func:`~hybrid_pk.data.clock_jump.
 noise_rms`). The larger of the noise and the estimate's own residual is the scale, so a
 difference that the model's misfit could make is not counted as evidence. Offsets whose
