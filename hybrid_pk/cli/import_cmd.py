@@ -245,7 +245,11 @@ laser tracker (about 3 kHz), recorded on two clocks:
 The offset is estimated (speed-profile cross-correlation, then the offset that
 minimises the closed-form frame registration residual, scanned over all of
 --max-offset) unless --offset is given; a residual over 100 times the noise the
-streams show is a warning naming both files.
+streams show is a warning naming both files. The summary gives the offsets the noise
+allows (likelihood ratio 100:1); where they reach beyond one robot sample, or another
+offset fits as well (a short or nearly straight path), a warning says the streams do
+not determine the offset: record a longer path that turns and changes speed, or give
+--offset.
 The tracker poses are then interpolated at the robot times (positions linearly,
 orientations by SLERP); robot rows outside the tracker stream or in a tracker gap
 (beam break) are left out and reported. The table keeps t (robot clock, s).
