@@ -37,12 +37,21 @@ def joint_path(t: np.ndarray, seed: int = 0) -> np.ndarray:
 
 
 def simulate_streams(
-    robot, offset, *, duration=12.0, noise_mm=0.02, noise_deg=0.005, seed=0, stamp_jitter=0.0
+    robot,
+    offset,
+    *,
+    duration=12.0,
+    noise_mm=0.02,
+    noise_deg=0.005,
+    seed=0,
+    stamp_jitter=0.0,
+    rate=0.0,
 ):
     """Robot stream at ~110 Hz (jittered stamps) and tracker stream at 3 kHz whose clock is
     the robot clock + ``offset``; the measured robot has a joint offset the nominal lacks.
     ``stamp_jitter`` [s]: std of a logger's error on the robot time stamps (the joints
-    stay those of the true sample times)."""
+    stay those of the true sample times). ``rate``: the tracker clock's drift, tracker =
+    robot + offset + rate (robot - duration / 2)."""
     rng = np.random.default_rng(seed)
     n = int(duration * ROBOT_HZ)
     t_true = np.arange(n) / ROBOT_HZ + rng.normal(0, 2e-4, n)
@@ -51,8 +60,9 @@ def simulate_streams(
     base, tool = random_frames(torch.Generator().manual_seed(seed))
     effect = make_effect(robot, "joint_offset:shoulder_lift_joint", 3e-4)
     true = ExtendedModel(robot, [effect], base=base, tool=tool)
+    robot_time = (t_m - offset + rate * duration / 2) / (1 + rate)  # of each tracker sample
     with torch.no_grad():
-        T = true(torch.as_tensor(joint_path(t_m - offset, seed)))  # robot time of each sample
+        T = true(torch.as_tensor(joint_path(robot_time, seed)))
     g = torch.Generator().manual_seed(seed + 1)
     m = len(t_m)
     pos = T[:, :3, 3] + 1e-3 * noise_mm * torch.randn(m, 3, generator=g, dtype=T.dtype)
@@ -105,6 +115,7 @@ def test_offset_found_for_random_offsets_with_and_without_orientation(ur10, seed
         assert abs(est.offset - offset) < 2e-3, est.summary()
         assert est.residual_warning("streams") == "", est.summary()
         assert est.ambiguity_warning("streams") == "", est.summary()  # 12 s: determined
+        assert not est.drift.matters, est.drift  # the model's error leans it, by < a sample
 
 
 def test_residual_far_above_the_noise_is_one_warning_line(ur10):

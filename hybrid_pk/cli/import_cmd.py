@@ -249,7 +249,9 @@ streams show is a warning naming both files. The summary gives the offsets the n
 allows (likelihood ratio 100:1); where they reach beyond one robot sample, or another
 offset fits as well (a short or nearly straight path), a warning says the streams do
 not determine the offset: record a longer path that turns and changes speed, or give
---offset.
+--offset. A drift of the clocks is fitted at the offset; where it moves the offset by
+more than a robot sample across the streams and explains most of the residual, a
+warning gives the rate and the length of the parts to split the streams into.
 The tracker poses are then interpolated at the robot times (positions linearly,
 orientations by SLERP); robot rows outside the tracker stream or in a tracker gap
 (beam break) are left out and reported. The table keeps t (robot clock, s).
@@ -374,7 +376,12 @@ def _run_streams(args: argparse.Namespace) -> int:
 
     from hybrid_pk.cli.common import load_robot
     from hybrid_pk.cli.progress import progress
-    from hybrid_pk.data.streams import check_clock_jumps, estimate_time_offset, synchronise
+    from hybrid_pk.data.streams import (
+        check_clock_drift,
+        check_clock_jumps,
+        estimate_time_offset,
+        synchronise,
+    )
     from hybrid_pk.data.table import write_table
 
     if args.every < 1:
@@ -404,12 +411,15 @@ def _run_streams(args: argparse.Namespace) -> int:
         for warning in (est.residual_warning(source), est.ambiguity_warning(source)):
             if warning:
                 print(f"warning: {warning}")
-        offset, jumps = est.offset, est.jumps
+        offset, jumps, drift = est.offset, est.jumps, est.drift
     else:
         offset = args.offset
         jumps = check_clock_jumps(t_r, q, t_m, pos, robot, offset, quat=quat)
+        drift = None if jumps else check_clock_drift(t_r, q, t_m, pos, robot, offset, quat=quat)
     for jump in jumps:  # the table keeps one offset: the user splits the streams
         print(f"warning: {jump.summary(str(args.robot_stream), rs.rows)}")
+    if drift is not None and drift.matters:
+        print(f"warning: {drift.warning(f'{args.robot_stream}, {args.tracker_stream}')}")
     temperature = rs.frame["temperature"].to_numpy() if "temperature" in rs.frame else None
     tracker_temperature = ts.frame["temperature"].to_numpy() if "temperature" in ts.frame else None
     sync = synchronise(

@@ -45,7 +45,10 @@ so the tracker sample of robot row ``k`` is the one at ``t_k + offset``.
    break) are left out and reported. The result keeps ``t`` (robot clock).
 
 The offset is a constant: a clock rate difference (drift) of the two devices is not
-modelled; over long campaigns estimate the offset per segment. A step of the offset
+modelled in the table. It is fitted at the offset (:mod:`hybrid_pk.data.clock_drift`,
+or at a given offset: :func:`check_clock_drift`) and reported where it moves the offset
+across the streams by more than one robot sample: split such streams into parts and
+import each. A step of the offset
 inside the streams (a clock jump) is tested for at the estimate (or at a given offset:
 :func:`check_clock_jumps`) and reported with the row and the offsets of both parts
 (:mod:`hybrid_pk.data.clock_jump`).
@@ -58,6 +61,7 @@ from typing import Any
 
 import numpy as np
 
+from hybrid_pk.data.clock_drift import ClockDrift
 from hybrid_pk.data.clock_jump import ClockJump
 from hybrid_pk.data.interpolation import (
     checked_array,
@@ -67,6 +71,7 @@ from hybrid_pk.data.interpolation import (
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.data.time_offset import (
     OffsetEstimate,
+    check_clock_drift,
     check_clock_jumps,
     estimate_time_offset,
     speed_profile,
@@ -74,9 +79,11 @@ from hybrid_pk.data.time_offset import (
 from hybrid_pk.errors import DataError
 
 __all__ = [
+    "ClockDrift",
     "ClockJump",
     "OffsetEstimate",
     "SyncResult",
+    "check_clock_drift",
     "check_clock_jumps",
     "estimate_time_offset",
     "interpolate_poses",

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from hybrid_pk.data.clock_drift import ClockDrift, fit_drift
 from hybrid_pk.data.clock_jump import ClockJump
 from hybrid_pk.data.interpolation import (
     checked_array,
@@ -24,7 +25,13 @@ from hybrid_pk.data.offset_evidence import LIKELIHOOD_RATIO, Rival, interval, ri
 from hybrid_pk.data.offset_search import OffsetSearch, speed_profile
 from hybrid_pk.errors import DataError
 
-__all__ = ["OffsetEstimate", "check_clock_jumps", "estimate_time_offset", "speed_profile"]
+__all__ = [
+    "OffsetEstimate",
+    "check_clock_drift",
+    "check_clock_jumps",
+    "estimate_time_offset",
+    "speed_profile",
+]
 
 GRID_DT = 1e-3  # [s] resampling step of the speed profiles
 SMOOTH_S = 0.02  # [s] box filter and difference span of the speed profiles
@@ -61,6 +68,9 @@ class OffsetEstimate:
             is infinite where the residual stays flat to the end of the search; NaN: not
             computed.
         sample_s: [s] the robot stream's sampling period (median step of its stamps).
+        drift: the clocks' rate difference fitted at ``offset``
+            (:mod:`~hybrid_pk.data.clock_drift`); None: not fitted (not where the offset
+            jumps: a jump would pass for a drift).
     """
 
     offset: float
@@ -76,6 +86,7 @@ class OffsetEstimate:
     rivals: tuple[Rival, ...] = ()
     interval: tuple[float, float] = (math.nan, math.nan)
     sample_s: float = math.nan
+    drift: ClockDrift | None = None
 
     @property
     def determined(self) -> bool:
@@ -270,6 +281,7 @@ def estimate_time_offset(
     best = min(range(len(refined)), key=lambda i: refined[i][0].fun)
     res, (lo, hi), pick, frames = refined[best]
     jumps, noise = search.check(float(res.x), pick, frames)
+    p_best = search.points(float(res.x), pick)
     return OffsetEstimate(
         offset=float(res.x),
         coarse=float(coarse),
@@ -284,6 +296,8 @@ def estimate_time_offset(
         rivals=rivals(search, refined, best, noise, refine_window),
         interval=interval(search, refined[best], noise, max_offset, refine_window),
         sample_s=float(np.median(np.diff(t_r))),
+        # a jump would pass for a drift: its parts, imported apart, are each fitted then
+        drift=None if jumps else fit_drift(search, res.x, pick, frames.fit(p_best), noise),
     )
 
 
@@ -309,6 +323,31 @@ def check_clock_jumps(
     """Steps of a known ``offset`` [s] inside the streams (:mod:`~hybrid_pk.data.clock_jump`);
     the arguments as in :func:`estimate_time_offset`. :func:`estimate_time_offset` runs the
     same test at its own estimate (``OffsetEstimate.jumps``)."""
+    near = _rows_at(robot_t, q, tracker_t, position, robot, offset, quat)
+    if near is None:  # under 10 rows overlap: nothing to test (synchronise says why)
+        return ()
+    search, pick = near
+    return search.check(float(offset), pick, search.registered(float(offset), pick))[0]
+
+
+def check_clock_drift(
+    robot_t: Any, q: Any, tracker_t: Any, position: Any, robot: Any, offset: float, quat: Any = None
+) -> ClockDrift | None:
+    """The clocks' drift at a known ``offset`` [s] (:mod:`~hybrid_pk.data.clock_drift`);
+    the arguments as in :func:`estimate_time_offset`, which fits it at its own estimate
+    (``OffsetEstimate.drift``). None where under 10 rows overlap."""
+    near = _rows_at(robot_t, q, tracker_t, position, robot, offset, quat)
+    if near is None:
+        return None
+    search, pick = near
+    frames = search.registered(float(offset), pick)
+    noise = search.check(float(offset), pick, frames)[1]
+    return fit_drift(search, float(offset), pick, frames.fit(search.points(offset, pick)), noise)
+
+
+def _rows_at(robot_t, q, tracker_t, position, robot, offset, quat):
+    """``(search, rows)`` of the checked streams at ``offset``; None where under 10 robot
+    rows overlap the tracker there."""
     t_r, q, t_m, pos, quat_np = _checked_streams(robot_t, q, tracker_t, position, quat)
     with torch.no_grad():
         T_all = robot.fk(torch.as_tensor(q, dtype=robot.dtype)).double()
@@ -316,7 +355,6 @@ def check_clock_jumps(
         t_r, T_all, t_m, pos, quat_np, smooth=SMOOTH_S, grid_dt=GRID_DT, refine_points=REFINE_POINTS
     )
     try:
-        pick = search.rows_near(float(offset), 0.0)
-    except DataError:  # under 10 rows overlap: nothing to test (synchronise says why)
-        return ()
-    return search.check(float(offset), pick, search.registered(float(offset), pick))[0]
+        return search, search.rows_near(float(offset), 0.0)
+    except DataError:
+        return None
