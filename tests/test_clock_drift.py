@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 
 from hybrid_pk.cli.main import main
-from hybrid_pk.data.streams import check_clock_drift, estimate_time_offset
+from hybrid_pk.data import read_table_for
+from hybrid_pk.data.streams import check_clock_drift, estimate_time_offset, interpolate_poses
 from tests.test_streams import simulate_streams, write_streams
 
 
@@ -65,7 +67,39 @@ def test_a_given_offset_is_checked_for_drift_too(ur10, tmp_path, capsys):
     assert drift.matters, drift
     robot_csv, tracker_csv = write_streams(tmp_path, ur10.joint_names, t_r, q, t_m, pos)
     argv = ["import", "streams", str(robot_csv), str(tracker_csv), "--robot", "ur10"]
-    assert main([*argv, "--offset", "0.04", "--out", str(tmp_path / "t.csv"), "--no-progress"]) == 0
+    out = ["--out", str(tmp_path / "t.csv"), "--no-progress", "--clock-drift", "none"]
+    assert main([*argv, "--offset", "0.04", *out]) == 0
     lines = [x for x in capsys.readouterr().out.splitlines() if "clocks drift" in x]
     assert len(lines) == 1, lines
     assert lines[0].startswith(f"warning: {robot_csv}, {tracker_csv}: the clocks drift")
+    assert "split the streams" in lines[0]
+
+
+def test_the_table_is_synchronised_with_the_drift(ur10, tmp_path, capsys):
+    """100 ppm over 150 s: with --clock-drift auto (the default) the rows at both ends are
+    paired with the tracker poses of their own times, to 0.1 ms (least squares along the
+    motion over 300 rows); with one offset they are 7.5 ms off there. A note says so."""
+    rate, offset = 1e-4, 0.04
+    t_r, q, t_m, pos, _, _ = simulate_streams(ur10, offset, duration=150.0, seed=1, rate=rate)
+    robot_csv, tracker_csv = write_streams(tmp_path, ur10.joint_names, t_r, q, t_m, pos)
+    argv = ["import", "streams", str(robot_csv), str(tracker_csv), "--robot", "ur10"]
+    for mode in ("auto", "none"):
+        dst = tmp_path / f"{mode}.csv"
+        assert main([*argv, "--out", str(dst), "--no-progress", "--clock-drift", mode]) == 0
+    out = capsys.readouterr().out
+    assert "note: " in out, out
+    assert "the table is synchronised with it" in out, out
+    middle = 0.5 * (t_r[0] + t_r[-1])
+    for mode in ("auto", "none"):
+        data = read_table_for(tmp_path / f"{mode}.csv", ur10)
+        t = np.asarray(data.t)
+        truth = t + offset + rate * (t - middle)  # each row's tracker time
+        true_p, _, _ = interpolate_poses(t_m, pos, None, truth)
+        v = np.gradient(true_p, t, axis=0)
+        for end in (slice(0, 300), slice(-300, None)):  # the lag along the motion there
+            dp, ve = np.asarray(data.position)[end] - true_p[end], v[end]
+            lag = float((dp * ve).sum() / (ve * ve).sum())
+            if mode == "auto":
+                assert abs(lag) < 1e-4, lag
+            else:
+                assert abs(lag) > 6e-3, lag

@@ -250,8 +250,9 @@ allows (likelihood ratio 100:1); where they reach beyond one robot sample, or an
 offset fits as well (a short or nearly straight path), a warning says the streams do
 not determine the offset: record a longer path that turns and changes speed, or give
 --offset. A drift of the clocks is fitted at the offset; where it moves the offset by
-more than a robot sample across the streams and explains most of the residual, a
-warning gives the rate and the length of the parts to split the streams into.
+more than a robot sample across the streams and explains most of the residual, the
+table is synchronised with the fitted rate and a note says so (--clock-drift none:
+one offset, and a warning with the length of the parts to split the streams into).
 The tracker poses are then interpolated at the robot times (positions linearly,
 orientations by SLERP); robot rows outside the tracker stream or in a tracker gap
 (beam break) are left out and reported. The table keeps t (robot clock, s).
@@ -286,6 +287,14 @@ def _streams_options(st: argparse.ArgumentParser) -> None:
         metavar="S",
         help=f"largest |offset| searched [s] (default: {flags.DEFAULT_MAX_OFFSET_S:g}; "
         "at most the offsets at which the streams overlap)",
+    )
+    st.add_argument(
+        "--clock-drift",
+        choices=("auto", "none"),
+        default="auto",
+        help="auto: where the clocks drift apart by more than a robot sample across the "
+        "streams (and the drift explains most of the residual), synchronise with the "
+        "fitted rate; none: keep one offset and warn (default: %(default)s)",
     )
     st.add_argument(
         "--every",
@@ -418,8 +427,13 @@ def _run_streams(args: argparse.Namespace) -> int:
         drift = None if jumps else check_clock_drift(t_r, q, t_m, pos, robot, offset, quat=quat)
     for jump in jumps:  # the table keeps one offset: the user splits the streams
         print(f"warning: {jump.summary(str(args.robot_stream), rs.rows)}")
+    rate, middle = 0.0, None
     if drift is not None and drift.matters:
-        print(f"warning: {drift.warning(f'{args.robot_stream}, {args.tracker_stream}')}")
+        corrected = args.clock_drift == "auto"
+        line = drift.warning(f"{args.robot_stream}, {args.tracker_stream}", corrected)
+        print(f"{'note' if corrected else 'warning'}: {line}")
+        if corrected:  # the offset fitted with the rate, at the stream's middle
+            offset, rate, middle = drift.offset, drift.rate, drift.middle
     temperature = rs.frame["temperature"].to_numpy() if "temperature" in rs.frame else None
     tracker_temperature = ts.frame["temperature"].to_numpy() if "temperature" in ts.frame else None
     sync = synchronise(
@@ -434,6 +448,8 @@ def _run_streams(args: argparse.Namespace) -> int:
         tracker_temperature=tracker_temperature,
         source=str(args.robot_stream),
         robot_rows=rs.rows,
+        rate=rate,
+        middle=middle,
     )
     data = sync.data
     if args.every > 1:

@@ -19,7 +19,9 @@ across the streams by more than one robot sample, the bound an offset is determi
 (:attr:`~hybrid_pk.data.time_offset.OffsetEstimate.determined`), so that the table's rows
 at the ends are paired with tracker poses more than the time between two rows away, *and*
 explains most of the registration residual above the noise (:data:`MAJORITY`): a pose
-error of the model leaves a misfit that a drift barely changes.
+error of the model leaves a misfit that a drift barely changes. ``import streams`` then
+synchronises the table with the fitted offset and rate
+(:func:`~hybrid_pk.data.streams.synchronise`'s ``rate``).
 """
 
 from __future__ import annotations
@@ -53,6 +55,8 @@ class ClockDrift:
         std: [s/s] its standard error.
         span: [s] the robot stream's duration.
         sample_s: [s] its sampling period.
+        offset: [s] the offset at ``middle``, fitted with the rate.
+        middle: [s] the robot time the rate is counted from (the stream's middle).
         residual_mm: RMS registration residual [mm] at the offset alone.
         drift_residual_mm: the same with the drift fitted.
         noise_mm: the streams' noise [mm] (RMS length), NaN: unknown.
@@ -62,6 +66,8 @@ class ClockDrift:
     std: float
     span: float
     sample_s: float
+    offset: float = math.nan
+    middle: float = math.nan
     residual_mm: float = math.nan
     drift_residual_mm: float = math.nan
     noise_mm: float = math.nan
@@ -87,20 +93,30 @@ class ClockDrift:
         significant = abs(self.rate) > norm.isf(ALPHA / 2) * self.std
         return bool(significant and self.change > self.sample_s and self.explained > MAJORITY)
 
-    def warning(self, source: str) -> str:
-        """One line when the drift :attr:`matters` (naming ``source``); empty otherwise."""
+    def warning(self, source: str, corrected: bool = False) -> str:
+        """One line when the drift :attr:`matters` (naming ``source``); empty otherwise.
+        ``corrected``: the table was synchronised with it (else: how to split)."""
         if not self.matters:
             return ""
-        part = self.sample_s / abs(self.rate)
-        return (
+        head = (
             f"{source}: the clocks drift: the time offset changes by {1e3 * self.change:.1f} "
             f"ms over the streams' {self.span:.0f} s (clock rate {1e6 * self.rate:+.1f} ± "
             f"{1e6 * self.std:.2g} ppm, |z| {abs(self.rate) / self.std:.0f}; the registration "
             f"residual {1e3 * self.residual_mm:.0f} -> {1e3 * self.drift_residual_mm:.0f} µm RMS "
-            f"with it, noise {1e3 * self.noise_mm:.0f} µm), more than a "
-            f"robot sample ({1e3 * self.sample_s:.1f} ms): one offset pairs the rows at the "
-            f"ends with poses up to {0.5e3 * self.change:.1f} ms away; split the streams into "
-            f"parts shorter than {part:.0f} s and import each"
+            f"with it, noise {1e3 * self.noise_mm:.0f} µm), more than a robot sample "
+            f"({1e3 * self.sample_s:.1f} ms)"
+        )
+        if corrected:
+            return (
+                f"{head}: the table is synchronised with it, tracker = robot + "
+                f"{1e3 * self.offset:.3f} ms + rate x (robot t - {self.middle:.3f} s); "
+                "--clock-drift none keeps one offset"
+            )
+        part = self.sample_s / abs(self.rate)
+        return (
+            f"{head}: one offset pairs the rows at the ends with poses up to "
+            f"{0.5e3 * self.change:.1f} ms away; split the streams into parts shorter than "
+            f"{part:.0f} s and import each, or let --clock-drift auto correct it"
         )
 
 
@@ -140,4 +156,7 @@ def fit_drift(search, offset: float, pick: np.ndarray, pose: tuple, noise_m: flo
     std = math.sqrt(s2 * float(np.linalg.inv(normal)[10, 10]))
     span, sample = float(t_r[-1] - t_r[0]), float(np.median(np.diff(t_r)))
     rms = (1e3 * math.sqrt(ms0), 1e3 * math.sqrt(float((r * r).sum(-1).mean())))
-    return ClockDrift(float(shift[1]), std, span, sample, *rms, 1e3 * noise_m)
+    middle = 0.5 * float(t_r[0] + t_r[-1])
+    return ClockDrift(
+        float(shift[1]), std, span, sample, float(shift[0]), middle, *rms, 1e3 * noise_m
+    )

@@ -44,11 +44,10 @@ so the tracker sample of robot row ``k`` is the one at ``t_k + offset``.
    samples). Robot rows outside the tracker's span or inside a tracker gap (beam
    break) are left out and reported. The result keeps ``t`` (robot clock).
 
-The offset is a constant: a clock rate difference (drift) of the two devices is not
-modelled in the table. It is fitted at the offset (:mod:`hybrid_pk.data.clock_drift`,
-or at a given offset: :func:`check_clock_drift`) and reported where it moves the offset
-across the streams by more than one robot sample: split such streams into parts and
-import each. A step of the offset
+A clock rate difference (drift) of the two devices is fitted at the offset
+(:mod:`hybrid_pk.data.clock_drift`, or at a given offset: :func:`check_clock_drift`);
+:func:`synchronise` takes it (``rate``), and ``import streams`` applies it where it moves
+the offset across the streams by more than one robot sample. A step of the offset
 inside the streams (a clock jump) is tested for at the estimate (or at a given offset:
 :func:`check_clock_jumps`) and reported with the row and the offsets of both parts
 (:mod:`hybrid_pk.data.clock_jump`).
@@ -101,17 +100,23 @@ class SyncResult:
         outside: 1-based robot rows left out: their tracker time is outside the
             tracker stream.
         in_gap: 1-based robot rows left out: their tracker time falls in a gap.
-        offset: [s] the offset used.
+        offset: [s] the offset used (at ``middle`` where ``rate`` is not 0).
+        rate: the clocks' drift used, d offset / d robot time (0: one offset).
+        middle: [s] the robot time ``rate`` is counted from.
     """
 
     data: MeasuredData
     outside: tuple[int, ...]
     in_gap: tuple[int, ...]
     offset: float
+    rate: float = 0.0
+    middle: float = 0.0
 
     def summary(self) -> str:
         """Short human summary."""
         line = f"synchronised {self.data.n} rows at offset {1e3 * self.offset:.3f} ms"
+        if self.rate:
+            line += f" (at robot t {self.middle:.3f} s, drifting {1e6 * self.rate:+.1f} ppm)"
         for rows, why in ((self.outside, "outside the tracker stream"), (self.in_gap, "in gaps")):
             if rows:
                 shown = ", ".join(map(str, rows[:10])) + (" ..." if len(rows) > 10 else "")
@@ -133,6 +138,8 @@ def synchronise(
     max_gap: float | None = None,
     source: str = "<streams>",
     robot_rows: Any = None,
+    rate: float = 0.0,
+    middle: float | None = None,
 ) -> SyncResult:
     """Tracker stream interpolated at the robot times: a measured pose table.
 
@@ -149,6 +156,9 @@ def synchronise(
         max_gap: [s] tracker gap that invalidates a row; default 5 median periods.
         source: name recorded in ``MeasuredData.sources``.
         robot_rows: ``(N,)`` 1-based rows of the robot stream file (default 1..N).
+        rate: a drift of the clocks (:mod:`~hybrid_pk.data.clock_drift`): tracker time =
+            robot time + offset + rate (robot time - middle).
+        middle: [s] default the middle of the robot stream.
     """
     t_r = stream_times(robot_t, "robot t")
     t_m = stream_times(tracker_t, "tracker t")
@@ -158,7 +168,8 @@ def synchronise(
     if len(q) != len(t_r) or len(pos) != len(t_m):
         raise DataError("q must have one row per robot time and position one per tracker time")
     rows = np.arange(1, len(t_r) + 1) if robot_rows is None else np.asarray(robot_rows)
-    query = t_r + float(offset)
+    middle = 0.5 * float(t_r[0] + t_r[-1]) if middle is None else float(middle)
+    query = t_r + float(offset) + float(rate) * (t_r - middle)
     p, qq, valid = interpolate_poses(t_m, pos, quat_np, query, max_gap)
     inside = (query >= t_m[0]) & (query <= t_m[-1])
     temp = None
@@ -187,4 +198,6 @@ def synchronise(
         tuple(int(r) for r in rows[~inside]),
         tuple(int(r) for r in rows[inside & ~valid]),
         float(offset),
+        float(rate),
+        middle,
     )
