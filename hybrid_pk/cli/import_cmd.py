@@ -147,7 +147,7 @@ def _columns_options(cols: argparse.ArgumentParser) -> None:
     cols.add_argument(
         "--map", required=True, metavar="MAP", help="column map: .json/.yaml file or inline"
     )
-    _add_map_options(cols)
+    flags.add_map_options(cols)
     cols.add_argument(
         "--skip-bad-rows",
         action="store_true",
@@ -157,60 +157,11 @@ def _columns_options(cols: argparse.ArgumentParser) -> None:
     cols.set_defaults(func=_run_columns)
 
 
-# File-format options of a column map: (flag, dest, metavar, help); type int for N.
-_MAP_OPTIONS = (
-    ("sep", "separator", "SEP", "field separator: ',' ';' tab whitespace ... (default: the "
-     "map's, else ',')"),
-    ("decimal", "decimal", "CHAR", "decimal mark"),
-    ("skip-lines", "skip_lines", "N", "lines before the header row"),
-    ("euler", "euler", "SEQ", "scipy Euler sequence of e1 e2 e3 (XYZ intrinsic, xyz "
-     "extrinsic, ZYX, ...)"),
-    ("length-unit", "length", "UNIT", "default length unit"),
-    ("angle-unit", "angle", "UNIT", "default angle unit"),
-)  # fmt: skip
-
-
-def _add_map_options(parser: argparse.ArgumentParser, prefix: str = "") -> None:
-    """File-format options of a column map; ``prefix`` names them per stream."""
-    dest = prefix.replace("-", "_")
-    for flag, name, metavar, text in _MAP_OPTIONS:
-        kind = int if metavar == "N" else str
-        parser.add_argument(
-            f"--{prefix}{flag}", dest=f"{dest}{name}", type=kind, metavar=metavar, help=text
-        )
-    parser.add_argument(
-        f"--{prefix}time-format",
-        dest=f"{dest}time_format",
-        choices=("number", "datetime"),
-        help="t as numbers (default) or date-time text (seconds since the first row)",
-    )
-
-
-def _map_overrides(args: argparse.Namespace, prefix: str = "") -> dict:
-    get = lambda name: getattr(args, prefix + name, None)  # noqa: E731
-    units = {k: get(k) for k in ("length", "angle") if get(k) is not None}
-    out = {k: get(k) for k in ("separator", "decimal", "skip_lines", "euler", "time_format")}
-    if units:
-        out["units"] = units
-    return out
-
-
-def _column_map(spec: str, args: argparse.Namespace, prefix: str = ""):
-    from hybrid_pk.data.mapping import load_column_map
-
-    overrides = _map_overrides(args, prefix)
-    if "units" in overrides and Path(spec).suffix.lower() in (".json", ".yaml", ".yml"):
-        # merge with the file's defaults instead of replacing them
-        base = load_column_map(spec)
-        overrides["units"] = {**base.defaults, **overrides["units"]}
-    return load_column_map(spec, **overrides)
-
-
 def _run_columns(args: argparse.Namespace) -> int:
     from hybrid_pk.data.mapping import convert_columns
 
     flags.check_decimal(args)
-    cmap = _column_map(args.map, args)
+    cmap = flags.column_map(args.map, args)
     sources = [Path(s) for s in args.sources]
     for src in sources:
         if not src.is_file():
@@ -303,8 +254,8 @@ def _streams_options(st: argparse.ArgumentParser) -> None:
         metavar="K",
         help="keep every K-th robot row of the table (default: 1, all)",
     )
-    _add_map_options(st, "robot-")
-    _add_map_options(st, "tracker-")
+    flags.add_map_options(st, "robot-")
+    flags.add_map_options(st, "tracker-")
     st.set_defaults(func=_run_streams)
 
 
@@ -312,9 +263,9 @@ def _stream_map(spec: str | None, args, prefix: str, default_columns: list[str])
     from hybrid_pk.data.mapping import parse_inline_map
 
     if spec is not None:
-        return _column_map(spec, args, prefix)
+        return flags.column_map(spec, args, prefix)
     inline = ",".join(f"{c}={c}" for c in default_columns)
-    overrides = {k: v for k, v in _map_overrides(args, prefix).items() if v is not None}
+    overrides = {k: v for k, v in flags.map_overrides(args, prefix).items() if v is not None}
     return parse_inline_map(inline, **overrides)
 
 

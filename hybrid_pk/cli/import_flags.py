@@ -23,12 +23,16 @@ from hybrid_pk.output_file import replacing
 
 __all__ = [
     "DEFAULT_MAX_OFFSET_S",
+    "MAP_OPTIONS",
+    "add_map_options",
     "check_decimal",
     "check_max_offset",
     "check_offset_flags",
     "check_table_format",
+    "column_map",
     "destinations",
     "finite_seconds",
+    "map_overrides",
     "positive_seconds",
     "write_tables",
 ]
@@ -170,3 +174,52 @@ def _validated(temps: list[Path], dests: list[Path], robot):
         for tmp, dst in zip(temps, dests, strict=True):
             message = message.replace(str(tmp), str(dst))
         raise DataError(message) from None
+
+
+# File-format options of a column map: (flag, dest, metavar, help); type int for N.
+MAP_OPTIONS = (
+    ("sep", "separator", "SEP", "field separator: ',' ';' tab whitespace ... (default: the "
+     "map's, else ',')"),
+    ("decimal", "decimal", "CHAR", "decimal mark"),
+    ("skip-lines", "skip_lines", "N", "lines before the header row"),
+    ("euler", "euler", "SEQ", "scipy Euler sequence of e1 e2 e3 (XYZ intrinsic, xyz "
+     "extrinsic, ZYX, ...)"),
+    ("length-unit", "length", "UNIT", "default length unit"),
+    ("angle-unit", "angle", "UNIT", "default angle unit"),
+)  # fmt: skip
+
+
+def add_map_options(parser: argparse.ArgumentParser, prefix: str = "") -> None:
+    """File-format options of a column map; ``prefix`` names them per stream."""
+    dest = prefix.replace("-", "_")
+    for flag, name, metavar, text in MAP_OPTIONS:
+        kind = int if metavar == "N" else str
+        parser.add_argument(
+            f"--{prefix}{flag}", dest=f"{dest}{name}", type=kind, metavar=metavar, help=text
+        )
+    parser.add_argument(
+        f"--{prefix}time-format",
+        dest=f"{dest}time_format",
+        choices=("number", "datetime"),
+        help="t as numbers (default) or date-time text (seconds since the first row)",
+    )
+
+
+def map_overrides(args: argparse.Namespace, prefix: str = "") -> dict:
+    get = lambda name: getattr(args, prefix + name, None)  # noqa: E731
+    units = {k: get(k) for k in ("length", "angle") if get(k) is not None}
+    out = {k: get(k) for k in ("separator", "decimal", "skip_lines", "euler", "time_format")}
+    if units:
+        out["units"] = units
+    return out
+
+
+def column_map(spec: str, args: argparse.Namespace, prefix: str = ""):
+    from hybrid_pk.data.mapping import load_column_map
+
+    overrides = map_overrides(args, prefix)
+    if "units" in overrides and Path(spec).suffix.lower() in (".json", ".yaml", ".yml"):
+        # merge with the file's defaults instead of replacing them
+        base = load_column_map(spec)
+        overrides["units"] = {**base.defaults, **overrides["units"]}
+    return load_column_map(spec, **overrides)
