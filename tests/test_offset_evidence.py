@@ -5,6 +5,9 @@ cannot show is said, not returned silently."""
 from __future__ import annotations
 
 import math
+import runpy
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -136,3 +139,13 @@ def test_interval_covers_the_truth_when_the_tracker_filters_its_noise(ur10, seed
     est = estimate_time_offset(t_r, q, t_m, pos + noise, _Exact(ur10))
     lo, hi = est.interval
     assert lo <= offset <= hi, (est.summary(), offset)
+
+
+def test_the_bench_runs_and_finds_no_silent_wrong_offset(monkeypatch, capsys):
+    """``bench/time_offset.py`` on one short stream pair: its table, and no wrong offset
+    without the warning."""
+    bench = Path(__file__).resolve().parents[1] / "bench" / "time_offset.py"
+    monkeypatch.setattr(sys, "argv", [str(bench), "--seeds", "100", "--durations", "0.5"])
+    runpy.run_path(str(bench), run_name="__main__")
+    row = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("| 0.5 s"))
+    assert row.endswith("| 0 |"), row  # wrong and not told
