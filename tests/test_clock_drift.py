@@ -11,7 +11,12 @@ import pytest
 
 from hybrid_pk.cli.main import main
 from hybrid_pk.data import read_table_for
-from hybrid_pk.data.streams import check_clock_drift, estimate_time_offset, interpolate_poses
+from hybrid_pk.data.streams import (
+    ClockDrift,
+    check_clock_drift,
+    estimate_time_offset,
+    interpolate_poses,
+)
 from tests.test_streams import simulate_streams, write_streams
 
 
@@ -103,3 +108,11 @@ def test_the_table_is_synchronised_with_the_drift(ur10, tmp_path, capsys):
                 assert abs(lag) < 1e-4, lag
             else:
                 assert abs(lag) > 6e-3, lag
+
+
+def test_a_drift_that_cannot_be_fitted_is_not_named():
+    """Where the normal equations are singular (no motion that tells a rate from the
+    frames), the drift is NaN and says nothing."""
+    drift = ClockDrift(math.nan, math.nan, 10.0, 1 / 110)
+    assert not drift.matters
+    assert drift.warning("s") == ""

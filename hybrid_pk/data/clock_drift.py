@@ -127,7 +127,8 @@ def fit_drift(search, offset: float, pick: np.ndarray, pose: tuple, noise_m: flo
     t_r, t_m, pos = search.t_r, search.t_m, search.pos
     t = t_r[pick] - 0.5 * (t_r[0] + t_r[-1])
     frames, (R_B, p_B, p_X) = PointFrames(search.T_all[pick], pose), pose
-    h = 0.5 * float(np.median(np.diff(t_r)))  # the tracker's velocity over a robot period
+    span, sample = float(t_r[-1] - t_r[0]), float(np.median(np.diff(t_r)))
+    h = 0.5 * sample  # the tracker's velocity over a robot period
     shift, normal, ms0 = np.array([offset, 0.0]), None, math.nan
     for _ in range(ITERATIONS):
         at = t_r[pick] + shift[0] + shift[1] * t
@@ -144,7 +145,10 @@ def fit_drift(search, offset: float, pick: np.ndarray, pose: tuple, noise_m: flo
         J[:, :, 9], J[:, :, 10] = -v, -v * t[ok, None]  # r = f - m(t + offset + rate t)
         Jf = J.reshape(-1, 11)
         normal = Jf.T @ Jf
-        step = -np.linalg.solve(normal, Jf.T @ r.reshape(-1))
+        try:
+            step = -np.linalg.solve(normal, Jf.T @ r.reshape(-1))
+        except np.linalg.LinAlgError:  # no motion that tells a rate from the frames
+            return ClockDrift(math.nan, math.nan, span, sample)
         R_B, p_B, p_X = frames.update(R_B, p_B, p_X, step)
         shift = shift + step[9:]
         if abs(step[9]) < 1e-9 and abs(step[10]) * abs(t).max() < 1e-9:  # [s]
@@ -154,7 +158,6 @@ def fit_drift(search, offset: float, pick: np.ndarray, pose: tuple, noise_m: flo
     r = (frames.points(R_B, p_B, p_X) - m)[ok]
     s2 = float((r * r).sum()) / max(r.size - 11, 1)
     std = math.sqrt(s2 * float(np.linalg.inv(normal)[10, 10]))
-    span, sample = float(t_r[-1] - t_r[0]), float(np.median(np.diff(t_r)))
     rms = (1e3 * math.sqrt(ms0), 1e3 * math.sqrt(float((r * r).sum(-1).mean())))
     middle = 0.5 * float(t_r[0] + t_r[-1])
     return ClockDrift(
