@@ -32,6 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hybrid_pk.data.offset_search import evenly
+
 __all__ = ["LIKELIHOOD_RATIO", "Rival", "interval", "rivals"]
 
 # The likelihood ratio the data must give the estimate over another offset: 100 is
@@ -78,8 +80,8 @@ class _Profile:
         res, _, _, frames = found
         self.search, self.best = search, float(res.x)
         inside = np.flatnonzero(search.covered(self.best))
-        count = min(search.refine_points, len(inside), _robot_rows(search, self.best))
-        self.samples = inside[np.unique(np.linspace(0, len(inside) - 1, count).round().astype(int))]
+        count = min(search.refine_points, _robot_rows(search, self.best))
+        self.samples = evenly(inside, count)
         self.pose, self.ms = search.sample_registration(self.best, self.samples, frames.pose)
         self.scale = max(noise_m**2, self.ms) if math.isfinite(noise_m) else math.inf
 
@@ -164,8 +166,8 @@ def _compared(search, offsets: tuple[float, float], found: tuple, noise_m: float
     common = np.flatnonzero(search.covered(offsets[0]) & search.covered(offsets[1]))
     if len(common) < MIN_COMMON_ROWS:
         return Rival(offsets[1], math.nan, math.nan, len(common), math.nan)
-    count = min(search.refine_points, len(common), *(_robot_rows(search, o) for o in offsets))
-    samples = common[np.unique(np.linspace(0, len(common) - 1, count).round().astype(int))]
+    count = min(search.refine_points, *(_robot_rows(search, o) for o in offsets))
+    samples = evenly(common, count)
     ms = [
         search.sample_registration(offset, samples, frames.pose)[1]
         for offset, (_, _, _, frames) in zip(offsets, found, strict=True)

@@ -19,7 +19,7 @@ from hybrid_pk.data.point_frames import PointFrames
 from hybrid_pk.errors import DataError
 from hybrid_pk.geometry.registration import register_frames
 
-__all__ = ["SCAN_POINTS", "OffsetSearch", "speed_profile"]
+__all__ = ["SCAN_POINTS", "OffsetSearch", "evenly", "speed_profile"]
 
 # Robot rows per offset of the residual scan: 900 equations for 9 unknowns; an offset in
 # another basin leaves a residual of mm (speed x error) against µm of noise, so a fifth
@@ -174,8 +174,7 @@ class OffsetSearch:
                 f"only {len(usable)} robot rows overlap the tracker stream (away from gaps) "
                 f"near offset {centre:.4f} s; need at least 10"
             )
-        count = min(self.refine_points, len(usable))
-        return usable[np.unique(np.linspace(0, len(usable) - 1, count).round().astype(int))]
+        return evenly(usable, self.refine_points)
 
     def points(self, offset: float, pick: np.ndarray) -> np.ndarray:
         """``(K, 3)`` tracker points [m] at the robot rows ``pick`` shifted by ``offset``."""
@@ -213,8 +212,7 @@ class OffsetSearch:
                 usable = self.usable(float(lags[i]), 0.0)
                 if len(usable) < max(len(self.t_r) // 4, 10):
                     continue
-                count = min(SCAN_POINTS, len(usable))
-                pick = usable[np.unique(np.linspace(0, len(usable) - 1, count).round().astype(int))]
+                pick = evenly(usable, SCAN_POINTS)
                 pose_i, ms = self.best_registration(float(lags[i]), pick, pose_i)
                 out[i], poses[i] = 1e3 * math.sqrt(ms), pose_i
         return out, poses
@@ -226,9 +224,7 @@ class OffsetSearch:
         the registration has several local minima; a walk warm-started from lag to lag
         can stay on a poor one (160 µm where the closed form reaches the 28 µm of the
         noise, on 1 s of a simulated UR10 path)."""
-        p, T = self.points(offset, pick), self.T_all[pick]  # positions: what the scan fits
-        guess = register_frames(T, torch.as_tensor(p), None, iterations=COLD_ITERATIONS)
-        return _better(T, p, (pose, PointFrames.from_guess(T, guess).pose))
+        return _registration(self.T_all[pick], self.points(offset, pick), pose, cold=True)
 
     def covered(self, offset: float, samples: np.ndarray | None = None) -> np.ndarray:
         """Whether each tracker sample (of ``samples``, indices; default all) has its
@@ -264,12 +260,8 @@ class OffsetSearch:
         ``offset``, the model's flange interpolated at their robot times: Gauss-Newton
         from ``pose``, and with ``cold`` the better of that and the closed form's
         (:meth:`best_registration`)."""
-        T, p = self.flange_at(self.t_m[samples] - offset), self.pos[samples]
-        starts = [pose]
-        if cold:
-            guess = register_frames(T, torch.as_tensor(p), None, iterations=COLD_ITERATIONS)
-            starts.append(PointFrames.from_guess(T, guess).pose)
-        return _better(T, p, starts)
+        T = self.flange_at(self.t_m[samples] - offset)
+        return _registration(T, self.pos[samples], pose, cold)
 
     def check(self, offset: float, pick: np.ndarray, frames: PointFrames):
         """``(jumps, noise [m])`` at the frames registered on ``pick``: the steps of the
@@ -306,6 +298,24 @@ class OffsetSearch:
                 break
             centre, pose = float(res.x), frames.fit(self.points(res.x, pick))
         return res, (lo, hi), pick, frames
+
+
+def evenly(indices: np.ndarray, count: int) -> np.ndarray:
+    """At most ``count`` of ``indices``, evenly spaced over them (the first and the last
+    kept)."""
+    count = min(count, len(indices))
+    return indices[np.unique(np.linspace(0, len(indices) - 1, count).round().astype(int))]
+
+
+def _registration(T: torch.Tensor, p: np.ndarray, pose: tuple, cold: bool) -> tuple:
+    """``(pose, mean squared residual [m²])`` of flange poses ``T`` registered on
+    positions ``p``: Gauss-Newton from ``pose``, and with ``cold`` the better of that and
+    a start from the closed form (:data:`COLD_ITERATIONS`)."""
+    starts = [pose]
+    if cold:
+        guess = register_frames(T, torch.as_tensor(p), None, iterations=COLD_ITERATIONS)
+        starts.append(PointFrames.from_guess(T, guess).pose)
+    return _better(T, p, starts)
 
 
 def _better(T: torch.Tensor, p: np.ndarray, starts) -> tuple:
