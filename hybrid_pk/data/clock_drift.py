@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import norm
 
-from hybrid_pk.data.clock_jump import ALPHA
+from hybrid_pk.data.clock_jump import ALPHA, tracker_motion
 from hybrid_pk.data.interpolation import interpolate_poses
 from hybrid_pk.data.point_frames import PointFrames
 
@@ -132,12 +132,8 @@ def fit_drift(search, offset: float, pick: np.ndarray, pose: tuple, noise_m: flo
     shift, normal, ms0 = np.array([offset, 0.0]), None, math.nan
     for _ in range(ITERATIONS):
         at = t_r[pick] + shift[0] + shift[1] * t
-        m, _, ok = interpolate_poses(t_m, pos, None, at, search.max_gap)
-        ahead, _, ok_a = interpolate_poses(t_m, pos, None, at + h, search.max_gap)
-        back, _, ok_b = interpolate_poses(t_m, pos, None, at - h, search.max_gap)
-        ok &= ok_a & ok_b
-        v = (ahead - back)[ok] / (2 * h)
-        r = (frames.points(R_B, p_B, p_X) - m)[ok]
+        m, v, ok = tracker_motion(t_m, pos, at, h, search.max_gap)
+        v, r = v[ok], (frames.points(R_B, p_B, p_X) - m)[ok]
         if normal is None:
             ms0 = float((r * r).sum(-1).mean())
         J = np.zeros((len(r), 3, 11))

@@ -55,6 +55,7 @@ __all__ = [
     "find_clock_jumps",
     "noise_rms",
     "step_scores",
+    "tracker_motion",
 ]
 
 # Rows on either side of a candidate jump: 2 x 16 rows x 3 coordinates = 96 equations
@@ -211,6 +212,16 @@ def _part_offsets(
     return offsets, np.sqrt(s2 * np.diag(np.linalg.inv(N))[9:]), (R_B, p_B, p_X)
 
 
+def tracker_motion(tracker_t, position, at: np.ndarray, h: float, max_gap: float):
+    """``(point (K, 3) [m], velocity (K, 3) [m/s], valid (K,))`` of the tracker stream at
+    times ``at``: interpolated, and its central difference over ``± h`` [s]; valid where
+    all three reads are (NaN elsewhere)."""
+    m, _, ok = interpolate_poses(tracker_t, position, None, at, max_gap)
+    ahead, _, ok_a = interpolate_poses(tracker_t, position, None, at + h, max_gap)
+    back, _, ok_b = interpolate_poses(tracker_t, position, None, at - h, max_gap)
+    return m, (ahead - back) / (2 * h), ok & ok_a & ok_b
+
+
 class _JumpSearch:
     """The streams, the residuals at one offset per row, and the step test on them."""
 
@@ -224,14 +235,9 @@ class _JumpSearch:
     def residuals(self, row_offset: np.ndarray, pose: tuple):
         """``(r (N, 3), v (N, 3), ok (N,))``: model minus tracker point [m], the tracker
         point's velocity [m/s], and the rows whose three tracker reads are valid."""
-        at = self.t_r + row_offset
-        m, _, ok = interpolate_poses(self.t_m, self.pos, None, at, self.max_gap)
-        ahead, _, ok_a = interpolate_poses(self.t_m, self.pos, None, at + self.h, self.max_gap)
-        back, _, ok_b = interpolate_poses(self.t_m, self.pos, None, at - self.h, self.max_gap)
-        ok &= ok_a & ok_b
+        m, v, ok = tracker_motion(self.t_m, self.pos, self.t_r + row_offset, self.h, self.max_gap)
         f = PointFrames(self.T_end, pose).points(*pose)
-        r = np.where(ok[:, None], f - m, 0.0)
-        return r, np.where(ok[:, None], (ahead - back) / (2 * self.h), 0.0), ok
+        return np.where(ok[:, None], f - m, 0.0), np.where(ok[:, None], v, 0.0), ok
 
     def scores(self, r: np.ndarray, v: np.ndarray, ok: np.ndarray):
         """``(step, z, tried)`` of every row, ``z`` after the empirical-null scaling."""

@@ -266,10 +266,19 @@ class OffsetSearch:
     def check(self, offset: float, pick: np.ndarray, frames: PointFrames):
         """``(jumps, noise [m])`` at the frames registered on ``pick``: the steps of the
         offset inside the streams and the noise the residuals show (:func:`noise_rms`)."""
-        p, _, _ = interpolate_poses(self.t_m, self.pos, None, self.t_r[pick] + offset, self.max_gap)
-        streams, pose = (self.t_r, self.T_all, self.t_m, self.pos), frames.fit(p)
-        jumps = find_clock_jumps(*streams, offset, pose, self.max_gap)
-        return jumps, noise_rms(streams, offset, pose, self.max_gap)
+        pose = frames.fit(self.points(offset, pick))
+        jumps = find_clock_jumps(*self.streams, offset, pose, self.max_gap)
+        return jumps, self.noise(offset, pose)
+
+    @property
+    def streams(self) -> tuple:
+        """``(robot_t, T_end, tracker_t, position)`` as :mod:`.clock_jump` takes them."""
+        return self.t_r, self.T_all, self.t_m, self.pos
+
+    def noise(self, offset: float, pose: tuple) -> float:
+        """[m] the noise the rows show at ``offset`` and registration ``pose``
+        (:func:`noise_rms`)."""
+        return noise_rms(self.streams, offset, pose, self.max_gap)
 
     def refine(self, centre: float, half_width: float, pose: tuple | None = None):
         """Bounded search of ``cost``, re-centred while the minimum sits on a bound; the

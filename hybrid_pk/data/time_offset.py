@@ -340,9 +340,8 @@ def check_clock_drift(
     if near is None:
         return None
     search, pick = near
-    frames = search.registered(float(offset), pick)
-    noise = search.check(float(offset), pick, frames)[1]
-    return fit_drift(search, float(offset), pick, frames.fit(search.points(offset, pick)), noise)
+    pose = search.registered(float(offset), pick).fit(search.points(offset, pick))
+    return fit_drift(search, float(offset), pick, pose, search.noise(float(offset), pose))
 
 
 def _rows_at(robot_t, q, tracker_t, position, robot, offset, quat):
