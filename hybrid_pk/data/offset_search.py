@@ -263,12 +263,10 @@ class OffsetSearch:
         T = self.flange_at(self.t_m[samples] - offset)
         return _registration(T, self.pos[samples], pose, cold)
 
-    def check(self, offset: float, pick: np.ndarray, frames: PointFrames):
-        """``(jumps, noise [m])`` at the frames registered on ``pick``: the steps of the
-        offset inside the streams and the noise the residuals show (:func:`noise_rms`)."""
-        pose = frames.fit(self.points(offset, pick))
-        jumps = find_clock_jumps(*self.streams, offset, pose, self.max_gap)
-        return jumps, self.noise(offset, pose)
+    def check(self, offset: float, pose: tuple):
+        """``(jumps, noise [m])`` at ``offset`` and the registration ``pose``: the steps of
+        the offset inside the streams and the noise the residuals show (:func:`noise_rms`)."""
+        return find_clock_jumps(*self.streams, offset, pose, self.max_gap), self.noise(offset, pose)
 
     @property
     def streams(self) -> tuple:

@@ -280,8 +280,8 @@ def estimate_time_offset(
     refined = _refined(search, centres)
     best = min(range(len(refined)), key=lambda i: refined[i][0].fun)
     res, (lo, hi), pick, frames = refined[best]
-    jumps, noise = search.check(float(res.x), pick, frames)
-    p_best = search.points(float(res.x), pick)
+    pose = frames.fit(search.points(float(res.x), pick))  # the registration at the offset
+    jumps, noise = search.check(float(res.x), pose)
     return OffsetEstimate(
         offset=float(res.x),
         coarse=float(coarse),
@@ -297,7 +297,7 @@ def estimate_time_offset(
         interval=interval(search, refined[best], noise, max_offset, refine_window),
         sample_s=float(np.median(np.diff(t_r))),
         # a jump would pass for a drift: its parts, imported apart, are each fitted then
-        drift=None if jumps else fit_drift(search, res.x, pick, frames.fit(p_best), noise),
+        drift=None if jumps else fit_drift(search, res.x, pick, pose, noise),
     )
 
 
@@ -326,8 +326,8 @@ def check_clock_jumps(
     near = _rows_at(robot_t, q, tracker_t, position, robot, offset, quat)
     if near is None:  # under 10 rows overlap: nothing to test (synchronise says why)
         return ()
-    search, pick = near
-    return search.check(float(offset), pick, search.registered(float(offset), pick))[0]
+    search, _, pose = near
+    return search.check(float(offset), pose)[0]
 
 
 def check_clock_drift(
@@ -339,14 +339,13 @@ def check_clock_drift(
     near = _rows_at(robot_t, q, tracker_t, position, robot, offset, quat)
     if near is None:
         return None
-    search, pick = near
-    pose = search.registered(float(offset), pick).fit(search.points(offset, pick))
+    search, pick, pose = near
     return fit_drift(search, float(offset), pick, pose, search.noise(float(offset), pose))
 
 
 def _rows_at(robot_t, q, tracker_t, position, robot, offset, quat):
-    """``(search, rows)`` of the checked streams at ``offset``; None where under 10 robot
-    rows overlap the tracker there."""
+    """``(search, rows, registration)`` of the checked streams at ``offset``; None where
+    under 10 robot rows overlap the tracker there."""
     t_r, q, t_m, pos, quat_np = _checked_streams(robot_t, q, tracker_t, position, quat)
     with torch.no_grad():
         T_all = robot.fk(torch.as_tensor(q, dtype=robot.dtype)).double()
@@ -354,6 +353,7 @@ def _rows_at(robot_t, q, tracker_t, position, robot, offset, quat):
         t_r, T_all, t_m, pos, quat_np, smooth=SMOOTH_S, grid_dt=GRID_DT, refine_points=REFINE_POINTS
     )
     try:
-        return search, search.rows_near(float(offset), 0.0)
+        pick = search.rows_near(float(offset), 0.0)
     except DataError:
         return None
+    return search, pick, search.registered(float(offset), pick).fit(search.points(offset, pick))
