@@ -13,7 +13,7 @@ from hybrid_pk.cli.main import main
 from hybrid_pk.data import read_table_for
 from hybrid_pk.data.streams import (
     ClockDrift,
-    check_clock_drift,
+    check_offset,
     estimate_time_offset,
     interpolate_poses,
 )
@@ -68,7 +68,8 @@ def test_a_pose_error_of_the_model_is_not_named_a_drift(ur10, degrees, rate):
 
 def test_a_given_offset_is_checked_for_drift_too(ur10, tmp_path, capsys):
     t_r, q, t_m, pos, _, _ = simulate_streams(ur10, 0.04, duration=150.0, seed=1, rate=1e-4)
-    drift = check_clock_drift(t_r, q, t_m, pos, ur10, 0.04)
+    jumps, drift = check_offset(t_r, q, t_m, pos, ur10, 0.04)
+    assert jumps == ()
     assert drift.matters, drift
     robot_csv, tracker_csv = write_streams(tmp_path, ur10.joint_names, t_r, q, t_m, pos)
     argv = ["import", "streams", str(robot_csv), str(tracker_csv), "--robot", "ur10"]

@@ -336,12 +336,7 @@ def _run_streams(args: argparse.Namespace) -> int:
 
     from hybrid_pk.cli.common import load_robot
     from hybrid_pk.cli.progress import progress
-    from hybrid_pk.data.streams import (
-        check_clock_drift,
-        check_clock_jumps,
-        estimate_time_offset,
-        synchronise,
-    )
+    from hybrid_pk.data.streams import check_offset, estimate_time_offset, synchronise
     from hybrid_pk.data.table import write_table
 
     if args.every < 1:
@@ -359,6 +354,7 @@ def _run_streams(args: argparse.Namespace) -> int:
     quat = ts.frame[["qw", "qx", "qy", "qz"]].to_numpy() if "qw" in ts.frame else None
     print(f"robot stream: {len(t_r)} samples, {_rate(t_r):.1f} Hz, {t_r[-1] - t_r[0]:.1f} s")
     print(f"tracker stream: {len(t_m)} samples, {_rate(t_m):.1f} Hz, {t_m[-1] - t_m[0]:.1f} s")
+    source = f"{args.robot_stream}, {args.tracker_stream}"  # what the warnings name
     if args.offset is None:
         if args.max_offset is not None:
             flags.check_max_offset(args.max_offset, t_r, t_m)
@@ -367,21 +363,19 @@ def _run_streams(args: argparse.Namespace) -> int:
             bar.stage("cross-correlation and registration")
             est = estimate_time_offset(t_r, q, t_m, pos, robot, quat=quat, max_offset=max_offset)
         print(est.summary())
-        source = f"{args.robot_stream}, {args.tracker_stream}"
         for warning in (est.residual_warning(source), est.ambiguity_warning(source)):
             if warning:
                 print(f"warning: {warning}")
         offset, jumps, drift = est.offset, est.jumps, est.drift
     else:
         offset = args.offset
-        jumps = check_clock_jumps(t_r, q, t_m, pos, robot, offset, quat=quat)
-        drift = None if jumps else check_clock_drift(t_r, q, t_m, pos, robot, offset, quat=quat)
+        jumps, drift = check_offset(t_r, q, t_m, pos, robot, offset, quat=quat)
     for jump in jumps:  # the table keeps one offset: the user splits the streams
         print(f"warning: {jump.summary(str(args.robot_stream), rs.rows)}")
     rate, middle = 0.0, None
     if drift is not None and drift.matters:
         corrected = args.clock_drift == "auto"
-        line = drift.warning(f"{args.robot_stream}, {args.tracker_stream}", corrected)
+        line = drift.warning(source, corrected)
         print(f"{'note' if corrected else 'warning'}: {line}")
         if corrected:  # the offset fitted with the rate, at the stream's middle
             offset, rate, middle = drift.offset, drift.rate, drift.middle

@@ -45,7 +45,7 @@ so the tracker sample of robot row ``k`` is the one at ``t_k + offset``.
    break) are left out and reported. The result keeps ``t`` (robot clock).
 
 A clock rate difference (drift) of the two devices is fitted at the offset
-(:mod:`hybrid_pk.data.clock_drift`, or at a given offset: :func:`check_clock_drift`);
+(:mod:`hybrid_pk.data.clock_drift`, or at a given offset: :func:`check_offset`);
 :func:`synchronise` takes it (``rate``), and ``import streams`` applies it where it moves
 the offset across the streams by more than one robot sample. A step of the offset
 inside the streams (a clock jump) is tested for at the estimate (or at a given offset:
@@ -70,8 +70,8 @@ from hybrid_pk.data.interpolation import (
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.data.time_offset import (
     OffsetEstimate,
-    check_clock_drift,
     check_clock_jumps,
+    check_offset,
     estimate_time_offset,
     speed_profile,
 )
@@ -82,8 +82,8 @@ __all__ = [
     "ClockJump",
     "OffsetEstimate",
     "SyncResult",
-    "check_clock_drift",
     "check_clock_jumps",
+    "check_offset",
     "estimate_time_offset",
     "interpolate_poses",
     "speed_profile",

@@ -27,8 +27,8 @@ from hybrid_pk.errors import DataError
 
 __all__ = [
     "OffsetEstimate",
-    "check_clock_drift",
     "check_clock_jumps",
+    "check_offset",
     "estimate_time_offset",
     "speed_profile",
 ]
@@ -324,23 +324,23 @@ def check_clock_jumps(
     the arguments as in :func:`estimate_time_offset`. :func:`estimate_time_offset` runs the
     same test at its own estimate (``OffsetEstimate.jumps``)."""
     near = _rows_at(robot_t, q, tracker_t, position, robot, offset, quat)
-    if near is None:  # under 10 rows overlap: nothing to test (synchronise says why)
-        return ()
-    search, _, pose = near
-    return search.check(float(offset), pose)[0]
+    return () if near is None else near[0].check(float(offset), near[2])[0]
 
 
-def check_clock_drift(
+def check_offset(
     robot_t: Any, q: Any, tracker_t: Any, position: Any, robot: Any, offset: float, quat: Any = None
-) -> ClockDrift | None:
-    """The clocks' drift at a known ``offset`` [s] (:mod:`~hybrid_pk.data.clock_drift`);
-    the arguments as in :func:`estimate_time_offset`, which fits it at its own estimate
-    (``OffsetEstimate.drift``). None where under 10 rows overlap."""
+) -> tuple[tuple[ClockJump, ...], ClockDrift | None]:
+    """``(jumps, drift)`` at a known ``offset`` [s]: the steps of the offset inside the
+    streams (:mod:`~hybrid_pk.data.clock_jump`) and, where there are none, the clocks'
+    drift (:mod:`~hybrid_pk.data.clock_drift`; a jump would pass for one); the arguments
+    as in :func:`estimate_time_offset`, which does both at its own estimate. ``((), None)``
+    where under 10 rows overlap (synchronise says why)."""
     near = _rows_at(robot_t, q, tracker_t, position, robot, offset, quat)
     if near is None:
-        return None
+        return (), None
     search, pick, pose = near
-    return fit_drift(search, float(offset), pick, pose, search.noise(float(offset), pose))
+    jumps, noise = search.check(float(offset), pose)
+    return jumps, None if jumps else fit_drift(search, float(offset), pick, pose, noise)
 
 
 def _rows_at(robot_t, q, tracker_t, position, robot, offset, quat):
