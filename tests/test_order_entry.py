@@ -8,8 +8,8 @@ from __future__ import annotations
 
 from hybrid_pk.calibration.diagnosis.blocked import Folds
 from hybrid_pk.calibration.diagnosis.carryover import Carry
+from hybrid_pk.calibration.diagnosis.entry import first_resolved
 from hybrid_pk.calibration.diagnosis.regions import make_folds
-from hybrid_pk.calibration.diagnosis.search import _first_resolved
 from hybrid_pk.calibration.diagnosis.selection import score_candidates
 from hybrid_pk.calibration.diagnosis.settle import entry_rivals, order_rivals
 from hybrid_pk.calibration.diagnosis.split import split_campaign
@@ -48,12 +48,12 @@ def test_an_order_the_screen_scored_alone_is_compared_with_every_order():
     (sc,) = scores.scored
     assert scores.eligible(sc), (where, scores.carry, scores.carry_se)
     assert entry_rivals(scores, [], label) == {}
-    assert _first_resolved(scores, model, [])[0] is sc  # the screened comparison: enters
+    assert first_resolved(scores, model, [])[0] is sc  # the screened comparison: enters
     # every order of the joint: its neighbours predict the held-out blocks as well
     rivals = order_rivals(model, res, split, carry, label, say, {})
     assert rivals, where
     ambiguous: list[dict] = []
-    best, aside = _first_resolved(scores, model, ambiguous, (model, res, split, carry, say))
+    best, aside = first_resolved(scores, model, ambiguous, (model, res, split, carry, say))
     assert best is None, (where, rivals)
     assert label in aside
     assert {e["order_not_resolved"] for e in ambiguous} == {label.partition(":")[2]}

@@ -29,6 +29,7 @@ from hybrid_pk.calibration.diagnosis.budget import Budget
 from hybrid_pk.calibration.diagnosis.carryover import Carry, weakest
 from hybrid_pk.calibration.diagnosis.cyclic_screen import screen_cyclic
 from hybrid_pk.calibration.diagnosis.elimination import eliminate
+from hybrid_pk.calibration.diagnosis.entry import first_resolved, note_cap, untested, why_stop
 from hybrid_pk.calibration.diagnosis.gains import (
     cap_warnings,
     measure_causes,
@@ -59,11 +60,9 @@ from hybrid_pk.calibration.diagnosis.result import (
 from hybrid_pk.calibration.diagnosis.rivals import rival_stories
 from hybrid_pk.calibration.diagnosis.selection import (
     candidate_labels,
-    carry_record,
     score_candidates,
     try_candidate,
 )
-from hybrid_pk.calibration.diagnosis.settle import entry_rivals, order_rivals, unresolved_entry
 from hybrid_pk.calibration.diagnosis.split import Split, split_campaign
 from hybrid_pk.calibration.diagnosis.stand_ins import kept_stand_ins
 from hybrid_pk.calibration.diagnosis.structural import structural_check
@@ -278,10 +277,10 @@ def _select(
         if not scores.scored:
             break
         every_order = (model, res, split, carry, say)
-        best, aside = _first_resolved(scores, model, ambiguous, every_order)
+        best, aside = first_resolved(scores, model, ambiguous, every_order)
         remaining = [c for c in remaining if c not in aside]
         if best is None:
-            steps.append(_untested(scores.ranked[0], scores, _why_stop(scores, aside)))
+            steps.append(untested(scores.ranked[0], scores, why_stop(scores, aside)))
             break
         say(f"testing {best.label}")
         new, new_res, step = try_candidate(
@@ -318,58 +317,12 @@ def _select(
                 model, split, remaining, res.weights, carry.folds, carry.margin(res)
             )
             limits = (max_causes, screened)
-            _note_cap(model, res, pool, split, (alpha, carry), limits, steps, say)
+            note_cap(model, res, pool, split, (alpha, carry), limits, steps, say)
     with budget.stage("swaps"):
         model, res = prefer_fewer_causes(
             model, res, pairs, split, (alpha, carry), steps, say, budget
         )
     return model, res, steps, ambiguous, unobservable
-
-
-def _first_resolved(scores, model, ambiguous, every_order=None):
-    """The best eligible candidate (:meth:`Scores.eligible`) that is not a cyclic order
-    another order predicts the blocked hold-out nearly as well as (or better); and the
-    candidates set aside as unresolved (their ambiguity entries go into ``ambiguous``).
-    ``every_order``: ``(model, res, split, carry, say)``, to compare a cyclic candidate
-    with every order of its joint (:func:`.settle.order_rivals`), not only the scored
-    ones."""
-    current = [e.label for e in model.effects]
-    aside: set[str] = set()
-    per_joint: dict = {}  # every order of a joint: one linearisation
-    for sc in scores.ranked:
-        if not scores.eligible(sc):
-            break
-        if sc.label in aside:
-            continue
-        rivals = entry_rivals(scores, current, sc.label)
-        if not rivals and every_order is not None:
-            m, r, split, carry, say = every_order
-            rivals = order_rivals(m, r, split, carry, sc.label, say, per_joint)
-        if not rivals:
-            return sc, aside
-        ambiguous += unresolved_entry(sc.label, rivals, scores.margin)
-        aside |= {sc.label, *rivals}
-    return None, aside
-
-
-def _why_stop(scores, aside: set[str]) -> str:
-    """Why the search stopped with candidates left (``aside``: unresolved orders)."""
-    best = scores.ranked[0]
-    if aside:
-        return (
-            "every significant candidate that gains the practical margin on the blocked "
-            "hold-out is a cyclic order that other orders predict as well (see ambiguous)"
-        )
-    if best.p >= scores.threshold:
-        return "best remaining candidate is not significant"
-    sig = [s.label for s in scores.scored if s.p < scores.threshold]
-    top = max(sig, key=lambda s: scores.carry.get(s, 0.0))
-    gain, se = scores.carry.get(top, 0.0), scores.carry_se.get(top, 0.0)
-    return (
-        "no significant candidate gains the practical margin and its own standard "
-        f"error over the blocks on the blocked hold-out (best {gain:.3g} mm, standard "
-        f"error {se:.3g} mm, margin {scores.margin:.3g} mm)"
-    )
 
 
 def _eliminate_blocked(model, res, scores, before, split, steps, say):
@@ -407,42 +360,6 @@ def _eliminate_blocked(model, res, scores, before, split, steps, say):
         )  # fmt: skip
         dropped.add(label)
     return model, res, dropped
-
-
-def _note_cap(model, res, pool, split, tests, limits, steps, say) -> None:
-    """Record (``"capped"`` step) the candidate the search would have tested next when it
-    stopped at ``max_causes`` (:func:`_first_resolved`: significant, gaining the margin,
-    a resolved order): the data carry more than was named. ``tests``: ``(alpha, carry)``;
-    ``limits``: ``(max_causes, screened)``."""
-    (alpha, carry), (max_causes, screened) = tests, limits
-    say(f"{max_causes} causes named (the limit): does the next candidate still carry over?")
-    scores = score_candidates(
-        model, res, pool, split, alpha, False, progress=say, screened=screened, carry=carry
-    )
-    if not scores.scored:
-        return
-    # the candidate the search would have tested next: eligible and, if a cyclic
-    # order, resolved (its unresolved orders were never candidates for a cause)
-    best, _ = _first_resolved(scores, model, [], (model, res, split, carry, say))
-    if best is None:
-        return
-    why = f"not tested: the search stopped at max_causes = {max_causes}"
-    steps.append({**_untested(best, scores, why), "capped": max_causes})
-
-
-def _untested(best, scores, why: str) -> dict:
-    """The step record of a scored candidate that was not refitted."""
-    out = {
-        "candidate": best.label,
-        "score_F": best.F,
-        "score_p": best.p,
-        "threshold": scores.threshold,
-        "accepted": False,
-        "why": why,
-    }
-    if scores.blocked is not None:
-        out.update(carry_record(scores, best.label))
-    return out
 
 
 def _prefixed(say: Callable[[str], None], prefix: str) -> Callable[[str], None]:
