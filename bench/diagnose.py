@@ -211,8 +211,25 @@ def report(r: dict, reference: dict | None) -> None:
         f"          hold-out mean position error: nominal {d['nominal']['position_mm']['mean']:.4f}"
         f" mm -> extended {d['extended']['position_mm']['mean']:.4f} mm"
     )
+    print(f"          {where(d, r['diagnose_s'], r['plain_fit_s'])}")
     if reference is not None:
         print(f"          vs reference: {compare(d, reference)}")
+
+
+def where(d: dict, total: float, plain: float) -> str:
+    """Where a diagnosis' wall time went, from its budget record: the main search (the
+    frames and the forward selection), the optional stages, and the rest (settling,
+    detection limits, exchanges, gains), each against the plain fit."""
+    seconds = dict((d.get("budget") or {}).get("seconds") or {})
+    main = seconds.pop("main search", float("nan"))
+    optional = sum(seconds.values())
+    stages = ", ".join(f"{k} {v:.1f}" for k, v in seconds.items())
+    rest = total - main - optional
+    return (
+        f"time: main search {main:.1f} s ({main / plain:.1f}x the plain fit), optional "
+        f"stages {optional:.1f} s ({stages}), the rest {rest:.1f} s ({rest / plain:.1f}x: "
+        "settling, detection limits, exchanges, gains)"
+    )
 
 
 def main() -> None:
