@@ -6,7 +6,8 @@ process, ``diagnose`` and then the plain fit that ``calibrate --effects DIAG.jso
 makes of the diagnosed causes (frames of the nominal robot, then frames + causes, on
 all rows). Printed per case: both wall times and their ratio, both CPU times and
 theirs (on a shared machine the CPU time is the fairer measure of the work), peak RSS,
-the load average before and after.
+the load average before and after, and where the diagnosis' time went (its budget
+record: the main search, each optional stage, the rest), each against the plain fit.
 
     python bench/diagnose.py                    # RX160, 4,000 rows, 2 hidden effects
     python bench/diagnose.py --case all         # every case below
