@@ -30,9 +30,9 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import tempfile
 import time
-import warnings
 from pathlib import Path
 
 import torch
@@ -56,27 +56,18 @@ from hybrid_pk.calibration.diagnosis.variants import shift_parameters, with_effe
 from hybrid_pk.calibration.fit import fit
 from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.calibration.settings import DiagnosisSettings
-from hybrid_pk.cli.main import main as hybrid_pk_cli
 from hybrid_pk.effects import ExtendedModel, conditions_from_data, make_effect
 from hybrid_pk.effects.joint import CYCLIC_PREFIX
 
-REPO = Path(__file__).resolve().parents[1]
-IPA = REPO.parent / "shared" / "data" / "ipa-ur10"
-FILES = ("Series_A/measurements_grid.csv", "Series_B/measurements_joint_configurations.csv")
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from ipa_series import add_data, import_series, read_rows
 
 
-def ur10_series(ipa: Path):
-    """The UR10 robot and both IPA series (imported as ``hybrid-pk import ipa`` does)."""
+def ur10_series(data: Path):
+    """The UR10 robot and both IPA series (``hybrid-pk import ipa``, :mod:`ipa_series`)."""
     robot = hpk.Robot.from_urdf("ur10")
-    out = Path(tempfile.mkdtemp(prefix="linear_rounds_"))
-    files = [ipa / f for f in FILES]
-    argv = ["import", "ipa", *map(str, files), "--out", str(out), "--format", "parquet"]
-    if hybrid_pk_cli(argv) != 0:
-        raise SystemExit("hybrid-pk import ipa failed")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # Series B's std_* columns are not read
-        parts = [hpk.read_table_for(out / f"{f.stem}.parquet", robot) for f in files]
-    return robot, hpk.MeasuredData.concat(parts)
+    paths = import_series(Path(tempfile.mkdtemp(prefix="linear_rounds_")), data, {})
+    return robot, read_rows(list(paths.values()), robot)
 
 
 def columns(scores) -> dict[str, torch.Tensor]:
@@ -173,12 +164,12 @@ def refit_with(model, res, scores, chosen, split):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("--ipa", type=Path, default=IPA, help="IPA UR10 data (Series_A/, Series_B/)")
+    add_data(ap)
     ap.add_argument("--reference", type=Path, help="a diagnosis JSON of the same rows")
     ap.add_argument("--rounds", type=int, default=6, help="at most this many rounds")
     args = ap.parse_args()
     torch.set_num_threads(1)
-    robot, data = ur10_series(args.ipa)
+    robot, data = ur10_series(args.data)
     defaults = DiagnosisSettings()
     cond = conditions_from_data(data, True, robot)
     split = split_campaign(data, cond, defaults.holdout, defaults.seed)
