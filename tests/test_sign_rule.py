@@ -34,8 +34,32 @@ def test_a_negative_play_or_compliance_is_a_finding_a_positive_one_is_not(ur10):
 def test_effects_without_a_sign_rule_keep_both_signs(ur10):
     rng = run_rng("sign-rule-2")
     small = float(rng.uniform(1e-5, 1e-4))
-    for label in ("joint_offset:elbow_joint", "gear_ratio:wrist_2_joint", "thermal_expansion"):
+    for label in ("joint_offset:elbow_joint", "gear_ratio:wrist_2_joint"):
         assert implausibility(hpk.make_effect(ur10, label, -small), ur10) is None, label
+
+
+def test_a_robot_that_shrinks_as_it_warms_beyond_any_structure_is_a_finding(ur10):
+    """A thermal expansion keeps a carbon-fibre laminate's slightly negative coefficient
+    (floor -2e-6 1/K) and a value within three std of that floor; below, it is refused
+    like a negative play. Before, a 300-row position-only part of the shared UR10's
+    Series A (0.6 K of temperature span) named ``thermal_expansion = -2.2e-4 +- 2.6e-5
+    1/K`` as a cause, with a warning only."""
+    rng = run_rng("sign-rule-thermal")
+    floor = type(hpk.make_effect(ur10, "thermal_expansion")).floor
+    assert -1e-5 < floor < 0  # slightly negative: a laminate, not a shrinking robot
+    laminate = float(rng.uniform(floor, 0.0))
+    assert implausibility(hpk.make_effect(ur10, "thermal_expansion", laminate), ur10) is None
+    sd = float(rng.uniform(1e-6, 3e-5))
+    for k, refused in ((1.0, False), (2.9, False), (3.1, True), (9.0, True)):
+        alpha = floor - k * sd
+        why = implausibility(hpk.make_effect(ur10, "thermal_expansion", alpha), ur10, std=[sd])
+        assert (why is not None) == refused, (k, why)
+        if refused:
+            assert why["cause"] == "thermal_expansion"
+            assert why["limit"] == floor
+            assert "shrinks as it warms" in why["why"]
+    big = float(rng.uniform(1e-4, 4e-4))  # positive, beyond any metal: warned, not refused
+    assert implausibility(hpk.make_effect(ur10, "thermal_expansion", big), ur10) is None
 
 
 def test_a_component_within_three_std_of_zero_is_zero_not_a_negative_finding(ur10):

@@ -90,7 +90,10 @@ class Effect(nn.Module):
         joints: the joints it may sit on (:data:`JointRule`); ``"none"`` for an effect
             that is not per joint.
         positive: its physical sign rule: True where a negative value is not physical
-            (play, compliance), so simulation draws it >= 0 and the diagnosis warns.
+            (play, compliance), so simulation draws it >= 0 and the diagnosis refuses
+            a value below zero (:meth:`refused`, which an effect may widen).
+        floor: the least value a component may take under that rule or an effect's own
+            :meth:`refused` (0; a thermal expansion's most negative structure).
         limit: largest credible norm of ``value`` [its unit] (None: depends on the loads
             or the data); :func:`~hybrid_pk.effects.limits.effect_limit` adapts it to a
             prismatic joint.
@@ -123,6 +126,7 @@ class Effect(nn.Module):
     joint_set: ClassVar[str] = "robot"
     joints: ClassVar[JointRule] = "any"
     positive: ClassVar[bool] = False
+    floor: ClassVar[float] = 0.0
     limit: ClassVar[float | None] = None
     drawn: ClassVar[float | None] = None
     unplannable: ClassVar[str | None] = None
@@ -136,25 +140,33 @@ class Effect(nn.Module):
     description: ClassVar[str] = ""
 
     @classmethod
-    def implausible(cls, value: float | list[float], std=None) -> list[str]:
-        """Why a fitted ``value`` (as reported) is not physically credible; empty where
-        it is. The base rule: a ``positive`` effect below zero (:meth:`below_zero`;
-        ``std``: the value's standard deviation, as reported, where the fit gave one)."""
-        if cls.positive and cls.below_zero(value, std):
+    def refused(cls, value: float | list[float], std=None) -> list[str]:
+        """Why a fitted ``value`` (as reported) cannot be this effect at all, whatever
+        its size; empty where it can. The diagnosis refuses such a candidate at its
+        refit, takes out a cause a later refit carries there, and lists either as a
+        structural finding. The base rule: a ``positive`` effect below zero
+        (:meth:`below_zero`; ``std``: the value's standard deviation, as reported,
+        where the fit gave one)."""
+        if cls.positive and cls.below_zero(value, std, cls.floor):
             return [
                 f"negative {cls.kind} ({value:.3g} {cls.unit}{sds_below(value, std)}) is not "
                 "physical: it likely absorbs another, unmodelled error"
             ]
         return []
 
+    @classmethod
+    def implausible(cls, value: float | list[float], std=None) -> list[str]:
+        """Why a fitted ``value`` (as reported) is not physically credible, the warnings
+        of a named cause; empty where it is. The base rule: what :meth:`refused` says."""
+        return cls.refused(value, std)
+
     @staticmethod
-    def below_zero(value: float | list[float], std=None) -> bool:
-        """Whether a component of ``value`` is below zero: by more than
-        :data:`SIGN_SIGMAS` of its standard deviation where ``std`` gives it (finite),
-        else at all."""
-        return any(
-            v < -SIGN_SIGMAS * s for v, s in zip(_listed(value), _sds(value, std), strict=True)
-        )
+    def below_zero(value: float | list[float], std=None, floor: float = 0.0) -> bool:
+        """Whether a component of ``value`` is below ``floor`` (default zero): by more
+        than :data:`SIGN_SIGMAS` of its standard deviation where ``std`` gives it
+        (finite), else at all."""
+        sds = _sds(value, std)
+        return any(v < floor - SIGN_SIGMAS * s for v, s in zip(_listed(value), sds, strict=True))
 
     @classmethod
     def allowed_on(cls, joint_type: str) -> bool:

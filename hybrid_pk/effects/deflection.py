@@ -93,7 +93,7 @@ class DeflectionEffect(Effect):
         self.register_buffer("basis", perpendicular_basis(axis))  # (2, 3)
 
     @classmethod
-    def implausible(cls, value: float | list[float], std=None) -> list[str]:
+    def refused(cls, value: float | list[float], std=None) -> list[str]:
         if not cls.below_zero(value, std):
             return []
         shown = ", ".join(f"{v:.3g}" for v in value)

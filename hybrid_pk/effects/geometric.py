@@ -18,7 +18,7 @@ import math
 
 import torch
 
-from hybrid_pk.effects.base import Effect, register
+from hybrid_pk.effects.base import Effect, register, sds_below
 from hybrid_pk.effects.conditions import Conditions
 from hybrid_pk.effects.limits import MAX_ROTATION_DEG, MAX_TRANSLATION_M, WARNED_TRANSLATION_M
 from hybrid_pk.errors import HybridPKError
@@ -130,6 +130,10 @@ class AxisMisalignment(Effect):
 # Largest credible linear expansion coefficient [1/K]: structural metals are 1e-5..2.5e-5,
 # polymers reach ~1e-4.
 MAX_CREDIBLE_EXPANSION = 5e-5
+# Most negative one [1/K]: twice that of the only structures that shrink as they warm,
+# carbon-fibre laminates along the fibre (-0.5e-6 .. -1e-6 1/K); a laser tracker's
+# uncompensated air refraction scales its distances by ~1e-6 1/K, inside the same range.
+MIN_CREDIBLE_EXPANSION = -2e-6
 
 
 @register
@@ -139,7 +143,7 @@ class ThermalExpansion(Effect):
     # ten times the largest credible coefficient (five times a polymer's): beyond it a
     # fit stands in for something else (a wrong URDF, rows of another robot), as the
     # other effects' limits do at ten times their credible sizes
-    limit = 10 * MAX_CREDIBLE_EXPANSION
+    limit, floor = 10 * MAX_CREDIBLE_EXPANSION, MIN_CREDIBLE_EXPANSION
     equation = "link translations × (1 + α (T − T_ref)), T_ref = 20 °C"
     description = "all link translations × (1 + α(T − 20 °C))"
     unplannable = (
@@ -147,13 +151,28 @@ class ThermalExpansion(Effect):
     )
 
     @classmethod
+    def refused(cls, value: float | list[float], std=None) -> list[str]:
+        """A robot that shrinks as it warms by more than any structure does (below
+        ``floor`` by more than ``SIGN_SIGMAS`` of its std): the coefficient then
+        stands in for something else that changes with the temperature, e.g. the
+        instrument drifting over the hours the room warmed."""
+        if not cls.below_zero(value, std, cls.floor):
+            return []
+        alpha = float(value)  # type: ignore[arg-type]
+        return [
+            f"alpha = {alpha:.3g} 1/K{sds_below(value, std)} is not a thermal expansion: no "
+            f"structure shrinks as it warms by more than {-cls.floor:.0e} 1/K; it likely "
+            "absorbs an error that drifts with time or temperature (the instrument, the set-up)"
+        ]
+
+    @classmethod
     def implausible(cls, value: float | list[float], std=None) -> list[str]:
         alpha = float(value)  # type: ignore[arg-type]
-        if 0 <= alpha <= MAX_CREDIBLE_EXPANSION:
+        if cls.floor <= alpha <= MAX_CREDIBLE_EXPANSION:
             return []
-        return [
+        return cls.refused(value, std) or [
             f"alpha = {alpha:.3g} 1/K is outside any structural material "
-            f"(0 .. {MAX_CREDIBLE_EXPANSION:.0e})"
+            f"({cls.floor:.0e} .. {MAX_CREDIBLE_EXPANSION:.0e})"
         ]
 
     def apply_params(self, params: KinematicParams, cond: Conditions) -> KinematicParams:

@@ -159,22 +159,22 @@ def effect_std(res, label: str):
 
 
 def _wrong_sign(effect: Effect, std=None) -> dict | None:
-    """The finding of an effect whose physics fixes its sign (``positive``: a play, a
-    compliance, a bend under load) fitted below zero: its class's own sign rule
-    (:meth:`Effect.implausible`), which the warnings state too. A load cannot bend a
-    structure towards itself, nor a play be negative, so a significant negative value
-    measures something else the effect absorbs, whatever its size; one within
+    """The finding of an effect whose physics fixes its sign, fitted beyond it: its
+    class's own rule (:meth:`Effect.refused`), which the warnings state too. A load
+    cannot bend a structure towards itself, nor a play be negative (``positive``
+    effects: a play, a compliance, a bend under load), nor a robot shrink as it warms
+    by more than any structure does (thermal expansion), so a value significantly
+    beyond measures something else the effect absorbs, whatever its size; one within
     :data:`~hybrid_pk.effects.base.SIGN_SIGMAS` of its ``std`` (where the fit gave
-    one) is zero as far as the rows can tell (a component the data barely determine,
-    next to one they do)."""
-    if not type(effect).positive:
-        return None
+    one) is not beyond as far as the rows can tell (a component the data barely
+    determine, next to one they do)."""
     v = effect.value.detach().reshape(-1)
     value = float(v[0]) if v.numel() == 1 else [float(x) for x in v]
-    reasons = type(effect).implausible(value, std)
+    reasons = type(effect).refused(value, std)
     if not reasons:
         return None
-    return finding_entry(effect.label, float(v.min()), 0.0, effect.unit, "; ".join(reasons))
+    floor = type(effect).floor
+    return finding_entry(effect.label, float(v.min()), floor, effect.unit, "; ".join(reasons))
 
 
 def refusal_why(implausible: dict) -> str:
