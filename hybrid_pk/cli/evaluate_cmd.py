@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from hybrid_pk.calibration.settings import FitSettings
+from hybrid_pk.calibration.setups import setups_text
 from hybrid_pk.cli.common import (
     frame_parameter_count,
     frame_sets_for,
@@ -98,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
         if args.json:
             write_json(args.json, res.summary)
 
-    _print_summary(args, res.loaded, robot, data, res.position, res.orientation)
+    _print_summary(args, res.loaded, robot, data, (res.position, res.orientation, res.setups_mm))
     if res.frame_fit is not None:  # as calibrate --refit: the mounting the fitted base implies
         lines = mounting_lines(res.loaded.model, check=False) + fit_lines(data, res.frame_fit)
         if loaded.frames_fitted:
@@ -112,7 +113,10 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _print_summary(args, loaded, robot, data, position, orientation) -> None:
+def _print_summary(args, loaded, robot, data, errors) -> None:
+    """The summary lines; ``errors``: ``(position, orientation, setups_mm)`` of
+    :class:`~hybrid_pk.pipelines.evaluation.EvaluationResult`."""
+    position, orientation, setups_mm = errors
     nominal = args.model.startswith(NOMINAL_PREFIX)
     kind = "nominal URDF" if nominal else f"{len(loaded.model.effects)} effect(s)"
     if loaded.has_networks:
@@ -141,8 +145,9 @@ def _print_summary(args, loaded, robot, data, position, orientation) -> None:
             "warning: the model was calibrated on position-only data, so its tool "
             "orientation is unknown and part of the orientation errors; add --fit-frames"
         )
+    setups = None if setups_mm is None else setups_text(len(data.sources), setups_mm)
     for line in (
-        gross_warning(args.model, float(position.mean()), bool(args.fit_frames)),
+        gross_warning(args.model, float(position.mean()), bool(args.fit_frames), cause=setups),
         fitted_on_note(args.model, loaded.metadata, data.sources),
     ):
         if line:

@@ -18,10 +18,11 @@ from dataclasses import dataclass
 
 from hybrid_pk.calibration.diagnosis import Diagnosis, diagnose
 from hybrid_pk.calibration.diagnosis.result import cause_labels
-from hybrid_pk.calibration.fit import FitResult, fit
+from hybrid_pk.calibration.fit import FitResult, fit, model_errors
 from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.calibration.settings import DiagnosisSettings
+from hybrid_pk.calibration.setups import check_one_setup
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import (
     Conditions,
@@ -133,6 +134,10 @@ def calibrate(
     stage("fitting frames to the nominal robot")
     nominal = ExtendedModel(robot, frame_sets=sets, gravity=gravity)
     res0 = refit_frames(nominal, data, cond, priors=priors, robust=robust)
+    if not frames_per_file:  # files of separate set-ups with one frame set: refused
+        shared = float(model_errors(nominal, data, cond)[0].mean())
+        fitted = {"priors": priors, "robust": robust, "gravity": gravity}
+        check_one_setup(robot, (data, cond), (data, cond), shared, **fitted)
     stage("fitting frames and effects")
     initialise_with_priors(model, data, cond, priors)
     res = fit(model, data, cond=cond, frames=priors, robust=robust, weights=res0.weights)

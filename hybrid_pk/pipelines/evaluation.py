@@ -18,6 +18,7 @@ from torch import Tensor
 
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.calibration.frames import FramePriors
+from hybrid_pk.calibration.setups import separate_setups
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data
 from hybrid_pk.evaluation.metrics import evaluate_json, row_errors
@@ -45,6 +46,9 @@ class EvaluationResult:
             ``networks`` for a file with residual networks: :func:`networks_summary`).
         frame_fit: the frames' fit (None without ``fit_frames``).
         report: the report written (None without ``report``).
+        setups_mm: with ``fit_frames``, one frame set and several files: each file's own
+            frames' mean error [mm] where that shows the files to be separate set-ups
+            (:func:`~hybrid_pk.calibration.setups.separate_setups`); else None.
     """
 
     loaded: LoadedModel
@@ -54,6 +58,7 @@ class EvaluationResult:
     summary: dict
     frame_fit: FitResult | None = None
     report: Path | None = None
+    setups_mm: float | None = None
 
 
 def evaluate_model(
@@ -99,6 +104,11 @@ def evaluate_model(
     stage("predicting")
     T = predict_poses(loaded, data, cond)
     position, orientation = row_errors(T, data)
+    setups = None
+    if fit_frames and sets == 1:  # files of separate set-ups fitted with one frame set?
+        fitted = {"priors": priors, "robust": robust, "gravity": loaded.model.gravity}
+        shared = float(position.mean())
+        setups = separate_setups(loaded.model.robot, (data, cond), (data, cond), shared, **fitted)
     summary = evaluate_json(data.n, position, orientation)
     if loaded.has_networks:
         summary["networks"] = networks_summary(loaded)
@@ -107,7 +117,7 @@ def evaluate_model(
         stage("writing the report")
         nominal = model_label.startswith(NOMINAL_PREFIX) and fit_frames
         written = _report(report, model_label, loaded, data, cond, sets, T, nominal)
-    return EvaluationResult(loaded, T, position, orientation, summary, frame_fit, written)
+    return EvaluationResult(loaded, T, position, orientation, summary, frame_fit, written, setups)
 
 
 def networks_summary(loaded: LoadedModel) -> dict:

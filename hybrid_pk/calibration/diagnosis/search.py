@@ -72,6 +72,7 @@ from hybrid_pk.calibration.fit import FitResult, fit, model_errors
 from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.calibration.settings import DiagnosisSettings
+from hybrid_pk.calibration.setups import check_one_setup
 from hybrid_pk.calibration.tuning import DiagnosisTuning, diagnosis_tuning, tuned
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import ExtendedModel, Gravity, conditions_from_data, make_effect
@@ -137,7 +138,7 @@ def diagnose(
     res = _fit_frames(model, split, frames, robust, say)
     frame_json = None if res.frame_report is None else res.frame_report.to_json()
     nominal_model = with_effects(model)
-    nominal = stats_json(*model_errors(model, split.test, split.cond_hold))
+    nominal = _nominal_errors(model, split, frames_per_file, (frames, robust))
 
     pool = _pool(robot, data, candidates)
     flagged: list[dict] = []
@@ -206,6 +207,20 @@ def _fit_frames(model: ExtendedModel, split, frames, robust, say) -> FitResult:
         model, split.train, cond=split.cond_fit, progress=_prefixed(say, "frames"),
         frames=frames, robust=robust,
     )  # fmt: skip
+
+
+def _nominal_errors(model: ExtendedModel, split, frames_per_file: bool, fitted) -> dict:
+    """The nominal model's hold-out errors (JSON), after refusing files of separate
+    set-ups fitted with one frame set (:func:`~.setups.check_one_setup` of
+    :mod:`hybrid_pk.calibration`). ``fitted``: the frame fit's ``(priors, robust)``."""
+    nominal = stats_json(*model_errors(model, split.test, split.cond_hold))
+    if not frames_per_file:
+        check_one_setup(
+            model.robot, (split.train, split.cond_fit), (split.test, split.cond_hold),
+            nominal["position_mm"]["mean"], priors=fitted[0], robust=fitted[1],
+            gravity=model.gravity,
+        )  # fmt: skip
+    return nominal
 
 
 def _warnings(causes, data: MeasuredData, steps, robot: Robot, budget: Budget) -> list[str]:
