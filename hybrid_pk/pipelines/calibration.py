@@ -16,6 +16,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
+from hybrid_pk.calibration.conventions import check_orientation_convention
 from hybrid_pk.calibration.diagnosis import Diagnosis, diagnose
 from hybrid_pk.calibration.diagnosis.result import cause_labels
 from hybrid_pk.calibration.fit import FitResult, fit, model_errors
@@ -134,14 +135,25 @@ def calibrate(
     stage("fitting frames to the nominal robot")
     nominal = ExtendedModel(robot, frame_sets=sets, gravity=gravity)
     res0 = refit_frames(nominal, data, cond, priors=priors, robust=robust)
-    if not frames_per_file:  # files of separate set-ups with one frame set: refused
-        shared = float(model_errors(nominal, data, cond)[0].mean())
-        fitted = {"priors": priors, "robust": robust, "gravity": gravity}
-        check_one_setup(robot, (data, cond), (data, cond), shared, **fitted)
+    _check_rows(nominal, data, cond, {"priors": priors, "robust": robust, "gravity": gravity})
     stage("fitting frames and effects")
     initialise_with_priors(model, data, cond, priors)
     res = fit(model, data, cond=cond, frames=priors, robust=robust, weights=res0.weights)
     return CalibrationResult(model, nominal, res, res0, list(labels), diag, cond)
+
+
+def _check_rows(nominal: ExtendedModel, data: MeasuredData, cond, fitted: dict) -> None:
+    """Refuse files of separate set-ups given one frame set and quaternions in another
+    convention (:func:`~hybrid_pk.calibration.setups.check_one_setup`,
+    :func:`~hybrid_pk.calibration.conventions.check_orientation_convention`), judged
+    on the rows ``nominal``'s frames were fitted to; ``fitted``: that fit's keywords."""
+    position, orientation = model_errors(nominal, data, cond)
+    rows, sets = (data, cond), nominal.base.sets
+    if sets == 1:
+        check_one_setup(nominal.robot, rows, rows, float(position.mean()), **fitted)
+    if orientation is not None:
+        given = float(orientation.mean())
+        check_orientation_convention(nominal.robot, rows, rows, given, sets, **fitted)
 
 
 def diagnose_and_calibrate(robot: Robot, data: MeasuredData, **options) -> CalibrationResult:

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from hybrid_pk.calibration.conventions import check_orientation_convention
 from hybrid_pk.calibration.diagnosis.ambiguity import correlated_groups, near_duplicates
 from hybrid_pk.calibration.diagnosis.budget import Budget
 from hybrid_pk.calibration.diagnosis.carryover import Carry, weakest
@@ -211,15 +212,18 @@ def _fit_frames(model: ExtendedModel, split, frames, robust, say) -> FitResult:
 
 def _nominal_errors(model: ExtendedModel, split, frames_per_file: bool, fitted) -> dict:
     """The nominal model's hold-out errors (JSON), after refusing files of separate
-    set-ups fitted with one frame set (:func:`~.setups.check_one_setup` of
-    :mod:`hybrid_pk.calibration`). ``fitted``: the frame fit's ``(priors, robust)``."""
+    set-ups fitted with one frame set and quaternions in another convention
+    (:func:`~hybrid_pk.calibration.setups.check_one_setup`,
+    :func:`~hybrid_pk.calibration.conventions.check_orientation_convention`).
+    ``fitted``: the frame fit's ``(priors, robust)``."""
     nominal = stats_json(*model_errors(model, split.test, split.cond_hold))
+    rows, judged = (split.train, split.cond_fit), (split.test, split.cond_hold)
+    kw = {"priors": fitted[0], "robust": fitted[1], "gravity": model.gravity}
     if not frames_per_file:
-        check_one_setup(
-            model.robot, (split.train, split.cond_fit), (split.test, split.cond_hold),
-            nominal["position_mm"]["mean"], priors=fitted[0], robust=fitted[1],
-            gravity=model.gravity,
-        )  # fmt: skip
+        check_one_setup(model.robot, rows, judged, nominal["position_mm"]["mean"], **kw)
+    if nominal["orientation_deg"] is not None:
+        given, sets = nominal["orientation_deg"]["mean"], model.base.sets
+        check_orientation_convention(model.robot, rows, judged, given, sets, **kw)
     return nominal
 
 

@@ -1,0 +1,115 @@
+"""Measured orientations written in another convention than the table's.
+
+The table's ``qw qx qy qz`` is the unit quaternion that turns the measurement frame into
+the measured frame (contract section 1). Exports differ: some write the inverse (the
+measurement frame seen from the target), some the order ``x y z w`` under the same
+column names. Either is still a unit quaternion, so no column check sees it; after the
+frame fit the orientations then miss by tens of degrees (178.7° and 156.3° on 400 rows
+of the shared UR10's Series B, the position error 12.8 mm instead of 1.3 mm where the
+fit traded the two), and the diagnosis named nothing without a word about why.
+
+:func:`check_orientation_convention` tells that apart from a robot that is wrong: where
+the frame fit leaves an orientation error beyond what a small correction can make
+(:data:`~hybrid_pk.effects.limits.MAX_ROTATION_DEG`) and one of the other readings
+leaves less, the quaternions are in that convention; it stops before any effect is
+fitted, naming the reading and what to do.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import torch
+from torch import Tensor
+
+from hybrid_pk.calibration.fit import fit
+from hybrid_pk.calibration.frames import FramePriors
+from hybrid_pk.calibration.known_frames import initialise_with_priors
+from hybrid_pk.calibration.poses import model_errors
+from hybrid_pk.data.measured import MeasuredData
+from hybrid_pk.effects import Conditions, ExtendedModel, Gravity
+from hybrid_pk.effects.limits import MAX_ROTATION_DEG
+from hybrid_pk.errors import HybridPKError
+from hybrid_pk.robot import Robot
+
+__all__ = ["READINGS", "check_orientation_convention"]
+
+
+def _inverse(q: Tensor) -> Tensor:
+    return q * q.new_tensor([1.0, -1.0, -1.0, -1.0])
+
+
+def _xyzw(q: Tensor) -> Tensor:
+    return q[:, [3, 0, 1, 2]]  # the columns qw qx qy qz hold x y z w
+
+
+# The other readings of a table's quaternions: (what the table then holds, the quaternion
+# of the contract from the columns as read).
+READINGS = (
+    ("their inverse (qw, -qx, -qy, -qz)", _inverse),
+    ("the order x y z w under the columns qw qx qy qz", _xyzw),
+    ("the inverse in the order x y z w", lambda q: _inverse(_xyzw(q))),
+)
+
+
+def check_orientation_convention(
+    robot: Robot,
+    rows: tuple[MeasuredData, Conditions],
+    judged: tuple[MeasuredData, Conditions],
+    given_deg: float,
+    frame_sets: int,
+    *,
+    priors: FramePriors | None = None,
+    robust: str | None = None,
+    gravity: Gravity | None = None,
+) -> None:
+    """Refuse quaternions written in another convention.
+
+    Args:
+        robot: the nominal robot.
+        rows: the rows the nominal model's frames were fitted to, and their conditions.
+        judged: the rows its errors are judged on (the hold-out, or the same rows).
+        given_deg: its mean orientation error [deg] there, the quaternions as given.
+        frame_sets: base/tool frame sets of that fit; ``priors``, ``robust``,
+            ``gravity``: as it had them.
+
+    Raises:
+        HybridPKError: where ``given_deg`` is beyond :data:`MAX_ROTATION_DEG` and the
+            frames fitted to one of :data:`READINGS` leave less (the best one is named,
+            with both errors). Nothing is checked without orientations.
+    """
+    (data, cond), (test, cond_test) = rows, judged
+    if data.quat is None or test.quat is None:
+        return
+    if not given_deg > MAX_ROTATION_DEG:
+        return
+    fitted = (frame_sets, priors, robust, gravity)
+    best = None
+    for text, read in READINGS:
+        other = _orientation_error(
+            robot, (replace(data, quat=read(data.quat)), cond),
+            (replace(test, quat=read(test.quat)), cond_test), fitted,
+        )  # fmt: skip
+        if other <= MAX_ROTATION_DEG and (best is None or other < best[1]):
+            best = (text, other)
+    if best is None:
+        return  # not a convention: the robot or the rows are wrong (the gross warnings)
+    raise HybridPKError(
+        f"the measured orientations miss by {given_deg:.4g}° (mean) after the frame fit, "
+        f"beyond what a small correction makes ({MAX_ROTATION_DEG:g}°); read as "
+        f"{best[0]} they miss by {best[1]:.3g}°: the table's qw qx qy qz must turn the "
+        "measurement frame into the measured frame (contract section 1); convert them, "
+        "or leave them out for a position-only diagnosis"
+    )
+
+
+def _orientation_error(robot: Robot, rows, judged, fitted) -> float:
+    """Mean orientation error [deg] on ``judged`` of the nominal model's frames fitted
+    to ``rows``; ``fitted``: ``(frame_sets, priors, robust, gravity)``."""
+    (data, cond), (test, cond_test) = rows, judged
+    sets, priors, robust, gravity = fitted
+    model = ExtendedModel(robot, frame_sets=sets, gravity=gravity)
+    initialise_with_priors(model, data, cond, priors)
+    fit(model, data, cond=cond, frames=priors, robust=robust)
+    with torch.no_grad():
+        return float(model_errors(model, test, cond_test)[1].mean())
