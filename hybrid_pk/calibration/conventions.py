@@ -5,7 +5,7 @@ the measured frame (contract section 1). Exports differ: some write the inverse 
 measurement frame seen from the target), some the order ``x y z w`` under the same
 column names. Either is still a unit quaternion, so no column check sees it; after the
 frame fit the orientations then miss by tens of degrees (178.7° and 156.3° on 400 rows
-of the shared UR10's Series B, the position error 12.8 mm instead of 1.3 mm where the
+of the shared UR10's Series B, the position error 12.8 mm instead of 1.0 mm where the
 fit traded the two), and the diagnosis named nothing without a word about why.
 
 :func:`check_orientation_convention` tells that apart from a robot that is wrong: where
