@@ -14,13 +14,12 @@ import pytest
 import torch
 
 from hybrid_pk.calibration.diagnosis import diagnose
+from hybrid_pk.calibration.diagnosis.frame_share import determined_part, frame_share
 from hybrid_pk.calibration.diagnosis.plausibility import implausibility
 from hybrid_pk.calibration.diagnosis.split import split_campaign
 from hybrid_pk.calibration.diagnosis.structural import (
     MAX_ROTATION_DEG,
     MAX_TRANSLATION_M,
-    determined_part,
-    frame_share,
     locate_structural_error,
 )
 from hybrid_pk.calibration.fit import fit

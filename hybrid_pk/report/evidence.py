@@ -48,8 +48,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from hybrid_pk.calibration.diagnosis.frame_share import off_frames
 from hybrid_pk.calibration.diagnosis.statistics import equivalent_angle_error
-from hybrid_pk.calibration.diagnosis.structural import off_frames
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data, make_effect
 from hybrid_pk.effects.geometric import REFERENCE_TEMPERATURE
