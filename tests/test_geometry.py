@@ -23,7 +23,13 @@ from hybrid_pk.geometry import (
     transform,
     transform_inverse,
 )
-from tests.helpers import BATCH_SHAPES, assert_quats_close, assert_transforms_close, check_gradients
+from tests.helpers import (
+    BATCH_SHAPES,
+    assert_quats_close,
+    assert_transforms_close,
+    check_gradients,
+    run_rng,
+)
 
 DTYPES = [torch.float32, torch.float64]
 # Loose enough for float32 round-off through a few 3x3 products, tight for float64.
@@ -470,3 +476,22 @@ def test_check_gradients_catches_wrong_and_missing_gradients() -> None:
     with pytest.raises(AssertionError, match="input 1"):
         check_gradients(lambda a, b: a + 0 * b.detach(), x, y)
     check_gradients(lambda a, b: a * b, x, y, gradgrad=True)
+
+
+def test_twist_swing_takes_a_rotation_apart_about_an_axis():
+    """``R = exp(s u) exp(t a)`` with ``u`` perpendicular to ``a``: the twist about ``a``
+    is ``t`` and the swing ``s``, for random axes and angles over their whole ranges."""
+    from hybrid_pk.geometry import twist_swing
+
+    gen = torch.Generator().manual_seed(int(run_rng("twist-swing").integers(1 << 31)))
+    for _ in range(200):
+        a = torch.randn(3, generator=gen, dtype=torch.float64)
+        a = a / a.norm()
+        u = torch.linalg.cross(a, torch.randn(3, generator=gen, dtype=torch.float64))
+        u = u / u.norm()
+        t = (2 * torch.rand((), generator=gen, dtype=torch.float64) - 1) * math.pi * 0.999
+        s = torch.rand((), generator=gen, dtype=torch.float64) * math.pi * 0.999
+        R = so3_exp(u * s) @ so3_exp(a * t)
+        twist, swing = twist_swing(R, a)
+        assert float(twist) == pytest.approx(float(t), abs=1e-9)
+        assert float(swing) == pytest.approx(float(s), abs=1e-7)

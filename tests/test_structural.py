@@ -144,6 +144,9 @@ def test_an_arm_mounted_turned_by_90_degrees_gets_the_structural_message(tmp_pat
     assert structural["structurally_wrong"]
     assert structural["location"]["joint"] == "joint_2"
     assert structural["location"]["holdout_mean_mm_after"] < 0.2  # [mm], noise level
+    # the turret turns the arm about the vertical, not about joint_2's own axis (y)
+    assert structural["location"]["joint_zero_deg"] is None
+    assert "its zero is off" not in out
     assert doc["nominal"]["position_mm"]["mean"] > 100.0
     assert "causes: withheld, the URDF looks structurally wrong" in out
     assert "structural: the URDF looks structurally wrong at joint_2" in out
@@ -172,6 +175,9 @@ def test_a_large_joint_offset_is_reported_as_a_wrong_urdf_not_as_a_cause(rx160):
     assert location["joint"] == "joint_3"
     assert location["rotation_deg"] == pytest.approx(math.degrees(0.2), rel=0.02)
     assert abs(location["rotation_axis"][1]) > 0.99  # about joint 3's own axis (y)
+    # so it is joint 3's zero: the commanded values lack the 0.2 rad the campaign added
+    assert location["joint_zero_deg"] == pytest.approx(math.degrees(0.2), rel=0.02)
+    assert "its zero is off by +11.46° " in structural["message"], structural["message"]
 
 
 def test_the_evidence_plot_of_a_link_length_shows_its_physical_signature(rx160):
@@ -260,3 +266,5 @@ def test_an_offset_is_named_at_its_joint_not_as_the_next_joints_turn_and_move(rx
     # an offset moves no origin: 0.02-0.6 mm at seeds 1-8, 141414, 424242 (0.05 mm noise)
     assert found["translation_mm"] < 1.0, (offset, found)
     assert abs(found["rotation_deg"] - math.degrees(abs(offset))) < 0.05, (offset, found)
+    # all of it about joint_2's own axis: the joint's zero, with the offset's sign
+    assert abs(found["joint_zero_deg"] - math.degrees(offset)) < 0.05, (offset, found)

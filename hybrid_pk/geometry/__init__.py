@@ -16,6 +16,7 @@ from hybrid_pk.geometry.rotations import so3_left_jacobian as so3_left_jacobian
 from hybrid_pk.geometry.rotations import so3_log as so3_log
 from hybrid_pk.geometry.rotations import transform as transform
 from hybrid_pk.geometry.rotations import transform_inverse as transform_inverse
+from hybrid_pk.geometry.rotations import twist_swing as twist_swing
 from hybrid_pk.geometry.rotations import vee_antisym as vee_antisym
 from hybrid_pk.geometry.shapes import broadcast_shapes as broadcast_shapes
 

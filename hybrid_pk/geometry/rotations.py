@@ -9,6 +9,7 @@ the identity and at rotations of pi (the two places naive formulas divide by zer
 from __future__ import annotations
 
 import functools
+import math
 
 import torch
 from torch import Tensor
@@ -29,6 +30,7 @@ __all__ = [
     "so3_log",
     "transform",
     "transform_inverse",
+    "twist_swing",
     "vee_antisym",
 ]
 
@@ -214,6 +216,18 @@ def matrix_to_quat(R: Tensor) -> Tensor:
     q = q[..., 0, :]
     q = q / q.norm(dim=-1, keepdim=True)
     return torch.where(q[..., :1] < 0, -q, q)
+
+
+def twist_swing(R: Tensor, axis: Tensor) -> tuple[Tensor, Tensor]:
+    """Angles [rad] of the swing-twist decomposition ``R = swing @ twist`` about the unit
+    ``axis (3,)``: ``twist`` turns about the axis (in (-pi, pi]), ``swing`` about an
+    axis perpendicular to it (in [0, pi]). From the quaternion ``(w, v)``:
+    ``twist = 2 atan2(v . axis, w)``, ``swing = 2 acos(|(w, (v . axis) axis)|)``."""
+    q = matrix_to_quat(R)
+    w, p = q[..., 0], (q[..., 1:] * axis.to(q.dtype)).sum(-1)
+    twist = torch.remainder(2 * torch.atan2(p, w) + math.pi, 2 * math.pi) - math.pi
+    swing = 2 * torch.acos(torch.hypot(w, p).clamp(max=1.0))
+    return twist, swing
 
 
 def transform(R: Tensor, p: Tensor) -> Tensor:

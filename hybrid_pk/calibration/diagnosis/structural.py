@@ -59,7 +59,7 @@ from hybrid_pk.effects.limits import (
     MAX_ROTATION_DEG,
     MAX_TRANSLATION_M,
 )
-from hybrid_pk.geometry import so3_exp, so3_log
+from hybrid_pk.geometry import so3_exp, so3_log, twist_swing
 
 __all__ = [
     "MAX_ROTATION_DEG",
@@ -90,7 +90,17 @@ def _origin_correction(model: ExtendedModel, joint: str, data: MeasuredData, con
     angle = math.degrees(float(rotvec.norm()))
     unit = rotvec / rotvec.norm().clamp_min(1e-300)
     mm = 1e3 * float(dp.norm()) + (1e3 * abs(offset) if prismatic else 0.0)
-    return {"rotation_deg": angle, "rotation_axis": [float(x) for x in unit], "translation_mm": mm}
+    twist, swing = (math.degrees(float(a)) for a in twist_swing(R, axis / axis.norm()))
+    revolute = robot.joint_types[misalignment.joint_index] != "prismatic"
+    # a turn about the joint's own axis beyond a small correction, the rest within one:
+    # the joint's zero, not its origin (a controller counting from another zero)
+    zero = revolute and abs(twist) > MAX_ROTATION_DEG and swing <= MAX_ROTATION_DEG
+    return {
+        "rotation_deg": angle,
+        "rotation_axis": [float(x) for x in unit],
+        "translation_mm": mm,
+        "joint_zero_deg": twist if zero else None,
+    }
 
 
 # A direction of a link length whose frame-free displacement is below this fraction of
@@ -248,11 +258,20 @@ _TURNS = tuple(
 
 def _located_words(loc: dict) -> str:
     axis = ", ".join(f"{x:+.2f}" for x in loc["rotation_axis"])
+    zero = loc["joint_zero_deg"]
+    own = (
+        ""
+        if zero is None
+        else f"; that turn is about the joint's own axis but for less than {MAX_ROTATION_DEG:g}°: "
+        f"its zero is off by {zero:+.4g}° (joint values counted from another zero than the "
+        f"URDF's, as a controller's can be, do this: then add {zero:+.4g}° to the "
+        f"{loc['joint']} column)"
+    )
     return (
         f"the URDF looks structurally wrong at {loc['joint']}: its origin would have to "
         f"turn by {loc['rotation_deg']:.3g}° about ({axis}) of the joint frame and move by "
         f"{loc['translation_mm']:.3g} mm, which takes the hold-out mean position error "
-        f"from {loc['holdout_mean_mm_before']:.4g} to {loc['holdout_mean_mm_after']:.4g} mm"
+        f"from {loc['holdout_mean_mm_before']:.4g} to {loc['holdout_mean_mm_after']:.4g} mm{own}"
     )
 
 
