@@ -19,15 +19,9 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-import torch
 from torch import Tensor
 
-from hybrid_pk.calibration.fit import fit
-from hybrid_pk.calibration.frames import FramePriors
-from hybrid_pk.calibration.known_frames import initialise_with_priors
-from hybrid_pk.calibration.poses import model_errors
-from hybrid_pk.data.measured import MeasuredData
-from hybrid_pk.effects import Conditions, ExtendedModel, Gravity
+from hybrid_pk.calibration.setups import FrameFit, Rows
 from hybrid_pk.effects.limits import MAX_ROTATION_DEG
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.robot import Robot
@@ -53,15 +47,7 @@ READINGS = (
 
 
 def check_orientation_convention(
-    robot: Robot,
-    rows: tuple[MeasuredData, Conditions],
-    judged: tuple[MeasuredData, Conditions],
-    given_deg: float,
-    frame_sets: int,
-    *,
-    priors: FramePriors | None = None,
-    robust: str | None = None,
-    gravity: Gravity | None = None,
+    robot: Robot, rows: Rows, judged: Rows, given_deg: float, sets: int, how: FrameFit
 ) -> None:
     """Refuse quaternions written in another convention.
 
@@ -70,8 +56,7 @@ def check_orientation_convention(
         rows: the rows the nominal model's frames were fitted to, and their conditions.
         judged: the rows its errors are judged on (the hold-out, or the same rows).
         given_deg: its mean orientation error [deg] there, the quaternions as given.
-        frame_sets: base/tool frame sets of that fit; ``priors``, ``robust``,
-            ``gravity``: as it had them.
+        sets: base/tool frame sets of that fit; ``how``: how it was made.
 
     Raises:
         HybridPKError: where ``given_deg`` is beyond :data:`MAX_ROTATION_DEG` and the
@@ -83,13 +68,11 @@ def check_orientation_convention(
         return
     if not given_deg > MAX_ROTATION_DEG:
         return
-    fitted = (frame_sets, priors, robust, gravity)
     best = None
     for text, read in READINGS:
-        other = _orientation_error(
-            robot, (replace(data, quat=read(data.quat)), cond),
-            (replace(test, quat=read(test.quat)), cond_test), fitted,
-        )  # fmt: skip
+        read_rows = (replace(data, quat=read(data.quat)), cond)
+        read_judged = (replace(test, quat=read(test.quat)), cond_test)
+        other = float(how.errors(robot, read_rows, read_judged, sets)[1].mean())
         if other <= MAX_ROTATION_DEG and (best is None or other < best[1]):
             best = (text, other)
     if best is None:
@@ -101,15 +84,3 @@ def check_orientation_convention(
         "measurement frame into the measured frame (contract section 1); convert them, "
         "or leave them out for a position-only diagnosis"
     )
-
-
-def _orientation_error(robot: Robot, rows, judged, fitted) -> float:
-    """Mean orientation error [deg] on ``judged`` of the nominal model's frames fitted
-    to ``rows``; ``fitted``: ``(frame_sets, priors, robust, gravity)``."""
-    (data, cond), (test, cond_test) = rows, judged
-    sets, priors, robust, gravity = fitted
-    model = ExtendedModel(robot, frame_sets=sets, gravity=gravity)
-    initialise_with_priors(model, data, cond, priors)
-    fit(model, data, cond=cond, frames=priors, robust=robust)
-    with torch.no_grad():
-        return float(model_errors(model, test, cond_test)[1].mean())

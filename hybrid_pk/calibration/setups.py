@@ -17,7 +17,7 @@ diagnosis and the calibration then stop before any effect is fitted, naming the 
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 from hybrid_pk.calibration.fit import fit
 from hybrid_pk.calibration.frames import FramePriors
@@ -29,24 +29,44 @@ from hybrid_pk.effects import Conditions, ExtendedModel, Gravity
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.robot import Robot
 
-__all__ = ["check_one_setup", "separate_setups", "setups_text"]
+__all__ = ["FrameFit", "check_one_setup", "separate_setups", "setups_text"]
 
 # Residuals per frame parameter a file must give before its own frames are trusted to
 # say "small": two, so that as many residuals are left to judge the fit as it used.
 RESIDUALS_PER_PARAMETER = 2
 
 
+Rows = tuple[MeasuredData, Conditions]  # rows and their conditions
+
+
+@dataclass(frozen=True)
+class FrameFit:
+    """How a nominal model's frames were fitted, so that the checks of this module and
+    of :mod:`.setup_change`, :mod:`.conventions` fit others the same way: the known
+    frames (``--tool``, ``--base``) and frame prior, the robust loss, the mounting."""
+
+    priors: FramePriors | None = None
+    robust: str | None = None
+    gravity: Gravity | None = None
+
+    def errors(self, robot: Robot, rows: Rows, judged: Rows, sets: int = 1):
+        """Per-row position [mm] and orientation [deg] errors (None without
+        orientations) on ``judged`` of the nominal model with ``sets`` frame sets (the
+        groups of the conditions) fitted to ``rows``."""
+        (data, cond), (test, cond_test) = rows, judged
+        model = ExtendedModel(robot, frame_sets=sets, gravity=self.gravity)
+        initialise_with_priors(model, data, cond, self.priors)
+        fit(model, data, cond=cond, frames=self.priors, robust=self.robust)
+        return model_errors(model, test, cond_test)
+
+
 def check_one_setup(
-    robot: Robot,
-    rows: tuple[MeasuredData, Conditions],
-    judged: tuple[MeasuredData, Conditions],
-    shared_mm: float,
-    **fitted,
+    robot: Robot, rows: Rows, judged: Rows, shared_mm: float, how: FrameFit
 ) -> None:
     """Refuse files of separate set-ups fitted with one frame set: where
     :func:`separate_setups` finds them, a :class:`HybridPKError` naming both errors and
     ``--frames-per-file``, before any effect is fitted (the arguments are its)."""
-    own_mm = separate_setups(robot, rows, judged, shared_mm, **fitted)
+    own_mm = separate_setups(robot, rows, judged, shared_mm, how)
     if own_mm is None:
         return
     gross = diagnosis_tuning().gross_error_mm
@@ -67,14 +87,7 @@ def setups_text(files: int, own_mm: float) -> str:
 
 
 def separate_setups(
-    robot: Robot,
-    rows: tuple[MeasuredData, Conditions],
-    judged: tuple[MeasuredData, Conditions],
-    shared_mm: float,
-    *,
-    priors: FramePriors | None = None,
-    robust: str | None = None,
-    gravity: Gravity | None = None,
+    robot: Robot, rows: Rows, judged: Rows, shared_mm: float, how: FrameFit
 ) -> float | None:
     """Each file's own frames' mean position error [mm] where it shows the files to be
     separate set-ups, else None.
@@ -86,7 +99,7 @@ def separate_setups(
             and their conditions.
         shared_mm: mean position error [mm] there of a model with one frame set fitted
             to ``rows``.
-        priors, robust, gravity: as that fit had them.
+        how: how that fit was made.
 
     Returns:
         The error of each file's own frames, fitted the same way, where ``shared_mm`` is
@@ -98,11 +111,9 @@ def separate_setups(
     gross = diagnosis_tuning().gross_error_mm
     if files < 2 or not shared_mm > gross or not _frames_determined(data, files):
         return None
-    model = ExtendedModel(robot, frame_sets=files, gravity=gravity)
-    own = replace(cond, group=data.file_index)
-    initialise_with_priors(model, data, own, priors)
-    fit(model, data, cond=own, frames=priors, robust=robust)
-    own_mm = float(model_errors(model, test, replace(cond_test, group=test.file_index))[0].mean())
+    own = (data, replace(cond, group=data.file_index))
+    position, _ = how.errors(robot, own, (test, replace(cond_test, group=test.file_index)), files)
+    own_mm = float(position.mean())
     return own_mm if own_mm <= gross else None  # else the frames are not what is wrong
 
 

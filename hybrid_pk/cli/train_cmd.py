@@ -9,7 +9,7 @@ from contextlib import contextmanager
 
 import torch
 
-from hybrid_pk.calibration.setups import check_one_setup
+from hybrid_pk.calibration.setups import FrameFit, check_one_setup
 from hybrid_pk.cli.common import frame_parameter_count, frame_sets_for, read_data
 from hybrid_pk.cli.gross import gross_warning
 from hybrid_pk.cli.options import (
@@ -148,7 +148,9 @@ def _prepare(args, loaded, robot, sets: int):
     with torch.no_grad():
         mean_mm = float(pose_error(data.T_measured(), base(data.q, cond)).position_mm.mean())
     if args.fit_frames and sets == 1:  # files of separate set-ups with one frame set: refused
-        check_one_setup(base.robot, (data, cond), (data, cond), mean_mm, gravity=base.gravity)
+        check_one_setup(
+            base.robot, (data, cond), (data, cond), mean_mm, FrameFit(None, None, base.gravity)
+        )
     line = gross_warning(
         "the base model", mean_mm, args.fit_frames, "; the networks would learn that mismatch"
     )

@@ -23,7 +23,8 @@ from hybrid_pk.calibration.fit import FitResult, fit, model_errors
 from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.calibration.settings import DiagnosisSettings
-from hybrid_pk.calibration.setups import check_one_setup
+from hybrid_pk.calibration.setup_change import check_setup_change
+from hybrid_pk.calibration.setups import FrameFit, check_one_setup
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import (
     Conditions,
@@ -135,25 +136,28 @@ def calibrate(
     stage("fitting frames to the nominal robot")
     nominal = ExtendedModel(robot, frame_sets=sets, gravity=gravity)
     res0 = refit_frames(nominal, data, cond, priors=priors, robust=robust)
-    _check_rows(nominal, data, cond, {"priors": priors, "robust": robust, "gravity": gravity})
+    _check_rows(nominal, data, cond, FrameFit(priors, robust, gravity))
     stage("fitting frames and effects")
     initialise_with_priors(model, data, cond, priors)
     res = fit(model, data, cond=cond, frames=priors, robust=robust, weights=res0.weights)
     return CalibrationResult(model, nominal, res, res0, list(labels), diag, cond)
 
 
-def _check_rows(nominal: ExtendedModel, data: MeasuredData, cond, fitted: dict) -> None:
-    """Refuse files of separate set-ups given one frame set and quaternions in another
-    convention (:func:`~hybrid_pk.calibration.setups.check_one_setup`,
+def _check_rows(nominal: ExtendedModel, data: MeasuredData, cond, how: FrameFit) -> None:
+    """Refuse files of separate set-ups given one frame set, a set-up that changed
+    within the rows and quaternions in another convention
+    (:func:`~hybrid_pk.calibration.setups.check_one_setup`,
+    :func:`~hybrid_pk.calibration.setup_change.check_setup_change`,
     :func:`~hybrid_pk.calibration.conventions.check_orientation_convention`), judged
-    on the rows ``nominal``'s frames were fitted to; ``fitted``: that fit's keywords."""
+    on the rows ``nominal``'s frames were fitted to, as ``how`` says."""
     position, orientation = model_errors(nominal, data, cond)
     rows, sets = (data, cond), nominal.base.sets
     if sets == 1:
-        check_one_setup(nominal.robot, rows, rows, float(position.mean()), **fitted)
+        check_one_setup(nominal.robot, rows, rows, float(position.mean()), how)
+    check_setup_change(nominal, data, cond, how)
     if orientation is not None:
         given = float(orientation.mean())
-        check_orientation_convention(nominal.robot, rows, rows, given, sets, **fitted)
+        check_orientation_convention(nominal.robot, rows, rows, given, sets, how)
 
 
 def diagnose_and_calibrate(robot: Robot, data: MeasuredData, **options) -> CalibrationResult:

@@ -18,7 +18,7 @@ from torch import Tensor
 
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.calibration.frames import FramePriors
-from hybrid_pk.calibration.setups import separate_setups
+from hybrid_pk.calibration.setups import FrameFit, separate_setups
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data
 from hybrid_pk.evaluation.metrics import evaluate_json, row_errors
@@ -106,9 +106,8 @@ def evaluate_model(
     position, orientation = row_errors(T, data)
     setups = None
     if fit_frames and sets == 1:  # files of separate set-ups fitted with one frame set?
-        fitted = {"priors": priors, "robust": robust, "gravity": loaded.model.gravity}
-        shared = float(position.mean())
-        setups = separate_setups(loaded.model.robot, (data, cond), (data, cond), shared, **fitted)
+        how, shared = FrameFit(priors, robust, loaded.model.gravity), float(position.mean())
+        setups = separate_setups(loaded.model.robot, (data, cond), (data, cond), shared, how)
     summary = evaluate_json(data.n, position, orientation)
     if loaded.has_networks:
         summary["networks"] = networks_summary(loaded)

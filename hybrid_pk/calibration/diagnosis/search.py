@@ -73,7 +73,8 @@ from hybrid_pk.calibration.fit import FitResult, fit, model_errors
 from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.calibration.settings import DiagnosisSettings
-from hybrid_pk.calibration.setups import check_one_setup
+from hybrid_pk.calibration.setup_change import check_setup_change
+from hybrid_pk.calibration.setups import FrameFit, check_one_setup
 from hybrid_pk.calibration.tuning import DiagnosisTuning, diagnosis_tuning, tuned
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import ExtendedModel, Gravity, conditions_from_data, make_effect
@@ -139,7 +140,7 @@ def diagnose(
     res = _fit_frames(model, split, frames, robust, say)
     frame_json = None if res.frame_report is None else res.frame_report.to_json()
     nominal_model = with_effects(model)
-    nominal = _nominal_errors(model, split, frames_per_file, (frames, robust))
+    nominal = _nominal_errors(model, split, (data, cond, frames_per_file), (frames, robust))
 
     pool = _pool(robot, data, candidates)
     flagged: list[dict] = []
@@ -210,20 +211,24 @@ def _fit_frames(model: ExtendedModel, split, frames, robust, say) -> FitResult:
     )  # fmt: skip
 
 
-def _nominal_errors(model: ExtendedModel, split, frames_per_file: bool, fitted) -> dict:
+def _nominal_errors(model: ExtendedModel, split, campaign, fitted) -> dict:
     """The nominal model's hold-out errors (JSON), after refusing files of separate
-    set-ups fitted with one frame set and quaternions in another convention
-    (:func:`~hybrid_pk.calibration.setups.check_one_setup`,
+    set-ups fitted with one frame set, a set-up that changed within the rows, and
+    quaternions in another convention (:func:`~hybrid_pk.calibration.setups.check_one_setup`,
+    :func:`~hybrid_pk.calibration.setup_change.check_setup_change`,
     :func:`~hybrid_pk.calibration.conventions.check_orientation_convention`).
-    ``fitted``: the frame fit's ``(priors, robust)``."""
+    ``campaign``: ``(data, cond, frames_per_file)`` (a change of set-up is searched
+    on all rows, in their order); ``fitted``: the frame fit's ``(priors, robust)``."""
+    data, cond, frames_per_file = campaign
     nominal = stats_json(*model_errors(model, split.test, split.cond_hold))
     rows, judged = (split.train, split.cond_fit), (split.test, split.cond_hold)
-    kw = {"priors": fitted[0], "robust": fitted[1], "gravity": model.gravity}
+    how = FrameFit(*fitted, model.gravity)
     if not frames_per_file:
-        check_one_setup(model.robot, rows, judged, nominal["position_mm"]["mean"], **kw)
+        check_one_setup(model.robot, rows, judged, nominal["position_mm"]["mean"], how)
+    check_setup_change(model, data, cond, how)
     if nominal["orientation_deg"] is not None:
         given, sets = nominal["orientation_deg"]["mean"], model.base.sets
-        check_orientation_convention(model.robot, rows, judged, given, sets, **kw)
+        check_orientation_convention(model.robot, rows, judged, given, sets, how)
     return nominal
 
 

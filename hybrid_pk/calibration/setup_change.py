@@ -1,0 +1,132 @@
+"""A set-up that changed in the middle of a file: the tracker bumped, the tool re-mounted.
+
+Rows measured before and after such a change need frames of their own, as files of
+separate set-ups do (:mod:`.setups`), but one file gives no hint where. Fitted with one
+frame set, the nominal model then misses the rows by about the move: 98.9 mm (mean) on
+600 rows of the shared UR10's Series B whose last 240 rows were moved by 3° and 55 mm,
+where each part's own frames leave 1.2 mm. The diagnosis named nothing and said the
+URDF may be wrong in more than one place.
+
+:func:`check_setup_change` finds the row where the set-up changed by the closed-form
+registration of the rows before and after each candidate row (coarse to fine: a grid of
+rows, then the grid between the best one's neighbours), and confirms it with a fit of
+both parts' frames: where one frame set misses the rows by more than small corrections
+make (``gross_error_mm``) and the two parts' own frames by less, it stops before any
+effect is fitted, naming the file and row.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import torch
+
+from hybrid_pk.calibration.poses import model_errors, predicted_poses
+from hybrid_pk.calibration.setups import RESIDUALS_PER_PARAMETER, FrameFit, Rows
+from hybrid_pk.calibration.tuning import diagnosis_tuning
+from hybrid_pk.data.measured import MeasuredData
+from hybrid_pk.effects import Conditions, ExtendedModel
+from hybrid_pk.errors import HybridPKError
+from hybrid_pk.geometry import quat_to_matrix
+from hybrid_pk.geometry.registration import register_frames
+from hybrid_pk.robot import Robot
+
+__all__ = ["check_setup_change", "setup_change"]
+
+# Candidate rows per level of the coarse-to-fine search: 24 intervals find the row of a
+# change among n rows in log_24(n) levels (3 for 13,000 rows).
+GRID = 24
+
+
+def check_setup_change(
+    model: ExtendedModel, data: MeasuredData, cond: Conditions, how: FrameFit
+) -> None:
+    """Refuse rows whose set-up changed within one frame group, naming the file and row.
+
+    Args:
+        model: the nominal model with its frames fitted to ``data`` (rows in the order
+            measured) under ``cond``; each of its frame groups (a file with
+            ``--frames-per-file``, else all rows) is one sequence for
+            :func:`setup_change`, gated by that group's own mean position error.
+        how: how that fit was made.
+
+    Raises:
+        HybridPKError: naming the first row of the new set-up, both errors and what to
+            do (split the file there, ``--frames-per-file``).
+    """
+    position = model_errors(model, data, cond)[0]
+    groups = [None] if cond.group is None else cond.group.unique().tolist()
+    for g in groups:
+        rows = torch.ones(data.n, dtype=torch.bool) if g is None else cond.group == g
+        part, part_cond, shared_mm = data.subset(rows), cond.subset(rows), position[rows]
+        found = setup_change(model.robot, (part, part_cond), float(shared_mm.mean()), how)
+        if found is not None:
+            raise HybridPKError(_change_text(part, found, float(shared_mm.mean())))
+
+
+def _change_text(data: MeasuredData, found: tuple[int, float], shared_mm: float) -> str:
+    k, own_mm = found
+    source = data.sources[int(data.file_index[k])]
+    gross = diagnosis_tuning().gross_error_mm
+    return (
+        f"{source}: the set-up changed at row {int(data.rows[k])}: one base/tool frame set "
+        f"misses the rows by {shared_mm:.4g} mm (mean), beyond what small corrections make "
+        f"({gross:g} mm), and the rows before and from that row, each part with its own "
+        f"frames, by {own_mm:.3g} mm; the tracker moved or the tool was re-mounted there: "
+        "split the file at that row and rerun with --frames-per-file (Python: "
+        "frames_per_file=True)"
+    )
+
+
+def setup_change(robot: Robot, rows: Rows, shared_mm: float, how: FrameFit):
+    """The row index where the set-up of ``data`` changed, and the mean position error
+    [mm] of the nominal model with frames of its own before and from it; or None.
+
+    Args:
+        robot: the nominal robot.
+        rows: rows of one frame set, in the order measured, and their conditions
+            (``group`` ignored: one sequence).
+        shared_mm: mean position error [mm] of the nominal model with one frame set.
+        how: how that fit was made.
+
+    Returns:
+        ``(k, own_mm)``: the index of the first row of the new set-up and the error;
+        or None where ``shared_mm`` is within ``gross_error_mm``, where the rows are too few
+        for two parts with frames of their own (:data:`RESIDUALS_PER_PARAMETER` residuals
+        per frame parameter each), or where the two parts' own frames still miss by more.
+    """
+    data, cond = rows
+    per_row, params = (3, 9) if data.quat is None else (6, 12)
+    least = -(-RESIDUALS_PER_PARAMETER * params // per_row)  # rows a part needs
+    gross = diagnosis_tuning().gross_error_mm
+    if not shared_mm > gross or data.n < 2 * least:
+        return None
+    cond = replace(cond, group=None)
+    nominal = ExtendedModel(robot, gravity=how.gravity)
+    T_end = predicted_poses(nominal, data.q, cond, end_link=True)
+    R = None if data.quat is None else quat_to_matrix(data.quat)
+    lo, hi = least, data.n - least
+    while True:  # coarse to fine
+        rows = torch.linspace(lo, hi, GRID + 1).round().long().unique()
+        scores = torch.stack([_registered_mm(T_end, data, R, int(k)) for k in rows])
+        best = int(scores.argmin())
+        if hi - lo <= GRID:
+            k = int(rows[best])
+            break
+        lo, hi = int(rows[max(best - 1, 0)]), int(rows[min(best + 1, len(rows) - 1)])
+    parts = (data, replace(cond, group=(torch.arange(data.n) >= k).long()))
+    own_mm = float(how.errors(robot, parts, parts, 2)[0].mean())
+    return (k, own_mm) if own_mm <= gross else None
+
+
+def _registered_mm(T_end, data: MeasuredData, R, k: int) -> torch.Tensor:
+    """Mean position error [mm] of the rows before and from ``k``, each part with the
+    closed-form registration of its own frames."""
+    total = T_end.new_zeros(())
+    for part in (slice(0, k), slice(k, data.n)):
+        base, tool = register_frames(
+            T_end[part], data.position[part], None if R is None else R[part]
+        )
+        p = (base @ T_end[part] @ tool)[:, :3, 3]
+        total = total + 1e3 * (p - data.position[part]).norm(dim=-1).sum()
+    return total / data.n
