@@ -22,7 +22,7 @@ from dataclasses import replace
 import torch
 
 from hybrid_pk.calibration.poses import model_errors, predicted_poses
-from hybrid_pk.calibration.setups import RESIDUALS_PER_PARAMETER, FrameFit, Rows
+from hybrid_pk.calibration.setups import RESIDUALS_PER_PARAMETER, SCREEN_FACTOR, FrameFit, Rows
 from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
@@ -114,6 +114,8 @@ def setup_change(robot: Robot, rows: Rows, shared_mm: float, how: FrameFit):
             k = int(rows[best])
             break
         lo, hi = int(rows[max(best - 1, 0)]), int(rows[min(best + 1, len(rows) - 1)])
+    if float(scores[best]) > SCREEN_FACTOR * gross:
+        return None  # registered, the parts are not near small corrections either
     parts = (data, replace(cond, group=(torch.arange(data.n) >= k).long()))
     own_mm = float(how.errors(robot, parts, parts, 2)[0].mean())
     return (k, own_mm) if own_mm <= gross else None

@@ -34,6 +34,10 @@ __all__ = ["FrameFit", "check_one_setup", "separate_setups", "setups_text"]
 # Residuals per frame parameter a file must give before its own frames are trusted to
 # say "small": two, so that as many residuals are left to judge the fit as it used.
 RESIDUALS_PER_PARAMETER = 2
+# A check fits frames only where their closed-form registration leaves less than this
+# many times the line it tests: on rows a model explains the registration is within the
+# noise of the fit, and twice the line leaves room for one thrown by the model's errors.
+SCREEN_FACTOR = 2.0
 
 
 Rows = tuple[MeasuredData, Conditions]  # rows and their conditions
@@ -49,14 +53,16 @@ class FrameFit:
     robust: str | None = None
     gravity: Gravity | None = None
 
-    def errors(self, robot: Robot, rows: Rows, judged: Rows, sets: int = 1):
+    def errors(self, robot: Robot, rows: Rows, judged: Rows, sets: int = 1, refine=True):
         """Per-row position [mm] and orientation [deg] errors (None without
         orientations) on ``judged`` of the nominal model with ``sets`` frame sets (the
-        groups of the conditions) fitted to ``rows``."""
+        groups of the conditions) fitted to ``rows``; without ``refine``, registered
+        only (closed form, the fit's start)."""
         (data, cond), (test, cond_test) = rows, judged
         model = ExtendedModel(robot, frame_sets=sets, gravity=self.gravity)
         initialise_with_priors(model, data, cond, self.priors)
-        fit(model, data, cond=cond, frames=self.priors, robust=self.robust)
+        if refine:
+            fit(model, data, cond=cond, frames=self.priors, robust=self.robust)
         return model_errors(model, test, cond_test)
 
 

@@ -25,6 +25,8 @@ swaps of its first cause.
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.calibration.work import done as work_done
@@ -46,6 +48,19 @@ class Budget:
         self._stages: dict[str, list] = {}  # name -> [work, seconds]
         self._current: tuple[int, float] | None = None  # the optional stage under way
         self._units: dict[str, int] = {}  # units of work done by stage (:meth:`allows`)
+
+    @contextmanager
+    def aside(self) -> Iterator[None]:
+        """Work done inside counts neither as the main search's nor as an optional
+        stage's: the checks of the data (set-ups, conventions), which only work where
+        they are about to refuse the rows, would otherwise widen the optional stages'
+        budget on exactly the campaigns they let through."""
+        work, seconds = work_done(), time.perf_counter()
+        try:
+            yield
+        finally:
+            self.start += work_done() - work
+            self.start_s += time.perf_counter() - seconds
 
     def main_done(self) -> None:
         """The main search ends here: the optional stages' budget is fixed from now."""

@@ -140,7 +140,8 @@ def diagnose(
     res = _fit_frames(model, split, frames, robust, say)
     frame_json = None if res.frame_report is None else res.frame_report.to_json()
     nominal_model = with_effects(model)
-    nominal = _nominal_errors(model, split, (data, cond, frames_per_file), (frames, robust))
+    with budget.aside():  # the checks of the rows: no work of the search
+        nominal = _nominal_errors(model, split, (data, cond, frames_per_file), (frames, robust))
 
     pool = _pool(robot, data, candidates)
     flagged: list[dict] = []
