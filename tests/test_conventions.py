@@ -84,3 +84,16 @@ def test_the_cli_says_it_in_one_line(rx160, tmp_path, capsys):
     assert len(err) == 1, err
     assert err[0].startswith("hybrid-pk diagnose: error: the measured orientations miss"), err
     assert not out.exists()
+
+
+def test_evaluate_with_fit_frames_warns_and_still_reports(rx160, tmp_path, capsys):
+    rng = run_rng("conventions-evaluate")
+    path = tmp_path / "xyzw.csv"
+    hpk.write_table(path, _written(_campaign(rx160, rng), 1))
+    argv = ["evaluate", "nominal:rx160", str(path), "--fit-frames", "--no-progress"]
+    assert hybrid_pk(argv) == 0
+    out = capsys.readouterr().out
+    warning = [line for line in out.splitlines() if "the measured orientations miss" in line]
+    assert len(warning) == 1, out
+    assert "read as the order x y z w under the columns qw qx qy qz" in warning[0]
+    assert "orientation error [deg]" in out

@@ -76,3 +76,16 @@ def test_the_cli_names_file_and_row_in_one_line(rx160, tmp_path, capsys):
     head = f"hybrid-pk diagnose: error: {path}: the set-up changed at row {k + 1}:"
     assert err[0].startswith(head), err
     assert not out.exists()
+
+
+def test_evaluate_with_fit_frames_names_the_row_as_the_gross_errors_cause(rx160, tmp_path, capsys):
+    rng = run_rng("setup-change-evaluate")
+    moved, k, _ = _bumped(rx160, rng, False)
+    path = tmp_path / "bumped.csv"
+    hpk.write_table(path, moved)
+    argv = ["evaluate", "nominal:rx160", str(path), "--fit-frames", "--no-progress"]
+    assert hybrid_pk(argv) == 0
+    out = capsys.readouterr().out
+    gross = next(line for line in out.splitlines() if "misses these rows" in line)
+    assert f"the set-up changed at row {k + 1}:" in gross, gross
+    assert "not this robot's" not in gross

@@ -48,6 +48,16 @@ def _files(robot, bases, rng) -> hpk.MeasuredData:
     return hpk.MeasuredData.concat(parts)
 
 
+def _written(data: hpk.MeasuredData, folder) -> list[str]:
+    """Each file of ``data`` written as its own table; their paths."""
+    paths = []
+    for k in range(len(data.sources)):
+        path = folder / f"setup_{k}.csv"
+        hpk.write_table(path, data.subset(data.file_index == k))
+        paths.append(str(path))
+    return paths
+
+
 def test_files_of_separate_setups_with_one_frame_set_are_refused(rx160):
     rng = run_rng("separate-setups")
     data = _files(rx160, [_base(rng), _base(rng)], rng)
@@ -81,12 +91,7 @@ def test_files_of_one_setup_with_one_frame_set_are_diagnosed(rx160):
 
 def test_the_cli_says_it_in_one_line_and_writes_nothing(rx160, tmp_path, capsys):
     rng = run_rng("separate-setups-cli")
-    data = _files(rx160, [_base(rng), _base(rng)], rng)
-    paths = []
-    for k in range(2):
-        path = tmp_path / f"setup_{k}.csv"
-        hpk.write_table(path, data.subset(data.file_index == k))
-        paths.append(str(path))
+    paths = _written(_files(rx160, [_base(rng), _base(rng)], rng), tmp_path)
     out = tmp_path / "diag.json"
     argv = ["diagnose", *paths, "--robot", "rx160", "--json", str(out), "--no-progress"]
     assert hybrid_pk([*argv, "--candidates", "joint_offset:joint_3"]) == 2
@@ -102,12 +107,7 @@ def test_evaluate_names_separate_setups_in_its_gross_warning(rx160, tmp_path, ca
     """`evaluate --fit-frames` keeps reporting the errors, but its warning names the
     set-ups and the flag (before: "the rows are not this robot's")."""
     rng = run_rng("separate-setups-evaluate")
-    data = _files(rx160, [_base(rng), _base(rng)], rng)
-    paths = []
-    for k in range(2):
-        path = tmp_path / f"setup_{k}.csv"
-        hpk.write_table(path, data.subset(data.file_index == k))
-        paths.append(str(path))
+    paths = _written(_files(rx160, [_base(rng), _base(rng)], rng), tmp_path)
     argv = ["evaluate", "nominal:rx160", *paths, "--fit-frames", "--no-progress"]
     assert hybrid_pk(argv) == 0
     out = capsys.readouterr().out
@@ -121,12 +121,7 @@ def test_evaluate_names_separate_setups_in_its_gross_warning(rx160, tmp_path, ca
 
 def test_train_with_fit_frames_refuses_them_before_training(rx160, tmp_path, capsys):
     rng = run_rng("separate-setups-train")
-    data = _files(rx160, [_base(rng), _base(rng)], rng)
-    paths = []
-    for k in range(2):
-        path = tmp_path / f"setup_{k}.csv"
-        hpk.write_table(path, data.subset(data.file_index == k))
-        paths.append(str(path))
+    paths = _written(_files(rx160, [_base(rng), _base(rng)], rng), tmp_path)
     out, logs = tmp_path / "hybrid.pt", tmp_path / "logs"
     argv = ["train", *paths, "--model", "nominal:rx160", "--fit-frames", "--out", str(out)]
     assert hybrid_pk([*argv, "--logdir", str(logs), "--no-progress"]) == 2

@@ -27,7 +27,7 @@ from hybrid_pk.effects.limits import MAX_ROTATION_DEG
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.robot import Robot
 
-__all__ = ["READINGS", "check_orientation_convention"]
+__all__ = ["READINGS", "check_orientation_convention", "convention_text"]
 
 
 def _inverse(q: Tensor) -> Tensor:
@@ -50,7 +50,17 @@ READINGS = (
 def check_orientation_convention(
     robot: Robot, rows: Rows, judged: Rows, given_deg: float, sets: int, how: FrameFit
 ) -> None:
-    """Refuse quaternions written in another convention.
+    """Refuse quaternions written in another convention: a :class:`HybridPKError` with
+    :func:`convention_text`'s line where it has one (the arguments are its)."""
+    text = convention_text(robot, rows, judged, given_deg, sets, how)
+    if text is not None:
+        raise HybridPKError(text)
+
+
+def convention_text(
+    robot: Robot, rows: Rows, judged: Rows, given_deg: float, sets: int, how: FrameFit
+) -> str | None:
+    """The line that says the quaternions are in another convention, or None.
 
     Args:
         robot: the nominal robot.
@@ -59,18 +69,18 @@ def check_orientation_convention(
         given_deg: its mean orientation error [deg] there, the quaternions as given.
         sets: base/tool frame sets of that fit; ``how``: how it was made.
 
-    Raises:
-        HybridPKError: where ``given_deg`` is beyond :data:`MAX_ROTATION_DEG` and the
-            frames fitted to one of :data:`READINGS` leave less (the one whose closed-form
-            registration leaves the least position error, fitted where that is within
-            ``SCREEN_FACTOR`` times ``gross_error_mm``; named with both errors). Nothing
-            is checked without orientations.
+    Returns:
+        Where ``given_deg`` is beyond :data:`MAX_ROTATION_DEG` and the frames fitted to
+        one of :data:`READINGS` leave less (the one whose closed-form registration
+        leaves the least position error, fitted where that is within ``SCREEN_FACTOR``
+        times ``gross_error_mm``): the line naming it with both errors. None otherwise
+        and without orientations.
     """
     (data, cond), (test, cond_test) = rows, judged
     if data.quat is None or test.quat is None:
-        return
+        return None
     if not given_deg > MAX_ROTATION_DEG:
-        return
+        return None
     readings = []  # each reading's registered position error [mm] (closed form: cheap)
     for text, read in READINGS:
         read_rows = (replace(data, quat=read(data.quat)), cond)
@@ -82,12 +92,12 @@ def check_orientation_convention(
     # B inverted, 1.0 mm read right), which the fit then trades for orientation.
     registered_mm, text, read_rows, read_judged = min(readings, key=lambda r: r[0])
     if registered_mm > SCREEN_FACTOR * diagnosis_tuning().gross_error_mm:
-        return  # not a convention: the robot or the rows are wrong (the gross warnings)
+        return None  # not a convention: the robot or the rows are wrong (the gross warnings)
     other = float(how.errors(robot, read_rows, read_judged, sets)[1].mean())
     if other > MAX_ROTATION_DEG:
-        return
+        return None
     best = (text, other)
-    raise HybridPKError(
+    return (
         f"the measured orientations miss by {given_deg:.4g}° (mean) after the frame fit, "
         f"beyond what a small correction makes ({MAX_ROTATION_DEG:g}°); read as "
         f"{best[0]} they miss by {best[1]:.3g}°: the table's qw qx qy qz must turn the "

@@ -31,7 +31,7 @@ from hybrid_pk.geometry import quat_to_matrix
 from hybrid_pk.geometry.registration import register_frames
 from hybrid_pk.robot import Robot
 
-__all__ = ["check_setup_change", "setup_change"]
+__all__ = ["check_setup_change", "setup_change", "setup_change_text"]
 
 # Candidate rows per level of the coarse-to-fine search: 24 intervals find the row of a
 # change among n rows in log_24(n) levels (3 for 13,000 rows).
@@ -41,7 +41,19 @@ GRID = 24
 def check_setup_change(
     model: ExtendedModel, data: MeasuredData, cond: Conditions, how: FrameFit
 ) -> None:
-    """Refuse rows whose set-up changed within one frame group, naming the file and row.
+    """Refuse rows whose set-up changed within one frame group: a
+    :class:`HybridPKError` with :func:`setup_change_text`'s line where it has one (the
+    arguments are its)."""
+    text = setup_change_text(model, data, cond, how)
+    if text is not None:
+        raise HybridPKError(text)
+
+
+def setup_change_text(
+    model: ExtendedModel, data: MeasuredData, cond: Conditions, how: FrameFit
+) -> str | None:
+    """The line naming the file and row where the set-up changed within one frame
+    group, or None.
 
     Args:
         model: the nominal model with its frames fitted to ``data`` (rows in the order
@@ -50,9 +62,9 @@ def check_setup_change(
             :func:`setup_change`, gated by that group's own mean position error.
         how: how that fit was made.
 
-    Raises:
-        HybridPKError: naming the first row of the new set-up, both errors and what to
-            do (split the file there, ``--frames-per-file``).
+    Returns:
+        The line naming the first row of the new set-up, both errors and what to do
+        (split the file there, ``--frames-per-file``), for the first group with one.
     """
     position = model_errors(model, data, cond)[0]
     groups = [None] if cond.group is None else cond.group.unique().tolist()
@@ -61,7 +73,8 @@ def check_setup_change(
         part, part_cond, shared_mm = data.subset(rows), cond.subset(rows), position[rows]
         found = setup_change(model.robot, (part, part_cond), float(shared_mm.mean()), how)
         if found is not None:
-            raise HybridPKError(_change_text(part, found, float(shared_mm.mean())))
+            return _change_text(part, found, float(shared_mm.mean()))
+    return None
 
 
 def _change_text(data: MeasuredData, found: tuple[int, float], shared_mm: float) -> str:

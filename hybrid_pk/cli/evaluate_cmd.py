@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 
 from hybrid_pk.calibration.settings import FitSettings
-from hybrid_pk.calibration.setups import setups_text
 from hybrid_pk.cli.common import (
     frame_parameter_count,
     frame_sets_for,
@@ -99,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
         if args.json:
             write_json(args.json, res.summary)
 
-    _print_summary(args, res.loaded, robot, data, (res.position, res.orientation, res.setups_mm))
+    _print_summary(args, res.loaded, robot, data, res)
     if res.frame_fit is not None:  # as calibrate --refit: the mounting the fitted base implies
         lines = mounting_lines(res.loaded.model, check=False) + fit_lines(data, res.frame_fit)
         if loaded.frames_fitted:
@@ -113,10 +112,9 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _print_summary(args, loaded, robot, data, errors) -> None:
-    """The summary lines; ``errors``: ``(position, orientation, setups_mm)`` of
-    :class:`~hybrid_pk.pipelines.evaluation.EvaluationResult`."""
-    position, orientation, setups_mm = errors
+def _print_summary(args, loaded, robot, data, res) -> None:
+    """The summary lines of ``res`` (:class:`~hybrid_pk.pipelines.evaluation.EvaluationResult`)."""
+    position, orientation = res.position, res.orientation
     nominal = args.model.startswith(NOMINAL_PREFIX)
     kind = "nominal URDF" if nominal else f"{len(loaded.model.effects)} effect(s)"
     if loaded.has_networks:
@@ -145,9 +143,10 @@ def _print_summary(args, loaded, robot, data, errors) -> None:
             "warning: the model was calibrated on position-only data, so its tool "
             "orientation is unknown and part of the orientation errors; add --fit-frames"
         )
-    setups = None if setups_mm is None else setups_text(len(data.sources), setups_mm)
+    mean_mm = float(position.mean())
     for line in (
-        gross_warning(args.model, float(position.mean()), bool(args.fit_frames), cause=setups),
+        gross_warning(args.model, mean_mm, bool(args.fit_frames), cause=res.gross_cause),
+        *(f"warning: {text}" for text in res.warnings),
         fitted_on_note(args.model, loaded.metadata, data.sources),
     ):
         if line:

@@ -16,9 +16,11 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from hybrid_pk.calibration.conventions import convention_text
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.calibration.frames import FramePriors
-from hybrid_pk.calibration.setups import FrameFit, separate_setups
+from hybrid_pk.calibration.setup_change import setup_change_text
+from hybrid_pk.calibration.setups import FrameFit, separate_setups, setups_text
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data
 from hybrid_pk.evaluation.metrics import evaluate_json, row_errors
@@ -46,9 +48,12 @@ class EvaluationResult:
             ``networks`` for a file with residual networks: :func:`networks_summary`).
         frame_fit: the frames' fit (None without ``fit_frames``).
         report: the report written (None without ``report``).
-        setups_mm: with ``fit_frames``, one frame set and several files: each file's own
-            frames' mean error [mm] where that shows the files to be separate set-ups
-            (:func:`~hybrid_pk.calibration.setups.separate_setups`); else None.
+        gross_cause: with ``fit_frames``, where the rows are files of separate set-ups
+            given one frame set or a set-up changed within them
+            (:mod:`hybrid_pk.calibration.setups`, :mod:`~hybrid_pk.calibration.setup_change`):
+            the line that says so (the cause of the gross-error warning); else None.
+        warnings: with ``fit_frames``, quaternions in another convention
+            (:mod:`hybrid_pk.calibration.conventions`).
     """
 
     loaded: LoadedModel
@@ -58,7 +63,8 @@ class EvaluationResult:
     summary: dict
     frame_fit: FitResult | None = None
     report: Path | None = None
-    setups_mm: float | None = None
+    gross_cause: str | None = None
+    warnings: list[str] = dataclasses.field(default_factory=list)
 
 
 def evaluate_model(
@@ -104,10 +110,10 @@ def evaluate_model(
     stage("predicting")
     T = predict_poses(loaded, data, cond)
     position, orientation = row_errors(T, data)
-    setups = None
-    if fit_frames and sets == 1:  # files of separate set-ups fitted with one frame set?
-        how, shared = FrameFit(priors, robust, loaded.model.gravity), float(position.mean())
-        setups = separate_setups(loaded.model.robot, (data, cond), (data, cond), shared, how)
+    checks = (None, [])
+    if fit_frames:  # what the frames fitted to DATA say of its rows
+        how = FrameFit(priors, robust, loaded.model.gravity)
+        checks = _row_checks(loaded.model, (data, cond), (position, orientation), sets, how)
     summary = evaluate_json(data.n, position, orientation)
     if loaded.has_networks:
         summary["networks"] = networks_summary(loaded)
@@ -116,7 +122,26 @@ def evaluate_model(
         stage("writing the report")
         nominal = model_label.startswith(NOMINAL_PREFIX) and fit_frames
         written = _report(report, model_label, loaded, data, cond, sets, T, nominal)
-    return EvaluationResult(loaded, T, position, orientation, summary, frame_fit, written, setups)
+    return EvaluationResult(loaded, T, position, orientation, summary, frame_fit, written, *checks)
+
+
+def _row_checks(model: ExtendedModel, rows, errors, sets: int, how: FrameFit):
+    """``(gross_cause, warnings)`` of rows evaluated with frames fitted to them: files
+    of separate set-ups given one frame set or a set-up that changed within the rows
+    (the cause of a gross error), quaternions in another convention (a warning); what
+    ``diagnose`` and ``calibrate`` refuse (:mod:`hybrid_pk.calibration.setups`)."""
+    (data, cond), (position, orientation) = rows, errors
+    cause = None
+    if sets == 1:
+        own = separate_setups(model.robot, rows, rows, float(position.mean()), how)
+        cause = None if own is None else setups_text(len(data.sources), own)
+    cause = cause or setup_change_text(model, data, cond, how)
+    warnings = []
+    if orientation is not None:
+        given = float(orientation.mean())
+        text = convention_text(model.robot, rows, rows, given, sets, how)
+        warnings += [] if text is None else [text]
+    return cause, warnings
 
 
 def networks_summary(loaded: LoadedModel) -> dict:
