@@ -2,8 +2,9 @@
 the reading that fits (hybrid_pk.calibration.conventions).
 
 Before, 400 rows of the shared UR10's Series B with their quaternions inverted (or in
-the order x y z w) were diagnosed without a word: orientations off by 178.7° (156.3°)
-after the frame fit, the position error 12.8 mm instead of 1.0 mm, no cause named."""
+the order x y z w) were diagnosed without a word: orientations off by 30.7° (144.7°)
+after the frame fit, no cause named (six causes named); `python
+experiments/row_checks.py --out DIR`."""
 
 from __future__ import annotations
 

@@ -41,9 +41,9 @@ def test_effects_without_a_sign_rule_keep_both_signs(ur10):
 def test_a_robot_that_shrinks_as_it_warms_beyond_any_structure_is_a_finding(ur10):
     """A thermal expansion keeps a carbon-fibre laminate's slightly negative coefficient
     (floor -2e-6 1/K) and a value within three std of that floor; below, it is refused
-    like a negative play. Before, a 300-row position-only part of the shared UR10's
-    Series A (0.6 K of temperature span) named ``thermal_expansion = -2.2e-4 +- 2.6e-5
-    1/K`` as a cause, with a warning only."""
+    like a negative play. Before, 300 position-only rows of the shared UR10's Series A
+    (0.75 K of temperature span) named ``thermal_expansion = -1.8e-4 +- 2.9e-5 1/K`` as
+    a cause, with a warning only (``python experiments/row_checks.py``, case drift)."""
     rng = run_rng("sign-rule-thermal")
     floor = type(hpk.make_effect(ur10, "thermal_expansion")).floor
     assert -1e-5 < floor < 0  # slightly negative: a laminate, not a shrinking robot

@@ -4,9 +4,10 @@ The table's ``qw qx qy qz`` is the unit quaternion that turns the measurement fr
 the measured frame (contract section 1). Exports differ: some write the inverse (the
 measurement frame seen from the target), some the order ``x y z w`` under the same
 column names. Either is still a unit quaternion, so no column check sees it; after the
-frame fit the orientations then miss by tens of degrees (178.7° and 156.3° on 400 rows
-of the shared UR10's Series B, the position error 12.8 mm instead of 1.0 mm where the
-fit traded the two), and the diagnosis named nothing without a word about why.
+frame fit the orientations then miss by tens of degrees (30.7° inverted and 144.7° as
+x y z w on 400 rows of the shared UR10's Series B, ``python experiments/row_checks.py``),
+and the diagnosis said nothing of why: nothing named for the inverse, six causes named
+for x y z w.
 
 :func:`check_orientation_convention` tells that apart from a robot that is wrong: where
 the frame fit leaves an orientation error beyond what a small correction can make
