@@ -10,9 +10,10 @@ outlier and spent its search on it, and a calibration fits effects to it.
 :func:`separate_setups` tells the two apart by the diagnosis' own line between small
 corrections and gross errors (``gross_error_mm``): where one frame set misses the rows
 by more, and each file's own frames by less, the files are separate set-ups. The
-diagnosis and the calibration then stop before any effect is fitted, naming the flag
-(:func:`check_one_setup`); ``evaluate --fit-frames`` says so in its gross-error warning
-(before: "the rows are not this robot's").
+diagnosis, the calibration and ``train --fit-frames`` then stop before any effect is
+fitted or network trained, naming the flag (:func:`check_one_setup`); ``evaluate
+--fit-frames`` says so in its gross-error warning (before: "the rows are not this
+robot's").
 """
 
 from __future__ import annotations
