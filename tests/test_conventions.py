@@ -51,7 +51,7 @@ def test_each_other_convention_is_refused_and_named(rx160):
     rng = run_rng("conventions")
     data = _campaign(rx160, rng)
     for k, (reading, _) in enumerate(READINGS):
-        with pytest.raises(hpk.HybridPKError) as err:
+        with pytest.raises(hpk.DataError) as err:
             hpk.diagnose(rx160, _written(data, k), candidates=[LABEL])
         text = str(err.value)
         assert f"read as {reading} they miss by" in text, text

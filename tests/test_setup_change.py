@@ -50,12 +50,13 @@ def test_a_set_up_changed_within_the_rows_is_refused_at_its_row(rx160, position_
     rng = run_rng(f"setup-change-{position_only}")
     moved, k, clean = _bumped(rx160, rng, position_only)
     row = int(moved.rows[k])
-    with pytest.raises(hpk.HybridPKError) as err:
+    with pytest.raises(hpk.DataError) as err:
         hpk.diagnose(rx160, moved, candidates=[LABEL])
     text = str(err.value)
-    assert f"the set-up changed at row {row}:" in text, (k, text)
-    assert "split the file at that row" in text
-    with pytest.raises(hpk.HybridPKError, match=f"the set-up changed at row {row}:"):
+    assert (err.value.file, err.value.row) == (moved.sources[0], row), (k, text)
+    assert f", row {row}: the set-up changed here:" in text, (k, text)
+    assert "split the file here" in text
+    with pytest.raises(hpk.HybridPKError, match=f"row {row}: the set-up changed here:"):
         calibrate(rx160, moved, [LABEL])
     # the same rows as measured before the move: nothing refused, the offset named
     diag = hpk.diagnose(rx160, clean, candidates=[LABEL])
@@ -73,7 +74,7 @@ def test_the_cli_names_file_and_row_in_one_line(rx160, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1, err
     # the table's data rows are 1-based: row k + 1 is the first row of the new set-up
-    head = f"hybrid-pk diagnose: error: {path}: the set-up changed at row {k + 1}:"
+    head = f"hybrid-pk diagnose: error: {path}, row {k + 1}: the set-up changed here:"
     assert err[0].startswith(head), err
     assert not out.exists()
 
@@ -87,5 +88,5 @@ def test_evaluate_with_fit_frames_names_the_row_as_the_gross_errors_cause(rx160,
     assert hybrid_pk(argv) == 0
     out = capsys.readouterr().out
     gross = next(line for line in out.splitlines() if "misses these rows" in line)
-    assert f"the set-up changed at row {k + 1}:" in gross, gross
+    assert f"row {k + 1}: the set-up changed here:" in gross, gross
     assert "not this robot's" not in gross

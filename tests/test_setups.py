@@ -61,7 +61,7 @@ def _written(data: hpk.MeasuredData, folder) -> list[str]:
 def test_files_of_separate_setups_with_one_frame_set_are_refused(rx160):
     rng = run_rng("separate-setups")
     data = _files(rx160, [_base(rng), _base(rng)], rng)
-    with pytest.raises(hpk.HybridPKError) as err:
+    with pytest.raises(hpk.DataError) as err:
         hpk.diagnose(rx160, data, candidates=["joint_offset:joint_3"])
     text = str(err.value)
     assert "separate set-ups" in text, text

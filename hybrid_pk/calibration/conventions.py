@@ -25,7 +25,7 @@ from torch import Tensor
 from hybrid_pk.calibration.setups import SCREEN_FACTOR, FrameFit, Rows
 from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.effects.limits import MAX_ROTATION_DEG
-from hybrid_pk.errors import HybridPKError
+from hybrid_pk.errors import DataError
 from hybrid_pk.robot import Robot
 
 __all__ = ["READINGS", "check_orientation_convention", "convention_text"]
@@ -51,11 +51,12 @@ READINGS = (
 def check_orientation_convention(
     robot: Robot, rows: Rows, judged: Rows, given_deg: float, sets: int, how: FrameFit
 ) -> None:
-    """Refuse quaternions written in another convention: a :class:`HybridPKError` with
-    :func:`convention_text`'s line where it has one (the arguments are its)."""
+    """Refuse quaternions written in another convention: a
+    :class:`~hybrid_pk.errors.DataError` with :func:`convention_text`'s line where it
+    has one (the arguments are its)."""
     text = convention_text(robot, rows, judged, given_deg, sets, how)
     if text is not None:
-        raise HybridPKError(text)
+        raise DataError(text)
 
 
 def convention_text(

@@ -26,12 +26,12 @@ from hybrid_pk.calibration.setups import RESIDUALS_PER_PARAMETER, SCREEN_FACTOR,
 from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
-from hybrid_pk.errors import HybridPKError
+from hybrid_pk.errors import DataError
 from hybrid_pk.geometry import quat_to_matrix
 from hybrid_pk.geometry.registration import register_frames
 from hybrid_pk.robot import Robot
 
-__all__ = ["check_setup_change", "setup_change", "setup_change_text"]
+__all__ = ["check_setup_change", "setup_change", "setup_change_error"]
 
 # Candidate rows per level of the coarse-to-fine search: 24 intervals find the row of a
 # change among n rows in log_24(n) levels (3 for 13,000 rows).
@@ -41,18 +41,18 @@ GRID = 24
 def check_setup_change(
     model: ExtendedModel, data: MeasuredData, cond: Conditions, how: FrameFit
 ) -> None:
-    """Refuse rows whose set-up changed within one frame group: a
-    :class:`HybridPKError` with :func:`setup_change_text`'s line where it has one (the
-    arguments are its)."""
-    text = setup_change_text(model, data, cond, how)
-    if text is not None:
-        raise HybridPKError(text)
+    """Refuse rows whose set-up changed within one frame group: the
+    :class:`~hybrid_pk.errors.DataError` of :func:`setup_change_error` where it has one
+    (the arguments are its), with ``file`` and ``row`` of the new set-up's first row."""
+    error = setup_change_error(model, data, cond, how)
+    if error is not None:
+        raise error
 
 
-def setup_change_text(
+def setup_change_error(
     model: ExtendedModel, data: MeasuredData, cond: Conditions, how: FrameFit
-) -> str | None:
-    """The line naming the file and row where the set-up changed within one frame
+) -> DataError | None:
+    """The error naming the file and row where the set-up changed within one frame
     group, or None.
 
     Args:
@@ -63,8 +63,9 @@ def setup_change_text(
         how: how that fit was made.
 
     Returns:
-        The line naming the first row of the new set-up, both errors and what to do
-        (split the file there, ``--frames-per-file``), for the first group with one.
+        A :class:`~hybrid_pk.errors.DataError` at the first row of the new set-up
+        (``file``, ``row``) with both errors and what to do (split the file there,
+        ``--frames-per-file``), for the first group with one.
     """
     position = model_errors(model, data, cond)[0]
     groups = [None] if cond.group is None else cond.group.unique().tolist()
@@ -73,21 +74,21 @@ def setup_change_text(
         part, part_cond, shared_mm = data.subset(rows), cond.subset(rows), position[rows]
         found = setup_change(model.robot, (part, part_cond), float(shared_mm.mean()), how)
         if found is not None:
-            return _change_text(part, found, float(shared_mm.mean()))
+            return _change_error(part, found, float(shared_mm.mean()))
     return None
 
 
-def _change_text(data: MeasuredData, found: tuple[int, float], shared_mm: float) -> str:
+def _change_error(data: MeasuredData, found: tuple[int, float], shared_mm: float) -> DataError:
     k, own_mm = found
-    source = data.sources[int(data.file_index[k])]
     gross = diagnosis_tuning().gross_error_mm
-    return (
-        f"{source}: the set-up changed at row {int(data.rows[k])}: one base/tool frame set "
-        f"misses the rows by {shared_mm:.4g} mm (mean), beyond what small corrections make "
-        f"({gross:g} mm), and the rows before and from that row, each part with its own "
-        f"frames, by {own_mm:.3g} mm; the tracker moved or the tool was re-mounted there: "
-        "split the file at that row and rerun with --frames-per-file (Python: "
-        "frames_per_file=True)"
+    return DataError(
+        "the set-up changed here: one base/tool frame set misses the rows by "
+        f"{shared_mm:.4g} mm (mean), beyond what small corrections make ({gross:g} mm), "
+        f"and the rows before and from this one, each part with its own frames, by "
+        f"{own_mm:.3g} mm; the tracker moved or the tool was re-mounted: split the file "
+        "here and rerun with --frames-per-file (Python: frames_per_file=True)",
+        file=data.sources[int(data.file_index[k])],
+        row=int(data.rows[k]),
     )
 
 

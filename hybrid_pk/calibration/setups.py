@@ -27,7 +27,7 @@ from hybrid_pk.calibration.poses import model_errors
 from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, Gravity
-from hybrid_pk.errors import HybridPKError
+from hybrid_pk.errors import DataError
 from hybrid_pk.robot import Robot
 
 __all__ = ["FrameFit", "check_one_setup", "separate_setups", "setups_text"]
@@ -71,13 +71,14 @@ def check_one_setup(
     robot: Robot, rows: Rows, judged: Rows, shared_mm: float, how: FrameFit
 ) -> None:
     """Refuse files of separate set-ups fitted with one frame set: where
-    :func:`separate_setups` finds them, a :class:`HybridPKError` naming both errors and
-    ``--frames-per-file``, before any effect is fitted (the arguments are its)."""
+    :func:`separate_setups` finds them, a :class:`~hybrid_pk.errors.DataError` naming
+    both errors and ``--frames-per-file``, before any effect is fitted (the arguments
+    are its)."""
     own_mm = separate_setups(robot, rows, judged, shared_mm, how)
     if own_mm is None:
         return
     gross = diagnosis_tuning().gross_error_mm
-    raise HybridPKError(
+    raise DataError(
         f"one base/tool frame set misses the rows by {shared_mm:.4g} mm (mean), beyond "
         f"what small corrections make ({gross:g} mm): "
         f"{setups_text(len(rows[0].sources), own_mm)}"

@@ -19,7 +19,7 @@ from torch import Tensor
 from hybrid_pk.calibration.conventions import convention_text
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.calibration.frames import FramePriors
-from hybrid_pk.calibration.setup_change import setup_change_text
+from hybrid_pk.calibration.setup_change import setup_change_error
 from hybrid_pk.calibration.setups import FrameFit, separate_setups, setups_text
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel, conditions_from_data
@@ -135,7 +135,8 @@ def _row_checks(model: ExtendedModel, rows, errors, sets: int, how: FrameFit):
     if sets == 1:
         own = separate_setups(model.robot, rows, rows, float(position.mean()), how)
         cause = None if own is None else setups_text(len(data.sources), own)
-    cause = cause or setup_change_text(model, data, cond, how)
+    changed = None if cause else setup_change_error(model, data, cond, how)
+    cause = cause or (None if changed is None else str(changed))
     warnings = []
     if orientation is not None:
         given = float(orientation.mean())
