@@ -91,10 +91,12 @@ def _origin_correction(model: ExtendedModel, joint: str, data: MeasuredData, con
     unit = rotvec / rotvec.norm().clamp_min(1e-300)
     mm = 1e3 * float(dp.norm()) + (1e3 * abs(offset) if prismatic else 0.0)
     twist, swing = (math.degrees(float(a)) for a in twist_swing(R, axis / axis.norm()))
-    revolute = robot.joint_types[misalignment.joint_index] != "prismatic"
     # a turn about the joint's own axis beyond a small correction, the rest within one:
-    # the joint's zero, not its origin (a controller counting from another zero)
-    zero = revolute and abs(twist) > MAX_ROTATION_DEG and swing <= MAX_ROTATION_DEG
+    # the joint's zero, not its origin (a controller counting from another zero); only
+    # a joint with a column of its own (a mimic segment's zero is its driver's)
+    revolute = robot.chain_joint_types[misalignment.joint_index] != "prismatic"
+    own = revolute and joint in robot.joint_names
+    zero = own and abs(twist) > MAX_ROTATION_DEG and swing <= MAX_ROTATION_DEG
     return {
         "rotation_deg": angle,
         "rotation_axis": [float(x) for x in unit],
