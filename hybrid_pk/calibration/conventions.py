@@ -98,11 +98,10 @@ def convention_text(
     other = float(how.errors(robot, read_rows, read_judged, sets)[1].mean())
     if other > MAX_ROTATION_DEG:
         return None
-    best = (text, other)
     return (
         f"the measured orientations miss by {given_deg:.4g}° (mean) after the frame fit, "
         f"beyond what a small correction makes ({MAX_ROTATION_DEG:g}°); read as "
-        f"{best[0]} they miss by {best[1]:.3g}°: the table's qw qx qy qz must turn the "
+        f"{text} they miss by {other:.3g}°: the table's qw qx qy qz must turn the "
         "measurement frame into the measured frame (contract section 1); convert them, "
         "or leave them out for a position-only diagnosis"
     )

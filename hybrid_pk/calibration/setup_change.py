@@ -22,7 +22,7 @@ from dataclasses import replace
 import torch
 
 from hybrid_pk.calibration.poses import model_errors, predicted_poses
-from hybrid_pk.calibration.setups import RESIDUALS_PER_PARAMETER, SCREEN_FACTOR, FrameFit, Rows
+from hybrid_pk.calibration.setups import SCREEN_FACTOR, FrameFit, Rows, own_frame_rows
 from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.data.measured import MeasuredData
 from hybrid_pk.effects import Conditions, ExtendedModel
@@ -71,10 +71,11 @@ def setup_change_error(
     groups = [None] if cond.group is None else cond.group.unique().tolist()
     for g in groups:
         rows = torch.ones(data.n, dtype=torch.bool) if g is None else cond.group == g
-        part, part_cond, shared_mm = data.subset(rows), cond.subset(rows), position[rows]
-        found = setup_change(model.robot, (part, part_cond), float(shared_mm.mean()), how)
+        part, part_cond = data.subset(rows), cond.subset(rows)
+        shared_mm = float(position[rows].mean())
+        found = setup_change(model.robot, (part, part_cond), shared_mm, how)
         if found is not None:
-            return _change_error(part, found, float(shared_mm.mean()))
+            return _change_error(part, found, shared_mm)
     return None
 
 
@@ -106,12 +107,11 @@ def setup_change(robot: Robot, rows: Rows, shared_mm: float, how: FrameFit):
     Returns:
         ``(k, own_mm)``: the index of the first row of the new set-up and the error;
         or None where ``shared_mm`` is within ``gross_error_mm``, where the rows are too few
-        for two parts with frames of their own (:data:`RESIDUALS_PER_PARAMETER` residuals
-        per frame parameter each), or where the two parts' own frames still miss by more.
+        for two parts with frames of their own (:func:`~.setups.own_frame_rows` each),
+        or where the two parts' own frames still miss by more.
     """
     data, cond = rows
-    per_row, params = (3, 9) if data.quat is None else (6, 12)
-    least = -(-RESIDUALS_PER_PARAMETER * params // per_row)  # rows a part needs
+    least = own_frame_rows(data)  # rows a part needs
     gross = diagnosis_tuning().gross_error_mm
     if not shared_mm > gross or data.n < 2 * least:
         return None

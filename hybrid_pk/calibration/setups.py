@@ -30,7 +30,7 @@ from hybrid_pk.effects import Conditions, ExtendedModel, Gravity
 from hybrid_pk.errors import DataError
 from hybrid_pk.robot import Robot
 
-__all__ = ["FrameFit", "check_one_setup", "separate_setups", "setups_text"]
+__all__ = ["FrameFit", "check_one_setup", "own_frame_rows", "separate_setups", "setups_text"]
 
 # Residuals per frame parameter a file must give before its own frames are trusted to
 # say "small": two, so that as many residuals are left to judge the fit as it used.
@@ -112,12 +112,13 @@ def separate_setups(
     Returns:
         The error of each file's own frames, fitted the same way, where ``shared_mm`` is
         beyond ``gross_error_mm`` and that error is not; None otherwise, and with one
-        file or a file with too few rows for frames of its own.
+        file or a file with too few rows for frames of its own (:func:`own_frame_rows`).
     """
     (data, cond), (test, cond_test) = rows, judged
     files = len(data.sources)
     gross = diagnosis_tuning().gross_error_mm
-    if files < 2 or not shared_mm > gross or not _frames_determined(data, files):
+    counts = data.file_index.bincount(minlength=files)
+    if files < 2 or not shared_mm > gross or not bool((counts >= own_frame_rows(data)).all()):
         return None
     own = (data, replace(cond, group=data.file_index))
     position, _ = how.errors(robot, own, (test, replace(cond_test, group=test.file_index)), files)
@@ -125,9 +126,9 @@ def separate_setups(
     return own_mm if own_mm <= gross else None  # else the frames are not what is wrong
 
 
-def _frames_determined(data: MeasuredData, files: int) -> bool:
-    """Whether every file's rows give :data:`RESIDUALS_PER_PARAMETER` residuals per
-    parameter of its own frames (12; 9 position-only: the tool's rotation is unseen)."""
+def own_frame_rows(data: MeasuredData) -> int:
+    """Rows a file (or a part of one) of ``data`` needs before frames of its own are
+    trusted: :data:`RESIDUALS_PER_PARAMETER` residuals per parameter of them (12; 9
+    position-only: the tool's rotation is unseen)."""
     per_row, params = (3, 9) if data.quat is None else (6, 12)
-    counts = data.file_index.bincount(minlength=files)
-    return bool((counts * per_row >= RESIDUALS_PER_PARAMETER * params).all())
+    return -(-RESIDUALS_PER_PARAMETER * params // per_row)

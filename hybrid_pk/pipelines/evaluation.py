@@ -135,8 +135,9 @@ def _row_checks(model: ExtendedModel, rows, errors, sets: int, how: FrameFit):
     if sets == 1:
         own = separate_setups(model.robot, rows, rows, float(position.mean()), how)
         cause = None if own is None else setups_text(len(data.sources), own)
-    changed = None if cause else setup_change_error(model, data, cond, how)
-    cause = cause or (None if changed is None else str(changed))
+    if cause is None:
+        changed = setup_change_error(model, data, cond, how)
+        cause = None if changed is None else str(changed)
     warnings = []
     if orientation is not None:
         given = float(orientation.mean())
