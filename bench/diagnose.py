@@ -12,6 +12,12 @@ record: the main search, each optional stage, the rest), each against the plain 
     python bench/diagnose.py                    # RX160, 4,000 rows, 2 hidden effects
     python bench/diagnose.py --case all         # every case below
     python bench/diagnose.py --case ur10 --reference DIAG.json
+    python bench/diagnose.py --case ur10 --commands 2 --threads 1
+
+``--commands K`` also times the two commands a user runs, each in a fresh process, in
+K alternating rounds: ``hybrid-pk diagnose`` of the case's files and ``hybrid-pk
+calibrate --effects DIAG.json`` of what it found (start-up, reading, the transfer check
+and the written files included in both), and prints their medians and ratio.
 
 Cases (targets of issue 12 in brackets):
     rx160     simulated RX160, 4,000 rows, compliance + offset        [< 60 s]
@@ -28,6 +34,7 @@ import argparse
 import json
 import os
 import resource
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -173,6 +180,72 @@ def run_case(case: str, ipa: Path, progress: bool) -> dict:
     }
 
 
+def _cli(*args: str) -> list[str]:
+    return [sys.executable, "-m", "hybrid_pk.cli.main", *args]
+
+
+def case_files(case: str, ipa: Path, out: Path) -> tuple[list[str], list[str]]:
+    """The case's rows as files in ``out``, and the arguments that name its robot and
+    its frame sets (what ``diagnose`` and ``calibrate`` are given)."""
+    if case == "ur10":
+        files = [
+            ipa / "Series_A" / "measurements_grid.csv",
+            ipa / "Series_B" / "measurements_joint_configurations.csv",
+        ]
+        cmd = _cli("import", "ipa", *map(str, files), "--out", str(out), "--format", "parquet")
+        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+        paths = [str(out / f"{f.stem}.parquet") for f in files]
+        return paths, ["--robot", "ur10", "--frames-per-file"]
+    _, data, _, _ = _case_data(case, ipa)
+    path = hpk.write_table(out / f"{case}.parquet", data)
+    if case == "arm7":
+        urdf = REPO / "tests" / "data" / "arm7_generic.urdf"
+        return [str(path)], ["--robot", str(urdf), "--end-link", "tool0"]
+    return [str(path)], ["--robot", "rx160" if case == "rx160" else "ur10"]
+
+
+def command_times(case: str, ipa: Path, threads: int | None, rounds: int) -> dict:
+    """Wall and CPU seconds of ``hybrid-pk diagnose`` and of ``hybrid-pk calibrate
+    --effects DIAG.json``, each in a fresh process, alternated for ``rounds`` rounds."""
+    out = Path(tempfile.mkdtemp(prefix=f"bench_cmd_{case}_"))
+    files, robot = case_files(case, ipa, out)
+    common = [*files, *robot, "--no-progress"]
+    common += ["--threads", str(threads)] if threads else []
+    diag_json, model = out / "diag.json", str(out / "model.pt")
+    cmds = {
+        "diagnose": _cli("diagnose", *common, "--json", str(diag_json)),
+        "calibrate": _cli("calibrate", *common, "--effects", str(diag_json), "--out", model),
+    }
+    wall: dict[str, list[float]] = {k: [] for k in cmds}
+    cpu: dict[str, list[float]] = {k: [] for k in cmds}
+    for _ in range(rounds):
+        for name, cmd in cmds.items():
+            used0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+            start = time.perf_counter()
+            done = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+            wall[name].append(time.perf_counter() - start)
+            used = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpu[name].append(used.ru_utime + used.ru_stime - used0.ru_utime - used0.ru_stime)
+            if done.returncode != 0:
+                raise SystemExit(f"{case}: hybrid-pk {name} failed: {done.stderr.strip()[-300:]}")
+    return {
+        "case": case,
+        "wall": {k: statistics.median(v) for k, v in wall.items()},
+        "cpu": {k: statistics.median(v) for k, v in cpu.items()},
+        "rounds": rounds,
+    }
+
+
+def report_commands(r: dict) -> None:
+    w, c = r["wall"], r["cpu"]
+    print(
+        f"{r['case']:<9} commands (median of {r['rounds']}, fresh processes): hybrid-pk "
+        f"diagnose {w['diagnose']:.1f} s, hybrid-pk calibrate --effects DIAG.json "
+        f"{w['calibrate']:.1f} s, ratio {w['diagnose'] / w['calibrate']:.2f}x; CPU "
+        f"{c['diagnose']:.1f} s / {c['calibrate']:.1f} s = {c['diagnose'] / c['calibrate']:.2f}x"
+    )
+
+
 def compare(found: dict, reference: dict) -> str:
     """Causes of two diagnoses and the largest value difference in units of std."""
 
@@ -241,6 +314,10 @@ def main() -> None:
     ap.add_argument("--reference", type=Path, help="diagnosis JSON to compare the ur10 case with")
     ap.add_argument("--json", type=Path, help="write every case's result here")
     ap.add_argument("--progress", action="store_true", help="print the diagnosis's progress")
+    ap.add_argument(
+        "--commands", type=int, default=0, metavar="K",
+        help="also time hybrid-pk diagnose and calibrate --effects DIAG.json, K rounds",
+    )  # fmt: skip
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.threads:
@@ -260,6 +337,9 @@ def main() -> None:
             raise SystemExit(f"case {case} failed (exit {out.returncode})")
         results.append(json.loads(out.stdout.strip().splitlines()[-1]))
         report(results[-1], reference if case == "ur10" else None)
+        if args.commands:
+            results[-1]["commands"] = command_times(case, args.ipa, args.threads, args.commands)
+            report_commands(results[-1]["commands"])
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
 
