@@ -1,7 +1,9 @@
 """What the checks of the rows say on the shared UR10 series made wrong the way users'
 tables are: both series given one frame set, a tracker bumped within a file,
 quaternions written inverted or as x y z w, shoulder-lift values counted from another
-zero, and 300 position-only rows of Series A whose error drifts over the hours.
+zero, and 300 position-only rows of Series A whose error drifts over the hours; then
+Series B as measured, with its rows from row 501 on moved by 1 mm (a tracker nudged),
+and with a move growing to 1 mm over its rows (a tripod settling).
 
     python experiments/row_checks.py --out DIR [--data ../shared/data/ipa-ur10]
 
@@ -41,12 +43,18 @@ def _cases(a, b) -> dict:
     q90 = sample.q.clone()
     q90[:, 1] += math.pi / 2  # shoulder lift counted from a zero 90 degrees away
     a300 = a.subset(torch.randperm(a.n, generator=torch.Generator().manual_seed(3))[:300])
+    move = torch.tensor([0.8e-3, 0.6e-3, 0.0], dtype=torch.float64)  # [m], 1 mm
+    step = (torch.arange(b.n) >= 500).double()[:, None]
+    ramp = torch.linspace(0.0, 1.0, b.n, dtype=torch.float64)[:, None]
     return {
         "bumped": (replace(first, position=pos, quat=quat), []),
         "inverse": (replace(sample, quat=sample.quat * torch.tensor([1.0, -1, -1, -1])), []),
         "xyzw": (replace(sample, quat=sample.quat[:, [1, 2, 3, 0]]), []),
         "zero90": (replace(sample, q=q90), []),
         "drift": (replace(a300, quat=None), []),
+        "series_b": (b, []),
+        "nudged": (replace(b, position=b.position + step * move), []),
+        "settling": (replace(b, position=b.position + ramp * move), []),
     }
 
 
@@ -64,7 +72,11 @@ def _diagnose(tables: list[Path], flags: list[str], out: Path) -> str:
     )
     structural = (doc["structural"] or {}).get("message", "none")
     findings = [f["why"] for f in (doc["structural"] or {}).get("findings", [])]
-    return f"causes: {causes or 'none'}\n  structural: {structural}\n  findings: {findings}"
+    moves = [w["why"] for w in doc["warnings"] if w["cause"] == "set-up"]
+    return (
+        f"causes ({len(doc['causes'])}): {causes or 'none'}\n  structural: {structural}\n"
+        f"  findings: {findings}\n  set-up: {moves or 'no move named'}"
+    )
 
 
 def main() -> None:

@@ -30,6 +30,7 @@ from hybrid_pk.report.evidence import Evidence, cause_evidence, cause_label
 from hybrid_pk.report.findings import (
     frames_section,
     robust_section,
+    setup_section,
     structural_section,
     structured_paragraph,
 )
@@ -403,6 +404,7 @@ def write_diagnosis_report(
         image(hist, "hold-out error histograms, nominal vs extended", out),
         "",
         *structural_section(diagnosis),
+        *setup_section(diagnosis, data, out),
         "## Causes",
         "",
     ]

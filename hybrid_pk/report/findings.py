@@ -6,10 +6,22 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from hybrid_pk.calibration.diagnosis.leftovers import left_verdict
-from hybrid_pk.report.markdown import fmt, markdown_table
+import torch
 
-__all__ = ["frames_section", "robust_section", "structural_section", "structured_paragraph"]
+from hybrid_pk.calibration.diagnosis.leftovers import left_verdict
+from hybrid_pk.calibration.diagnosis.setup_moves import setup_move_text
+from hybrid_pk.calibration.poses import predicted_poses
+from hybrid_pk.effects import conditions_from_data
+from hybrid_pk.report.markdown import fmt, image, markdown_table
+from hybrid_pk.report.plots import sequence_plot
+
+__all__ = [
+    "frames_section",
+    "robust_section",
+    "setup_section",
+    "structural_section",
+    "structured_paragraph",
+]
 
 
 def structural_section(diagnosis) -> list[str]:
@@ -57,6 +69,51 @@ def structural_section(diagnosis) -> list[str]:
             c["effect"] + (f":{c['joint']}" if c.get("joint") else "") for c in withheld
         )
         lines += [f"Causes fitted on this structure and withheld: {names}.", ""]
+    return lines
+
+
+def setup_section(diagnosis, data, out: Path) -> list[str]:
+    """``## The set-up moved during the rows``: each named move (the diagnosis JSON's
+    ``setup_moves``), its evidence, and its file's errors row by row (a plot)."""
+    moves = getattr(diagnosis, "setup_moves", None) or []
+    if not moves:
+        return []
+    lines = [
+        "## The set-up moved during the rows",
+        "",
+        "The final model's errors on the fit rows, in the order measured, were predicted "
+        "region by region (each region of the blocked hold-out from the others) with one "
+        "correction of the base and tool frames for all rows, one before and one from a "
+        "row, and one growing with the rows. Where a moved set-up predicts them better by "
+        "the practical margin, the rows were not measured from one set-up:",
+        "",
+    ]
+    table = []
+    for m in moves:
+        held = m["blocked_mean_mm"]
+        table.append([
+            m["file"], m["kind"], m["row"] if m["row"] is not None else "-",
+            f"{fmt(m['shift_mm']['mean'])} / {fmt(m['shift_mm']['max'])}",
+            f"{fmt(held['one'])} / {fmt(held['change'])} / {fmt(held['drift'])}",
+            f"{fmt(m['gain_mm'])} ({fmt(m['min_gain_mm'])})",
+        ])  # fmt: skip
+    header = ["file", "move", "row", "shift mean / max [mm]",
+              "held-out mean [mm]: one / change / drift", "gain (margin) [mm]"]  # fmt: skip
+    lines += [markdown_table(table, header, ["l", "l", "r", "r", "r", "r"])]
+    lines += [f"> **Warning:** {setup_move_text(m)}." for m in moves] + [""]
+    per_file = diagnosis.model.base.sets > 1  # a frame group is a file, else all rows
+    cond = conditions_from_data(data, per_file)
+    for k, m in enumerate(moves):
+        rows = torch.ones(data.n, dtype=torch.bool)
+        if per_file:
+            rows = data.file_index == data.sources.index(m["file"])
+        part = data.subset(rows.nonzero().squeeze(1))
+        with torch.no_grad():
+            T = predicted_poses(diagnosis.model, part.q, cond.subset(rows))
+        errors = (part.position - T[:, :3, 3]) * 1e3
+        title = f"{Path(m['file']).name}: the errors of the final model, row by row"
+        path = sequence_plot(part.rows, errors, out / f"setup_{k}.png", m["row"], title)
+        lines += [image(path, f"errors row by row, {m['file']}", out), ""]
     return lines
 
 

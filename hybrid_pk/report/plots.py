@@ -24,7 +24,7 @@ from hybrid_pk.evaluation.plots import (
 )
 from hybrid_pk.report.markdown import with_unit
 
-__all__ = ["evidence_plot", "residual_scan"]
+__all__ = ["evidence_plot", "residual_scan", "sequence_plot"]
 
 POINT_COLOR = "#4c72b0"  # measured points
 
@@ -238,3 +238,35 @@ def residual_scan(
     if title:
         fig.suptitle(title)
     return save_figure(fig, path)
+
+
+def sequence_plot(rows: object, errors: object, path: str | Path, mark=None, title=None) -> Path:
+    """The x, y, z error [mm] of each row against its row number, as measured (binned
+    medians of 60 equal-count bins over the points): a set-up move shows as a step
+    (``mark``: the row drawn as a dashed line) or a slope.
+
+    Args:
+        rows: ``(n,)`` row numbers in the order measured.
+        errors: ``(n, 3)`` measured minus predicted position [mm].
+        path: PNG to write.
+        mark: the row of a change, or None.
+        title: figure title.
+    """
+    x, e = as_array(rows), as_array(errors).reshape(-1, 3)
+    fig = new_figure(7.0, 3.6)
+    ax = fig.subplots()
+    for k, (name, color) in enumerate(zip("xyz", SEQUENCE_COLORS, strict=True)):
+        mx, my = binned_median(x, e[:, k], bins=60)
+        ax.plot(mx, my, "o-", ms=2.5, lw=1.0, color=color, label=f"{name} error")
+    if mark is not None:
+        ax.axvline(mark, color=LAW_COLOR, ls="--", lw=1.0, label=f"change, row {mark}")
+    ax.axhline(0.0, color="0.6", lw=0.6)
+    ax.set_xlabel("row, in the order measured")
+    ax.set_ylabel("measured - predicted [mm] (binned median)")
+    ax.legend(loc="best", fontsize="small")
+    if title:
+        ax.set_title(wrap_title(title), fontsize="medium")
+    return save_figure(fig, path)
+
+
+SEQUENCE_COLORS = ("#c44e52", "#55a868", "#4c72b0")  # x, y, z

@@ -116,6 +116,7 @@ class Diagnosis:
     budget: dict | None = None
     detectable: dict | None = None
     rival_stories: list[dict] = field(default_factory=list)
+    setup_moves: list[dict] = field(default_factory=list)
 
     def to_json(self) -> dict:
         return {
@@ -139,6 +140,7 @@ class Diagnosis:
             "budget": self.budget,
             "detectable": self.detectable,
             "rival_stories": self.rival_stories,
+            "setup_moves": self.setup_moves,
         }
 
 

@@ -64,6 +64,7 @@ from hybrid_pk.calibration.diagnosis.selection import (
     score_candidates,
     try_candidate,
 )
+from hybrid_pk.calibration.diagnosis.setup_moves import setup_move_text, setup_moves
 from hybrid_pk.calibration.diagnosis.split import Split, split_campaign
 from hybrid_pk.calibration.diagnosis.stand_ins import kept_stand_ins
 from hybrid_pk.calibration.diagnosis.structural import structural_check
@@ -159,6 +160,7 @@ def diagnose(
     causes, structural, stories = _optional_findings(
         model, res, (causes, flagged, pool), split, (carry, nominal_model), say, budget
     )
+    moves = setup_moves(model, res, split, carry, say)
     ambiguous += correlated_groups(res) + final.unresolved
     ambiguous += kept_stand_ins(final.stand_ins, causes)
     return Diagnosis(
@@ -166,7 +168,8 @@ def diagnose(
         robust=robust_json(res, data, split),
         structural=structural,
         frames=frame_json,
-        warnings=_warnings(causes, data, steps, robot, budget),
+        warnings=_warnings(causes, data, steps, robot, budget, moves),
+        setup_moves=moves,
         carry_over=carry.rule(res),
         budget=budget.to_json(),
         detectable=detectable_json(model, final.detectable, res.sigma_pos_mm, carry.margin(res)),
@@ -233,14 +236,16 @@ def _nominal_errors(model: ExtendedModel, split, campaign, fitted) -> dict:
     return nominal
 
 
-def _warnings(causes, data: MeasuredData, steps, robot: Robot, budget: Budget) -> list[str]:
-    """Every warning of the diagnosis: plausibility, the cap, ranges, budget cuts."""
+def _warnings(causes, data: MeasuredData, steps, robot: Robot, budget: Budget, moves) -> list:
+    """Every warning of the diagnosis: plausibility, the cap, ranges, budget cuts, set-up
+    moves (:mod:`.setup_moves`)."""
     return (
         plausibility_warnings(causes, data)
         + cap_warnings(steps)
         + stop_warnings(steps)
         + range_warnings(causes, robot)
         + budget.warnings()
+        + [{"cause": "set-up", "why": setup_move_text(m)} for m in moves]
     )
 
 

@@ -1,0 +1,285 @@
+"""A set-up that moved by a little during a file: a change at one row, or a drift.
+
+A tracker knocked by a few millimetres, a tool re-seated, a tripod settling over the
+hours: the rows then need frames that are not one rigid set, but the move is far below
+the gross line of :mod:`~hybrid_pk.calibration.setup_change` (20 mm), so the diagnosis
+explains it with causes. Afterwards, the final model's errors still carry it: a rigid
+move of the base (measurement) frame and of the tool shifts every row after the change,
+or every row a little more than the one before.
+
+:func:`setup_moves` asks the final model's errors on the fit rows of each frame group,
+in their measured order, which of three corrections of the frames predicts them best
+out of sample (12 parameters each, 9 position-only: base translation and rotation, tool
+translation and, with orientations, rotation; linearised at the final model):
+
+- ``one``: one correction for all rows (what the fit already made: the peer);
+- ``change``: one before and one after a row, the row chosen on the rows fitted;
+- ``drift``: a correction growing linearly with the row's place in the sequence.
+
+Each is fitted on the rows outside one region of joint space (the blocked hold-out's
+regions, :mod:`.regions`) and judged on the rows inside it, in turn; the mean position
+error over every held-out row is compared. A move is named where ``change`` or
+``drift`` gains at least the practical margin over ``one`` (the rule every cause
+meets): a change where it also beats the drift by the margin, a drift where the drift
+does as well, and "moved" where both gain and the data cannot tell which. A move's
+correction is a rigid one, the same for every region, so it carries over the regions
+where an error of the robot that a frame change stands in for locally does not.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from hybrid_pk.calibration.diagnosis.split import Split
+from hybrid_pk.calibration.poses import predicted_poses
+from hybrid_pk.calibration.tuning import diagnosis_tuning
+from hybrid_pk.geometry.rotations import skew, so3_log
+
+__all__ = ["move_columns", "setup_move_text", "setup_moves"]
+
+# Directions of a part's 12 x 12 Gram below this fraction of its largest (columns
+# scaled to unit length) are left out: round-off, or a frame direction the rows do not
+# see (a tool translation along an orientation that never changes).
+RCOND = 1e-10
+# Candidate change rows per level of the coarse-to-fine scan (every row of the finest).
+SCAN_STEPS = 256
+# Rows whose 12 x 12 Grams are formed at once: bounds the temporaries (~10 MB).
+CHUNK_ROWS = 8192
+
+
+def move_columns(T: Tensor, sigmas: tuple[float, float | None]) -> Tensor:
+    """``(n, m, p)`` derivatives of the noise-normalised errors (``m`` = 6, or 3 without
+    orientations: ``sigmas[1]`` None) of poses ``T (n, 4, 4)`` [m] with respect to a
+    small move of the base frame (translation [mm], rotation [rad], in the measurement
+    frame) and of the tool (translation [mm] and rotation [rad] in the tool frame):
+    ``p`` = 12, or 9 without orientations (the tool's rotation moves no point)."""
+    n, sp, sr = T.shape[0], sigmas[0], sigmas[1]
+    R, p = T[:, :3, :3], T[:, :3, 3] * 1e3
+    eye = torch.eye(3, dtype=T.dtype).expand(n, 3, 3)
+    position = torch.cat([eye, -skew(p), R], dim=2) / sp  # (n, 3, 9)
+    if sr is None:
+        return position
+    zero = torch.zeros(n, 3, 3, dtype=T.dtype)
+    position = torch.cat([position, zero], dim=2)
+    rotation = torch.cat([zero, eye, zero, R], dim=2) / sr
+    return torch.cat([position, rotation], dim=1)
+
+
+def _errors(T: Tensor, data, sigmas) -> Tensor:
+    """``(n, m)`` measured minus predicted, noise-normalised (position mm / sigma_pos,
+    rotation vector rad / sigma_rot)."""
+    position = (data.position - T[:, :3, 3]) * 1e3 / sigmas[0]
+    if sigmas[1] is None or data.quat is None:
+        return position
+    R_meas = data.T_measured()[:, :3, :3]
+    rotation = so3_log(R_meas @ T[:, :3, :3].transpose(1, 2)) / sigmas[1]
+    return torch.cat([position, rotation], dim=1)
+
+
+def _solve(G: Tensor, b: Tensor) -> Tensor:
+    """Minimum-norm solutions ``x`` of ``G x = b`` (batched ``(..., p, p)``, ``(..., p)``),
+    directions below :data:`RCOND` of the largest left out."""
+    scale = G.diagonal(dim1=-2, dim2=-1).clamp_min(1e-300).rsqrt()
+    Gs = G * scale[..., :, None] * scale[..., None, :]
+    w, V = torch.linalg.eigh(Gs)
+    keep = w > RCOND * w[..., -1:].clamp_min(1e-300)
+    inv = torch.where(keep, 1.0 / w.where(keep, torch.ones_like(w)), torch.zeros_like(w))
+    y = V @ ((V.transpose(-1, -2) @ (b * scale)[..., None]).squeeze(-1) * inv)[..., None]
+    return y.squeeze(-1) * scale
+
+
+def _sums(A: Tensor, e: Tensor, weight: Tensor, segment: Tensor, n_segments: int, drift=None):
+    """Per segment of the rows: the sums of ``weight * A^T A`` and ``weight * A^T e``,
+    formed :data:`CHUNK_ROWS` rows at a time (no Gram per row is kept: 250,000 rows
+    would take 1.2 GB). ``drift``: each row's place in the sequence, whose columns are
+    then those of a drifting correction (``A`` and ``A * place``: offset and slope)."""
+    p = A.shape[2] * (1 if drift is None else 2)
+    G, b = A.new_zeros(n_segments, p, p), A.new_zeros(n_segments, p)
+    for start in range(0, A.shape[0], CHUNK_ROWS):
+        rows = slice(start, start + CHUNK_ROWS)
+        a = A[rows] if drift is None else torch.cat([A[rows], A[rows] * drift[rows, None, None]], 2)
+        aw = a * weight[rows, None, None]
+        G.index_add_(0, segment[rows], torch.einsum("nij,nik->njk", aw, a))
+        b.index_add_(0, segment[rows], torch.einsum("nij,ni->nj", aw, e[rows]))
+    return G, b
+
+
+def _change_row(A: Tensor, e: Tensor, rows: Tensor, min_rows: int) -> int | None:
+    """The place ``k`` in the sequence after which a second correction fits ``rows``
+    (a mask of the sequence) best, with ``min_rows`` of them on each side; None when
+    they are too few. Coarse to fine: :data:`SCAN_STEPS` candidates a level."""
+    count, weight = rows.long().cumsum(0), rows.to(A.dtype)
+    total = int(count[-1])
+    if total < 2 * min_rows:
+        return None
+    order = torch.arange(len(rows))
+
+    def gain(k: Tensor) -> Tensor:  # the explained sum of squares of the two parts
+        segment = torch.searchsorted(k, order, right=True)  # row i counts for k > i
+        G, b = _sums(A, e, weight, segment, len(k) + 1)
+        G1, b1 = G.cumsum(0)[:-1], b.cumsum(0)[:-1]  # the rows before each k
+        G2, b2 = G.sum(0) - G1, b.sum(0) - b1
+        return (b1 * _solve(G1, b1)).sum(-1) + (b2 * _solve(G2, b2)).sum(-1)
+
+    valid = ((count >= min_rows) & (total - count >= min_rows)).nonzero().squeeze(1) + 1
+    lo, hi = int(valid[0]), int(valid[-1])
+    while True:
+        k = torch.unique(torch.linspace(lo, hi, min(SCAN_STEPS, hi - lo + 1)).round().long())
+        best = int(k[gain(k).argmax()])
+        if len(k) == hi - lo + 1:
+            return best
+        step = (hi - lo) / (SCAN_STEPS - 1)
+        lo, hi = max(int(valid[0]), int(best - step)), min(int(valid[-1]), int(best + step) + 1)
+
+
+def _fits(A: Tensor, e: Tensor, place: Tensor, rows: Tensor, min_rows: int):
+    """The three corrections (``{"one", "change", "drift"}`` -> ``(n, p)`` correction of
+    each row) fitted on ``rows`` (a mask of the sequence), and the change's place
+    (``change`` left out where the rows are too few for it)."""
+    n, p = A.shape[0], A.shape[2]
+    one = torch.zeros(n, dtype=torch.long)
+
+    def fitted(mask: Tensor, drift=None) -> Tensor:
+        G, b = _sums(A, e, mask.to(A.dtype), one, 1, drift)
+        return _solve(G[0], b[0])
+
+    x_drift = fitted(rows, place)
+    out = {
+        "one": fitted(rows).expand(n, -1),
+        "drift": x_drift[:p] + place[:, None] * x_drift[p:],
+    }
+    k = _change_row(A, e, rows, min_rows)
+    if k is not None:
+        before = torch.arange(n) < k
+        x1, x2 = fitted(rows & before), fitted(rows & ~before)
+        out["change"] = torch.where(before[:, None], x1, x2)
+    return out, k
+
+
+def setup_moves(model, res, split: Split, carry, say=None) -> list[dict]:
+    """The set-up moves the final ``model``'s errors on ``split``'s fit rows show, one
+    entry per frame group with one (see the module); empty without regions to hold out.
+
+    Args:
+        model, res: the final model of a diagnosis and its fit (the noise levels).
+        carry: the blocked hold-out's settings (:class:`.carryover.Carry`): its regions
+            of the fit rows, and the practical margin.
+        say: the progress callback.
+
+    Returns:
+        ``{"kind": "change" | "drift" | "moved", "file", "row" (the change's first row,
+        else None), "rows", "shift_mm": {"mean", "max"}, "base_translation_mm",
+        "base_rotation_deg", "tool_translation_mm", "blocked_mean_mm": {"one",
+        "change", "drift"}, "gain_mm", "min_gain_mm"}``: the move as the named
+        correction fitted on every fit row of the group (a change: the rows from the
+        change against those before it; a drift: the last row against the first).
+    """
+    folds, margin = carry.folds, carry.margin(res)
+    sigmas = (res.sigma_pos_mm, None if split.position_only else res.sigma_rot_rad)
+    regions = 0 if folds is None else int(folds.description.get("regions", 0))
+    if regions < 2:
+        return []
+    if say is not None:
+        say("checking whether the set-up moved during the rows")
+    data, cond = split.train, split.cond_fit
+    T = predicted_poses(model, data.q, cond)
+    groups = [None] if cond.group is None else cond.group.unique().tolist()
+    found = []
+    for g in groups:
+        idx = torch.arange(data.n) if g is None else (cond.group == g).nonzero().squeeze(1)
+        entry = _group_move(data.subset(idx), T[idx], folds.cell[idx] % regions, sigmas, margin)
+        if entry is not None:
+            found.append(entry)
+    return found
+
+
+def _group_move(data, T: Tensor, region: Tensor, sigmas, margin: float) -> dict | None:
+    """:func:`setup_moves`' entry of one frame group's rows (in the order measured)."""
+    least = diagnosis_tuning().check_rows  # a check's worth of rows on each side
+    n = data.n
+    if n < 2 * least:
+        return None
+    A, e = move_columns(T, sigmas), _errors(T, data, sigmas)
+    place = torch.linspace(0.0, 1.0, n, dtype=A.dtype)
+    held = {k: torch.full((n,), math.nan, dtype=A.dtype) for k in ("one", "change", "drift")}
+    for r in region.unique().tolist():
+        inside = region == r
+        if inside.all():
+            return None
+        fitted, _ = _fits(A, e, place, ~inside, least)
+        for name, x in fitted.items():
+            left = e[inside] - (A[inside] @ x[inside][..., None]).squeeze(-1)
+            held[name][inside] = left[:, :3].norm(dim=1) * sigmas[0]
+    mean = {k: float(v.mean()) for k, v in held.items()}  # NaN: a region left no change
+    gain = {k: mean["one"] - mean[k] for k in ("change", "drift")}
+    if not max(gain.values(), key=lambda v: -math.inf if math.isnan(v) else v) >= margin:
+        return None
+    if math.isnan(gain["change"]) or gain["drift"] - gain["change"] >= margin:
+        kind = "drift"
+    elif gain["change"] - gain["drift"] >= margin or not gain["drift"] >= margin:
+        kind = "change"
+    else:
+        kind = "moved"  # both carry over: the data cannot tell a change from a drift
+    return _entry(kind, data, (A, e, place), mean, sigmas[0], margin)
+
+
+def _entry(kind, data, fitted_on, mean, sigma_pos: float, margin: float) -> dict:
+    """The JSON entry of a named move (``fitted_on``: ``(A, e, place)`` of the group),
+    its sizes from the correction fitted on every row of the group."""
+    A, e, place = fitted_on
+    everything = torch.ones(data.n, dtype=torch.bool)
+    fitted, k = _fits(A, e, place, everything, diagnosis_tuning().check_rows)
+    shown = "drift" if kind == "drift" or k is None else "change"
+    x = fitted[shown]
+    move = x[-1] - x[0]  # a change: after it against before; a drift: last row - first
+    rows = slice(k, data.n) if shown == "change" else slice(0, data.n)
+    shift = (A[rows, :3] @ move[:, None]).squeeze(-1).norm(dim=1) * sigma_pos
+    file, row = data.sources[int(data.file_index[0])], None
+    if shown == "change":
+        file, row = data.sources[int(data.file_index[k])], int(data.rows[k])
+    return {
+        "kind": kind,
+        "file": file,
+        "row": row,
+        "rows": data.n,
+        "shift_mm": {"mean": float(shift.mean()), "max": float(shift.max())},
+        "base_translation_mm": move[0:3].tolist(),
+        "base_rotation_deg": torch.rad2deg(move[3:6]).tolist(),
+        "tool_translation_mm": move[6:9].tolist(),
+        "blocked_mean_mm": {k: (None if math.isnan(v) else v) for k, v in mean.items()},
+        "gain_mm": mean["one"] - mean[shown],
+        "min_gain_mm": margin,
+    }
+
+
+def setup_move_text(entry: dict) -> str:
+    """One line for a :func:`setup_moves` entry: what moved, by how much, the evidence,
+    and what to do."""
+    shift, gain, margin = entry["shift_mm"], entry["gain_mm"], entry["min_gain_mm"]
+    size = f"{shift['mean']:.3g} mm (mean; up to {shift['max']:.3g} mm)"
+    evidence = f"{gain:.3g} mm better than one frame set (margin {margin:.3g} mm)"
+    carried = "the causes above may carry part of it"
+    if entry["kind"] == "change":
+        return (
+            f"the set-up moved near row {entry['row']} of {entry['file']}: the rows from it "
+            f"are shifted by {size} against those before; two frame sets, one "
+            f"before and one from that row, predict held-out regions {evidence}, and better "
+            "than a drift by the margin: the tracker was moved or the tool re-seated; "
+            f"{carried}: split the file at that row and diagnose again with --frames-per-file"
+        )
+    if entry["kind"] == "drift":
+        return (
+            f"the set-up drifted during {entry['file']}: its last rows are shifted by {size} "
+            f"against its first, growing with the rows; frames drifting with the "
+            f"rows predict held-out regions {evidence}, and a change at one row does no "
+            f"better: a tracker or fixture settling, or the room warming; {carried}"
+        )
+    return (
+        f"the set-up moved during {entry['file']}: a change near row {entry['row']} (the rows "
+        f"from it shifted by {size}) and a drift both predict held-out regions better than "
+        f"one frame set ({gain:.3g} mm, margin {margin:.3g} mm), within the margin of each "
+        f"other: the data cannot tell a change from a drift; {carried}"
+    )
