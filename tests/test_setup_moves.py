@@ -18,9 +18,11 @@ import hybrid_pk as hpk
 from hybrid_pk.calibration.diagnosis.setup_moves import (
     _change_row,
     _errors,
+    _places,
     move_columns,
     setup_move_text,
 )
+from hybrid_pk.cli.main import main as hybrid_pk
 from hybrid_pk.geometry import matrix_to_quat, quat_to_matrix, so3_exp
 from hybrid_pk.report.diagnosis_report import write_diagnosis_report
 from tests.helpers import run_rng
@@ -76,6 +78,20 @@ def test_the_move_columns_are_the_derivatives_of_a_frame_move(ur10):
     # the measured rows are the moved poses: the errors of the unmoved model are A x
     e = _errors(T, _rows(q, moved), sigmas) - _errors(T, data, sigmas)
     assert torch.allclose(e, (A @ x[:, None]).squeeze(-1), rtol=1e-5, atol=1e-9)
+
+
+def test_a_drift_runs_with_the_time_stamps_where_the_rows_have_them(rx160):
+    rng = run_rng("setup-places")
+    data = _campaign(rx160, rng, n=40)
+    by_row = torch.linspace(0, 1, 40, dtype=torch.float64)
+    assert torch.equal(_places(data, torch.float64), by_row)
+    t = torch.arange(40, dtype=torch.float64)
+    t[20:] += 60.0  # a pause of a minute: half the span
+    places = _places(dataclasses.replace(data, t=t), torch.float64)
+    assert places[19] == pytest.approx(19 / 99)
+    assert places[20] == pytest.approx(80 / 99)
+    shuffled = dataclasses.replace(data, t=t.flip(0))  # not in time order: by row
+    assert torch.equal(_places(shuffled, torch.float64), by_row)
 
 
 def test_the_change_row_is_found_where_the_errors_step():
@@ -141,3 +157,25 @@ def test_a_set_up_that_stayed_is_not_named(rx160):
     d = hpk.diagnose(rx160, _campaign(rx160, rng), candidates=[LABEL])
     assert d.setup_moves == []
     assert not any(w["cause"] == "set-up" for w in d.warnings)
+
+
+def test_both_commands_print_the_move(rx160, tmp_path, capsys):
+    """``hybrid-pk diagnose`` and ``hybrid-pk calibrate --effects auto`` print the move
+    as a ``warning: set-up:`` line (the causes they name may carry part of it)."""
+    rng = run_rng("setup-move-cli")
+    data = _campaign(rx160, rng)
+    k = int(rng.integers(int(0.3 * data.n), int(0.7 * data.n)))
+    weight = (torch.arange(data.n) >= k).double()
+    moved = _moved(data, weight, torch.zeros(3, dtype=torch.float64), torch.tensor([6e-4, 0, 0]))
+    table = hpk.write_table(tmp_path / "nudged.csv", moved)
+    config = tmp_path / "candidates.yaml"
+    config.write_text(f"candidates: [{LABEL}]\n")
+    common = [str(table), "--robot", "rx160", "--config", str(config), "--no-progress"]
+    expected = f"warning: set-up: the set-up moved near row {int(moved.rows[k])}"
+    assert hybrid_pk(["diagnose", *common, "--json", str(tmp_path / "d.json")]) == 0
+    out = capsys.readouterr().out
+    assert any(line.startswith(expected) for line in out.splitlines()), out
+    model = str(tmp_path / "m.pt")
+    assert hybrid_pk(["calibrate", *common, "--effects", "auto", "--out", model]) == 0
+    out = capsys.readouterr().out
+    assert any(line.startswith(expected) for line in out.splitlines()), out

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import textwrap
 
+from hybrid_pk.calibration.diagnosis.setup_moves import setup_move_text
 from hybrid_pk.calibration.settings import DiagnosisSettings
 from hybrid_pk.cli.calibrate_output import (
     add_urdf_options,
@@ -219,6 +220,8 @@ def _print_summary(robot, data, diag, effects, model, res0, res) -> None:
         )
         for amb in diag.ambiguous:
             print(f"  ambiguous: {' / '.join(amb['effects'])}")
+        for move in diag.setup_moves:  # the causes may carry part of it
+            print(f"warning: set-up: {setup_move_text(move)}")
         unloaded = unloaded_reason(robot, data.payload, "move nothing and were not tested")
         if unloaded:
             print(f"note: {unloaded}")

@@ -14,7 +14,8 @@ translation and, with orientations, rotation; linearised at the final model):
 
 - ``one``: one correction for all rows (what the fit already made: the peer);
 - ``change``: one before and one after a row, the row chosen on the rows fitted;
-- ``drift``: a correction growing linearly with the row's place in the sequence.
+- ``drift``: a correction growing linearly with the row's place in the sequence (its
+  time stamp where the rows have them, else its order).
 
 Each is fitted on the rows outside one region of joint space (the blocked hold-out's
 regions, :mod:`.regions`) and judged on the rows inside it, in turn; the mean position
@@ -203,7 +204,7 @@ def _group_move(data, T: Tensor, region: Tensor, sigmas, margin: float) -> dict 
     if n < 2 * least:
         return None
     A, e = move_columns(T, sigmas), _errors(T, data, sigmas)
-    place = torch.linspace(0.0, 1.0, n, dtype=A.dtype)
+    place = _places(data, A.dtype)
     held = {k: torch.full((n,), math.nan, dtype=A.dtype) for k in ("one", "change", "drift")}
     for r in region.unique().tolist():
         inside = region == r
@@ -224,6 +225,18 @@ def _group_move(data, T: Tensor, region: Tensor, sigmas, margin: float) -> dict 
     else:
         kind = "moved"  # both carry over: the data cannot tell a change from a drift
     return _entry(kind, data, (A, e, place), mean, sigmas[0], margin)
+
+
+def _places(data, dtype) -> Tensor:
+    """Each row's place in the sequence, 0 at the first and 1 at the last: by its time
+    stamp where the rows have increasing ones (a pause overnight is then a long way for
+    a drift, not one row), else by its order."""
+    t = data.t
+    if t is not None and torch.isfinite(t).all() and bool((t.diff() >= 0).all()):
+        span = float(t[-1] - t[0])
+        if span > 0:
+            return ((t - t[0]) / span).to(dtype)
+    return torch.linspace(0.0, 1.0, data.n, dtype=dtype)
 
 
 def _entry(kind, data, fitted_on, mean, sigma_pos: float, margin: float) -> dict:
