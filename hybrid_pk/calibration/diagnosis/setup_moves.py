@@ -108,11 +108,12 @@ def _sums(A: Tensor, e: Tensor, weight: Tensor, segment: Tensor, n_segments: int
     return G, b
 
 
-def _change_row(A: Tensor, e: Tensor, rows: Tensor, min_rows: int) -> int | None:
+def _change_row(A: Tensor, e: Tensor, rows: Tensor, min_rows: int, w=None) -> int | None:
     """The place ``k`` in the sequence after which a second correction fits ``rows``
-    (a mask of the sequence) best, with ``min_rows`` of them on each side; None when
-    they are too few. Coarse to fine: :data:`SCAN_STEPS` candidates a level."""
-    count, weight = rows.long().cumsum(0), rows.to(A.dtype)
+    (a mask of the sequence; ``w``: the rows' robust weights, None: 1) best, with
+    ``min_rows`` of them on each side; None when they are too few. Coarse to fine:
+    :data:`SCAN_STEPS` candidates a level."""
+    count, weight = rows.long().cumsum(0), rows.to(A.dtype) * (1.0 if w is None else w)
     total = int(count[-1])
     if total < 2 * min_rows:
         return None
@@ -136,15 +137,17 @@ def _change_row(A: Tensor, e: Tensor, rows: Tensor, min_rows: int) -> int | None
         lo, hi = max(int(valid[0]), int(best - step)), min(int(valid[-1]), int(best + step) + 1)
 
 
-def _fits(A: Tensor, e: Tensor, place: Tensor, rows: Tensor, min_rows: int):
+def _fits(A: Tensor, e: Tensor, place: Tensor, rows: Tensor, min_rows: int, w=None):
     """The three corrections (``{"one", "change", "drift"}`` -> ``(n, p)`` correction of
-    each row) fitted on ``rows`` (a mask of the sequence), and the change's place
-    (``change`` left out where the rows are too few for it)."""
+    each row) fitted on ``rows`` (a mask of the sequence; ``w``: the rows' robust
+    weights, None: 1), and the change's place (``change`` left out where the rows are
+    too few for it)."""
     n, p = A.shape[0], A.shape[2]
     one = torch.zeros(n, dtype=torch.long)
 
     def fitted(mask: Tensor, drift=None) -> Tensor:
-        G, b = _sums(A, e, mask.to(A.dtype), one, 1, drift)
+        weight = mask.to(A.dtype) * (1.0 if w is None else w)
+        G, b = _sums(A, e, weight, one, 1, drift)
         return _solve(G[0], b[0])
 
     x_drift = fitted(rows, place)
@@ -152,7 +155,7 @@ def _fits(A: Tensor, e: Tensor, place: Tensor, rows: Tensor, min_rows: int):
         "one": fitted(rows).expand(n, -1),
         "drift": x_drift[:p] + place[:, None] * x_drift[p:],
     }
-    k = _change_row(A, e, rows, min_rows)
+    k = _change_row(A, e, rows, min_rows, w)
     if k is not None:
         before = torch.arange(n) < k
         x1, x2 = fitted(rows & before), fitted(rows & ~before)
@@ -187,18 +190,23 @@ def setup_moves(model, res, split: Split, carry, say=None) -> list[dict]:
         say("checking whether the set-up moved during the rows")
     data, cond = split.train, split.cond_fit
     T = predicted_poses(model, data.q, cond)
+    weights = res.weights  # a robust fit's row weights: outliers count as little here
+    w = torch.ones(data.n, dtype=T.dtype) if weights is None else weights.to(T.dtype)
     groups = [None] if cond.group is None else cond.group.unique().tolist()
     found = []
     for g in groups:
         idx = torch.arange(data.n) if g is None else (cond.group == g).nonzero().squeeze(1)
-        entry = _group_move(data.subset(idx), T[idx], folds.cell[idx] % regions, sigmas, margin)
+        rows = (data.subset(idx), T[idx], w[idx])
+        entry = _group_move(rows, folds.cell[idx] % regions, sigmas, margin)
         if entry is not None:
             found.append(entry)
     return found
 
 
-def _group_move(data, T: Tensor, region: Tensor, sigmas, margin: float) -> dict | None:
-    """:func:`setup_moves`' entry of one frame group's rows (in the order measured)."""
+def _group_move(rows, region: Tensor, sigmas, margin: float) -> dict | None:
+    """:func:`setup_moves`' entry of one frame group's rows (in the order measured;
+    ``rows``: ``(data, predicted poses, robust weights)``)."""
+    data, T, w = rows
     least = diagnosis_tuning().check_rows  # a check's worth of rows on each side
     n = data.n
     if n < 2 * least:
@@ -210,11 +218,12 @@ def _group_move(data, T: Tensor, region: Tensor, sigmas, margin: float) -> dict 
         inside = region == r
         if inside.all():
             return None
-        fitted, _ = _fits(A, e, place, ~inside, least)
+        fitted, _ = _fits(A, e, place, ~inside, least, w)
         for name, x in fitted.items():
             left = e[inside] - (A[inside] @ x[inside][..., None]).squeeze(-1)
             held[name][inside] = left[:, :3].norm(dim=1) * sigmas[0]
-    mean = {k: float(v.mean()) for k, v in held.items()}  # NaN: a region left no change
+    # weighted as the fit weighs the rows; NaN where a region left no change
+    mean = {k: float((v * w).sum() / w.sum()) for k, v in held.items()}
     gain = {k: mean["one"] - mean[k] for k in ("change", "drift")}
     if not max(gain.values(), key=lambda v: -math.inf if math.isnan(v) else v) >= margin:
         return None
@@ -224,7 +233,7 @@ def _group_move(data, T: Tensor, region: Tensor, sigmas, margin: float) -> dict 
         kind = "change"
     else:
         kind = "moved"  # both carry over: the data cannot tell a change from a drift
-    return _entry(kind, data, (A, e, place), mean, sigmas[0], margin)
+    return _entry(kind, data, (A, e, place, w), mean, sigmas[0], margin)
 
 
 def _places(data, dtype) -> Tensor:
@@ -240,11 +249,11 @@ def _places(data, dtype) -> Tensor:
 
 
 def _entry(kind, data, fitted_on, mean, sigma_pos: float, margin: float) -> dict:
-    """The JSON entry of a named move (``fitted_on``: ``(A, e, place)`` of the group),
-    its sizes from the correction fitted on every row of the group."""
-    A, e, place = fitted_on
+    """The JSON entry of a named move (``fitted_on``: ``(A, e, place, w)`` of the
+    group), its sizes from the correction fitted on every row of the group."""
+    A, e, place, w = fitted_on
     everything = torch.ones(data.n, dtype=torch.bool)
-    fitted, k = _fits(A, e, place, everything, diagnosis_tuning().check_rows)
+    fitted, k = _fits(A, e, place, everything, diagnosis_tuning().check_rows, w)
     shown = "drift" if kind == "drift" or k is None else "change"
     x = fitted[shown]
     move = x[-1] - x[0]  # a change: after it against before; a drift: last row - first
