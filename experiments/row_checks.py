@@ -3,7 +3,8 @@ tables are: both series given one frame set, a tracker bumped within a file,
 quaternions written inverted or as x y z w, shoulder-lift values counted from another
 zero, and 300 position-only rows of Series A whose error drifts over the hours; then
 Series B as measured, with its rows from row 501 on moved by 1 mm (a tracker nudged),
-and with a move growing to 1 mm over its rows (a tripod settling).
+the same diagnosed again with frames of their own from row 501 (``--split-at``), and
+with a move growing to 1 mm over its rows (a tripod settling).
 
     python experiments/row_checks.py --out DIR [--data ../shared/data/ipa-ur10]
 
@@ -54,6 +55,10 @@ def _cases(a, b) -> dict:
         "drift": (replace(a300, quat=None), []),
         "series_b": (b, []),
         "nudged": (replace(b, position=b.position + step * move), []),
+        "nudged_split": (
+            replace(b, position=b.position + step * move),
+            ["--frames-per-file", "--split-at", "nudged_split.csv:501"],
+        ),
         "settling": (replace(b, position=b.position + ramp * move), []),
     }
 

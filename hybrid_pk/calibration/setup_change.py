@@ -18,6 +18,7 @@ effect is fitted, naming the file and row.
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import torch
 
@@ -82,14 +83,16 @@ def setup_change_error(
 def _change_error(data: MeasuredData, found: tuple[int, float], shared_mm: float) -> DataError:
     k, own_mm = found
     gross = diagnosis_tuning().gross_error_mm
+    file, row = data.sources[int(data.file_index[k])], int(data.rows[k])
     return DataError(
         "the set-up changed here: one base/tool frame set misses the rows by "
         f"{shared_mm:.4g} mm (mean), beyond what small corrections make ({gross:g} mm), "
         f"and the rows before and from this one, each part with its own frames, by "
         f"{own_mm:.3g} mm; the tracker moved or the tool was re-mounted: split the file "
-        "here and rerun with --frames-per-file (Python: frames_per_file=True)",
-        file=data.sources[int(data.file_index[k])],
-        row=int(data.rows[k]),
+        f"here and rerun with --frames-per-file --split-at {Path(file).name}:{row} "
+        "(Python: hybrid_pk.data.parts.split_at, frames_per_file=True)",
+        file=file,
+        row=row,
     )
 
 

@@ -27,6 +27,7 @@ from hybrid_pk.cli.calibrate_output import (
 from hybrid_pk.cli.calibrate_refit import run_refit
 from hybrid_pk.cli.common import (
     FRAME_LABELS,
+    data_files,
     frame_parameter_count,
     load_robot,
     mounting_lines,
@@ -150,7 +151,7 @@ def _run_new(args: argparse.Namespace, settings: DiagnosisSettings) -> int:
     gravity = settings.mounting()
     spec, labels = _requested_labels(robot, (args.effects or "auto").strip())
     auto = spec == "auto"
-    sets = len(args.data) if args.frames_per_file else 1
+    sets = data_files(args) if args.frames_per_file else 1
     settings.priors()  # a bad --tool or --base fails before the data are read
 
     with progress("calibrate", total=6 if auto else 5) as bar:
@@ -161,6 +162,7 @@ def _run_new(args: argparse.Namespace, settings: DiagnosisSettings) -> int:
             robot,
             n_params=frame_parameter_count(sets, False) + n_effect_params,
             skip_bad_rows=args.skip_bad_rows,
+            args=args,
         )
         result = calibrate(
             robot, data, None if auto else labels, frames_per_file=args.frames_per_file,

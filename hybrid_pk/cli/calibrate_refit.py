@@ -15,6 +15,7 @@ from hybrid_pk.cli.calibrate_output import (
     wrote_line,
 )
 from hybrid_pk.cli.common import (
+    data_files,
     frame_parameter_count,
     mounting_lines,
     read_data,
@@ -48,7 +49,7 @@ def run_refit(args: argparse.Namespace, settings: FitSettings) -> int:
     loaded = load_model(args.model, robot_check=args.robot, end_link=args.end_link)
     robot = model_robot(loaded)
     robot.requires_grad_(False)
-    sets = len(args.data) if args.frames_per_file else 1
+    sets = data_files(args) if args.frames_per_file else 1
     which = args.refit
 
     with progress("calibrate --refit", total=3) as bar:
@@ -58,6 +59,7 @@ def run_refit(args: argparse.Namespace, settings: FitSettings) -> int:
             robot,
             n_params=frame_parameter_count(sets, False) // (1 if which == "frames" else 2),
             skip_bad_rows=args.skip_bad_rows,
+            args=args,
         )
         bar.stage(f"re-fitting the {which} frame(s)")
         priors = settings.priors(loaded.model if loaded.frames_fitted else None)

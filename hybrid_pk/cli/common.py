@@ -17,8 +17,9 @@ from pathlib import Path
 import torch
 
 from hybrid_pk.data import DataWarning, MeasuredData, read_table_for
+from hybrid_pk.data.parts import split_all
 from hybrid_pk.effects import ExtendedModel
-from hybrid_pk.errors import HybridPKError
+from hybrid_pk.errors import DataError, HybridPKError
 from hybrid_pk.evaluation.metrics import ErrorStats, error_stats
 from hybrid_pk.output_file import json_text, write_text
 from hybrid_pk.pipelines.calibration import FRAME_LABELS as FRAME_LABELS
@@ -29,6 +30,7 @@ from hybrid_pk.robot import Robot
 __all__ = [
     "FRAME_LABELS",
     "TILT_NOTE_DEG",
+    "data_files",
     "data_notes",
     "fit_frames",
     "flag_values",
@@ -140,6 +142,7 @@ def read_data(
     *,
     n_params: int | None = None,
     skip_bad_rows: bool = False,
+    args: argparse.Namespace | None = None,
 ) -> MeasuredData:
     """Read and validate DATA for ``robot``; data warnings become ``note:`` lines.
 
@@ -148,14 +151,23 @@ def read_data(
         robot: gives joint names, limits and types.
         n_params: parameters that will be fitted (fewer rows is an error); None: 1.
         skip_bad_rows: leave out (and report) bad rows instead of failing.
+        args: the command's arguments: their ``--split-at FILE:ROW`` cut the files
+            (:mod:`hybrid_pk.data.parts`), which needs ``--frames-per-file``.
     """
+    splits = getattr(args, "split_at", None)
+    if splits and not getattr(args, "frames_per_file", False):
+        raise DataError(
+            "--split-at gives the rows from a row on frames of their own: it needs "
+            "--frames-per-file"
+        )
     with data_notes():
-        return read_table_for(
+        data = read_table_for(
             [str(p) for p in paths],
             robot,
             n_params=n_params or 1,
             on_bad_row="skip" if skip_bad_rows else "error",
         )
+    return split_all(data, splits)
 
 
 @contextmanager
@@ -207,6 +219,11 @@ def frame_set_index(value: int | None, sets: int, model: str) -> int:
     return value
 
 
+def data_files(args: argparse.Namespace) -> int:
+    """How many files DATA makes once ``--split-at`` has cut them."""
+    return len(args.data) + len(getattr(args, "split_at", None) or [])
+
+
 def frame_sets_for(args: argparse.Namespace, model_sets: int) -> int:
     """Base/tool frame sets of a command that reads MODEL and DATA (evaluate, train).
 
@@ -216,7 +233,7 @@ def frame_sets_for(args: argparse.Namespace, model_sets: int) -> int:
     Raises:
         HybridPKError: when the model's sets and the DATA files do not match.
     """
-    files = len(args.data)
+    files = data_files(args)
     if args.fit_frames:
         return files if args.frames_per_file else 1
     if model_sets > 1 and model_sets != files:

@@ -186,7 +186,7 @@ def run(args: argparse.Namespace) -> int:
     for c in settings.candidates or []:
         make_effect(robot, c)  # unknown effect or joint: a clear error now
     gravity = settings.mounting()
-    data = read_data(args.data, robot, skip_bad_rows=args.skip_bad_rows)
+    data = read_data(args.data, robot, skip_bad_rows=args.skip_bad_rows, args=args)
 
     progress = Progress("diagnose", delay=0.0)
     try:

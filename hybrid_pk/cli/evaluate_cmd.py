@@ -87,7 +87,9 @@ def run(args: argparse.Namespace) -> int:
     with progress("evaluate", total=total) as bar:
         bar.stage("reading data")
         n_params = frame_parameter_count(sets, False) if args.fit_frames else None
-        data = read_data(args.data, robot, n_params=n_params, skip_bad_rows=args.skip_bad_rows)
+        data = read_data(
+            args.data, robot, n_params=n_params, skip_bad_rows=args.skip_bad_rows, args=args
+        )
         up = loaded.model.base.matrix()[0, :3, 2].detach().clone()  # the fit moves it
         res = evaluate_model(
             loaded, data, model_label=args.model, sets=sets, fit_frames=args.fit_frames,

@@ -9,7 +9,7 @@ Groups:
     the command itself: :func:`command_parser` (with :func:`add_threads` and
         :func:`add_progress`, every command)
     robot and model: :func:`add_robot`, :func:`add_end_link`, :func:`add_model`
-    data: :func:`add_data` (DATA..., --frames-per-file, --skip-bad-rows)
+    data: :func:`add_data` (DATA..., --frames-per-file, --skip-bad-rows, --split-at)
     fits: :func:`add_fit_frames` (the fits' own flags are derived from
         :class:`~hybrid_pk.calibration.settings.FitSettings` and
         :class:`~hybrid_pk.calibration.settings.DiagnosisSettings`:
@@ -170,7 +170,7 @@ def add_model(parser: argparse.ArgumentParser, *, flag: bool = False, help: str 
 
 
 def add_data(parser: argparse.ArgumentParser) -> None:
-    """``DATA...``, ``--frames-per-file`` and ``--skip-bad-rows``."""
+    """``DATA...``, ``--frames-per-file``, ``--skip-bad-rows`` and ``--split-at``."""
     parser.add_argument(
         "data",
         nargs="+",
@@ -190,6 +190,14 @@ def add_data(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="leave out rows with NaN/inf, text, out-of-limit joints or non-unit "
         "quaternions (each reported by file and row) instead of stopping at the first",
+    )
+    parser.add_argument(
+        "--split-at",
+        action="append",
+        metavar="FILE:ROW",
+        help="with --frames-per-file: the rows of FILE from data row ROW on are a file of "
+        "their own, with frames of their own (a set-up that moved there, as the diagnosis "
+        "names it); repeatable",
     )
 
 

@@ -141,7 +141,9 @@ def _prepare(args, loaded, robot, sets: int):
     with progress("train: preparing", total=2 if args.fit_frames else 1) as bar:
         bar.stage("reading data")
         n_params = frame_parameter_count(sets, False) if args.fit_frames else None
-        data = read_data(args.data, robot, n_params=n_params, skip_bad_rows=args.skip_bad_rows)
+        data = read_data(
+            args.data, robot, n_params=n_params, skip_bad_rows=args.skip_bad_rows, args=args
+        )
         if args.fit_frames:
             bar.stage("fitting base and tool frames")
         cond, base = base_for_training(loaded, data, sets, args.fit_frames)

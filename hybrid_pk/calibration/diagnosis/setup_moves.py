@@ -19,17 +19,19 @@ translation and, with orientations, rotation; linearised at the final model):
 
 Each is fitted on the rows outside one region of joint space (the blocked hold-out's
 regions, :mod:`.regions`) and judged on the rows inside it, in turn; the mean position
-error over every held-out row is compared. A move is named where ``change`` or
-``drift`` gains at least the practical margin over ``one`` (the rule every cause
-meets): a change where it also beats the drift by the margin, a drift where the drift
-does as well, and "moved" where both gain and the data cannot tell which. A move's
-correction is a rigid one, the same for every region, so it carries over the regions
-where an error of the robot that a frame change stands in for locally does not.
+error over every held-out row is compared. A ``change`` or ``drift`` carries over
+where it gains at least the practical margin over ``one`` (the rule every cause meets)
+and lowers the held-out error of every region: a move of the set-up is rigid, the same
+for every region, while an error of the robot that a frame change stands in for
+locally (rows measured region by region, an error no cause explains) helps some regions
+and not others. One that carries over is named; where both do, the one better by the
+margin, else "moved" (the data cannot tell a change from a drift).
 """
 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import torch
 from torch import Tensor
@@ -177,7 +179,8 @@ def setup_moves(model, res, split: Split, carry, say=None) -> list[dict]:
         ``{"kind": "change" | "drift" | "moved", "file", "row" (the change's first row,
         else None), "rows", "shift_mm": {"mean", "max"}, "base_translation_mm",
         "base_rotation_deg", "tool_translation_mm", "blocked_mean_mm": {"one",
-        "change", "drift"}, "gain_mm", "min_gain_mm"}``: the move as the named
+        "change", "drift"}, "gain_mm", "min_gain_mm", "regions_gained": {"gained",
+        "of"}}``: the move as the named
         correction fitted on every fit row of the group (a change: the rows from the
         change against those before it; a drift: the last row against the first).
     """
@@ -214,7 +217,8 @@ def _group_move(rows, region: Tensor, sigmas, margin: float) -> dict | None:
     A, e = move_columns(T, sigmas), _errors(T, data, sigmas)
     place = _places(data, A.dtype)
     held = {k: torch.full((n,), math.nan, dtype=A.dtype) for k in ("one", "change", "drift")}
-    for r in region.unique().tolist():
+    regions = region.unique().tolist()
+    for r in regions:
         inside = region == r
         if inside.all():
             return None
@@ -222,18 +226,26 @@ def _group_move(rows, region: Tensor, sigmas, margin: float) -> dict | None:
         for name, x in fitted.items():
             left = e[inside] - (A[inside] @ x[inside][..., None]).squeeze(-1)
             held[name][inside] = left[:, :3].norm(dim=1) * sigmas[0]
-    # weighted as the fit weighs the rows; NaN where a region left no change
-    mean = {k: float((v * w).sum() / w.sum()) for k, v in held.items()}
-    gain = {k: mean["one"] - mean[k] for k in ("change", "drift")}
-    if not max(gain.values(), key=lambda v: -math.inf if math.isnan(v) else v) >= margin:
+
+    def mean(name: str, rows=None) -> float:  # weighted as the fit weighs the rows
+        v, u = (held[name], w) if rows is None else (held[name][rows], w[rows])
+        return float((v * u).sum() / u.sum())  # NaN where a region left no change
+
+    gain, gained = {}, {}
+    for kind in ("change", "drift"):
+        gain[kind] = mean("one") - mean(kind)
+        gained[kind] = sum(mean("one", region == r) > mean(kind, region == r) for r in regions)
+    # a rigid move is the same in every region: it must lower each one's held-out error
+    carried = [k for k in gain if gain[k] >= margin and gained[k] == len(regions)]
+    if not carried:
         return None
-    if math.isnan(gain["change"]) or gain["drift"] - gain["change"] >= margin:
-        kind = "drift"
-    elif gain["change"] - gain["drift"] >= margin or not gain["drift"] >= margin:
-        kind = "change"
-    else:
-        kind = "moved"  # both carry over: the data cannot tell a change from a drift
-    return _entry(kind, data, (A, e, place, w), mean, sigmas[0], margin)
+    kind = carried[0] if len(carried) == 1 else "moved"
+    if kind == "moved" and abs(gain["change"] - gain["drift"]) >= margin:
+        kind = "change" if gain["change"] > gain["drift"] else "drift"
+    means = {k: mean(k) for k in held}
+    shown = "drift" if kind == "drift" else "change"
+    blocks = {"gained": gained[shown], "of": len(regions)}
+    return _entry(kind, data, (A, e, place, w), (means, blocks), sigmas[0], margin)
 
 
 def _places(data, dtype) -> Tensor:
@@ -248,10 +260,12 @@ def _places(data, dtype) -> Tensor:
     return torch.linspace(0.0, 1.0, data.n, dtype=dtype)
 
 
-def _entry(kind, data, fitted_on, mean, sigma_pos: float, margin: float) -> dict:
+def _entry(kind, data, fitted_on, held, sigma_pos: float, margin: float) -> dict:
     """The JSON entry of a named move (``fitted_on``: ``(A, e, place, w)`` of the
-    group), its sizes from the correction fitted on every row of the group."""
+    group; ``held``: the held-out means and the regions gained), its sizes from the
+    correction fitted on every row of the group."""
     A, e, place, w = fitted_on
+    mean, blocks = held
     everything = torch.ones(data.n, dtype=torch.bool)
     fitted, k = _fits(A, e, place, everything, diagnosis_tuning().check_rows, w)
     shown = "drift" if kind == "drift" or k is None else "change"
@@ -274,6 +288,7 @@ def _entry(kind, data, fitted_on, mean, sigma_pos: float, margin: float) -> dict
         "blocked_mean_mm": {k: (None if math.isnan(v) else v) for k, v in mean.items()},
         "gain_mm": mean["one"] - mean[shown],
         "min_gain_mm": margin,
+        "regions_gained": blocks,
     }
 
 
@@ -290,7 +305,8 @@ def setup_move_text(entry: dict) -> str:
             f"are shifted by {size} against those before; two frame sets, one "
             f"before and one from that row, predict held-out regions {evidence}, and better "
             "than a drift by the margin: the tracker was moved or the tool re-seated; "
-            f"{carried}: split the file at that row and diagnose again with --frames-per-file"
+            f"{carried}: diagnose again with --frames-per-file --split-at "
+            f"{Path(entry['file']).name}:{entry['row']} (frames of its own from that row)"
         )
     if entry["kind"] == "drift":
         return (
