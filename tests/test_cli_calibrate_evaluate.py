@@ -293,6 +293,7 @@ def test_effects_auto_fits_the_diagnosed_causes(campaign, capsys, tmp_path, monk
             nominal=stats,
             extended={"position_mm": {"mean": 0.02}},
             ambiguous=[],
+            setup_moves=[],
             to_json=lambda: {"robot": robot.name, "causes": [{"effect": "joint_offset"}]},
         )
 
