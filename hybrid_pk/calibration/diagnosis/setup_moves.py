@@ -231,12 +231,16 @@ def _group_move(rows, region: Tensor, sigmas, margin: float) -> dict | None:
         v, u = (held[name], w) if rows is None else (held[name][rows], w[rows])
         return float((v * u).sum() / u.sum())  # NaN where a region left no change
 
+    # a region of fewer rows than a block needs says nothing on its own: it does not vote
+    voters = [r for r in regions if int((region == r).sum()) >= diagnosis_tuning().min_block_rows]
+    if len(voters) < 2:
+        return None  # nothing to carry over to
     gain, gained = {}, {}
     for kind in ("change", "drift"):
         gain[kind] = mean("one") - mean(kind)
-        gained[kind] = sum(mean("one", region == r) > mean(kind, region == r) for r in regions)
+        gained[kind] = sum(mean("one", region == r) > mean(kind, region == r) for r in voters)
     # a rigid move is the same in every region: it must lower each one's held-out error
-    carried = [k for k in gain if gain[k] >= margin and gained[k] == len(regions)]
+    carried = [k for k in gain if gain[k] >= margin and gained[k] == len(voters)]
     if not carried:
         return None
     kind = carried[0] if len(carried) == 1 else "moved"
@@ -244,7 +248,7 @@ def _group_move(rows, region: Tensor, sigmas, margin: float) -> dict | None:
         kind = "change" if gain["change"] > gain["drift"] else "drift"
     means = {k: mean(k) for k in held}
     shown = "drift" if kind == "drift" else "change"
-    blocks = {"gained": gained[shown], "of": len(regions)}
+    blocks = {"gained": gained[shown], "of": len(voters)}
     return _entry(kind, data, (A, e, place, w), (means, blocks), sigmas[0], margin)
 
 
