@@ -20,6 +20,7 @@ from hybrid_pk.calibration.diagnosis.setup_moves import (
     _change_row,
     _errors,
     _places,
+    mention_moves,
     move_columns,
     setup_move_text,
 )
@@ -209,3 +210,21 @@ def test_rows_measured_region_by_region_with_an_unmodelled_error_name_no_move(rx
     data = dataclasses.replace(data, rows=torch.arange(1, data.n + 1))  # the order measured
     d = hpk.diagnose(rx160, data, candidates=[LABEL])
     assert d.setup_moves == [], (joint, d.setup_moves)
+
+
+def test_the_structural_verdict_names_the_move_it_may_be_speaking_of():
+    """On Series B nudged by 1 mm the causes fitted to the move made a structural verdict
+    ("not a small correction ... the URDF may be wrong in more than one place"): with a
+    move named, the verdict says so; a located structural error and no move leave it."""
+    verdict = {"message": "x: not a small correction", "structurally_wrong": False}
+    change = {"file": "/data/nudged.csv", "row": 501}
+    drift = {"file": "/data/b.csv", "row": None}
+    said = mention_moves(verdict, [change, drift])["message"]
+    assert said.startswith("x: not a small correction; but the set-up moved during the rows")
+    assert "(nudged.csv at row 501, b.csv: see the set-up warning)" in said
+    assert "--split-at" in said
+    assert verdict["message"] == "x: not a small correction"  # not changed in place
+    assert mention_moves(verdict, []) is verdict
+    assert mention_moves(None, [change]) is None
+    located = {"message": "wrong at joint_2", "structurally_wrong": True}
+    assert mention_moves(located, [change]) is located

@@ -64,7 +64,11 @@ from hybrid_pk.calibration.diagnosis.selection import (
     score_candidates,
     try_candidate,
 )
-from hybrid_pk.calibration.diagnosis.setup_moves import setup_move_text, setup_moves
+from hybrid_pk.calibration.diagnosis.setup_moves import (
+    mention_moves,
+    setup_move_text,
+    setup_moves,
+)
 from hybrid_pk.calibration.diagnosis.split import Split, split_campaign
 from hybrid_pk.calibration.diagnosis.stand_ins import kept_stand_ins
 from hybrid_pk.calibration.diagnosis.structural import structural_check
@@ -157,10 +161,9 @@ def diagnose(
     causes = measure_causes(
         model, res, split, steps, alpha, errors, progress=say, blocked=final.gains
     )
-    causes, structural, stories = _optional_findings(
+    causes, structural, stories, moves = _later_findings(
         model, res, (causes, flagged, pool), split, (carry, nominal_model), say, budget
     )
-    moves = setup_moves(model, res, split, carry, say)
     ambiguous += correlated_groups(res) + final.unresolved
     ambiguous += kept_stand_ins(final.stand_ins, causes)
     return Diagnosis(
@@ -191,9 +194,10 @@ def diagnose(
     )
 
 
-def _optional_findings(model, res, named, split, refs, say, budget):
+def _later_findings(model, res, named, split, refs, say, budget):
     """The structural search and the rival stories, each under the optional stages'
-    ``budget``. ``named``: ``(causes, flagged, pool)``; ``refs``: ``(carry, nominal)``."""
+    ``budget``, and the set-up moves (:mod:`.setup_moves`, named in the structural
+    verdict too). ``named``: ``(causes, flagged, pool)``; ``refs``: ``(carry, nominal)``."""
     (causes, flagged, pool), (carry, nominal_model) = named, refs
     with budget.stage("structural search"):
         sigmas = (res.sigma_pos_mm, res.sigma_rot_rad)
@@ -202,7 +206,8 @@ def _optional_findings(model, res, named, split, refs, say, budget):
         )
     with budget.stage("rival stories"):
         stories = rival_stories(model, res, pool, split, carry, say, budget)
-    return causes, structural, stories
+    moves = setup_moves(model, res, split, carry, say)
+    return causes, mention_moves(structural, moves), stories, moves
 
 
 def _fit_frames(model: ExtendedModel, split, frames, robust, say) -> FitResult:

@@ -41,7 +41,7 @@ from hybrid_pk.calibration.poses import predicted_poses
 from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.geometry.rotations import skew, so3_log
 
-__all__ = ["move_columns", "setup_move_text", "setup_moves"]
+__all__ = ["mention_moves", "move_columns", "setup_move_text", "setup_moves"]
 
 # Directions of a part's 12 x 12 Gram below this fraction of its largest (columns
 # scaled to unit length) are left out: round-off, or a frame direction the rows do not
@@ -325,3 +325,22 @@ def setup_move_text(entry: dict) -> str:
         f"one frame set ({gain:.3g} mm, margin {margin:.3g} mm), within the margin of each "
         f"other: the data cannot tell a change from a drift; {carried}"
     )
+
+
+def mention_moves(structural: dict | None, moves: list[dict]) -> dict | None:
+    """The structural verdict (``None``: none) with the set-up moves named: a move of the
+    set-up is a frame change that no cause explains, and the causes fitted to it are
+    what the verdict may be speaking of (a nudged table's wrist eccentricity "not a
+    small correction", "the URDF may be wrong in more than one place")."""
+    if structural is None or not moves or structural.get("structurally_wrong"):
+        return structural
+    where = ", ".join(
+        f"{Path(m['file']).name}" + (f" at row {m['row']}" if m["row"] is not None else "")
+        for m in moves
+    )
+    message = (
+        f"{structural['message']}; but the set-up moved during the rows ({where}: see the "
+        "set-up warning), which the causes were fitted to as well: give it frames of its "
+        "own first (--split-at) and diagnose again"
+    )
+    return {**structural, "message": message}
