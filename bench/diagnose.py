@@ -64,6 +64,19 @@ WARM_ROWS = 400
 TARGETS = {"rx160": 60.0, "arm7": 20.0, "ur10": 120.0, "campaign": 900.0}
 
 
+def import_ipa(ipa: Path, out: Path) -> list[Path]:
+    """The two shared UR10 series imported into ``out`` (``hybrid-pk import ipa``, in a
+    child process), as Parquet paths in the order Series A, Series B."""
+    files = [
+        ipa / "Series_A" / "measurements_grid.csv",
+        ipa / "Series_B" / "measurements_joint_configurations.csv",
+    ]
+    cmd = _cli("import", "ipa", *map(str, files), "--out", str(out), "--format", "parquet")
+    if subprocess.run(cmd, stdout=subprocess.DEVNULL).returncode != 0:
+        raise SystemExit("hybrid-pk import ipa failed")
+    return [out / f"{f.stem}.parquet" for f in files]
+
+
 def _case_data(case: str, ipa: Path):
     """``(robot, data, frames_per_file, injected labels or None)`` of a case."""
     if case == "rx160":
@@ -99,19 +112,10 @@ def _case_data(case: str, ipa: Path):
         return robot, data, False, truth
     if case == "ur10":
         robot = hpk.Robot.from_urdf("ur10")
-        files = [
-            ipa / "Series_A" / "measurements_grid.csv",
-            ipa / "Series_B" / "measurements_joint_configurations.csv",
-        ]
-        out = Path(tempfile.mkdtemp(prefix="bench_ur10_"))
-        from hybrid_pk.cli.main import main as hybrid_pk
-
-        argv = ["import", "ipa", *map(str, files), "--out", str(out), "--format", "parquet"]
-        if hybrid_pk(argv) != 0:
-            raise SystemExit("hybrid-pk import ipa failed")
+        paths = import_ipa(ipa, Path(tempfile.mkdtemp(prefix="bench_ur10_")))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # Series B's std_* columns are not read
-            parts = [hpk.read_table_for(out / f"{f.stem}.parquet", robot) for f in files]
+            parts = [hpk.read_table_for(path, robot) for path in paths]
         return robot, hpk.MeasuredData.concat(parts), True, None
     raise SystemExit(f"unknown case {case!r}; one of {', '.join(CASES)}")
 
@@ -188,14 +192,8 @@ def case_files(case: str, ipa: Path, out: Path) -> tuple[list[str], list[str]]:
     """The case's rows as files in ``out``, and the arguments that name its robot and
     its frame sets (what ``diagnose`` and ``calibrate`` are given)."""
     if case == "ur10":
-        files = [
-            ipa / "Series_A" / "measurements_grid.csv",
-            ipa / "Series_B" / "measurements_joint_configurations.csv",
-        ]
-        cmd = _cli("import", "ipa", *map(str, files), "--out", str(out), "--format", "parquet")
-        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
-        paths = [str(out / f"{f.stem}.parquet") for f in files]
-        return paths, ["--robot", "ur10", "--frames-per-file"]
+        paths = import_ipa(ipa, out)
+        return [str(path) for path in paths], ["--robot", "ur10", "--frames-per-file"]
     _, data, _, _ = _case_data(case, ipa)
     path = hpk.write_table(out / f"{case}.parquet", data)
     if case == "arm7":
