@@ -5,7 +5,7 @@ interleaved rounds on the same joint values (median reported):
 
 - pose only: the balanced tree of 4×4 products (``Robot.fk`` with derivatives, and
   below ``ALIGNED_MIN_BATCH`` configurations) vs the z-aligned batch-last chain
-  (``chain.aligned_fk``: ``Robot.fk`` without derivatives from ``ALIGNED_MIN_BATCH`` on);
+  (``aligned.aligned_fk``: ``Robot.fk`` without derivatives from ``ALIGNED_MIN_BATCH`` on);
 - pose + Jacobian: batch-first frames (one 4×4 product per joint, then ``z × (p - o)``)
   vs ``pose_jacobian_batch_last`` (``Robot.jacobian``) and the z-aligned IK kernel
   (``ChainKernel``, float64), and pytorch-kinematics' ``SerialChain.jacobian`` as the peer.
@@ -26,9 +26,8 @@ from collections.abc import Callable
 import torch
 
 import hybrid_pk as hpk
+from hybrid_pk.robot.aligned import AlignedFK, aligned_fk
 from hybrid_pk.robot.chain import (
-    AlignedFK,
-    aligned_fk,
     batch_last_terms,
     local_transforms,
     pose_jacobian_batch_last,

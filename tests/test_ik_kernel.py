@@ -22,7 +22,8 @@ from hybrid_pk.ik.dedup import (
 )
 from hybrid_pk.ik.lm_algebra import eliminate, normal_equations
 from hybrid_pk.ik.two_precision import solve_two_precisions
-from hybrid_pk.robot.chain import ALIGNED_MIN_BATCH, local_transforms, product
+from hybrid_pk.robot.aligned import ALIGNED_MIN_BATCH
+from hybrid_pk.robot.chain import local_transforms, product
 from tests.helpers import run_rng
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -79,6 +80,79 @@ def test_fk_follows_parameter_changes_and_keeps_gradients():
     robot.fk(q).sum().backward()  # q requires grad: the path with derivatives
     assert q.grad is not None
     assert bool(torch.isfinite(q.grad).all())
+
+
+@pytest.mark.parametrize("name", ROBOTS)
+def test_fk_with_other_parameters_without_gradients_equals_the_product(name):
+    """An extended model's parameters (origins moved, axes turned: shared, not the
+    robot's own) take the z-aligned path too, with the same poses; per-sample
+    parameters and parameters carrying derivatives keep the product."""
+    urdf, end = ROBOTS[name]
+    robot = hpk.Robot.from_urdf(urdf, end_link=end)
+    rng = _torch_rng(f"fk params {name}")
+    q = robot.sample_q(ALIGNED_MIN_BATCH + 3, rng)
+    p = robot.kinematic_params()
+    moved = type(p)(
+        p.origin_xyz + 1e-3 * torch.randn(p.origin_xyz.shape, generator=rng, dtype=F64),
+        p.origin_rot,
+        p.axis + 1e-3 * torch.randn(p.axis.shape, generator=rng, dtype=F64),
+    )
+    terms = robot._terms(moved, F64, fold_tip=True)
+    ref = product(local_transforms(robot.chain_q(q), terms, robot.chain_revolute)).detach()
+    aligned = robot._no_grad_fk.with_params
+    with torch.no_grad():
+        T = robot.fk(q, params=moved)
+        assert aligned(robot._terms(moved, F64), robot.chain_q(q)) is not None
+        assert float((T - robot.fk(q)).abs().max()) > 1e-4  # the moved parameters were used
+    assert float((T - ref).abs().max()) <= 1e-12
+    per_sample = type(moved)(*(t.expand(len(q), *t.shape) for t in moved))
+    with torch.no_grad():
+        assert aligned(robot._terms(per_sample, F64), robot.chain_q(q)) is None
+        assert float((robot.fk(q, params=per_sample) - ref).abs().max()) <= 1e-12
+    grad = type(moved)(*(t.clone().requires_grad_(True) for t in moved))
+    T_grad = robot.fk(q, params=grad)  # derivatives wanted: the product, differentiable
+    assert T_grad.requires_grad
+    assert float((T_grad.detach() - ref).abs().max()) <= 1e-12
+
+
+def _product_link_frames(robot: hpk.Robot, q: torch.Tensor, params) -> torch.Tensor:
+    """The frames after each joint as the chain's running product (the derivative path)."""
+    terms = robot._terms(params, q.dtype)
+    local = local_transforms(robot.chain_q(q), terms, robot.chain_revolute)
+    frames = [local[..., 0, :, :]]
+    for i in range(1, robot.chain_dof):
+        frames.append(frames[-1] @ local[..., i, :, :])
+    frames.append(frames[-1] @ terms.tip)
+    return torch.stack(frames, -3).detach()
+
+
+@pytest.mark.parametrize("name", ROBOTS)
+def test_link_frames_without_gradients_equal_the_product(name):
+    """The frames after each joint from the z-aligned chain (no derivatives, shared
+    parameters, the robot's own or moved) are the running product's; per-sample
+    parameters and a few configurations keep the product."""
+    urdf, end = ROBOTS[name]
+    robot = hpk.Robot.from_urdf(urdf, end_link=end)
+    rng = _torch_rng(f"link frames {name}")
+    q = robot.sample_q(ALIGNED_MIN_BATCH + 5, rng)
+    p = robot.kinematic_params()
+    moved = type(p)(
+        p.origin_xyz + 1e-3 * torch.randn(p.origin_xyz.shape, generator=rng, dtype=F64),
+        p.origin_rot,
+        p.axis + 1e-2 * torch.randn(p.axis.shape, generator=rng, dtype=F64),
+    )
+    fast = robot._no_grad_fk.link_frames
+    for params in (None, moved):
+        ref = _product_link_frames(robot, q, params)
+        with torch.no_grad():
+            assert fast(robot._terms(params, F64), robot.chain_q(q)) is not None
+            F = robot.link_frames(q, params)
+        assert F.shape == ref.shape
+        assert float((F - ref).abs().max()) <= 1e-12
+    per_sample = type(moved)(*(t.expand(len(q), *t.shape) for t in moved))
+    with torch.no_grad():
+        assert fast(robot._terms(per_sample, F64), robot.chain_q(q)) is None
+        assert fast(robot._terms(moved, F64), robot.chain_q(q[:10])) is None
 
 
 @pytest.mark.parametrize("A", [500, 40])  # the elimination, then LAPACK's Cholesky

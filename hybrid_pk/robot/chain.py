@@ -22,6 +22,9 @@ are computed once for all joints and evaluated in one of two layouts:
   product is three fused multiply-adds over contiguous memory instead of a batched
   matmul of 3×3 blocks; several times faster than batch-first frames for the
   Jacobian from about a hundred configurations on (``Robot.jacobian``, the IK kernel).
+
+Without derivatives the pose and the frames after each joint come from the z-aligned
+chain of :mod:`hybrid_pk.robot.aligned` instead, from the same constants.
 """
 
 from __future__ import annotations
@@ -35,16 +38,9 @@ from hybrid_pk.geometry import skew, transform
 from hybrid_pk.geometry.batch_last import compose, rotate
 
 __all__ = [
-    "ALIGNED_MIN_BATCH",
-    "AlignedChain",
-    "AlignedFK",
     "BatchLastTerms",
     "ChainTerms",
     "KinematicParams",
-    "aligned_chain",
-    "aligned_fk",
-    "aligned_frames",
-    "aligned_pose",
     "batch_last_terms",
     "chain_terms",
     "local_batch_last",
@@ -235,122 +231,6 @@ def pose_jacobian_batch_last(
     return R_end, p_end, torch.cat([v, z], 0)
 
 
-# ----------------------------------------------------------------------------- z-aligned chain
-# Every joint frame turned so that its axis is its z axis: with Q_i a rotation whose third
-# column is the unit axis a_i, O_i Rot(a_i, q) = O_i Q_i Rot_z(q) Q_i^T, and Q_i^T moves
-# into the next origin. Then P_0 = B_0, P_i = P_{i-1} X_i(q_{i-1}), T = P_n with constant
-# B_i = Q_{i-1}^T O_i Q_i (B_n the tip) and X_i = Rot_z(q) B_i (revolute: two rows of B_i
-# mixed by cos q and sin q) or Trans_z(q) B_i (prismatic: q added to row 2's translation).
-# P_i is the frame of joint i itself (third column its axis, fourth its origin). Frames
-# are batch-last and column-major, (4 columns, 3 rows, M): a column is one (3, M) block.
-
-
-class AlignedChain(NamedTuple):
-    """Constants of the z-aligned chain (no gradients): ``first (4, 3, 1)`` the frame
-    ``B_0``, ``rows`` the three rows of ``B_1 .. B_n``, each ``(n, 4, 1, 1)``, and
-    ``e3 (n, 4, 1, 1)`` the unit row of the translation column."""
-
-    first: Tensor
-    rows: tuple[Tensor, Tensor, Tensor]
-    e3: Tensor
-
-
-def _axis_frames(axis: Tensor) -> Tensor:
-    """Homogeneous rotations ``(n, 4, 4)`` whose third column is the unit ``axis``."""
-    a = axis / axis.norm(dim=-1, keepdim=True)
-    helper = torch.zeros_like(a)  # the coordinate axis least aligned with a
-    helper.scatter_(-1, a.abs().argmin(-1, keepdim=True), 1.0)
-    x = helper - (helper * a).sum(-1, keepdim=True) * a
-    x = x / x.norm(dim=-1, keepdim=True)
-    Q = a.new_zeros(a.shape[0], 4, 4)
-    Q[:, :3, :3] = torch.stack([x, torch.linalg.cross(a, x), a], -1)
-    Q[:, 3, 3] = 1.0
-    return Q
-
-
-def aligned_chain(
-    terms: ChainTerms, base: Tensor | None = None, tool: Tensor | None = None
-) -> AlignedChain:
-    """The z-aligned constants of shared (unbatched) ``terms``, with an optional base
-    ``(4, 4)`` before the chain and tool ``(4, 4)`` after the tip folded in."""
-    with torch.no_grad():
-        O, tip = terms.M0.clone(), terms.tip
-        if base is not None:
-            O[0] = base.to(O) @ O[0]
-        if tool is not None:
-            tip = tip @ tool.to(tip)
-        Q = _axis_frames(terms.axis)
-        B = torch.cat([O @ Q, tip[None]])  # (n + 1, 4, 4)
-        B[1:] = Q.transpose(-1, -2) @ B[1:]
-        e3 = B.new_zeros(B.shape[0] - 1, 4, 1, 1)
-        e3[:, 3] = 1.0
-        rows = tuple(B[1:, r, :, None, None].contiguous() for r in range(3))
-        return AlignedChain(B[0, :3].T[..., None].contiguous(), rows, e3)
-
-
-def _motion(C: AlignedChain, qt: Tensor, revolute: Tensor, all_revolute: bool):
-    """Rows ``(k, 4, 1, M)`` of ``X`` for chain joint values ``qt (k, M)`` (``C``'s rows
-    and ``revolute`` already cut to the same ``k`` joints)."""
-    b0, b1, b2 = C.rows
-    q4 = qt[:, None, None]  # (k, 1, 1, M)
-    c, s = torch.cos(q4), torch.sin(q4)
-    if not all_revolute:
-        rev = revolute[:, None, None, None]
-        c, s = torch.where(rev, c, 1.0), torch.where(rev, s, 0.0)
-        b2 = torch.addcmul(b2, torch.where(rev, 0.0, q4), C.e3)
-    return torch.mul(c, b0).addcmul_(s, b1, value=-1), torch.mul(s, b0).addcmul_(c, b1), b2
-
-
-def aligned_frames(C: AlignedChain, qt: Tensor, revolute: Tensor, all_revolute: bool) -> Tensor:
-    """Joint frames ``P (n + 1, 4, 3, M)`` at chain joint values ``qt (n, M)``:
-    ``P[i, 2]`` the axis and ``P[i, 3]`` the origin of joint ``i < n``, ``P[n]`` the end
-    pose (``P[n, :3]`` its rotation, transposed)."""
-    n, M = qt.shape
-    x0, x1, x2 = (x.unbind(0) for x in _motion(C, qt, revolute, all_revolute))
-    P = qt.new_empty(n + 1, 4, 3, M)
-    P[0] = C.first
-    frames, columns, origins = P.unbind(0), P[:, :3, None].unbind(0), P[:, 3].unbind(0)
-    for i in range(1, n + 1):
-        p0, p1, p2 = columns[i - 1].unbind(0)  # (1, 3, M)
-        out = torch.mul(x0[i - 1], p0, out=frames[i])
-        out.addcmul_(x1[i - 1], p1).addcmul_(x2[i - 1], p2)
-        origins[i].add_(origins[i - 1])
-    return P
-
-
-def aligned_pose(C: AlignedChain, qt: Tensor, revolute: Tensor, all_revolute: bool) -> Tensor:
-    """End pose ``(4, 3, M)`` (column-major, batch-last) at ``qt (n, M)``; one joint's
-    motion at a time, so the working set stays a few frames whatever ``n``."""
-    P = C.first
-    for i in range(qt.shape[0]):
-        sl = slice(i, i + 1)
-        one = AlignedChain(C.first, tuple(r[sl] for r in C.rows), C.e3[sl])
-        x0, x1, x2 = (x[0] for x in _motion(one, qt[sl], revolute[sl], all_revolute))
-        p0, p1, p2, p3 = P[:, None].unbind(0)
-        nxt = torch.mul(x0, p0).addcmul_(x1, p1).addcmul_(x2, p2)
-        nxt[3] += p3[0]
-        P = nxt
-    return P.expand(4, 3, qt.shape[1])
-
-
-# Batch size from which aligned_fk beats the balanced product of Robot.fk: below it the
-# per-joint loop's ~10 operations per joint cost more than log2(n) batched 4x4 matmuls.
-# bench/fk_layouts.py (ur10, rx160, float32/64, one thread): tree/align 0.6-0.8 at
-# 256-512 configurations, 1.4-1.6 at 1000.
-ALIGNED_MIN_BATCH = 1000
-
-
-def aligned_fk(C: AlignedChain, q: Tensor, revolute: Tensor, all_revolute: bool) -> Tensor:
-    """End pose ``(*B, 4, 4)`` at chain joint values ``q (*B, n)`` by :func:`aligned_pose`
-    (constants ``C`` in ``q``'s dtype)."""
-    qt = q.reshape(-1, q.shape[-1]).T
-    P = aligned_pose(C, qt, revolute, all_revolute)  # (4 columns, 3 rows, M)
-    T = q.new_empty(qt.shape[1], 4, 4)
-    T[:, :3] = P.permute(2, 1, 0)
-    T[:, 3] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=q.dtype, device=q.device)
-    return T.view(*q.shape[:-1], 4, 4)
-
-
 def plain_inputs(*tensors: Tensor) -> bool:
     """True when no tensor carries derivatives: no autograd graph would be built, no
     forward-mode tangent, no torch.func wrapper (then the no-grad path may be taken)."""
@@ -359,35 +239,3 @@ def plain_inputs(*tensors: Tensor) -> bool:
     wrapped = torch._C._functorch.is_functorch_wrapped_tensor
     unpack = torch.autograd.forward_ad.unpack_dual
     return not any(wrapped(t) or unpack(t).tangent is not None for t in tensors)
-
-
-class AlignedFK:
-    """:meth:`Robot.fk`'s path without derivatives: the z-aligned chain (built in float64
-    from the robot's shared chain terms, cast, kept per dtype while the terms object,
-    renewed on every parameter change, stays the same), from ``ALIGNED_MIN_BATCH``
-    configurations on."""
-
-    def __init__(self, revolute: Tensor) -> None:
-        self.revolute, self.all_revolute = revolute, bool(revolute.all())
-        self._memo: dict[torch.dtype, tuple[ChainTerms, AlignedChain]] = {}
-
-    def __getstate__(self) -> dict:
-        return {**self.__dict__, "_memo": {}}  # never pickle cached tensors
-
-    def constants(self, terms: ChainTerms, dtype: torch.dtype) -> AlignedChain:
-        memo = self._memo.get(dtype)
-        if memo is None or memo[0] is not terms:
-            C = aligned_chain(terms)
-            rows = tuple(r.to(dtype) for r in C.rows)
-            memo = (terms, AlignedChain(C.first.to(dtype), rows, C.e3.to(dtype)))
-            self._memo[dtype] = memo
-        return memo[1]
-
-    def __call__(self, robot, q: Tensor) -> Tensor | None:
-        """End pose ``(*B, 4, 4)`` of ``robot`` at chain joint values ``q (*B, n)``, or
-        None where this path does not apply (few configurations, or derivatives)."""
-        own = (q, robot.origin_xyz, robot.origin_rotvec, robot.axis)
-        if q[..., 0].numel() < ALIGNED_MIN_BATCH or not plain_inputs(*own):
-            return None
-        C = self.constants(robot.chain_terms(torch.float64), q.dtype)
-        return aligned_fk(C, q, self.revolute, self.all_revolute)

@@ -2,7 +2,7 @@
 
 A snapshot of the robot's chain constants (``Robot.chain_terms``, the same as
 :meth:`Robot.fk`'s), with optional base and tool frames folded into the first origin
-and the tip, in the z-aligned form of :func:`~hybrid_pk.robot.chain.aligned_chain`: every
+and the tip, in the z-aligned form of :func:`~hybrid_pk.robot.aligned.aligned_chain`: every
 joint frame turned so that its axis is its z axis. Then the frame ``P_i`` of each joint
 holds the joint's axis and origin as two of its columns, so the Jacobian columns
 ``[z_i x (p - o_i); z_i]`` (prismatic ``[z_i; 0]``) read them without further
@@ -20,7 +20,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from hybrid_pk.robot.chain import AlignedChain, aligned_chain, aligned_frames
+from hybrid_pk.robot.aligned import AlignedChain, aligned_chain, aligned_frames
 from hybrid_pk.robot.robot import Robot
 
 __all__ = ["ChainKernel"]

@@ -19,8 +19,8 @@ from torch import Tensor, nn
 
 from hybrid_pk.errors import ShapeError
 from hybrid_pk.geometry import broadcast_shapes, so3_exp
+from hybrid_pk.robot.aligned import AlignedFK
 from hybrid_pk.robot.chain import (
-    AlignedFK,
     ChainTerms,
     KinematicParams,
     batch_last_terms,
@@ -248,7 +248,7 @@ class Robot(nn.Module):
             ``(*B, 4, 4)`` homogeneous transforms ``T_root_end`` [m].
         """
         q = self.chain_q(self.check_q(q))
-        if params is None and (T := self._no_grad_fk(self, q)) is not None:
+        if (T := self._no_grad_fk(self, q, params)) is not None:
             return T
         terms = self._terms(params, q.dtype, fold_tip=True)  # the tip costs no extra matmul
         return product(local_transforms(q, terms, self.chain_revolute))
@@ -256,18 +256,14 @@ class Robot(nn.Module):
     forward = fk  # robot(q) is fk(q); lets torch.func.functional_call drive the module
 
     def link_frames(self, q: Tensor, params: KinematicParams | None = None) -> Tensor:
-        """Frames of every segment after its joint, and of the end link.
-
-        Args:
-            q: ``(*B, dof)`` the robot's joint values [rad or m].
-
-        Returns:
-            ``(*B, n_chain + 1, 4, 4)``: index ``i < n_chain`` is the frame of chain
-            joint ``i + 1`` (whose origin lies on that joint's axis), index ``n_chain``
-            the end link.
-        """
+        """Frames ``(*B, n_chain + 1, 4, 4)`` of every segment after its joint, and of the
+        end link, at the robot's joint values ``q (*B, dof)`` [rad or m]: index ``i <
+        n_chain`` is the frame of chain joint ``i + 1`` (whose origin lies on that joint's
+        axis), index ``n_chain`` the end link (without derivatives: the z-aligned chain's)."""
         q = self.chain_q(self.check_q(q))
         terms = self._terms(params, q.dtype)
+        if (fast := self._no_grad_fk.link_frames(terms, q)) is not None:
+            return fast
         local = local_transforms(q, terms, self.chain_revolute)
         frames = [local[..., 0, :, :]]
         for i in range(1, self.chain_dof):
