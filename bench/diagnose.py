@@ -6,8 +6,11 @@ process, ``diagnose`` and then the plain fit that ``calibrate --effects DIAG.jso
 makes of the diagnosed causes (frames of the nominal robot, then frames + causes, on
 all rows). Printed per case: both wall times and their ratio, both CPU times and
 theirs (on a shared machine the CPU time is the fairer measure of the work), peak RSS,
-the load average before and after, and where the diagnosis' time went (its budget
-record: the main search, each optional stage, the rest), each against the plain fit.
+the load average before and after, the work of each (model evaluations of one row, as
+the diagnosis budget counts them: a ratio that does not move with the machine's speed
+or load; the linear algebra done on those rows is not in it), and where the diagnosis'
+time went (its budget record: the main search, each optional stage, the rest), each
+against the plain fit.
 
     python bench/diagnose.py                    # RX160, 4,000 rows, 2 hidden effects
     python bench/diagnose.py --case all         # every case below
@@ -47,6 +50,7 @@ import torch
 import hybrid_pk as hpk
 from hybrid_pk.calibration import diagnose
 from hybrid_pk.calibration.fit import fit, initialise_frames
+from hybrid_pk.calibration.work import done as work_done
 from hybrid_pk.effects import ExtendedModel, conditions_from_data, make_effect
 from hybrid_pk.simulate import simulate_campaign
 
@@ -156,13 +160,14 @@ def run_case(case: str, ipa: Path, progress: bool) -> dict:
     robot.requires_grad_(False)
     say = (lambda t: print(f"  [{case}] {t}", file=sys.stderr, flush=True)) if progress else None
     warm_up(robot, data, frames_per_file)
-    start, cpu = time.perf_counter(), time.process_time()
+    start, cpu, work = time.perf_counter(), time.process_time(), work_done()
     diag = diagnose(robot, data, frames_per_file=frames_per_file, progress=say)
     t_diag, cpu_diag = time.perf_counter() - start, time.process_time() - cpu
+    work_diag = work_done() - work
     labels = [_label(c) for c in diag.causes]
-    cpu = time.process_time()
+    cpu, work = time.process_time(), work_done()
     t_fit = plain_fit(robot, data, labels, frames_per_file)
-    cpu_fit = time.process_time() - cpu
+    cpu_fit, work_fit = time.process_time() - cpu, work_done() - work
     injected = None
     if truth is not None:
         injected = [
@@ -176,6 +181,8 @@ def run_case(case: str, ipa: Path, progress: bool) -> dict:
         "plain_fit_s": t_fit,
         "diagnose_cpu_s": cpu_diag,
         "plain_fit_cpu_s": cpu_fit,
+        "diagnose_work": work_diag,
+        "plain_fit_work": work_fit,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "load": [load0[0], os.getloadavg()[0]],
         "found": labels,
@@ -273,6 +280,12 @@ def report(r: dict, reference: dict | None) -> None:
         f"{r['plain_fit_s']:.1f} s, ratio {ratio:.1f}x; CPU {r['diagnose_cpu_s']:.1f} s / "
         f"{r['plain_fit_cpu_s']:.1f} s = {cpu_ratio:.1f}x; peak RSS {r['peak_rss_mb']:.0f} MB; "
         f"load {r['load'][0]:.1f} -> {r['load'][1]:.1f}"
+    )
+    w_diag, w_fit = r["diagnose_work"], r["plain_fit_work"]
+    print(
+        f"          work (row evaluations, as the budget counts them): diagnose "
+        f"{w_diag / 1e6:.1f} M, plain fit {w_fit / 1e6:.1f} M, ratio "
+        f"{w_diag / max(w_fit, 1):.1f}x (the same on any machine, loaded or not)"
     )
     print(f"          found:    {r['found']}")
     if r["injected"] is not None:
