@@ -22,14 +22,16 @@ from __future__ import annotations
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pytorch_kinematics as pk
-import yourdfpy
 from lxml import etree
-from pytorch_kinematics.urdf_parser_py.xml_reflection import core as _pk_xml
 
 from hybrid_pk.errors import InvalidFrame, RobotModelError
+from hybrid_pk.robot.spec_cache import cached_spec, keep_spec
+
+if TYPE_CHECKING:  # the readers are imported where a URDF is read (spec_cache)
+    import yourdfpy
 
 __all__ = ["BranchBody", "ChainSpec", "load_chain_spec", "resolve_urdf", "shipped_robots"]
 
@@ -170,6 +172,8 @@ def _quiet_unknown_attributes():
     not know (the Panda's ``<dynamics D= K= mu_coulomb= mu_viscous=>``: 28 lines on every
     command; the Z1's ``<hardwareInterface>`` in ``<actuator>``: 6); no part of hybrid_pk
     reads them, so those notes are dropped, any other is passed on."""
+    from pytorch_kinematics.urdf_parser_py.xml_reflection import core as _pk_xml
+
     said = _pk_xml.on_error
 
     def note(message: str) -> None:
@@ -206,6 +210,8 @@ class _Tree:
     """The URDF's link tree: joints by child link, children by parent link."""
 
     def __init__(self, path: Path) -> None:
+        import yourdfpy
+
         _check_well_formed(path)
         try:
             model = yourdfpy.URDF.load(str(path), load_meshes=False, build_scene_graph=False)
@@ -240,6 +246,8 @@ class _Tree:
         """Joints from the root to ``end_link``, in chain order (pytorch-kinematics' path)."""
         if end_link == self.root:
             raise RobotModelError(f"{self.path}: {end_link!r} is the root link: no joint moves it")
+        import pytorch_kinematics as pk
+
         try:
             with _quiet_unknown_attributes():
                 chain = pk.build_serial_chain_from_urdf(self.path.read_bytes(), end_link, self.root)
@@ -351,7 +359,16 @@ def load_chain_spec(urdf: str | Path, end_link: str | None = None) -> ChainSpec:
         urdf: path of a URDF file, or a shipped robot name.
         end_link: link the chain ends at; default the URDF's single leaf link.
     """
-    tree = _Tree(resolve_urdf(urdf))
+    path = resolve_urdf(urdf)
+    if (spec := cached_spec(path, end_link, ChainSpec, BranchBody)) is not None:
+        return spec  # read before (spec_cache): the readers' imports are not paid again
+    spec = _read_chain_spec(_Tree(path), end_link)
+    keep_spec(path, end_link, spec)
+    return spec
+
+
+def _read_chain_spec(tree: _Tree, end_link: str | None) -> ChainSpec:
+    """:func:`load_chain_spec` of the URDF ``tree``."""
     end_link = tree.end_link(end_link)
     path_joints = tree.path_joints(end_link)
     on_chain = {tree.root, *(j.child for j in path_joints)}

@@ -14,17 +14,22 @@ import os
 import tempfile
 from pathlib import Path
 
-__all__ = ["urdf_copy"]
+__all__ = ["cache_folder", "urdf_copy", "write_whole"]
 
 
 def urdf_copy(text: str, name: str) -> Path:
     """A file holding the URDF ``text``; ``name`` (a robot or file name) starts its name."""
     digest = hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
-    folder = _folder()
-    path = folder / f"{Path(name).name or 'robot'}-{digest}.urdf"
+    path = cache_folder("urdf") / f"{Path(name).name or 'robot'}-{digest}.urdf"
     if path.is_file() and path.read_text(encoding="utf-8") == text:
         return path
-    fd, partial = tempfile.mkstemp(dir=folder, prefix=f".{path.stem}.", suffix=".part")
+    write_whole(path, text)
+    return path
+
+
+def write_whole(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` whole: into a temporary file beside it, then renamed."""
+    fd, partial = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".part")
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as f:
             f.write(text)
@@ -32,14 +37,15 @@ def urdf_copy(text: str, name: str) -> Path:
     finally:
         if os.path.exists(partial):
             os.unlink(partial)
-    return path
 
 
-def _folder() -> Path:
+def cache_folder(kind: str) -> Path:
+    """The per-user cache folder ``kind`` (``$XDG_CACHE_HOME/hybrid_pk/KIND``, else
+    ``~/.cache/hybrid_pk/KIND``), or a private temporary folder where that cannot be made."""
     home = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    folder = Path(home) / "hybrid_pk" / "urdf"
+    folder = Path(home) / "hybrid_pk" / kind
     try:
         folder.mkdir(parents=True, exist_ok=True)
         return folder
     except OSError:
-        return Path(tempfile.mkdtemp(prefix="hybrid_pk_urdf_"))  # read-only home
+        return Path(tempfile.mkdtemp(prefix=f"hybrid_pk_{kind}_"))  # read-only home
