@@ -8,6 +8,7 @@ import dataclasses
 import os
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -91,7 +92,9 @@ def test_the_cache_off_or_unwritable_reads_the_urdf(cache, tmp_path, monkeypatch
     blocked = tmp_path / "blocked"
     blocked.write_text("a file where the cache folder would be")
     monkeypatch.setenv("XDG_CACHE_HOME", str(blocked))
-    assert _same(load_chain_spec("rx160"), off)  # a private temporary folder instead
+    before = set(Path(tempfile.gettempdir()).glob("hybrid_pk_spec_*"))
+    assert _same(load_chain_spec("rx160"), off)  # read again, nothing kept
+    assert set(Path(tempfile.gettempdir()).glob("hybrid_pk_spec_*")) == before
 
 
 def test_a_damaged_kept_spec_is_read_again(cache):

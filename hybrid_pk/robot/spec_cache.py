@@ -52,11 +52,11 @@ def _key(urdf: Path, end_link: str | None) -> str | None:
 def cached_spec(urdf: Path, end_link: str | None, spec_type, branch_type):
     """The spec kept for ``urdf`` (its bytes now) and ``end_link``, with ``urdf_path`` set
     to ``urdf``; None where none is kept (or the cache is off or unreadable)."""
-    key = _key(urdf, end_link)
-    if key is None:
+    key, folder = _key(urdf, end_link), cache_folder("spec", temporary=False)
+    if key is None or folder is None:
         return None
     try:
-        fields = json.loads((cache_folder("spec") / f"{key}.json").read_text(encoding="utf-8"))
+        fields = json.loads((folder / f"{key}.json").read_text(encoding="utf-8"))
         branches = tuple(branch_type(**_arrays(b)) for b in fields.pop("branches"))
         spec = spec_type(**_arrays(fields), branches=branches)
     except (OSError, ValueError, TypeError, KeyError):
@@ -66,12 +66,12 @@ def cached_spec(urdf: Path, end_link: str | None, spec_type, branch_type):
 
 def keep_spec(urdf: Path, end_link: str | None, spec) -> None:
     """Keep ``spec``, read from ``urdf`` for ``end_link``, for the next :func:`cached_spec`."""
-    key = _key(urdf, end_link)
-    if key is None:
-        return
+    key, folder = _key(urdf, end_link), cache_folder("spec", temporary=False)
+    if key is None or folder is None:
+        return  # no cache folder (a read-only home): the URDF is read every time
     fields = _plain(dataclasses.asdict(spec))
     try:
-        write_whole(cache_folder("spec") / f"{key}.json", json.dumps(fields))
+        write_whole(folder / f"{key}.json", json.dumps(fields))
     except OSError:
         pass  # a read-only cache: read the URDF next time as well
 

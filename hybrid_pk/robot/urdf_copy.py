@@ -20,7 +20,8 @@ __all__ = ["cache_folder", "urdf_copy", "write_whole"]
 def urdf_copy(text: str, name: str) -> Path:
     """A file holding the URDF ``text``; ``name`` (a robot or file name) starts its name."""
     digest = hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
-    path = cache_folder("urdf") / f"{Path(name).name or 'robot'}-{digest}.urdf"
+    folder = cache_folder("urdf")  # a private temporary folder at worst, never None
+    path = Path(folder) / f"{Path(name).name or 'robot'}-{digest}.urdf"
     if path.is_file() and path.read_text(encoding="utf-8") == text:
         return path
     write_whole(path, text)
@@ -39,13 +40,14 @@ def write_whole(path: Path, text: str) -> None:
             os.unlink(partial)
 
 
-def cache_folder(kind: str) -> Path:
+def cache_folder(kind: str, temporary: bool = True) -> Path | None:
     """The per-user cache folder ``kind`` (``$XDG_CACHE_HOME/hybrid_pk/KIND``, else
-    ``~/.cache/hybrid_pk/KIND``), or a private temporary folder where that cannot be made."""
+    ``~/.cache/hybrid_pk/KIND``); where that cannot be made, a private temporary folder
+    (``temporary``) or None."""
     home = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
     folder = Path(home) / "hybrid_pk" / kind
     try:
         folder.mkdir(parents=True, exist_ok=True)
         return folder
-    except OSError:
-        return Path(tempfile.mkdtemp(prefix=f"hybrid_pk_{kind}_"))  # read-only home
+    except OSError:  # a read-only home
+        return Path(tempfile.mkdtemp(prefix=f"hybrid_pk_{kind}_")) if temporary else None
