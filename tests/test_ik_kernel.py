@@ -82,6 +82,17 @@ def test_fk_follows_parameter_changes_and_keeps_gradients():
     assert bool(torch.isfinite(q.grad).all())
 
 
+def _moved_params(robot: hpk.Robot, rng: torch.Generator, turn: float):
+    """The robot's kinematic parameters with every origin moved by ~1 mm and every axis
+    turned by ~``turn`` rad (shared parameters, as an extended model's)."""
+    p = robot.kinematic_params()
+    return type(p)(
+        p.origin_xyz + 1e-3 * torch.randn(p.origin_xyz.shape, generator=rng, dtype=F64),
+        p.origin_rot,
+        p.axis + turn * torch.randn(p.axis.shape, generator=rng, dtype=F64),
+    )
+
+
 @pytest.mark.parametrize("name", ROBOTS)
 def test_fk_with_other_parameters_without_gradients_equals_the_product(name):
     """An extended model's parameters (origins moved, axes turned: shared, not the
@@ -91,12 +102,7 @@ def test_fk_with_other_parameters_without_gradients_equals_the_product(name):
     robot = hpk.Robot.from_urdf(urdf, end_link=end)
     rng = _torch_rng(f"fk params {name}")
     q = robot.sample_q(ALIGNED_MIN_BATCH + 3, rng)
-    p = robot.kinematic_params()
-    moved = type(p)(
-        p.origin_xyz + 1e-3 * torch.randn(p.origin_xyz.shape, generator=rng, dtype=F64),
-        p.origin_rot,
-        p.axis + 1e-3 * torch.randn(p.axis.shape, generator=rng, dtype=F64),
-    )
+    moved = _moved_params(robot, rng, turn=1e-3)
     terms = robot._terms(moved, F64, fold_tip=True)
     ref = product(local_transforms(robot.chain_q(q), terms, robot.chain_revolute)).detach()
     aligned = robot._no_grad_fk.with_params
@@ -135,12 +141,7 @@ def test_link_frames_without_gradients_equal_the_product(name):
     robot = hpk.Robot.from_urdf(urdf, end_link=end)
     rng = _torch_rng(f"link frames {name}")
     q = robot.sample_q(ALIGNED_MIN_BATCH + 5, rng)
-    p = robot.kinematic_params()
-    moved = type(p)(
-        p.origin_xyz + 1e-3 * torch.randn(p.origin_xyz.shape, generator=rng, dtype=F64),
-        p.origin_rot,
-        p.axis + 1e-2 * torch.randn(p.axis.shape, generator=rng, dtype=F64),
-    )
+    moved = _moved_params(robot, rng, turn=1e-2)
     fast = robot._no_grad_fk.link_frames
     for params in (None, moved):
         ref = _product_link_frames(robot, q, params)

@@ -163,6 +163,14 @@ def aligned_fk(C: AlignedChain, q: Tensor, revolute: Tensor, all_revolute: bool)
     return T.view(*q.shape[:-1], 4, 4)
 
 
+def _applies(terms: ChainTerms, q: Tensor) -> bool:
+    """Whether the z-aligned path serves ``terms`` at ``q``: enough configurations
+    (:data:`ALIGNED_MIN_BATCH`), shared terms and no derivatives through either."""
+    if q[..., 0].numel() < ALIGNED_MIN_BATCH or terms.M0.dim() > 3:
+        return False
+    return plain_inputs(q, terms.M0, terms.tip, terms.axis)
+
+
 class AlignedFK:
     """:meth:`Robot.fk`'s path without derivatives: the z-aligned chain (built in float64
     from the robot's shared chain terms, cast, kept per dtype while the terms object,
@@ -188,9 +196,7 @@ class AlignedFK:
         chain ``terms`` built from parameters other than the robot's own (an extended
         model's), or None where this path does not apply (few configurations, per-sample
         terms, or derivatives)."""
-        if q[..., 0].numel() < ALIGNED_MIN_BATCH or terms.M0.dim() > 3:
-            return None
-        if not plain_inputs(q, terms.M0, terms.tip, terms.axis):
+        if not _applies(terms, q):
             return None
         return aligned_fk(_in_dtype(aligned_chain(terms), q.dtype), q, self.revolute,
                           self.all_revolute)  # fmt: skip
@@ -201,9 +207,7 @@ class AlignedFK:
         (as :meth:`with_params`). The frame after joint ``i`` is the aligned frame of the
         next joint before it turns, ``P_{i+1} = F_i O_{i+1} Q_{i+1}`` (the tip in place of
         ``O_n Q_n``), times that constant's inverse."""
-        if q[..., 0].numel() < ALIGNED_MIN_BATCH or terms.M0.dim() > 3:
-            return None
-        if not plain_inputs(q, terms.M0, terms.tip, terms.axis):
+        if not _applies(terms, q):
             return None
         n = q.shape[-1]
         C, after = _in_dtype(aligned_chain(terms), q.dtype), _after_joints(terms)

@@ -13,6 +13,7 @@ turns the cache off.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import os
@@ -34,19 +35,30 @@ _READERS = ("pytorch-kinematics", "yourdfpy")
 def _key(urdf: Path, end_link: str | None) -> str | None:
     if os.environ.get(ENV, "").lower() in ("off", "0", "no", "false"):
         return None
+    reader = _reader_digest()
     try:
         digest = hashlib.sha256(urdf.read_bytes())
-        for source in _READER:
-            digest.update(source.read_bytes())
     except OSError:
         return None
-    digest.update(repr(end_link).encode())
-    for reader in _READERS:  # a new release of a reader may read the same file otherwise
-        try:
-            digest.update(f"{reader} {metadata.version(reader)}".encode())
-        except metadata.PackageNotFoundError:
-            return None
+    if reader is None:
+        return None
+    digest.update(f"{end_link!r} {reader}".encode())
     return digest.hexdigest()[:32]
+
+
+@functools.cache
+def _reader_digest() -> str | None:
+    """Hash of the reader's source and the URDF readers' versions (once per process: a
+    new release of a reader may read the same file otherwise); None where unknown."""
+    digest = hashlib.sha256()
+    try:
+        for source in _READER:
+            digest.update(source.read_bytes())
+        for reader in _READERS:
+            digest.update(f"{reader} {metadata.version(reader)}".encode())
+    except (OSError, metadata.PackageNotFoundError):
+        return None
+    return digest.hexdigest()
 
 
 def cached_spec(urdf: Path, end_link: str | None, spec_type, branch_type):
