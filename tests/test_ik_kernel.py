@@ -6,6 +6,7 @@ plain reference."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -270,3 +271,72 @@ def test_two_precisions_finish_in_float64():
     assert int(arrived.sum()) >= int(ref_arrived.sum()) - 3  # a different path may miss a few
     assert int(arrived.sum()) >= 200  # started within 0.5 rad: most arrive
     assert torch.allclose(out.position_error[arrived] * 1e3, err.position_mm[arrived], atol=1e-9)
+
+
+def test_the_second_phase_goes_on_with_the_damping_it_had():
+    """``LMOutput.damping`` is where each problem stopped, and a call given it starts
+    there (a call of no iteration hands it back unchanged)."""
+    robot = hpk.Robot.from_urdf("ur10")
+    robot.requires_grad_(False)
+    ikm = as_ik_model(robot)
+    rng = _torch_rng("damping carried")
+    q_true = robot.sample_q(64, rng)
+    q0 = q_true + 0.3 * torch.randn(q_true.shape, generator=rng, dtype=F64)
+    q0 = torch.clamp(q0, ikm.lower, ikm.upper)
+    with torch.no_grad():
+        T = robot.fk(q_true)
+    s = IKOptions().lm_settings(position_only=False)
+    args = (ikm.evaluate, q0, torch.arange(64), T, ikm.lower, ikm.upper)
+    with torch.no_grad():
+        out = batched_levenberg_marquardt(*args, replace(s, max_iterations=3), ikm.revolute)
+        assert out.damping.shape == (64, 2)
+        assert bool((out.damping > 0).all())
+        assert bool(torch.isfinite(out.damping).all())
+        assert not torch.allclose(out.damping[:, 0], torch.full((64,), s.damping_init, dtype=F64))
+        again = batched_levenberg_marquardt(
+            ikm.evaluate, out.q, torch.arange(64), T, ikm.lower, ikm.upper,
+            replace(s, max_iterations=0), ikm.revolute, damping=out.damping,
+        )  # fmt: skip
+    assert torch.equal(again.damping, out.damping)
+
+
+def test_near_singular_crawl_is_handed_to_the_polish():
+    """Near a singular configuration (UR10 wrist_2 ~1e-5 rad) the damped iteration
+    crawls within the polish's reach; with ``handoff_factor`` such problems leave after
+    two progress checks in the band (fewer evaluations), and Gauss-Newton finishes each
+    of them within the tolerances."""
+    from hybrid_pk.ik.polish import NEAR_FACTOR, gauss_newton
+
+    robot = hpk.Robot.from_urdf("ur10")
+    robot.requires_grad_(False)
+    ikm = as_ik_model(robot)
+    rng = _torch_rng("hand-off")
+    q_true = robot.sample_q(128, rng)
+    q_true[:, 4] = 10 ** (-5 + torch.rand(128, generator=rng, dtype=F64)) * torch.where(
+        torch.rand(128, generator=rng) < 0.5, -1.0, 1.0
+    ).to(F64)
+    q0 = q_true + 0.05 * torch.randn(q_true.shape, generator=rng, dtype=F64)
+    q0 = torch.clamp(q0, ikm.lower, ikm.upper)
+    with torch.no_grad():
+        T = robot.fk(q_true)
+    s = IKOptions().lm_settings(position_only=False)
+    args = (ikm.evaluate, q0, torch.arange(128), T, ikm.lower, ikm.upper)
+    with torch.no_grad():
+        plain_run = batched_levenberg_marquardt(*args, s, ikm.revolute)
+        s_h = replace(s, handoff_factor=NEAR_FACTOR)
+        handed = batched_levenberg_marquardt(*args, s_h, ikm.revolute)
+    assert handed.evaluations < plain_run.evaluations
+    band = (handed.position_error <= NEAR_FACTOR * s.accept_position) & (
+        handed.rotation_error <= NEAR_FACTOR * s.accept_rotation
+    )
+    kept = (handed.position_error <= s.keep_position) & (handed.rotation_error <= s.keep_rotation)
+    left = band & ~kept
+    assert int(left.sum()) > 0  # some did leave unfinished: the case is one where it matters
+    sel = left.nonzero()[:, 0]
+    with torch.no_grad():
+        q_pol, _, _, settled, _ = gauss_newton(
+            ikm, handed.q[sel], sel, T[sel], ikm.lower, ikm.upper, s
+        )
+        err = pose_error(T[sel], robot.fk(q_pol))
+    assert bool(settled.all())
+    assert bool(((err.position_mm <= 1e-3) & (err.orientation_deg <= 1e-3)).all())

@@ -17,7 +17,8 @@ all in one batch:
 - early exit: a problem leaves the batch when it has converged (a polishing step
   after reaching a tenth of the tolerance, or a far tighter tolerance at once), or
   when it stalls (too little decrease of the cost over a window, or damping
-  exhausted). The batch is compacted, so finished problems cost nothing.
+  exhausted), or (``handoff_factor``) when it has stayed within the polish's reach for
+  a window. The batch is compacted, so finished problems cost nothing.
 
 Everything runs batch-last (``hybrid_pk.geometry.batch_last``) for the ``A`` problems
 still active, and the state of a problem is one column of two packed tensors (what an
@@ -65,6 +66,11 @@ class LMSettings:
         stall_window: iterations between progress checks.
         stall_ratio: a problem whose cost did not drop below ``stall_ratio`` times its
             cost at the previous check is given up (unless within the keep errors).
+        handoff_factor: a problem within this factor of the accept errors at two
+            successive progress checks leaves, to be finished by the caller's
+            Gauss-Newton polish (:mod:`~hybrid_pk.ik.polish`, whose reach this is):
+            there the damped iteration only crawls, near a singular configuration.
+            None (default): no hand-off, for callers that do not polish.
     """
 
     max_iterations: int = 60
@@ -80,13 +86,15 @@ class LMSettings:
     damping_max: float = 1e10
     stall_window: int = 4
     stall_ratio: float = 0.9
+    handoff_factor: float | None = None
 
 
 class LMOutput(NamedTuple):
     """Per problem: final ``q (P, dof)``, ``position_error (P,)`` [m], ``rotation_error
     (P,)`` [rad], ``iterations (P,)``; ``evaluations``: total number of configurations
     evaluated (pose + Jacobian); ``active (P,)`` bool: still iterating when the call
-    returned early (``stop_at``), else None."""
+    returned early (``stop_at``), else None; ``damping (P, 2)``: the damping ``mu`` and
+    its growth ``nu`` where each problem stopped (to continue its iteration)."""
 
     q: Tensor
     position_error: Tensor
@@ -94,6 +102,7 @@ class LMOutput(NamedTuple):
     iterations: Tensor
     evaluations: int
     active: Tensor | None = None
+    damping: Tensor | None = None
 
 
 # Rows of the kept block: damping mu and its growth nu, iterations spent near, cost at
@@ -107,7 +116,9 @@ class _Batch:
     ``(m n)``, weighted residual ``(m)``, cost, position and rotation error (what one
     evaluation gives); ``kept (_BOX [+ 3 n], A)``: the rest."""
 
-    def __init__(self, evaluate, q0, rows, T_target, lower, upper, revolute, s: LMSettings):
+    def __init__(
+        self, evaluate, q0, rows, T_target, lower, upper, revolute, s: LMSettings, damping=None
+    ):
         P, n = q0.shape
         self.evaluate, self.s, self.n, self.rows_all = evaluate, s, n, rows
         self.m = 3 if s.position_only else 6
@@ -124,7 +135,10 @@ class _Batch:
             per = per & revolute.to(per.device)[:, None]
         self.any_periodic, self.all_periodic = bool(per.any()), bool(per.all())
         kept = q0.new_zeros(_BOX if self.shared else _BOX + 3 * n, P)
-        kept[_MU], kept[_NU] = s.damping_init, 2.0
+        if damping is None:
+            kept[_MU], kept[_NU] = s.damping_init, 2.0
+        else:
+            kept[_MU : _NU + 1] = damping.T.to(q0)
         kept[_IDX] = torch.arange(P, dtype=q0.dtype, device=q0.device)
         kept[_RT:_PT] = T_target[:, :3, :3].reshape(P, 9).T
         kept[_PT:_BOX] = T_target[:, :3, 3].T
@@ -242,6 +256,10 @@ def _leaving(b: _Batch, it: int) -> Tensor:
         keep = (pos <= s.keep_position) & (rot <= s.keep_rotation)
         cost = b.field("cost")
         leave |= (cost > s.stall_ratio * k[_CHECK]) & ~keep
+        if s.handoff_factor is not None:  # within the band now and (by cost) at the last check
+            hp, hr = s.handoff_factor * s.accept_position, s.handoff_factor * s.accept_rotation
+            band_cost = hp * hp + (0.0 if s.position_only else (s.rotation_weight * hr) ** 2)
+            leave |= (pos <= hp) & (rot <= hr) & (k[_CHECK] <= band_cost)
         k[_CHECK] = cost
     if it >= s.max_iterations:
         leave = torch.ones_like(leave)
@@ -258,6 +276,7 @@ def batched_levenberg_marquardt(
     settings: LMSettings = LMSettings(),
     revolute: Tensor | None = None,
     stop_at: int = 0,
+    damping: Tensor | None = None,
 ) -> LMOutput:
     """Solve ``P`` small pose problems from their start configurations, in one batch.
 
@@ -279,6 +298,9 @@ def batched_levenberg_marquardt(
         stop_at: return as soon as at most this many problems are still iterating
             (``LMOutput.active`` marks them, their state as it is; default 0: run all
             to the end).
+        damping: ``(P, 2)`` initial ``mu`` and ``nu`` of each problem (an earlier call's
+            ``LMOutput.damping``: the iteration goes on where it stopped); default
+            ``settings.damping_init`` and 2.
 
     Returns:
         :class:`LMOutput`; every ``q`` is inside the box and finite.
@@ -286,11 +308,12 @@ def batched_levenberg_marquardt(
     P, n = q0.shape
     if P == 0:
         empty = q0.new_zeros(0)
-        return LMOutput(q0.clone(), empty, empty, empty.long(), 0)
+        return LMOutput(q0.clone(), empty, empty, empty.long(), 0, None, q0.new_zeros(0, 2))
     T_target = T_target.to(q0)
-    # outputs, filled as problems leave the batch: q (n), position, rotation, iterations
-    out = torch.cat([q0.T, q0.new_full((2, P), torch.inf), q0.new_zeros(1, P)])
-    b = _Batch(evaluate, q0, rows, T_target, lower, upper, revolute, settings)
+    # outputs, filled as problems leave the batch: q (n), position, rotation, iterations,
+    # mu, nu
+    out = torch.cat([q0.T, q0.new_full((2, P), torch.inf), q0.new_zeros(3, P)])
+    b = _Batch(evaluate, q0, rows, T_target, lower, upper, revolute, settings, damping)
     evaluations, it = P, 0
     active = None
     while True:
@@ -305,6 +328,7 @@ def batched_levenberg_marquardt(
             done = b.ev.index_select(1, gone)
             e0 = n + b.m * n + b.m
             out[:n, at], out[n : n + 2, at], out[n + 2, at] = done[:n], done[e0 + 1 :], it
+            out[n + 3 :, at] = b.kept[_MU : _NU + 1].index_select(1, gone)
             b.keep((~leave).nonzero()[:, 0])
         if b.size == 0:
             break
@@ -314,4 +338,5 @@ def batched_levenberg_marquardt(
         evaluations += b.size
         _accept(b, trial, ok, predicted)
     q = out[:n].T.contiguous()
-    return LMOutput(q, out[n], out[n + 1], out[n + 2].long(), evaluations, active)
+    damp = out[n + 3 :].T.contiguous()
+    return LMOutput(q, out[n], out[n + 1], out[n + 2].long(), evaluations, active, damp)

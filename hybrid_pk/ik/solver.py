@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -227,15 +227,18 @@ def solve_and_check(
     # rad); cells of half the distinctness tolerance merge only candidates the final
     # reduction would call the same (they differ by less than a cell).
     merge = (options.revolute_tol / 2, options.prismatic_tol / 2)
+    # A problem that stays within the polish's reach (NEAR_FACTOR) is left to it: its
+    # Gauss-Newton steps finish what the damped iteration crawls towards there.
+    lm = replace(settings, handoff_factor=NEAR_FACTOR)
     m = None
     with no_autograd(ikm):
         if ikm.batch_last is None:
             out = batched_levenberg_marquardt(
-                ikm.evaluate, q0, rows, T_target, *bounds, settings, ikm.revolute
+                ikm.evaluate, q0, rows, T_target, *bounds, lm, ikm.revolute
             )
         else:
             out, m = solve_two_precisions(
-                ikm.evaluate, q0, rows, T_target, *bounds, settings, ikm.revolute, merge
+                ikm.evaluate, q0, rows, T_target, *bounds, lm, ikm.revolute, merge
             )
     out, (m,) = LMOutput(*plain(*out)), plain(m)
     # Only what the iteration itself left within twice the tolerances (a margin for the

@@ -16,6 +16,8 @@ would drop them in favour of it, the same solution). Once only a few problems ar
 iterating in float32 (``_SWITCH``), float32 saves nothing (an iteration then costs its
 dispatch whatever the precision): they go on in float64 in the same batch as the
 arrived ones, so that the slow last problems and the finishing steps share iterations.
+Every problem goes on with the damping it had (``LMOutput.damping``): restarting it at
+``damping_init`` cost the slow ones three or four iterations to bring it down again.
 """
 
 from __future__ import annotations
@@ -72,6 +74,7 @@ def solve_two_precisions(
         keep_position=max(loose_p, s.keep_position),
         keep_rotation=max(loose_r, s.keep_rotation),
         polish_iterations=0,
+        handoff_factor=None,  # a band of the float64 accept errors: the second phase's
     )
     f32 = torch.float32
     lo, hi = lower.to(f32), upper.to(f32)
@@ -96,7 +99,14 @@ def solve_two_precisions(
     left = max(s.stall_window, s.max_iterations - spent)
     bounds = [b if b.ndim == 1 else b[go] for b in (lower, upper)]
     fine = batched_levenberg_marquardt(
-        evaluate, q[go], rows[go], T_target[go], *bounds, replace(s, max_iterations=left), revolute
+        evaluate,
+        q[go],
+        rows[go],
+        T_target[go],
+        *bounds,
+        replace(s, max_iterations=left),
+        revolute,
+        damping=first.damping[go].to(q0.dtype),
     )
     q[go], pos[go], rot[go] = fine.q, fine.position_error, fine.rotation_error
     it[go] += fine.iterations
