@@ -340,3 +340,30 @@ def test_near_singular_crawl_is_handed_to_the_polish():
         err = pose_error(T[sel], robot.fk(q_pol))
     assert bool(settled.all())
     assert bool(((err.position_mm <= 1e-3) & (err.orientation_deg <= 1e-3)).all())
+
+
+def test_polish_steps_only_the_problems_not_yet_settled():
+    """Gauss-Newton polish: a problem at its solution settles at once and stops (one
+    evaluation); those ~1e-2 rad off step on to float64's floor."""
+    from hybrid_pk.ik.polish import gauss_newton
+
+    robot = hpk.Robot.from_urdf("rx160")
+    robot.requires_grad_(False)
+    ikm = as_ik_model(robot)
+    rng = _torch_rng("polish compaction")
+    q_true = robot.sample_q(64, rng)
+    with torch.no_grad():
+        T = robot.fk(q_true)
+    off = torch.zeros(64, dtype=torch.bool)
+    off[::4] = True  # 16 of 64 start off their solution
+    q0 = q_true + off[:, None] * 1e-2 * torch.randn(q_true.shape, generator=rng, dtype=F64)
+    s = IKOptions().lm_settings(position_only=False)
+    with torch.no_grad():
+        q, _, _, settled, evaluations = gauss_newton(
+            ikm, q0, torch.arange(64), T, ikm.lower, ikm.upper, s
+        )
+        err = pose_error(T, robot.fk(q))
+    assert bool(settled[~off].all())
+    assert bool((err.position_mm < 1e-6).all())  # the off ones too, to float64's floor
+    assert torch.equal(q[~off], q0[~off])  # nothing to gain: the start is kept
+    assert 64 < evaluations <= 48 + 16 * 7  # the settled 48 were evaluated once

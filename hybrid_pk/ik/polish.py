@@ -44,7 +44,7 @@ F64 = torch.float64
 _TWO_PI = 2 * math.pi
 # Steps per solution: from 1e-2 rad off the branch along a curved valley, out, back and
 # two quadratic steps reach float64's floor (see the module docstring); two more for a
-# step clamped at a joint limit. The steps stop once every problem is at the floor or
+# step clamped at a joint limit. A problem stops stepping once it is at the floor or
 # settled.
 _STEPS = 6
 # Cost floor [m^2]: (a hundred times float64's resolution at the targets' distance from
@@ -88,6 +88,9 @@ def gauss_newton(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, int]:
     """Undamped Gauss-Newton steps from ``q (P, dof)`` towards ``T_target (P, 4, 4)``.
 
+    Each problem steps until it has settled (then only the others go on: most settle
+    after a step or two, the few near a singular configuration take more).
+
     Args:
         lower, upper: ``(dof,)`` or ``(P, dof)`` box [rad or m].
         settings: rotation weight and position-only flag of the solver.
@@ -100,40 +103,50 @@ def gauss_newton(
     """
     P, dof = q.shape
     w, pos_only = settings.rotation_weight, settings.position_only
-    R_t, p_t = T_target[:, :3, :3].permute(1, 2, 0), T_target[:, :3, 3].T
     lo, hi = (b[:, None] if b.ndim == 1 else b.T for b in (lower, upper))
     per = (hi - lo >= _TWO_PI) & ikm.revolute[:, None]
-    reach = 1.0 + float(p_t.norm(dim=0).max())
+    reach = 1.0 + float(T_target[:, :3, 3].norm(dim=-1).max()) if P else 1.0
     floor = (torch.finfo(F64).eps * _MARGIN * reach) ** 2
-    qt = q.T.contiguous()
-    best, best_cost, start_cost = qt, None, None
     settle = torch.where(ikm.revolute, _SETTLED * REVOLUTE_TOL, _SETTLED * PRISMATIC_TOL)
-    settle = settle.to(qt)[:, None]
-    evaluations, last = 0, torch.full_like(qt, math.inf)
+    settle = settle.to(q)[:, None]
+    best = q.T.contiguous()  # (dof, P), written back as problems settle
+    best_cost, settled = q.new_full((P,), math.inf), torch.zeros(P, dtype=torch.bool)
+    start_cost = best_cost
+    # the active problems: their indices, joint values, last step, targets and boxes
+    act, qt, last = torch.arange(P), best.clone(), torch.full_like(best, math.inf)
+    R_t, p_t = T_target[:, :3, :3].permute(1, 2, 0), T_target[:, :3, 3].T
+    evaluations = 0
     for step in range(_STEPS + 1):
         # Once every step settled only the cost is needed: the pose alone where the
         # Jacobian costs more (autograd: six reverse passes; the chain kernel gives both
         # at half the cost of the pose alone).
         final = step == _STEPS or bool((last <= settle).all())
         if final and ikm.batch_last is None:
-            T = ikm.pose(qt.T, rows).to(F64)
+            T = ikm.pose(qt.T, rows[act]).to(F64)
             R, p, J = T[:, :3, :3].permute(1, 2, 0), T[:, :3, 3].T, None
         else:
-            R, p, J = ikm.evaluate(qt, rows)
-        evaluations += P
+            R, p, J = ikm.evaluate(qt, rows[act])
+        evaluations += act.numel()
         dp, dr, cost, _, _ = pose_residual(R, p, R_t, p_t, w, pos_only)
         cost = cost[0]
-        if best_cost is None:
-            best_cost, start_cost = cost, cost
-        else:
-            better = cost < best_cost  # NaN compares False
-            best, best_cost = torch.where(better, qt, best), torch.where(better, cost, best_cost)
-        settled = (best_cost <= floor) | (last <= settle).all(0)
-        if final or bool(settled.all()):
+        if step == 0:
+            start_cost = cost
+        better = cost < best_cost[act]  # NaN compares False
+        best[:, act] = torch.where(better, qt, best[:, act])
+        best_cost[act] = torch.where(better, cost, best_cost[act])
+        done = (best_cost[act] <= floor) | (last <= settle).all(0)
+        settled[act] = done
+        if final or bool(done.all()):
             break
+        go = (~done).nonzero()[:, 0]
+        act, qt, last, R_t, p_t = act[go], qt[:, go], last[:, go], R_t[..., go], p_t[:, go]
+        dp, J = dp[:, go], J[..., go]
+        dr = None if dr is None else dr[:, go]
+        lo_a, hi_a = (b if b.shape[1] == 1 else b[:, act] for b in (lo, hi))
+        per_a = per if per.shape[1] == 1 else per[:, act]
         e = dp if pos_only else torch.cat([dp, dr])
         Jw = J[:3] if pos_only else torch.cat([J[:3], w * J[3:]])
-        A, b = Jw.permute(2, 0, 1), e.T[..., None]  # (P, m, dof), (P, m, 1)
+        A, b = Jw.permute(2, 0, 1), e.T[..., None]  # (A, m, dof), (A, m, 1)
         if A.shape[1] == dof:
             dq, info = torch.linalg.solve_ex(A, b)
             failed = (info != 0) | ~torch.isfinite(dq).all((1, 2))  # an exactly singular J
@@ -141,9 +154,9 @@ def gauss_newton(
             dq = torch.linalg.lstsq(A, b, rcond=_RCOND, driver="gelsy").solution
             failed = ~torch.isfinite(dq).all((1, 2))
         q_new = qt + torch.where(failed, 0.0, dq[..., 0].T)
-        clamped = torch.minimum(torch.maximum(q_new, lo), hi)
-        wrapped = lo + torch.remainder(q_new - lo, _TWO_PI)  # same pose, into the box
-        q_next = torch.where(per & (clamped != q_new), wrapped, clamped)
+        clamped = torch.minimum(torch.maximum(q_new, lo_a), hi_a)
+        wrapped = lo_a + torch.remainder(q_new - lo_a, _TWO_PI)  # same pose, into the box
+        q_next = torch.where(per_a & (clamped != q_new), wrapped, clamped)
         last = torch.where(failed, math.inf, (q_next - qt).abs())  # a failed step never settles
         qt = q_next
     return best.T.contiguous(), best_cost, start_cost, settled, evaluations
