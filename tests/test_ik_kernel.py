@@ -302,7 +302,7 @@ def test_the_second_phase_goes_on_with_the_damping_it_had():
 
 def test_near_singular_crawl_is_handed_to_the_polish():
     """Near a singular configuration (UR10 wrist_2 ~1e-5 rad) the damped iteration
-    crawls within the polish's reach; with ``handoff_factor`` such problems leave after
+    crawls within the polish's reach; with ``handoff_position`` such problems leave after
     two progress checks in the band (fewer evaluations), and Gauss-Newton finishes each
     of them within the tolerances."""
     from hybrid_pk.ik.polish import NEAR_FACTOR, gauss_newton
@@ -323,7 +323,8 @@ def test_near_singular_crawl_is_handed_to_the_polish():
     args = (ikm.evaluate, q0, torch.arange(128), T, ikm.lower, ikm.upper)
     with torch.no_grad():
         plain_run = batched_levenberg_marquardt(*args, s, ikm.revolute)
-        s_h = replace(s, handoff_factor=NEAR_FACTOR)
+        near = NEAR_FACTOR * s.accept_position, NEAR_FACTOR * s.accept_rotation
+        s_h = replace(s, handoff_position=near[0], handoff_rotation=near[1])
         handed = batched_levenberg_marquardt(*args, s_h, ikm.revolute)
     assert handed.evaluations < plain_run.evaluations
     band = (handed.position_error <= NEAR_FACTOR * s.accept_position) & (

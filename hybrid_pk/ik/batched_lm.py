@@ -17,8 +17,8 @@ all in one batch:
 - early exit: a problem leaves the batch when it has converged (a polishing step
   after reaching a tenth of the tolerance, or a far tighter tolerance at once), or
   when it stalls (too little decrease of the cost over a window, or damping
-  exhausted), or (``handoff_factor``) when it has stayed within the polish's reach for
-  a window. The batch is compacted, so finished problems cost nothing.
+  exhausted), or (``handoff_position``) when it has stayed within the polish's reach
+  for a window. The batch is compacted, so finished problems cost nothing.
 
 Everything runs batch-last (``hybrid_pk.geometry.batch_last``) for the ``A`` problems
 still active, and the state of a problem is one column of two packed tensors (what an
@@ -66,11 +66,12 @@ class LMSettings:
         stall_window: iterations between progress checks.
         stall_ratio: a problem whose cost did not drop below ``stall_ratio`` times its
             cost at the previous check is given up (unless within the keep errors).
-        handoff_factor: a problem within this factor of the accept errors at two
+        handoff_position: [m] a problem within this and ``handoff_rotation`` at two
             successive progress checks leaves, to be finished by the caller's
             Gauss-Newton polish (:mod:`~hybrid_pk.ik.polish`, whose reach this is):
             there the damped iteration only crawls, near a singular configuration.
             None (default): no hand-off, for callers that do not polish.
+        handoff_rotation: [rad].
     """
 
     max_iterations: int = 60
@@ -86,7 +87,8 @@ class LMSettings:
     damping_max: float = 1e10
     stall_window: int = 4
     stall_ratio: float = 0.9
-    handoff_factor: float | None = None
+    handoff_position: float | None = None
+    handoff_rotation: float | None = None
 
 
 class LMOutput(NamedTuple):
@@ -256,8 +258,8 @@ def _leaving(b: _Batch, it: int) -> Tensor:
         keep = (pos <= s.keep_position) & (rot <= s.keep_rotation)
         cost = b.field("cost")
         leave |= (cost > s.stall_ratio * k[_CHECK]) & ~keep
-        if s.handoff_factor is not None:  # within the band now and (by cost) at the last check
-            hp, hr = s.handoff_factor * s.accept_position, s.handoff_factor * s.accept_rotation
+        if s.handoff_position is not None:  # in the band now and (by cost) at the last check
+            hp, hr = s.handoff_position, s.handoff_rotation
             band_cost = hp * hp + (0.0 if s.position_only else (s.rotation_weight * hr) ** 2)
             leave |= (pos <= hp) & (rot <= hr) & (k[_CHECK] <= band_cost)
         k[_CHECK] = cost

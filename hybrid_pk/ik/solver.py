@@ -227,9 +227,10 @@ def solve_and_check(
     # rad); cells of half the distinctness tolerance merge only candidates the final
     # reduction would call the same (they differ by less than a cell).
     merge = (options.revolute_tol / 2, options.prismatic_tol / 2)
-    # A problem that stays within the polish's reach (NEAR_FACTOR) is left to it: its
-    # Gauss-Newton steps finish what the damped iteration crawls towards there.
-    lm = replace(settings, handoff_factor=NEAR_FACTOR)
+    # The polish's reach (hybrid_pk.ik.polish): a problem that stays within it is left to
+    # its Gauss-Newton steps, which finish what the damped iteration crawls towards there.
+    far = NEAR_FACTOR * settings.accept_position, NEAR_FACTOR * settings.accept_rotation
+    lm = replace(settings, handoff_position=far[0], handoff_rotation=far[1])
     m = None
     with no_autograd(ikm):
         if ikm.batch_last is None:
@@ -246,8 +247,7 @@ def solve_and_check(
     # fail that evaluation anyway. Not in inference mode: the model's own caches (chain
     # constants) must stay ordinary tensors, usable by autograd later.
     near = within(out, 2e-3 * options.tol_mm, 2 * math.radians(options.tol_deg), position_only)
-    # Ends the damped iteration gave up on near a solution (hybrid_pk.ik.polish).
-    far = NEAR_FACTOR * settings.accept_position, NEAR_FACTOR * settings.accept_rotation
+    # Ends the damped iteration gave up on, or handed over, near a solution.
     stalled = within(out, *far, position_only)
 
     def check(q: Tensor, candidate: Tensor) -> tuple[Tensor, Tensor, Tensor]:
