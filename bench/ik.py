@@ -20,6 +20,11 @@ Wang et al.'s one-shot correction, on FK targets of that model.
 
     python bench/ik.py                        # ur10 + rx160, 200 targets, 64 seeds
     python bench/ik.py --targets 50 --no-tracik --no-hybrid
+    python bench/ik.py --targets 50 --no-tracik --no-hybrid --wrist-near-zero
+
+``--wrist-near-zero``: the fifth joint of every target (UR10 wrist_2, RX160 joint_5)
+within 1e-5..1e-3 rad of 0 (log-uniform, either sign), a wrist near its singular
+configuration, where solutions converge slowly and are polished onto their branch.
 """
 
 from __future__ import annotations
@@ -178,6 +183,9 @@ def main() -> None:
     ap.add_argument("--tracik-timeout", type=float, default=0.005, help="[s] per call")
     ap.add_argument("--no-hybrid", action="store_true", help="skip the Table IV section")
     ap.add_argument("--hybrid-targets", type=int, default=100)
+    ap.add_argument(
+        "--wrist-near-zero", action="store_true", help="fifth joint within 1e-5..1e-3 rad of 0"
+    )
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
@@ -199,7 +207,12 @@ def main() -> None:
     for name in args.robots:
         robot = hpk.Robot.from_urdf(name)
         robot.requires_grad_(False)
-        q = robot.sample_q(args.targets, torch.Generator().manual_seed(2024))
+        gen = torch.Generator().manual_seed(2024)
+        q = robot.sample_q(args.targets, gen)
+        if args.wrist_near_zero:
+            size = 10 ** (-5 + 2 * torch.rand(args.targets, generator=gen, dtype=q.dtype))
+            sign = torch.where(torch.rand(args.targets, generator=gen) < 0.5, -1.0, 1.0)
+            q[:, 4] = size * sign.to(q.dtype)
         with torch.no_grad():
             T = robot.fk(q)
         seeds = quasi_random_seeds(robot.lower, robot.upper, robot.revolute, args.seeds)
