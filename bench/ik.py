@@ -11,7 +11,9 @@ timeout. Reported per robot and solver:
 - success: targets with at least one solution within ``--tol-mm`` / ``--tol-deg``,
   checked here with our FK whatever the solver claims, and within the joint limits,
 - coverage: analytic branches within the limits (EAIK) matched by a solution,
-- the speed ratio pytorch-kinematics / ours.
+- the speed ratio pytorch-kinematics / ours;
+- our evaluations (configurations whose pose and Jacobian were computed, the polish
+  included): the work, which does not move with the machine's load.
 
 Then the shape of the paper's Table IV: errors w.r.t. an expensive model (a calibrated
 RX160 with a joint offset, a link error and joint compliance; a UR10 with a smooth
@@ -60,8 +62,12 @@ def _verified(robot: hpk.Robot, T: torch.Tensor, q: torch.Tensor, ok: torch.Tens
     return [q[i][keep[i]].numpy() for i in range(q.shape[0])]
 
 
+_WORK: dict[str, int] = {}  # evaluations (pose + Jacobian) of our last call, per robot
+
+
 def _ours(robot, T, seeds, args):
     res = solve_ik(robot, T, seeds=seeds, options=IKOptions(max_iterations=args.iterations))
+    _WORK[robot.name] = res.info["evaluations"]  # the same every round: the work, not the time
     return [res.solutions(i).numpy() for i in range(T.shape[0])]
 
 
@@ -240,6 +246,7 @@ def main() -> None:
                 f"success {100 * success:6.2f} %  "
                 f"coverage {100 * hit / max(total, 1):6.2f} % ({hit}/{total})  "
                 f"{np.mean([len(s) for s in sols]):.2f} solutions/target"
+                + (f"  {_WORK[robot.name]:,} evaluations" if label == "hybrid_pk" else "")
             )
         for label in solvers:
             if label != "hybrid_pk":
