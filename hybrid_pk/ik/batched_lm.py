@@ -93,18 +93,18 @@ class LMSettings:
 
 class LMOutput(NamedTuple):
     """Per problem: final ``q (P, dof)``, ``position_error (P,)`` [m], ``rotation_error
-    (P,)`` [rad], ``iterations (P,)``; ``evaluations``: total number of configurations
-    evaluated (pose + Jacobian); ``active (P,)`` bool: still iterating when the call
-    returned early (``stop_at``), else None; ``damping (P, 2)``: the damping ``mu`` and
-    its growth ``nu`` where each problem stopped (to continue its iteration)."""
+    (P,)`` [rad], ``iterations (P,)``, ``damping (P, 2)`` (the damping ``mu`` and its
+    growth ``nu`` where each stopped: to continue its iteration); ``evaluations``: total
+    number of configurations evaluated (pose + Jacobian); ``active (P,)`` bool: still
+    iterating when the call returned early (``stop_at``), else None."""
 
     q: Tensor
     position_error: Tensor
     rotation_error: Tensor
     iterations: Tensor
+    damping: Tensor
     evaluations: int
     active: Tensor | None = None
-    damping: Tensor | None = None
 
 
 # Rows of the kept block: damping mu and its growth nu, iterations spent near, cost at
@@ -310,7 +310,7 @@ def batched_levenberg_marquardt(
     P, n = q0.shape
     if P == 0:
         empty = q0.new_zeros(0)
-        return LMOutput(q0.clone(), empty, empty, empty.long(), 0, None, q0.new_zeros(0, 2))
+        return LMOutput(q0.clone(), empty, empty, empty.long(), q0.new_zeros(0, 2), 0)
     T_target = T_target.to(q0)
     # outputs, filled as problems leave the batch: q (n), position, rotation, iterations,
     # mu, nu
@@ -341,4 +341,4 @@ def batched_levenberg_marquardt(
         _accept(b, trial, ok, predicted)
     q = out[:n].T.contiguous()
     damp = out[n + 3 :].T.contiguous()
-    return LMOutput(q, out[n], out[n + 1], out[n + 2].long(), evaluations, active, damp)
+    return LMOutput(q, out[n], out[n + 1], out[n + 2].long(), damp, evaluations, active)

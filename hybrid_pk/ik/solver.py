@@ -217,30 +217,25 @@ def solve_and_check(
     within ``bounds = (lower, upper)``, then :func:`check_solutions` of the results.
 
     Returns:
-        ``(out, ok, pos, ori)``: the LM result with the verified solutions (and the
-        ends it gave up on near one) polished onto their branch
-        (:mod:`~hybrid_pk.ik.polish`), and the checks of ``out.q``.
+        ``(out, ok, pos, ori)``: the LM result, its verified solutions (and the ends it
+        gave up on or handed over near one) polished (:mod:`~hybrid_pk.ik.polish`), and
+        the checks of ``out.q``.
     """
     T_target = T_all[rows]
-    # The chain kernel evaluates in float32 too: the coarse iterations in float32.
-    # Starts that arrived at one solution agree to float32's handover accuracy (~1e-5
-    # rad); cells of half the distinctness tolerance merge only candidates the final
-    # reduction would call the same (they differ by less than a cell).
+    # The chain kernel evaluates in float32 too: the coarse iterations in float32. Starts
+    # that arrived at one solution agree to float32's handover accuracy (~1e-5 rad); cells
+    # of half the distinctness tolerance merge only candidates the final reduction would
+    # call the same (they differ by less than a cell).
     merge = (options.revolute_tol / 2, options.prismatic_tol / 2)
-    # The polish's reach (hybrid_pk.ik.polish): a problem that stays within it is left to
-    # its Gauss-Newton steps, which finish what the damped iteration crawls towards there.
+    # The polish's reach (hybrid_pk.ik.polish): a problem that stays within it is left to it.
     far = NEAR_FACTOR * settings.accept_position, NEAR_FACTOR * settings.accept_rotation
     lm = replace(settings, handoff_position=far[0], handoff_rotation=far[1])
-    m = None
+    args, m = (ikm.evaluate, q0, rows, T_target, *bounds, lm, ikm.revolute), None
     with no_autograd(ikm):
         if ikm.batch_last is None:
-            out = batched_levenberg_marquardt(
-                ikm.evaluate, q0, rows, T_target, *bounds, lm, ikm.revolute
-            )
+            out = batched_levenberg_marquardt(*args)
         else:
-            out, m = solve_two_precisions(
-                ikm.evaluate, q0, rows, T_target, *bounds, lm, ikm.revolute, merge
-            )
+            out, m = solve_two_precisions(*args, merge)
     out, (m,) = LMOutput(*plain(*out)), plain(m)
     # Only what the iteration itself left within twice the tolerances (a margin for the
     # float32 rounding of problems that stopped there) is evaluated afresh: the others

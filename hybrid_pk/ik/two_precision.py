@@ -113,4 +113,5 @@ def solve_two_precisions(
     )
     q[go], pos[go], rot[go] = fine.q, fine.position_error, fine.rotation_error
     it[go] += fine.iterations
-    return LMOutput(q, pos, rot, it, first.evaluations + fine.evaluations), merged
+    damping = first.damping.to(q0.dtype).index_copy(0, go, fine.damping)
+    return LMOutput(q, pos, rot, it, damping, first.evaluations + fine.evaluations), merged
