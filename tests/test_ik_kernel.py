@@ -368,3 +368,7 @@ def test_polish_steps_only_the_problems_not_yet_settled():
     assert bool((err.position_mm < 1e-6).all())  # the off ones too, to float64's floor
     assert torch.equal(q[~off], q0[~off])  # nothing to gain: the start is kept
     assert 64 < evaluations <= 48 + 16 * 7  # the settled 48 were evaluated once
+    one = q0[:1].clone()  # one problem: its (dof, 1) transpose is already contiguous
+    with torch.no_grad():
+        gauss_newton(ikm, one, torch.arange(1), T[:1], ikm.lower, ikm.upper, s)
+    assert torch.equal(one, q0[:1])  # the caller's start is never written into

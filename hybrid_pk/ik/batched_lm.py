@@ -66,12 +66,13 @@ class LMSettings:
         stall_window: iterations between progress checks.
         stall_ratio: a problem whose cost did not drop below ``stall_ratio`` times its
             cost at the previous check is given up (unless within the keep errors).
-        handoff_position: [m] a problem within this and ``handoff_rotation`` at two
-            successive progress checks leaves, to be finished by the caller's
-            Gauss-Newton polish (:mod:`~hybrid_pk.ik.polish`, whose reach this is):
-            there the damped iteration only crawls, near a singular configuration.
-            None (default): no hand-off, for callers that do not polish.
-        handoff_rotation: [rad].
+        handoff_position: [m] a problem within this and ``handoff_rotation`` at a
+            progress check, and (by cost) at the check before or the start, leaves, to
+            be finished by the caller's Gauss-Newton polish (:mod:`~hybrid_pk.ik.polish`,
+            whose reach this is): there the damped iteration only crawls, near a
+            singular configuration. None (default): no hand-off, for callers that do
+            not polish.
+        handoff_rotation: [rad]; given with ``handoff_position`` or not at all.
     """
 
     max_iterations: int = 60
@@ -89,6 +90,10 @@ class LMSettings:
     stall_ratio: float = 0.9
     handoff_position: float | None = None
     handoff_rotation: float | None = None
+
+    def __post_init__(self) -> None:
+        if (self.handoff_position is None) != (self.handoff_rotation is None):
+            raise ValueError("LMSettings: give handoff_position and handoff_rotation together")
 
 
 class LMOutput(NamedTuple):

@@ -109,11 +109,11 @@ def gauss_newton(
     floor = (torch.finfo(F64).eps * _MARGIN * reach) ** 2
     settle = torch.where(ikm.revolute, _SETTLED * REVOLUTE_TOL, _SETTLED * PRISMATIC_TOL)
     settle = settle.to(q)[:, None]
-    best = q.T.contiguous()  # (dof, P), written back as problems settle
-    best_cost, settled = q.new_full((P,), math.inf), torch.zeros(P, dtype=torch.bool)
-    start_cost = best_cost
+    best = q.T.clone(memory_format=torch.contiguous_format)  # (dof, P), never q itself
+    settled = torch.zeros(P, dtype=torch.bool, device=q.device)
     # the active problems: their indices, joint values, last step, targets and boxes
-    act, qt, last = torch.arange(P), best.clone(), torch.full_like(best, math.inf)
+    act, qt = torch.arange(P, device=q.device), best.clone()
+    last = torch.full_like(best, math.inf)
     R_t, p_t = T_target[:, :3, :3].permute(1, 2, 0), T_target[:, :3, 3].T
     evaluations = 0
     for step in range(_STEPS + 1):
@@ -130,10 +130,11 @@ def gauss_newton(
         dp, dr, cost, _, _ = pose_residual(R, p, R_t, p_t, w, pos_only)
         cost = cost[0]
         if step == 0:
-            start_cost = cost
-        better = cost < best_cost[act]  # NaN compares False
-        best[:, act] = torch.where(better, qt, best[:, act])
-        best_cost[act] = torch.where(better, cost, best_cost[act])
+            start_cost, best_cost = cost, cost.clone()
+        else:
+            better = cost < best_cost[act]  # NaN compares False
+            best[:, act] = torch.where(better, qt, best[:, act])
+            best_cost[act] = torch.where(better, cost, best_cost[act])
         done = (best_cost[act] <= floor) | (last <= settle).all(0)
         settled[act] = done
         if final or bool(done.all()):
