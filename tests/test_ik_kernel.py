@@ -43,6 +43,24 @@ def _torch_rng(salt: str) -> torch.Generator:
     return torch.Generator().manual_seed(int(run_rng(salt).integers(2**31)))
 
 
+def _starts_near(name: str, n: int, spread: float, salt: str, edit=None):
+    """``(robot, ikm, q_true, q0, T)``: ``n`` random configurations of ``name`` (changed
+    by ``edit(q_true, rng)`` if given), starts ``spread`` rad of noise from them inside
+    the limits, and their poses."""
+    robot = hpk.Robot.from_urdf(name)
+    robot.requires_grad_(False)
+    ikm = as_ik_model(robot)
+    rng = _torch_rng(salt)
+    q_true = robot.sample_q(n, rng)
+    if edit is not None:
+        edit(q_true, rng)
+    q0 = q_true + spread * torch.randn(q_true.shape, generator=rng, dtype=F64)
+    q0 = torch.clamp(q0, ikm.lower, ikm.upper)
+    with torch.no_grad():
+        T = robot.fk(q_true)
+    return robot, ikm, q_true, q0, T
+
+
 def _product_fk(robot: hpk.Robot, q: torch.Tensor) -> torch.Tensor:
     """The balanced product of ``Robot.fk``'s derivative path."""
     terms = robot._terms(None, q.dtype, fold_tip=True)
@@ -251,15 +269,7 @@ def test_same_cell_merge_keeps_the_best_of_each_cell():
 def test_two_precisions_finish_in_float64():
     """float32 to the handover, float64 to the caller's tolerances: as many problems
     arrive as with float64 throughout, and each within tolerance by a fresh FK."""
-    robot = hpk.Robot.from_urdf("rx160")
-    robot.requires_grad_(False)
-    ikm = as_ik_model(robot)
-    rng = _torch_rng("two precisions")
-    q_true = robot.sample_q(256, rng)
-    q0 = q_true + 0.5 * torch.randn(q_true.shape, generator=rng, dtype=F64)
-    q0 = torch.clamp(q0, ikm.lower, ikm.upper)
-    with torch.no_grad():
-        T = robot.fk(q_true)
+    robot, ikm, _, q0, T = _starts_near("rx160", 256, 0.5, "two precisions")
     s = IKOptions().lm_settings(position_only=False)
     args = (ikm.evaluate, q0, torch.arange(256), T, ikm.lower, ikm.upper, s, ikm.revolute)
     with torch.no_grad():
@@ -276,15 +286,7 @@ def test_two_precisions_finish_in_float64():
 def test_the_second_phase_goes_on_with_the_damping_it_had():
     """``LMOutput.damping`` is where each problem stopped, and a call given it starts
     there (a call of no iteration hands it back unchanged)."""
-    robot = hpk.Robot.from_urdf("ur10")
-    robot.requires_grad_(False)
-    ikm = as_ik_model(robot)
-    rng = _torch_rng("damping carried")
-    q_true = robot.sample_q(64, rng)
-    q0 = q_true + 0.3 * torch.randn(q_true.shape, generator=rng, dtype=F64)
-    q0 = torch.clamp(q0, ikm.lower, ikm.upper)
-    with torch.no_grad():
-        T = robot.fk(q_true)
+    _, ikm, _, q0, T = _starts_near("ur10", 64, 0.3, "damping carried")
     s = IKOptions().lm_settings(position_only=False)
     args = (ikm.evaluate, q0, torch.arange(64), T, ikm.lower, ikm.upper)
     with torch.no_grad():
@@ -307,18 +309,11 @@ def test_near_singular_crawl_is_handed_to_the_polish():
     of them within the tolerances."""
     from hybrid_pk.ik.polish import NEAR_FACTOR, gauss_newton
 
-    robot = hpk.Robot.from_urdf("ur10")
-    robot.requires_grad_(False)
-    ikm = as_ik_model(robot)
-    rng = _torch_rng("hand-off")
-    q_true = robot.sample_q(128, rng)
-    q_true[:, 4] = 10 ** (-5 + torch.rand(128, generator=rng, dtype=F64)) * torch.where(
-        torch.rand(128, generator=rng) < 0.5, -1.0, 1.0
-    ).to(F64)
-    q0 = q_true + 0.05 * torch.randn(q_true.shape, generator=rng, dtype=F64)
-    q0 = torch.clamp(q0, ikm.lower, ikm.upper)
-    with torch.no_grad():
-        T = robot.fk(q_true)
+    def wrist_near_zero(q, rng):  # wrist_2 within 1e-5..1e-4 rad of 0, either sign
+        size = 10 ** (-5 + torch.rand(128, generator=rng, dtype=F64))
+        q[:, 4] = size * torch.where(torch.rand(128, generator=rng) < 0.5, -1.0, 1.0).to(F64)
+
+    robot, ikm, _, q0, T = _starts_near("ur10", 128, 0.05, "hand-off", wrist_near_zero)
     s = IKOptions().lm_settings(position_only=False)
     args = (ikm.evaluate, q0, torch.arange(128), T, ikm.lower, ikm.upper)
     with torch.no_grad():

@@ -101,6 +101,7 @@ def solve_two_precisions(
     spent = int(first.iterations.max()) if len(go) else 0
     left = max(s.stall_window, s.max_iterations - spent)
     bounds = [b if b.ndim == 1 else b[go] for b in (lower, upper)]
+    damping = first.damping.to(q0.dtype)
     fine = batched_levenberg_marquardt(
         evaluate,
         q[go],
@@ -109,9 +110,9 @@ def solve_two_precisions(
         *bounds,
         replace(s, max_iterations=left),
         revolute,
-        damping=first.damping[go].to(q0.dtype),
+        damping=damping[go],
     )
     q[go], pos[go], rot[go] = fine.q, fine.position_error, fine.rotation_error
     it[go] += fine.iterations
-    damping = first.damping.to(q0.dtype).index_copy(0, go, fine.damping)
+    damping = damping.index_copy(0, go, fine.damping)
     return LMOutput(q, pos, rot, it, damping, first.evaluations + fine.evaluations), merged
