@@ -1,11 +1,17 @@
-"""The CLI's error policy: one line on stderr, never a traceback unless --debug."""
+"""The CLI's error policy: one line on stderr, never a traceback unless --debug; a
+command loads only its own module, ``--help`` none (and no torch)."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 
+import hybrid_pk.cli
 import hybrid_pk.cli.evaluate_cmd as evaluate_cmd
-from hybrid_pk.cli.main import main
+from hybrid_pk.cli.main import COMMANDS, main
 from hybrid_pk.errors import HybridPKError
 
 
@@ -81,3 +87,35 @@ def test_import_errors_name_the_format(tmp_path, capsys):
     errors, ``hybrid-pk import ipa:`` (was ``hybrid-pk import:``)."""
     assert main(["import", "ipa", str(tmp_path / "none.csv"), "--out", str(tmp_path)]) == 2
     assert capsys.readouterr().err.startswith("hybrid-pk import ipa: error: ")
+
+
+def _modules_after(argv: list[str]) -> tuple[str, set[str]]:
+    """``hybrid-pk ARGV`` in a fresh interpreter: its output and the modules it loaded."""
+    code = (
+        "import sys\nfrom hybrid_pk.cli.main import main\n"
+        f"try:\n    main({argv!r})\nexcept SystemExit:\n    pass\n"
+        "print('MODULES', *sorted(sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    text, _, modules = out.stdout.rpartition("MODULES ")
+    return text, set(modules.split())
+
+
+def test_help_lists_every_command_and_loads_none():
+    text, loaded = _modules_after(["--help"])
+    for name, (_, line) in COMMANDS.items():
+        assert name in text
+        assert line.split()[0] in text
+    assert "torch" not in loaded
+    assert not {m for m in loaded if m.endswith("_cmd")}
+
+
+def test_a_command_loads_only_its_own_module():
+    _, loaded = _modules_after(["simulate", "--help"])
+    assert {m for m in loaded if m.endswith("_cmd")} == {"hybrid_pk.cli.simulate_cmd"}
+
+
+def test_every_command_module_is_listed():
+    folder = Path(hybrid_pk.cli.__file__).parent
+    modules = {f"hybrid_pk.cli.{f.stem}" for f in folder.glob("*_cmd.py")}
+    assert modules == {path for path, _ in COMMANDS.values()}

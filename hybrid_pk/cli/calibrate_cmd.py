@@ -77,8 +77,6 @@ flange -> measured point. Errors are reported in mm (position) and deg (orientat
 # --config (a YAML diagnose reads too), else their defaults.
 _DIAGNOSE_ONLY = ("candidates", "alpha", "max_causes", "stability")
 
-NAME = "calibrate"
-HELP = "fit frames + physical effects to measured poses; write a MODEL file"
 _UNITS = f"Effects and units: {vocabulary_units()}. Compliance and deflection use --gravity."
 DESCRIPTION = _DESCRIPTION.replace("{units}", textwrap.fill(_UNITS, 88))
 

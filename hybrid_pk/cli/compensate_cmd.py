@@ -57,14 +57,12 @@ twice.
 """
 
 
-NAME = "compensate"
 # How a user of this command states each condition the IK would otherwise assume.
 _FIXES = {
     "approach": "--approach + / - / JOINT=+,JOINT=- states how the robot approaches",
     "temperature": "a temperature column [degC] in PROGRAM states it",
     "payload": "a payload column [kg] in PROGRAM states it",
 }
-HELP = "correct a robot program's joint targets for the calibrated model"
 DESCRIPTION = _DESCRIPTION
 
 

@@ -34,8 +34,6 @@ to stderr; the report's run-time line gives the time of each stage.
 """
 
 
-NAME = "demo"
-HELP = "run the whole pipeline on a simulated RX160 campaign and write a report"
 DESCRIPTION = _DESCRIPTION
 
 

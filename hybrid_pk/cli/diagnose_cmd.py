@@ -39,8 +39,6 @@ unit of its effect (rad, rad/Nm, 1, m, 1/K, rad/Nm/m). --holdout is a fraction o
 _LABEL_WIDTH = 26
 
 
-NAME = "diagnose"
-HELP = "name the physical causes of the nominal model's errors (JSON + report)"
 DESCRIPTION = _DESCRIPTION
 
 

@@ -45,8 +45,6 @@ rows, held out; else the extended model is evaluated.
 """
 
 
-NAME = "evaluate"
-HELP = "position [mm] / orientation [deg] errors of a model on measured data"
 DESCRIPTION = _DESCRIPTION
 
 

@@ -23,8 +23,6 @@ from hybrid_pk.io.ur_calibration import (
 )
 from hybrid_pk.io.urdf_export import export_urdf
 
-NAME = "export"
-HELP = "the calibrated geometry as a DH / modified-DH table, a URDF or UR's kinematics YAML"
 DESCRIPTION = """\
 Write the geometric part of MODEL (link lengths, axis misalignments, base and flange
 frames, joint offsets folded into the joint zero: the file reads commanded joint

@@ -55,8 +55,6 @@ says so. Targets without payload / temperature columns are solved at 0 kg / 20 d
 """
 
 
-NAME = "ik"
-HELP = "all distinct joint solutions [rad] of target poses (errors in mm / deg)"
 DESCRIPTION = _DESCRIPTION
 
 

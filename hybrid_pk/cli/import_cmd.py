@@ -34,16 +34,16 @@ per source, named after it; read them together to keep one file index per series
 """
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add the ``import`` command and its formats."""
+def register(subparsers: argparse._SubParsersAction, name: str, help: str) -> None:
+    """Add the ``import`` command (``name``, ``help`` in the command list) and its formats."""
     parser = subparsers.add_parser(
-        "import",
-        help="convert measurement files of other formats to the pose table",
+        name,
+        help=help,
         description="Convert measurement files of other formats to the pose table "
         "(joints [rad], x, y, z [m], qw, qx, qy, qz).",
     )
     formats = parser.add_subparsers(dest="format", metavar="FORMAT", required=True)
-    for name, text, description, add_options in (
+    for fmt, text, description, add_options in (
         ("ipa", "UR10 laser-tracker files of the IPA data set", _IPA_HELP, _ipa_options),
         (
             "columns",
@@ -59,7 +59,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         ),
         ("dh", import_dh.TEXT, import_dh.HELP, import_dh.add_options),
     ):
-        add_options(command_parser(formats, name, help=text, description=description))
+        add_options(command_parser(formats, fmt, help=text, description=description))
 
 
 def _ipa_options(ipa: argparse.ArgumentParser) -> None:

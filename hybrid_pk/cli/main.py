@@ -1,10 +1,13 @@
 """Entry point of ``hybrid-pk``: one sub-command module per command, one error policy.
 
-Every sub-command module declares ``NAME``, ``HELP`` (one line for the command list),
-``DESCRIPTION`` (its ``--help`` text, units and formats, kept as written),
-``add_arguments(parser)`` (its flags; the shared ones come from
-:mod:`hybrid_pk.cli.options`) and ``run(args) -> int``. A command with sub-commands of
-its own (``import FORMAT``) defines ``register(subparsers)`` instead.
+Every sub-command module declares ``DESCRIPTION`` (its ``--help`` text, units and
+formats, kept as written), ``add_arguments(parser)`` (its flags; the shared ones come
+from :mod:`hybrid_pk.cli.options`) and ``run(args) -> int``. A command with
+sub-commands of its own (``import FORMAT``) defines ``register(subparsers, name,
+help)`` instead. Its name and one-line help (the command list) are in
+:data:`COMMANDS`, so that a command imports only its own module: the others' (torch,
+scipy, matplotlib, pandas) took seconds of every command's start, and ``hybrid-pk
+--help`` imports none.
 
 Errors of the ``HybridPKError`` hierarchy (and OS errors such as a missing file) become
 one line on stderr and exit code 2; anything else (a bug) becomes one ``internal
@@ -19,8 +22,6 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-from hybrid_pk.cli.options import command_parser, resolve_robot
-from hybrid_pk.cli.outputs import check_outputs
 from hybrid_pk.cli.progress import shown
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.startup import (
@@ -32,20 +33,55 @@ from hybrid_pk.startup import (
 from hybrid_pk.startup import release as release_interrupt
 from hybrid_pk.threads import configure as configure_threads
 
-# Sub-command modules, in the order `--help` lists them.
-_COMMANDS = (
-    "hybrid_pk.cli.plan_cmd",
-    "hybrid_pk.cli.simulate_cmd",
-    "hybrid_pk.cli.diagnose_cmd",
-    "hybrid_pk.cli.calibrate_cmd",
-    "hybrid_pk.cli.train_cmd",
-    "hybrid_pk.cli.evaluate_cmd",
-    "hybrid_pk.cli.ik_cmd",
-    "hybrid_pk.cli.compensate_cmd",
-    "hybrid_pk.cli.import_cmd",
-    "hybrid_pk.cli.export_cmd",
-    "hybrid_pk.cli.demo_cmd",
-)
+__all__ = ["COMMANDS", "build_parser", "main", "unknown_flag_hint"]
+
+# Sub-commands, in the order `--help` lists them: name -> (module, one-line help).
+COMMANDS = {
+    "plan": (
+        "hybrid_pk.cli.plan_cmd",
+        "choose the poses to measure (D-optimal for the frames + named effects)",
+    ),
+    "simulate": (
+        "hybrid_pk.cli.simulate_cmd",
+        "virtual measurement campaign: pose table + truth JSON",
+    ),
+    "diagnose": (
+        "hybrid_pk.cli.diagnose_cmd",
+        "name the physical causes of the nominal model's errors (JSON + report)",
+    ),
+    "calibrate": (
+        "hybrid_pk.cli.calibrate_cmd",
+        "fit frames + physical effects to measured poses; write a MODEL file",
+    ),
+    "train": (
+        "hybrid_pk.cli.train_cmd",
+        "train the residual networks of a hybrid model (Lightning, TensorBoard)",
+    ),
+    "evaluate": (
+        "hybrid_pk.cli.evaluate_cmd",
+        "position [mm] / orientation [deg] errors of a model on measured data",
+    ),
+    "ik": (
+        "hybrid_pk.cli.ik_cmd",
+        "all distinct joint solutions [rad] of target poses (errors in mm / deg)",
+    ),
+    "compensate": (
+        "hybrid_pk.cli.compensate_cmd",
+        "correct a robot program's joint targets for the calibrated model",
+    ),
+    "import": (
+        "hybrid_pk.cli.import_cmd",
+        "convert measurement files of other formats to the pose table",
+    ),
+    "export": (
+        "hybrid_pk.cli.export_cmd",
+        "the calibrated geometry as a DH / modified-DH table, a URDF or UR's kinematics YAML",
+    ),
+    "demo": (
+        "hybrid_pk.cli.demo_cmd",
+        "run the whole pipeline on a simulated RX160 campaign and write a report",
+    ),
+}
 
 
 class _OneLineParser(argparse.ArgumentParser):
@@ -58,7 +94,9 @@ class _OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {msg} ({self.prog} --help lists the options)\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The ``hybrid-pk`` parser: every command's flags, or (``only``) those of that
+    command alone, the others listed with their help but not imported."""
     parser = _OneLineParser(
         prog="hybrid-pk",
         description="Accurate, differentiable kinematics for serial robot arms: "
@@ -66,16 +104,28 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--debug", action="store_true", help="show full tracebacks on error")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name in _COMMANDS:
-        module = importlib.import_module(name)
-        if hasattr(module, "register"):
-            module.register(sub)
+    for name, (path, text) in COMMANDS.items():
+        if only is not None and name != only:
+            sub.add_parser(name, help=text, add_help=False)  # listed, not importable here
             continue
-        p = command_parser(sub, module.NAME, help=module.HELP, description=module.DESCRIPTION)
+        module = importlib.import_module(path)
+        # the shared flags (torch: robot names) only where a command is built
+        from hybrid_pk.cli.options import command_parser
+
+        if hasattr(module, "register"):
+            module.register(sub, name, text)
+            continue
+        p = command_parser(sub, name, help=text, description=module.DESCRIPTION)
         module.add_arguments(p)
         p.set_defaults(func=module.run)
     parser.set_defaults(commands=sub.choices)  # for the hint on an unknown flag
     return parser
+
+
+def _command_named(argv: Sequence[str]) -> str | None:
+    """The command ``argv`` names (its first word that is not a flag), if it is one."""
+    word = next((a for a in argv if not a.startswith("-")), None)
+    return word if word in COMMANDS else None
 
 
 def unknown_flag_hint(commands: dict, command: str, unknown: Sequence[str]) -> str:
@@ -100,14 +150,22 @@ def unknown_flag_hint(commands: dict, command: str, unknown: Sequence[str]) -> s
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()  # imports every command: seconds on a loaded machine
+    argv = sys.argv[1:] if argv is None else list(argv)
+    command = _command_named(argv)
+    # Only the command's own module: the others' imports cost seconds on a loaded
+    # machine. Without a command (`--help`, a misspelt one) none is imported.
+    parser = build_parser(only=command or "")
     release_interrupt()  # imported: Ctrl-C is the commands' KeyboardInterrupt from here on
     args, unknown = parser.parse_known_args(argv)
     if unknown:  # as argparse would, with the flag's owner or its closest match named
-        hint = unknown_flag_hint(args.commands, args.command, unknown)
+        every = build_parser().get_default("commands")  # the other commands' flags too
+        hint = unknown_flag_hint(every, args.command, unknown)
         args.commands[args.command].error(f"unrecognized arguments: {' '.join(unknown)}{hint}")
     name = f"import {args.format}" if args.command == "import" else args.command  # as argparse
     try:
+        from hybrid_pk.cli.options import resolve_robot  # the command's imports are done
+        from hybrid_pk.cli.outputs import check_outputs
+
         resolve_robot(args)
         check_outputs(args)  # before any work: nothing is written over an input
         asked = getattr(args, "threads", None)

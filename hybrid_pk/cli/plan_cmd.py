@@ -53,8 +53,6 @@ _PLAN_FLAGS = (
     "criterion",
 )
 
-NAME = "plan"
-HELP = "choose the poses to measure (D-optimal for the frames + named effects)"
 DESCRIPTION = _DESCRIPTION
 
 

@@ -59,8 +59,6 @@ upright and the tracker is tilted up to 2 deg.
 """
 
 
-NAME = "simulate"
-HELP = "virtual measurement campaign: pose table + truth JSON"
 DESCRIPTION = _DESCRIPTION
 
 

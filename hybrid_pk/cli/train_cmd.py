@@ -90,8 +90,6 @@ rate ends at the epochs it was started for: --resume with other --epochs is refu
 """
 
 
-NAME = "train"
-HELP = "train the residual networks of a hybrid model (Lightning, TensorBoard)"
 DESCRIPTION = _DESCRIPTION
 
 
