@@ -12,6 +12,7 @@ import hybrid_pk.threads  # noqa: F401
 # isort: on
 
 import importlib
+import importlib.util
 from typing import TYPE_CHECKING
 
 # The public names, each from the module that defines it, imported on first use (PEP
@@ -102,9 +103,12 @@ __all__ = [
 
 
 def __getattr__(name: str):
-    if name not in _HOME:
+    if name in _HOME:
+        value = getattr(importlib.import_module(_HOME[name]), name)
+    elif importlib.util.find_spec(f"{__name__}.{name}") is not None:
+        value = importlib.import_module(f"{__name__}.{name}")  # `hybrid_pk.ik.IKOptions`
+    else:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(_HOME[name]), name)
     globals()[name] = value  # once: later lookups do not come here
     return value
 

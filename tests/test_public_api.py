@@ -8,6 +8,8 @@ from __future__ import annotations
 import importlib
 import pkgutil
 import re
+import subprocess
+import sys
 import types
 from pathlib import Path
 
@@ -137,3 +139,13 @@ def test_contract_documents_every_command_and_flag():
         elif option not in text and f"--{option[2:].split('-')[0]}-*" not in text:
             missing.append(f"{' '.join(command)} {option}")
     assert not missing, f"not in docs/contract.md: {missing}"
+
+
+def test_import_loads_names_on_first_use():
+    """``import hybrid_pk`` loads no torch; a public name or a subpackage loads on use."""
+    code = (
+        "import sys, hybrid_pk as h\nprint('torch' in sys.modules)\n"
+        "print(h.ik.IKOptions is h.IKOptions, 'torch' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "True", "True"]
