@@ -106,20 +106,25 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, (path, text) in COMMANDS.items():
         if only is not None and name != only:
-            sub.add_parser(name, help=text, add_help=False)  # listed, not importable here
-            continue
-        module = importlib.import_module(path)
-        # the shared flags (torch: robot names) only where a command is built
-        from hybrid_pk.cli.options import command_parser
-
-        if hasattr(module, "register"):
-            module.register(sub, name, text)
-            continue
-        p = command_parser(sub, name, help=text, description=module.DESCRIPTION)
-        module.add_arguments(p)
-        p.set_defaults(func=module.run)
+            sub.add_parser(name, help=text, add_help=False)  # listed; its flags not built
+        else:
+            _add_command(sub, name, path, text)
     parser.set_defaults(commands=sub.choices)  # for the hint on an unknown flag
     return parser
+
+
+def _add_command(sub, name: str, path: str, text: str) -> None:
+    """Import the module ``path`` of command ``name`` and add its parser to ``sub``."""
+    # the shared flags import torch (robot names): only where a command is built
+    from hybrid_pk.cli.options import command_parser
+
+    module = importlib.import_module(path)
+    if hasattr(module, "register"):
+        module.register(sub, name, text)
+        return
+    p = command_parser(sub, name, help=text, description=module.DESCRIPTION)
+    module.add_arguments(p)
+    p.set_defaults(func=module.run)
 
 
 def _command_named(argv: Sequence[str]) -> str | None:
