@@ -302,6 +302,36 @@ def test_the_second_phase_goes_on_with_the_damping_it_had():
     assert torch.equal(again.damping, out.damping)
 
 
+def test_a_problem_too_slow_for_its_budget_is_given_up():
+    """A Jacobian twenty times too large makes every step a twentieth of the way: the
+    cost falls at a steady rate that passes the stall check but would need far more
+    than the budget. ``reach_factor`` gives such problems up at the second progress
+    check; it leaves problems that converge as they were, and spares slow ones whose
+    budget is large enough."""
+    _, ikm, _, q0, T = _starts_near("ur10", 64, 0.3, "too slow")
+    s = IKOptions().lm_settings(position_only=False)
+
+    def stiff(qt, rows):
+        R, p, J = ikm.evaluate(qt, rows)
+        return R, p, 20 * J
+
+    def run(evaluate, settings):
+        with torch.no_grad():
+            return batched_levenberg_marquardt(
+                evaluate, q0, torch.arange(64), T, ikm.lower, ikm.upper, settings, ikm.revolute
+            )
+
+    off = replace(s, reach_factor=math.inf)
+    good, good_off = run(ikm.evaluate, s), run(ikm.evaluate, off)
+    assert torch.equal(good.q, good_off.q)
+    assert torch.equal(good.iterations, good_off.iterations)
+    slow, slow_off = run(stiff, s), run(stiff, off)
+    assert bool((slow.iterations == 2 * s.stall_window).all())
+    assert bool((slow_off.iterations > 2 * s.stall_window).all())
+    roomy = run(stiff, replace(s, max_iterations=2000))
+    assert torch.equal(roomy.iterations, slow_off.iterations)
+
+
 def test_near_singular_crawl_is_handed_to_the_polish():
     """Near a singular configuration (UR10 wrist_2 ~1e-5 rad) the damped iteration
     crawls within the polish's reach; with ``handoff_position`` such problems leave after

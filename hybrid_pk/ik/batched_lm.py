@@ -17,8 +17,9 @@ all in one batch:
 - early exit: a problem leaves the batch when it has converged (a polishing step
   after reaching a tenth of the tolerance, or a far tighter tolerance at once), or
   when it stalls (too little decrease of the cost over a window, or damping
-  exhausted), or (``handoff_position``) when it has stayed within the polish's reach
-  for a window. The batch is compacted, so finished problems cost nothing.
+  exhausted, or a rate too slow to arrive within its budget), or
+  (``handoff_position``) when it has stayed within the polish's reach for a window.
+  The batch is compacted, so finished problems cost nothing.
 
 Everything runs batch-last (``hybrid_pk.geometry.batch_last``) for the ``A`` problems
 still active, and the state of a problem is one column of two packed tensors (what an
@@ -66,6 +67,13 @@ class LMSettings:
         stall_window: iterations between progress checks.
         stall_ratio: a problem whose cost did not drop below ``stall_ratio`` times its
             cost at the previous check is given up (unless within the keep errors).
+        reach_factor: a problem that, at two successive checks, would need more than
+            this many times its remaining iterations to reach the accept errors at the
+            rate of its last window is given up too (unless within the keep errors):
+            it cannot arrive within its budget. A window's rate extrapolated is
+            pessimistic (the iteration speeds up near a solution), hence the factor
+            and the second check (UR10 / RX160, 20 target sets: 1 and one check lost
+            branches, 2 and two checks none).
         handoff_position: [m] a problem within this and ``handoff_rotation`` at a
             progress check, and (by cost) at the check before or the start, leaves, to
             be finished by the caller's Gauss-Newton polish (:mod:`~hybrid_pk.ik.polish`,
@@ -88,6 +96,7 @@ class LMSettings:
     damping_max: float = 1e10
     stall_window: int = 4
     stall_ratio: float = 0.9
+    reach_factor: float = 2.0
     handoff_position: float | None = None
     handoff_rotation: float | None = None
 
@@ -113,9 +122,10 @@ class LMOutput(NamedTuple):
 
 
 # Rows of the kept block: damping mu and its growth nu, iterations spent near, cost at
-# the last progress check, problem index, target rotation (9) and position (3), then
-# per-problem boxes (lower, upper, periodic; n each) when the problems have their own.
-_MU, _NU, _NEAR, _CHECK, _IDX, _RT, _PT, _BOX = 0, 1, 2, 3, 4, 5, 14, 17
+# the last progress check, problem index, too slow at the last check (1.0), target
+# rotation (9) and position (3), then per-problem boxes (lower, upper, periodic; n
+# each) when the problems have their own.
+_MU, _NU, _NEAR, _CHECK, _IDX, _SLOW, _RT, _PT, _BOX = 0, 1, 2, 3, 4, 5, 6, 15, 18
 
 
 class _Batch:
@@ -250,6 +260,20 @@ def _accept(b: _Batch, trial: Tensor, ok: Tensor, predicted: Tensor) -> None:
     b.ev = torch.where(accept, trial, b.ev)  # one pass, no count of the rejected
 
 
+def _cost(s: LMSettings, position: float, rotation: float) -> float:
+    """The cost [m^2] of a pose ``position`` [m] and ``rotation`` [rad] off its target."""
+    return position * position + (0.0 if s.position_only else (s.rotation_weight * rotation) ** 2)
+
+
+def _too_slow(s: LMSettings, cost: Tensor, cost_before: Tensor, it: int) -> Tensor:
+    """``(A,)`` bool: at the rate of the window from ``cost_before`` to ``cost``, the
+    accept errors are more than ``reach_factor`` times the iterations left away."""
+    rate = (cost / cost_before).clamp(torch.finfo(cost.dtype).tiny, 1.0)
+    need = torch.log(_cost(s, s.accept_position, s.accept_rotation) / cost).clamp_max(0.0)
+    windows_left = (s.max_iterations - it) / s.stall_window
+    return need < s.reach_factor * windows_left * torch.log(rate)  # both sides <= 0
+
+
 def _leaving(b: _Batch, it: int) -> Tensor:
     """``(A,)`` bool, the problems that leave the batch, decided on the accepted state."""
     s, k = b.s, b.kept
@@ -263,10 +287,12 @@ def _leaving(b: _Batch, it: int) -> Tensor:
         keep = (pos <= s.keep_position) & (rot <= s.keep_rotation)
         cost = b.field("cost")
         leave |= (cost > s.stall_ratio * k[_CHECK]) & ~keep
+        slow = _too_slow(s, cost, k[_CHECK], it) & ~keep
+        leave |= slow & (k[_SLOW] > 0)
+        k[_SLOW] = slow
         if s.handoff_position is not None:  # in the band now and (by cost) at the last check
             hp, hr = s.handoff_position, s.handoff_rotation
-            band_cost = hp * hp + (0.0 if s.position_only else (s.rotation_weight * hr) ** 2)
-            leave |= (pos <= hp) & (rot <= hr) & (k[_CHECK] <= band_cost)
+            leave |= (pos <= hp) & (rot <= hr) & (k[_CHECK] <= _cost(s, hp, hr))
         k[_CHECK] = cost
     if it >= s.max_iterations:
         leave = torch.ones_like(leave)
