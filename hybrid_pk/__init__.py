@@ -60,46 +60,7 @@ _HOME = {
 
 __version__ = "0.1.0"
 
-__all__ = [
-    "Conditions",
-    "DataError",
-    "Diagnosis",
-    "DiagnosisSettings",
-    "ExtendedModel",
-    "FitResult",
-    "FitSettings",
-    "Gravity",
-    "HybridFK",
-    "HybridPKError",
-    "IKOptions",
-    "IKResult",
-    "InvalidFrame",
-    "KinematicParams",
-    "MeasuredData",
-    "ModelFileError",
-    "Robot",
-    "RobotModelError",
-    "ShapeError",
-    "__version__",
-    "diagnose",
-    "error_stats",
-    "export_urdf",
-    "fit",
-    "load_hybrid",
-    "load_model",
-    "make_effect",
-    "pose_error",
-    "read_table",
-    "read_table_for",
-    "save_hybrid",
-    "save_model",
-    "shipped_robots",
-    "simulate_campaign",
-    "solve_ik",
-    "solve_ik_two_stage",
-    "wang_baseline",
-    "write_table",
-]
+__all__ = ["__version__", *sorted(_HOME)]  # every public name is in _HOME
 
 
 def __getattr__(name: str):
@@ -117,7 +78,7 @@ def __dir__() -> list[str]:
     return sorted(set(globals()) | set(__all__))
 
 
-if TYPE_CHECKING:  # what the names are, for type checkers and editors
+if TYPE_CHECKING:  # what the names are, for type checkers and editors (= _HOME; a test)
     from hybrid_pk.calibration.diagnosis import Diagnosis as Diagnosis
     from hybrid_pk.calibration.diagnosis import diagnose as diagnose
     from hybrid_pk.calibration.fit import FitResult as FitResult

@@ -5,6 +5,7 @@ docstring cites is a section of docs/contract.md."""
 
 from __future__ import annotations
 
+import ast
 import importlib
 import pkgutil
 import re
@@ -149,3 +150,12 @@ def test_import_loads_names_on_first_use():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["False", "True", "True"]
+
+
+def test_type_checking_imports_match_the_lazy_exports():
+    """``hybrid_pk/__init__``'s imports for type checkers name the same modules and
+    names as ``_HOME``, the table the lazy exports load from."""
+    tree = ast.parse(Path(hybrid_pk.__file__).read_text(encoding="utf-8"))
+    block = next(n for n in tree.body if isinstance(n, ast.If))  # `if TYPE_CHECKING:`
+    imported = {a.name: n.module for n in block.body for a in n.names}
+    assert imported == hybrid_pk._HOME
