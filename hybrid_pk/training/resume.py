@@ -214,7 +214,8 @@ def interruption(exc: BaseException, trainer, stage: str) -> BaseException:
     if stage == "blocked":
         where = f"interrupted ({what}) in the blocked hold-out's probe fits, after the training"
     else:
-        where = f"interrupted ({what}) in epoch {trainer.current_epoch + 1}/{trainer.max_epochs}"
+        epoch = min(trainer.current_epoch + 1, trainer.max_epochs)  # past the last: its end
+        where = f"interrupted ({what}) in epoch {epoch}/{trainer.max_epochs}"
     if last is None or not last.is_file():
         why = "yet" if trainer.logger else "(they are written with --logdir DIR)"
         return TrainingInterrupted(f"{where}; no checkpoint kept {why}: a rerun starts over", code)

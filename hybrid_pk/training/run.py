@@ -37,6 +37,7 @@ from hybrid_pk.threads import requested_threads
 from hybrid_pk.training.blocked import blocked_blocks, blocked_check, fold_rows, probe_folds
 from hybrid_pk.training.datamodule import HybridDataModule
 from hybrid_pk.training.figures import log_written_model
+from hybrid_pk.training.interrupts import InterruptLatch
 from hybrid_pk.training.lightning_module import HybridLitModule
 from hybrid_pk.training.presets import full_model_settings, preset
 from hybrid_pk.training.resume import data_digest, find_resume_point, interruption
@@ -190,7 +191,7 @@ def make_trainer(
             ``logdir/version_K``, TensorBoard dropping its events from step S on;
             None: a new ``version_K``.
     """
-    callbacks: list = []
+    callbacks: list = [InterruptLatch()]  # armed by train_hybrid during its fit
     if patience is not None:
         callbacks.append(EarlyStopping(monitor=MONITOR, mode="min", patience=int(patience)))
     logger = False
@@ -299,8 +300,7 @@ def train_hybrid(
     try:
         if threads:
             torch.set_num_threads(threads)
-        trainer.fit(module, datamodule=dm, ckpt_path=None if point is None else point.path)
-        hybrid, stage = module.hybrid.eval(), "blocked"
+        hybrid, stage = _fit(trainer, module, dm, point), "blocked"
         blocked = blocked_hold_out(hybrid, dm, settings, seed, progress) if probing else {}
     except (KeyboardInterrupt, SystemExit) as exc:  # Lightning exits on Ctrl-C and SIGTERM
         raise interruption(exc, trainer, stage) from None
@@ -324,6 +324,16 @@ def train_hybrid(
         blocked=blocked,
         resumed=None if point is None else (str(point.path), point.epochs_done),
     )
+
+
+def _fit(trainer: L.Trainer, module: HybridLitModule, dm: HybridDataModule, point) -> HybridFK:
+    """Lightning's fit (from the checkpoint of ``point``, if any) with Ctrl-C latched
+    (:mod:`~hybrid_pk.training.interrupts`); the trained hybrid model, in eval mode."""
+    latch = next(c for c in trainer.callbacks if isinstance(c, InterruptLatch))
+    with latch.armed():
+        trainer.fit(module, datamodule=dm, ckpt_path=None if point is None else point.path)
+        latch.check()  # one dropped after the last batch's check
+    return module.hybrid.eval()
 
 
 def _fit_threads(settings: dict) -> int | None:
