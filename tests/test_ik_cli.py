@@ -49,8 +49,11 @@ def _targets(robot: Robot, n: int, seed: int) -> torch.Tensor:
         return robot.fk(q)
 
 
-def _check_rows(frame: pd.DataFrame, robot: Robot, fk, T: torch.Tensor, tol=1e-3) -> None:
-    """Every row: joints within limits, reported errors true (recomputed with ``fk``)."""
+def _check_rows(
+    frame: pd.DataFrame, robot: Robot, fk, T: torch.Tensor, tol=1e-3, atol=1e-9
+) -> None:
+    """Every row: joints within limits, reported errors true (recomputed with ``fk``) to
+    ``atol`` [mm]."""
     q = torch.tensor(frame[robot.joint_names].to_numpy(), dtype=F64)
     lo, hi = robot.joint_limits
     assert bool(((q >= lo) & (q <= hi)).all())
@@ -59,7 +62,7 @@ def _check_rows(frame: pd.DataFrame, robot: Robot, fk, T: torch.Tensor, tol=1e-3
     assert float(err.position_mm.max()) <= tol
     assert float(err.orientation_deg.max()) <= tol
     assert torch.allclose(
-        torch.tensor(frame["position_error_mm"].to_numpy()), err.position_mm, atol=1e-9
+        torch.tensor(frame["position_error_mm"].to_numpy()), err.position_mm, atol=atol
     )
 
 
@@ -173,7 +176,9 @@ def test_ik_on_a_model_with_residual_networks(tmp_path, capsys):
     assert "two stages" in stdout
     frame = pd.read_csv(out)
     assert sorted(set(frame["target"])) == [0, 1, 2]
-    _check_rows(frame, robot, lambda qq: model(qq, None), T)
+    # float32 networks: their ~0.3 mm output moves by ~1e-8 mm with the batch it is
+    # evaluated in (BLAS picks its kernel by the batch size; seen on an AMD EPYC)
+    _check_rows(frame, robot, lambda qq: model(qq, None), T, atol=1e-6)
 
 
 def test_ik_no_progress_shows_no_bar(tmp_path, capsys, monkeypatch):
