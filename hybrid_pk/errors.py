@@ -79,3 +79,24 @@ def missing_file(path, what: str = "file") -> str:
     import os
 
     return f"is a folder, not a {what}" if os.path.isdir(path) else f"{what} not found"
+
+
+def not_utf8_error(path, table: bool = True) -> DataError:
+    """The error for a file that is not UTF-8 text, at its first undecodable byte: of a
+    CSV ``table`` the data row it is in (or the header), else its line."""
+    from pathlib import Path
+
+    raw = Path(path).read_bytes()
+    try:
+        raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        at = exc.start + (3 if raw.startswith(b"\xef\xbb\xbf") else 0)
+        line = raw[:at].count(b"\n")  # 0: the header
+        what = f"byte 0x{raw[at]:02x} (at byte {at}) is not UTF-8 text"
+        if not table:
+            return DataError(f"line {line + 1}: {what}: save it as UTF-8", file=str(path))
+        fix = "save the table as UTF-8 (e.g. 'CSV UTF-8')"
+        if line == 0:
+            return DataError(f"the header: {what}: {fix}", file=str(path))
+        return DataError(f"{what}: {fix}", file=str(path), row=line)
+    return DataError("not UTF-8 text", file=str(path))  # decodes whole: a reader's limit

@@ -244,6 +244,19 @@ def test_a_yaml_that_holds_no_rows_says_what_it_should_hold(tmp_path, capsys, te
         assert "convention" not in err.split(";")[0]
 
 
+@pytest.mark.parametrize(("name", "where"), [("t.yaml", "line 2"), ("t.csv", "row 1")])
+def test_a_table_that_is_not_utf8_names_its_line(tmp_path, capsys, name, where):
+    # before: "'utf-8' codec can't decode byte 0xe9 ...", no file named (YAML)
+    path = tmp_path / name
+    body = b"joints:\n  - {a: 0\xe9}\n" if name.endswith(".yaml") else b"a,d\n0,\xe9\n"
+    path.write_bytes(body)
+    assert main(["import", "dh", str(path), "--out", str(tmp_path / "x.urdf")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert f"error: {path}" in err, err
+    assert f"{where}: byte 0xe9" in err, err
+
+
 def test_out_must_be_named_as_a_urdf(tmp_path, capsys):
     """--out h.csv: one line naming --out and the suffixes, nothing written (before: URDF
     XML written into a .csv, rc 0); .urdf and .xml are written."""

@@ -231,6 +231,15 @@ def test_cli_unparsable_number_names_file_row_column(capsys, tmp_path):
     assert f"{path}, row 2, column 'measurement_x': cannot read '2361,98mm'" in err
 
 
+def test_cli_a_file_that_is_not_utf8_names_file_and_row(capsys, tmp_path):
+    # before: "'utf-8' codec can't decode byte 0xb0 in position ...", no file named
+    path = _ipa_file(tmp_path, "\n".join([_HEADER, _ROW, _ROW]) + "\n")
+    text = path.read_bytes()
+    path.write_bytes(text[: len(text) - 5] + b"\xb0" + text[len(text) - 5 :])  # a Latin-1 degree
+    err = _one_error_line(capsys, ["import", "ipa", str(path), "--out", str(tmp_path / "o.csv")])
+    assert f"{path}, row 2: byte 0xb0 (at byte {len(text) - 5}) is not UTF-8 text" in err
+
+
 def test_cli_missing_column_lists_missing_and_found(capsys, tmp_path):
     header = _HEADER.replace(";measurement_temperature", "")
     row = _ROW.replace(";23,68", "")

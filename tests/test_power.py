@@ -188,3 +188,10 @@ def test_a_limit_beyond_any_credible_size_is_named_apart():
     assert text.endswith("; missed at any credible size: axis_misalignment at j5"), text
     assert "9.3" not in text
     assert "missed" not in nothing_above(detectable[:1] + detectable[2:])
+    # before: "nothing above: ; below that these data cannot tell; missed at ..."
+    blind = ["axis_misalignment:j2", "axis_misalignment:j5", "joint_offset:j3"]
+    text = nothing_above(detectable, blind=blind)
+    assert text == (
+        "these data would miss every candidate at any credible size: axis_misalignment "
+        "at j2, axis_misalignment at j5, joint_offset at j3"
+    ), text

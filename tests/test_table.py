@@ -277,6 +277,21 @@ def test_empty_csv_file(tmp_path):
     _raises(path, None, None, "empty file")
 
 
+@pytest.mark.parametrize("bom", [b"", b"\xef\xbb\xbf"])
+def test_a_file_that_is_not_utf8_names_its_row_and_byte(tmp_path, bom):
+    # before: "'utf-8' codec can't decode byte 0xe9 in position 62: ...", no file named
+    text = _frame(3).to_csv(index=False).encode()
+    lines = text.split(b"\n")
+    lines[2] = lines[2].replace(b",", b",\xe9", 1)  # a Latin-1 e-acute in data row 2
+    path = tmp_path / "latin1.csv"
+    path.write_bytes(bom + b"\n".join(lines))
+    at = len(bom) + len(b"\n".join(lines[:2])) + 1 + lines[2].index(b"\xe9")
+    what = f"byte 0xe9 \\(at byte {at}\\) is not UTF-8 text: save the table as UTF-8"
+    _raises(path, 2, None, what)
+    path.write_bytes(bom + b"x\xe9" + b"\n".join(lines))  # in the header
+    _raises(path, None, None, "the header: byte 0xe9")
+
+
 def test_header_without_rows(tmp_path):
     path = tmp_path / "header.csv"
     path.write_text(",".join(_frame(1).columns) + "\n")

@@ -26,7 +26,7 @@ from hybrid_pk.data.units import (
     parse_source,
     unit_of,
 )
-from hybrid_pk.errors import DataError
+from hybrid_pk.errors import DataError, not_utf8_error
 
 __all__ = ["ColumnMap", "load_column_map", "parse_inline_map"]
 
@@ -246,7 +246,10 @@ def _load_map_file(path: Path) -> Mapping[str, Any]:
     text = str(path)
     if not path.is_file():
         raise DataError("column map file not found", file=text)
-    raw = path.read_text(encoding="utf-8")
+    try:
+        raw = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise not_utf8_error(path, table=False) from None
     try:
         if path.suffix.lower() == ".json":
             loaded = json.loads(raw)

@@ -22,10 +22,17 @@ from hybrid_pk.data.measured import (
     QUAT_COLUMNS,
     MeasuredData,
 )
-from hybrid_pk.errors import DataError, missing_file
+from hybrid_pk.errors import DataError, missing_file, not_utf8_error
 from hybrid_pk.output_file import replacing
 
-__all__ = ["CSV_SUFFIXES", "PARQUET_SUFFIXES", "load_cells", "to_frame", "write_frame"]
+__all__ = [
+    "CSV_SUFFIXES",
+    "PARQUET_SUFFIXES",
+    "load_cells",
+    "read_text_cells",
+    "to_frame",
+    "write_frame",
+]
 
 CSV_SUFFIXES = (".csv",)
 PARQUET_SUFFIXES = (".parquet", ".pq")
@@ -54,13 +61,34 @@ def load_cells(path: Path) -> pd.DataFrame:
     return frame
 
 
+def read_text_cells(path: Path, sep: str = ",") -> pd.DataFrame:
+    """Every cell of the CSV file ``path`` as text (no missing-value guessing, no index
+    column; a byte-order mark skipped); a file that is not UTF-8 is a :class:`DataError`
+    naming the row of its first bad byte."""
+    try:
+        return pd.read_csv(
+            path,
+            sep=sep,
+            dtype=str,
+            keep_default_na=False,
+            na_filter=False,
+            index_col=False,
+            encoding="utf-8-sig",
+        )
+    except UnicodeDecodeError:
+        raise not_utf8_error(path) from None
+
+
 def _load_csv(path: Path) -> pd.DataFrame:
     file = str(path)
     empty = "empty file: expected a header row and data rows"
     if path.stat().st_size == 0:
         raise DataError(empty, file=file)
-    with path.open(newline="", encoding="utf-8-sig") as fh:
-        header = [h.strip() for h in next(csv.reader(fh), [])]
+    try:
+        with path.open(newline="", encoding="utf-8-sig") as fh:
+            header = [h.strip() for h in next(csv.reader(fh), [])]
+    except UnicodeDecodeError:
+        raise not_utf8_error(path) from None
     if not any(header):
         raise DataError(empty, file=file)
     check_header_names(file, header)
@@ -69,17 +97,9 @@ def _load_csv(path: Path) -> pd.DataFrame:
             # With index_col=False pandas drops the extra fields of a row longer than
             # the header (when the first data row is) with only a ParserWarning.
             warnings.simplefilter("error", pd.errors.ParserWarning)
-            frame = pd.read_csv(
-                path,
-                dtype=str,
-                keep_default_na=False,
-                na_filter=False,
-                index_col=False,
-                encoding="utf-8-sig",
-            )
-    except (pd.errors.ParserError, pd.errors.ParserWarning, UnicodeDecodeError) as exc:
-        if not isinstance(exc, UnicodeDecodeError):
-            _check_row_lengths(path, len(header))
+            frame = read_text_cells(path)
+    except (pd.errors.ParserError, pd.errors.ParserWarning) as exc:
+        _check_row_lengths(path, len(header))
         raise DataError(
             f"not a readable CSV table: {' '.join(str(exc).split())}", file=file
         ) from None

@@ -69,7 +69,7 @@ from hybrid_pk.data.euler import (
     describe_sequence,
     detect_euler_convention,
 )
-from hybrid_pk.data.files import write_frame
+from hybrid_pk.data.files import read_text_cells, write_frame
 from hybrid_pk.errors import DataError
 
 __all__ = [
@@ -135,15 +135,7 @@ def read_ipa_csv(
     file = str(path)
     if path.stat().st_size == 0:
         raise DataError("empty file", file=file)
-    raw = pd.read_csv(
-        path,
-        sep=";",
-        dtype=str,
-        keep_default_na=False,
-        na_filter=False,
-        index_col=False,
-        encoding="utf-8-sig",
-    )
+    raw = read_text_cells(path, sep=";")
     header = [str(c).strip() for c in raw.columns]
     check_header_names(file, header)
     raw.columns = header

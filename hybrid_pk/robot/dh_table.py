@@ -29,7 +29,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from hybrid_pk.errors import DataError, missing_file
+from hybrid_pk.errors import DataError, missing_file, not_utf8_error
 from hybrid_pk.units import UNITS
 
 __all__ = [
@@ -178,6 +178,8 @@ def _records(source, where: str) -> tuple[list[dict], dict]:
         if path.suffix.lower() in (".yaml", ".yml"):
             try:
                 doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+            except UnicodeDecodeError:
+                raise not_utf8_error(path, table=False) from None
             except yaml.YAMLError as exc:
                 reason = " ".join(str(exc).split())
                 raise DataError(f"not valid YAML ({reason})", file=where) from exc
@@ -187,7 +189,9 @@ def _records(source, where: str) -> tuple[list[dict], dict]:
             return _records(doc, where)
         try:
             frame = pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
-        except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+        except UnicodeDecodeError:
+            raise not_utf8_error(path) from None
+        except (pd.errors.ParserError, pd.errors.EmptyDataError) as exc:
             raise DataError(f"not a readable CSV table ({exc})", file=where) from exc
         frame.columns = [str(c).strip() for c in frame.columns]
         return frame.to_dict("records"), {}

@@ -15,7 +15,7 @@ from __future__ import annotations
 import copy
 from pathlib import Path
 
-from hybrid_pk.errors import HybridPKError
+from hybrid_pk.errors import HybridPKError, not_utf8_error
 
 __all__ = ["PRESETS", "full_model_settings", "preset", "settings_from_config"]
 
@@ -130,6 +130,8 @@ def settings_from_config(path: str | Path) -> dict[str, dict]:
 
     try:
         cfg = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise not_utf8_error(path, table=False) from None
     except (OSError, yaml.YAMLError) as exc:
         raise HybridPKError(f"cannot read config {path}: {exc}") from exc
     if not isinstance(cfg, dict):

@@ -259,13 +259,13 @@ def nothing_above(detectable: list[dict], limit: int = 6, blind: list[str] = ())
         by = ", margin" if d.get("set_by") == "margin" else ""
         parts.append(f"{d['family']} {d['value']:.2g} {d['unit']}{at} ({d['mm_rms']:.2g} mm{by})")
     more = f", {len(ranked) - limit} more families" if len(ranked) > limit else ""
+    shown = ", ".join(missed[:limit]) + (
+        f" and {len(missed) - limit} more" if len(missed) > limit else ""
+    )
+    if not parts:  # every candidate blind: no empty "nothing above" list
+        return f"these data would miss every candidate at any credible size: {shown}"
     text = f"nothing above: {', '.join(parts)}{more}; below that these data cannot tell"
-    if missed:
-        shown = ", ".join(missed[:limit]) + (
-            f" and {len(missed) - limit} more" if len(missed) > limit else ""
-        )
-        text += f"; missed at any credible size: {shown}"
-    return text
+    return text + (f"; missed at any credible size: {shown}" if missed else "")
 
 
 def beyond_credible(model: ExtendedModel, detectable: list[dict]) -> list[str]:
