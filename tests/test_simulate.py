@@ -347,6 +347,21 @@ def test_cli_noise_free_cube_campaign(tmp_path, capsys, trajectory):
     assert "tool translation (all three components): not determined" in capsys.readouterr().out
 
 
+def test_cli_notes_an_effect_beyond_credible_size(tmp_path, capsys):
+    # before: "joint_offset:joint_2 = 5 rad" (degrees meant) passed without a word; the
+    # diagnosis then called the model structurally wrong
+    size = float(torch.empty(()).uniform_(0.1, 3.0))  # rad: beyond the 5 deg limit
+    argv = ["simulate", "rx160", "--n", "20", "--no-progress", "--out", str(tmp_path / "x.csv")]
+    argv += ["--effects", f"joint_offset:joint_2={size};gear_ratio:joint_3=3e-4"]
+    assert main(argv) == 0
+    notes = [line for line in capsys.readouterr().out.splitlines() if "credibly" in line]
+    assert notes == [
+        f"note: joint_offset:joint_2 = {size:.4g} rad is beyond what such an effect can "
+        "credibly be (0.0873 rad): a diagnosis of these rows reports the model as "
+        "structurally wrong, not this as a cause"
+    ], notes
+
+
 def test_cli_bad_effects_exit_2_one_line(tmp_path, capsys):
     out = tmp_path / "x.csv"
     argv = ["simulate", "rx160", "--n", "5", "--effects", "joint_offset:joint_2=1,2"]

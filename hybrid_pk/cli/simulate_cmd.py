@@ -16,6 +16,7 @@ from hybrid_pk.data.joint_table import read_joint_table
 from hybrid_pk.effects import parse_gravity
 from hybrid_pk.errors import HybridPKError
 from hybrid_pk.pipelines.simulation import (
+    beyond_credible_lines,
     simulate_to_files,
     table_path,
     truth_path,
@@ -232,6 +233,6 @@ def run(args: argparse.Namespace) -> int:
         print("effects: none (nominal robot)")
     else:
         print(f"effects: {'; '.join(_describe(e) for e in truth['effects'])}")
-        for line in unseen_lines(robot, data, truth):
+        for line in beyond_credible_lines(robot, truth) + unseen_lines(robot, data, truth):
             print(line)
     return 0

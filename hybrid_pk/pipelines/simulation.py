@@ -29,6 +29,7 @@ from hybrid_pk.simulate import simulate_campaign
 
 __all__ = [
     "SimulationResult",
+    "beyond_credible_lines",
     "campaign_frame_lines",
     "simulate_to_files",
     "table_path",
@@ -125,6 +126,27 @@ def campaign_frame_lines(robot: Robot, data, truth: dict, tool_spec) -> list[str
         )  # fmt: skip
     for d in res.frame_report.directions:
         lines.append(f"note: in this campaign the {d['summary']}")
+    return lines
+
+
+def beyond_credible_lines(robot, truth: dict) -> list[str]:
+    """``note:`` lines for the injected effects larger than such an effect can credibly
+    be (:func:`~hybrid_pk.effects.limits.effect_limit`: 5 degrees where degrees were
+    meant as radians, say): a diagnosis reports a model that far off as structurally
+    wrong, not as a cause."""
+    from hybrid_pk.effects.limits import effect_limit
+
+    lines = []
+    for e in truth["effects"]:
+        label = e["effect"] if e.get("joint") is None else f"{e['effect']}:{e['joint']}"
+        limit = effect_limit(make_effect(robot, label), robot)
+        size = float(torch.tensor(e["value"], dtype=torch.float64).norm())
+        if limit is not None and size > limit:
+            lines.append(
+                f"note: {label} = {size:.4g} {e['unit']} is beyond what such an effect can "
+                f"credibly be ({limit:.3g} {e['unit']}): a diagnosis of these rows reports "
+                "the model as structurally wrong, not this as a cause"
+            )
     return lines
 
 
