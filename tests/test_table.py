@@ -15,6 +15,7 @@ import torch
 from hybrid_pk.data import (
     IgnoredColumnsWarning,
     MeasuredData,
+    RepeatedRowsWarning,
     SkippedRowsWarning,
     read_table,
     read_table_for,
@@ -318,6 +319,27 @@ def test_files_of_one_read_need_the_same_columns(tmp_path):
         read_table([a, b], **UR10)
 
 
+def test_a_file_given_twice_is_refused(tmp_path):
+    # before: read twice, every row counted twice (and on both sides of a hold-out)
+    a = _csv(tmp_path, _frame(3), "a.csv")
+    with pytest.raises(DataError, match=_where(a, None, None) + "given twice: give each"):
+        read_table([a, tmp_path / "." / "a.csv"], **UR10)
+
+
+def test_a_copy_of_a_file_under_another_name_is_noted(tmp_path):
+    # before: no word; the copy's rows counted twice
+    frame = _frame(4, t=np.arange(4.0))
+    a, b = _csv(tmp_path, frame, "a.csv"), _csv(tmp_path, frame.assign(t=frame.t + 9), "b.csv")
+    copy = f"{re.escape(str(b))} repeats {re.escape(str(a))} row for row"
+    with pytest.warns(RepeatedRowsWarning, match=copy):
+        assert read_table([a, b], **UR10).n == 8
+    # one measurement apart by a micrometre: two campaigns, no note
+    c = _csv(tmp_path, _set(frame, 3, "x", float(frame.x[2]) + 1e-6), "c.csv")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RepeatedRowsWarning)
+        assert read_table([a, c], **UR10).n == 8
+
+
 # ----------------------------------------------------------------------------- skip mode
 
 
@@ -359,7 +381,7 @@ def test_n_params_counts_rows_left_after_skipping(tmp_path):
 
 def test_extra_columns_are_listed_once_as_ignored(tmp_path):
     a = _csv(tmp_path, _frame(3, operator=np.zeros(3), std_x_mm=np.ones(3)), "a.csv")
-    b = _csv(tmp_path, _frame(3, operator=np.zeros(3)), "b.csv")
+    b = _csv(tmp_path, _frame(3, seed=1, operator=np.zeros(3)), "b.csv")  # not a copy of a
     with pytest.warns(IgnoredColumnsWarning) as record:
         data = read_table([a, b], **UR10)
     assert data.ignored_columns == ("operator", "std_x_mm")

@@ -17,6 +17,7 @@ from hybrid_pk.data.measured import MeasuredData as MeasuredData
 from hybrid_pk.data.measured import SkippedRow as SkippedRow
 from hybrid_pk.data.table import DataWarning as DataWarning
 from hybrid_pk.data.table import IgnoredColumnsWarning as IgnoredColumnsWarning
+from hybrid_pk.data.table import RepeatedRowsWarning as RepeatedRowsWarning
 from hybrid_pk.data.table import SkippedRowsWarning as SkippedRowsWarning
 from hybrid_pk.data.table import read_table as read_table
 from hybrid_pk.data.table import read_table_for as read_table_for

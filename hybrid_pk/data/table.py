@@ -51,6 +51,7 @@ from hybrid_pk.errors import DataError
 __all__ = [
     "DataWarning",
     "IgnoredColumnsWarning",
+    "RepeatedRowsWarning",
     "SkippedRowsWarning",
     "read_table",
     "read_table_for",
@@ -74,6 +75,10 @@ class IgnoredColumnsWarning(DataWarning):
 
 class SkippedRowsWarning(DataWarning):
     """Rows left out because ``on_bad_row="skip"`` was asked for."""
+
+
+class RepeatedRowsWarning(DataWarning):
+    """A file whose rows are those of an earlier file, value for value (a copy)."""
 
 
 # ----------------------------------------------------------------------------- one file
@@ -229,6 +234,29 @@ def _as_paths(paths) -> list[Path]:
     out = [Path(p) for p in paths]
     if not out:
         raise ValueError("no input files given")
+    seen: dict[Path, Path] = {}
+    for p in out:  # the same file twice counts each row twice: a slip, not a campaign
+        key = p.resolve()
+        if key in seen:
+            also = "" if str(seen[key]) == str(p) else f" (also as {seen[key]})"
+            raise DataError(f"given twice{also}: give each file once", file=str(p))
+        seen[key] = p
+    return out
+
+
+def _repeated_files(files: list[Path], parts: list[_FilePart]) -> list[str]:
+    """``"B repeats A row for row"`` for each file whose joints and measurements are
+    those of an earlier file, value for value: the noise makes two measurements of one
+    campaign differ, so such a file is a copy (its rows would count twice)."""
+    out = []
+    for j, b in enumerate(parts):
+        for i in range(j):
+            a = parts[i]
+            same = set(a.columns) == set(b.columns) and len(a.rows) == len(b.rows)
+            cols = [c for c in a.columns if c not in OPTIONAL_COLUMNS]  # joints, measurement
+            if same and all(np.array_equal(a.columns[c], b.columns[c]) for c in cols):
+                out.append(f"{files[j]} repeats {files[i]} row for row")
+                break
     return out
 
 
@@ -319,6 +347,13 @@ def read_table(
     files = _as_paths(paths)
     parts = [_read_file(p, spec, on_bad_row == "skip", require_joints) for p in files]
     _check_same_columns(files, parts)
+    for copy in _repeated_files(files, parts):
+        warnings.warn(
+            f"{copy} (joints and measurements): the same measurements twice? Each row "
+            "counts twice in a fit and can sit on both sides of a hold-out",
+            RepeatedRowsWarning,
+            stacklevel=2,
+        )
     data = _stack(parts, files, spec)
     if n_params is not None and data.n < n_params:
         note = f" ({len(data.skipped)} bad row(s) skipped)" if data.skipped else ""
