@@ -158,6 +158,45 @@ def test_a_small_move_of_the_set_up_is_named(rx160, shape, position_only, tmp_pa
     assert (tmp_path / "setup_0.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def _random_move(rng, mm: tuple[float, float]) -> tuple[torch.Tensor, torch.Tensor]:
+    """A rigid move of 0.01-0.05 deg about a random axis and ``mm`` along another."""
+    axis, way = (torch.as_tensor(rng.normal(size=3)) for _ in range(2))
+    rotvec = axis / axis.norm() * math.radians(float(rng.uniform(0.01, 0.05)))
+    return rotvec, way / way.norm() * float(rng.uniform(*mm)) * 1e-3
+
+
+def test_a_drift_with_a_knock_on_top_is_named_both(rx160, tmp_path):
+    """A random drift of 0.5-1 mm over the rows and a random change of 0.2-1 mm at a
+    random row of the middle 40 % (the drift must show on each side of the change on its
+    own): before, named a change or a drift, half the story, the other half left in the
+    errors (held out 0.15-0.27 mm against 0.04 mm for both together)."""
+    rng = run_rng("setup-move-both")
+    data = _campaign(rx160, rng)
+    n = data.n
+    k = int(rng.integers(int(0.3 * n), int(0.7 * n)))
+    r_drift, s_drift = _random_move(rng, (0.5, 1.0))
+    r_knock, s_knock = _random_move(rng, (0.2, 1.0))
+    drifted = _moved(data, torch.linspace(0, 1, n, dtype=torch.float64), r_drift, s_drift)
+    moved = _moved(drifted, (torch.arange(n) >= k).double(), r_knock, s_knock)
+    d = hpk.diagnose(rx160, moved, candidates=[LABEL])
+    (entry,) = d.setup_moves
+    assert entry["kind"] == "change_and_drift", entry
+    assert abs(entry["row"] - int(moved.rows[k])) <= 0.02 * n, (entry["row"], k)
+    held = entry["blocked_mean_mm"]
+    assert held["both"] + entry["min_gain_mm"] <= min(held["change"], held["drift"])
+    ones = torch.ones(n, dtype=torch.float64)
+    knock = (_moved(data, ones, r_knock, s_knock).position - data.position).norm(dim=1)
+    drift = (_moved(data, ones, r_drift, s_drift).position - data.position).norm(dim=1)
+    assert entry["shift_mm"]["mean"] == pytest.approx(1e3 * float(knock[k:].mean()), rel=0.35)
+    assert entry["drift"]["shift_mm"]["mean"] == pytest.approx(1e3 * float(drift.mean()), rel=0.35)
+    line = setup_move_text(entry)
+    assert f"drifted during {entry['file']} and moved near row {entry['row']}" in line
+    assert f"--split-at {entry['file']}:{entry['row']}" in line
+    report = write_diagnosis_report(d, moved, rx160, tmp_path).read_text()
+    assert line in report
+    assert "one / change / drift / both" in report
+
+
 def test_a_set_up_that_stayed_is_not_named(rx160):
     rng = run_rng("setup-stayed")
     d = hpk.diagnose(rx160, _campaign(rx160, rng), candidates=[LABEL])
