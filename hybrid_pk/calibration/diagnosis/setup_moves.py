@@ -282,7 +282,7 @@ def _group_move(rows, region: Tensor, sigmas, margin: float) -> dict | None:
     ):
         kind = "change_and_drift"
     else:
-        carried = [k for k in carried if k != "both"]
+        carried = [c for c in carried if c != "both"]
         if not carried:
             return None
         kind = carried[0] if len(carried) == 1 else "moved"
