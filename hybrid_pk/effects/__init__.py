@@ -6,6 +6,7 @@ from hybrid_pk.effects import joint as _joint  # noqa: F401  (registers effects)
 from hybrid_pk.effects.base import EFFECTS as EFFECTS
 from hybrid_pk.effects.base import Effect as Effect
 from hybrid_pk.effects.base import effect_joint_names as effect_joint_names
+from hybrid_pk.effects.base import entry_label as entry_label
 from hybrid_pk.effects.base import make_effect as make_effect
 from hybrid_pk.effects.conditions import Conditions as Conditions
 from hybrid_pk.effects.conditions import approach_direction as approach_direction
@@ -26,6 +27,7 @@ __all__ = [
     "approach_direction",
     "conditions_from_data",
     "effect_joint_names",
+    "entry_label",
     "make_effect",
     "parse_gravity",
     "unloaded_reason",

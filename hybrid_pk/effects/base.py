@@ -49,6 +49,7 @@ __all__ = [
     "Stage",
     "effect_joint_names",
     "effect_joint_types",
+    "entry_label",
     "family_members",
     "known_kinds",
     "make_effect",
@@ -333,6 +334,13 @@ def effect_joint_types(robot: Robot, cls: type[Effect]) -> list[str]:
 def register(cls: type[Effect]) -> type[Effect]:
     EFFECTS[cls.kind] = cls
     return cls
+
+
+def entry_label(entry) -> str:
+    """``kind:joint`` (or ``kind``) of a JSON effect entry ``{"effect", "joint", ...}``
+    (a truth file's, a model file's, a diagnosis'), as :attr:`Effect.label` names it."""
+    joint = entry.get("joint")
+    return entry["effect"] if joint is None else f"{entry['effect']}:{joint}"
 
 
 def make_effect(robot: Robot, spec: str, value=None) -> Effect:

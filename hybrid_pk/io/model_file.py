@@ -40,7 +40,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from hybrid_pk.effects import ExtendedModel, Gravity, make_effect
+from hybrid_pk.effects import ExtendedModel, Gravity, entry_label, make_effect
 from hybrid_pk.errors import HybridPKError, ModelFileError, RobotModelError
 from hybrid_pk.output_file import replacing
 from hybrid_pk.robot import Robot, load_chain_spec, resolve_urdf
@@ -361,8 +361,7 @@ def _build(path: Path, payload: dict, robot_check, end_link: str | None) -> Load
                 getattr(robot, n).copy_(info["params"][n])
     effects = []
     for entry in payload["effects"]:
-        label = entry["effect"] if entry["joint"] is None else f"{entry['effect']}:{entry['joint']}"
-        effects.append(make_effect(robot, label, entry["value"]))
+        effects.append(make_effect(robot, entry_label(entry), entry["value"]))
     frames = payload["frames"]
     try:
         gravity = Gravity.from_dict(payload.get("gravity"))

@@ -20,7 +20,13 @@ from hybrid_pk.calibration.fit import fit
 from hybrid_pk.calibration.frames import MAX_TOOL_TRANSLATION_M, FrameSpec
 from hybrid_pk.data import MeasuredData
 from hybrid_pk.data.table import write_table
-from hybrid_pk.effects import ExtendedModel, conditions_from_data, make_effect, unloaded_reason
+from hybrid_pk.effects import (
+    ExtendedModel,
+    conditions_from_data,
+    entry_label,
+    make_effect,
+    unloaded_reason,
+)
 from hybrid_pk.errors import DataError
 from hybrid_pk.output_file import replacing
 from hybrid_pk.pipelines.calibration import FRAME_LABELS
@@ -138,7 +144,7 @@ def beyond_credible_lines(robot, truth: dict) -> list[str]:
 
     lines = []
     for e in truth["effects"]:
-        label = e["effect"] if e.get("joint") is None else f"{e['effect']}:{e['joint']}"
+        label = entry_label(e)
         limit = effect_limit(make_effect(robot, label), robot)
         size = float(torch.tensor(e["value"], dtype=torch.float64).norm())
         if limit is not None and size > limit:
@@ -160,10 +166,7 @@ def unseen_lines(robot, data, truth: dict) -> list[str]:
     entries, lines = truth["effects"], []
     unloaded = unloaded_reason(robot, data.payload)
     if unloaded:  # what moves nothing is not absorbed by the frames: it is not there
-        labels = [
-            e["effect"] if e.get("joint") is None else f"{e['effect']}:{e['joint']}"
-            for e in entries
-        ]
+        labels = [entry_label(e) for e in entries]
         injected = ExtendedModel(robot, [make_effect(robot, label) for label in labels])
         loaded = {e.label for e in injected.loaded_effects()}
         lines = [f"note: {', '.join(sorted(loaded))}: {unloaded}"] if loaded else []

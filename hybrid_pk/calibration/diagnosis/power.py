@@ -39,7 +39,7 @@ from hybrid_pk.calibration.diagnosis.variants import with_effects
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.calibration.problem import Problem, param_blocks
 from hybrid_pk.calibration.tuning import diagnosis_tuning
-from hybrid_pk.effects import ExtendedModel, make_effect
+from hybrid_pk.effects import ExtendedModel, entry_label, make_effect
 from hybrid_pk.effects.joint import CYCLIC_PREFIX
 from hybrid_pk.effects.limits import effect_limit
 from hybrid_pk.errors import HybridPKError
@@ -245,8 +245,7 @@ def nothing_above(detectable: list[dict], limit: int = 6, blind: list[str] = ())
     worst: dict[str, dict] = {}
     missed = []
     for d in detectable:  # the largest limit of a family holds for all its joints
-        label = d["effect"] if d["joint"] is None else f"{d['effect']}:{d['joint']}"
-        if label in blind:
+        if entry_label(d) in blind:
             missed.append(f"{d['family']} at {d['joint']}" if d["joint"] else d["family"])
             continue
         w = worst.get(d["family"])
@@ -274,7 +273,7 @@ def beyond_credible(model: ExtendedModel, detectable: list[dict]) -> list[str]:
     would miss them at any physical size."""
     out = []
     for d in detectable:
-        label = d["effect"] if d["joint"] is None else f"{d['effect']}:{d['joint']}"
+        label = entry_label(d)
         limit = effect_limit(make_effect(model.robot, label), model.robot)
         if limit is not None and d["value"] > limit:
             out.append(label)

@@ -155,12 +155,18 @@ def _change_row(A: Tensor, e: Tensor, rows: Tensor, min_rows: int, w=None) -> in
         lo, hi = max(int(valid[0]), int(best - step)), min(int(valid[-1]), int(best + step) + 1)
 
 
-def _fitted(A: Tensor, e: Tensor, mask: Tensor, w, *scales) -> Tensor:
-    """The correction's parameters fitted on the rows of ``mask`` (``w``: their robust
-    weights, None: 1): ``p`` per column block, the blocks of :func:`_sums`."""
+def _gram(A: Tensor, e: Tensor, mask: Tensor, w, *scales) -> tuple[Tensor, Tensor]:
+    """One :func:`_sums` over the rows of ``mask`` (``w``: their robust weights, None:
+    1): ``G (q, q)`` and ``b (q,)``, ``p`` columns per block; a leading block's sums are
+    its top-left part."""
     weight = mask.to(A.dtype) * (1.0 if w is None else w)
     G, b = _sums(A, e, weight, torch.zeros(A.shape[0], dtype=torch.long), 1, *scales)
-    return _solve(G[0], b[0])
+    return G[0], b[0]
+
+
+def _fitted(A: Tensor, e: Tensor, mask: Tensor, w, *scales) -> Tensor:
+    """The correction's parameters fitted on the rows of ``mask`` (see :func:`_gram`)."""
+    return _solve(*_gram(A, e, mask, w, *scales))
 
 
 def _fits(A: Tensor, e: Tensor, place: Tensor, rows: Tensor, min_rows: int, w=None):
@@ -174,9 +180,7 @@ def _fits(A: Tensor, e: Tensor, place: Tensor, rows: Tensor, min_rows: int, w=No
     step = (torch.arange(n) >= (n if k is None else k)).to(A.dtype)
     # One Gram of the blocks [A, A place, A step] holds every model's: the rows from the
     # change are the step block's, those before it the rest of the first block's.
-    weight = rows.to(A.dtype) * (1.0 if w is None else w)
-    blocks = (place,) if k is None else (place, step)
-    G, b = (x[0] for x in _sums(A, e, weight, torch.zeros(n, dtype=torch.long), 1, *blocks))
+    G, b = _gram(A, e, rows, w, *((place,) if k is None else (place, step)))
     one, two = slice(0, p), slice(0, 2 * p)
     x_drift = _solve(G[two, two], b[two])
     out = {
@@ -304,7 +308,8 @@ def _drift_carries(A, e, place, w, region, side, margin: float, sigma_pos: float
     for r in region[side].unique().tolist():
         inside = side & (region == r)
         fit = side & (region != r)
-        x1, xd = _fitted(A, e, fit, w), _fitted(A, e, fit, w, place)
+        G, b = _gram(A, e, fit, w, place)  # one correction: the first block alone
+        x1, xd = _solve(G[:p, :p], b[:p]), _solve(G, b)
         corr = {"one": x1.expand(int(inside.sum()), -1),
                 "drift": xd[:p] + place[inside, None] * xd[p:]}  # fmt: skip
         for name, x in corr.items():

@@ -22,7 +22,7 @@ from hybrid_pk.calibration.diagnosis.selection import RANK_TOLERANCE
 from hybrid_pk.calibration.diagnosis.variants import with_effects
 from hybrid_pk.calibration.problem import Problem, param_blocks
 from hybrid_pk.data.measured import MeasuredData
-from hybrid_pk.effects import Conditions, Effect, ExtendedModel, make_effect
+from hybrid_pk.effects import Conditions, Effect, ExtendedModel, entry_label, make_effect
 
 __all__ = ["MAX_ROWS", "mark_unseen", "seeable_split", "seen_error"]
 
@@ -122,8 +122,7 @@ def mark_unseen(
     (:func:`seeable_split`)."""
     out = []
     for e in entries:
-        label = e["effect"] if e.get("joint") is None else f"{e['effect']}:{e['joint']}"
-        effect = make_effect(nominal.robot, label, e["value"])
+        effect = make_effect(nominal.robot, entry_label(e), e["value"])
         split = seeable_split(nominal, data, cond, effect)
         size = torch.as_tensor(e["value"], dtype=torch.float64).numel()
         if split is not None and len(split["seen"]) != size:  # stored on another basis
