@@ -92,7 +92,10 @@ def _distinct_block(q, candidate, score, revolute, revolute_tol, prismatic_tol) 
     order = torch.argsort(key, dim=1, stable=True)
     c = int(candidate.sum(1).max()) if candidate.numel() else 0  # non-candidates: never kept
     order = order[:, :c]
-    qs = torch.take_along_dim(q, order[..., None], dim=1)
+    dof = q.shape[-1]
+    # joints first, (dof, n, c): a round's test over the joints reduces over the leading
+    # dimension, several times cheaper than over a trailing one of ~6
+    qs = torch.take_along_dim(q, order[..., None], dim=1).permute(2, 0, 1).contiguous()
     left = torch.take_along_dim(candidate, order, dim=1)
     # The greedy visit of the module docstring, one kept solution per target per round:
     # the first candidate left is kept (every one before it was the same as one kept),
@@ -100,17 +103,16 @@ def _distinct_block(q, candidate, score, revolute, revolute_tol, prismatic_tol) 
     # one target, not the number of candidates. Wrapping and tolerances of the joints are
     # set up once (period 2 pi or 0: a prismatic difference is left as it is).
     rev = revolute.to(q.device)
-    period = rev.to(q.dtype) * _TWO_PI
-    tol = torch.where(rev, revolute_tol, prismatic_tol).to(q.dtype)
+    period = (rev.to(q.dtype) * _TWO_PI)[:, None, None]
+    tol = torch.where(rev, revolute_tol, prismatic_tol).to(q.dtype)[:, None, None]
     kept = torch.zeros(left.shape, dtype=torch.uint8, device=q.device)
-    dof = q.shape[-1]
     while bool(left.any()):
         first = left.to(torch.uint8).argmax(1, keepdim=True)  # (n, 1)
         has = left.gather(1, first).to(torch.uint8)
         kept.scatter_add_(1, first, has)  # adds 0 where a row is done
-        d = qs - qs.gather(1, first[..., None].expand(n, 1, dof))
+        d = qs - qs.gather(2, first.expand(dof, n, 1))
         d -= period * torch.round(d / _TWO_PI)
-        left &= ~(d.abs() <= tol).all(-1)
+        left &= ~(d.abs() <= tol).all(0)
     kept = kept.bool()
     out = torch.zeros_like(candidate)
     out.scatter_(1, order, kept)

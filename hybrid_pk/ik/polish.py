@@ -13,11 +13,13 @@ plain Gauss-Newton steps can: the first leaves the valley, the next ones come ba
 the exact branch with quadratic convergence (UR10, wrist_2 2e-5 rad from 0, sigma
 6e-6 m/rad: 1.4e-2 rad from the branch, then 4e-5, 2e-9, 5e-12).
 
-So every verified solution, and every end the solver gave up on near one
-(``NEAR_FACTOR``), gets a few undamped Gauss-Newton steps in float64 (joints clamped
-into the box, a joint whose box spans 2 pi wrapped), and its best iterate (least cost,
-the solver's weighting) replaces it where that is better and passes the fresh check
-(an unverified end's only once the steps settled). A solution then sits within about
+So every end the solver left within the tolerances, and every end it gave up on near
+one (``NEAR_FACTOR``), gets a few undamped Gauss-Newton steps in float64 (joints
+clamped into the box, a joint whose box spans 2 pi wrapped), and its best iterate
+(least cost, the solver's weighting) replaces it where that is better and passes the
+fresh check (an end outside the tolerances only once the steps settled); one fresh
+check serves both, the polished value where there is one (a polished value that fails
+falls back to the end as it was, checked in turn). A solution then sits within about
 ``1e-14 m / sigma`` of the exact branch, and the deduplication's 1e-3 rad separates
 branches wherever ``sigma`` exceeds ~1e-10 m/rad. A start in no branch's reach (a
 local minimum of the error within the tolerance, at a nearly singular Jacobian) stays
@@ -166,7 +168,8 @@ def gauss_newton(
 def polish(
     ikm: IKModel,
     out: LMOutput,
-    checked: tuple[Tensor, Tensor, Tensor],
+    near: Tensor,
+    inside: Tensor,
     stalled: Tensor,
     rows: Tensor,
     T_target: Tensor,
@@ -174,26 +177,31 @@ def polish(
     settings: LMSettings,
     check: Callable[[Tensor, Tensor], tuple[Tensor, Tensor, Tensor]],
 ) -> tuple[LMOutput, Tensor, Tensor, Tensor]:
-    """The verified solutions of ``out`` polished (see the module docstring).
+    """The ends of ``out`` near a solution polished, then checked (module docstring).
 
     Args:
         ikm: the model; out: the solver's result for ``P`` problems, ``rows (P,)``
             their targets, ``T_target (P, 4, 4)`` their target poses.
-        checked: ``(ok, pos, ori)``, the check of ``out.q`` (``ok (P,)``: verified).
-        stalled: ``(P,)`` bool, unverified ends to polish too; one whose polish
-            settles and passes the check becomes a solution.
+        near: ``(P,)`` bool, ends the solver left within (about) the tolerances: each
+            is checked, polished where the polish lowered its cost (and settled, or
+            ``inside``), else as it is.
+        inside: ``(P,)`` bool, ends within the tolerances by the solver's own errors
+            (its verified ones, but for rounding): their polish counts unsettled too.
+        stalled: ``(P,)`` bool, other ends to polish: one whose polish settles and
+            passes the check becomes a solution.
         bounds: ``(lower, upper)``, ``(dof,)`` or ``(P, dof)``: the solver's box.
         settings: the solver's settings.
         check: ``(q (P, dof), candidate (P,)) -> (ok, pos, ori)``, the fresh check.
 
     Returns:
-        ``(out, ok, pos, ori)`` as :func:`~hybrid_pk.ik.solver.solve_and_check`: each
-        verified ``q`` polished where its polished value passes the check too.
+        ``(out, ok, pos, ori)`` as :func:`~hybrid_pk.ik.solver.solve_and_check`: ``ok``
+        the ends that passed the check, each ``q`` polished where its polished value
+        passed it (a polished value that fails falls back to the end as the solver left
+        it, checked in turn).
     """
-    ok, pos, ori = checked
-    sel = (ok | stalled).nonzero()[:, 0]
+    sel = (near | stalled).nonzero()[:, 0]
     if sel.numel() == 0:
-        return out, ok, pos, ori
+        return (out, *check(out.q, near))
     lo, hi = (b.to(F64) if b.ndim == 1 else b.index_select(0, sel).to(F64) for b in bounds)
     with no_autograd(ikm):
         q_sel, cost, cost0, settled, evaluations = gauss_newton(
@@ -206,16 +214,26 @@ def polish(
             settings,
         )
     q_sel, cost, cost0, settled = plain(q_sel, cost, cost0, settled)
-    moved = torch.zeros_like(ok)
-    moved[sel] = (cost < cost0) & (ok.index_select(0, sel) | settled)
+    moved = torch.zeros_like(near)
+    moved[sel] = (cost < cost0) & (inside.index_select(0, sel) | settled)
     q_new = out.q.index_copy(0, sel, q_sel.to(out.q.dtype))
-    ok_new, pos_new, ori_new = check(q_new, moved)
-    take = moved & ok_new  # else the unpolished value (verified or not)
-    mm, deg = pos_new * 1e-3, ori_new.nan_to_num(0.0).deg2rad()
+    # One fresh check for all: the polished value where the polish moved an end, the
+    # end itself where it did not.
+    q_try = torch.where(moved[:, None], q_new, out.q)
+    ok, pos, ori = check(q_try, moved | near)
+    # A lower cost need not lower both errors: a polished value failing the check
+    # falls back to the end as it was, which may pass.
+    back = moved & ~ok & near
+    if bool(back.any()):
+        ok_b, pos_b, ori_b = check(out.q, back)
+        ok = ok | ok_b
+        pos, ori = torch.where(back, pos_b, pos), torch.where(back, ori_b, ori)
+    take = moved & ok & ~back
+    mm, deg = pos * 1e-3, ori.nan_to_num(0.0).deg2rad()
     polished = out._replace(
         q=torch.where(take[:, None], q_new, out.q),
         position_error=torch.where(take, mm.to(out.position_error.dtype), out.position_error),
         rotation_error=torch.where(take, deg.to(out.rotation_error.dtype), out.rotation_error),
         evaluations=out.evaluations + evaluations,
     )
-    return polished, ok | take, torch.where(take, pos_new, pos), torch.where(take, ori_new, ori)
+    return polished, ok, pos, ori

@@ -183,20 +183,23 @@ def check_solutions(
         [deg] (NaN where not evaluated, orientation NaN when position-only).
     """
     P = q.shape[0]
-    ok = torch.isfinite(q).all(-1) & (q >= ikm.lower).all(-1) & (q <= ikm.upper).all(-1)
-    if candidate is not None:
-        ok &= candidate
-    pos = q.new_full((P,), math.nan)
-    ori = q.new_full((P,), math.nan)
-    sel = ok.nonzero()[:, 0]
+    ok = torch.zeros(P, dtype=torch.bool, device=q.device)
+    pos, ori = q.new_full((P,), math.nan), q.new_full((P,), math.nan)
+    # The candidates only (often a few hundred of thousands of problems): finite and
+    # within the limits, one reduction over the joints (each costs as much as the rest).
+    sel = torch.arange(P, device=q.device) if candidate is None else candidate.nonzero()[:, 0]
+    qs = q.index_select(0, sel)
+    inside = (torch.isfinite(qs) & (qs >= ikm.lower) & (qs <= ikm.upper)).all(-1)
+    sel, qs = (sel, qs) if bool(inside.all()) else (sel[inside], qs[inside])
     if sel.numel():
         with torch.no_grad():
-            T = ikm.pose(q[sel], rows[sel]).to(F64)
+            T = ikm.pose(qs, rows.index_select(0, sel)).to(F64)
+        T_sel = T_target.index_select(0, sel)
         if position_only:
-            pos[sel] = position_error_mm(T_target[sel, :3, 3], T[:, :3, 3])
+            pos[sel] = position_error_mm(T_sel[:, :3, 3], T[:, :3, 3])
             good = pos[sel] <= options.tol_mm
         else:
-            err = pose_error(T_target[sel], T)
+            err = pose_error(T_sel, T)
             pos[sel], ori[sel] = err.position_mm, err.orientation_deg
             good = (err.position_mm <= options.tol_mm) & (err.orientation_deg <= options.tol_deg)
         ok[sel] = good & torch.isfinite(pos[sel])
@@ -214,12 +217,11 @@ def solve_and_check(
     options: IKOptions,
 ):
     """Batched LM from starts ``q0 (P, dof)`` towards the targets ``T_all[rows]``
-    within ``bounds = (lower, upper)``, then :func:`check_solutions` of the results.
+    within ``bounds = (lower, upper)``, then the ends near a solution polished
+    (:mod:`~hybrid_pk.ik.polish`) and checked (:func:`check_solutions`).
 
     Returns:
-        ``(out, ok, pos, ori)``: the LM result, its verified solutions (and the ends it
-        gave up on or handed over near one) polished (:mod:`~hybrid_pk.ik.polish`), and
-        the checks of ``out.q``.
+        ``(out, ok, pos, ori)``: the LM result with those ends polished, and the checks.
     """
     T_target = T_all[rows]
     # The chain kernel evaluates in float32 too: the coarse iterations in float32. Starts
@@ -237,33 +239,33 @@ def solve_and_check(
         else:
             out, m = solve_two_precisions(*args, merge)
     out, (m,) = LMOutput(*plain(*out)), plain(m)
-    # Only what the iteration itself left within twice the tolerances (a margin for the
-    # float32 rounding of problems that stopped there) is evaluated afresh: the others
-    # fail that evaluation anyway. Not in inference mode: the model's own caches (chain
-    # constants) must stay ordinary tensors, usable by autograd later.
+    # Only ends the iteration left within twice the tolerances (a margin for float32's
+    # rounding) are checked afresh: the others fail anyway. Not in inference mode: the
+    # model's caches (chain constants) must stay ordinary tensors, for autograd later.
     near = within(out, 2e-3 * options.tol_mm, 2 * math.radians(options.tol_deg), position_only)
-    # Ends the damped iteration gave up on, or handed over, near a solution.
+    # Within the tolerances by the iteration's own errors; ends near a solution.
+    inside = within(out, 1e-3 * options.tol_mm, math.radians(options.tol_deg), position_only)
     stalled = within(out, *far, position_only)
 
     def check(q: Tensor, candidate: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         return check_solutions(ikm, q, rows, T_target, position_only, options, candidate)
 
+    # Solutions are pinned to their branch only to tol / sigma: polished onto it before
+    # the reduction to distinct solutions (hybrid_pk.ik.polish), then checked.
+    args = (rows, T_target, bounds, settings, check)
     if m is None:
-        checked = check(out.q, near)
-        return polish(ikm, out, checked, stalled, rows, T_target, bounds, settings, check)
+        return polish(ikm, out, near, inside, stalled, *args)
     # An arrival merged into another start of its target (same cell) is the same solution
-    # as that start's finished one, which the reduction keeps instead: it is checked only
-    # where that one fails.
-    ok, pos, ori = check(out.q, near & (m < 0))
+    # as that start's finished one, which the reduction keeps instead: it is checked (and
+    # polished) only where that one fails.
+    rep = m < 0
+    out, ok, pos, ori = polish(ikm, out, near & rep, inside & rep, stalled & rep, *args)
     retry = near & (m >= 0) & ~ok.index_select(0, m.clamp_min(0))
     if bool(retry.any()):
-        ok2, pos2, ori2 = check(out.q, retry)
+        out, ok2, pos2, ori2 = polish(ikm, out, retry, inside & retry, retry & ~retry, *args)
         ok |= ok2
         pos, ori = torch.where(retry, pos2, pos), torch.where(retry, ori2, ori)
-    # Verified solutions are pinned to their branch only to tol / sigma: polished onto it
-    # before the reduction to distinct solutions (hybrid_pk.ik.polish).
-    stalled &= m < 0  # a merged arrival: its cell's finished one stands for it
-    return polish(ikm, out, (ok, pos, ori), stalled, rows, T_target, bounds, settings, check)
+    return out, ok, pos, ori
 
 
 def closest_attempt(out: LMOutput, shape: tuple[int, int], options: IKOptions, position_only: bool):
