@@ -247,6 +247,12 @@ def _projected_step(b: _Batch) -> tuple[Tensor, Tensor, Tensor]:
     return q_try, ok, cost - (e_lin * e_lin).sum(0)
 
 
+# Problems from which the blend beats the select, its finiteness sum included (one
+# thread, 51 rows: equal at ~1,000 problems in float32 and float64, 119 -> 68 us at
+# 3,200 in float32).
+_BLEND_MIN = 1024
+
+
 def _accept(b: _Batch, trial: Tensor, ok: Tensor, predicted: Tensor) -> None:
     """Take the trial point where the cost went down; Nielsen's damping update."""
     cost, k = b.field("cost"), b.kept
@@ -257,7 +263,14 @@ def _accept(b: _Batch, trial: Tensor, ok: Tensor, predicted: Tensor) -> None:
     mu, nu = k[_MU], k[_NU]
     mu.mul_(torch.where(accept, shrink, nu)).clamp_(1e-12, b.s.damping_max)
     nu.mul_(2).masked_fill_(accept, 2.0)
-    b.ev = torch.where(accept, trial, b.ev)  # one pass, no count of the rejected
+    # One pass, no count of the rejected. Over many problems a blend by 0 / 1 weights:
+    # exact for finite values (lerp returns its end at weight 1, its start at 0) and
+    # ~2x cheaper than a select whose mask broadcasts over the rows; a non-finite trial
+    # (a failed step's) would spread NaN into a rejected column, so it takes the select.
+    if b.size >= _BLEND_MIN and bool(torch.isfinite(trial.sum())):
+        b.ev = torch.lerp(b.ev, trial, accept.to(trial.dtype))
+    else:
+        b.ev = torch.where(accept, trial, b.ev)
 
 
 def _cost(s: LMSettings, position: float, rotation: float) -> float:
