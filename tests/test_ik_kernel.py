@@ -397,3 +397,19 @@ def test_polish_steps_only_the_problems_not_yet_settled():
     with torch.no_grad():
         gauss_newton(ikm, one, torch.arange(1), T[:1], ikm.lower, ikm.upper, s)
     assert torch.equal(one, q0[:1])  # the caller's start is never written into
+
+
+def test_the_kernel_of_a_robot_is_kept_until_its_parameters_change():
+    from hybrid_pk.robot.kernel import ChainKernel
+
+    robot = hpk.Robot.from_urdf("ur10")
+    kernel = ChainKernel.of(robot)
+    assert ChainKernel.of(robot) is kernel  # requires_grad or not: the terms are cached
+    q = robot.sample_q(4, _torch_rng("kernel memo"))
+    with torch.no_grad():
+        robot.origin_xyz[2, 0] += 0.01  # in place: a new version of the parameter
+        T_new = robot.fk(q)
+    changed = ChainKernel.of(robot)
+    assert changed is not kernel
+    torch.testing.assert_close(changed(q)[0], T_new, rtol=0, atol=1e-12)
+    assert (kernel(q)[0] - T_new).abs().max() > 1e-3  # the old one had the old link

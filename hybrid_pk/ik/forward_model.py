@@ -141,7 +141,7 @@ class _Adapter(NamedTuple):
 
 def _robot_adapter(model: Robot) -> _Adapter:
     """The chain kernel's analytic Jacobian."""
-    kernel = ChainKernel(model)
+    kernel = ChainKernel.of(model)
 
     def pose(q: Tensor, rows: Tensor) -> Tensor:
         return model.fk(q)

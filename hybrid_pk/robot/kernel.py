@@ -12,10 +12,13 @@ of the IK's late iterations.
 
 :func:`~hybrid_pk.robot.chain.pose_jacobian_batch_last` (``Robot.jacobian``, per-sample
 and differentiable parameters) is the reference the tests compare this one with.
-Build a new kernel after changing the robot's parameters. No gradients flow through it.
+Build a new kernel after changing the robot's parameters (:meth:`ChainKernel.of` does:
+it keeps one per robot while its parameters stay the same). No gradients flow through it.
 """
 
 from __future__ import annotations
+
+import weakref
 
 import torch
 from torch import Tensor
@@ -57,6 +60,19 @@ class ChainKernel:
                 robot.offset.to(f64)[:, None].clone(),
             )
 
+    @classmethod
+    def of(cls, robot: Robot) -> ChainKernel:
+        """The kernel of ``robot`` without frames, made once while its parameters stay
+        the same (its cached chain terms, renewed on every change, are the key): an IK
+        call need not rebuild it (~0.3 ms, about 1 % of a 50-target call)."""
+        with torch.no_grad():
+            terms = robot.chain_terms(torch.float64)
+        memo = _OWN.get(robot)
+        if memo is None or memo[0] is not terms:
+            memo = (terms, cls(robot))
+            _OWN[robot] = memo
+        return memo[1]
+
     def soa(self, qt: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Batch-last evaluation at ``qt (dof, M)`` [rad or m], float64 or float32.
 
@@ -95,3 +111,7 @@ class ChainKernel:
         T[:, :3, 3] = p.T
         T[:, 3, 3] = 1.0
         return T, J.permute(2, 0, 1)
+
+
+# Robot -> (the chain terms a kernel was made from, that kernel): ChainKernel.of's memo.
+_OWN: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
