@@ -255,14 +255,14 @@ def solve_and_check(
     args = (rows, T_target, bounds, settings, check)
     if m is None:
         return polish(ikm, out, near, inside, stalled, *args)
-    # An arrival merged into another start of its target (same cell) is the same solution
-    # as that start's finished one, which the reduction keeps instead: it is checked (and
-    # polished) only where that one fails.
+    # An arrival merged into another start of its target (same cell) is that start's
+    # solution, which the reduction keeps: it is checked (polished) only where that fails.
     rep = m < 0
     out, ok, pos, ori = polish(ikm, out, near & rep, inside & rep, stalled & rep, *args)
     retry = near & (m >= 0) & ~ok.index_select(0, m.clamp_min(0))
     if bool(retry.any()):
-        out, ok2, pos2, ori2 = polish(ikm, out, retry, inside & retry, retry & ~retry, *args)
+        none = torch.zeros_like(retry)  # nothing else to polish
+        out, ok2, pos2, ori2 = polish(ikm, out, retry, inside & retry, none, *args)
         ok |= ok2
         pos, ori = torch.where(retry, pos2, pos), torch.where(retry, ori2, ori)
     return out, ok, pos, ori
