@@ -38,7 +38,7 @@ from torch import Tensor
 from hybrid_pk.ik.batched_lm import LMOutput, LMSettings
 from hybrid_pk.ik.dedup import PRISMATIC_TOL, REVOLUTE_TOL
 from hybrid_pk.ik.forward_model import IKModel, no_autograd, plain
-from hybrid_pk.ik.lm_algebra import pose_residual
+from hybrid_pk.ik.lm_algebra import pose_residual, target_reach
 
 __all__ = ["NEAR_FACTOR", "gauss_newton", "polish", "within"]
 
@@ -107,9 +107,7 @@ def gauss_newton(
     w, pos_only = settings.rotation_weight, settings.position_only
     lo, hi = (b[:, None] if b.ndim == 1 else b.T for b in (lower, upper))
     per = (hi - lo >= _TWO_PI) & ikm.revolute[:, None]
-    # contiguous first: a norm over rows of a strided view takes ~10x as long
-    reach = 1.0 + float(T_target[:, :3, 3].contiguous().norm(dim=-1).max())
-    floor = (torch.finfo(F64).eps * _MARGIN * reach) ** 2
+    floor = (torch.finfo(F64).eps * _MARGIN * target_reach(T_target)) ** 2
     settle = torch.where(ikm.revolute, _SETTLED * REVOLUTE_TOL, _SETTLED * PRISMATIC_TOL)
     settle = settle.to(q)[:, None]
     best = q.T.clone(memory_format=torch.contiguous_format)  # (dof, P), never q itself

@@ -189,8 +189,8 @@ def check_solutions(
     # within the limits, one reduction over the joints (each costs as much as the rest).
     sel = torch.arange(P, device=q.device) if candidate is None else candidate.nonzero()[:, 0]
     qs = q.index_select(0, sel)
-    inside = (torch.isfinite(qs) & (qs >= ikm.lower) & (qs <= ikm.upper)).all(-1)
-    sel, qs = (sel, qs) if bool(inside.all()) else (sel[inside], qs[inside])
+    in_limits = (torch.isfinite(qs) & (qs >= ikm.lower) & (qs <= ikm.upper)).all(-1)
+    sel, qs = (sel, qs) if bool(in_limits.all()) else (sel[in_limits], qs[in_limits])
     if sel.numel():
         with torch.no_grad():
             T = ikm.pose(qs, rows.index_select(0, sel)).to(F64)

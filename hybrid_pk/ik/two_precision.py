@@ -29,6 +29,7 @@ from torch import Tensor
 
 from hybrid_pk.ik.batched_lm import LMOutput, LMSettings, batched_levenberg_marquardt
 from hybrid_pk.ik.dedup import cell_representatives
+from hybrid_pk.ik.lm_algebra import target_reach
 
 __all__ = ["solve_two_precisions"]
 
@@ -65,8 +66,7 @@ def solve_two_precisions(
         finished for its cell (whose result stands for it), else -1; None without
         ``merge``."""
     eps = torch.finfo(torch.float32).eps * _MARGIN
-    p = T_target[:, :3, 3].contiguous()  # a norm over a strided view: ~10x as long
-    reach = 1.0 + float(p.norm(dim=-1).max()) if len(p) else 1.0
+    reach = target_reach(T_target)
     loose_p, loose_r = max(eps * reach, s.accept_position), max(eps, s.accept_rotation)
     coarse = replace(
         s,
