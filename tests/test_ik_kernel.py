@@ -14,6 +14,7 @@ import torch
 
 import hybrid_pk as hpk
 from hybrid_pk.evaluation.metrics import pose_error
+from hybrid_pk.geometry import so3_exp, so3_log
 from hybrid_pk.ik import IKOptions, as_ik_model, batched_levenberg_marquardt
 from hybrid_pk.ik.dedup import (
     cell_representatives,
@@ -21,7 +22,7 @@ from hybrid_pk.ik.dedup import (
     joint_difference,
     same_solution,
 )
-from hybrid_pk.ik.lm_algebra import eliminate, normal_equations
+from hybrid_pk.ik.lm_algebra import eliminate, normal_equations, pose_residual
 from hybrid_pk.ik.two_precision import solve_two_precisions
 from hybrid_pk.robot.aligned import ALIGNED_MIN_BATCH
 from hybrid_pk.robot.chain import local_transforms, product
@@ -197,6 +198,39 @@ def test_elimination_solves_damped_normal_equations(A):
     ok = eliminate(G)[1]
     assert not bool(ok[3])
     assert int(ok.sum()) == A - 1
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_pose_residual_is_the_weighted_rotation_vector_also_near_pi(dtype):
+    """The IK's residual against ``so3_log`` of ``R_t R^T`` (float64 reference), for
+    random rotations and rotations within 1e-9 .. 1e-2 rad of pi (the residual takes
+    the axis from the symmetric part there)."""
+    rng = _torch_rng(f"residual near pi {dtype}")
+    A, w = 64, 0.7
+    axis = torch.nn.functional.normalize(torch.randn(A, 3, generator=rng, dtype=F64), dim=-1)
+    gap = 10 ** (-9 + 7 * torch.rand(A, 1, generator=rng, dtype=F64))
+    angle = torch.where(torch.arange(A)[:, None] < A // 2, math.pi - gap, math.pi * gap / 1e-2)
+    R = so3_exp(torch.randn(A, 3, generator=rng, dtype=F64))
+    R_t = so3_exp(axis * angle) @ R  # R_t R^T: that rotation
+    p, p_t = (
+        torch.randn(3, A, generator=rng, dtype=F64),
+        torch.randn(3, A, generator=rng, dtype=F64),
+    )
+    cast = [x.to(dtype) for x in (R.permute(1, 2, 0), p, R_t.permute(1, 2, 0), p_t)]
+    dp, wr, cost, pos, rot = pose_residual(*cast, w, False)
+    dp_ref = p_t - p
+    E = R_t @ R.transpose(-1, -2)
+    tol = 1e-12 if dtype == F64 else 1e-5
+    if dtype == F64:
+        assert float((wr.T - w * so3_log(E)).abs().max()) <= tol
+    else:  # within float32's resolution of pi the axis' sign is either: as rotations
+        off = so3_log(so3_exp(wr.T.to(F64) / w).transpose(-1, -2) @ E)
+        assert float(off.norm(dim=-1).max()) <= tol
+    assert float((rot[0].to(F64) - angle[:, 0]).abs().max()) <= tol
+    assert float((dp.to(F64) - dp_ref).abs().max()) <= tol
+    assert float((pos[0].to(F64) - dp_ref.norm(dim=0)).abs().max()) <= tol
+    cost_ref = dp_ref.square().sum(0) + (w * angle[:, 0]) ** 2
+    assert float((cost[0].to(F64) - cost_ref).abs().max()) <= 10 * tol
 
 
 def _greedy(q, candidate, score, revolute):

@@ -4,6 +4,7 @@ The lowest layer of the package: it imports nothing else of hybrid_pk but errors
 """
 
 from hybrid_pk.geometry import rotations
+from hybrid_pk.geometry.rotations import axis_near_pi as axis_near_pi
 from hybrid_pk.geometry.rotations import matrix_to_quat as matrix_to_quat
 from hybrid_pk.geometry.rotations import matrix_to_rpy as matrix_to_rpy
 from hybrid_pk.geometry.rotations import nearest_rotation as nearest_rotation

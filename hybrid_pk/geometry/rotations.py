@@ -18,6 +18,7 @@ from hybrid_pk.geometry.shapes import broadcast_shapes
 from hybrid_pk.geometry.tangents import carried
 
 __all__ = [
+    "axis_near_pi",
     "matrix_to_quat",
     "matrix_to_rpy",
     "nearest_rotation",
@@ -123,18 +124,23 @@ def so3_log(R: Tensor) -> Tensor:
     scale = torch.where(s < _SMALL, 0.5 + theta * theta / 12, theta / (2 * s_safe))
     w_regular = scale * vee
 
-    # Near pi sin(theta) -> 0 and vee carries no axis: take it from the symmetric part,
-    # (R + R^T)/2 - c I = (1 - c) a a^T, using its largest diagonal entry.
+    w_pi = axis_near_pi(R, vee, c) * theta
+    near_pi = c < -0.9  # theta > ~154 deg: regular branch loses accuracy there
+    return torch.where(near_pi, w_pi, w_regular)
+
+
+def axis_near_pi(R: Tensor, vee: Tensor, cos: Tensor) -> Tensor:
+    """Unit axes ``(*B, 3)`` of rotations ``R (*B, 3, 3)`` by an angle near pi, with
+    ``vee = vee_antisym(R)`` ``(*B, 3)`` (2 sin(angle) axis) and ``cos (*B, 1)`` the
+    angle's cosine. Near pi ``vee`` has lost the axis' digits but not its sign; the axis
+    comes from the symmetric part, ``(R + R^T) / 2 - cos I = (1 - cos) a a^T``: the
+    column of its largest diagonal entry, normalised, signed like ``vee``."""
     eye = torch.eye(3, dtype=R.dtype, device=R.device)
-    M = (R + R.transpose(-1, -2)) / 2 - c.unsqueeze(-1) * eye
+    M = (R + R.transpose(-1, -2)) / 2 - cos.unsqueeze(-1) * eye
     k = M.diagonal(dim1=-2, dim2=-1).argmax(-1, keepdim=True)  # (*B, 1)
     col = torch.take_along_dim(M, k.unsqueeze(-1).expand(*k.shape[:-1], 3, 1), dim=-1)[..., 0]
     axis = col / col.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(R.dtype).tiny)
-    sign = torch.where((axis * vee).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(R.dtype)
-    w_pi = sign * axis * theta
-
-    near_pi = c < -0.9  # theta > ~154 deg: regular branch loses accuracy there
-    return torch.where(near_pi, w_pi, w_regular)
+    return torch.where((axis * vee).sum(-1, keepdim=True) < 0, -axis, axis)
 
 
 def rpy_to_matrix(rpy: Tensor) -> Tensor:

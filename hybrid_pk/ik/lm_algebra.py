@@ -21,6 +21,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from hybrid_pk.geometry import axis_near_pi
+
 __all__ = ["eliminate", "normal_equations", "pose_residual", "target_reach"]
 
 # Rows of a flattened (3, 3) E = R_t R^T: E21, E02, E10 | E12, E20, E01 | diagonal.
@@ -70,25 +72,11 @@ def pose_residual(
     w = vee * (w_angle / two_s.clamp_min(torch.finfo(E.dtype).tiny))
     if float(two_c.amin()) < _NEAR_PI:  # one reduction and one sync in the usual case
         far = (two_c[0] < _NEAR_PI).nonzero()[:, 0]
-        pick = (E.index_select(2, far), vee.index_select(1, far), two_c.index_select(1, far))
-        w.index_copy_(1, far, _axis_near_pi(*pick) * w_angle.index_select(1, far))
+        # so3_log's branch there, on these few columns (batch-first views)
+        E_far, vee_far = E.index_select(2, far).permute(2, 0, 1), vee.index_select(1, far).T
+        axis = axis_near_pi(E_far, vee_far, two_c.index_select(1, far).T * 0.5).T
+        w.index_copy_(1, far, axis * w_angle.index_select(1, far))
     return dp, w, pos2 + w_angle * w_angle, pos, angle
-
-
-def _axis_near_pi(E: Tensor, vee: Tensor, two_c: Tensor) -> Tensor:
-    """Unit axes ``(3, k)`` of rotations ``E (3, 3, k)`` near pi, where ``vee`` (= 2
-    sin(angle) axis) has lost its digits: from the symmetric part, ``(E + E^T) / 2 - cos
-    I = (1 - cos) a a^T``, the column of its largest diagonal entry, signed by ``vee``
-    (:func:`~hybrid_pk.geometry.so3_log`'s branch there, batch last and in a dozen
-    operations instead of its ~60 on these few columns)."""
-    M = (E + E.transpose(0, 1)) * 0.5
-    k = E.diagonal(0, 0, 1).argmax(1)  # (k,): the largest diagonal entry
-    col = M.gather(1, k.view(1, 1, -1).expand(3, 1, -1))[:, 0]  # (3, k)
-    on_diag = torch.arange(3, device=E.device)[:, None] == k
-    col = col - on_diag * (two_c * 0.5)
-    axis = col / col.norm(dim=0, keepdim=True).clamp_min(torch.finfo(E.dtype).tiny)
-    flip = (axis * vee).sum(0, keepdim=True) < 0
-    return torch.where(flip, -axis, axis)
 
 
 # Problems up to which the normal equations are one broadcast product (three tensor
