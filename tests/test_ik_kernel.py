@@ -203,8 +203,8 @@ def test_elimination_solves_damped_normal_equations(A):
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_pose_residual_is_the_weighted_rotation_vector_also_near_pi(dtype):
     """The IK's residual against ``so3_log`` of ``R_t R^T`` (float64 reference), for
-    random rotations and rotations within 1e-9 .. 1e-2 rad of pi (the residual takes
-    the axis from the symmetric part there)."""
+    rotations about random axes by angles within 1e-9 .. 1e-2 rad of pi (the residual
+    takes the axis from the symmetric part there) and by angles from 3e-7 rad to pi."""
     rng = _torch_rng(f"residual near pi {dtype}")
     A, w = 64, 0.7
     axis = torch.nn.functional.normalize(torch.randn(A, 3, generator=rng, dtype=F64), dim=-1)
