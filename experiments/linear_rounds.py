@@ -51,11 +51,11 @@ from hybrid_pk.calibration.diagnosis.selection import (
 )
 from hybrid_pk.calibration.diagnosis.settle import rival_advantages
 from hybrid_pk.calibration.diagnosis.split import split_campaign
-from hybrid_pk.calibration.diagnosis.statistics import f_survival
 from hybrid_pk.calibration.diagnosis.variants import shift_parameters, with_effects
 from hybrid_pk.calibration.fit import fit
 from hybrid_pk.calibration.known_frames import initialise_with_priors
 from hybrid_pk.calibration.settings import DiagnosisSettings
+from hybrid_pk.distributions import f_sf
 from hybrid_pk.effects import ExtendedModel, conditions_from_data, make_effect
 from hybrid_pk.effects.joint import CYCLIC_PREFIX
 
@@ -99,7 +99,7 @@ def conditional_scores(scores, cols, base: list[str], open_: list[str]) -> dict:
         drop = min(float((U[:, :k].T @ r_off).pow(2).sum()), ssr)
         dof = max(m - n_cur - k, 1)
         F = (drop / k) / max((ssr - drop) / dof, 1e-300)
-        out[label] = (f_survival(F, k, dof), -(drop - k * math.log(m)))
+        out[label] = (f_sf(F, k, dof), -(drop - k * math.log(m)))
     return out
 
 

@@ -119,3 +119,23 @@ def test_every_command_module_is_listed():
     folder = Path(hybrid_pk.cli.__file__).parent
     modules = {f"hybrid_pk.cli.{f.stem}" for f in folder.glob("*_cmd.py")}
     assert modules == {path for path, _ in COMMANDS.values()}
+
+
+def test_diagnose_and_calibrate_do_not_load_scipy_stats(tmp_path):
+    """Their tests and thresholds use hybrid_pk.distributions (scipy.special): importing
+    scipy.stats cost every such command ~0.3-0.7 s (tests/test_distributions.py checks
+    the numbers against scipy.stats)."""
+    data = tmp_path / "d.csv"
+    argv = ["simulate", "rx160", "--n", "300", "--effects", "joint_offset:joint_2=0.001"]
+    assert main([*argv, "--seed", "3", "--out", str(data), "--no-progress"]) == 0
+    out, robot = tmp_path / "diag.json", ["--robot", "rx160"]
+    _, loaded = _modules_after(["diagnose", str(data), *robot, "--json", str(out), "--no-progress"])
+    assert out.exists()
+    assert "hybrid_pk.calibration.diagnosis.power" in loaded
+    assert "scipy.stats" not in loaded
+    model = tmp_path / "m.pt"
+    argv = ["calibrate", str(data), *robot, "--robust", "huber", "--out", str(model)]
+    _, loaded = _modules_after([*argv, "--no-urdf", "--no-progress"])
+    assert model.exists()
+    assert "hybrid_pk.calibration.robust" in loaded
+    assert "scipy.stats" not in loaded

@@ -10,7 +10,16 @@ PACKAGE = Path(__file__).resolve().parent.parent / "hybrid_pk"
 
 # Lowest first. Modules in one layer may import each other's layer.
 LAYERS = [
-    ("errors", "geometry", "startup", "threads", "settings", "units", "output_file"),
+    (
+        "errors",
+        "geometry",
+        "startup",
+        "threads",
+        "settings",
+        "units",
+        "output_file",
+        "distributions",
+    ),
     ("robot",),
     ("data",),
     ("evaluation",),

@@ -34,6 +34,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.data.measured import MeasuredData
+from hybrid_pk.distributions import chi2_isf, chi2_ppf, norm_sf
 from hybrid_pk.errors import HybridPKError
 
 __all__ = [
@@ -45,7 +46,6 @@ __all__ = [
     "OUTLIER_K",
     "ROBUST_LOSSES",
     "check_robust",
-    "chi2_quantile",
     "down_weighted",
     "irls_update",
     "list_outliers",
@@ -106,19 +106,9 @@ def check_robust(loss: str | None) -> str | None:
     return loss
 
 
-def chi2_quantile(p: float, dim: int) -> float:
-    """Quantile of chi-square(``dim``) at probability ``p``."""
-    from scipy import stats  # slow to import: on first use
-
-    return float(stats.chi2.ppf(p, dim))
-
-
 def outlier_threshold(dim: int, k: float = OUTLIER_K) -> float:
     """``d^2`` beyond which a row of ``dim`` components is an outlier (k-sigma tail)."""
-    from scipy import stats
-
-    tail = 2.0 * float(stats.norm.sf(k))
-    return float(stats.chi2.isf(tail, dim))
+    return chi2_isf(2.0 * norm_sf(k), dim)
 
 
 def _median_sigma(err: Tensor, given: float, floor: float) -> float:
@@ -127,7 +117,7 @@ def _median_sigma(err: Tensor, given: float, floor: float) -> float:
     or no spread."""
     if err.numel() < 5:  # a median of fewer rows says little
         return given
-    s = math.sqrt(float(err.pow(2).median()) / chi2_quantile(0.5, 3))
+    s = math.sqrt(float(err.pow(2).median()) / chi2_ppf(0.5, 3))
     return max(s, floor) if s > 0 else given
 
 
@@ -150,10 +140,8 @@ def row_d2(
 def outlier_cut(d2: Tensor, dim: int, k: float = OUTLIER_K) -> float:
     """``d^2`` beyond which a row is listed: the ``k``-sigma tail, or the Bonferroni
     tail ``FAMILY_ALPHA / N`` where that is stricter."""
-    from scipy import stats
-
-    tail = min(2.0 * float(stats.norm.sf(k)), FAMILY_ALPHA / max(d2.numel(), 1))
-    return float(stats.chi2.isf(tail, dim))
+    tail = min(2.0 * norm_sf(k), FAMILY_ALPHA / max(d2.numel(), 1))
+    return chi2_isf(tail, dim)
 
 
 def row_distances(r: Tensor, n_rows: int) -> Tensor:
@@ -170,7 +158,7 @@ def row_weights_vector(w: Tensor, n_parts: int) -> Tensor:
 
 def robust_weights(d2: Tensor, dim: int, loss: str) -> Tensor:
     """``(N,)`` IRLS weights of rows with squared distances ``d2``."""
-    c2 = chi2_quantile(TUNING_QUANTILE, dim)
+    c2 = chi2_ppf(TUNING_QUANTILE, dim)
     if loss == "huber":
         return torch.clamp(math.sqrt(c2) / d2.clamp_min(1e-300).sqrt(), max=1.0)
     if loss == "cauchy":
@@ -184,7 +172,7 @@ def robust_cost(d2: Tensor, dim: int, loss: str) -> float:
 
     Huber: ``d^2`` up to ``c``, then ``2 c d - c^2``; Cauchy: ``c^2 log(1 + d^2 / c^2)``.
     """
-    c2 = chi2_quantile(TUNING_QUANTILE, dim)
+    c2 = chi2_ppf(TUNING_QUANTILE, dim)
     if loss == "huber":
         d = d2.clamp_min(0).sqrt()
         c = math.sqrt(c2)
@@ -199,7 +187,7 @@ def robust_noise(r: Tensor, n_rows: int, dof_factor: float = 1.0) -> tuple[float
     squared row norm of the position part (and of the rotation part), each against the
     median of chi-square(3). Returns ``(factor_pos, factor_rot or None)``."""
     parts = (r.reshape(-1, n_rows, 3) ** 2).sum(-1)  # (1 or 2, N)
-    med = chi2_quantile(0.5, 3)
+    med = chi2_ppf(0.5, 3)
     factors = [float((p.median() / med * dof_factor).clamp_min(1e-300).sqrt()) for p in parts]
     return factors[0], factors[1] if len(factors) > 1 else None
 

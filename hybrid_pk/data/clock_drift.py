@@ -30,11 +30,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import norm
 
 from hybrid_pk.data.clock_jump import ALPHA, tracker_motion
 from hybrid_pk.data.interpolation import interpolate_poses
 from hybrid_pk.data.point_frames import PointFrames
+from hybrid_pk.distributions import norm_isf
 
 __all__ = ["ClockDrift", "fit_drift"]
 
@@ -90,7 +90,7 @@ class ClockDrift:
         """Significant (two-sided at ALPHA), changing the offset across the streams by
         more than one robot sample, and explaining most of the residual above the noise
         (:data:`MAJORITY`)."""
-        significant = abs(self.rate) > norm.isf(ALPHA / 2) * self.std
+        significant = abs(self.rate) > norm_isf(ALPHA / 2) * self.std
         return bool(significant and self.change > self.sample_s and self.explained > MAJORITY)
 
     def warning(self, source: str, corrected: bool = False) -> str:

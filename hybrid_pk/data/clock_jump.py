@@ -42,10 +42,10 @@ import numpy as np
 import torch
 from scipy.ndimage import correlate1d
 from scipy.optimize import nnls
-from scipy.stats import norm
 
 from hybrid_pk.data.interpolation import interpolate_poses
 from hybrid_pk.data.point_frames import PointFrames
+from hybrid_pk.distributions import norm_isf
 
 __all__ = [
     "ALPHA",
@@ -342,7 +342,7 @@ def find_clock_jumps(
         m = int(tried.sum())
         if m == 0:
             break
-        threshold = float(norm.isf(ALPHA / (2 * m)))
+        threshold = norm_isf(ALPHA / (2 * m))
         j = int(np.argmax(np.abs(z) * tried))
         if abs(z[j]) <= threshold:
             break

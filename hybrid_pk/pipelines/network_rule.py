@@ -32,6 +32,7 @@ from torch import Tensor
 from hybrid_pk.calibration.fit import DEFAULT_SIGMA_POS_MM, DEFAULT_SIGMA_ROT_RAD, FitResult
 from hybrid_pk.calibration.frames import FramePriors
 from hybrid_pk.data import MeasuredData
+from hybrid_pk.distributions import norm_isf, norm_sf
 from hybrid_pk.effects import Conditions, ExtendedModel
 from hybrid_pk.evaluation.metrics import row_errors
 from hybrid_pk.geometry import quat_to_matrix
@@ -220,9 +221,7 @@ def carried_networks(nets: dict) -> dict | None:
 def second_look_z() -> float:
     """The z of the lifted gates' look: the one-sided level of ``freeing_z`` halved
     (Bonferroni over the two looks at the same rows)."""
-    from scipy.stats import norm
-
-    return float(norm.isf(norm.sf(hybrid_tuning().freeing_z) / LOOKS))
+    return norm_isf(norm_sf(hybrid_tuning().freeing_z) / LOOKS)
 
 
 def _verdict(errors: dict, n: int, folds: int, z: float | None = None) -> NetworkVerdict:

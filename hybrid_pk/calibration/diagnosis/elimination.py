@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from hybrid_pk.calibration.diagnosis.split import Split
-from hybrid_pk.calibration.diagnosis.statistics import f_critical, f_survival, weighted_ssr
+from hybrid_pk.calibration.diagnosis.statistics import weighted_ssr
 from hybrid_pk.calibration.diagnosis.variants import (
     linearised_removal,
     refit_without,
@@ -18,6 +18,7 @@ from hybrid_pk.calibration.diagnosis.variants import (
 )
 from hybrid_pk.calibration.fit import FitResult, fit
 from hybrid_pk.calibration.tuning import diagnosis_tuning
+from hybrid_pk.distributions import f_isf, f_sf
 from hybrid_pk.effects import ExtendedModel
 
 __all__ = ["eliminate"]
@@ -93,13 +94,13 @@ def _least_significant(
         if res.normal_matrix is not None:
             increase, _ = linearised_removal(res, e.label)
             F_lin = (increase / k) / max(ssr_full / dof, 1e-300)
-            if F_lin > diagnosis_tuning().linearised_margin * f_critical(threshold, k, dof):
+            if F_lin > diagnosis_tuning().linearised_margin * f_isf(threshold, k, dof):
                 continue  # clearly significant: the refit could not change the decision
         say(f"testing whether {e.label} is still needed")
         reduced = refit_without(model, e.label, train, cond, res, say)
         ssr_red = weighted_ssr(reduced, train, cond, res)
         F = ((ssr_red - ssr_full) / k) / max(ssr_full / dof, 1e-300)
-        p = f_survival(F, k, dof) if F > 0 else 1.0
+        p = f_sf(F, k, dof) if F > 0 else 1.0
         if p >= threshold and (worst is None or p > worst[1]):
             worst = (e.label, p, F)
     return worst

@@ -54,7 +54,7 @@ from hybrid_pk.calibration.diagnosis.selection import (
 )
 from hybrid_pk.calibration.diagnosis.settle import entry_rivals
 from hybrid_pk.calibration.diagnosis.split import Split
-from hybrid_pk.calibration.diagnosis.statistics import f_survival, weighted_ssr
+from hybrid_pk.calibration.diagnosis.statistics import weighted_ssr
 from hybrid_pk.calibration.diagnosis.swaps import (
     Swap,
     blocked_score,
@@ -64,6 +64,7 @@ from hybrid_pk.calibration.diagnosis.swaps import (
 )
 from hybrid_pk.calibration.diagnosis.variants import without_effect
 from hybrid_pk.calibration.fit import FitResult, fit
+from hybrid_pk.distributions import f_sf
 from hybrid_pk.effects import ExtendedModel
 
 __all__ = ["exchange_causes", "promising"]
@@ -131,7 +132,7 @@ class _Linear(NamedTuple):
         model of ``n`` parameters (theirs included)."""
         dof = max(self.m - n, 1)
         F = (drop / k) / max(ssr / dof, 1e-300)
-        return f_survival(F, k, dof) if F > 0 else 1.0
+        return f_sf(F, k, dof) if F > 0 else 1.0
 
 
 def _simpler(lin: _Linear, cause: str) -> bool:

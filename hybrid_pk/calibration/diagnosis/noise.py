@@ -28,6 +28,7 @@ from torch import Tensor
 from hybrid_pk.calibration.diagnosis.regions import joint_levers
 from hybrid_pk.calibration.fit import predicted_poses
 from hybrid_pk.data.measured import MeasuredData
+from hybrid_pk.distributions import chi2_pdf, chi2_ppf
 from hybrid_pk.effects import Conditions, ExtendedModel
 
 __all__ = ["NOISE_PAIRS", "NoiseEstimate", "beyond_noise", "measurement_noise"]
@@ -75,7 +76,7 @@ class NoiseEstimate:
 def measurement_noise(model: ExtendedModel, data: MeasuredData, cond: Conditions) -> NoiseEstimate:
     """The noise estimate of ``data`` (see the module) from ``model``'s residuals (the
     nominal model with its fitted frames; its errors cancel between close poses)."""
-    from scipy import spatial, stats
+    from scipy import spatial  # ~0.2 s to import: on first use
 
     residual = (data.position - predicted_poses(model, data.q, cond)[:, :3, 3]) * 1000.0
     lever = torch.tensor(joint_levers(model, data.q, cond), dtype=data.q.dtype)
@@ -92,7 +93,7 @@ def measurement_noise(model: ExtendedModel, data: MeasuredData, cond: Conditions
         if kept.numel() == 0:
             continue
         half, dist = half[kept], dist[kept.numpy()]
-        var = float(half.median()) / float(stats.chi2.median(3))
+        var = float(half.median()) / chi2_ppf(0.5, 3)
         files.append(
             {
                 "file": data.sources[f],
@@ -136,12 +137,10 @@ def beyond_noise(position_mm: Tensor, noise: NoiseEstimate | None) -> dict | Non
     estimate. A smooth error that neighbouring hold-out poses are too far apart to share
     (a few hundred rows in many joints) still shows here, unless it varies over less
     than the distance of the estimate's pairs (``pair_distance_mm``, point motion)."""
-    from scipy import stats
-
     if noise is None or noise.sigma_mm is None or position_mm.shape[0] < 2:
         return None
-    m = float(stats.chi2.median(3))
-    per_draw = 1.0 / (4 * float(stats.chi2.pdf(m, 3)) ** 2 * m**2)  # K = 1
+    m = chi2_ppf(0.5, 3)
+    per_draw = 1.0 / (4 * chi2_pdf(m, 3) ** 2 * m**2)  # K = 1
     pairs = sum(f["pairs"] for f in noise.files)
     sd = math.sqrt(per_draw / position_mm.shape[0] + per_draw / pairs)
     sigma = math.sqrt(float(position_mm.pow(2).sum(-1).median()) / m)

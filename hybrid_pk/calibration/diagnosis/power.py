@@ -39,6 +39,7 @@ from hybrid_pk.calibration.diagnosis.variants import with_effects
 from hybrid_pk.calibration.fit import FitResult
 from hybrid_pk.calibration.problem import Problem, param_blocks
 from hybrid_pk.calibration.tuning import diagnosis_tuning
+from hybrid_pk.distributions import chi2_isf, f_isf, ncf_sf, ncx2_sf
 from hybrid_pk.effects import ExtendedModel, entry_label, make_effect
 from hybrid_pk.effects.joint import CYCLIC_PREFIX
 from hybrid_pk.effects.limits import effect_limit
@@ -61,19 +62,19 @@ def noncentrality(alpha: float, d1: int, d2: int, power: float | None = None) ->
     """``lambda`` at which the F-test of level ``alpha`` with ``(d1, d2)`` degrees of
     freedom rejects with probability ``power`` (noncentral F; chi-squared for large
     ``d2``, where the two agree)."""
-    from scipy import optimize, stats
+    from scipy import optimize  # on first use
 
     power = diagnosis_tuning().power if power is None else power
     if d2 > 1e5:  # F(d1, inf) = chi2(d1) / d1: the noncentral chi-squared
-        crit = float(stats.chi2.isf(alpha, d1))
+        crit = chi2_isf(alpha, d1)
 
         def miss(lam: float) -> float:
-            return float(stats.ncx2.sf(crit, d1, lam)) - power
+            return ncx2_sf(crit, d1, lam) - power
     else:
-        crit = float(stats.f.isf(alpha, d1, d2))
+        crit = f_isf(alpha, d1, d2)
 
         def miss(lam: float) -> float:
-            return float(stats.ncf.sf(crit, d1, d2, lam)) - power
+            return ncf_sf(crit, d1, d2, lam) - power
 
     hi = 1.0
     while miss(hi) < 0:

@@ -28,7 +28,6 @@ from hybrid_pk.calibration.diagnosis.carryover import Carry, linearise
 from hybrid_pk.calibration.diagnosis.pair_entry import carrying_pair
 from hybrid_pk.calibration.diagnosis.split import Split
 from hybrid_pk.calibration.diagnosis.statistics import (
-    f_survival,
     holdout_score,
     weighted_residual,
     weighted_ssr,
@@ -39,6 +38,7 @@ from hybrid_pk.calibration.robust import reestimated_noise
 from hybrid_pk.calibration.shared_jacobian import release_shared
 from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.data.measured import MeasuredData
+from hybrid_pk.distributions import f_sf
 from hybrid_pk.effects import EFFECTS, ExtendedModel, effect_joint_names, make_effect
 from hybrid_pk.effects.base import Effect, effect_joint_types
 from hybrid_pk.effects.joint import CYCLIC_PREFIX, MAX_CYCLIC_ORDER
@@ -290,7 +290,7 @@ def _score_test(
     fitted = Ur @ (Ur.T @ r)  # the correction this candidate would make
     drop = min(float(fitted @ fitted), ssr)
     F = (drop / k) / max((ssr - drop) / max(m - n_cur - k, 1), 1e-300)
-    p = f_survival(F, k, max(m - n_cur - k, 1))
+    p = f_sf(F, k, max(m - n_cur - k, 1))
     # Rank significant candidates by BIC gain: among equally certain ones (p-values
     # underflow to 0) the one with fewer parameters wins ties.
     return CandidateScore(label, k, F, p, -(drop - k * math.log(m)), Jp, fitted)
@@ -372,7 +372,7 @@ def try_candidate(
     ssr_new = _ssr(new, split, res)
     dof_new = max(m - new_res.n_params, 1)
     F_fit = ((ssr_old - ssr_new) / k) / max(ssr_new / dof_new, 1e-300)
-    p_fit = f_survival(F_fit, k, dof_new) if F_fit > 0 else 1.0
+    p_fit = f_sf(F_fit, k, dof_new) if F_fit > 0 else 1.0
     d_bic = m * math.log(max(ssr_new, 1e-300) / max(ssr_old, 1e-300)) + k * math.log(m)
     # Same weights on both sides (the refit's noise estimate is smaller).
     current_hold = holdout_score(model, split.test, split.cond_hold, res)

@@ -1,4 +1,5 @@
-"""Test statistics of the diagnosis: F distribution, weighted sums of squares, structure."""
+"""Test statistics of the diagnosis: weighted sums of squares, structure (the F
+distribution: :mod:`hybrid_pk.distributions`)."""
 
 from __future__ import annotations
 
@@ -17,8 +18,6 @@ from hybrid_pk.effects import Conditions, ExtendedModel
 __all__ = [
     "along_joints",
     "along_joints_text",
-    "f_critical",
-    "f_survival",
     "holdout_score",
     "in_link_1",
     "neighbour_structure",
@@ -36,20 +35,6 @@ def equivalent_angle_error(J: Tensor, r: Tensor, min_lever: float) -> tuple[Tens
     w = (J * J).sum(-1)
     e = (J * r).sum(-1) / w.clamp_min(1e-300)
     return e, w, w > min_lever**2 * w.median()
-
-
-def f_survival(F: float, d1: int, d2: int) -> float:
-    """Survival function of the F distribution (scipy imported on first use: slow)."""
-    from scipy import stats
-
-    return float(stats.f.sf(F, d1, d2))
-
-
-def f_critical(alpha: float, d1: int, d2: int) -> float:
-    """``F`` whose survival probability is ``alpha`` (inverse of :func:`f_survival`)."""
-    from scipy import stats
-
-    return float(stats.f.isf(alpha, d1, d2))
 
 
 def weighted_residual(

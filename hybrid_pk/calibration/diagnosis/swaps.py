@@ -32,10 +32,11 @@ from hybrid_pk.calibration.diagnosis.carryover import Carry, linearise, weakest
 from hybrid_pk.calibration.diagnosis.elimination import eliminate
 from hybrid_pk.calibration.diagnosis.plausibility import implausible_effect, oversized
 from hybrid_pk.calibration.diagnosis.split import Split
-from hybrid_pk.calibration.diagnosis.statistics import f_survival, holdout_score, weighted_ssr
+from hybrid_pk.calibration.diagnosis.statistics import holdout_score, weighted_ssr
 from hybrid_pk.calibration.diagnosis.variants import refit_without, with_effects, without_effect
 from hybrid_pk.calibration.fit import FitResult, fit
 from hybrid_pk.calibration.least_squares import StoppedFit
+from hybrid_pk.distributions import f_sf
 from hybrid_pk.effects import ExtendedModel, make_effect
 
 __all__ = [
@@ -313,7 +314,7 @@ def _evidence(
     F = ((ssr_red - ssr_full) / k) / max(ssr_full / dof, 1e-300)
     return {
         "fit_F": F,
-        "fit_p": f_survival(F, k, dof) if F > 0 else 1.0,
+        "fit_p": f_sf(F, k, dof) if F > 0 else 1.0,
         "threshold": threshold,
         "delta_bic": m * math.log(max(ssr_full, 1e-300) / max(ssr_red, 1e-300)) + k * math.log(m),
         "holdout_score_before": holdout_score(reduced, split.test, split.cond_hold, res),
