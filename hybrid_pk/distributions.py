@@ -3,10 +3,13 @@
 ``scipy.stats`` costs ~0.3 s to import on top of ``scipy.special`` (0.6 s alone on CI's
 two cores), and every ``diagnose`` and ``calibrate`` paid it for a handful of scalar
 quantiles. These are the special functions ``scipy.stats`` evaluates for the same
-quantities (scipy 1.17: the F, chi-square and normal distributions give the same numbers
-to the bit, tests/test_distributions.py); the non-central survival functions are one
-minus the public distribution functions (``scipy.stats`` takes them from a private
-module), accurate to ~1e-16 absolute, which is what a detection power needs.
+quantities (with scipy 1.17 the F, chi-square and normal distributions give the same
+numbers to the bit; tests/test_distributions.py holds them within 1e-13); the non-central
+survival functions are one minus the public distribution functions (``scipy.stats`` takes
+them from a private module), accurate to ~1e-16 absolute, which is what a detection power
+needs. ``f_isf`` inverts the distribution function at ``1 - q``, as ``scipy.stats`` does:
+below ``q`` ~ 1e-16 it returns inf (the diagnosis' levels, alpha over the candidates,
+stay far above).
 
 All arguments and results are floats (scalars).
 """

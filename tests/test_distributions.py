@@ -1,10 +1,12 @@
-"""hybrid_pk.distributions against scipy.stats: the same numbers to the bit where
-scipy.stats evaluates the same special functions, within 1e-12 for the non-central
-survival functions (one minus the distribution function here)."""
+"""hybrid_pk.distributions against scipy.stats: within 1e-13 relative (the same numbers
+to the bit with scipy 1.17, where scipy.stats evaluates the same special functions; the
+tolerance leaves room for a later scipy's rounding), within 1e-12 absolute for the
+non-central survival functions (one minus the distribution function here)."""
 
 from __future__ import annotations
 
 import itertools
+import math
 
 import numpy as np
 import pytest
@@ -18,11 +20,11 @@ XS = [1e-8, 0.1, 1.0, 3.0, 17.5, 250.0]
 
 
 def _same(a: float, b: float) -> bool:
-    return a == b or (np.isnan(a) and np.isnan(b))
+    return a == b or (np.isnan(a) and np.isnan(b)) or math.isclose(a, b, rel_tol=1e-13)
 
 
 @pytest.mark.parametrize(("d1", "d2"), itertools.product(DOFS, DOFS))
-def test_f_matches_scipy_stats_to_the_bit(d1, d2):
+def test_f_matches_scipy_stats(d1, d2):
     for x in XS:
         assert _same(dist.f_sf(x, d1, d2), float(stats.f.sf(x, d1, d2))), (x, d1, d2)
     for q in PROBS:
@@ -30,20 +32,20 @@ def test_f_matches_scipy_stats_to_the_bit(d1, d2):
 
 
 @pytest.mark.parametrize("df", DOFS)
-def test_chi2_matches_scipy_stats_to_the_bit(df):
+def test_chi2_matches_scipy_stats(df):
     for p in PROBS:
         assert _same(dist.chi2_ppf(p, df), float(stats.chi2.ppf(p, df))), (p, df)
         assert _same(dist.chi2_isf(p, df), float(stats.chi2.isf(p, df))), (p, df)
     for x in XS:
         assert _same(dist.chi2_pdf(x, df), float(stats.chi2.pdf(x, df))), (x, df)
-    assert dist.chi2_ppf(0.5, df) == float(stats.chi2.median(df))
+    assert _same(dist.chi2_ppf(0.5, df), float(stats.chi2.median(df)))
 
 
-def test_normal_matches_scipy_stats_to_the_bit():
+def test_normal_matches_scipy_stats():
     for x in [-40.0, -3.0, -1e-9, 0.0, 0.7, 2.5, 6.0, 38.0]:
-        assert dist.norm_sf(x) == float(stats.norm.sf(x)), x
+        assert _same(dist.norm_sf(x), float(stats.norm.sf(x))), x
     for q in PROBS:
-        assert dist.norm_isf(q) == float(stats.norm.isf(q)), q
+        assert _same(dist.norm_isf(q), float(stats.norm.isf(q))), q
 
 
 @pytest.mark.parametrize("df", [1, 3, 6, 12])
