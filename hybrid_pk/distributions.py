@@ -11,7 +11,7 @@ needs. ``f_isf`` inverts the distribution function at ``1 - q``, as ``scipy.stat
 below ``q`` ~ 1e-16 it returns inf (the diagnosis' levels, alpha over the candidates,
 stay far above).
 
-All arguments and results are floats (scalars).
+Scalars in, floats out (``chi2_ppf`` also takes an array of degrees of freedom).
 """
 
 from __future__ import annotations
@@ -42,9 +42,11 @@ def f_isf(q: float, d1: float, d2: float) -> float:
     return float(special.fdtri(d1, d2, 1.0 - q))
 
 
-def chi2_ppf(p: float, df: float) -> float:
-    """Quantile of chi-square(``df``) at probability ``p`` (``p = 0.5``: its median)."""
-    return float(2 * special.gammaincinv(df / 2, p))
+def chi2_ppf(p: float, df: float | np.ndarray) -> float | np.ndarray:
+    """Quantile of chi-square(``df``) at probability ``p`` (``p = 0.5``: its median); an
+    array of degrees of freedom gives an array."""
+    out = 2 * special.gammaincinv(np.asarray(df, dtype=np.float64) / 2, p)
+    return float(out) if np.ndim(out) == 0 else out
 
 
 def chi2_isf(q: float, df: float) -> float:

@@ -55,3 +55,10 @@ def test_noncentral_survival_close_to_scipy_stats(df):
         for d2 in (4, 50, 3000):
             got, want = dist.ncf_sf(x / df, df, d2, nc), float(stats.ncf.sf(x / df, df, d2, nc))
             assert got == pytest.approx(want, abs=1e-12), (x, df, d2, nc)
+
+
+def test_chi2_quantile_of_an_array_of_degrees_of_freedom():
+    df = np.array([3, 6, 9, 300])
+    got = dist.chi2_ppf(0.5, df)
+    assert isinstance(got, np.ndarray)
+    np.testing.assert_allclose(got, stats.chi2.median(df), rtol=1e-13)

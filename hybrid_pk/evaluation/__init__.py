@@ -7,7 +7,7 @@
   repeat;
 - :mod:`~hybrid_pk.evaluation.plots`: figure primitives and error histograms.
 
-The last three import scipy.stats or matplotlib, so they load on first use
+The last three import scipy or matplotlib, so they load on first use
 (``hybrid_pk.evaluation.splits`` works without an import of its own).
 """
 

@@ -32,10 +32,10 @@ import torch
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
-from scipy.stats import chi2
 from torch import Tensor
 
 from hybrid_pk.data.measured import MeasuredData
+from hybrid_pk.distributions import chi2_ppf
 from hybrid_pk.errors import DataError, ShapeError
 from hybrid_pk.geometry import nearest_rotation, quat_to_matrix, so3_log
 
@@ -130,7 +130,7 @@ class Iso9283Result:
             out["sigma_pooled_deg"] = float(np.sqrt(p["ss_deg2"].sum() / dof))
         # robust twin: median over poses of ss_p / median(chi2_k), k = 3 (n_p - 1)
         k = 3 * (p["n"].to_numpy() - 1)
-        out["sigma_robust_mm"] = float(np.sqrt(np.median(p["ss_mm2"] / chi2.median(k))))
+        out["sigma_robust_mm"] = float(np.sqrt(np.median(p["ss_mm2"] / chi2_ppf(0.5, k))))
         out["RP_l_mm_expected_30_cycles"] = expected_rp_mm(out["sigma_robust_mm"])
         return out
 
