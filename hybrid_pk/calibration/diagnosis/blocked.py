@@ -31,6 +31,7 @@ import torch
 from torch import Tensor
 
 from hybrid_pk.calibration.diagnosis.fold_fits import fold_fits, fold_fits_each
+from hybrid_pk.calibration.diagnosis.grams import add_gram, filled
 from hybrid_pk.calibration.problem import ParamBlock, Problem
 from hybrid_pk.calibration.tuning import diagnosis_tuning
 from hybrid_pk.errors import HybridPKError
@@ -135,13 +136,15 @@ def cell_factors(
                     continue
                 for c, sub in enumerate(part[order].split(counts)):
                     if counts[c]:
-                        grams[channel][c] += sub.T @ sub
+                        add_gram(grams[channel][c], sub)
         elif G is not None:
-            G += M.T @ M
+            add_gram(G, M)
         start += n_c
         if factor:
             M = M if lead is None else M[:, :lead]
             R = torch.linalg.qr(M if R is None else torch.cat([R, M], 0), mode="r").R
+    grams = tuple(None if g is None else filled(g) for g in grams)  # lower triangles so far
+    G = None if G is None else filled(G)
     if factor and lead is not None:
         if G is None:
             G = grams[0].sum(0) if grams[1] is None else grams[0].sum(0) + grams[1].sum(0)

@@ -7,7 +7,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["UNSEEN_SHARE", "fold_fit", "fold_fits", "fold_fits_each", "solve_gram"]
+from hybrid_pk.calibration.diagnosis.grams import solve_gram
+
+__all__ = ["UNSEEN_SHARE", "fold_fit", "fold_fits", "fold_fits_each"]
 
 # A frame column the training rows of a block see less than this share of (relative to
 # all rows) belongs to the held-out file alone: re-fitted on the held-out rows. A seen
@@ -86,12 +88,3 @@ def _held_out_fits(train: Tensor, test: Tensor, unseen: Tensor) -> Tensor:
     )
     theta[:, unseen] = solve_gram(test[:, :k, :k][:, unseen][:, :, unseen], g)
     return theta
-
-
-def solve_gram(H: Tensor, g: Tensor) -> Tensor:
-    """Minimum-norm ``-H^+ g`` of a Gram ``H`` (or a batch), equilibrated by its
-    diagonal first."""
-    d = H.diagonal(dim1=-2, dim2=-1).clamp_min(1e-300).rsqrt()
-    A = H * d[..., :, None] * d[..., None, :]
-    y = torch.linalg.lstsq(A, (g * d)[..., None], driver="gelsd")
-    return -d * y.solution[..., 0]
