@@ -11,7 +11,11 @@ The policy, in the order it is decided:
    fits and the diagnosis (``FIT_THREADS``: :func:`fit_work`); never more than torch's
    setting when the call began (``OMP_NUM_THREADS=1`` or ``torch.set_num_threads(1)``
    keep one thread);
-3. inter-op threads: one (nothing here forks torch work in parallel);
+3. inter-op threads: one (nothing here forks torch work in parallel); numpy's and
+   scipy's BLAS (their own OpenBLAS, which threads large products on every core and
+   spins while it waits) get the same count as torch for the duration of a library
+   call (:func:`work_threads`, through ``threadpoolctl``), and for the process from
+   :func:`configure` where they are loaded by then;
 4. OpenMP threads that wait for work sleep instead of spinning (``OMP_WAIT_POLICY=
    PASSIVE``, set by :func:`quiet_waiting` before torch loads OpenMP, unless the user
    set it): a spinning thread takes a core the other jobs need. Measured on 2 shared
@@ -145,6 +149,14 @@ def _set(n: int) -> None:
     torch.set_num_threads(n)
 
 
+def _blas_limits(n: int):
+    """numpy's and scipy's BLAS libraries loaded so far held to ``n`` threads (a
+    ``threadpoolctl`` limiter: a context manager, or in force until restored)."""
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=n, user_api="blas")
+
+
 def configure(threads: str | int | None = None) -> int | str:
     """Apply the policy for a whole process (the command line): ``threads`` as given
     to ``--threads`` (None: ``HYBRID_PK_THREADS``, else every usable core until a
@@ -162,6 +174,7 @@ def configure(threads: str | int | None = None) -> int | str:
     # auto never raises torch's setting (OMP_NUM_THREADS=1 keeps one thread)
     n = choice if isinstance(choice, int) else min(threads_for(None), torch.get_num_threads())
     _set(n)
+    _blas_limits(n)  # for the process; each library call sets its own again
     return n
 
 
@@ -184,7 +197,8 @@ def work_threads(rows: int | None, at_most: int | None = None) -> Iterator[int]:
     try:
         if n != previous:
             _set(n)
-        yield n
+        with _blas_limits(n):  # restored after, as torch's
+            yield n
     finally:
         _state["depth"] -= 1
         if torch.get_num_threads() != previous:

@@ -179,3 +179,30 @@ def test_waiting_threads_sleep_unless_the_user_chose():
     assert _waiting_policy({}) == "PASSIVE"
     assert _waiting_policy({"OMP_WAIT_POLICY": "ACTIVE"}) == "ACTIVE"
     assert _waiting_policy({threads.ENV: "torch"}) == "unset"
+
+
+def _blas_threads() -> set[int]:
+    from threadpoolctl import threadpool_info
+
+    return {p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"}
+
+
+def test_numpy_and_scipy_blas_follow_the_policy_in_a_call(fresh):
+    """numpy's and scipy's own BLAS (OpenBLAS, which threads a large product on every
+    core) take the call's count with torch (a fit: one thread) and get theirs back after."""
+    import scipy.linalg.blas  # noqa: F401  (loaded: the diagnosis' Gram updates use it)
+
+    fresh.setattr(threads, "usable_cores", lambda: 2)
+    torch.set_num_threads(2)
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=2, user_api="blas"):  # the caller's, whatever this machine
+        before = _blas_threads()
+        if not before or before == {1}:
+            pytest.skip("no BLAS library here that takes more than one thread")
+        with threads.work_threads(10 * threads.ROWS_PER_THREAD, at_most=threads.FIT_THREADS):
+            assert _blas_threads() == {1}
+        assert _blas_threads() == before
+        fresh.setenv(threads.ENV, "torch")  # torch's own setting: nothing is touched
+        with threads.work_threads(500):
+            assert _blas_threads() == before
