@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from scipy.linalg.blas import dsyrk
 from torch import Tensor
 
 __all__ = ["add_gram", "filled", "solve_gram"]
@@ -24,6 +23,10 @@ def add_gram(G: Tensor, rows: Tensor) -> None:
     in place; the upper triangle is left for :func:`filled`."""
     rows = rows.detach()
     if G.dtype == rows.dtype == torch.float64 and G.device.type == rows.device.type == "cpu":
+        # scipy.linalg (~0.3 s to import) on first use: commands that import this
+        # package without building a Gram (ik, export, evaluate) do not load it
+        from scipy.linalg.blas import dsyrk
+
         # C-ordered arrays read as their Fortran-ordered transposes: the update of the
         # upper triangle of (rows^T)(rows^T)^T there is the lower one of G here
         c = G.numpy().T
